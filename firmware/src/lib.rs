@@ -1,0 +1,2 @@
+//! Firmware.
+#![cfg_attr(not(feature = "std"), no_std)]
