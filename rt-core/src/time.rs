@@ -101,7 +101,15 @@ mod tests {
     #[test]
     fn extend_round_trips_within_window() {
         let base = McuClock(0x7_1234_5678);
-        for d in [-(1i64 << 31) + 1, -1_000_000, -1, 0, 1, 1_000_000, (1i64 << 31) - 1] {
+        for d in [
+            -(1i64 << 31) + 1,
+            -1_000_000,
+            -1,
+            0,
+            1,
+            1_000_000,
+            (1i64 << 31) - 1,
+        ] {
             let truth = McuClock((base.0 as i64 + d) as u64);
             assert_eq!(base.extend(truth.wire()), truth, "delta {d}");
         }

@@ -68,7 +68,10 @@ pub fn find_block(buf: &[u8]) -> Frame {
     if crc != got {
         return bad(buf);
     }
-    Frame::Block { len, seq: seq & MESSAGE_SEQ_MASK }
+    Frame::Block {
+        len,
+        seq: seq & MESSAGE_SEQ_MASK,
+    }
 }
 
 /// Drop through the next sync byte after position 0 (or everything if there is none yet).

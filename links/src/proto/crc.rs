@@ -31,7 +31,11 @@ mod tests {
         for &b in data {
             crc ^= b as u16;
             for _ in 0..8 {
-                crc = if crc & 1 != 0 { (crc >> 1) ^ 0x8408 } else { crc >> 1 };
+                crc = if crc & 1 != 0 {
+                    (crc >> 1) ^ 0x8408
+                } else {
+                    crc >> 1
+                };
             }
         }
         crc

@@ -130,7 +130,9 @@ impl<'a> Iterator for Params<'a> {
     fn next(&mut self) -> Option<Self::Item> {
         let tok = self.rest.next()?;
         Some(match tok.split_once('=') {
-            Some((name, spec)) if !name.is_empty() => ParamType::parse(spec).map(|t| (name, t)).ok_or(FormatError::BadFormat),
+            Some((name, spec)) if !name.is_empty() => ParamType::parse(spec)
+                .map(|t| (name, t))
+                .ok_or(FormatError::BadFormat),
             _ => Err(FormatError::BadFormat),
         })
     }
@@ -138,7 +140,12 @@ impl<'a> Iterator for Params<'a> {
 
 /// Writes message `id` with `args` (in the order of `format`'s parameters) into `out`.
 /// Returns the bytes written.
-pub fn encode_message(id: u32, format: &str, args: &[Value<'_>], out: &mut [u8]) -> Result<usize, FormatError> {
+pub fn encode_message(
+    id: u32,
+    format: &str,
+    args: &[Value<'_>],
+    out: &mut [u8],
+) -> Result<usize, FormatError> {
     let mut pos = vlq::encode(id, out).ok_or(FormatError::NoSpace)?;
     let mut args_iter = args.iter();
     for param in Params::of(format) {
@@ -167,7 +174,11 @@ pub fn encode_message(id: u32, format: &str, args: &[Value<'_>], out: &mut [u8])
 
 /// Decodes the parameters of one message of `format` from `data` (which starts right after
 /// the message id) into `out`. Returns `(parameter count, bytes consumed)`.
-pub fn decode_params<'d>(format: &str, data: &'d [u8], out: &mut [Value<'d>]) -> Result<(usize, usize), FormatError> {
+pub fn decode_params<'d>(
+    format: &str,
+    data: &'d [u8],
+    out: &mut [Value<'d>],
+) -> Result<(usize, usize), FormatError> {
     let mut pos = 0;
     let mut count = 0;
     for param in Params::of(format) {
@@ -233,10 +244,19 @@ mod tests {
         let mut out = [0u8; 64];
         let n = encode_message(0, fmt, &[Value::Int(40), Value::Bytes(b"abc")], &mut out).unwrap();
         assert_eq!(&out[..n], &[0x00, 0x28, 0x03, b'a', b'b', b'c']);
-        assert_eq!(encode_message(0, fmt, &[Value::Int(40)], &mut out), Err(FormatError::ArgMismatch));
-        assert_eq!(encode_message(0, fmt, &[Value::Int(1), Value::Int(2)], &mut out), Err(FormatError::ArgMismatch));
+        assert_eq!(
+            encode_message(0, fmt, &[Value::Int(40)], &mut out),
+            Err(FormatError::ArgMismatch)
+        );
+        assert_eq!(
+            encode_message(0, fmt, &[Value::Int(1), Value::Int(2)], &mut out),
+            Err(FormatError::ArgMismatch)
+        );
         let mut vals = [Value::Int(0); 2];
-        assert_eq!(decode_params(fmt, &[0x28, 0x05, b'a'], &mut vals), Err(FormatError::Truncated));
+        assert_eq!(
+            decode_params(fmt, &[0x28, 0x05, b'a'], &mut vals),
+            Err(FormatError::Truncated)
+        );
     }
 
     proptest! {

@@ -8,7 +8,9 @@ pub mod crc;
 pub mod format;
 pub mod vlq;
 
-pub use block::{encode_block, find_block, Frame, MESSAGE_MAX, MESSAGE_MIN, MESSAGE_PAYLOAD_MAX, MESSAGE_SYNC};
+pub use block::{
+    encode_block, find_block, Frame, MESSAGE_MAX, MESSAGE_MIN, MESSAGE_PAYLOAD_MAX, MESSAGE_SYNC,
+};
 pub use format::{decode_params, encode_message, FormatError, ParamType, Params, Value};
 
 /// Message id of `identify_response offset=%u data=%.*s` (fixed in every build).
