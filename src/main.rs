@@ -1,1 +1,61 @@
-fn main() {}
+//! `cadence`: the host binary. Subcommands:
+//! - `print FILE.gcode [--config printer.cfg]`: plan, compress and stream a print to the MCUs
+//!   (the built-in simulated printer when no config is given), or with `--batch OUT.bin`
+//!   write the exact wire stream to a file without any MCU.
+//! - `decode OUT.bin`: print a wire stream one message a line.
+//! - `mcu …` (hidden): the simulated MCU (the firmware's Linux-process target), for when the
+//!   separate `cadence-mcu` executable was not built.
+
+mod decode;
+mod machine;
+mod print;
+mod simmcu;
+mod sink;
+
+use clap::{Parser, Subcommand};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(Debug, Parser)]
+#[command(name = "cadence", version, about = "Deterministic real-time motion kernel for Klipper-protocol MCUs")]
+struct Cli {
+    #[command(subcommand)]
+    command: Cmd,
+}
+
+#[derive(Debug, Subcommand)]
+enum Cmd {
+    /// Print a G-code file on the configured printer (default: the built-in simulated printer).
+    Print(print::PrintArgs),
+    /// Decode a wire stream written by `print --batch` into one message per line.
+    Decode(decode::DecodeArgs),
+    /// Run the simulated MCU (same code as the `cadence-mcu` executable).
+    #[command(hide = true, disable_help_flag = true)]
+    Mcu {
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Cmd::Print(args) => print::run(&args),
+        Cmd::Decode(args) => decode::run(&args),
+        Cmd::Mcu { args } => {
+            let argv = std::iter::once("cadence-mcu".to_string()).chain(args);
+            let code = firmware::sim::main_with_args(argv);
+            return ExitCode::from(code.clamp(0, 255) as u8);
+        }
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("cadence: error: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// Paths the CLI takes.
+pub type FilePath = PathBuf;

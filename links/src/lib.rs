@@ -3,8 +3,28 @@
 //! Layers (bottom up):
 //! - [`proto`] (`no_std`, no allocation, shared with the firmware): CRC-16, VLQ integers,
 //!   message blocks, message format strings and parameter encode/decode.
-//! - with `std`: the data dictionary, transports (pty/serial/in-memory), the reliable
-//!   transport (ack/nak/retransmit), clock sync and the per-MCU IO thread.
+//! - with `std`:
+//!   - [`dict`]: the MCU's data dictionary (ids, formats, enumerations, constants), encoding
+//!     commands by name into fixed-size [`dict::Cmd`]s and decoding payloads;
+//!   - [`transport`]: the byte pipe to an MCU (pty, serial port, in-memory, fault-injecting);
+//!   - [`serialqueue`]: the reliable transport state machine (sequence numbers, ack/nak,
+//!     retransmit, flow control, scheduling by MCU clock), time passed in as an argument;
+//!   - [`clocksync`]: the regression from system time to MCU clock, published lock-free;
+//!   - [`mcu`]: the per-MCU IO thread tying them together, and its handle [`mcu::McuLink`].
+//!
+//! Guarantees: nothing in this crate panics on bytes from the wire; every wait in [`mcu`] is
+//! bounded; the IO thread's steady-state loop allocates only to decode rare responses.
 #![cfg_attr(not(feature = "std"), no_std)]
 
 pub mod proto;
+
+#[cfg(feature = "std")]
+pub mod clocksync;
+#[cfg(feature = "std")]
+pub mod dict;
+#[cfg(feature = "std")]
+pub mod mcu;
+#[cfg(feature = "std")]
+pub mod serialqueue;
+#[cfg(feature = "std")]
+pub mod transport;

@@ -1,1 +1,17 @@
-//! printer.cfg parsing.
+//! Klipper-format printer.cfg → validated, typed configuration for Cadence.
+//!
+//! Layers:
+//! - [`ini`]: the generic config-file reader (sections, options, continuation lines, comments,
+//!   includes, SAVE_CONFIG block); every value keeps its file and line.
+//! - [`printer`]: the typed config ([`PrinterConfig`]) with Klipper's option names, defaults and
+//!   bounds; every option must be consumed, unknown sections are errors unless listed as
+//!   accepted-and-ignored (then warnings).
+//!
+//! Guarantees: no input makes these parsers panic; every error names the file, the line when
+//! there is one, the section and the option.
+#![deny(unsafe_code)]
+
+pub mod ini;
+pub mod printer;
+
+pub use printer::{builtin_simulated, load, parse_str, ConfigError, PrinterConfig, SIMULATED_PRINTER_CFG};

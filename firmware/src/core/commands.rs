@@ -1,0 +1,210 @@
+//! The message table, declared once: the dispatcher and the data dictionary both come from it.
+//!
+//! A message's id is its position in [`MESSAGES`]; ids are shared by commands (host → MCU)
+//! and responses (MCU → host), as in Klipper. Ids 0 (`identify_response`) and 1 (`identify`)
+//! are fixed by the protocol; a test checks it. The host never hard-codes any other id: it
+//! reads the table back from the dictionary. Response ids are found at compile time by
+//! [`message_id`], so a response missing from the table is a build error, not a runtime one.
+
+use links::proto::{FMT_IDENTIFY, FMT_IDENTIFY_RESPONSE};
+
+/// The handler of a command.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Cmd {
+    /// `identify`: serve a chunk of the dictionary.
+    Identify,
+    /// `get_uptime`.
+    GetUptime,
+    /// `get_clock`.
+    GetClock,
+    /// `get_config`.
+    GetConfig,
+    /// `allocate_oids`.
+    AllocateOids,
+    /// `finalize_config`.
+    FinalizeConfig,
+    /// `emergency_stop`.
+    EmergencyStop,
+    /// `clear_shutdown`.
+    ClearShutdown,
+    /// `config_stepper`.
+    ConfigStepper,
+    /// `queue_step`.
+    QueueStep,
+    /// `set_next_step_dir`.
+    SetNextStepDir,
+    /// `reset_step_clock`.
+    ResetStepClock,
+    /// `stepper_get_position`.
+    StepperGetPosition,
+}
+
+/// Whether a table entry is a command or a response.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Kind {
+    /// Host → MCU. `in_shutdown`: still served after a shutdown (others get `is_shutdown`).
+    Command { handler: Cmd, in_shutdown: bool },
+    /// MCU → host.
+    Response,
+}
+
+/// One message: its Klipper format string and its kind.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct MessageDef {
+    /// `name param=%x ...`
+    pub format: &'static str,
+    /// Command (with handler) or response.
+    pub kind: Kind,
+}
+
+const fn cmd(format: &'static str, handler: Cmd, in_shutdown: bool) -> MessageDef {
+    MessageDef {
+        format,
+        kind: Kind::Command { handler, in_shutdown },
+    }
+}
+
+const fn resp(format: &'static str) -> MessageDef {
+    MessageDef {
+        format,
+        kind: Kind::Response,
+    }
+}
+
+/// `uptime` response.
+pub const FMT_UPTIME: &str = "uptime high=%u clock=%u";
+/// `clock` response.
+pub const FMT_CLOCK: &str = "clock clock=%u";
+/// `config` response.
+pub const FMT_CONFIG: &str = "config is_config=%c crc=%u is_shutdown=%c move_count=%hu";
+/// `shutdown` response (sent once, when the MCU shuts down).
+pub const FMT_SHUTDOWN: &str = "shutdown clock=%u static_string_id=%hu";
+/// `is_shutdown` response (answer to a command that needs a live MCU).
+pub const FMT_IS_SHUTDOWN: &str = "is_shutdown static_string_id=%hu";
+/// `starting` response.
+pub const FMT_STARTING: &str = "starting";
+/// Periodic `stats` response.
+pub const FMT_STATS: &str = "stats count=%u sum=%u sumsq=%u";
+/// `stepper_position` response.
+pub const FMT_STEPPER_POSITION: &str = "stepper_position oid=%c pos=%i";
+
+/// Every message the firmware knows; the index is the message id.
+pub const MESSAGES: &[MessageDef] = &[
+    resp(FMT_IDENTIFY_RESPONSE),
+    cmd(FMT_IDENTIFY, Cmd::Identify, true),
+    cmd("get_uptime", Cmd::GetUptime, true),
+    cmd("get_clock", Cmd::GetClock, true),
+    cmd("get_config", Cmd::GetConfig, true),
+    cmd("allocate_oids count=%c", Cmd::AllocateOids, false),
+    cmd("finalize_config crc=%u", Cmd::FinalizeConfig, false),
+    cmd("emergency_stop", Cmd::EmergencyStop, true),
+    cmd("clear_shutdown", Cmd::ClearShutdown, true),
+    cmd(
+        "config_stepper oid=%c step_pin=%c dir_pin=%c invert_step=%c step_pulse_ticks=%u",
+        Cmd::ConfigStepper,
+        false,
+    ),
+    cmd("queue_step oid=%c interval=%u count=%hu add=%hi", Cmd::QueueStep, false),
+    cmd("set_next_step_dir oid=%c dir=%c", Cmd::SetNextStepDir, false),
+    cmd("reset_step_clock oid=%c clock=%u", Cmd::ResetStepClock, false),
+    cmd("stepper_get_position oid=%c", Cmd::StepperGetPosition, true),
+    resp(FMT_UPTIME),
+    resp(FMT_CLOCK),
+    resp(FMT_CONFIG),
+    resp(FMT_SHUTDOWN),
+    resp(FMT_IS_SHUTDOWN),
+    resp(FMT_STARTING),
+    resp(FMT_STATS),
+    resp(FMT_STEPPER_POSITION),
+];
+
+/// Most parameters of any message in the table (checked by a test).
+pub const MAX_PARAMS: usize = 6;
+
+/// The id of the message whose format is exactly `format`. Evaluated at compile time for the
+/// response ids below: an unknown format stops the build.
+pub const fn message_id(format: &str) -> u32 {
+    let mut i = 0;
+    while i < MESSAGES.len() {
+        if str_eq(MESSAGES[i].format, format) {
+            return i as u32;
+        }
+        i += 1;
+    }
+    panic!("message format not in MESSAGES")
+}
+
+const fn str_eq(a: &str, b: &str) -> bool {
+    let (a, b) = (a.as_bytes(), b.as_bytes());
+    if a.len() != b.len() {
+        return false;
+    }
+    let mut i = 0;
+    while i < a.len() {
+        if a[i] != b[i] {
+            return false;
+        }
+        i += 1;
+    }
+    true
+}
+
+/// Id of `identify_response`.
+pub const ID_IDENTIFY_RESPONSE: u32 = message_id(FMT_IDENTIFY_RESPONSE);
+/// Id of `uptime`.
+pub const ID_UPTIME: u32 = message_id(FMT_UPTIME);
+/// Id of `clock`.
+pub const ID_CLOCK: u32 = message_id(FMT_CLOCK);
+/// Id of `config`.
+pub const ID_CONFIG: u32 = message_id(FMT_CONFIG);
+/// Id of `shutdown`.
+pub const ID_SHUTDOWN: u32 = message_id(FMT_SHUTDOWN);
+/// Id of `is_shutdown`.
+pub const ID_IS_SHUTDOWN: u32 = message_id(FMT_IS_SHUTDOWN);
+/// Id of `stats`.
+pub const ID_STATS: u32 = message_id(FMT_STATS);
+/// Id of `stepper_position`.
+pub const ID_STEPPER_POSITION: u32 = message_id(FMT_STEPPER_POSITION);
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use links::proto::format::{message_name, Params};
+
+    #[test]
+    fn fixed_ids() {
+        assert_eq!(MESSAGES[0].format, FMT_IDENTIFY_RESPONSE);
+        assert_eq!(MESSAGES[0].kind, Kind::Response);
+        assert_eq!(MESSAGES[1].format, FMT_IDENTIFY);
+        assert_eq!(ID_IDENTIFY_RESPONSE, links::proto::ID_IDENTIFY_RESPONSE);
+        assert_eq!(message_id(FMT_IDENTIFY), links::proto::ID_IDENTIFY);
+    }
+
+    #[test]
+    fn formats_parse_and_names_are_unique() {
+        for (i, m) in MESSAGES.iter().enumerate() {
+            let n = Params::of(m.format).count();
+            assert!(n <= MAX_PARAMS, "{}", m.format);
+            assert!(Params::of(m.format).all(|p| p.is_ok()), "{}", m.format);
+            let name = message_name(m.format);
+            assert!(
+                MESSAGES[i + 1..].iter().all(|o| message_name(o.format) != name),
+                "duplicate {name}"
+            );
+        }
+    }
+
+    #[test]
+    fn handlers_are_unique() {
+        let handlers: Vec<Cmd> = MESSAGES
+            .iter()
+            .filter_map(|m| match m.kind {
+                Kind::Command { handler, .. } => Some(handler),
+                Kind::Response => None,
+            })
+            .collect();
+        for (i, h) in handlers.iter().enumerate() {
+            assert!(!handlers[i + 1..].contains(h), "{h:?} twice");
+        }
+    }
+}

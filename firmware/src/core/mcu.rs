@@ -1,0 +1,279 @@
+//! The MCU state machine: link, scheduler, oid objects, shutdown and stats, tied together.
+//!
+//! Time is an argument: the platform calls [`Mcu::receive`] with incoming bytes and
+//! [`Mcu::run_timers`] when [`Mcu::next_wake`] has come, each with the current 32-bit clock.
+//! `receive` runs due timers first, so a stepper whose last step is due counts as idle when the
+//! next command arrives. The 64-bit uptime is rebuilt from the 32-bit `now` values: the high
+//! word grows each time `now` wraps, which is seen because the stats timer guarantees a call at
+//! least every 2^30 ticks (less than a quarter of the wrap period).
+//!
+//! Every fault goes through [`Mcu::shutdown`]: it stops all steppers (timers disarmed, queued
+//! moves dropped), reports `shutdown clock static_string_id` once, and from then on commands
+//! not marked `in_shutdown` in the table are answered with `is_shutdown` until
+//! `clear_shutdown`.
+
+use super::board::Board;
+use super::commands::{FMT_SHUTDOWN, FMT_STATS, ID_SHUTDOWN, ID_STATS};
+use super::constants::{static_string_id, STATS_SUMSQ_BASE};
+use super::link::Link;
+use super::moves::MovePool;
+use super::sched::Scheduler;
+use super::stepper::Stepper;
+use links::proto::block::MESSAGE_PAYLOAD_MAX;
+use links::proto::format::{encode_message, Value};
+use rt_core::WireClock;
+
+/// Start-up parameters of the core.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct McuConfig {
+    /// Ticks per second of the MCU clock (the dictionary's `CLOCK_FREQ`).
+    pub clock_freq: u32,
+    /// Moves the pool may hold at once (clamped to the pool's capacity); reported in `config`.
+    pub move_count: u16,
+}
+
+/// What an oid refers to.
+#[derive(Debug, Clone)]
+pub(super) enum Object {
+    /// Allocated, not configured yet.
+    Free,
+    /// A stepper.
+    Stepper(Stepper),
+}
+
+/// The periodic `stats` accumulator.
+#[derive(Debug, Clone, Copy)]
+struct Stats {
+    count: u32,
+    sum: u32,
+    sumsq: u32,
+    next_report: WireClock,
+    period: u32,
+}
+
+/// The firmware core for board `B`, with `OIDS` oid slots and a pool of `MOVES` moves.
+pub struct Mcu<B: Board, const OIDS: usize, const MOVES: usize> {
+    pub(super) board: B,
+    pub(super) dictionary: &'static [u8],
+    pub(super) link: Link,
+    pub(super) sched: Scheduler<OIDS>,
+    pub(super) pool: MovePool<MOVES>,
+    pub(super) objects: [Object; OIDS],
+    /// `allocate_oids` count, once allocated.
+    pub(super) oid_count: Option<u8>,
+    pub(super) is_config: bool,
+    pub(super) config_crc: u32,
+    /// The reason of the current shutdown.
+    pub(super) shutdown_reason: Option<&'static str>,
+    uptime_high: u32,
+    last_now: WireClock,
+    stats: Stats,
+}
+
+impl<B: Board, const OIDS: usize, const MOVES: usize> ::core::fmt::Debug for Mcu<B, OIDS, MOVES> {
+    fn fmt(&self, f: &mut ::core::fmt::Formatter<'_>) -> ::core::fmt::Result {
+        f.debug_struct("Mcu")
+            .field("dictionary_len", &self.dictionary.len())
+            .field("rx_seq", &self.link.rx_seq())
+            .field("oid_count", &self.oid_count)
+            .field("is_config", &self.is_config)
+            .field("config_crc", &self.config_crc)
+            .field("shutdown_reason", &self.shutdown_reason)
+            .field("moves_used", &self.pool.used())
+            .field("move_count", &self.pool.limit())
+            .field("armed_timers", &self.sched.armed_count())
+            .finish_non_exhaustive()
+    }
+}
+
+impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
+    /// A powered-up MCU at clock `now`, serving `dictionary` (the zlib-compressed JSON) through
+    /// `identify`.
+    pub fn new(board: B, dictionary: &'static [u8], config: McuConfig, now: WireClock) -> Self {
+        // Report at least every 2^30 ticks so the uptime high word never misses a wrap.
+        let period = (config.clock_freq as u64 * 5).clamp(1, 1 << 30) as u32;
+        Mcu {
+            board,
+            dictionary,
+            link: Link::new(),
+            sched: Scheduler::new(),
+            pool: MovePool::new(config.move_count as usize),
+            objects: [const { Object::Free }; OIDS],
+            oid_count: None,
+            is_config: false,
+            config_crc: 0,
+            shutdown_reason: None,
+            uptime_high: 0,
+            last_now: now,
+            stats: Stats {
+                count: 0,
+                sum: 0,
+                sumsq: 0,
+                next_report: now.add(period),
+                period,
+            },
+        }
+    }
+
+    /// The board.
+    pub fn board(&self) -> &B {
+        &self.board
+    }
+
+    /// The board, mutably (e.g. to tell a simulated board the current time).
+    pub fn board_mut(&mut self) -> &mut B {
+        &mut self.board
+    }
+
+    /// The reason of the current shutdown, if shut down.
+    pub fn shutdown_reason(&self) -> Option<&'static str> {
+        self.shutdown_reason
+    }
+
+    /// True after `finalize_config`.
+    pub fn is_config(&self) -> bool {
+        self.is_config
+    }
+
+    /// The `move_count` reported in `config`.
+    pub fn move_count(&self) -> u16 {
+        self.pool.limit() as u16
+    }
+
+    /// Net executed steps of stepper `oid`.
+    pub fn stepper_position(&self, oid: u8) -> Option<i32> {
+        match self.objects.get(oid as usize) {
+            Some(Object::Stepper(s)) => Some(s.position()),
+            _ => None,
+        }
+    }
+
+    /// The 64-bit clock of `now` (uptime): high word counted from observed wraps.
+    pub fn uptime(&self) -> u64 {
+        ((self.uptime_high as u64) << 32) | self.last_now.0 as u64
+    }
+
+    /// When [`Mcu::run_timers`] must run next (a step timer or the stats report).
+    pub fn next_wake(&self) -> WireClock {
+        match self.sched.next_wake() {
+            Some(t) if t.is_before(self.stats.next_report) => t,
+            _ => self.stats.next_report,
+        }
+    }
+
+    /// Feeds bytes from the host received at `now`: runs due timers, then dispatches every
+    /// complete block, answering and acking.
+    pub fn receive(&mut self, now: WireClock, mut data: &[u8]) {
+        self.run_due(now);
+        let mut payload = [0u8; MESSAGE_PAYLOAD_MAX];
+        while !data.is_empty() {
+            let n = self.link.push_rx(data);
+            data = &data[n..];
+            while let Some(len) = self.link.next_block(&mut payload, &mut self.board) {
+                self.dispatch(&payload[..len], now);
+                self.link.ack(&mut self.board);
+            }
+        }
+        self.link.flush(&mut self.board);
+    }
+
+    /// Runs every timer due at `now` (steps, stats) and sends what they produced.
+    pub fn run_timers(&mut self, now: WireClock) {
+        self.run_due(now);
+        self.link.flush(&mut self.board);
+    }
+
+    /// Accounts one iteration of the platform's main loop that was busy for `busy_ticks`
+    /// (reported in `stats`: count, sum of ticks, sum of squares in units of
+    /// `STATS_SUMSQ_BASE`, all saturating).
+    pub fn record_loop(&mut self, busy_ticks: u32) {
+        let s = &mut self.stats;
+        s.count = s.count.saturating_add(1);
+        s.sum = s.sum.saturating_add(busy_ticks);
+        let sq = (busy_ticks as u64 * busy_ticks as u64).div_ceil(STATS_SUMSQ_BASE as u64);
+        s.sumsq = s.sumsq.saturating_add(u32::try_from(sq).unwrap_or(u32::MAX));
+    }
+
+    fn observe(&mut self, now: WireClock) {
+        if now.0 < self.last_now.0 {
+            self.uptime_high = self.uptime_high.wrapping_add(1);
+        }
+        self.last_now = now;
+    }
+
+    fn run_due(&mut self, now: WireClock) {
+        self.observe(now);
+        while let Some((oid, at)) = self.sched.pop_due(now) {
+            self.timer_event(oid, at);
+        }
+        if !now.is_before(self.stats.next_report) {
+            self.report_stats(now);
+        }
+    }
+
+    /// The timer of `oid` fired for the event scheduled at `at`.
+    fn timer_event(&mut self, oid: u8, at: WireClock) {
+        if let Some(Object::Stepper(s)) = self.objects.get_mut(oid as usize) {
+            if let Some(taken) = s.step_event(&mut self.pool, at) {
+                self.board.step(oid, taken.dir, at);
+                if let Some(next) = taken.next {
+                    self.sched.arm(oid, next);
+                }
+            }
+        }
+    }
+
+    fn report_stats(&mut self, now: WireClock) {
+        let s = self.stats;
+        let args = [
+            Value::Int(s.count as i64),
+            Value::Int(s.sum as i64),
+            Value::Int(s.sumsq as i64),
+        ];
+        self.respond(ID_STATS, FMT_STATS, &args);
+        let mut next = s.next_report.add(s.period);
+        if !now.is_before(next) {
+            next = now.add(s.period); // we slept through whole periods: restart from now
+        }
+        self.stats = Stats {
+            count: 0,
+            sum: 0,
+            sumsq: 0,
+            next_report: next,
+            period: s.period,
+        };
+    }
+
+    /// Encodes one response and queues it for the host.
+    pub(super) fn respond(&mut self, id: u32, format: &str, args: &[Value<'_>]) {
+        let mut msg = [0u8; MESSAGE_PAYLOAD_MAX];
+        match encode_message(id, format, args, &mut msg) {
+            Ok(n) => self.link.send(&msg[..n], &mut self.board),
+            Err(_) => debug_assert!(false, "response {format} does not encode"),
+        }
+    }
+
+    /// The one shutdown path: stops every stepper and reports `reason` (the first reason wins;
+    /// later calls while shut down do nothing). `reason` should be one of
+    /// [`super::constants::SHUTDOWN_REASONS`].
+    pub fn shutdown(&mut self, reason: &'static str, now: WireClock) {
+        if self.shutdown_reason.is_some() {
+            return;
+        }
+        self.shutdown_reason = Some(reason);
+        for obj in self.objects.iter_mut() {
+            if let Object::Stepper(s) = obj {
+                s.stop();
+            }
+        }
+        self.sched.clear();
+        self.pool.clear();
+        let id = static_string_id(reason);
+        self.board.shutdown(now, id, reason);
+        self.respond(ID_SHUTDOWN, FMT_SHUTDOWN, &[Value::Int(now.0 as i64), Value::Int(id as i64)]);
+    }
+}
+
+#[cfg(test)]
+#[path = "mcu_tests.rs"]
+mod tests;

@@ -1,0 +1,101 @@
+//! The data dictionary: the Klipper JSON built from the core's tables, zlib-compressed.
+//!
+//! `commands` and `responses` map each format string of [`MESSAGES`] to its id (its position);
+//! `enumerations` holds `pin` (ports A..L as ranges `"PA0": [0, 8]`, `"PB0": [8, 8]`, …) and
+//! `static_string_id` (every shutdown reason → its id); `config` holds `CLOCK_FREQ` plus
+//! [`CONSTANTS`]. The host reads everything from here and never hard-codes ids beyond 0 and 1.
+
+use crate::core::commands::{Kind, MESSAGES};
+use crate::core::constants::{ConstValue, CONSTANTS, PINS_PER_PORT, PIN_PORTS, SHUTDOWN_REASONS};
+use flate2::write::ZlibEncoder;
+use flate2::Compression;
+use serde_json::{json, Map, Value};
+use std::io::Write;
+
+/// The dictionary as JSON, for an MCU clocked at `clock_freq` Hz.
+pub fn dictionary_json(clock_freq: u32) -> Value {
+    let mut commands = Map::new();
+    let mut responses = Map::new();
+    for (id, m) in MESSAGES.iter().enumerate() {
+        let map = match m.kind {
+            Kind::Command { .. } => &mut commands,
+            Kind::Response => &mut responses,
+        };
+        map.insert(m.format.to_owned(), json!(id));
+    }
+    let mut pins = Map::new();
+    for (i, port) in PIN_PORTS.iter().enumerate() {
+        let first = i as u32 * PINS_PER_PORT as u32;
+        pins.insert(format!("P{}0", *port as char), json!([first, PINS_PER_PORT]));
+    }
+    let reasons: Map<String, Value> = SHUTDOWN_REASONS
+        .iter()
+        .enumerate()
+        .map(|(id, r)| ((*r).to_owned(), json!(id)))
+        .collect();
+    let mut config = Map::new();
+    config.insert("CLOCK_FREQ".into(), json!(clock_freq));
+    for (name, value) in CONSTANTS {
+        let v = match *value {
+            ConstValue::Int(i) => json!(i),
+            ConstValue::Str(s) => json!(s),
+        };
+        config.insert((*name).to_owned(), v);
+    }
+    json!({
+        "app": "Cadence",
+        "license": "MIT OR Apache-2.0",
+        "version": concat!("cadence-", env!("CARGO_PKG_VERSION")),
+        "build_versions": "rustc",
+        "commands": commands,
+        "responses": responses,
+        "output": {},
+        "enumerations": { "pin": pins, "static_string_id": reasons },
+        "config": config,
+    })
+}
+
+/// The zlib-compressed dictionary JSON, as served through `identify`.
+pub fn dictionary_bytes(clock_freq: u32) -> Vec<u8> {
+    let json = dictionary_json(clock_freq).to_string();
+    let mut enc = ZlibEncoder::new(Vec::new(), Compression::best());
+    // Writing into a Vec cannot fail; an empty dictionary would make the host's identify fail
+    // loudly rather than this process panic.
+    if enc.write_all(json.as_bytes()).is_err() {
+        return Vec::new();
+    }
+    enc.finish().unwrap_or_default()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use flate2::read::ZlibDecoder;
+    use std::io::Read;
+
+    #[test]
+    fn compressed_round_trip_and_contents() {
+        let bytes = dictionary_bytes(50_000_000);
+        let mut text = String::new();
+        ZlibDecoder::new(&bytes[..]).read_to_string(&mut text).unwrap();
+        let v: Value = serde_json::from_str(&text).unwrap();
+        assert_eq!(v, dictionary_json(50_000_000));
+        assert_eq!(v["commands"]["identify offset=%u count=%c"], 1);
+        assert_eq!(v["responses"]["identify_response offset=%u data=%.*s"], 0);
+        assert_eq!(v["config"]["CLOCK_FREQ"], 50_000_000);
+        assert_eq!(v["config"]["MCU"], "linux-sim");
+        assert_eq!(v["config"]["RECEIVE_WINDOW"], 192);
+        assert_eq!(v["config"]["STATS_SUMSQ_BASE"], 256);
+        assert_eq!(v["config"]["SERIAL_BAUD"], 250_000);
+        assert_eq!(v["config"]["ADC_MAX"], 4095);
+        assert_eq!(v["config"]["PWM_MAX"], 255);
+        let pins = v["enumerations"]["pin"].as_object().unwrap();
+        assert_eq!(pins.len(), 12);
+        assert_eq!(pins["PA0"], json!([0, 8]));
+        assert_eq!(pins["PB0"], json!([8, 8]));
+        assert_eq!(pins["PL0"], json!([88, 8]));
+        assert_eq!(v["enumerations"]["static_string_id"]["Timer too close"], 1);
+        let n = v["commands"].as_object().unwrap().len() + v["responses"].as_object().unwrap().len();
+        assert_eq!(n, MESSAGES.len());
+    }
+}

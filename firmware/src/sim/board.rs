@@ -1,0 +1,208 @@
+//! The simulator's [`Board`]: steps go to the trace file and the lateness histogram, bytes for
+//! the host collect in an output buffer the event loop drains into the pty.
+//!
+//! The core speaks 32-bit clocks; the board knows the simulator's 64-bit clock `now` (set by
+//! the event loop before every call into the core) and widens each 32-bit clock with
+//! [`McuClock::extend`], valid because every clock the core reports is within 2^31 ticks of now.
+//! Lateness and lead are converted to µs of MCU time: `ticks × 10^6 / clock_freq`.
+
+use crate::core::{Board, StepperConfig};
+use crate::trace::{TraceKind, TraceRecord, TraceWriter};
+use hdrhistogram::{CreationError, Histogram};
+use rt_core::{McuClock, WireClock};
+use std::fs::File;
+use std::io::{self, BufWriter};
+
+/// Largest lateness the histogram resolves (µs); larger values saturate.
+pub const LATENESS_MAX_US: u64 = 60_000_000;
+/// Bytes of pending output after which further output is dropped (the host is not reading).
+pub const OUTPUT_LIMIT: usize = 1 << 20;
+
+/// Lateness percentiles of executed steps, in µs of MCU time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LatenessSummary {
+    /// Steps executed.
+    pub steps: u64,
+    /// Median.
+    pub p50: u64,
+    /// 99th percentile.
+    pub p99: u64,
+    /// 99.9th percentile.
+    pub p999: u64,
+    /// Maximum.
+    pub max: u64,
+}
+
+/// The simulated board.
+#[derive(Debug)]
+pub struct SimBoard {
+    /// The simulator's 64-bit MCU clock at the current call into the core.
+    pub now: u64,
+    /// Blocks waiting to be written to the pty.
+    pub out: Vec<u8>,
+    /// Bytes dropped because `out` was over [`OUTPUT_LIMIT`].
+    pub dropped_output: u64,
+    clock_freq: u32,
+    trace: Option<TraceWriter<BufWriter<File>>>,
+    trace_error: Option<io::Error>,
+    lateness: Histogram<u64>,
+    queue_steps: u64,
+}
+
+impl SimBoard {
+    /// A board for an MCU at `clock_freq`, tracing to `trace` if given.
+    pub fn new(
+        clock_freq: u32,
+        trace: Option<TraceWriter<BufWriter<File>>>,
+    ) -> Result<SimBoard, CreationError> {
+        // Fixed bounds: saturating_record never allocates.
+        let lateness = Histogram::new_with_bounds(1, LATENESS_MAX_US, 3)?;
+        Ok(SimBoard {
+            now: 0,
+            out: Vec::with_capacity(4096),
+            dropped_output: 0,
+            clock_freq,
+            trace,
+            trace_error: None,
+            lateness,
+            queue_steps: 0,
+        })
+    }
+
+    fn to_us(&self, ticks: u64) -> u32 {
+        let us = ticks as u128 * 1_000_000 / self.clock_freq.max(1) as u128;
+        u32::try_from(us).unwrap_or(u32::MAX)
+    }
+
+    fn extend(&self, clock: WireClock) -> u64 {
+        McuClock(self.now).extend(clock).0
+    }
+
+    fn record(&mut self, r: TraceRecord) {
+        if let Some(w) = self.trace.as_mut() {
+            if let Err(e) = w.write(&r) {
+                self.trace_error.get_or_insert(e);
+                self.trace = None;
+            }
+        }
+    }
+
+    /// `queue_step` commands received so far.
+    pub fn queue_steps(&self) -> u64 {
+        self.queue_steps
+    }
+
+    /// Percentiles of step lateness so far.
+    pub fn lateness(&self) -> LatenessSummary {
+        let h = &self.lateness;
+        LatenessSummary {
+            steps: h.len(),
+            p50: h.value_at_quantile(0.5),
+            p99: h.value_at_quantile(0.99),
+            p999: h.value_at_quantile(0.999),
+            max: h.max(),
+        }
+    }
+
+    /// Flushes and closes the trace; reports the first write error, if any.
+    pub fn finish_trace(&mut self) -> io::Result<()> {
+        if let Some(w) = self.trace.take() {
+            w.finish()?;
+        }
+        match self.trace_error.take() {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    }
+}
+
+impl Board for SimBoard {
+    fn step(&mut self, oid: u8, dir: bool, clock: WireClock) {
+        let scheduled = self.extend(clock);
+        let late_us = self.to_us(self.now.saturating_sub(scheduled));
+        self.lateness.saturating_record(late_us as u64);
+        self.record(TraceRecord {
+            kind: TraceKind::Step,
+            oid,
+            dir: dir as u8,
+            aux: late_us,
+            clock: scheduled,
+        });
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        if self.out.len() + bytes.len() > OUTPUT_LIMIT {
+            self.dropped_output += bytes.len() as u64;
+            return;
+        }
+        self.out.extend_from_slice(bytes);
+    }
+
+    fn config_stepper(&mut self, _oid: u8, _config: &StepperConfig) {}
+
+    fn queue_step_received(&mut self, oid: u8, first_clock: WireClock, now: WireClock) {
+        self.queue_steps += 1;
+        let received = self.extend(now);
+        let lead_us = self.to_us(self.extend(first_clock).saturating_sub(received));
+        self.record(TraceRecord {
+            kind: TraceKind::QueueStep,
+            oid,
+            dir: 0,
+            aux: lead_us,
+            clock: received,
+        });
+    }
+
+    fn shutdown(&mut self, clock: WireClock, static_string_id: u16, reason: &'static str) {
+        let clock = self.extend(clock);
+        eprintln!("cadence-mcu: shutdown at clock {clock}: {reason}");
+        self.record(TraceRecord {
+            kind: TraceKind::Shutdown,
+            oid: 0,
+            dir: 0,
+            aux: static_string_id as u32,
+            clock,
+        });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn widens_clocks_and_measures_lateness_and_lead() {
+        let path = std::env::temp_dir().join(format!("cadence-board-test-{}.bin", std::process::id()));
+        let w = TraceWriter::create(&path, crate::trace::TraceFormat::Bin, 1_000_000, 1.0).unwrap();
+        let mut b = SimBoard::new(1_000_000, Some(w)).unwrap();
+        b.now = (1u64 << 32) + 500;
+        b.queue_step_received(2, WireClock(100_500), WireClock(500));
+        b.step(2, true, WireClock(400)); // 100 ticks = 100 µs late
+        b.queue_step_received(2, WireClock(400), WireClock(500)); // already late: lead 0
+        b.shutdown(WireClock(500), 7, "x");
+        b.finish_trace().unwrap();
+        let trace = crate::trace::read_trace(&path).unwrap();
+        let _ = std::fs::remove_file(&path);
+        let recs = &trace.records;
+        let base = 1u64 << 32;
+        assert_eq!((recs[0].kind, recs[0].clock, recs[0].aux), (TraceKind::QueueStep, base + 500, 100_000));
+        assert_eq!((recs[1].kind, recs[1].clock, recs[1].aux, recs[1].dir), (TraceKind::Step, base + 400, 100, 1));
+        assert_eq!(recs[2].aux, 0);
+        assert_eq!((recs[3].kind, recs[3].aux, recs[3].clock), (TraceKind::Shutdown, 7, base + 500));
+        let l = b.lateness();
+        assert_eq!(l.steps, 1);
+        assert!(l.max >= 100 && l.max <= 101);
+        assert_eq!(b.queue_steps(), 2);
+    }
+
+    #[test]
+    fn output_is_bounded() {
+        let mut b = SimBoard::new(1_000_000, None).unwrap();
+        let chunk = [0u8; 64];
+        for _ in 0..(OUTPUT_LIMIT / 64 + 10) {
+            b.write(&chunk);
+        }
+        assert_eq!(b.out.len(), OUTPUT_LIMIT);
+        assert_eq!(b.dropped_output, 640);
+    }
+}

@@ -1,0 +1,238 @@
+//! `cadence-mcu`: the firmware core as a Linux process on a pseudo-terminal (the simulator).
+//!
+//! Start-up: block SIGTERM/SIGINT/SIGHUP and receive them through a signalfd; open the pty;
+//! build the dictionary; open the trace; then print `cadence-mcu: pty <slave>` and run the
+//! event loop ([`event_loop`]) until the host hangs up, a signal arrives or the parent dies.
+//! On exit the trace is flushed and the step lateness percentiles go to stderr.
+//!
+//! The core ([`SimMcu`]) is large (a 65534-move pool inline), so it lives on the heap and the
+//! loop runs on a thread with a generous stack (a debug build may copy the value through the
+//! stack while boxing it).
+
+pub mod board;
+pub mod cli;
+pub mod clock;
+pub mod event_loop;
+pub mod pty;
+
+use crate::core::{Mcu, McuConfig};
+use crate::trace::TraceWriter;
+use board::SimBoard;
+use clap::Parser;
+use cli::Cli;
+use clock::SimClock;
+use event_loop::{EventLoop, Exit};
+use nix::sys::signal::{SigSet, Signal};
+use nix::sys::signalfd::{SfdFlags, SignalFd};
+use rt_core::WireClock;
+use std::io::{self, Write};
+use std::path::{Path, PathBuf};
+
+/// Oid slots of the simulated MCU (every `allocate_oids count=%c` fits).
+pub const SIM_OIDS: usize = 255;
+/// Move pool capacity of the simulated MCU (the largest the pool supports).
+pub const SIM_MOVES: usize = 65534;
+/// The simulated MCU.
+pub type SimMcu = Mcu<SimBoard, SIM_OIDS, SIM_MOVES>;
+
+const LOOP_STACK: usize = 32 << 20;
+
+/// Why the simulator could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    /// A system call on the pty, signalfd or poll failed.
+    #[error("{what}: {source}")]
+    Sys {
+        /// The operation.
+        what: &'static str,
+        /// The errno.
+        source: nix::Error,
+    },
+    /// The trace file could not be created or written.
+    #[error("trace file {path}: {source}")]
+    Trace {
+        /// The trace path.
+        path: PathBuf,
+        /// The I/O error.
+        source: io::Error,
+    },
+    /// The `--pty-link` symlink could not be made.
+    #[error("pty link {path}: {source}")]
+    Link {
+        /// The link path.
+        path: PathBuf,
+        /// The I/O error.
+        source: io::Error,
+    },
+    /// Writing the pty line to stdout failed.
+    #[error("stdout: {0}")]
+    Stdout(io::Error),
+    /// The lateness histogram could not be created.
+    #[error("histogram: {0}")]
+    Histogram(#[from] hdrhistogram::CreationError),
+    /// The event loop thread could not be started or panicked.
+    #[error("event loop thread: {0}")]
+    Thread(String),
+}
+
+fn sys(what: &'static str) -> impl FnOnce(nix::Error) -> SimError {
+    move |source| SimError::Sys { what, source }
+}
+
+/// Runs `cadence-mcu` with `args` (the first item is the program name, as in `std::env::args`).
+/// Returns the process exit code.
+pub fn main_with_args(args: impl IntoIterator<Item = String>) -> i32 {
+    let cli = match Cli::try_parse_from(args) {
+        Ok(cli) => cli,
+        Err(e) => {
+            let _ = e.print();
+            return e.exit_code();
+        }
+    };
+    match run(cli) {
+        Ok(()) => 0,
+        Err(e) => {
+            eprintln!("cadence-mcu: error: {e}");
+            1
+        }
+    }
+}
+
+/// Runs the simulator to completion.
+pub fn run(cli: Cli) -> Result<(), SimError> {
+    // Block the exit signals in this thread before spawning, so every thread inherits the
+    // mask and the signals are only ever seen through the signalfd.
+    let mut mask = SigSet::empty();
+    for s in [Signal::SIGTERM, Signal::SIGINT, Signal::SIGHUP] {
+        mask.add(s);
+    }
+    mask.thread_block().map_err(sys("block signals"))?;
+    let sigfd = SignalFd::with_flags(&mask, SfdFlags::SFD_NONBLOCK | SfdFlags::SFD_CLOEXEC)
+        .map_err(sys("signalfd"))?;
+    std::thread::Builder::new()
+        .name("cadence-mcu".into())
+        .stack_size(LOOP_STACK)
+        .spawn(move || run_on_this_thread(cli, sigfd))
+        .map_err(|e| SimError::Thread(e.to_string()))?
+        .join()
+        .map_err(|_| SimError::Thread("panicked".into()))?
+}
+
+fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
+    // Wake-ups as precise as the kernel allows (the default slack is 50 µs); best effort.
+    let _ = nix::sys::prctl::set_timerslack(1);
+    let parent = nix::unistd::getppid();
+    let pty = pty::Pty::open().map_err(sys("open pty"))?;
+    let link = cli.pty_link.as_deref().map(|p| make_link(pty.slave_path(), p)).transpose()?;
+    let trace = match &cli.trace {
+        Some(path) => Some(
+            TraceWriter::create(path, cli.trace_format.into(), cli.clock_freq as u64, cli.time_scale)
+                .map_err(|source| SimError::Trace {
+                    path: path.clone(),
+                    source,
+                })?,
+        ),
+        None => None,
+    };
+    let board = SimBoard::new(cli.clock_freq, trace)?;
+    let dictionary: &'static [u8] = Box::leak(crate::dictionary_bytes(cli.clock_freq).into_boxed_slice());
+    let config = McuConfig {
+        clock_freq: cli.clock_freq,
+        move_count: cli.move_count,
+    };
+    let clock = SimClock::start(cli.clock_freq, cli.time_scale);
+    let mut mcu = Box::new(SimMcu::new(board, dictionary, config, WireClock(clock.now() as u32)));
+
+    let mut stdout = io::stdout().lock();
+    writeln!(stdout, "cadence-mcu: pty {}", pty.slave_path().display())
+        .and_then(|()| stdout.flush())
+        .map_err(SimError::Stdout)?;
+    drop(stdout);
+
+    let exit = EventLoop::new(&pty, &sigfd, clock, parent).run(&mut mcu);
+
+    let board = mcu.board_mut();
+    let trace_result = board.finish_trace();
+    report(board, &exit);
+    if let Some(link) = link {
+        remove_link(&link, pty.slave_path());
+    }
+    exit?;
+    trace_result.map_err(|source| SimError::Trace {
+        path: cli.trace.unwrap_or_default(),
+        source,
+    })
+}
+
+fn report(board: &SimBoard, exit: &Result<Exit, SimError>) {
+    let why = match exit {
+        Ok(Exit::HostClosed) => "host closed the pty".to_owned(),
+        Ok(Exit::Signal(s)) => format!("signal {s}"),
+        Ok(Exit::ParentDied) => "parent process exited".to_owned(),
+        Err(e) => format!("error: {e}"),
+    };
+    let l = board.lateness();
+    eprintln!(
+        "cadence-mcu: exit ({why}); queue_steps={} steps={}; step lateness µs (MCU time): \
+         p50={} p99={} p99.9={} max={}",
+        board.queue_steps(),
+        l.steps,
+        l.p50,
+        l.p99,
+        l.p999,
+        l.max
+    );
+    if board.dropped_output > 0 {
+        eprintln!("cadence-mcu: dropped {} output bytes (host not reading)", board.dropped_output);
+    }
+}
+
+/// Points `link` at the pty slave, replacing an existing symlink or file.
+fn make_link(slave: &Path, link: &Path) -> Result<PathBuf, SimError> {
+    let err = |source| SimError::Link {
+        path: link.to_path_buf(),
+        source,
+    };
+    if let Ok(meta) = std::fs::symlink_metadata(link) {
+        if meta.is_dir() {
+            return Err(err(io::Error::new(io::ErrorKind::AlreadyExists, "is a directory")));
+        }
+        std::fs::remove_file(link).map_err(err)?;
+    }
+    std::os::unix::fs::symlink(slave, link).map_err(err)?;
+    Ok(link.to_path_buf())
+}
+
+/// Removes `link` if it still points at our pty.
+fn remove_link(link: &Path, slave: &Path) {
+    if std::fs::read_link(link).is_ok_and(|t| t == slave) {
+        let _ = std::fs::remove_file(link);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn link_replaces_and_is_removed() {
+        let dir = std::env::temp_dir().join(format!("cadence-link-test-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let link = dir.join("ttyCadence");
+        std::fs::write(&link, b"stale").unwrap();
+        let made = make_link(Path::new("/dev/pts/999"), &link).unwrap();
+        assert_eq!(std::fs::read_link(&made).unwrap(), Path::new("/dev/pts/999"));
+        remove_link(&made, Path::new("/dev/pts/1"));
+        assert!(std::fs::symlink_metadata(&made).is_ok(), "not ours: kept");
+        remove_link(&made, Path::new("/dev/pts/999"));
+        assert!(std::fs::symlink_metadata(&made).is_err());
+        assert!(make_link(Path::new("/dev/pts/999"), &dir).is_err());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn bad_arguments_exit_with_usage_code() {
+        let code = main_with_args(["cadence-mcu".to_owned(), "--bogus".to_owned()]);
+        assert_eq!(code, 2);
+    }
+}

@@ -1,0 +1,331 @@
+//! Step trace files written by `cadence-mcu` and read back by tests and the host.
+//!
+//! Binary layout (little-endian):
+//! - header, 24 bytes: magic `b"CDTRACE1"` (0..8), `clock_freq: u64` (8..16),
+//!   `time_scale: f64` (16..24);
+//! - records, 16 bytes each: `kind: u8` (0), `oid: u8` (1), `dir: u8` (2), pad (3),
+//!   `aux: u32` (4..8), `clock: u64` (8..16).
+//!
+//! Kinds: 0 step (`clock` = scheduled 64-bit step clock, `aux` = lateness in µs of MCU time,
+//! actual execution − scheduled, saturating); 1 `queue_step` received (`clock` = MCU clock at
+//! receipt, `aux` = lead in µs = first step − receipt, 0 if already late); 2 shutdown
+//! (`clock` = MCU clock, `aux` = `static_string_id`).
+//!
+//! The CSV form carries the same fields: a `# CDTRACE1 clock_freq=… time_scale=…` line, a
+//! `kind,oid,dir,aux,clock` header line, then one line per record. [`read_trace`] accepts both
+//! (it looks at the magic). A binary file cut inside its last record (a killed writer) reads as
+//! the complete records before the cut.
+
+use std::fs::File;
+use std::io::{self, BufWriter, Write};
+use std::path::Path;
+
+/// First 8 bytes of a binary trace (and the tag of the CSV first line).
+pub const MAGIC: &[u8; 8] = b"CDTRACE1";
+/// Bytes of the binary header.
+pub const HEADER_LEN: usize = 24;
+/// Bytes of one binary record.
+pub const RECORD_LEN: usize = 16;
+
+/// What a record describes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[repr(u8)]
+pub enum TraceKind {
+    /// A step was executed.
+    Step = 0,
+    /// A `queue_step` was received.
+    QueueStep = 1,
+    /// The MCU shut down.
+    Shutdown = 2,
+}
+
+impl TraceKind {
+    /// The kind with wire value `v`.
+    pub fn from_u8(v: u8) -> Option<TraceKind> {
+        Some(match v {
+            0 => TraceKind::Step,
+            1 => TraceKind::QueueStep,
+            2 => TraceKind::Shutdown,
+            _ => return None,
+        })
+    }
+}
+
+/// One trace record (see the module doc for the meaning of `aux` and `clock` per kind).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct TraceRecord {
+    /// Record kind.
+    pub kind: TraceKind,
+    /// Stepper oid (0 for shutdown).
+    pub oid: u8,
+    /// Step direction (1 = +1); 0 for other kinds.
+    pub dir: u8,
+    /// Lateness µs / lead µs / static_string_id.
+    pub aux: u32,
+    /// 64-bit MCU clock.
+    pub clock: u64,
+}
+
+impl TraceRecord {
+    /// The 16-byte binary form.
+    pub fn to_bytes(&self) -> [u8; RECORD_LEN] {
+        let mut b = [0u8; RECORD_LEN];
+        b[0] = self.kind as u8;
+        b[1] = self.oid;
+        b[2] = self.dir;
+        b[4..8].copy_from_slice(&self.aux.to_le_bytes());
+        b[8..16].copy_from_slice(&self.clock.to_le_bytes());
+        b
+    }
+
+    /// Parses the 16-byte binary form (`None` for an unknown kind).
+    pub fn from_bytes(b: &[u8; RECORD_LEN]) -> Option<TraceRecord> {
+        let mut aux = [0u8; 4];
+        aux.copy_from_slice(&b[4..8]);
+        let mut clock = [0u8; 8];
+        clock.copy_from_slice(&b[8..16]);
+        Some(TraceRecord {
+            kind: TraceKind::from_u8(b[0])?,
+            oid: b[1],
+            dir: b[2],
+            aux: u32::from_le_bytes(aux),
+            clock: u64::from_le_bytes(clock),
+        })
+    }
+
+    fn parse_csv(line: &str) -> Option<TraceRecord> {
+        let mut f = line.trim().split(',');
+        let mut next = || f.next().map(str::trim);
+        let rec = TraceRecord {
+            kind: TraceKind::from_u8(next()?.parse().ok()?)?,
+            oid: next()?.parse().ok()?,
+            dir: next()?.parse().ok()?,
+            aux: next()?.parse().ok()?,
+            clock: next()?.parse().ok()?,
+        };
+        next().is_none().then_some(rec)
+    }
+}
+
+/// A whole trace.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TraceFile {
+    /// The MCU's `CLOCK_FREQ`.
+    pub clock_freq: u64,
+    /// MCU seconds per wall second.
+    pub time_scale: f64,
+    /// Records in the order they happened.
+    pub records: Vec<TraceRecord>,
+}
+
+/// On-disk form of a trace.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TraceFormat {
+    /// Fixed 16-byte records.
+    Bin,
+    /// Text lines.
+    Csv,
+}
+
+/// Buffered trace writer.
+#[derive(Debug)]
+pub struct TraceWriter<W: Write> {
+    out: W,
+    format: TraceFormat,
+}
+
+impl TraceWriter<BufWriter<File>> {
+    /// Creates (truncates) `path` and writes the header.
+    pub fn create(path: &Path, format: TraceFormat, clock_freq: u64, time_scale: f64) -> io::Result<Self> {
+        let file = BufWriter::with_capacity(1 << 16, File::create(path)?);
+        TraceWriter::new(file, format, clock_freq, time_scale)
+    }
+}
+
+impl<W: Write> TraceWriter<W> {
+    /// Writes the header to `out`.
+    pub fn new(mut out: W, format: TraceFormat, clock_freq: u64, time_scale: f64) -> io::Result<Self> {
+        match format {
+            TraceFormat::Bin => {
+                out.write_all(MAGIC)?;
+                out.write_all(&clock_freq.to_le_bytes())?;
+                out.write_all(&time_scale.to_le_bytes())?;
+            }
+            TraceFormat::Csv => {
+                let magic = String::from_utf8_lossy(MAGIC);
+                writeln!(out, "# {magic} clock_freq={clock_freq} time_scale={time_scale}")?;
+                writeln!(out, "kind,oid,dir,aux,clock")?;
+            }
+        }
+        Ok(TraceWriter { out, format })
+    }
+
+    /// Appends one record.
+    pub fn write(&mut self, r: &TraceRecord) -> io::Result<()> {
+        match self.format {
+            TraceFormat::Bin => self.out.write_all(&r.to_bytes()),
+            TraceFormat::Csv => writeln!(self.out, "{},{},{},{},{}", r.kind as u8, r.oid, r.dir, r.aux, r.clock),
+        }
+    }
+
+    /// Flushes and returns the inner writer.
+    pub fn finish(mut self) -> io::Result<W> {
+        self.out.flush()?;
+        Ok(self.out)
+    }
+}
+
+fn invalid(msg: &str) -> io::Error {
+    io::Error::new(io::ErrorKind::InvalidData, msg.to_owned())
+}
+
+/// Reads a binary or CSV trace file.
+pub fn read_trace(path: impl AsRef<Path>) -> io::Result<TraceFile> {
+    parse_trace(&std::fs::read(path)?)
+}
+
+/// Parses trace bytes (binary or CSV, told apart by the magic).
+pub fn parse_trace(bytes: &[u8]) -> io::Result<TraceFile> {
+    if bytes.starts_with(MAGIC) {
+        parse_bin(bytes)
+    } else {
+        parse_csv(std::str::from_utf8(bytes).map_err(|_| invalid("trace is neither binary nor text"))?)
+    }
+}
+
+fn parse_bin(bytes: &[u8]) -> io::Result<TraceFile> {
+    let header = bytes.get(..HEADER_LEN).ok_or_else(|| invalid("trace header truncated"))?;
+    let mut freq = [0u8; 8];
+    freq.copy_from_slice(&header[8..16]);
+    let mut scale = [0u8; 8];
+    scale.copy_from_slice(&header[16..24]);
+    let mut records = Vec::with_capacity((bytes.len() - HEADER_LEN) / RECORD_LEN);
+    for chunk in bytes[HEADER_LEN..].chunks_exact(RECORD_LEN) {
+        let mut b = [0u8; RECORD_LEN];
+        b.copy_from_slice(chunk);
+        records.push(TraceRecord::from_bytes(&b).ok_or_else(|| invalid("unknown trace record kind"))?);
+    }
+    Ok(TraceFile {
+        clock_freq: u64::from_le_bytes(freq),
+        time_scale: f64::from_le_bytes(scale),
+        records,
+    })
+}
+
+fn parse_csv(text: &str) -> io::Result<TraceFile> {
+    let mut lines = text.lines();
+    let first = lines.next().ok_or_else(|| invalid("empty trace"))?;
+    let tag = format!("# {}", String::from_utf8_lossy(MAGIC));
+    let params = first.strip_prefix(&tag).ok_or_else(|| invalid("not a cadence trace"))?;
+    let (mut clock_freq, mut time_scale) = (None, None);
+    for kv in params.split_whitespace() {
+        match kv.split_once('=') {
+            Some(("clock_freq", v)) => clock_freq = v.parse::<u64>().ok(),
+            Some(("time_scale", v)) => time_scale = v.parse::<f64>().ok(),
+            _ => {}
+        }
+    }
+    let (Some(clock_freq), Some(time_scale)) = (clock_freq, time_scale) else {
+        return Err(invalid("trace header lacks clock_freq or time_scale"));
+    };
+    let mut records = Vec::new();
+    for line in lines {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') || line.starts_with("kind") {
+            continue;
+        }
+        records.push(TraceRecord::parse_csv(line).ok_or_else(|| invalid("bad trace line"))?);
+    }
+    Ok(TraceFile {
+        clock_freq,
+        time_scale,
+        records,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn record() -> impl Strategy<Value = TraceRecord> {
+        (0u8..3, any::<u8>(), 0u8..2, any::<u32>(), any::<u64>()).prop_map(|(k, oid, dir, aux, clock)| {
+            TraceRecord {
+                kind: TraceKind::from_u8(k).unwrap(),
+                oid,
+                dir,
+                aux,
+                clock,
+            }
+        })
+    }
+
+    fn write_all(format: TraceFormat, freq: u64, scale: f64, recs: &[TraceRecord]) -> Vec<u8> {
+        let mut w = TraceWriter::new(Vec::new(), format, freq, scale).unwrap();
+        for r in recs {
+            w.write(r).unwrap();
+        }
+        w.finish().unwrap()
+    }
+
+    #[test]
+    fn golden_binary_record() {
+        let r = TraceRecord {
+            kind: TraceKind::QueueStep,
+            oid: 3,
+            dir: 1,
+            aux: 0x0102_0304,
+            clock: 0x1122_3344_5566_7788,
+        };
+        assert_eq!(
+            r.to_bytes(),
+            [1, 3, 1, 0, 4, 3, 2, 1, 0x88, 0x77, 0x66, 0x55, 0x44, 0x33, 0x22, 0x11]
+        );
+        let bytes = write_all(TraceFormat::Bin, 50_000_000, 2.5, &[r]);
+        assert_eq!(&bytes[..8], b"CDTRACE1");
+        assert_eq!(bytes.len(), HEADER_LEN + RECORD_LEN);
+        // A cut last record is ignored; a bad kind is an error.
+        let t = parse_trace(&bytes[..bytes.len() - 3]).unwrap();
+        assert!(t.records.is_empty());
+        let mut bad = bytes.clone();
+        bad[HEADER_LEN] = 9;
+        assert!(parse_trace(&bad).is_err());
+    }
+
+    #[test]
+    fn csv_text() {
+        let r = TraceRecord {
+            kind: TraceKind::Step,
+            oid: 0,
+            dir: 1,
+            aux: 12,
+            clock: 50_000,
+        };
+        let text = String::from_utf8(write_all(TraceFormat::Csv, 1000, 1.0, &[r])).unwrap();
+        assert_eq!(text, "# CDTRACE1 clock_freq=1000 time_scale=1\nkind,oid,dir,aux,clock\n0,0,1,12,50000\n");
+        assert!(parse_trace(b"# CDTRACE1 clock_freq=1\n").is_err());
+        assert!(parse_trace(b"# CDTRACE1 clock_freq=1 time_scale=1\n0,0,1\n").is_err());
+    }
+
+    proptest! {
+        #[test]
+        fn round_trip_both_formats(freq in any::<u64>(), scale in 0.001f64..1e6, recs in proptest::collection::vec(record(), 0..50)) {
+            for format in [TraceFormat::Bin, TraceFormat::Csv] {
+                let t = parse_trace(&write_all(format, freq, scale, &recs)).unwrap();
+                prop_assert_eq!(t.clock_freq, freq);
+                prop_assert_eq!(t.time_scale, scale);
+                prop_assert_eq!(&t.records, &recs);
+            }
+        }
+
+        #[test]
+        fn parse_never_panics(data in proptest::collection::vec(any::<u8>(), 0..200)) {
+            let _ = parse_trace(&data);
+            let mut with_magic = MAGIC.to_vec();
+            with_magic.extend_from_slice(&data);
+            let _ = parse_trace(&with_magic);
+            let text = format!("# CDTRACE1 clock_freq=1 time_scale=1\n{}", String::from_utf8_lossy(&data));
+            let _ = parse_trace(text.as_bytes());
+        }
+    }
+}

@@ -1,0 +1,660 @@
+//! Streaming G-code parser: one [`GcodeLine`] per command line of any `BufRead`, never holding
+//! more than one line (at most [`MAX_LINE_LEN`] bytes) in memory.
+//!
+//! Syntax accepted (RepRap/Klipper dialect):
+//! - `;` starts a comment to the end of the line; `( … )` is an inline comment.
+//! - An optional `N<digits>` line number and an optional `*<0..255>` checksum; when a checksum is
+//!   present it must equal the XOR of every byte before the `*`.
+//! - Letters are case-insensitive; words may be packed (`G1X10Y-3`); numbers are
+//!   `[+-]digits[.digits]` with either side of the point optional (`E.4`, `X-3.`).
+//! - Traditional commands are a letter and a number (`G1`, `M104`, `G01` = `G1`); Klipper-style
+//!   extended commands are one identifier (`SET_VELOCITY_LIMIT ACCEL=1000`). Commands the planner
+//!   does not interpret become [`Command::Other`] with their text untouched.
+//!
+//! No-panic contract: any byte sequence yields `Ok` or `Err` items, never a panic. An error
+//! concerns one line; iteration goes on with the next line (read errors end it).
+
+use std::borrow::Cow;
+use std::fmt;
+use std::io::BufRead;
+
+/// Longest line accepted (Klipper's `EXCLUDE_OBJECT_DEFINE` polygons can be a few KB).
+pub const MAX_LINE_LEN: usize = 1 << 20;
+/// Characters of the offending line quoted in an error.
+const QUOTE_LEN: usize = 120;
+
+/// One parsed command and the 1-based number of the file line it came from.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GcodeLine {
+    pub line_no: usize,
+    pub cmd: Command,
+}
+
+/// The commands the planner interprets; everything else well-formed is [`Command::Other`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum Command {
+    /// G0 / G1: coordinates in the current modal frame, feedrate in mm/min.
+    Move { x: Option<f64>, y: Option<f64>, z: Option<f64>, e: Option<f64>, f: Option<f64> },
+    /// G28: axes to home (no axis letter = all).
+    Home { x: bool, y: bool, z: bool },
+    /// G90.
+    AbsolutePositioning,
+    /// G91.
+    RelativePositioning,
+    /// G92: redefine the current position (no axis = all axes become 0).
+    SetPosition { x: Option<f64>, y: Option<f64>, z: Option<f64>, e: Option<f64> },
+    /// M82.
+    AbsoluteExtrusion,
+    /// M83.
+    RelativeExtrusion,
+    /// G4 (`P` milliseconds or `S` seconds; `S` wins when both are given).
+    Dwell { seconds: f64 },
+    /// M400.
+    WaitMoves,
+    /// Any other well-formed command: `name` upper-cased (`M104`, `SET_VELOCITY_LIMIT`), `raw`
+    /// the command text as written (without line number, checksum and comments).
+    Other { name: String, raw: String },
+}
+
+/// What is wrong with a line.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum GcodeErrorKind {
+    #[error("bad number '{0}'")]
+    BadNumber(String),
+    #[error("number out of range '{0}'")]
+    NotFinite(String),
+    #[error("missing value in '{0}'")]
+    MissingValue(String),
+    #[error("bad word '{0}'")]
+    BadWord(String),
+    #[error("bad command '{0}'")]
+    BadCommand(String),
+    #[error("duplicate parameter '{0}'")]
+    DuplicateParameter(char),
+    #[error("negative value '{0}'")]
+    Negative(String),
+    #[error("checksum mismatch: line says {stated}, computed {computed}")]
+    ChecksumMismatch { stated: u8, computed: u8 },
+    #[error("malformed checksum '{0}'")]
+    BadChecksum(String),
+    #[error("unterminated '(' comment")]
+    UnterminatedComment,
+    #[error("not valid UTF-8")]
+    NotUtf8,
+    #[error("binary data (control character {0:#04x})")]
+    Binary(u8),
+    #[error("line longer than {MAX_LINE_LEN} bytes")]
+    LineTooLong,
+    #[error("read error: {0}")]
+    Io(String),
+}
+
+/// A parse error: the file line, its text (shortened) and what is wrong.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GcodeError {
+    pub line: usize,
+    pub text: String,
+    pub kind: GcodeErrorKind,
+}
+
+impl fmt::Display for GcodeError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.text.is_empty() {
+            write!(f, "line {}: {}", self.line, self.kind)
+        } else {
+            write!(f, "line {}: {} in `{}`", self.line, self.kind, self.text)
+        }
+    }
+}
+
+impl std::error::Error for GcodeError {}
+
+/// Iterator of parsed commands over a `BufRead`; blank and comment-only lines are skipped.
+#[derive(Debug)]
+pub struct GcodeReader<R> {
+    inner: R,
+    buf: Vec<u8>,
+    line_no: usize,
+    done: bool,
+}
+
+impl<R: BufRead> GcodeReader<R> {
+    pub fn new(inner: R) -> Self {
+        GcodeReader { inner, buf: Vec::with_capacity(256), line_no: 0, done: false }
+    }
+
+    /// Number of the last line read (1-based; 0 before the first).
+    pub fn line_no(&self) -> usize {
+        self.line_no
+    }
+
+    /// Reads the next line into `self.buf` (without the `\n`), keeping at most `MAX_LINE_LEN`
+    /// bytes. Returns `None` at end of input, else whether the line was too long.
+    fn read_line(&mut self) -> std::io::Result<Option<bool>> {
+        self.buf.clear();
+        let mut any = false;
+        let mut too_long = false;
+        loop {
+            let avail = match self.inner.fill_buf() {
+                Ok(b) => b,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+                Err(e) => return Err(e),
+            };
+            if avail.is_empty() {
+                return Ok(any.then_some(too_long));
+            }
+            any = true;
+            let (chunk, used, end) = match avail.iter().position(|&b| b == b'\n') {
+                Some(i) => (&avail[..i], i + 1, true),
+                None => (avail, avail.len(), false),
+            };
+            let room = MAX_LINE_LEN - self.buf.len();
+            if chunk.len() > room {
+                too_long = true;
+            }
+            self.buf.extend_from_slice(&chunk[..chunk.len().min(room)]);
+            self.inner.consume(used);
+            if end {
+                return Ok(Some(too_long));
+            }
+        }
+    }
+}
+
+impl<R: BufRead> Iterator for GcodeReader<R> {
+    type Item = Result<GcodeLine, GcodeError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        while !self.done {
+            let too_long = match self.read_line() {
+                Ok(Some(t)) => t,
+                Ok(None) => {
+                    self.done = true;
+                    return None;
+                }
+                Err(e) => {
+                    self.done = true;
+                    let kind = GcodeErrorKind::Io(e.to_string());
+                    return Some(Err(GcodeError { line: self.line_no + 1, text: String::new(), kind }));
+                }
+            };
+            self.line_no += 1;
+            if too_long {
+                return Some(Err(error(self.line_no, &self.buf, GcodeErrorKind::LineTooLong)));
+            }
+            match parse_line(self.line_no, &self.buf) {
+                Ok(Some(cmd)) => return Some(Ok(GcodeLine { line_no: self.line_no, cmd })),
+                Ok(None) => continue,
+                Err(e) => return Some(Err(e)),
+            }
+        }
+        None
+    }
+}
+
+fn error(line: usize, raw: &[u8], kind: GcodeErrorKind) -> GcodeError {
+    let s = String::from_utf8_lossy(raw);
+    let t = s.trim();
+    let text = match t.char_indices().nth(QUOTE_LEN) {
+        Some((i, _)) => format!("{}…", &t[..i]),
+        None => t.to_string(),
+    };
+    GcodeError { line, text, kind }
+}
+
+/// Parses one line (without its `\n`). `Ok(None)` for blank, comment-only or number-only lines.
+pub fn parse_line(line_no: usize, raw: &[u8]) -> Result<Option<Command>, GcodeError> {
+    let err = |kind| error(line_no, raw, kind);
+    let text = std::str::from_utf8(raw).map_err(|_| err(GcodeErrorKind::NotUtf8))?;
+    let text = text.strip_suffix('\r').unwrap_or(text);
+    if let Some(&b) = text.as_bytes().iter().find(|&&b| (b < 0x20 && b != b'\t') || b == 0x7f) {
+        return Err(err(GcodeErrorKind::Binary(b)));
+    }
+    let body = strip_comments_and_checksum(text).map_err(err)?;
+    parse_body(body.trim()).map_err(err)
+}
+
+/// Removes the `;` comment, verifies and removes the `*NN` checksum, removes `( … )` comments.
+fn strip_comments_and_checksum(text: &str) -> Result<Cow<'_, str>, GcodeErrorKind> {
+    let bytes = text.as_bytes();
+    let mut depth_open = false;
+    let mut has_paren = false;
+    let mut end = bytes.len();
+    let mut star = None;
+    for (i, &b) in bytes.iter().enumerate() {
+        match b {
+            b'(' if !depth_open => {
+                depth_open = true;
+                has_paren = true;
+            }
+            b')' if depth_open => depth_open = false,
+            b';' if !depth_open => {
+                end = i;
+                break;
+            }
+            b'*' if !depth_open && star.is_none() => star = Some(i),
+            _ => {}
+        }
+    }
+    if depth_open {
+        return Err(GcodeErrorKind::UnterminatedComment);
+    }
+    let mut body_end = end;
+    if let Some(s) = star {
+        let digits = text[s + 1..end].trim();
+        let stated = match digits.parse::<u8>() {
+            Ok(v) if !digits.is_empty() && digits.bytes().all(|b| b.is_ascii_digit()) => v,
+            _ => return Err(GcodeErrorKind::BadChecksum(text[s..end].trim().to_string())),
+        };
+        let computed = bytes[..s].iter().fold(0u8, |acc, &b| acc ^ b);
+        if stated != computed {
+            return Err(GcodeErrorKind::ChecksumMismatch { stated, computed });
+        }
+        body_end = s;
+    }
+    let body = &text[..body_end];
+    if !has_paren {
+        return Ok(Cow::Borrowed(body));
+    }
+    let mut out = String::with_capacity(body.len());
+    let mut open = false;
+    for c in body.chars() {
+        match c {
+            '(' if !open => {
+                open = true;
+                out.push(' ');
+            }
+            ')' if open => open = false,
+            _ if !open => out.push(c),
+            _ => {}
+        }
+    }
+    Ok(Cow::Owned(out))
+}
+
+/// Parses the command part of a line (comments, checksum removed; trimmed).
+fn parse_body(body: &str) -> Result<Option<Command>, GcodeErrorKind> {
+    let mut rest = body;
+    // Line number.
+    if let Some(after) = rest.strip_prefix(['N', 'n']) {
+        if after.starts_with(|c: char| c.is_ascii_digit()) {
+            let n = after.find(|c: char| !c.is_ascii_digit()).unwrap_or(after.len());
+            let next = &after[n..];
+            if !(next.is_empty() || next.starts_with(|c: char| c.is_ascii_whitespace() || c.is_ascii_alphabetic())) {
+                return Err(GcodeErrorKind::BadWord(first_word(rest).to_string()));
+            }
+            rest = next.trim_start();
+        }
+    }
+    if rest.is_empty() || rest == "%" {
+        return Ok(None);
+    }
+    let first = rest.as_bytes()[0];
+    if !first.is_ascii_alphabetic() {
+        return Err(GcodeErrorKind::BadCommand(first_word(rest).to_string()));
+    }
+    let second = rest.as_bytes().get(1).copied();
+    if !matches!(second, Some(b) if b.is_ascii_digit()) {
+        return parse_extended(rest);
+    }
+    // Traditional command: letter + number.
+    let num_len = rest[1..].find(|c: char| !(c.is_ascii_digit() || c == '.')).map_or(rest.len() - 1, |n| n);
+    let num = &rest[1..1 + num_len];
+    let (int_part, frac) = match num.split_once('.') {
+        Some((i, f)) => (i, Some(f)),
+        None => (num, None),
+    };
+    if int_part.is_empty()
+        || frac.is_some_and(|f| f.is_empty() || !f.bytes().all(|b| b.is_ascii_digit()))
+        || int_part.len() > 9
+    {
+        return Err(GcodeErrorKind::BadCommand(first_word(rest).to_string()));
+    }
+    let code: u32 = int_part.parse().map_err(|_| GcodeErrorKind::BadCommand(first_word(rest).to_string()))?;
+    let letter = first.to_ascii_uppercase();
+    let params = &rest[1 + num_len..];
+    let known = frac.is_none();
+    let cmd = match (letter, code) {
+        (b'G', 0 | 1) if known => {
+            let p = Params::parse(params)?;
+            Command::Move { x: p.value('X')?, y: p.value('Y')?, z: p.value('Z')?, e: p.value('E')?, f: p.value('F')? }
+        }
+        (b'G', 28) if known => {
+            let p = Params::parse(params)?;
+            let (x, y, z) = (p.has('X'), p.has('Y'), p.has('Z'));
+            if !(x || y || z) {
+                Command::Home { x: true, y: true, z: true }
+            } else {
+                Command::Home { x, y, z }
+            }
+        }
+        (b'G', 90) if known => Command::AbsolutePositioning,
+        (b'G', 91) if known => Command::RelativePositioning,
+        (b'G', 92) if known => {
+            let p = Params::parse(params)?;
+            Command::SetPosition { x: p.value('X')?, y: p.value('Y')?, z: p.value('Z')?, e: p.value('E')? }
+        }
+        (b'G', 4) if known => {
+            let p = Params::parse(params)?;
+            let seconds = match (p.value('S')?, p.value('P')?) {
+                (Some(s), _) => p.non_negative('S', s)?,
+                (None, Some(ms)) => p.non_negative('P', ms)? / 1000.0,
+                (None, None) => 0.0,
+            };
+            Command::Dwell { seconds }
+        }
+        (b'M', 82) if known => Command::AbsoluteExtrusion,
+        (b'M', 83) if known => Command::RelativeExtrusion,
+        (b'M', 400) if known => Command::WaitMoves,
+        _ => {
+            let name = match frac {
+                Some(f) => format!("{}{}.{}", letter as char, code, f),
+                None => format!("{}{}", letter as char, code),
+            };
+            Command::Other { name, raw: rest.to_string() }
+        }
+    };
+    Ok(Some(cmd))
+}
+
+/// A Klipper extended command: an identifier, then free-form `KEY=value` arguments.
+fn parse_extended(rest: &str) -> Result<Option<Command>, GcodeErrorKind> {
+    let name = first_word(rest);
+    if !name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_') {
+        return Err(GcodeErrorKind::BadCommand(name.to_string()));
+    }
+    Ok(Some(Command::Other { name: name.to_ascii_uppercase(), raw: rest.to_string() }))
+}
+
+fn first_word(s: &str) -> &str {
+    s.split(|c: char| c.is_ascii_whitespace()).next().unwrap_or(s)
+}
+
+/// Parameters of a traditional command: at most one per letter; the word text is kept for
+/// error messages.
+struct Params<'a> {
+    words: [Option<&'a str>; 26],
+}
+
+impl<'a> Params<'a> {
+    fn parse(s: &'a str) -> Result<Params<'a>, GcodeErrorKind> {
+        let mut words = [None; 26];
+        let bytes = s.as_bytes();
+        let mut i = 0;
+        while i < bytes.len() {
+            let b = bytes[i];
+            if b.is_ascii_whitespace() {
+                i += 1;
+                continue;
+            }
+            let start = i;
+            i += 1;
+            while i < bytes.len() && !bytes[i].is_ascii_whitespace() && !bytes[i].is_ascii_alphabetic() {
+                i += 1;
+            }
+            // `start` and `i` sit on ASCII bytes (or the end), so slicing is on char boundaries.
+            let word = &s[start..i];
+            if !b.is_ascii_alphabetic() {
+                let end = s[start..].find(|c: char| c.is_ascii_whitespace()).map_or(s.len(), |n| start + n);
+                return Err(GcodeErrorKind::BadWord(s[start..end].to_string()));
+            }
+            let slot = &mut words[(b.to_ascii_uppercase() - b'A') as usize];
+            if slot.is_some() {
+                return Err(GcodeErrorKind::DuplicateParameter(b.to_ascii_uppercase() as char));
+            }
+            check_number(word)?;
+            *slot = Some(word);
+        }
+        Ok(Params { words })
+    }
+
+    fn word(&self, letter: char) -> Option<&'a str> {
+        self.words.get((letter as u8).wrapping_sub(b'A') as usize).copied().flatten()
+    }
+
+    fn has(&self, letter: char) -> bool {
+        self.word(letter).is_some()
+    }
+
+    /// The value of `letter`, which must have one if present.
+    fn value(&self, letter: char) -> Result<Option<f64>, GcodeErrorKind> {
+        match self.word(letter) {
+            None => Ok(None),
+            Some(w) if w.len() == 1 => Err(GcodeErrorKind::MissingValue(w.to_string())),
+            Some(w) => number(w).map(Some),
+        }
+    }
+
+    fn non_negative(&self, letter: char, v: f64) -> Result<f64, GcodeErrorKind> {
+        if v < 0.0 {
+            return Err(GcodeErrorKind::Negative(self.word(letter).unwrap_or_default().to_string()));
+        }
+        Ok(v)
+    }
+}
+
+/// Checks the syntax of a parameter word's number (empty is allowed here: `G28 X`).
+fn check_number(word: &str) -> Result<(), GcodeErrorKind> {
+    if word.len() > 1 {
+        number(word)?;
+    }
+    Ok(())
+}
+
+/// The number of a word `L<number>`: `[+-]digits[.digits]`, at least one digit, finite.
+fn number(word: &str) -> Result<f64, GcodeErrorKind> {
+    let text = &word[1..];
+    let unsigned = text.strip_prefix(['+', '-']).unwrap_or(text);
+    let mut digits = 0;
+    let mut points = 0;
+    for b in unsigned.bytes() {
+        match b {
+            b'0'..=b'9' => digits += 1,
+            b'.' => points += 1,
+            _ => return Err(GcodeErrorKind::BadNumber(word.to_string())),
+        }
+    }
+    if digits == 0 || points > 1 {
+        return Err(GcodeErrorKind::BadNumber(word.to_string()));
+    }
+    let v: f64 = text.parse().map_err(|_| GcodeErrorKind::BadNumber(word.to_string()))?;
+    if !v.is_finite() {
+        return Err(GcodeErrorKind::NotFinite(word.to_string()));
+    }
+    Ok(v)
+}
+
+impl fmt::Display for Command {
+    /// G-code text that parses back to the same command.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        fn opt(f: &mut fmt::Formatter<'_>, letter: char, v: Option<f64>) -> fmt::Result {
+            match v {
+                Some(v) => write!(f, " {letter}{v}"),
+                None => Ok(()),
+            }
+        }
+        match self {
+            Command::Move { x, y, z, e, f: feed } => {
+                write!(f, "G1")?;
+                opt(f, 'X', *x)?;
+                opt(f, 'Y', *y)?;
+                opt(f, 'Z', *z)?;
+                opt(f, 'E', *e)?;
+                opt(f, 'F', *feed)
+            }
+            Command::Home { x, y, z } => {
+                write!(f, "G28")?;
+                for (on, l) in [(x, 'X'), (y, 'Y'), (z, 'Z')] {
+                    if *on && !(*x && *y && *z) {
+                        write!(f, " {l}")?;
+                    }
+                }
+                Ok(())
+            }
+            Command::AbsolutePositioning => write!(f, "G90"),
+            Command::RelativePositioning => write!(f, "G91"),
+            Command::SetPosition { x, y, z, e } => {
+                write!(f, "G92")?;
+                opt(f, 'X', *x)?;
+                opt(f, 'Y', *y)?;
+                opt(f, 'Z', *z)?;
+                opt(f, 'E', *e)
+            }
+            Command::AbsoluteExtrusion => write!(f, "M82"),
+            Command::RelativeExtrusion => write!(f, "M83"),
+            Command::Dwell { seconds } => write!(f, "G4 S{seconds}"),
+            Command::WaitMoves => write!(f, "M400"),
+            Command::Other { raw, .. } => write!(f, "{raw}"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn parse(s: &str) -> Result<Option<Command>, GcodeError> {
+        parse_line(7, s.as_bytes())
+    }
+
+    fn mv(x: Option<f64>, y: Option<f64>, z: Option<f64>, e: Option<f64>, f: Option<f64>) -> Command {
+        Command::Move { x, y, z, e, f }
+    }
+
+    #[test]
+    fn moves_and_numbers() {
+        assert_eq!(parse("G1 X10.5 Y-3 E.4 F1200").unwrap(), Some(mv(Some(10.5), Some(-3.0), None, Some(0.4), Some(1200.0))));
+        assert_eq!(parse("g0x1y+2z-.5").unwrap(), Some(mv(Some(1.0), Some(2.0), Some(-0.5), None, None)));
+        assert_eq!(parse("G01 X3.").unwrap(), Some(mv(Some(3.0), None, None, None, None)));
+        assert_eq!(parse("G1 F1800.000").unwrap(), Some(mv(None, None, None, None, Some(1800.0))));
+        assert_eq!(parse("  G1 X1 ; move (not a comment here)").unwrap(), Some(mv(Some(1.0), None, None, None, None)));
+        assert_eq!(parse("G1 (go) X1 (there)").unwrap(), Some(mv(Some(1.0), None, None, None, None)));
+    }
+
+    #[test]
+    fn skips_blank_and_comment_lines() {
+        for s in ["", "   ", "; hello", "(just a comment)", "N10", "%", "\r"] {
+            assert_eq!(parse(s).unwrap(), None, "{s:?}");
+        }
+    }
+
+    #[test]
+    fn other_commands() {
+        let c = parse("M104 S200 ; heat").unwrap();
+        assert_eq!(c, Some(Command::Other { name: "M104".into(), raw: "M104 S200".into() }));
+        let c = parse("set_velocity_limit ACCEL=1000 SQUARE_CORNER_VELOCITY=5").unwrap();
+        assert!(matches!(c, Some(Command::Other { ref name, .. }) if name == "SET_VELOCITY_LIMIT"));
+        let c = parse("M117 Printing benchy... 12%").unwrap();
+        assert!(matches!(c, Some(Command::Other { ref name, ref raw }) if name == "M117" && raw.ends_with("12%")));
+        assert!(matches!(parse("T0").unwrap(), Some(Command::Other { ref name, .. }) if name == "T0"));
+        assert!(matches!(parse("G29.1").unwrap(), Some(Command::Other { ref name, .. }) if name == "G29.1"));
+    }
+
+    #[test]
+    fn modal_and_misc_commands() {
+        assert_eq!(parse("G28").unwrap(), Some(Command::Home { x: true, y: true, z: true }));
+        assert_eq!(parse("G28 X0").unwrap(), Some(Command::Home { x: true, y: false, z: false }));
+        assert_eq!(parse("G28 Y Z").unwrap(), Some(Command::Home { x: false, y: true, z: true }));
+        assert_eq!(parse("G90").unwrap(), Some(Command::AbsolutePositioning));
+        assert_eq!(parse("G91").unwrap(), Some(Command::RelativePositioning));
+        assert_eq!(parse("M82").unwrap(), Some(Command::AbsoluteExtrusion));
+        assert_eq!(parse("M83").unwrap(), Some(Command::RelativeExtrusion));
+        assert_eq!(parse("M400").unwrap(), Some(Command::WaitMoves));
+        assert_eq!(parse("G92 E0").unwrap(), Some(Command::SetPosition { x: None, y: None, z: None, e: Some(0.0) }));
+        assert_eq!(parse("G4 P500").unwrap(), Some(Command::Dwell { seconds: 0.5 }));
+        assert_eq!(parse("G4 S2").unwrap(), Some(Command::Dwell { seconds: 2.0 }));
+        assert_eq!(parse("G4").unwrap(), Some(Command::Dwell { seconds: 0.0 }));
+    }
+
+    #[test]
+    fn line_numbers_and_checksums() {
+        let body = "N123 G1 X10";
+        let cs = body.bytes().fold(0u8, |a, b| a ^ b);
+        let line = format!("{body}*{cs}");
+        assert_eq!(parse(&line).unwrap(), Some(mv(Some(10.0), None, None, None, None)));
+        let bad = format!("{body}*{}", cs.wrapping_add(1));
+        let e = parse(&bad).unwrap_err();
+        assert!(matches!(e.kind, GcodeErrorKind::ChecksumMismatch { .. }), "{e}");
+        assert!(matches!(parse("G1 X1*").unwrap_err().kind, GcodeErrorKind::BadChecksum(_)));
+        assert!(matches!(parse("G1 X1*300").unwrap_err().kind, GcodeErrorKind::BadChecksum(_)));
+    }
+
+    #[test]
+    fn errors_say_line_and_word() {
+        let e = parse_line(12, b"G1 X1..2").unwrap_err();
+        assert_eq!(e.to_string(), "line 12: bad number 'X1..2' in `G1 X1..2`");
+        assert!(matches!(parse("G1 X1 X2").unwrap_err().kind, GcodeErrorKind::DuplicateParameter('X')));
+        assert!(matches!(parse("G1 X").unwrap_err().kind, GcodeErrorKind::MissingValue(_)));
+        assert!(matches!(parse("G1 X-").unwrap_err().kind, GcodeErrorKind::BadNumber(_)));
+        assert!(matches!(parse("G1 X1-2").unwrap_err().kind, GcodeErrorKind::BadNumber(_)));
+        let big = format!("G1 X1{}", "0".repeat(400));
+        assert!(matches!(parse(&big).unwrap_err().kind, GcodeErrorKind::NotFinite(_)));
+        assert!(matches!(parse("G1 Xnan").unwrap_err().kind, GcodeErrorKind::MissingValue(_)));
+        assert!(matches!(parse("G1 #5").unwrap_err().kind, GcodeErrorKind::BadWord(_)));
+        assert!(matches!(parse("#5").unwrap_err().kind, GcodeErrorKind::BadCommand(_)));
+        assert!(matches!(parse("G1 (oops").unwrap_err().kind, GcodeErrorKind::UnterminatedComment));
+        assert!(matches!(parse("G4 P-5").unwrap_err().kind, GcodeErrorKind::Negative(_)));
+        assert!(matches!(parse_line(1, b"G1 X\xff").unwrap_err().kind, GcodeErrorKind::NotUtf8));
+        assert!(matches!(parse_line(1, b"G1\x00X1").unwrap_err().kind, GcodeErrorKind::Binary(0)));
+        assert!(matches!(parse("BAD-NAME X=1").unwrap_err().kind, GcodeErrorKind::BadCommand(_)));
+    }
+
+    #[test]
+    fn reader_streams_lines_with_numbers() {
+        let text = "; header\nG90\n\nG1 X1 Y2\nG1 X1..2\r\nM83\n";
+        let items: Vec<_> = GcodeReader::new(text.as_bytes()).collect();
+        assert_eq!(items.len(), 4);
+        assert_eq!(items[0].as_ref().unwrap().line_no, 2);
+        assert_eq!(items[1].as_ref().unwrap().line_no, 4);
+        assert_eq!(items[2].as_ref().unwrap_err().line, 5);
+        assert_eq!(items[3].as_ref().unwrap(), &GcodeLine { line_no: 6, cmd: Command::RelativeExtrusion });
+    }
+
+    #[test]
+    fn reader_caps_line_length() {
+        let mut text = vec![b'M'; MAX_LINE_LEN + 10];
+        text.extend_from_slice(b"\nG90");
+        let items: Vec<_> = GcodeReader::new(&text[..]).collect();
+        assert_eq!(items.len(), 2);
+        assert!(matches!(items[0].as_ref().unwrap_err().kind, GcodeErrorKind::LineTooLong));
+        assert_eq!(items[1].as_ref().unwrap().cmd, Command::AbsolutePositioning);
+    }
+
+    fn coord() -> impl Strategy<Value = Option<f64>> {
+        prop_oneof![Just(None), (-1e6f64..1e6).prop_map(Some), (-1000i32..1000).prop_map(|v| Some(v as f64 / 8.0))]
+    }
+
+    proptest! {
+        #[test]
+        fn never_panics_on_bytes(bytes in proptest::collection::vec(any::<u8>(), 0..300)) {
+            for item in GcodeReader::new(&bytes[..]) {
+                let _ = item.map(|l| l.cmd.to_string()).map_err(|e| e.to_string());
+            }
+        }
+
+        #[test]
+        fn never_panics_on_gcode_like_text(s in "[GMNXYZEFPS*;()0-9 .+\\-=_a-z\n\t]{0,120}") {
+            for item in GcodeReader::new(s.as_bytes()) {
+                let _ = item.map(|l| l.cmd.to_string()).map_err(|e| e.to_string());
+            }
+        }
+
+        #[test]
+        fn moves_round_trip(x in coord(), y in coord(), z in coord(), e in coord(),
+                            f in prop_oneof![Just(None), (1.0f64..1e5).prop_map(Some)]) {
+            let cmd = Command::Move { x, y, z, e, f };
+            let text = cmd.to_string();
+            let back = parse_line(1, text.as_bytes()).unwrap();
+            prop_assert_eq!(back, Some(cmd));
+        }
+
+        #[test]
+        fn checksummed_lines_round_trip(n in 0u32..100000, x in -1000.0f64..1000.0) {
+            let body = format!("N{n} G1 X{x}");
+            let cs = body.bytes().fold(0u8, |a, b| a ^ b);
+            let line = format!("{body}*{cs}");
+            prop_assert_eq!(parse_line(1, line.as_bytes()).unwrap(), Some(mv(Some(x), None, None, None, None)));
+        }
+    }
+}

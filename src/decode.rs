@@ -1,0 +1,69 @@
+//! `cadence decode`: prints a host→MCU wire stream (as written by `print --batch`) one message
+//! a line, with names and fields from the data dictionary.
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use clap::Args;
+use links::dict::Dictionary;
+use links::proto::{block::block_payload, find_block, Frame};
+
+/// Arguments of `cadence decode`.
+#[derive(Debug, Args)]
+pub struct DecodeArgs {
+    /// The wire stream to decode.
+    pub file: PathBuf,
+    /// Data dictionary (zlib-compressed JSON); default: the Cadence firmware's own.
+    #[arg(long)]
+    pub dictionary: Option<PathBuf>,
+}
+
+pub fn run(args: &DecodeArgs) -> Result<(), String> {
+    let dict = match &args.dictionary {
+        Some(p) => {
+            let bytes = std::fs::read(p).map_err(|e| format!("{}: {e}", p.display()))?;
+            Dictionary::from_compressed(&bytes).map_err(|e| format!("{}: {e}", p.display()))?
+        }
+        None => Dictionary::from_compressed(&firmware::dictionary_bytes(50_000_000))
+            .map_err(|e| format!("firmware dictionary: {e}"))?,
+    };
+    let data = std::fs::read(&args.file).map_err(|e| format!("{}: {e}", args.file.display()))?;
+    let stdout = std::io::stdout();
+    let mut out = std::io::BufWriter::new(stdout.lock());
+    let mut pos = 0usize;
+    let mut bad = 0u64;
+    while pos < data.len() {
+        match find_block(&data[pos..]) {
+            Frame::Block { len, seq } => {
+                let payload = block_payload(&data[pos..pos + len]);
+                let msgs = dict
+                    .decode(payload)
+                    .map_err(|e| format!("{}: block at byte {pos} (seq {seq}): {e}", args.file.display()))?;
+                for m in msgs {
+                    if writeln!(out, "{m}").is_err() {
+                        return Ok(()); // reader went away (e.g. `| head`)
+                    }
+                }
+                pos += len;
+            }
+            Frame::Skip(n) => pos += n,
+            Frame::Bad(n) => {
+                bad += 1;
+                let _ = writeln!(out, "# invalid block at byte {pos} ({n} bytes skipped)");
+                pos += n;
+            }
+            Frame::Incomplete => {
+                return Err(format!(
+                    "{}: truncated block at byte {pos} ({} bytes left)",
+                    args.file.display(),
+                    data.len() - pos
+                ));
+            }
+        }
+    }
+    let _ = out.flush();
+    if bad > 0 {
+        return Err(format!("{}: {bad} invalid blocks", args.file.display()));
+    }
+    Ok(())
+}

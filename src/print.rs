@@ -1,0 +1,425 @@
+//! `cadence print`: G-code → planner → step compression → MCU (live) or a wire file (batch).
+
+use std::collections::BTreeSet;
+use std::fs::File;
+use std::io::{BufReader, BufWriter};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use clap::Args;
+use links::dict::{Cmd, Dictionary};
+use links::mcu::{LinkOptions, McuLink};
+use links::transport::{PtyTransport, SerialTransport, Transport};
+use planner::gcode::GcodeReader;
+use planner::machine::Applied;
+use planner::pipeline::Pipeline;
+use planner::stepgen::StepCmd;
+use sysconfig::printer::PrinterConfig;
+
+use crate::machine::Machine;
+use crate::simmcu::{SimMcu, SimOptions};
+use crate::sink::{BatchSink, Sink, StepStreamer};
+
+/// Arguments of `cadence print`.
+#[derive(Debug, Args)]
+pub struct PrintArgs {
+    /// The G-code file to print.
+    pub file: PathBuf,
+    /// Klipper-format printer.cfg (default: the built-in simulated cartesian printer).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Simulated MCU clock runs this many times faster than the wall clock.
+    #[arg(long, default_value_t = 1.0)]
+    pub time_scale: f64,
+    /// No MCU and no real-time waiting: write the exact wire stream to this file.
+    #[arg(long)]
+    pub batch: Option<PathBuf>,
+    /// Data dictionary (zlib-compressed JSON as served by identify) for --batch; default: the
+    /// Cadence firmware's own.
+    #[arg(long)]
+    pub dictionary: Option<PathBuf>,
+    /// Write the simulated MCU's step trace to this file.
+    #[arg(long)]
+    pub trace: Option<PathBuf>,
+    /// Maximum step time error of the compression, in microseconds.
+    #[arg(long, default_value_t = 25.0)]
+    pub max_error_us: f64,
+}
+
+/// Lead every step command must have at the MCU, in print seconds.
+const MIN_LEAD_S: f64 = 0.100;
+/// Most time scale the simulator's 32-bit clock allows (it wraps every 86 s / scale at 50 MHz).
+const MAX_TIME_SCALE: f64 = 50.0;
+
+pub fn run(args: &PrintArgs) -> Result<(), String> {
+    if !(args.max_error_us > 0.0 && args.max_error_us <= 1000.0) {
+        return Err(format!("--max-error-us {}: must be in (0, 1000]", args.max_error_us));
+    }
+    if !(args.time_scale > 0.0 && args.time_scale <= MAX_TIME_SCALE) {
+        return Err(format!("--time-scale {}: must be in (0, {MAX_TIME_SCALE}]", args.time_scale));
+    }
+    // Open the G-code first: a missing file must not start any MCU.
+    let gcode = File::open(&args.file).map_err(|e| format!("{}: {e}", args.file.display()))?;
+    let cfg = match &args.config {
+        Some(path) => sysconfig::printer::load(path).map_err(|e| e.to_string())?,
+        None => sysconfig::printer::builtin_simulated().map_err(|e| format!("built-in printer: {e}"))?,
+    };
+    for w in &cfg.warnings {
+        eprintln!("cadence: warning: {w}");
+    }
+    let machine = Machine::from_config(&cfg)?;
+    match &args.batch {
+        Some(out) => run_batch(args, &cfg, &machine, gcode, out),
+        None => run_live(args, &cfg, &machine, gcode),
+    }
+}
+
+/// Counts and reports G-code commands the planner does not implement yet, once per name.
+#[derive(Debug, Default)]
+struct Warnings {
+    seen: BTreeSet<String>,
+}
+
+impl Warnings {
+    fn unsupported(&mut self, file: &Path, line: usize, name: &str) {
+        if self.seen.insert(name.to_string()) {
+            eprintln!(
+                "cadence: warning: {}:{line}: {name} is not implemented yet and is ignored (reported once)",
+                file.display()
+            );
+        }
+    }
+}
+
+/// Encodes the MCU configuration: oids, steppers, finalize with the config CRC.
+fn config_commands(dict: &Dictionary, machine: &Machine) -> Result<Vec<Cmd>, String> {
+    let mut cmds = Vec::new();
+    let err = |e: links::dict::DictError| e.to_string();
+    cmds.push(dict.encode("allocate_oids", &[machine.steppers.len() as i64]).map_err(err)?);
+    for s in &machine.steppers {
+        let step_pin = dict.pin(&s.step_pin.pin).map_err(|e| format!("[{}] step_pin: {e}", s.name))?;
+        let dir_pin = dict.pin(&s.dir_pin.pin).map_err(|e| format!("[{}] dir_pin: {e}", s.name))?;
+        cmds.push(
+            dict.encode(
+                "config_stepper",
+                &[s.oid as i64, step_pin as i64, dir_pin as i64, s.step_pin.invert as i64, 0],
+            )
+            .map_err(err)?,
+        );
+    }
+    let mut crc = crc32fast::Hasher::new();
+    for c in &cmds {
+        crc.update(c.as_bytes());
+    }
+    cmds.push(dict.encode("finalize_config", &[crc.finalize() as i64]).map_err(err)?);
+    Ok(cmds)
+}
+
+/// Feeds the G-code through the planner, handing step commands to `emit` as they become final.
+/// `pace` runs between lines (live flow control; batch passes a no-op).
+fn plan_file(
+    args: &PrintArgs,
+    pipeline: &mut Pipeline,
+    gcode: File,
+    mut emit: impl FnMut(&mut Vec<(usize, StepCmd)>) -> Result<(), String>,
+    mut pace: impl FnMut(&Pipeline) -> Result<(), String>,
+) -> Result<u64, String> {
+    let mut warnings = Warnings::default();
+    let mut out = Vec::with_capacity(4096);
+    let mut lines = 0u64;
+    for line in GcodeReader::new(BufReader::with_capacity(1 << 16, gcode)) {
+        let line = line.map_err(|e| format!("{}: {e}", args.file.display()))?;
+        lines += 1;
+        match pipeline.apply(&line).map_err(|e| format!("{}: {e}", args.file.display()))? {
+            Applied::Unsupported(name) => warnings.unsupported(&args.file, line.line_no, &name),
+            _ => {}
+        }
+        pipeline.generate(&mut out);
+        if !out.is_empty() {
+            emit(&mut out)?;
+            out.clear();
+            pace(pipeline)?;
+        }
+    }
+    pipeline.finish(&mut out);
+    emit(&mut out)?;
+    Ok(lines)
+}
+
+fn run_batch(args: &PrintArgs, _cfg: &PrinterConfig, machine: &Machine, gcode: File, out: &Path) -> Result<(), String> {
+    let started = Instant::now();
+    let dict = match &args.dictionary {
+        Some(p) => {
+            let bytes = std::fs::read(p).map_err(|e| format!("{}: {e}", p.display()))?;
+            Dictionary::from_compressed(&bytes).map_err(|e| format!("{}: {e}", p.display()))?
+        }
+        None => Dictionary::from_compressed(&firmware::dictionary_bytes(50_000_000))
+            .map_err(|e| format!("firmware dictionary: {e}"))?,
+    };
+    let clock_freq = dict.clock_freq().map_err(|e| e.to_string())?;
+    let file = File::create(out).map_err(|e| format!("{}: {e}", out.display()))?;
+    let mut sink = BatchSink::new(BufWriter::with_capacity(1 << 16, file));
+    for c in config_commands(&dict, machine)? {
+        sink.send(c)?;
+    }
+    let move_count = 16384;
+    let mut streamer = StepStreamer::new(&machine.steppers, move_count)?;
+    let mut pipeline = Pipeline::new(machine.pipeline_config(clock_freq, args.max_error_us * 1e-6), 0.25)
+        .map_err(|e| e.to_string())?;
+    let lines = plan_file(
+        args,
+        &mut pipeline,
+        gcode,
+        |cmds| {
+            for &(idx, cmd) in cmds.iter() {
+                streamer.push(&dict, idx, cmd, &mut sink)?;
+            }
+            Ok(())
+        },
+        |_| Ok(()),
+    )?;
+    sink.finish()?;
+    let stats = pipeline.stats();
+    println!("batch: {} -> {}", args.file.display(), out.display());
+    println!("  lines {lines}, moves {}, print time {:.3} s", stats.moves, pipeline.planned_until());
+    for (s, n) in machine.steppers.iter().zip(streamer.steps_sent()) {
+        println!("  {:<10} {n} steps", s.name);
+    }
+    println!(
+        "  queue_step {}, blocks {}, wire bytes {}, wall {:.3} s",
+        streamer.queue_steps(),
+        sink.blocks,
+        sink.bytes,
+        started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: File) -> Result<(), String> {
+    let started = Instant::now();
+    let mcu_cfg = cfg.mcus.first().ok_or_else(|| "printer.cfg has no [mcu] section".to_string())?;
+    let mut sim = None;
+    let transport: Box<dyn Transport> = if mcu_cfg.serial == "simulator" {
+        let opts = SimOptions {
+            clock_freq: cfg.simulator.clock_freq,
+            time_scale: args.time_scale,
+            trace: args.trace.clone(),
+        };
+        let s = SimMcu::spawn(&mcu_cfg.name, &opts)?;
+        let t = PtyTransport::open(&s.pty).map_err(|e| format!("mcu '{}': {}: {e}", mcu_cfg.name, s.pty.display()))?;
+        sim = Some(s);
+        Box::new(t)
+    } else {
+        if args.time_scale != 1.0 {
+            return Err("--time-scale only applies to the simulated printer".to_string());
+        }
+        Box::new(
+            SerialTransport::open(Path::new(&mcu_cfg.serial), mcu_cfg.baud)
+                .map_err(|e| format!("mcu '{}': {}: {e}", mcu_cfg.name, mcu_cfg.serial))?,
+        )
+    };
+    let opts = LinkOptions {
+        name: mcu_cfg.name.clone(),
+        identify_timeout: Duration::from_secs(5),
+        response_timeout: Duration::from_secs(2),
+        queue_capacity: 4096,
+    };
+    let link = McuLink::connect(transport, opts).map_err(|e| e.to_string())?;
+    let result = print_on_link(args, machine, &link, gcode, started);
+    let stats = link.close();
+    if let Some(s) = sim {
+        let how = s.finish(Duration::from_secs(5));
+        if result.is_err() {
+            eprintln!("cadence: simulated MCU {how}");
+        }
+    }
+    let summary = result?;
+    summary.print(&stats);
+    Ok(())
+}
+
+/// What a live print reports at the end.
+#[derive(Debug)]
+struct Summary {
+    file: PathBuf,
+    lines: u64,
+    moves: u64,
+    print_time: f64,
+    wall: f64,
+    queue_steps: u64,
+    rows: Vec<(String, u64, i64, i64, f64)>,
+    clock_freq: f64,
+}
+
+impl Summary {
+    fn print(&self, stats: &links::mcu::LinkStats) {
+        println!("print: {}", self.file.display());
+        println!(
+            "  lines {}, moves {}, queue_step {}, print time {:.3} s, wall {:.3} s",
+            self.lines, self.moves, self.queue_steps, self.print_time, self.wall
+        );
+        println!("  {:<10} {:>10} {:>12} {:>12} {:>12}", "stepper", "steps", "mcu pos", "host pos", "position mm");
+        for (name, steps, mcu_pos, host_pos, mm) in &self.rows {
+            let flag = if mcu_pos == host_pos { "" } else { "  MISMATCH" };
+            println!("  {name:<10} {steps:>10} {mcu_pos:>12} {host_pos:>12} {mm:>12.4}{flag}");
+        }
+        let margin_ms = stats.min_lead_ticks as f64 / self.clock_freq * 1e3;
+        println!(
+            "  min lead margin {margin_ms:.1} ms over {} clocked messages (required {:.0} ms)",
+            stats.clocked_messages,
+            MIN_LEAD_S * 1e3
+        );
+        println!(
+            "  link: {} bytes written, {} read, {} retransmitted, {} invalid",
+            stats.bytes_write, stats.bytes_read, stats.bytes_retransmit, stats.bytes_invalid
+        );
+    }
+}
+
+fn print_on_link(
+    args: &PrintArgs,
+    machine: &Machine,
+    link: &McuLink,
+    gcode: File,
+    started: Instant,
+) -> Result<Summary, String> {
+    let dict = link.dictionary();
+    let clock_freq = dict.clock_freq().map_err(|e| e.to_string())?;
+    let cfg_reply = link
+        .query(dict.encode("get_config", &[]).map_err(|e| e.to_string())?, "config", None, Duration::from_secs(2))
+        .map_err(|e| e.to_string())?;
+    if cfg_reply.get("is_config") == Some(1) {
+        return Err("the MCU is already configured: restart it before printing".to_string());
+    }
+    for c in config_commands(dict, machine)? {
+        link.send(c).map_err(|e| e.to_string())?;
+    }
+    let cfg_reply = link
+        .query(dict.encode("get_config", &[]).map_err(|e| e.to_string())?, "config", None, Duration::from_secs(2))
+        .map_err(|e| e.to_string())?;
+    if cfg_reply.get("is_config") != Some(1) {
+        return Err(format!("the MCU did not accept the configuration ({cfg_reply})"));
+    }
+    let move_count = cfg_reply.get("move_count").unwrap_or(0).max(0) as usize;
+    if move_count < 64 {
+        return Err(format!("the MCU's move queue is too small ({move_count} entries)"));
+    }
+
+    let scale = args.time_scale;
+    let print_now = || link.clock().clock_at(McuLink::system_now()) / clock_freq;
+    // Start far enough ahead that the first batch is planned long before it is due.
+    let start = print_now() + (0.5f64).max(0.25 * scale);
+    // Buffering window in print time: 2 s, or 1 s of wall time when the clock runs faster.
+    let high_water = (2.0f64).max(1.0 * scale);
+    let low_water = high_water / 2.0;
+    let lead_ticks = (MIN_LEAD_S * clock_freq) as u64;
+
+    let mut pipeline = Pipeline::new(machine.pipeline_config(clock_freq, args.max_error_us * 1e-6), start)
+        .map_err(|e| e.to_string())?;
+    let mut streamer = StepStreamer::new(&machine.steppers, move_count)?;
+    let mut sink = LinkSink { link };
+    let lines = plan_file(
+        args,
+        &mut pipeline,
+        gcode,
+        |cmds| {
+            let now_clock = (print_now() * clock_freq) as u64;
+            for &(idx, cmd) in cmds.iter() {
+                if let StepCmd::QueueStep { first_clock, .. } = cmd {
+                    if first_clock < now_clock + lead_ticks {
+                        return Err(format!(
+                            "the planner fell behind: a step for {} at print time {:.3} s was ready only {:.1} ms \
+                             before it is due (at least {:.0} ms required); print stopped before sending it",
+                            machine.steppers[idx].name,
+                            first_clock as f64 / clock_freq,
+                            (first_clock as f64 - now_clock as f64) / clock_freq * 1e3,
+                            MIN_LEAD_S * 1e3
+                        ));
+                    }
+                }
+                streamer.push(dict, idx, cmd, &mut sink)?;
+            }
+            Ok(())
+        },
+        |p| {
+            // Flow control: keep between the low and high water marks of buffered print time.
+            if p.planned_until() - print_now() > high_water {
+                while p.planned_until() - print_now() > low_water {
+                    check_link(link)?;
+                    std::thread::sleep(Duration::from_millis(5));
+                }
+            }
+            check_link(link)
+        },
+    )?;
+
+    // Wait until the MCU has executed the last step (bounded).
+    let end_clock = streamer.last_step_clock;
+    let wait_s = (end_clock as f64 / clock_freq - print_now()).max(0.0) / scale + 5.0;
+    let deadline = Instant::now() + Duration::from_secs_f64(wait_s);
+    link.wait_idle(Duration::from_secs_f64(wait_s)).map_err(|e| e.to_string())?;
+    while print_now() * clock_freq < end_clock as f64 + 0.01 * clock_freq {
+        check_link(link)?;
+        if Instant::now() > deadline {
+            return Err("the MCU clock did not reach the end of the print in time".to_string());
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    check_link(link)?;
+
+    let host_positions = pipeline.stepper_positions();
+    let commanded = pipeline.position();
+    let mut rows = Vec::new();
+    for (i, s) in machine.steppers.iter().enumerate() {
+        let q = dict.encode("stepper_get_position", &[s.oid as i64]).map_err(|e| e.to_string())?;
+        let reply = link
+            .query(q, "stepper_position", Some(("oid", s.oid as i64)), Duration::from_secs(2))
+            .map_err(|e| e.to_string())?;
+        let raw = reply.get("pos").unwrap_or(0);
+        let mcu_pos = if s.dir_pin.invert { -raw } else { raw };
+        let host_pos = host_positions.get(i).copied().unwrap_or(0);
+        rows.push((s.name.clone(), streamer.steps_sent()[i], mcu_pos, host_pos, commanded[s.axis]));
+    }
+    let stats = pipeline.stats();
+    if let Some((name, _, m, h, _)) = rows.iter().find(|r| r.2 != r.3) {
+        return Err(format!("{name}: the MCU reports position {m} steps but the host sent {h}"));
+    }
+    let link_stats = link.stats();
+    if link_stats.clocked_messages > 0 && (link_stats.min_lead_ticks as f64) < MIN_LEAD_S * clock_freq {
+        return Err(format!(
+            "a step command reached the MCU with only {:.1} ms lead (at least {:.0} ms required)",
+            link_stats.min_lead_ticks as f64 / clock_freq * 1e3,
+            MIN_LEAD_S * 1e3
+        ));
+    }
+    Ok(Summary {
+        file: args.file.clone(),
+        lines,
+        moves: stats.moves,
+        print_time: pipeline.planned_until() - start,
+        wall: started.elapsed().as_secs_f64(),
+        queue_steps: streamer.queue_steps(),
+        rows,
+        clock_freq,
+    })
+}
+
+fn check_link(link: &McuLink) -> Result<(), String> {
+    match link.shutdown_reason() {
+        Some(reason) => Err(format!("mcu shut down: {reason}")),
+        None => Ok(()),
+    }
+}
+
+struct LinkSink<'a> {
+    link: &'a McuLink,
+}
+
+impl Sink for LinkSink<'_> {
+    fn send(&mut self, cmd: Cmd) -> Result<(), String> {
+        self.link.send(cmd).map_err(|e| e.to_string())
+    }
+    fn send_clocked(&mut self, cmd: Cmd, min_clock: u64, req_clock: u64) -> Result<(), String> {
+        self.link.send_clocked(cmd, min_clock, req_clock).map_err(|e| e.to_string())
+    }
+}

@@ -1,0 +1,143 @@
+//! Starts the simulated MCU (`cadence-mcu`, the firmware's Linux-process target) as a child
+//! process and learns the path of the pseudo-terminal it opened.
+//!
+//! The executable is `cadence-mcu` beside the running binary (or one directory up, for test
+//! harnesses in `deps/`); when it was not built (e.g. after `cargo run` of the `cadence` package
+//! alone), the running `cadence` binary serves the same firmware code through its hidden
+//! `mcu` subcommand.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::Duration;
+
+/// How long the child may take to print its pty path.
+const START_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// A running simulated MCU.
+#[derive(Debug)]
+pub struct SimMcu {
+    pub name: String,
+    pub pty: PathBuf,
+    child: Child,
+}
+
+/// Options passed to the simulated MCU.
+#[derive(Debug, Clone)]
+pub struct SimOptions {
+    pub clock_freq: u64,
+    pub time_scale: f64,
+    pub trace: Option<PathBuf>,
+}
+
+fn mcu_command() -> Result<Command, String> {
+    let exe = std::env::current_exe().map_err(|e| format!("cannot locate the running executable: {e}"))?;
+    let dirs: Vec<&Path> = exe.parent().into_iter().flat_map(|d| [Some(d), d.parent()]).flatten().collect();
+    for dir in dirs {
+        let candidate = dir.join("cadence-mcu");
+        if candidate.is_file() {
+            return Ok(Command::new(candidate));
+        }
+    }
+    let is_cadence = exe.file_name().and_then(|n| n.to_str()).map(|n| n == "cadence").unwrap_or(false);
+    if is_cadence {
+        let mut cmd = Command::new(exe);
+        cmd.arg("mcu");
+        return Ok(cmd);
+    }
+    Err(format!(
+        "cannot find the simulated MCU executable 'cadence-mcu' next to {}: build it with `cargo build --workspace`",
+        exe.display()
+    ))
+}
+
+impl SimMcu {
+    /// Spawns the simulated MCU and waits (bounded) for it to announce its pty.
+    pub fn spawn(name: &str, opts: &SimOptions) -> Result<SimMcu, String> {
+        let mut cmd = mcu_command()?;
+        cmd.arg("--clock-freq").arg(opts.clock_freq.to_string());
+        cmd.arg("--time-scale").arg(opts.time_scale.to_string());
+        if let Some(trace) = &opts.trace {
+            cmd.arg("--trace").arg(trace);
+        }
+        cmd.stdin(Stdio::null()).stdout(Stdio::piped()).stderr(Stdio::inherit());
+        let mut child = cmd.spawn().map_err(|e| format!("mcu '{name}': cannot start the simulated MCU: {e}"))?;
+        let Some(stdout) = child.stdout.take() else {
+            let _ = child.kill();
+            return Err(format!("mcu '{name}': simulated MCU has no stdout"));
+        };
+        let (tx, rx) = mpsc::channel();
+        std::thread::Builder::new()
+            .name(format!("sim-{name}-stdout"))
+            .spawn(move || {
+                let mut reader = BufReader::new(stdout);
+                let mut line = String::new();
+                let first = reader.read_line(&mut line).map(|_| line.clone());
+                let _ = tx.send(first);
+                // Keep draining so the child never blocks on a full pipe.
+                let mut sink = String::new();
+                while matches!(reader.read_line(&mut sink), Ok(n) if n > 0) {
+                    sink.clear();
+                }
+            })
+            .map_err(|e| format!("mcu '{name}': cannot start a reader thread: {e}"))?;
+        let line = match rx.recv_timeout(START_TIMEOUT) {
+            Ok(Ok(line)) => line,
+            Ok(Err(e)) => {
+                let _ = child.kill();
+                let _ = child.wait();
+                return Err(format!("mcu '{name}': reading the simulated MCU's output failed: {e}"));
+            }
+            Err(_) => {
+                let _ = child.kill();
+                let _ = child.wait();
+                return Err(format!(
+                    "mcu '{name}': the simulated MCU did not announce its pty within {} s",
+                    START_TIMEOUT.as_secs()
+                ));
+            }
+        };
+        let Some(path) = line.trim().strip_prefix("cadence-mcu: pty ") else {
+            let status = child.try_wait().ok().flatten();
+            let _ = child.kill();
+            let _ = child.wait();
+            return Err(match status {
+                Some(s) => format!("mcu '{name}': the simulated MCU exited ({s}) before opening its pty"),
+                None => format!("mcu '{name}': unexpected output from the simulated MCU: {:?}", line.trim()),
+            });
+        };
+        Ok(SimMcu { name: name.to_string(), pty: PathBuf::from(path), child })
+    }
+
+    /// Waits (bounded) for the MCU process to exit after the host closed its pty; kills it
+    /// if it does not. Returns a description of how it ended.
+    pub fn finish(mut self, timeout: Duration) -> String {
+        let deadline = std::time::Instant::now() + timeout;
+        loop {
+            match self.child.try_wait() {
+                Ok(Some(status)) => return format!("exited ({status})"),
+                Ok(None) if std::time::Instant::now() < deadline => std::thread::sleep(Duration::from_millis(10)),
+                _ => {
+                    let _ = self.child.kill();
+                    let _ = self.child.wait();
+                    return "killed after not exiting in time".to_string();
+                }
+            }
+        }
+    }
+
+    /// True while the MCU process is running.
+    pub fn is_running(&mut self) -> bool {
+        matches!(self.child.try_wait(), Ok(None))
+    }
+}
+
+impl Drop for SimMcu {
+    fn drop(&mut self) {
+        if matches!(self.child.try_wait(), Ok(None)) {
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+    }
+}

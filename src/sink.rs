@@ -1,0 +1,185 @@
+//! Turns the planner's per-stepper step commands into MCU messages with the clocks that
+//! govern when they may be sent, and hands them to a sink: the live MCU link or a batch file.
+//!
+//! Send rules (see docs/architecture.md "Flow control"):
+//! - `req_clock` of a message is the first step clock it concerns, so the link releases
+//!   messages in step-time order and can measure each one's lead.
+//! - `min_clock` keeps the MCU's move pool from overflowing: the k-th `queue_step` may only be
+//!   sent once the (k − M)-th has started (its first step clock has passed), M being the pool
+//!   size minus a margin. A `reset_step_clock` may only arrive once its stepper is idle (after
+//!   its previous last step).
+
+use links::dict::{Cmd, Dictionary};
+use planner::stepgen::StepCmd;
+
+use crate::machine::StepperOut;
+
+/// Where encoded messages go.
+pub trait Sink {
+    /// A message with no timing constraint (configuration, queries).
+    fn send(&mut self, cmd: Cmd) -> Result<(), String>;
+    /// A message not to be sent before `min_clock`, ordered and lead-checked by `req_clock`.
+    fn send_clocked(&mut self, cmd: Cmd, min_clock: u64, req_clock: u64) -> Result<(), String>;
+}
+
+/// Slots kept free in the MCU's move pool as a safety margin.
+const POOL_MARGIN: usize = 32;
+
+#[derive(Debug, Clone, Copy, Default)]
+struct StepperState {
+    /// Clock of the last step sent for this stepper.
+    last_clock: u64,
+    /// `min_clock` of the last message sent for this stepper (kept monotonic).
+    min_clock: u64,
+    /// Direction and reset waiting for the next queue_step's clock.
+    pending_dir: Option<bool>,
+    pending_reset: Option<u64>,
+    /// Net steps sent (MCU sign convention).
+    steps_sent: u64,
+}
+
+/// Encodes step commands for one MCU.
+#[derive(Debug)]
+pub struct StepStreamer {
+    steppers: Vec<StepperOut>,
+    state: Vec<StepperState>,
+    /// First-step clocks of the last `pool` queue_step messages (a ring).
+    ring: Vec<u64>,
+    ring_pos: usize,
+    queue_steps: u64,
+    /// Largest step clock sent.
+    pub last_step_clock: u64,
+    /// Smallest (first step clock − now) seen at hand-off, for live streams (ticks).
+    ids: Ids,
+}
+
+#[derive(Debug, Clone)]
+struct Ids {
+    queue_step: &'static str,
+    set_dir: &'static str,
+    reset: &'static str,
+}
+
+impl StepStreamer {
+    /// A streamer for `steppers` on an MCU whose move pool holds `move_count` entries.
+    pub fn new(steppers: &[StepperOut], move_count: usize) -> Result<StepStreamer, String> {
+        let pool = move_count.saturating_sub(POOL_MARGIN).max(1);
+        Ok(StepStreamer {
+            steppers: steppers.to_vec(),
+            state: vec![StepperState::default(); steppers.len()],
+            ring: vec![0; pool],
+            ring_pos: 0,
+            queue_steps: 0,
+            last_step_clock: 0,
+            ids: Ids { queue_step: "queue_step", set_dir: "set_next_step_dir", reset: "reset_step_clock" },
+        })
+    }
+
+    /// Number of queue_step messages handed to the sink.
+    pub fn queue_steps(&self) -> u64 {
+        self.queue_steps
+    }
+
+    /// Steps handed to the sink per stepper.
+    pub fn steps_sent(&self) -> Vec<u64> {
+        self.state.iter().map(|s| s.steps_sent).collect()
+    }
+
+    /// Encodes and sends one planner command for stepper `idx`.
+    pub fn push(&mut self, dict: &Dictionary, idx: usize, cmd: StepCmd, sink: &mut dyn Sink) -> Result<(), String> {
+        let Some(stepper) = self.steppers.get(idx) else {
+            return Err(format!("internal error: step command for unknown stepper index {idx}"));
+        };
+        let oid = stepper.oid as i64;
+        let invert = stepper.dir_pin.invert;
+        let st = &mut self.state[idx];
+        match cmd {
+            StepCmd::SetDir { dir } => st.pending_dir = Some(dir != invert),
+            StepCmd::ResetClock { clock } => st.pending_reset = Some(clock),
+            StepCmd::QueueStep { interval, count, add, first_clock, last_clock } => {
+                // Move-pool slot: free once the queue_step `pool` places back has started.
+                let slot_clock = self.ring[self.ring_pos];
+                let mut min_clock = st.min_clock.max(slot_clock);
+                if let Some(clock) = st.pending_reset.take() {
+                    // The stepper must be idle when the reset arrives.
+                    min_clock = min_clock.max(st.last_clock + 1);
+                    st.min_clock = min_clock;
+                    let m = dict.encode(self.ids.reset, &[oid, clock as u32 as i64]).map_err(|e| e.to_string())?;
+                    sink.send_clocked(m, min_clock, first_clock)?;
+                }
+                if let Some(dir) = st.pending_dir.take() {
+                    let m = dict.encode(self.ids.set_dir, &[oid, dir as i64]).map_err(|e| e.to_string())?;
+                    sink.send_clocked(m, min_clock, first_clock)?;
+                }
+                let m = dict
+                    .encode(self.ids.queue_step, &[oid, interval as i64, count as i64, add as i64])
+                    .map_err(|e| e.to_string())?;
+                sink.send_clocked(m, min_clock, first_clock)?;
+                st.min_clock = min_clock;
+                st.last_clock = last_clock;
+                st.steps_sent += count as u64;
+                self.ring[self.ring_pos] = first_clock;
+                self.ring_pos = (self.ring_pos + 1) % self.ring.len();
+                self.queue_steps += 1;
+                self.last_step_clock = self.last_step_clock.max(last_clock);
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Writes the exact wire stream (message blocks with sequence numbers) to a file, packing
+/// messages into blocks in the order given, as Klipper's batch mode does.
+#[derive(Debug)]
+pub struct BatchSink<W: std::io::Write> {
+    out: W,
+    seq: u64,
+    payload: Vec<u8>,
+    pub bytes: u64,
+    pub blocks: u64,
+}
+
+impl<W: std::io::Write> BatchSink<W> {
+    pub fn new(out: W) -> Self {
+        BatchSink { out, seq: 0, payload: Vec::with_capacity(64), bytes: 0, blocks: 0 }
+    }
+
+    fn push_msg(&mut self, cmd: &Cmd) -> Result<(), String> {
+        let bytes = cmd.as_bytes();
+        if self.payload.len() + bytes.len() > links::proto::MESSAGE_PAYLOAD_MAX {
+            self.flush_block()?;
+        }
+        self.payload.extend_from_slice(bytes);
+        Ok(())
+    }
+
+    fn flush_block(&mut self) -> Result<(), String> {
+        if self.payload.is_empty() {
+            return Ok(());
+        }
+        let mut block = [0u8; links::proto::MESSAGE_MAX];
+        let n = links::proto::encode_block(self.seq as u8, &self.payload, &mut block)
+            .ok_or_else(|| "internal error: message too long for a block".to_string())?;
+        self.out.write_all(&block[..n]).map_err(|e| format!("writing the batch output: {e}"))?;
+        self.seq += 1;
+        self.bytes += n as u64;
+        self.blocks += 1;
+        self.payload.clear();
+        Ok(())
+    }
+
+    /// Flushes the last block and the writer.
+    pub fn finish(&mut self) -> Result<(), String> {
+        self.flush_block()?;
+        self.out.flush().map_err(|e| format!("writing the batch output: {e}"))
+    }
+}
+
+impl<W: std::io::Write> Sink for BatchSink<W> {
+    fn send(&mut self, cmd: Cmd) -> Result<(), String> {
+        self.push_msg(&cmd)
+    }
+    fn send_clocked(&mut self, cmd: Cmd, _min_clock: u64, _req_clock: u64) -> Result<(), String> {
+        self.push_msg(&cmd)
+    }
+}

@@ -1,0 +1,80 @@
+//! Klipper sections Cadence accepts but does not implement yet: a config containing them loads,
+//! with one warning per kind, instead of failing. Anything that changes motion or homing (extra
+//! steppers, dual carriages, probes as endstops) is deliberately not on this list.
+
+/// Section kinds (the first word of the section name) that are read past with a warning.
+pub const IGNORED_SECTIONS: &[&str] = &[
+    "adc_temperature",
+    "bed_mesh",
+    "bed_screws",
+    "bed_tilt",
+    "bltouch",
+    "board_pins",
+    "controller_fan",
+    "delayed_gcode",
+    "display",
+    "display_data",
+    "display_glyph",
+    "display_status",
+    "display_template",
+    "dotstar",
+    "endstop_phase",
+    "exclude_object",
+    "fan",
+    "fan_generic",
+    "filament_motion_sensor",
+    "filament_switch_sensor",
+    "firmware_retraction",
+    "force_move",
+    "gcode_arcs",
+    "gcode_button",
+    "gcode_macro",
+    "heater_fan",
+    "homing_heaters",
+    "homing_override",
+    "idle_timeout",
+    "input_shaper",
+    "led",
+    "menu",
+    "neopixel",
+    "output_pin",
+    "pause_resume",
+    "print_stats",
+    "probe",
+    "quad_gantry_level",
+    "respond",
+    "safe_z_home",
+    "save_variables",
+    "screws_tilt_adjust",
+    "servo",
+    "skew_correction",
+    "static_digital_output",
+    "temperature_fan",
+    "temperature_sensor",
+    "thermistor",
+    "tmc2130",
+    "tmc2208",
+    "tmc2209",
+    "tmc2240",
+    "tmc2660",
+    "tmc5160",
+    "verify_heater",
+    "virtual_sdcard",
+    "z_tilt",
+];
+
+/// True when sections of `kind` are accepted and ignored.
+pub fn is_ignored(kind: &str) -> bool {
+    IGNORED_SECTIONS.contains(&kind)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn list_is_sorted_and_unique() {
+        assert!(IGNORED_SECTIONS.windows(2).all(|w| w[0] < w[1]));
+        assert!(is_ignored("gcode_macro") && is_ignored("tmc2209") && !is_ignored("stepper_z1"));
+    }
+}

@@ -1,0 +1,167 @@
+//! `[mcu]` / `[mcu NAME]` (how to reach each microcontroller) and Cadence's own `[simulator]`
+//! (settings of the simulated MCU process the host spawns for `serial: simulator`).
+
+use super::error::ConfigError;
+use super::pins::MAIN_MCU;
+use super::reader::{Bounds, Reader, SectionReader};
+
+/// The reserved `serial:` value: the host spawns its own simulated MCU instead of opening a port.
+pub const SIMULATOR_SERIAL: &str = "simulator";
+
+/// One MCU.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct McuSection {
+    /// `"mcu"` for `[mcu]`, `NAME` for `[mcu NAME]`.
+    pub name: String,
+    /// Serial device path, or [`SIMULATOR_SERIAL`].
+    pub serial: String,
+    /// Default 250000, at least 2400.
+    pub baud: u32,
+    /// `arduino`, `cheetah`, `command` or `rpi_usb`.
+    pub restart_method: Option<String>,
+}
+
+impl McuSection {
+    /// True for `serial: simulator`.
+    pub fn is_simulated(&self) -> bool {
+        self.serial == SIMULATOR_SERIAL
+    }
+}
+
+/// `[simulator]` (optional, Cadence-specific).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SimulatorSection {
+    /// The simulated MCU's CLOCK_FREQ in Hz; default 50 MHz.
+    pub clock_freq: u64,
+    /// Simulated seconds per real second; default 1.
+    pub time_scale: f64,
+}
+
+impl Default for SimulatorSection {
+    fn default() -> Self {
+        SimulatorSection {
+            clock_freq: 50_000_000,
+            time_scale: 1.0,
+        }
+    }
+}
+
+const RESTART_METHODS: [(&str, &str); 4] = [
+    ("arduino", "arduino"),
+    ("cheetah", "cheetah"),
+    ("command", "command"),
+    ("rpi_usb", "rpi_usb"),
+];
+
+fn read_mcu(s: &SectionReader<'_>, name: &str) -> Result<McuSection, ConfigError> {
+    let serial = s.string("serial")?;
+    let baud = s.int("baud", Some(250_000u32), 2400..=i64::from(u32::MAX))?;
+    let restart_method = match s.value("restart_method") {
+        Some(_) => Some(s.choice("restart_method", &RESTART_METHODS, None)?.to_string()),
+        None => None,
+    };
+    Ok(McuSection {
+        name: name.to_string(),
+        serial,
+        baud,
+        restart_method,
+    })
+}
+
+/// `[mcu]` first (required), then every `[mcu NAME]` in file order.
+pub(crate) fn read_mcus(reader: &Reader<'_>) -> Result<Vec<McuSection>, ConfigError> {
+    let main = reader
+        .section(MAIN_MCU)
+        .ok_or_else(|| ConfigError::MissingSection {
+            file: reader.main_file().to_path_buf(),
+            section: MAIN_MCU.to_string(),
+            needed_by: None,
+        })?;
+    let mut mcus = vec![read_mcu(&main, MAIN_MCU)?];
+    for s in reader.sections_with_arg(MAIN_MCU) {
+        let name = s.arg().unwrap_or_default();
+        let reason = if name == MAIN_MCU {
+            Some("an extra MCU cannot be named 'mcu'".to_string())
+        } else if name.contains(|c: char| c.is_whitespace() || matches!(c, '^' | '~' | '!' | ':')) {
+            Some(format!(
+                "MCU name '{name}' must be one word without '^', '~', '!' or ':'"
+            ))
+        } else {
+            None
+        };
+        if let Some(reason) = reason {
+            return Err(ConfigError::BadSection {
+                at: s.at().clone(),
+                section: s.name().to_string(),
+                reason,
+            });
+        }
+        mcus.push(read_mcu(&s, name)?);
+    }
+    Ok(mcus)
+}
+
+pub(crate) fn read_simulator(s: &SectionReader<'_>) -> Result<SimulatorSection, ConfigError> {
+    let d = SimulatorSection::default();
+    Ok(SimulatorSection {
+        clock_freq: s.int("clock_freq", Some(d.clock_freq), 1..=i64::MAX)?,
+        time_scale: s.float_or("time_scale", d.time_scale, Bounds::ANY.above(0.0))?,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ini;
+    use std::path::Path;
+
+    fn mcus(text: &str) -> Result<Vec<McuSection>, String> {
+        let file = ini::parse_str(text, Path::new("printer.cfg")).map_err(|e| e.to_string())?;
+        read_mcus(&Reader::new(&file)).map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn main_first_then_named_in_file_order() {
+        let m = mcus("[mcu zed]\nserial: /dev/b\n[mcu]\nserial: simulator\nrestart_method: command\n[mcu ebb]\nserial: /dev/c\nbaud: 115200\n");
+        let m = m.unwrap_or_else(|e| panic!("{e}"));
+        let names: Vec<_> = m
+            .iter()
+            .map(|m| (m.name.as_str(), m.baud, m.is_simulated()))
+            .collect();
+        assert_eq!(
+            names,
+            [
+                ("mcu", 250_000, true),
+                ("zed", 250_000, false),
+                ("ebb", 115_200, false)
+            ]
+        );
+        assert_eq!(m[0].restart_method.as_deref(), Some("command"));
+    }
+
+    #[test]
+    fn errors() {
+        assert_eq!(
+            mcus("[printer]\n"),
+            Err("printer.cfg: Section 'mcu' must be specified".to_string())
+        );
+        assert_eq!(
+            mcus("[mcu]\n"),
+            Err("printer.cfg:1: Option 'serial' in section 'mcu' must be specified".to_string())
+        );
+        assert_eq!(
+            mcus("[mcu]\nserial: x\n[mcu mcu]\nserial: y\n"),
+            Err("printer.cfg:3: [mcu mcu] an extra MCU cannot be named 'mcu'".to_string())
+        );
+        assert_eq!(
+            mcus("[mcu]\nserial: x\nbaud: 300\n"),
+            Err("printer.cfg:3: [mcu] baud: must have minimum of 2400, got 300".to_string())
+        );
+        assert_eq!(
+            mcus("[mcu]\nserial: x\nrestart_method: reboot\n"),
+            Err("printer.cfg:3: [mcu] restart_method: expected one of arduino, cheetah, command, rpi_usb, got \
+                 'reboot'"
+                .to_string())
+        );
+    }
+}

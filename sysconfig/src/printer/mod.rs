@@ -1,0 +1,160 @@
+//! Klipper printer.cfg → validated, typed [`PrinterConfig`].
+//!
+//! Layers: [`crate::ini`] gives sections and options with locations; a consumption-tracking
+//! reader (`reader`) hands them out through typed getters with Klipper's bounds; one module per
+//! section family builds its typed section (`mcu`, `toolhead`, `stepper`, `extruder`, `heater`);
+//! finally every option nobody read is an error ("Option 'foo' is not valid in section …"), and
+//! every section nobody read is an error unless it is in [`IGNORED_SECTIONS`] (then a warning).
+//!
+//! Build order (it decides which error is reported first): MCUs (pins are checked against
+//! them), `[printer]`, the steppers its kinematics needs, `[extruder]`, `[heater_bed]`,
+//! `[simulator]`, then the unused-option/section check.
+
+mod error;
+mod extruder;
+mod heater;
+mod ignored;
+mod mcu;
+mod pins;
+mod reader;
+mod stepper;
+mod toolhead;
+
+use std::path::{Path, PathBuf};
+
+use crate::ini::{self, ConfigFile};
+
+pub use error::{ConfigError, ValueProblem};
+pub use extruder::ExtruderSection;
+pub use heater::{HeaterControl, HeaterSection, ABSOLUTE_ZERO_C};
+pub use ignored::{is_ignored, IGNORED_SECTIONS};
+pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
+pub use pins::{is_simulator_pin, PinKind, PinProblem, PinRef, MAIN_MCU};
+pub use stepper::StepperSection;
+pub use toolhead::{Kinematics, PrinterSection};
+
+use pins::PinRegistry;
+use reader::Reader;
+
+/// The built-in simulated printer's config (`examples/simulated-cartesian.cfg`).
+pub const SIMULATED_PRINTER_CFG: &str = include_str!("../../../examples/simulated-cartesian.cfg");
+
+/// The name errors in the built-in config are reported under.
+pub const SIMULATED_PRINTER_NAME: &str = "<builtin>/simulated-cartesian.cfg";
+
+/// A whole validated printer config.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PrinterConfig {
+    /// The main config file, as given.
+    pub source: PathBuf,
+    pub printer: PrinterSection,
+    /// The kinematics' steppers in axis order: `stepper_x`, `stepper_y`, `stepper_z`.
+    pub steppers: Vec<StepperSection>,
+    pub extruder: Option<ExtruderSection>,
+    /// `[mcu]` first, then each `[mcu NAME]` in file order.
+    pub mcus: Vec<McuSection>,
+    pub heater_bed: Option<HeaterSection>,
+    /// `[simulator]`, or its defaults.
+    pub simulator: SimulatorSection,
+    /// Accepted-but-ignored sections and other things worth telling the user.
+    pub warnings: Vec<String>,
+}
+
+impl PrinterConfig {
+    /// Builds the typed config from a parsed file.
+    pub fn from_ini(file: &ConfigFile) -> Result<PrinterConfig, ConfigError> {
+        let reader = Reader::new(file);
+        let source = file.main_file().to_path_buf();
+
+        let mcus = mcu::read_mcus(&reader)?;
+        let names = mcus.iter().map(|m| m.name.clone()).collect();
+        let simulated = mcus
+            .iter()
+            .filter(|m| m.is_simulated())
+            .map(|m| m.name.clone())
+            .collect();
+        let mut pins = PinRegistry::new(names).with_simulated(simulated);
+
+        let printer_section = reader
+            .section("printer")
+            .ok_or_else(|| ConfigError::MissingSection {
+                file: source.clone(),
+                section: "printer".to_string(),
+                needed_by: None,
+            })?;
+        let printer = toolhead::read_printer(&printer_section)?;
+
+        let mut steppers = Vec::new();
+        for &name in printer.kinematics.stepper_sections() {
+            let s = reader.section(name).ok_or_else(|| ConfigError::MissingSection {
+                file: source.clone(),
+                section: name.to_string(),
+                needed_by: Some(format!("kinematics: {}", printer.kinematics.name())),
+            })?;
+            steppers.push(stepper::read_rail(&s, &mut pins)?);
+        }
+
+        let extruder = match reader.section("extruder") {
+            Some(s) => Some(extruder::read_extruder(&s, &printer, &mut pins)?),
+            None => None,
+        };
+        let heater_bed = match reader.section("heater_bed") {
+            Some(s) => Some(heater::read_heater(&s, &mut pins)?),
+            None => None,
+        };
+        let simulator_section = reader.section("simulator");
+        let simulator = match &simulator_section {
+            Some(s) => mcu::read_simulator(s)?,
+            None => SimulatorSection::default(),
+        };
+
+        let mut warnings = reader.finish(is_ignored)?;
+        if let Some(s) = simulator_section {
+            if !mcus.iter().any(McuSection::is_simulated) {
+                warnings.push(format!(
+                    "{}: [simulator] has no effect: no [mcu] has 'serial: {SIMULATOR_SERIAL}'",
+                    s.at()
+                ));
+            }
+        }
+        Ok(PrinterConfig {
+            source,
+            printer,
+            steppers,
+            extruder,
+            mcus,
+            heater_bed,
+            simulator,
+            warnings,
+        })
+    }
+
+    /// The stepper section named `name` (`stepper_x` …).
+    pub fn stepper(&self, name: &str) -> Option<&StepperSection> {
+        self.steppers.iter().find(|s| s.name == name)
+    }
+
+    /// The MCU named `name` (`mcu` for the main one).
+    pub fn mcu(&self, name: &str) -> Option<&McuSection> {
+        self.mcus.iter().find(|m| m.name == name)
+    }
+}
+
+/// Reads, parses and validates the printer config at `path` (includes relative to it).
+pub fn load(path: &Path) -> Result<PrinterConfig, ConfigError> {
+    PrinterConfig::from_ini(&ini::load(path)?)
+}
+
+/// Parses and validates `text` as the file `name`; includes are read relative to `name`'s
+/// directory.
+pub fn parse_str(text: &str, name: &Path) -> Result<PrinterConfig, ConfigError> {
+    PrinterConfig::from_ini(&ini::parse_str(text, name)?)
+}
+
+/// The built-in simulated printer ([`SIMULATED_PRINTER_CFG`]).
+pub fn builtin_simulated() -> Result<PrinterConfig, ConfigError> {
+    parse_str(SIMULATED_PRINTER_CFG, Path::new(SIMULATED_PRINTER_NAME))
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,393 @@
+//! Pin descriptions, `[^|~][!][mcu_name:]pin`, and the registry that checks every pin names a
+//! declared MCU and is used only once.
+//!
+//! Prefixes in Klipper's order: `^` (pull-up) or `~` (pull-down) first, then `!` (invert); which
+//! of them a pin accepts depends on its use ([`PinKind`]). Without `name:` the pin is on the main
+//! `[mcu]`. Stepper enable pins may be shared between steppers (Klipper allows it for boards
+//! with one enable line), if every user agrees on `!`; any other reuse is an error.
+
+use std::fmt;
+
+use super::error::ValueProblem;
+
+/// The main MCU's name: the `[mcu]` section, and pins without a `name:` prefix.
+pub const MAIN_MCU: &str = "mcu";
+
+/// A parsed pin description.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub struct PinRef {
+    /// `"mcu"` unless the description was `name:PIN`.
+    pub mcu: String,
+    pub pin: String,
+    /// `!`
+    pub invert: bool,
+    /// `^`
+    pub pullup: bool,
+    /// `~`
+    pub pulldown: bool,
+}
+
+/// What a pin is used for, which decides the prefixes it may carry.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PinKind {
+    /// Digital output (step, dir, enable, heater): `!` only.
+    Output,
+    /// Digital input (endstop): `^` or `~`, and `!`.
+    Input,
+    /// Analog input (thermistor): no prefixes.
+    Analog,
+}
+
+impl PinKind {
+    fn can_pull(self) -> bool {
+        self == PinKind::Input
+    }
+
+    fn can_invert(self) -> bool {
+        self != PinKind::Analog
+    }
+}
+
+/// Why a pin description is malformed.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum PinProblem {
+    #[error("empty pin name")]
+    Empty,
+    #[error("empty mcu name before ':'")]
+    EmptyMcu,
+    #[error("pull-up '^' / pull-down '~' is not allowed on this pin")]
+    PullNotAllowed,
+    #[error("inversion '!' is not allowed on this pin")]
+    InvertNotAllowed,
+    #[error("'^' or '~' must come before '!'")]
+    PrefixOrder,
+    #[error("'{0}' must not contain whitespace or '^', '~', '!', ':' (format: [^|~][!][mcu_name:]pin)")]
+    BadName(String),
+}
+
+impl PinRef {
+    /// Parses a pin description for a pin used as `kind`.
+    pub fn parse(text: &str, kind: PinKind) -> Result<PinRef, PinProblem> {
+        let mut rest = text.trim();
+        let (mut pullup, mut pulldown, mut invert) = (false, false, false);
+        if let Some(r) = rest.strip_prefix('^') {
+            pullup = true;
+            rest = r.trim_start();
+        } else if let Some(r) = rest.strip_prefix('~') {
+            pulldown = true;
+            rest = r.trim_start();
+        }
+        if (pullup || pulldown) && !kind.can_pull() {
+            return Err(PinProblem::PullNotAllowed);
+        }
+        if let Some(r) = rest.strip_prefix('!') {
+            if !kind.can_invert() {
+                return Err(PinProblem::InvertNotAllowed);
+            }
+            invert = true;
+            rest = r.trim_start();
+        }
+        if invert && rest.starts_with(['^', '~']) {
+            return Err(PinProblem::PrefixOrder);
+        }
+        let (mcu, pin) = match rest.split_once(':') {
+            Some((mcu, pin)) => (mcu.trim(), pin.trim()),
+            None => (MAIN_MCU, rest),
+        };
+        if mcu.is_empty() {
+            return Err(PinProblem::EmptyMcu);
+        }
+        if pin.is_empty() {
+            return Err(PinProblem::Empty);
+        }
+        for name in [mcu, pin] {
+            if name
+                .chars()
+                .any(|c| c.is_whitespace() || matches!(c, '^' | '~' | '!' | ':'))
+            {
+                return Err(PinProblem::BadName(name.to_string()));
+            }
+        }
+        Ok(PinRef {
+            mcu: mcu.to_string(),
+            pin: pin.to_string(),
+            invert,
+            pullup,
+            pulldown,
+        })
+    }
+
+    /// True when the pin is on the main `[mcu]`.
+    pub fn on_main_mcu(&self) -> bool {
+        self.mcu == MAIN_MCU
+    }
+}
+
+/// The canonical description: `^!PA0`, `~ebb:PB3` (no `mcu:` for the main MCU).
+impl fmt::Display for PinRef {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let pull = if self.pullup {
+            "^"
+        } else if self.pulldown {
+            "~"
+        } else {
+            ""
+        };
+        let invert = if self.invert { "!" } else { "" };
+        if self.on_main_mcu() {
+            write!(f, "{pull}{invert}{}", self.pin)
+        } else {
+            write!(f, "{pull}{invert}{}:{}", self.mcu, self.pin)
+        }
+    }
+}
+
+/// Whether a pin may be shared with other users.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Share {
+    Exclusive,
+    /// Stepper enable lines: shareable among themselves with the same `!`.
+    StepperEnable,
+}
+
+#[derive(Debug)]
+struct Claim {
+    pin: PinRef,
+    section: String,
+    option: String,
+    share: Share,
+}
+
+/// Every pin used so far, and the declared MCUs they may name.
+#[derive(Debug)]
+pub(crate) struct PinRegistry {
+    mcus: Vec<String>,
+    /// MCUs with `serial: simulator`, whose pins must be ones the simulator has.
+    simulated: Vec<String>,
+    claims: Vec<Claim>,
+}
+
+/// The simulated MCU's pins: ports A..L with 8 pins each, `PA0`..`PL7`.
+pub fn is_simulator_pin(pin: &str) -> bool {
+    matches!(pin.as_bytes(), [b'P', b'A'..=b'L', b'0'..=b'7'])
+}
+
+impl PinRegistry {
+    pub(crate) fn new(mcus: Vec<String>) -> Self {
+        PinRegistry {
+            mcus,
+            simulated: Vec::new(),
+            claims: Vec::new(),
+        }
+    }
+
+    /// Marks `names` as simulated MCUs.
+    pub(crate) fn with_simulated(mut self, names: Vec<String>) -> Self {
+        self.simulated = names;
+        self
+    }
+
+    /// Records `pin` as used by `[section] option`, or says why it may not be.
+    pub(crate) fn claim(
+        &mut self,
+        pin: &PinRef,
+        section: &str,
+        option: &str,
+        share: Share,
+    ) -> Result<(), ValueProblem> {
+        if pin.mcu == "probe" {
+            return Err(ValueProblem::Invalid(format!(
+                "pin '{pin}': probe virtual endstops are not supported by Cadence yet"
+            )));
+        }
+        if !self.mcus.contains(&pin.mcu) {
+            return Err(ValueProblem::UnknownMcu {
+                pin: pin.to_string(),
+                mcu: pin.mcu.clone(),
+            });
+        }
+        if self.simulated.contains(&pin.mcu) && !is_simulator_pin(&pin.pin) {
+            return Err(ValueProblem::Invalid(format!(
+                "pin '{pin}': the simulated mcu '{}' only has pins PA0..PL7",
+                pin.mcu
+            )));
+        }
+        let earlier = self
+            .claims
+            .iter()
+            .find(|c| c.pin.mcu == pin.mcu && c.pin.pin == pin.pin);
+        if let Some(c) = earlier {
+            let (section, option) = (c.section.clone(), c.option.clone());
+            if share != Share::StepperEnable || c.share != Share::StepperEnable {
+                return Err(ValueProblem::PinInUse {
+                    pin: pin.to_string(),
+                    section,
+                    option,
+                });
+            }
+            if c.pin.invert != pin.invert {
+                return Err(ValueProblem::SharedPinPolarity {
+                    pin: pin.to_string(),
+                    section,
+                    option,
+                });
+            }
+            return Ok(());
+        }
+        self.claims.push(Claim {
+            pin: pin.clone(),
+            section: section.to_string(),
+            option: option.to_string(),
+            share,
+        });
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn pin(mcu: &str, name: &str, invert: bool, pullup: bool, pulldown: bool) -> PinRef {
+        PinRef {
+            mcu: mcu.into(),
+            pin: name.into(),
+            invert,
+            pullup,
+            pulldown,
+        }
+    }
+
+    #[test]
+    fn parses_prefixes_and_mcu_names() {
+        let cases = [
+            ("PA0", PinKind::Output, pin("mcu", "PA0", false, false, false)),
+            (" !PD7 ", PinKind::Output, pin("mcu", "PD7", true, false, false)),
+            ("^PE5", PinKind::Input, pin("mcu", "PE5", false, true, false)),
+            ("~!ebb: PB3", PinKind::Input, pin("ebb", "PB3", true, false, true)),
+            ("^ ! PE5", PinKind::Input, pin("mcu", "PE5", true, true, false)),
+            (
+                "rpi:gpio17",
+                PinKind::Output,
+                pin("rpi", "gpio17", false, false, false),
+            ),
+            ("P1.22", PinKind::Analog, pin("mcu", "P1.22", false, false, false)),
+        ];
+        for (text, kind, want) in cases {
+            assert_eq!(PinRef::parse(text, kind), Ok(want), "{text}");
+        }
+    }
+
+    #[test]
+    fn rejects_bad_descriptions() {
+        let cases = [
+            ("", PinKind::Output, PinProblem::Empty),
+            ("!", PinKind::Output, PinProblem::Empty),
+            (":PA0", PinKind::Output, PinProblem::EmptyMcu),
+            ("ebb:", PinKind::Output, PinProblem::Empty),
+            ("^PA0", PinKind::Output, PinProblem::PullNotAllowed),
+            ("~PA0", PinKind::Analog, PinProblem::PullNotAllowed),
+            ("!PA0", PinKind::Analog, PinProblem::InvertNotAllowed),
+            ("!^PA0", PinKind::Input, PinProblem::PrefixOrder),
+            ("^^PA0", PinKind::Input, PinProblem::BadName("^PA0".into())),
+            ("PA 0", PinKind::Output, PinProblem::BadName("PA 0".into())),
+            ("a:b:c", PinKind::Output, PinProblem::BadName("b:c".into())),
+        ];
+        for (text, kind, want) in cases {
+            assert_eq!(PinRef::parse(text, kind), Err(want), "{text}");
+        }
+        assert_eq!(
+            PinProblem::BadName("PA 0".into()).to_string(),
+            "'PA 0' must not contain whitespace or '^', '~', '!', ':' (format: [^|~][!][mcu_name:]pin)"
+        );
+    }
+
+    #[test]
+    fn display_is_canonical() {
+        assert_eq!(pin("mcu", "PA0", true, true, false).to_string(), "^!PA0");
+        assert_eq!(pin("ebb", "PB3", false, false, true).to_string(), "~ebb:PB3");
+    }
+
+    #[test]
+    fn registry_checks_mcus_and_reuse() {
+        let mut reg = PinRegistry::new(vec!["mcu".into(), "ebb".into()]);
+        let p = |t: &str| PinRef::parse(t, PinKind::Input).unwrap_or_else(|e| panic!("{t}: {e}"));
+        assert_eq!(
+            reg.claim(&p("PA0"), "stepper_x", "step_pin", Share::Exclusive),
+            Ok(())
+        );
+        assert_eq!(
+            reg.claim(&p("ebb:PA0"), "extruder", "step_pin", Share::Exclusive),
+            Ok(())
+        );
+        assert_eq!(
+            reg.claim(&p("!PA0"), "stepper_y", "dir_pin", Share::Exclusive),
+            Err(ValueProblem::PinInUse {
+                pin: "!PA0".into(),
+                section: "stepper_x".into(),
+                option: "step_pin".into()
+            })
+        );
+        assert_eq!(
+            reg.claim(&p("other:PA1"), "stepper_y", "dir_pin", Share::Exclusive),
+            Err(ValueProblem::UnknownMcu {
+                pin: "other:PA1".into(),
+                mcu: "other".into()
+            })
+        );
+        assert!(matches!(
+            reg.claim(
+                &p("probe:z_virtual_endstop"),
+                "stepper_z",
+                "endstop_pin",
+                Share::Exclusive
+            ),
+            Err(ValueProblem::Invalid(_))
+        ));
+        // Shared enable lines.
+        assert_eq!(
+            reg.claim(&p("!PC3"), "stepper_x", "enable_pin", Share::StepperEnable),
+            Ok(())
+        );
+        assert_eq!(
+            reg.claim(&p("!PC3"), "stepper_y", "enable_pin", Share::StepperEnable),
+            Ok(())
+        );
+        assert!(matches!(
+            reg.claim(&p("PC3"), "stepper_z", "enable_pin", Share::StepperEnable),
+            Err(ValueProblem::SharedPinPolarity { .. })
+        ));
+        assert!(matches!(
+            reg.claim(&p("PC3"), "heater_bed", "heater_pin", Share::Exclusive),
+            Err(ValueProblem::PinInUse { .. })
+        ));
+    }
+
+    #[test]
+    fn simulated_mcus_only_have_pa0_to_pl7() {
+        assert!(is_simulator_pin("PA0") && is_simulator_pin("PL7") && is_simulator_pin("PE5"));
+        assert!(!is_simulator_pin("PM0") && !is_simulator_pin("PA8") && !is_simulator_pin("PA10"));
+        assert!(!is_simulator_pin("pa0") && !is_simulator_pin("P1.22"));
+        let mut reg = PinRegistry::new(vec!["mcu".into()]).with_simulated(vec!["mcu".into()]);
+        let p = |t: &str| PinRef::parse(t, PinKind::Output).unwrap_or_else(|e| panic!("{t}: {e}"));
+        assert_eq!(reg.claim(&p("PL7"), "s", "a", Share::Exclusive), Ok(()));
+        assert_eq!(
+            reg.claim(&p("!PA9"), "s", "b", Share::Exclusive),
+            Err(ValueProblem::Invalid(
+                "pin '!PA9': the simulated mcu 'mcu' only has pins PA0..PL7".into()
+            ))
+        );
+    }
+
+    proptest! {
+        #[test]
+        fn parse_never_panics_and_display_round_trips(text in "[ ^~!:A-Za-z0-9_.]{0,12}") {
+            for kind in [PinKind::Output, PinKind::Input, PinKind::Analog] {
+                if let Ok(p) = PinRef::parse(&text, kind) {
+                    prop_assert_eq!(PinRef::parse(&p.to_string(), kind), Ok(p));
+                }
+            }
+        }
+    }
+}

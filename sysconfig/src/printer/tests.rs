@@ -1,0 +1,333 @@
+//! Whole-config tests: the built-in printer, cross-section rules, warnings, and the error forms
+//! that only appear when sections meet.
+
+use super::*;
+use proptest::prelude::*;
+use std::io;
+
+const MINIMAL: &str = "[mcu]\nserial: /dev/ttyACM0\n\
+    [printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+    [stepper_x]\nstep_pin: PA0\ndir_pin: PA1\nmicrosteps: 16\nrotation_distance: 40\nposition_max: 200\n\
+    [stepper_y]\nstep_pin: PB0\ndir_pin: PB1\nmicrosteps: 16\nrotation_distance: 40\nposition_max: 200\n\
+    [stepper_z]\nstep_pin: PC0\ndir_pin: PC1\nmicrosteps: 16\nrotation_distance: 8\nposition_max: 200\n";
+
+fn parse(text: &str) -> Result<PrinterConfig, String> {
+    parse_str(text, Path::new("printer.cfg")).map_err(|e| e.to_string())
+}
+
+fn ok(text: &str) -> PrinterConfig {
+    parse(text).unwrap_or_else(|e| panic!("{e}"))
+}
+
+#[test]
+fn builtin_simulated_printer_loads() {
+    let cfg = builtin_simulated().unwrap_or_else(|e| panic!("{e}"));
+    assert!(cfg.warnings.is_empty(), "{:?}", cfg.warnings);
+    assert_eq!(cfg.source, PathBuf::from(SIMULATED_PRINTER_NAME));
+    assert_eq!(cfg.printer.kinematics, Kinematics::Cartesian);
+    assert_eq!((cfg.printer.max_velocity, cfg.printer.max_accel), (300.0, 3000.0));
+    let names: Vec<_> = cfg.steppers.iter().map(|s| s.name.as_str()).collect();
+    assert_eq!(names, ["stepper_x", "stepper_y", "stepper_z"]);
+    let dist = |n: &str| cfg.stepper(n).map(StepperSection::step_dist);
+    assert_eq!(dist("stepper_x"), Some(1.0 / 80.0));
+    assert_eq!(dist("stepper_y"), Some(1.0 / 80.0));
+    assert_eq!(dist("stepper_z"), Some(1.0 / 400.0));
+    let e = cfg.extruder.as_ref().unwrap_or_else(|| panic!("no extruder"));
+    assert!((1.0 / e.step_dist() - 95.52).abs() < 0.01);
+    for s in &cfg.steppers {
+        assert_eq!(
+            (s.position_min, s.position_endstop, s.homing_positive_dir),
+            (0.0, Some(0.0), false),
+            "{}",
+            s.name
+        );
+    }
+    assert_eq!((cfg.stepper("stepper_x").map(|s| s.position_max)), Some(220.0));
+    assert_eq!((cfg.stepper("stepper_z").map(|s| s.position_max)), Some(200.0));
+    assert_eq!(cfg.mcus.len(), 1);
+    assert!(cfg.mcus[0].is_simulated() && cfg.mcus[0].name == "mcu");
+    assert_eq!(
+        cfg.simulator,
+        SimulatorSection {
+            clock_freq: 50_000_000,
+            time_scale: 1.0
+        }
+    );
+    // Every pin is one the simulated MCU has.
+    let mut all: Vec<&PinRef> = Vec::new();
+    for s in &cfg.steppers {
+        all.extend([&s.step_pin, &s.dir_pin]);
+        all.extend(s.enable_pin.iter().chain(s.endstop_pin.iter()));
+    }
+    all.extend([
+        &e.step_pin,
+        &e.dir_pin,
+        &e.heater.heater_pin,
+        &e.heater.sensor_pin,
+    ]);
+    all.extend(e.enable_pin.iter());
+    assert_eq!(all.len(), 17);
+    assert!(
+        all.iter().all(|p| p.on_main_mcu() && is_simulator_pin(&p.pin)),
+        "{all:?}"
+    );
+    assert!(
+        SIMULATED_PRINTER_CFG.starts_with("# "),
+        "the example opens with comments saying what it is"
+    );
+}
+
+#[test]
+fn minimal_config_defaults() {
+    let cfg = ok(MINIMAL);
+    assert!(cfg.extruder.is_none() && cfg.heater_bed.is_none() && cfg.warnings.is_empty());
+    assert_eq!(cfg.simulator, SimulatorSection::default());
+    assert_eq!(cfg.mcus[0].baud, 250_000);
+    assert_eq!(cfg.stepper("stepper_x").and_then(|s| s.endstop_pin.clone()), None);
+}
+
+#[test]
+fn kinematics_decides_which_steppers_are_read() {
+    let corexy = ok(&MINIMAL.replace("kinematics: cartesian", "kinematics: corexy"));
+    assert_eq!(corexy.printer.kinematics, Kinematics::CoreXY);
+    assert_eq!(corexy.steppers.len(), 3);
+    let without_z = MINIMAL.split("[stepper_z]").next().unwrap_or_default();
+    assert_eq!(
+        parse(without_z).map(|_| ()),
+        Err("printer.cfg: Section 'stepper_z' must be specified (kinematics: cartesian)".to_string())
+    );
+    assert_eq!(
+        parse(&MINIMAL.replace("kinematics: cartesian", "kinematics: none")).map(|_| ()),
+        Err("printer.cfg:7: Section 'stepper_x' is not a valid config section".to_string())
+    );
+    let none = ok("[mcu]\nserial: x\n[printer]\nkinematics: none\nmax_velocity: 1\nmax_accel: 1\n");
+    assert!(none.steppers.is_empty());
+}
+
+#[test]
+fn missing_sections() {
+    assert_eq!(
+        parse("[printer]\n").map(|_| ()),
+        Err("printer.cfg: Section 'mcu' must be specified".to_string())
+    );
+    assert_eq!(
+        parse("[mcu]\nserial: x\n").map(|_| ()),
+        Err("printer.cfg: Section 'printer' must be specified".to_string())
+    );
+}
+
+#[test]
+fn unknown_sections_and_options_are_errors_ignored_ones_warnings() {
+    assert_eq!(
+        parse(&format!("{MINIMAL}[frobnicator]\n")).map(|_| ()),
+        Err("printer.cfg:25: Section 'frobnicator' is not a valid config section".to_string())
+    );
+    assert_eq!(
+        parse(&format!("{MINIMAL}[stepper_z1]\nstep_pin: PD0\n")).map(|_| ()),
+        Err("printer.cfg:25: Section 'stepper_z1' is not a valid config section".to_string())
+    );
+    assert_eq!(
+        parse(&MINIMAL.replace(
+            "position_max: 200\n[stepper_y]",
+            "position_max: 200\nfoo: 1\n[stepper_y]"
+        ))
+        .map(|_| ()),
+        Err("printer.cfg:13: Option 'foo' is not valid in section 'stepper_x'".to_string())
+    );
+    let cfg = ok(&format!(
+        "{MINIMAL}[gcode_macro START]\ngcode:\n  G28\n[fan]\npin: PA5\n[gcode_macro END]\ngcode: M84\n"
+    ));
+    assert_eq!(
+        cfg.warnings,
+        [
+            "printer.cfg:25: [gcode_macro] is not implemented by Cadence yet; 2 sections ignored",
+            "printer.cfg:28: [fan] is not implemented by Cadence yet; section ignored",
+        ]
+    );
+}
+
+#[test]
+fn simulator_section_without_simulated_mcu_warns() {
+    let cfg = ok(&format!("{MINIMAL}[simulator]\nclock_freq: 16000000\n"));
+    assert_eq!(cfg.simulator.clock_freq, 16_000_000);
+    assert_eq!(
+        cfg.warnings,
+        ["printer.cfg:25: [simulator] has no effect: no [mcu] has 'serial: simulator'"]
+    );
+    assert_eq!(
+        parse(&format!("{MINIMAL}[simulator]\ntime_scale: 0\n")).map(|_| ()),
+        Err("printer.cfg:26: [simulator] time_scale: must be above 0, got 0".to_string())
+    );
+}
+
+#[test]
+fn pins_across_sections_and_mcus() {
+    let text = MINIMAL
+        .replace("step_pin: PC0", "step_pin: ebb:PC0")
+        .replace("dir_pin: PC1", "dir_pin: ebb:PC1")
+        + "[mcu ebb]\nserial: /dev/ttyACM1\n";
+    let cfg = ok(&text);
+    assert_eq!(
+        cfg.mcus.iter().map(|m| m.name.as_str()).collect::<Vec<_>>(),
+        ["mcu", "ebb"]
+    );
+    assert_eq!(
+        cfg.stepper("stepper_z").map(|s| s.step_pin.mcu.as_str()),
+        Some("ebb")
+    );
+    assert_eq!(cfg.mcu("ebb").map(|m| m.serial.as_str()), Some("/dev/ttyACM1"));
+
+    assert_eq!(
+        parse(&MINIMAL.replace("step_pin: PC0", "step_pin: ebb:PC0")).map(|_| ()),
+        Err("printer.cfg:20: [stepper_z] step_pin: pin 'ebb:PC0' refers to mcu 'ebb', but there is no [mcu ebb] \
+             section"
+            .to_string())
+    );
+    assert_eq!(
+        parse(&MINIMAL.replace("dir_pin: PB1", "dir_pin: PA1")).map(|_| ()),
+        Err("printer.cfg:15: [stepper_y] dir_pin: pin 'PA1' is also used by [stepper_x] dir_pin".to_string())
+    );
+    // One enable line for all steppers is fine when every user agrees on '!'.
+    let shared = MINIMAL.replace("microsteps: 16\n", "microsteps: 16\nenable_pin: !PD7\n");
+    assert!(ok(&shared)
+        .steppers
+        .iter()
+        .all(|s| s.enable_pin.as_ref().is_some_and(|p| p.invert)));
+    let mixed = shared.replacen("enable_pin: !PD7", "enable_pin: PD7", 1);
+    assert_eq!(
+        parse(&mixed).map(|_| ()),
+        Err("printer.cfg:18: [stepper_y] enable_pin: shared pin '!PD7' must have the same '!' as in [stepper_x] \
+             enable_pin"
+            .to_string())
+    );
+    // The simulated MCU only has PA0..PL7.
+    let sim = MINIMAL.replace("/dev/ttyACM0", "simulator").replace("PC1", "PM1");
+    assert_eq!(
+        parse(&sim).map(|_| ()),
+        Err(
+            "printer.cfg:21: [stepper_z] dir_pin: pin 'PM1': the simulated mcu 'mcu' only has pins PA0..PL7"
+                .to_string()
+        )
+    );
+}
+
+#[test]
+fn includes_and_save_config_reach_the_typed_config() {
+    let steppers = MINIMAL
+        .split_once("[stepper_x]")
+        .map(|(_, rest)| format!("[stepper_x]{rest}"))
+        .unwrap_or_default();
+    let main = "[mcu]\nserial: x\n[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+        [include steppers.cfg]\n\
+        #*# <---------------------- SAVE_CONFIG ---------------------->\n\
+        #*# DO NOT EDIT THIS BLOCK OR BELOW. The contents are auto-generated.\n#*#\n\
+        #*# [stepper_z]\n#*# position_endstop = 0.7\n#*# endstop_pin = ^PC3\n";
+    let load_with = |steppers: &str| {
+        let mut read = |p: &Path| {
+            if p == Path::new("/cfg/steppers.cfg") {
+                Ok(steppers.to_string())
+            } else {
+                Err(io::Error::from(io::ErrorKind::NotFound))
+            }
+        };
+        let file =
+            ini::parse_with(main, Path::new("/cfg/printer.cfg"), &mut read).unwrap_or_else(|e| panic!("{e}"));
+        (PrinterConfig::from_ini(&file), file)
+    };
+    let (cfg, file) = load_with(&steppers);
+    let cfg = cfg.unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(
+        cfg.stepper("stepper_x").map(StepperSection::step_dist),
+        Some(1.0 / 80.0)
+    );
+    assert_eq!(
+        cfg.stepper("stepper_z").and_then(|s| s.position_endstop),
+        Some(0.7)
+    );
+    assert_eq!(
+        file.files(),
+        [
+            PathBuf::from("/cfg/printer.cfg"),
+            PathBuf::from("/cfg/steppers.cfg")
+        ]
+    );
+
+    // An error inside the include names the included file and its line.
+    let (e, _) = load_with(&steppers.replacen("microsteps: 16", "microsteps: abc", 1));
+    assert_eq!(
+        e.map(|_| ()).map_err(|e| e.to_string()),
+        Err("/cfg/steppers.cfg:4: [stepper_x] microsteps: expected an integer, got 'abc'".to_string())
+    );
+}
+
+#[test]
+fn heater_bed_and_extruder_pins_are_checked_together() {
+    let text = format!(
+        "{MINIMAL}[heater_bed]\nheater_pin: PH5\nsensor_type: EPCOS 100K B57560G104F\nsensor_pin: PK6\n\
+         control: watermark\nmin_temp: 0\nmax_temp: 130\n"
+    );
+    let cfg = ok(&text);
+    let bed = cfg.heater_bed.as_ref().unwrap_or_else(|| panic!("no bed"));
+    assert_eq!(
+        (bed.name.as_str(), bed.control),
+        ("heater_bed", HeaterControl::Watermark { max_delta: 2.0 })
+    );
+    assert_eq!(
+        parse(&text.replace("heater_pin: PH5", "heater_pin: PA0")).map(|_| ()),
+        Err(
+            "printer.cfg:26: [heater_bed] heater_pin: pin 'PA0' is also used by [stepper_x] step_pin"
+                .to_string()
+        )
+    );
+}
+
+#[test]
+fn config_error_accessors() {
+    let e = parse_str(
+        &MINIMAL.replace("microsteps: 16", "microsteps: x"),
+        Path::new("printer.cfg"),
+    );
+    let e = e.err().unwrap_or_else(|| panic!("expected an error"));
+    assert_eq!((e.section(), e.option()), (Some("stepper_x"), Some("microsteps")));
+    assert_eq!(e.location().map(|l| l.line), Some(10));
+    assert!(matches!(e.problem(), Some(ValueProblem::NotAnInteger(_))));
+    let e = load(Path::new("/nonexistent/printer.cfg"))
+        .err()
+        .unwrap_or_else(|| panic!("expected an error"));
+    assert!(matches!(e, ConfigError::Ini(ini::IniError::Read { .. })));
+    assert!(
+        e.to_string()
+            .starts_with("/nonexistent/printer.cfg: cannot read config file"),
+        "{e}"
+    );
+}
+
+/// The built-in config's option lines, as (line index, key) pairs.
+fn option_lines() -> Vec<(usize, String)> {
+    SIMULATED_PRINTER_CFG
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.starts_with(['#', '[']) && l.contains(':'))
+        .filter_map(|(i, l)| l.split_once(':').map(|(k, _)| (i, k.to_string())))
+        .collect()
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 128, ..ProptestConfig::default() })]
+
+    /// Replacing any one value of a valid config with arbitrary text never panics, and an error
+    /// names the line that was changed (or the section, for an error that only appears later).
+    #[test]
+    fn any_one_bad_value_never_panics(pick in any::<prop::sample::Index>(), value in "[ -~]{0,12}") {
+        let lines = option_lines();
+        let (index, key) = &lines[pick.index(lines.len())];
+        let mut text: Vec<String> = SIMULATED_PRINTER_CFG.lines().map(str::to_string).collect();
+        text[*index] = format!("{key}: {value}");
+        let _ = parse_str(&text.join("\n"), Path::new("p.cfg")).map_err(|e| e.to_string());
+    }
+
+    #[test]
+    fn arbitrary_text_never_panics(text in "(?s).{0,300}") {
+        let _ = parse_str(&text, Path::new("/nonexistent-dir/p.cfg"));
+    }
+}

@@ -1,0 +1,116 @@
+//! End to end: `cadence print` drives the simulated MCU process over a real pty; the MCU's
+//! step trace proves what happened on the pins.
+
+use std::collections::HashMap;
+use std::time::Duration;
+
+use cadence_tests::{cadence, scratch, workspace};
+use firmware::trace::{read_trace, TraceRecord};
+
+const TIMEOUT: Duration = Duration::from_secs(120);
+
+#[test]
+fn square_prints_exactly_on_the_simulated_mcu() {
+    let dir = scratch("square");
+    let trace = dir.join("square.trace");
+    let gcode = workspace().join("examples/square.gcode");
+    let run = cadence(
+        &["print", gcode.to_str().unwrap(), "--trace", trace.to_str().unwrap()],
+        TIMEOUT,
+    );
+    assert_eq!(run.code, Some(0), "stdout:\n{}\nstderr:\n{}", run.stdout, run.stderr);
+    assert!(run.stdout.contains("min lead margin"), "summary missing:\n{}", run.stdout);
+
+    let cfg = sysconfig::printer::builtin_simulated().expect("built-in printer");
+    let trace = read_trace(&trace).expect("trace");
+    let freq = trace.clock_freq as f64;
+
+    // Net steps and monotonic step times per oid; lead of every received queue_step.
+    let mut net: HashMap<u8, i64> = HashMap::new();
+    let mut last: HashMap<u8, u64> = HashMap::new();
+    let mut received = 0;
+    for rec in &trace.records {
+        match *rec {
+            TraceRecord::Step { oid, dir, clock, .. } => {
+                *net.entry(oid).or_default() += if dir { 1 } else { -1 };
+                let prev = last.insert(oid, clock).unwrap_or(0);
+                assert!(clock >= prev, "oid {oid}: step at {clock} before previous step at {prev}");
+            }
+            TraceRecord::QueueStep { oid, received_clock, first_step_clock } => {
+                received += 1;
+                let lead_ms = (first_step_clock as f64 - received_clock as f64) / freq * 1e3;
+                assert!(lead_ms >= 100.0, "oid {oid}: queue_step arrived with only {lead_ms:.2} ms lead");
+            }
+            TraceRecord::Shutdown { .. } => panic!("the MCU shut down: {rec:?}"),
+        }
+    }
+    assert!(received > 0, "no queue_step was received");
+
+    // Commanded net distances of examples/square.gcode (G28 sets the endstop positions).
+    let home = |axis: &str| {
+        cfg.steppers.iter().find(|s| s.name == axis).and_then(|s| s.position_endstop).unwrap_or(0.0)
+    };
+    let step_dist = |axis: &str| cfg.steppers.iter().find(|s| s.name == axis).unwrap().step_dist();
+    let e_dist = cfg.extruder.as_ref().expect("extruder").step_dist();
+    let expected = [
+        (0u8, (10.0 - home("stepper_x")) / step_dist("stepper_x")),
+        (1, (10.0 - home("stepper_y")) / step_dist("stepper_y")),
+        (2, (5.0 - home("stepper_z")) / step_dist("stepper_z")),
+        (3, (4.0 + 4.0 - 0.8) / e_dist),
+    ];
+    for (oid, want) in expected {
+        let got = net.get(&oid).copied().unwrap_or(0) as f64;
+        assert!((got - want).abs() <= 1.0, "oid {oid}: {got} net steps, commanded {want:.2}");
+    }
+}
+
+#[test]
+fn missing_gcode_file_is_a_clear_error() {
+    let run = cadence(&["print", "/nonexistent/x.gcode"], TIMEOUT);
+    assert_eq!(run.code, Some(1));
+    assert!(run.stderr.contains("/nonexistent/x.gcode"), "{}", run.stderr);
+    assert!(!run.stderr.contains("panicked"), "{}", run.stderr);
+}
+
+#[test]
+fn bad_gcode_line_names_line_and_text() {
+    let dir = scratch("badline");
+    let g = dir.join("bad.gcode");
+    std::fs::write(&g, "G28\nG1 X10 F3000\nG1 X1..2\n").unwrap();
+    let out = dir.join("out.bin");
+    let run = cadence(&["print", g.to_str().unwrap(), "--batch", out.to_str().unwrap()], TIMEOUT);
+    assert_eq!(run.code, Some(1), "{}", run.stderr);
+    assert!(run.stderr.contains(":3") || run.stderr.contains("line 3"), "{}", run.stderr);
+    assert!(run.stderr.contains("X1..2"), "{}", run.stderr);
+    assert!(!run.stderr.contains("panicked"), "{}", run.stderr);
+}
+
+#[test]
+fn config_error_names_section_and_option() {
+    let dir = scratch("badcfg");
+    let cfg = dir.join("printer.cfg");
+    let text = sysconfig::printer::SIMULATED_PRINTER_CFG.replace("rotation_distance: 40", "rotation_distance: -40");
+    assert_ne!(text, sysconfig::printer::SIMULATED_PRINTER_CFG, "example config changed shape");
+    std::fs::write(&cfg, text).unwrap();
+    let g = workspace().join("examples/square.gcode");
+    let run = cadence(&["print", g.to_str().unwrap(), "--config", cfg.to_str().unwrap()], TIMEOUT);
+    assert_eq!(run.code, Some(1), "{}", run.stderr);
+    assert!(run.stderr.contains("rotation_distance"), "{}", run.stderr);
+    assert!(run.stderr.contains("stepper_"), "{}", run.stderr);
+}
+
+#[test]
+fn batch_then_decode_round_trip() {
+    let dir = scratch("batch");
+    let out = dir.join("square.bin");
+    let g = workspace().join("examples/square.gcode");
+    let run = cadence(&["print", g.to_str().unwrap(), "--batch", out.to_str().unwrap()], TIMEOUT);
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    let run = cadence(&["decode", out.to_str().unwrap()], TIMEOUT);
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    let lines: Vec<&str> = run.stdout.lines().collect();
+    assert!(lines.first().is_some_and(|l| l.starts_with("allocate_oids")), "{:?}", lines.first());
+    assert!(lines.iter().any(|l| l.starts_with("config_stepper oid=3")));
+    assert!(lines.iter().any(|l| l.starts_with("finalize_config")));
+    assert!(lines.iter().filter(|l| l.starts_with("queue_step")).count() > 10);
+}
