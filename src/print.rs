@@ -28,9 +28,10 @@ pub struct PrintArgs {
     /// Klipper-format printer.cfg (default: the built-in simulated cartesian printer).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Simulated MCU clock runs this many times faster than the wall clock.
-    #[arg(long, default_value_t = 1.0)]
-    pub time_scale: f64,
+    /// Simulated MCU clock runs this many times faster than the wall clock (default: the
+    /// config's [simulator] time_scale, else 1).
+    #[arg(long)]
+    pub time_scale: Option<f64>,
     /// No MCU and no real-time waiting: write the exact wire stream to this file.
     #[arg(long)]
     pub batch: Option<PathBuf>,
@@ -55,8 +56,10 @@ pub fn run(args: &PrintArgs) -> Result<(), String> {
     if !(args.max_error_us > 0.0 && args.max_error_us <= 1000.0) {
         return Err(format!("--max-error-us {}: must be in (0, 1000]", args.max_error_us));
     }
-    if !(args.time_scale > 0.0 && args.time_scale <= MAX_TIME_SCALE) {
-        return Err(format!("--time-scale {}: must be in (0, {MAX_TIME_SCALE}]", args.time_scale));
+    if let Some(scale) = args.time_scale {
+        if !(scale > 0.0 && scale <= MAX_TIME_SCALE) {
+            return Err(format!("--time-scale {scale}: must be in (0, {MAX_TIME_SCALE}]"));
+        }
     }
     // Open the G-code first: a missing file must not start any MCU.
     let gcode = File::open(&args.file).map_err(|e| format!("{}: {e}", args.file.display()))?;
@@ -199,10 +202,11 @@ fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: Fil
     let started = Instant::now();
     let mcu_cfg = cfg.mcus.first().ok_or_else(|| "printer.cfg has no [mcu] section".to_string())?;
     let mut sim = None;
+    let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
     let transport: Box<dyn Transport> = if mcu_cfg.serial == "simulator" {
         let opts = SimOptions {
             clock_freq: cfg.simulator.clock_freq,
-            time_scale: args.time_scale,
+            time_scale,
             trace: args.trace.clone(),
         };
         let s = SimMcu::spawn(&mcu_cfg.name, &opts)?;
@@ -210,7 +214,7 @@ fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: Fil
         sim = Some(s);
         Box::new(t)
     } else {
-        if args.time_scale != 1.0 {
+        if args.time_scale.is_some() {
             return Err("--time-scale only applies to the simulated printer".to_string());
         }
         Box::new(
@@ -225,7 +229,7 @@ fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: Fil
         queue_capacity: 4096,
     };
     let link = McuLink::connect(transport, opts).map_err(|e| e.to_string())?;
-    let result = print_on_link(args, machine, &link, gcode, started);
+    let result = print_on_link(args, machine, &link, gcode, started, time_scale);
     let stats = link.close();
     if let Some(s) = sim {
         let how = s.finish(Duration::from_secs(5));
@@ -282,6 +286,7 @@ fn print_on_link(
     link: &McuLink,
     gcode: File,
     started: Instant,
+    scale: f64,
 ) -> Result<Summary, String> {
     let dict = link.dictionary();
     let clock_freq = dict.clock_freq().map_err(|e| e.to_string())?;
@@ -305,7 +310,6 @@ fn print_on_link(
         return Err(format!("the MCU's move queue is too small ({move_count} entries)"));
     }
 
-    let scale = args.time_scale;
     let print_now = || link.clock().clock_at(McuLink::system_now()) / clock_freq;
     // Start far enough ahead that the first batch is planned long before it is due.
     let start = print_now() + (0.5f64).max(0.25 * scale);

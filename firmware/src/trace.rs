@@ -11,6 +11,9 @@
 //! receipt, `aux` = lead in µs = first step − receipt, 0 if already late); 2 shutdown
 //! (`clock` = MCU clock, `aux` = `static_string_id`).
 //!
+//! [`TraceRecord`] is the decoded view (an enum per kind); a `queue_step` record keeps the
+//! first step as `first_step_clock`, rebuilt on reading from the µs lead and `clock_freq`.
+//!
 //! The CSV form carries the same fields: a `# CDTRACE1 clock_freq=… time_scale=…` line, a
 //! `kind,oid,dir,aux,clock` header line, then one line per record. [`read_trace`] accepts both
 //! (it looks at the magic). A binary file cut inside its last record (a killed writer) reads as
@@ -27,7 +30,7 @@ pub const HEADER_LEN: usize = 24;
 /// Bytes of one binary record.
 pub const RECORD_LEN: usize = 16;
 
-/// What a record describes.
+/// The record kind byte of the file format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 #[repr(u8)]
 pub enum TraceKind {
@@ -51,60 +54,157 @@ impl TraceKind {
     }
 }
 
-/// One trace record (see the module doc for the meaning of `aux` and `clock` per kind).
+/// One trace event. All clocks are 64-bit MCU clocks.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub struct TraceRecord {
-    /// Record kind.
-    pub kind: TraceKind,
-    /// Stepper oid (0 for shutdown).
-    pub oid: u8,
-    /// Step direction (1 = +1); 0 for other kinds.
-    pub dir: u8,
-    /// Lateness µs / lead µs / static_string_id.
-    pub aux: u32,
-    /// 64-bit MCU clock.
-    pub clock: u64,
+pub enum TraceRecord {
+    /// Stepper `oid` stepped in direction `dir` (true = +1) at its scheduled `clock`; it ran
+    /// `lateness_us` µs of MCU time after that (saturating).
+    Step {
+        /// Stepper oid.
+        oid: u8,
+        /// Direction.
+        dir: bool,
+        /// Scheduled step clock.
+        clock: u64,
+        /// Execution time − scheduled time, µs of MCU time.
+        lateness_us: u32,
+    },
+    /// A `queue_step` for `oid` arrived at `received_clock`; its first step is due at
+    /// `first_step_clock`. The file stores the lead in whole µs, saturating at 0, so a file
+    /// read back gives `first_step_clock` rounded down to a µs and, for a late `queue_step`,
+    /// equal to `received_clock`.
+    QueueStep {
+        /// Stepper oid.
+        oid: u8,
+        /// MCU clock when the command was received.
+        received_clock: u64,
+        /// Clock of the move's first step.
+        first_step_clock: u64,
+    },
+    /// The MCU shut down at `clock` for the reason with id `static_string_id`.
+    Shutdown {
+        /// MCU clock of the shutdown.
+        clock: u64,
+        /// The reason's id in the dictionary's `static_string_id` enumeration.
+        static_string_id: u16,
+    },
 }
 
+/// The raw fields of one record: `(kind, oid, dir, aux, clock)`.
+type Raw = (TraceKind, u8, u8, u32, u64);
+
 impl TraceRecord {
-    /// The 16-byte binary form.
-    pub fn to_bytes(&self) -> [u8; RECORD_LEN] {
+    /// The record's kind byte.
+    pub fn kind(&self) -> TraceKind {
+        match self {
+            TraceRecord::Step { .. } => TraceKind::Step,
+            TraceRecord::QueueStep { .. } => TraceKind::QueueStep,
+            TraceRecord::Shutdown { .. } => TraceKind::Shutdown,
+        }
+    }
+
+    fn to_raw(self, clock_freq: u64) -> Raw {
+        match self {
+            TraceRecord::Step {
+                oid,
+                dir,
+                clock,
+                lateness_us,
+            } => (TraceKind::Step, oid, dir as u8, lateness_us, clock),
+            TraceRecord::QueueStep {
+                oid,
+                received_clock,
+                first_step_clock,
+            } => {
+                let lead = first_step_clock.saturating_sub(received_clock);
+                (
+                    TraceKind::QueueStep,
+                    oid,
+                    0,
+                    ticks_to_us(lead, clock_freq),
+                    received_clock,
+                )
+            }
+            TraceRecord::Shutdown {
+                clock,
+                static_string_id,
+            } => (TraceKind::Shutdown, 0, 0, static_string_id as u32, clock),
+        }
+    }
+
+    fn from_raw((kind, oid, dir, aux, clock): Raw, clock_freq: u64) -> TraceRecord {
+        match kind {
+            TraceKind::Step => TraceRecord::Step {
+                oid,
+                dir: dir != 0,
+                clock,
+                lateness_us: aux,
+            },
+            TraceKind::QueueStep => TraceRecord::QueueStep {
+                oid,
+                received_clock: clock,
+                first_step_clock: clock.saturating_add(us_to_ticks(aux, clock_freq)),
+            },
+            TraceKind::Shutdown => TraceRecord::Shutdown {
+                clock,
+                static_string_id: aux as u16,
+            },
+        }
+    }
+
+    /// The 16-byte binary form (`clock_freq` converts a `queue_step` lead to µs).
+    pub fn to_bytes(&self, clock_freq: u64) -> [u8; RECORD_LEN] {
+        let (kind, oid, dir, aux, clock) = self.to_raw(clock_freq);
         let mut b = [0u8; RECORD_LEN];
-        b[0] = self.kind as u8;
-        b[1] = self.oid;
-        b[2] = self.dir;
-        b[4..8].copy_from_slice(&self.aux.to_le_bytes());
-        b[8..16].copy_from_slice(&self.clock.to_le_bytes());
+        b[0] = kind as u8;
+        b[1] = oid;
+        b[2] = dir;
+        b[4..8].copy_from_slice(&aux.to_le_bytes());
+        b[8..16].copy_from_slice(&clock.to_le_bytes());
         b
     }
 
     /// Parses the 16-byte binary form (`None` for an unknown kind).
-    pub fn from_bytes(b: &[u8; RECORD_LEN]) -> Option<TraceRecord> {
+    pub fn from_bytes(b: &[u8; RECORD_LEN], clock_freq: u64) -> Option<TraceRecord> {
         let mut aux = [0u8; 4];
         aux.copy_from_slice(&b[4..8]);
         let mut clock = [0u8; 8];
         clock.copy_from_slice(&b[8..16]);
-        Some(TraceRecord {
-            kind: TraceKind::from_u8(b[0])?,
-            oid: b[1],
-            dir: b[2],
-            aux: u32::from_le_bytes(aux),
-            clock: u64::from_le_bytes(clock),
-        })
+        let kind = TraceKind::from_u8(b[0])?;
+        let raw = (
+            kind,
+            b[1],
+            b[2],
+            u32::from_le_bytes(aux),
+            u64::from_le_bytes(clock),
+        );
+        Some(TraceRecord::from_raw(raw, clock_freq))
     }
 
-    fn parse_csv(line: &str) -> Option<TraceRecord> {
+    fn parse_csv(line: &str, clock_freq: u64) -> Option<TraceRecord> {
         let mut f = line.trim().split(',');
         let mut next = || f.next().map(str::trim);
-        let rec = TraceRecord {
-            kind: TraceKind::from_u8(next()?.parse().ok()?)?,
-            oid: next()?.parse().ok()?,
-            dir: next()?.parse().ok()?,
-            aux: next()?.parse().ok()?,
-            clock: next()?.parse().ok()?,
-        };
-        next().is_none().then_some(rec)
+        let raw = (
+            TraceKind::from_u8(next()?.parse().ok()?)?,
+            next()?.parse().ok()?,
+            next()?.parse().ok()?,
+            next()?.parse().ok()?,
+            next()?.parse().ok()?,
+        );
+        next().is_none().then(|| TraceRecord::from_raw(raw, clock_freq))
     }
+}
+
+/// `ticks` of a `clock_freq` clock in whole µs (rounded down, saturating).
+pub fn ticks_to_us(ticks: u64, clock_freq: u64) -> u32 {
+    let us = ticks as u128 * 1_000_000 / clock_freq.max(1) as u128;
+    u32::try_from(us).unwrap_or(u32::MAX)
+}
+
+/// `us` µs in ticks of a `clock_freq` clock (rounded down).
+pub fn us_to_ticks(us: u32, clock_freq: u64) -> u64 {
+    let t = us as u128 * clock_freq as u128 / 1_000_000;
+    u64::try_from(t).unwrap_or(u64::MAX)
 }
 
 /// A whole trace.
@@ -132,6 +232,7 @@ pub enum TraceFormat {
 pub struct TraceWriter<W: Write> {
     out: W,
     format: TraceFormat,
+    clock_freq: u64,
 }
 
 impl TraceWriter<BufWriter<File>> {
@@ -157,14 +258,21 @@ impl<W: Write> TraceWriter<W> {
                 writeln!(out, "kind,oid,dir,aux,clock")?;
             }
         }
-        Ok(TraceWriter { out, format })
+        Ok(TraceWriter {
+            out,
+            format,
+            clock_freq,
+        })
     }
 
     /// Appends one record.
     pub fn write(&mut self, r: &TraceRecord) -> io::Result<()> {
         match self.format {
-            TraceFormat::Bin => self.out.write_all(&r.to_bytes()),
-            TraceFormat::Csv => writeln!(self.out, "{},{},{},{},{}", r.kind as u8, r.oid, r.dir, r.aux, r.clock),
+            TraceFormat::Bin => self.out.write_all(&r.to_bytes(self.clock_freq)),
+            TraceFormat::Csv => {
+                let (kind, oid, dir, aux, clock) = r.to_raw(self.clock_freq);
+                writeln!(self.out, "{},{oid},{dir},{aux},{clock}", kind as u8)
+            }
         }
     }
 
@@ -194,19 +302,24 @@ pub fn parse_trace(bytes: &[u8]) -> io::Result<TraceFile> {
 }
 
 fn parse_bin(bytes: &[u8]) -> io::Result<TraceFile> {
-    let header = bytes.get(..HEADER_LEN).ok_or_else(|| invalid("trace header truncated"))?;
+    let header = bytes
+        .get(..HEADER_LEN)
+        .ok_or_else(|| invalid("trace header truncated"))?;
     let mut freq = [0u8; 8];
     freq.copy_from_slice(&header[8..16]);
     let mut scale = [0u8; 8];
     scale.copy_from_slice(&header[16..24]);
+    let clock_freq = u64::from_le_bytes(freq);
     let mut records = Vec::with_capacity((bytes.len() - HEADER_LEN) / RECORD_LEN);
     for chunk in bytes[HEADER_LEN..].chunks_exact(RECORD_LEN) {
         let mut b = [0u8; RECORD_LEN];
         b.copy_from_slice(chunk);
-        records.push(TraceRecord::from_bytes(&b).ok_or_else(|| invalid("unknown trace record kind"))?);
+        let r =
+            TraceRecord::from_bytes(&b, clock_freq).ok_or_else(|| invalid("unknown trace record kind"))?;
+        records.push(r);
     }
     Ok(TraceFile {
-        clock_freq: u64::from_le_bytes(freq),
+        clock_freq,
         time_scale: f64::from_le_bytes(scale),
         records,
     })
@@ -216,7 +329,9 @@ fn parse_csv(text: &str) -> io::Result<TraceFile> {
     let mut lines = text.lines();
     let first = lines.next().ok_or_else(|| invalid("empty trace"))?;
     let tag = format!("# {}", String::from_utf8_lossy(MAGIC));
-    let params = first.strip_prefix(&tag).ok_or_else(|| invalid("not a cadence trace"))?;
+    let params = first
+        .strip_prefix(&tag)
+        .ok_or_else(|| invalid("not a cadence trace"))?;
     let (mut clock_freq, mut time_scale) = (None, None);
     for kv in params.split_whitespace() {
         match kv.split_once('=') {
@@ -234,7 +349,7 @@ fn parse_csv(text: &str) -> io::Result<TraceFile> {
         if line.is_empty() || line.starts_with('#') || line.starts_with("kind") {
             continue;
         }
-        records.push(TraceRecord::parse_csv(line).ok_or_else(|| invalid("bad trace line"))?);
+        records.push(TraceRecord::parse_csv(line, clock_freq).ok_or_else(|| invalid("bad trace line"))?);
     }
     Ok(TraceFile {
         clock_freq,
@@ -248,16 +363,33 @@ mod tests {
     use super::*;
     use proptest::prelude::*;
 
+    const FREQ: u64 = 50_000_000;
+
+    /// Records that survive the µs resolution of the file exactly at 50 MHz.
     fn record() -> impl Strategy<Value = TraceRecord> {
-        (0u8..3, any::<u8>(), 0u8..2, any::<u32>(), any::<u64>()).prop_map(|(k, oid, dir, aux, clock)| {
-            TraceRecord {
-                kind: TraceKind::from_u8(k).unwrap(),
-                oid,
-                dir,
-                aux,
+        prop_oneof![
+            (any::<u8>(), any::<bool>(), any::<u64>(), any::<u32>()).prop_map(
+                |(oid, dir, clock, lateness_us)| {
+                    TraceRecord::Step {
+                        oid,
+                        dir,
+                        clock,
+                        lateness_us,
+                    }
+                }
+            ),
+            (any::<u8>(), 0u64..1 << 60, any::<u32>()).prop_map(|(oid, received_clock, lead_us)| {
+                TraceRecord::QueueStep {
+                    oid,
+                    received_clock,
+                    first_step_clock: received_clock + lead_us as u64 * (FREQ / 1_000_000),
+                }
+            }),
+            (any::<u64>(), any::<u16>()).prop_map(|(clock, static_string_id)| TraceRecord::Shutdown {
                 clock,
-            }
-        })
+                static_string_id
+            }),
+        ]
     }
 
     fn write_all(format: TraceFormat, freq: u64, scale: f64, recs: &[TraceRecord]) -> Vec<u8> {
@@ -270,20 +402,19 @@ mod tests {
 
     #[test]
     fn golden_binary_record() {
-        let r = TraceRecord {
-            kind: TraceKind::QueueStep,
+        let r = TraceRecord::QueueStep {
             oid: 3,
-            dir: 1,
-            aux: 0x0102_0304,
-            clock: 0x1122_3344_5566_7788,
+            received_clock: 0x1122_3344_5566_7788,
+            first_step_clock: 0x1122_3344_5566_7788 + 0x0102_0304 * 50,
         };
         assert_eq!(
-            r.to_bytes(),
-            [1, 3, 1, 0, 4, 3, 2, 1, 0x88, 0x77, 0x66, 0x55, 0x44, 0x33, 0x22, 0x11]
+            r.to_bytes(FREQ),
+            [1, 3, 0, 0, 4, 3, 2, 1, 0x88, 0x77, 0x66, 0x55, 0x44, 0x33, 0x22, 0x11]
         );
-        let bytes = write_all(TraceFormat::Bin, 50_000_000, 2.5, &[r]);
+        let bytes = write_all(TraceFormat::Bin, FREQ, 2.5, &[r]);
         assert_eq!(&bytes[..8], b"CDTRACE1");
         assert_eq!(bytes.len(), HEADER_LEN + RECORD_LEN);
+        assert_eq!(parse_trace(&bytes).unwrap().records, [r]);
         // A cut last record is ignored; a bad kind is an error.
         let t = parse_trace(&bytes[..bytes.len() - 3]).unwrap();
         assert!(t.records.is_empty());
@@ -293,26 +424,59 @@ mod tests {
     }
 
     #[test]
-    fn csv_text() {
-        let r = TraceRecord {
-            kind: TraceKind::Step,
+    fn late_queue_step_reads_back_with_zero_lead() {
+        let r = TraceRecord::QueueStep {
             oid: 0,
-            dir: 1,
-            aux: 12,
+            received_clock: 1000,
+            first_step_clock: 400,
+        };
+        let t = parse_trace(&write_all(TraceFormat::Bin, FREQ, 1.0, &[r])).unwrap();
+        assert_eq!(
+            t.records,
+            [TraceRecord::QueueStep {
+                oid: 0,
+                received_clock: 1000,
+                first_step_clock: 1000
+            }]
+        );
+    }
+
+    #[test]
+    fn csv_text() {
+        let r = TraceRecord::Step {
+            oid: 0,
+            dir: true,
             clock: 50_000,
+            lateness_us: 12,
         };
         let text = String::from_utf8(write_all(TraceFormat::Csv, 1000, 1.0, &[r])).unwrap();
-        assert_eq!(text, "# CDTRACE1 clock_freq=1000 time_scale=1\nkind,oid,dir,aux,clock\n0,0,1,12,50000\n");
+        assert_eq!(
+            text,
+            "# CDTRACE1 clock_freq=1000 time_scale=1\nkind,oid,dir,aux,clock\n0,0,1,12,50000\n"
+        );
         assert!(parse_trace(b"# CDTRACE1 clock_freq=1\n").is_err());
         assert!(parse_trace(b"# CDTRACE1 clock_freq=1 time_scale=1\n0,0,1\n").is_err());
     }
 
+    #[test]
+    fn unit_conversions() {
+        assert_eq!(ticks_to_us(50, FREQ), 1);
+        assert_eq!(ticks_to_us(49, FREQ), 0);
+        assert_eq!(ticks_to_us(u64::MAX, 1), u32::MAX);
+        assert_eq!(us_to_ticks(3, FREQ), 150);
+        assert_eq!(
+            ticks_to_us(5, 0),
+            5_000_000,
+            "a zero frequency does not divide by zero"
+        );
+    }
+
     proptest! {
         #[test]
-        fn round_trip_both_formats(freq in any::<u64>(), scale in 0.001f64..1e6, recs in proptest::collection::vec(record(), 0..50)) {
+        fn round_trip_both_formats(scale in 0.001f64..1e6, recs in proptest::collection::vec(record(), 0..50)) {
             for format in [TraceFormat::Bin, TraceFormat::Csv] {
-                let t = parse_trace(&write_all(format, freq, scale, &recs)).unwrap();
-                prop_assert_eq!(t.clock_freq, freq);
+                let t = parse_trace(&write_all(format, FREQ, scale, &recs)).unwrap();
+                prop_assert_eq!(t.clock_freq, FREQ);
                 prop_assert_eq!(t.time_scale, scale);
                 prop_assert_eq!(&t.records, &recs);
             }

@@ -104,7 +104,11 @@ pub const MESSAGES: &[MessageDef] = &[
         Cmd::ConfigStepper,
         false,
     ),
-    cmd("queue_step oid=%c interval=%u count=%hu add=%hi", Cmd::QueueStep, false),
+    cmd(
+        "queue_step oid=%c interval=%u count=%hu add=%hi",
+        Cmd::QueueStep,
+        false,
+    ),
     cmd("set_next_step_dir oid=%c dir=%c", Cmd::SetNextStepDir, false),
     cmd("reset_step_clock oid=%c clock=%u", Cmd::ResetStepClock, false),
     cmd("stepper_get_position oid=%c", Cmd::StepperGetPosition, true),

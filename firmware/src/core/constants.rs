@@ -96,6 +96,9 @@ mod tests {
             assert_eq!(static_string_id(r) as usize, i);
         }
         assert_eq!(static_string_id("no such reason"), 0);
-        assert_eq!(SHUTDOWN_REASONS[static_string_id(reason::TIMER_TOO_CLOSE) as usize], "Timer too close");
+        assert_eq!(
+            SHUTDOWN_REASONS[static_string_id(reason::TIMER_TOO_CLOSE) as usize],
+            "Timer too close"
+        );
     }
 }

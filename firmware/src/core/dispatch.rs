@@ -165,7 +165,8 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
         let result = match self.objects.get_mut(slot) {
             Some(Object::Stepper(s)) => {
                 if count > 0 {
-                    self.board.queue_step_received(oid as u8, s.next_first_clock(interval), now);
+                    self.board
+                        .queue_step_received(oid as u8, s.next_first_clock(interval), now);
                 }
                 s.queue_step(&mut self.pool, interval, count, add, now)
             }

@@ -81,7 +81,11 @@ impl Link {
     /// Finds the next in-order block in the receive buffer, copies its payload into `out` and
     /// returns the payload length. NAKs bad and out-of-order blocks on the way. `None` when
     /// more bytes are needed.
-    pub fn next_block<B: Board>(&mut self, out: &mut [u8; MESSAGE_PAYLOAD_MAX], board: &mut B) -> Option<usize> {
+    pub fn next_block<B: Board>(
+        &mut self,
+        out: &mut [u8; MESSAGE_PAYLOAD_MAX],
+        board: &mut B,
+    ) -> Option<usize> {
         loop {
             match find_block(&self.rx[..self.rx_len]) {
                 Frame::Incomplete => return None,

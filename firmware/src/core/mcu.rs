@@ -270,7 +270,11 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
         self.pool.clear();
         let id = static_string_id(reason);
         self.board.shutdown(now, id, reason);
-        self.respond(ID_SHUTDOWN, FMT_SHUTDOWN, &[Value::Int(now.0 as i64), Value::Int(id as i64)]);
+        self.respond(
+            ID_SHUTDOWN,
+            FMT_SHUTDOWN,
+            &[Value::Int(now.0 as i64), Value::Int(id as i64)],
+        );
     }
 }
 

@@ -73,7 +73,12 @@ impl Host {
             clock_freq: FREQ,
             move_count,
         };
-        let mcu = Mcu::new(FakeBoard::default(), leaked_dictionary(), config, WireClock(start as u32));
+        let mcu = Mcu::new(
+            FakeBoard::default(),
+            leaked_dictionary(),
+            config,
+            WireClock(start as u32),
+        );
         let mut host = Host {
             mcu,
             now: start,
@@ -82,7 +87,8 @@ impl Host {
             responses: HashMap::new(),
             dict: Json::Null,
         };
-        host.responses.insert(0, links::proto::FMT_IDENTIFY_RESPONSE.into());
+        host.responses
+            .insert(0, links::proto::FMT_IDENTIFY_RESPONSE.into());
         host.commands
             .insert("identify".into(), (1, links::proto::FMT_IDENTIFY.into()));
         host.identify();
@@ -105,7 +111,9 @@ impl Host {
             data.extend_from_slice(&r.bytes);
         }
         let mut text = String::new();
-        flate2::read::ZlibDecoder::new(&data[..]).read_to_string(&mut text).unwrap();
+        flate2::read::ZlibDecoder::new(&data[..])
+            .read_to_string(&mut text)
+            .unwrap();
         self.dict = serde_json::from_str(&text).unwrap();
         for (fmt, id) in self.dict["commands"].as_object().unwrap() {
             let id = id.as_u64().unwrap() as u32;
@@ -117,7 +125,9 @@ impl Host {
     }
 
     fn reason_id(&self, reason: &str) -> i64 {
-        self.dict["enumerations"]["static_string_id"][reason].as_i64().unwrap()
+        self.dict["enumerations"]["static_string_id"][reason]
+            .as_i64()
+            .unwrap()
     }
 
     fn wire_now(&self) -> WireClock {
@@ -214,6 +224,9 @@ impl Host {
     }
 }
 
+/// A command by name with its integer arguments.
+type Msg<'a> = (&'a str, &'a [i64]);
+
 fn all_msgs(blocks: &[Block]) -> Vec<Resp> {
     blocks.iter().flat_map(|b| b.msgs.clone()).collect()
 }
@@ -228,9 +241,15 @@ fn identify_dictionary_is_usable_by_links_proto() {
     for fmt in host.dict["commands"].as_object().unwrap().keys() {
         assert!(links::proto::format::Params::of(fmt).all(|p| p.is_ok()), "{fmt}");
     }
-    assert_eq!(host.commands["queue_step"].1, "queue_step oid=%c interval=%u count=%hu add=%hi");
+    assert_eq!(
+        host.commands["queue_step"].1,
+        "queue_step oid=%c interval=%u count=%hu add=%hi"
+    );
     assert_eq!(host.dict["config"]["CLOCK_FREQ"], FREQ);
-    assert_eq!(host.dict["enumerations"]["pin"]["PC0"], serde_json::json!([16, 8]));
+    assert_eq!(
+        host.dict["enumerations"]["pin"]["PC0"],
+        serde_json::json!([16, 8])
+    );
 }
 
 #[test]
@@ -248,7 +267,10 @@ fn config_flow_and_every_response_acks() {
     let mut host = Host::new(40, 0);
     let blocks = host.exchange(&[("get_config", &[])]);
     assert_eq!(blocks.len(), 1);
-    assert_eq!(blocks[0].seq, host.seq, "a response carries the next expected sequence");
+    assert_eq!(
+        blocks[0].seq, host.seq,
+        "a response carries the next expected sequence"
+    );
     assert_eq!(blocks[0].msgs[0].ints, [0, 0, 0, 40]);
     host.configure(2);
     let blocks = host.exchange(&[("get_config", &[]), ("get_clock", &[])]);
@@ -257,7 +279,13 @@ fn config_flow_and_every_response_acks() {
     assert_eq!(find(&msgs, "clock").unwrap().ints, [0]);
     // A command without a response is acked by an empty block.
     let blocks = host.exchange(&[("set_next_step_dir", &[0, 1])]);
-    assert_eq!(blocks, [Block { seq: host.seq, msgs: vec![] }]);
+    assert_eq!(
+        blocks,
+        [Block {
+            seq: host.seq,
+            msgs: vec![]
+        }]
+    );
 }
 
 #[test]
@@ -277,7 +305,12 @@ fn steps_replay_exactly_and_position_is_reported() {
     ]);
     assert_eq!(
         host.mcu.board().queued,
-        [(0, 51_000, 1000), (0, 53_800, 1000), (0, 55_000, 1000), (1, 50_110, 1000)]
+        [
+            (0, 51_000, 1000),
+            (0, 53_800, 1000),
+            (0, 55_000, 1000),
+            (1, 50_110, 1000)
+        ]
     );
     host.advance(100_000);
     let steps = &host.mcu.board().steps;
@@ -302,7 +335,10 @@ fn steps_cross_the_clock_wrap() {
     let mut host = Host::new(64, start);
     host.configure(1);
     let base = (start + 5_000) as u32 as i64;
-    host.exchange(&[("reset_step_clock", &[0, base]), ("queue_step", &[0, 4_000, 4, 0])]);
+    host.exchange(&[
+        ("reset_step_clock", &[0, base]),
+        ("queue_step", &[0, 4_000, 4, 0]),
+    ]);
     host.advance(start + 30_000);
     let clocks: Vec<u32> = host.mcu.board().steps.iter().map(|s| s.2).collect();
     let expect: Vec<u32> = (1..=4).map(|k| (start + 5_000 + 4_000 * k) as u32).collect();
@@ -316,7 +352,10 @@ fn late_queue_step_shuts_down_with_timer_too_close() {
     let mut host = Host::new(64, 0);
     host.configure(1);
     host.now = 20_000;
-    let blocks = host.exchange(&[("reset_step_clock", &[0, 10_000]), ("queue_step", &[0, 5_000, 2, 0])]);
+    let blocks = host.exchange(&[
+        ("reset_step_clock", &[0, 10_000]),
+        ("queue_step", &[0, 5_000, 2, 0]),
+    ]);
     let msgs = all_msgs(&blocks);
     let ttc = host.reason_id("Timer too close");
     assert_eq!(find(&msgs, "shutdown").unwrap().ints, [20_000, ttc]);
@@ -346,7 +385,10 @@ fn shutdown_stops_running_steppers() {
     ]);
     host.advance(4_500);
     let msgs = all_msgs(&host.exchange(&[("emergency_stop", &[])]));
-    assert_eq!(find(&msgs, "shutdown").unwrap().ints[1], host.reason_id("Command request"));
+    assert_eq!(
+        find(&msgs, "shutdown").unwrap().ints[1],
+        host.reason_id("Command request")
+    );
     host.advance(50_000);
     assert_eq!(host.mcu.board().steps.len(), 3);
     assert_eq!(host.mcu.stepper_position(0), Some(3));
@@ -357,19 +399,26 @@ fn count_zero_shuts_down() {
     let mut host = Host::new(64, 0);
     host.configure(1);
     let msgs = all_msgs(&host.exchange(&[("queue_step", &[0, 1000, 0, 0])]));
-    assert_eq!(find(&msgs, "shutdown").unwrap().ints[1], host.reason_id("Invalid count parameter"));
+    assert_eq!(
+        find(&msgs, "shutdown").unwrap().ints[1],
+        host.reason_id("Invalid count parameter")
+    );
 }
 
 #[test]
 fn other_shutdown_reasons() {
-    let cases: &[(&[(&str, &[i64])], &str)] = &[
+    let cases: &[(&[Msg], &str)] = &[
         (&[("queue_step", &[5, 1000, 1, 0])], "Invalid oid"),
         (&[("set_next_step_dir", &[3, 1])], "Invalid oid"),
         (&[("allocate_oids", &[1])], "oids already allocated"),
         (&[("config_stepper", &[0, 1, 2, 0, 0])], "Already configured"),
         (&[("finalize_config", &[1])], "Already configured"),
         (
-            &[("reset_step_clock", &[0, 1000]), ("queue_step", &[0, 1000, 5, 0]), ("reset_step_clock", &[0, 0])],
+            &[
+                ("reset_step_clock", &[0, 1000]),
+                ("queue_step", &[0, 1000, 5, 0]),
+                ("reset_step_clock", &[0, 0]),
+            ],
             "Can't reset time when stepper active",
         ),
         (
@@ -388,15 +437,28 @@ fn other_shutdown_reasons() {
         host.configure(1);
         let got = all_msgs(&host.exchange(msgs));
         let expect = host.reason_id(reason);
-        assert_eq!(find(&got, "shutdown").map(|r| r.ints[1]), Some(expect), "{reason}");
+        assert_eq!(
+            find(&got, "shutdown").map(|r| r.ints[1]),
+            Some(expect),
+            "{reason}"
+        );
     }
     let mut host = Host::new(2, 0);
     let got = all_msgs(&host.exchange(&[("allocate_oids", &[9])]));
-    assert_eq!(find(&got, "shutdown").unwrap().ints[1], host.reason_id("Too many oids"));
+    assert_eq!(
+        find(&got, "shutdown").unwrap().ints[1],
+        host.reason_id("Too many oids")
+    );
     let mut host = Host::new(2, 0);
     host.exchange(&[("allocate_oids", &[2])]);
-    let got = all_msgs(&host.exchange(&[("config_stepper", &[0, 1, 2, 0, 0]), ("config_stepper", &[0, 1, 2, 0, 0])]));
-    assert_eq!(find(&got, "shutdown").unwrap().ints[1], host.reason_id("Can't assign oid"));
+    let got = all_msgs(&host.exchange(&[
+        ("config_stepper", &[0, 1, 2, 0, 0]),
+        ("config_stepper", &[0, 1, 2, 0, 0]),
+    ]));
+    assert_eq!(
+        find(&got, "shutdown").unwrap().ints[1],
+        host.reason_id("Can't assign oid")
+    );
 }
 
 #[test]
@@ -406,12 +468,18 @@ fn undecodable_messages_shut_down() {
     // queue_step with its parameters cut off.
     let bytes = host.block(&[qid as u8, 0x01]);
     let got = all_msgs(&host.raw(&bytes));
-    assert_eq!(find(&got, "shutdown").unwrap().ints[1], host.reason_id("Command parser error"));
+    assert_eq!(
+        find(&got, "shutdown").unwrap().ints[1],
+        host.reason_id("Command parser error")
+    );
     let mut host = Host::new(64, 0);
     // A response id sent as a command.
     let bytes = host.block(&[0x00, 0x00, 0x00]);
     let got = all_msgs(&host.raw(&bytes));
-    assert_eq!(find(&got, "shutdown").unwrap().ints[1], host.reason_id("Invalid command"));
+    assert_eq!(
+        find(&got, "shutdown").unwrap().ints[1],
+        host.reason_id("Invalid command")
+    );
 }
 
 #[test]
@@ -423,7 +491,13 @@ fn corrupt_block_gets_one_nak() {
     host.seq = expected; // the host will retransmit with the same sequence
     bad[2] ^= 0x01;
     let blocks = host.raw(&bad);
-    assert_eq!(blocks, [Block { seq: expected, msgs: vec![] }]);
+    assert_eq!(
+        blocks,
+        [Block {
+            seq: expected,
+            msgs: vec![]
+        }]
+    );
     // More garbage before a valid block: no second NAK.
     assert_eq!(host.raw(&[0x03, 0x11, 0x22, 0x7E]), []);
     // The retransmission is answered.
@@ -438,7 +512,13 @@ fn out_of_order_block_gets_a_nak_and_is_dropped() {
     let expected = host.seq;
     host.seq = (expected + 1) & 0x0F; // skip one: the MCU must not run this block
     let blocks = host.exchange(&[("get_clock", &[])]);
-    assert_eq!(blocks, [Block { seq: expected, msgs: vec![] }]);
+    assert_eq!(
+        blocks,
+        [Block {
+            seq: expected,
+            msgs: vec![]
+        }]
+    );
     host.seq = expected;
     let blocks = host.exchange(&[("get_clock", &[])]);
     assert_eq!(blocks[0].msgs[0].name, "clock");

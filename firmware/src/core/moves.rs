@@ -168,7 +168,10 @@ mod tests {
         assert!(!pool.push(&mut b, Move::new(21, 1, 0, false)), "limit 3 reached");
         assert_eq!(pool.used(), 3);
         assert_eq!(pool.pop(&mut a).map(|m| m.interval), Some(10));
-        assert!(pool.push(&mut b, Move::new(21, 1, 0, false)), "freed slot is reused");
+        assert!(
+            pool.push(&mut b, Move::new(21, 1, 0, false)),
+            "freed slot is reused"
+        );
         assert_eq!(pool.pop(&mut a).map(|m| m.interval), Some(11));
         assert_eq!(pool.pop(&mut a), None);
         assert!(a.is_empty());

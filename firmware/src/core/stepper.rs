@@ -265,14 +265,23 @@ mod tests {
         let mut pool = MovePool::<2>::new(1);
         let mut s = Stepper::new(StepperConfig::default());
         let now = WireClock(10_000);
-        assert_eq!(s.queue_step(&mut pool, 100, 0, 0, now), Err(StepperError::InvalidCount));
-        assert_eq!(s.queue_step(&mut pool, 100, 1, 0, now), Err(StepperError::TimerTooClose));
+        assert_eq!(
+            s.queue_step(&mut pool, 100, 0, 0, now),
+            Err(StepperError::InvalidCount)
+        );
+        assert_eq!(
+            s.queue_step(&mut pool, 100, 1, 0, now),
+            Err(StepperError::TimerTooClose)
+        );
         s.reset_clock(now).unwrap();
         let q = s.queue_step(&mut pool, 100, 1, 0, now).unwrap();
         assert_eq!(q.arm_at, Some(WireClock(10_100)));
         assert_eq!(s.reset_clock(now), Err(StepperError::ResetWhileActive));
         assert_eq!(s.queue_step(&mut pool, 100, 1, 0, now).unwrap().arm_at, None);
-        assert_eq!(s.queue_step(&mut pool, 100, 1, 0, now), Err(StepperError::QueueOverflow));
+        assert_eq!(
+            s.queue_step(&mut pool, 100, 1, 0, now),
+            Err(StepperError::QueueOverflow)
+        );
         s.stop();
         pool.clear();
         assert!(!s.is_active());

@@ -7,7 +7,7 @@
 //! Lateness and lead are converted to µs of MCU time: `ticks × 10^6 / clock_freq`.
 
 use crate::core::{Board, StepperConfig};
-use crate::trace::{TraceKind, TraceRecord, TraceWriter};
+use crate::trace::{ticks_to_us, TraceRecord, TraceWriter};
 use hdrhistogram::{CreationError, Histogram};
 use rt_core::{McuClock, WireClock};
 use std::fs::File;
@@ -70,8 +70,7 @@ impl SimBoard {
     }
 
     fn to_us(&self, ticks: u64) -> u32 {
-        let us = ticks as u128 * 1_000_000 / self.clock_freq.max(1) as u128;
-        u32::try_from(us).unwrap_or(u32::MAX)
+        ticks_to_us(ticks, self.clock_freq as u64)
     }
 
     fn extend(&self, clock: WireClock) -> u64 {
@@ -121,12 +120,11 @@ impl Board for SimBoard {
         let scheduled = self.extend(clock);
         let late_us = self.to_us(self.now.saturating_sub(scheduled));
         self.lateness.saturating_record(late_us as u64);
-        self.record(TraceRecord {
-            kind: TraceKind::Step,
+        self.record(TraceRecord::Step {
             oid,
-            dir: dir as u8,
-            aux: late_us,
+            dir,
             clock: scheduled,
+            lateness_us: late_us,
         });
     }
 
@@ -142,26 +140,19 @@ impl Board for SimBoard {
 
     fn queue_step_received(&mut self, oid: u8, first_clock: WireClock, now: WireClock) {
         self.queue_steps += 1;
-        let received = self.extend(now);
-        let lead_us = self.to_us(self.extend(first_clock).saturating_sub(received));
-        self.record(TraceRecord {
-            kind: TraceKind::QueueStep,
+        self.record(TraceRecord::QueueStep {
             oid,
-            dir: 0,
-            aux: lead_us,
-            clock: received,
+            received_clock: self.extend(now),
+            first_step_clock: self.extend(first_clock),
         });
     }
 
     fn shutdown(&mut self, clock: WireClock, static_string_id: u16, reason: &'static str) {
         let clock = self.extend(clock);
         eprintln!("cadence-mcu: shutdown at clock {clock}: {reason}");
-        self.record(TraceRecord {
-            kind: TraceKind::Shutdown,
-            oid: 0,
-            dir: 0,
-            aux: static_string_id as u32,
+        self.record(TraceRecord::Shutdown {
             clock,
+            static_string_id,
         });
     }
 }
@@ -183,12 +174,31 @@ mod tests {
         b.finish_trace().unwrap();
         let trace = crate::trace::read_trace(&path).unwrap();
         let _ = std::fs::remove_file(&path);
-        let recs = &trace.records;
         let base = 1u64 << 32;
-        assert_eq!((recs[0].kind, recs[0].clock, recs[0].aux), (TraceKind::QueueStep, base + 500, 100_000));
-        assert_eq!((recs[1].kind, recs[1].clock, recs[1].aux, recs[1].dir), (TraceKind::Step, base + 400, 100, 1));
-        assert_eq!(recs[2].aux, 0);
-        assert_eq!((recs[3].kind, recs[3].aux, recs[3].clock), (TraceKind::Shutdown, 7, base + 500));
+        let expect = [
+            TraceRecord::QueueStep {
+                oid: 2,
+                received_clock: base + 500,
+                first_step_clock: base + 100_500,
+            },
+            TraceRecord::Step {
+                oid: 2,
+                dir: true,
+                clock: base + 400,
+                lateness_us: 100,
+            },
+            // Already late: the file keeps a lead of 0.
+            TraceRecord::QueueStep {
+                oid: 2,
+                received_clock: base + 500,
+                first_step_clock: base + 500,
+            },
+            TraceRecord::Shutdown {
+                clock: base + 500,
+                static_string_id: 7,
+            },
+        ];
+        assert_eq!(trace.records, expect);
         let l = b.lateness();
         assert_eq!(l.steps, 1);
         assert!(l.max >= 100 && l.max <= 101);

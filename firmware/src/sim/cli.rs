@@ -79,8 +79,18 @@ mod tests {
     #[test]
     fn all_options() {
         let c = parse(&[
-            "--pty-link", "/tmp/x", "--clock-freq", "1000000", "--time-scale", "10", "--trace", "t.csv",
-            "--trace-format", "csv", "--move-count", "500",
+            "--pty-link",
+            "/tmp/x",
+            "--clock-freq",
+            "1000000",
+            "--time-scale",
+            "10",
+            "--trace",
+            "t.csv",
+            "--trace-format",
+            "csv",
+            "--move-count",
+            "500",
         ])
         .unwrap();
         assert_eq!(c.pty_link.as_deref(), Some(std::path::Path::new("/tmp/x")));

@@ -179,7 +179,11 @@ impl<'a> EventLoop<'a> {
         let mut written = 0;
         let mut hung_up = false;
         while written < board.out.len() {
-            match self.pty.write(&board.out[written..]).map_err(super::sys("write pty"))? {
+            match self
+                .pty
+                .write(&board.out[written..])
+                .map_err(super::sys("write pty"))?
+            {
                 Io::Done(n) => written += n,
                 Io::WouldBlock => break,
                 Io::HangUp => {

@@ -123,14 +123,23 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
     let _ = nix::sys::prctl::set_timerslack(1);
     let parent = nix::unistd::getppid();
     let pty = pty::Pty::open().map_err(sys("open pty"))?;
-    let link = cli.pty_link.as_deref().map(|p| make_link(pty.slave_path(), p)).transpose()?;
+    let link = cli
+        .pty_link
+        .as_deref()
+        .map(|p| make_link(pty.slave_path(), p))
+        .transpose()?;
     let trace = match &cli.trace {
         Some(path) => Some(
-            TraceWriter::create(path, cli.trace_format.into(), cli.clock_freq as u64, cli.time_scale)
-                .map_err(|source| SimError::Trace {
-                    path: path.clone(),
-                    source,
-                })?,
+            TraceWriter::create(
+                path,
+                cli.trace_format.into(),
+                cli.clock_freq as u64,
+                cli.time_scale,
+            )
+            .map_err(|source| SimError::Trace {
+                path: path.clone(),
+                source,
+            })?,
         ),
         None => None,
     };
@@ -141,7 +150,12 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
         move_count: cli.move_count,
     };
     let clock = SimClock::start(cli.clock_freq, cli.time_scale);
-    let mut mcu = Box::new(SimMcu::new(board, dictionary, config, WireClock(clock.now() as u32)));
+    let mut mcu = Box::new(SimMcu::new(
+        board,
+        dictionary,
+        config,
+        WireClock(clock.now() as u32),
+    ));
 
     let mut stdout = io::stdout().lock();
     writeln!(stdout, "cadence-mcu: pty {}", pty.slave_path().display())
@@ -183,7 +197,10 @@ fn report(board: &SimBoard, exit: &Result<Exit, SimError>) {
         l.max
     );
     if board.dropped_output > 0 {
-        eprintln!("cadence-mcu: dropped {} output bytes (host not reading)", board.dropped_output);
+        eprintln!(
+            "cadence-mcu: dropped {} output bytes (host not reading)",
+            board.dropped_output
+        );
     }
 }
 
@@ -195,7 +212,10 @@ fn make_link(slave: &Path, link: &Path) -> Result<PathBuf, SimError> {
     };
     if let Ok(meta) = std::fs::symlink_metadata(link) {
         if meta.is_dir() {
-            return Err(err(io::Error::new(io::ErrorKind::AlreadyExists, "is a directory")));
+            return Err(err(io::Error::new(
+                io::ErrorKind::AlreadyExists,
+                "is a directory",
+            )));
         }
         std::fs::remove_file(link).map_err(err)?;
     }

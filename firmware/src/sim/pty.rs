@@ -95,7 +95,11 @@ mod tests {
         let mut buf = [0u8; 64];
         // Never opened: no data, and not a hang-up yet.
         assert_eq!(pty.read(&mut buf).unwrap(), Io::WouldBlock);
-        let mut slave = OpenOptions::new().read(true).write(true).open(pty.slave_path()).unwrap();
+        let mut slave = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .open(pty.slave_path())
+            .unwrap();
         let bytes = [0x7E, b'\r', b'\n', 0x03, 0x11, 0x13, 0xFF];
         slave.write_all(&bytes).unwrap();
         let mut got = Vec::new();

@@ -11,7 +11,7 @@
 //! `PA0..PA7` with values `0..8` (the symbol's trailing digits are the run's first index).
 
 mod encode;
-mod message;
+pub mod message;
 mod stream;
 
 pub use encode::{Cmd, CmdEncoder};

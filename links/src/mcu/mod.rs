@@ -1,1 +1,445 @@
-//! placeholder
+//! One MCU connection: an IO thread that owns the transport, and the [`McuLink`] handle the
+//! rest of the host uses.
+//!
+//! The IO thread ([`io`]) connects (dictionary through `identify`, 64-bit clock through
+//! `get_uptime`, eight `get_clock` 50 ms apart for the first fit), then loops: read with a
+//! short timeout, feed the [`crate::serialqueue::SerialQueue`], write what it releases, query
+//! `get_clock` about every 0.98 s, dispatch responses. Callers hand messages over through a
+//! bounded, preallocated `ArrayQueue`; the clock estimate comes back through a seqlock.
+//!
+//! Every wait is bounded: connect by the identify/response timeouts, `send_clocked` on a full
+//! queue by a stall timeout, `query` and `wait_idle` by their argument, and the link itself
+//! dies when no ack arrives for [`LinkTuning::no_ack_timeout`].
+//!
+//! Allocation in the IO thread's steady state: none for sending, acks, retransmits and `clock`
+//! replies; decoding a response into a [`Message`] allocates, which happens only for responses
+//! some `query` waits for, for `shutdown`/`is_shutdown`, and during the handshake.
+
+mod io;
+mod shared;
+
+#[cfg(test)]
+mod fake;
+#[cfg(test)]
+mod tests;
+
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use crate::clocksync::ClockEstimate;
+use crate::dict::{Cmd, Dictionary, Message};
+use crate::serialqueue::{MarginHook, QueueStats};
+use crate::transport::Transport;
+use shared::{lock, Outgoing, Shared, WaitFail, Waiter, ANSWERED_WHEN_SHUT_DOWN, DEAD, RUNNING};
+
+/// What every link needs to know.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LinkOptions {
+    /// The MCU's name in messages, e.g. `mcu`.
+    pub name: String,
+    /// How long to wait for the first `identify` answer.
+    pub identify_timeout: Duration,
+    /// How long to wait for any other handshake answer.
+    pub response_timeout: Duration,
+    /// Messages that can wait in the hand-off queue (and again in the serial queue).
+    pub queue_capacity: usize,
+}
+
+impl Default for LinkOptions {
+    fn default() -> Self {
+        LinkOptions {
+            name: "mcu".into(),
+            identify_timeout: Duration::from_secs(5),
+            response_timeout: Duration::from_secs(2),
+            queue_capacity: 4096,
+        }
+    }
+}
+
+/// Less common knobs, with defaults from the protocol (see [`McuLink::connect_with`]).
+pub struct LinkTuning {
+    /// The link dies when unacked data has waited this long for an ack.
+    pub no_ack_timeout: Duration,
+    /// `send_clocked` fails when the queue stayed full without progress this long.
+    pub queue_stall_timeout: Duration,
+    /// Period of `get_clock` queries once connected (0.98 s: off the beat of 1 s work).
+    pub clock_interval: Duration,
+    /// Spacing of the initial `get_clock` queries.
+    pub initial_clock_spacing: Duration,
+    /// Number of initial `get_clock` queries before the link is ready.
+    pub initial_clock_queries: u32,
+    /// Resend `identify` after this long without an answer (covers a lost first block).
+    pub identify_retry: Duration,
+    /// Longest read wait of the IO thread (bounds the latency of a new message).
+    pub max_read_wait: Duration,
+    /// Read wait while messages wait for their `min_clock`.
+    pub upcoming_read_wait: Duration,
+    /// Called by the IO thread with `(req_clock, lead margin ticks)` for each clocked message.
+    pub margin_hook: Option<MarginHook>,
+}
+
+impl Default for LinkTuning {
+    fn default() -> Self {
+        LinkTuning {
+            no_ack_timeout: Duration::from_secs(5),
+            queue_stall_timeout: Duration::from_secs(10),
+            clock_interval: Duration::from_secs_f64(0.9839),
+            initial_clock_spacing: Duration::from_millis(50),
+            initial_clock_queries: 8,
+            identify_retry: Duration::from_millis(250),
+            max_read_wait: Duration::from_millis(5),
+            upcoming_read_wait: Duration::from_millis(1),
+            margin_hook: None,
+        }
+    }
+}
+
+impl std::fmt::Debug for LinkTuning {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LinkTuning")
+            .field("no_ack_timeout", &self.no_ack_timeout)
+            .field("queue_stall_timeout", &self.queue_stall_timeout)
+            .field("clock_interval", &self.clock_interval)
+            .field("margin_hook", &self.margin_hook.is_some())
+            .finish_non_exhaustive()
+    }
+}
+
+/// Errors of a link; each names the MCU and what happened.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum LinkError {
+    /// The MCU never answered the first `identify`.
+    #[error("mcu '{mcu}': no answer to identify within {secs} s")]
+    IdentifyTimeout { mcu: String, secs: f64 },
+    /// The dictionary it served is unusable.
+    #[error("mcu '{mcu}': bad data dictionary: {detail}")]
+    Dictionary { mcu: String, detail: String },
+    /// Another handshake step failed (a missing command, no answer to `get_clock`, …).
+    #[error("mcu '{mcu}': {detail}")]
+    Handshake { mcu: String, detail: String },
+    /// The transport failed or the peer hung up.
+    #[error("mcu '{mcu}': connection lost ({detail})")]
+    ConnectionLost { mcu: String, detail: String },
+    /// The MCU reported a shutdown.
+    #[error("mcu '{mcu}': shut down: {reason}")]
+    Shutdown { mcu: String, reason: String },
+    /// Data stayed unacked too long.
+    #[error("mcu '{mcu}': no ack for {secs:.1} s")]
+    NoAck { mcu: String, secs: f64 },
+    /// A query got no matching response in time.
+    #[error("mcu '{mcu}': no '{response}' response within {secs} s")]
+    Timeout { mcu: String, response: String, secs: f64 },
+    /// `wait_idle` ran out of time.
+    #[error("mcu '{mcu}': queued messages not all acked within {secs} s")]
+    NotIdle { mcu: String, secs: f64 },
+    /// The send queue stayed full without progress.
+    #[error("mcu '{mcu}': send queue full and not moving for {secs} s")]
+    QueueStalled { mcu: String, secs: f64 },
+    /// The link was closed.
+    #[error("mcu '{mcu}': link closed")]
+    Closed { mcu: String },
+    /// The IO thread could not be started.
+    #[error("mcu '{mcu}': cannot start IO thread: {detail}")]
+    Spawn { mcu: String, detail: String },
+}
+
+/// A snapshot of a link's counters.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct LinkStats {
+    /// The serial queue's counters.
+    pub queue: QueueStats,
+    /// Smallest lead margin of a clocked message (ticks), `None` before the first.
+    pub min_lead_margin_ticks: Option<i64>,
+    /// Clocked messages (`req_clock > 0`) written.
+    pub clocked_msgs: u64,
+    /// Clock fit residual, µs.
+    pub clock_residual_us: f64,
+    /// Estimated MCU ticks per system second.
+    pub clock_freq: f64,
+    /// Clock samples used and dropped as outliers.
+    pub clock_samples: u64,
+    /// Clock samples dropped as outliers.
+    pub clock_outliers: u64,
+    /// Received messages the dictionary could not decode.
+    pub undecodable_msgs: u64,
+}
+
+/// The handle of one MCU connection.
+#[derive(Debug)]
+pub struct McuLink {
+    shared: Arc<Shared>,
+    dict: Arc<Dictionary>,
+    thread: Option<JoinHandle<()>>,
+    opts: LinkOptions,
+    stall_timeout: Duration,
+}
+
+impl McuLink {
+    /// Connects over `transport` with default tuning: spawns the IO thread `io-<name>`, reads
+    /// the dictionary and synchronises the clock. Returns once the link is ready.
+    pub fn connect(transport: Box<dyn Transport>, opts: LinkOptions) -> Result<McuLink, LinkError> {
+        McuLink::connect_with(transport, opts, LinkTuning::default())
+    }
+
+    /// [`Self::connect`] with explicit tuning.
+    pub fn connect_with(
+        transport: Box<dyn Transport>,
+        opts: LinkOptions,
+        tuning: LinkTuning,
+    ) -> Result<McuLink, LinkError> {
+        let shared = Arc::new(Shared::new(&opts.name, opts.queue_capacity));
+        let stall_timeout = tuning.queue_stall_timeout;
+        let io = io::IoThread::new(shared.clone(), transport, &opts, tuning);
+        let thread = std::thread::Builder::new()
+            .name(format!("io-{}", opts.name))
+            .spawn(move || io.run())
+            .map_err(|e| LinkError::Spawn {
+                mcu: opts.name.clone(),
+                detail: e.to_string(),
+            })?;
+        let mut link = McuLink {
+            shared,
+            dict: Arc::new(Dictionary::bootstrap()),
+            thread: Some(thread),
+            opts,
+            stall_timeout,
+        };
+        // The IO thread enforces every handshake deadline itself; this bound only guards
+        // against a bug there.
+        let guard = link.opts.identify_timeout + link.opts.response_timeout * 64 + Duration::from_secs(10);
+        let sh = link.shared.clone();
+        let ready = sh.notify.wait_until(Instant::now() + guard, || {
+            sh.state.load(Ordering::Acquire) != shared::CONNECTING
+        });
+        if let Some(e) = link.shared.dead_error() {
+            link.stop_and_join();
+            return Err(e);
+        }
+        match (ready, link.shared.dict.get()) {
+            (true, Some(dict)) => {
+                link.dict = dict.clone();
+                Ok(link)
+            }
+            _ => {
+                link.shared.die(shared::Death::Handshake("connect did not finish".into()));
+                link.stop_and_join();
+                Err(link.shared.dead_error().unwrap_or(LinkError::Closed {
+                    mcu: link.opts.name.clone(),
+                }))
+            }
+        }
+    }
+
+    /// The MCU's name.
+    pub fn name(&self) -> &str {
+        &self.opts.name
+    }
+
+    /// The MCU's data dictionary.
+    pub fn dictionary(&self) -> &Dictionary {
+        &self.dict
+    }
+
+    /// The MCU's dictionary, shareable with other threads.
+    pub fn dictionary_arc(&self) -> Arc<Dictionary> {
+        self.dict.clone()
+    }
+
+    /// The latest clock estimate (lock-free).
+    pub fn clock(&self) -> ClockEstimate {
+        self.shared.clock.load()
+    }
+
+    /// Seconds of `CLOCK_MONOTONIC`: the system time clock sync works in.
+    pub fn system_now() -> f64 {
+        io::system_now()
+    }
+
+    /// Queues a plain message (sent as soon as possible, in order with other plain ones).
+    /// Allowed after an MCU shutdown (e.g. `clear_shutdown`); fails if the link died.
+    pub fn send(&self, cmd: Cmd) -> Result<(), LinkError> {
+        self.enqueue(Outgoing {
+            cmd,
+            min_clock: 0,
+            req_clock: 0,
+        })
+    }
+
+    /// Queues a message not to be sent before the MCU clock reaches `min_clock`, ordered by
+    /// `req_clock`. Blocks (sleeping, bounded) while the queue is full. Fails if the link died
+    /// or the MCU shut down.
+    pub fn send_clocked(&self, cmd: Cmd, min_clock: u64, req_clock: u64) -> Result<(), LinkError> {
+        if let Some(e) = self.shared.shutdown_error() {
+            return Err(e);
+        }
+        self.enqueue(Outgoing {
+            cmd,
+            min_clock,
+            req_clock,
+        })
+    }
+
+    fn enqueue(&self, mut item: Outgoing) -> Result<(), LinkError> {
+        let sh = &*self.shared;
+        let mut last_taken = sh.taken.load(Ordering::Acquire);
+        let mut last_progress = Instant::now();
+        loop {
+            if let Some(e) = sh.dead_error() {
+                return Err(e);
+            }
+            match sh.outgoing.push(item) {
+                Ok(()) => {
+                    sh.submitted.fetch_add(1, Ordering::AcqRel);
+                    return Ok(());
+                }
+                Err(back) => item = back,
+            }
+            sh.notify.wait_until(Instant::now() + Duration::from_millis(20), || {
+                !sh.outgoing.is_full() || sh.state.load(Ordering::Acquire) == DEAD
+            });
+            let taken = sh.taken.load(Ordering::Acquire);
+            if taken != last_taken {
+                last_taken = taken;
+                last_progress = Instant::now();
+            } else if last_progress.elapsed() > self.stall_timeout {
+                return Err(LinkError::QueueStalled {
+                    mcu: self.opts.name.clone(),
+                    secs: self.stall_timeout.as_secs_f64(),
+                });
+            }
+        }
+    }
+
+    /// Sends `cmd` and waits for the first response named `response` (whose field
+    /// `matcher.0` equals `matcher.1`, if given) that arrives after the call started.
+    pub fn query(
+        &self,
+        cmd: Cmd,
+        response: &str,
+        matcher: Option<(&str, i64)>,
+        timeout: Duration,
+    ) -> Result<Message, LinkError> {
+        let sh = &*self.shared;
+        let deadline = Instant::now() + timeout;
+        let id = sh.next_waiter.fetch_add(1, Ordering::Relaxed);
+        {
+            let mut w = lock(&sh.waiters);
+            w.push(Waiter {
+                id,
+                response: response.to_owned(),
+                matcher: matcher.map(|(f, v)| (f.to_owned(), v)),
+                result: None,
+            });
+            sh.waiter_count.store(w.len(), Ordering::Release);
+        }
+        let sent = self.send(cmd);
+        let take = |sh: &Shared| -> Option<Result<Message, WaitFail>> {
+            let mut w = lock(&sh.waiters);
+            let i = w.iter().position(|x| x.id == id)?;
+            w[i].result.as_ref()?;
+            let r = w.remove(i).result;
+            sh.waiter_count.store(w.len(), Ordering::Release);
+            r
+        };
+        let mut result = None;
+        if sent.is_ok() {
+            sh.notify.wait_until(deadline, || {
+                result = take(sh);
+                result.is_some() || sh.state.load(Ordering::Acquire) == DEAD
+            });
+        }
+        // Remove the waiter whatever happened.
+        {
+            let mut w = lock(&sh.waiters);
+            if let Some(i) = w.iter().position(|x| x.id == id) {
+                if result.is_none() {
+                    result = w[i].result.take();
+                }
+                w.remove(i);
+            }
+            sh.waiter_count.store(w.len(), Ordering::Release);
+        }
+        sent?;
+        match result {
+            Some(Ok(msg)) => Ok(msg),
+            Some(Err(WaitFail::Shutdown(reason))) => Err(LinkError::Shutdown {
+                mcu: self.opts.name.clone(),
+                reason,
+            }),
+            None => Err(sh
+                .dead_error()
+                .or_else(|| {
+                    (!ANSWERED_WHEN_SHUT_DOWN.contains(&response))
+                        .then(|| sh.shutdown_error())
+                        .flatten()
+                })
+                .unwrap_or(LinkError::Timeout {
+                    mcu: self.opts.name.clone(),
+                    response: response.to_owned(),
+                    secs: timeout.as_secs_f64(),
+                })),
+        }
+    }
+
+    /// Waits until every message queued before this call has been sent and acked.
+    pub fn wait_idle(&self, timeout: Duration) -> Result<(), LinkError> {
+        let sh = &*self.shared;
+        let target = sh.submitted.load(Ordering::Acquire);
+        let done = sh.notify.wait_until(Instant::now() + timeout, || {
+            sh.idle_upto.load(Ordering::Acquire) >= target || sh.state.load(Ordering::Acquire) == DEAD
+        });
+        if let Some(e) = sh.dead_error() {
+            return Err(e);
+        }
+        if done {
+            Ok(())
+        } else {
+            Err(LinkError::NotIdle {
+                mcu: self.opts.name.clone(),
+                secs: timeout.as_secs_f64(),
+            })
+        }
+    }
+
+    /// Counters of the link.
+    pub fn stats(&self) -> LinkStats {
+        *lock(&self.shared.stats)
+    }
+
+    /// The MCU's shutdown reason, once it sent `shutdown` or `is_shutdown`.
+    pub fn shutdown_reason(&self) -> Option<String> {
+        lock(&self.shared.shutdown).clone()
+    }
+
+    /// Why the link died, if it did.
+    pub fn error(&self) -> Option<LinkError> {
+        self.shared.dead_error()
+    }
+
+    /// Stops the IO thread (without waiting for queued messages: call [`Self::wait_idle`]
+    /// first to flush) and returns the final counters.
+    pub fn close(mut self) -> LinkStats {
+        self.stop_and_join();
+        self.stats()
+    }
+
+    fn stop_and_join(&mut self) {
+        self.shared.stop.store(true, Ordering::Release);
+        if let Some(t) = self.thread.take() {
+            // A panic in the IO thread has already marked the link dead (or will be seen as
+            // closed); there is nothing more to report here.
+            let _ = t.join();
+        }
+        if self.shared.state.load(Ordering::Acquire) == RUNNING {
+            self.shared.die(shared::Death::Closed);
+        }
+    }
+}
+
+impl Drop for McuLink {
+    fn drop(&mut self) {
+        self.stop_and_join();
+    }
+}

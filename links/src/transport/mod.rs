@@ -10,7 +10,7 @@
 
 mod faulty;
 mod memory;
-mod pty;
+pub(crate) mod pty;
 mod serial;
 
 pub use faulty::{FaultConfig, FaultStats, FaultyTransport, XorShift64};

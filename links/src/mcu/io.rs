@@ -1,0 +1,518 @@
+//! The IO thread of one MCU: owns the transport, runs the serial queue, the handshake and the
+//! clock sync, and dispatches responses.
+//!
+//! Loop: take caller messages → run handshake/clock timers → `poll` the serial queue and write
+//! what it releases → read with a timeout (until the next deadline, ≤ 1 ms while messages wait
+//! for their `min_clock`, ≤ 5 ms otherwise) → feed the serial queue → dispatch payloads →
+//! check the ack deadline → publish counters and wake waiters.
+//!
+//! Handshake phases: `Identify` (chunks of 40 bytes until an empty one; resent when the link is
+//! idle and unanswered for a while, which covers a first block the MCU dropped) → `Uptime`
+//! (64-bit clock) → `InitialClock` (8 `get_clock` 50 ms apart) → `Running`.
+
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::Duration;
+
+use super::shared::{lock, Death, Outgoing, Shared, WaitFail, ANSWERED_WHEN_SHUT_DOWN, RUNNING};
+use super::{LinkOptions, LinkStats, LinkTuning};
+use crate::clocksync::ClockSync;
+use crate::dict::message::decode_params_into;
+use crate::dict::{Cmd, Dictionary};
+use crate::proto::format::Value;
+use crate::serialqueue::{QueueConfig, SerialQueue};
+use crate::transport::Transport;
+
+/// Bytes asked for per `identify`.
+const IDENTIFY_CHUNK: i64 = 40;
+/// Largest read per loop iteration.
+const READ_BUF: usize = 4096;
+/// Most parameters decoded on the stack.
+const MAX_STACK_PARAMS: usize = 16;
+
+/// `CLOCK_MONOTONIC` in seconds.
+pub(crate) fn system_now() -> f64 {
+    nix::time::clock_gettime(nix::time::ClockId::CLOCK_MONOTONIC)
+        .map(|t| t.tv_sec() as f64 + t.tv_nsec() as f64 * 1e-9)
+        .unwrap_or(0.0)
+}
+
+/// Ids and commands the IO thread itself uses, looked up once.
+#[derive(Debug, Clone, Copy, Default)]
+struct Known {
+    get_clock: Option<Cmd>,
+    clock: Option<u32>,
+    uptime: Option<u32>,
+    shutdown: Option<u32>,
+    is_shutdown: Option<u32>,
+}
+
+#[derive(Debug)]
+enum Phase {
+    Identify {
+        offset: i64,
+        data: Vec<u8>,
+        deadline: f64,
+        last_sent: f64,
+        answered: bool,
+    },
+    Uptime {
+        deadline: f64,
+    },
+    InitialClock {
+        count: u32,
+    },
+    Running,
+}
+
+/// A `get_clock` in flight.
+#[derive(Debug, Clone, Copy)]
+struct ClockQuery {
+    queued_at: f64,
+    sent_at: Option<f64>,
+}
+
+pub(crate) struct IoThread {
+    shared: Arc<Shared>,
+    transport: Box<dyn Transport>,
+    sq: SerialQueue,
+    dict: Arc<Dictionary>,
+    known: Known,
+    sync: ClockSync,
+    phase: Phase,
+    clock_query: Option<ClockQuery>,
+    next_clock_at: f64,
+    tuning: LinkTuning,
+    identify_timeout: f64,
+    response_timeout: f64,
+    held: Option<Outgoing>,
+    taken: u64,
+    payloads: Vec<u8>,
+    undecodable: u64,
+}
+
+impl IoThread {
+    pub(crate) fn new(
+        shared: Arc<Shared>,
+        transport: Box<dyn Transport>,
+        opts: &LinkOptions,
+        mut tuning: LinkTuning,
+    ) -> IoThread {
+        let mut sq = SerialQueue::new(QueueConfig {
+            capacity: opts.queue_capacity.max(16),
+            receive_window: None,
+        });
+        sq.set_margin_hook(tuning.margin_hook.take());
+        IoThread {
+            shared,
+            transport,
+            sq,
+            dict: Arc::new(Dictionary::bootstrap()),
+            known: Known::default(),
+            sync: ClockSync::new(1.0),
+            phase: Phase::Identify {
+                offset: 0,
+                data: Vec::with_capacity(8192),
+                deadline: 0.0,
+                last_sent: f64::NEG_INFINITY,
+                answered: false,
+            },
+            clock_query: None,
+            next_clock_at: 0.0,
+            tuning,
+            identify_timeout: opts.identify_timeout.as_secs_f64(),
+            response_timeout: opts.response_timeout.as_secs_f64(),
+            held: None,
+            taken: 0,
+            payloads: Vec::with_capacity(READ_BUF * 2),
+            undecodable: 0,
+        }
+    }
+
+    /// Runs until stopped or dead.
+    pub(crate) fn run(mut self) {
+        let mut buf = [0u8; READ_BUF];
+        let start = system_now();
+        if let Phase::Identify { deadline, .. } = &mut self.phase {
+            *deadline = start + self.identify_timeout;
+        }
+        while !self.shared.stop.load(Ordering::Acquire) {
+            if let Err(death) = self.iterate(&mut buf) {
+                self.shared.die(death);
+                break;
+            }
+        }
+        self.publish_stats();
+        self.shared.notify.notify();
+    }
+
+    fn iterate(&mut self, buf: &mut [u8; READ_BUF]) -> Result<(), Death> {
+        let now = system_now();
+        self.take_outgoing();
+        self.run_timers(now)?;
+        let out = self.sq.poll(now);
+        if !out.is_empty() {
+            self.transport
+                .write_all(out)
+                .map_err(|e| Death::ConnectionLost(format!("write to {}: {e}", self.transport.describe())))?;
+        }
+        if let Some(t) = self.sq.take_marked_sent() {
+            if let Some(q) = self.clock_query.as_mut() {
+                q.sent_at.get_or_insert(t);
+            }
+        }
+        let wait = self.read_wait(now);
+        let n = self
+            .transport
+            .read(buf, wait)
+            .map_err(|e| Death::ConnectionLost(format!("read from {}: {e}", self.transport.describe())))?;
+        if n > 0 {
+            let now = system_now();
+            let mut payloads = std::mem::take(&mut self.payloads);
+            payloads.clear();
+            self.sq.receive(now, &buf[..n], &mut |p| {
+                payloads.push(p.len() as u8);
+                payloads.extend_from_slice(p);
+            });
+            let mut rest = &payloads[..];
+            while let Some((&len, tail)) = rest.split_first() {
+                let (p, tail) = tail.split_at((len as usize).min(tail.len()));
+                self.dispatch(now, p)?;
+                rest = tail;
+            }
+            self.payloads = payloads;
+        }
+        let now = system_now();
+        if let Some(since) = self.sq.ack_wait_since() {
+            let limit = self.tuning.no_ack_timeout.as_secs_f64();
+            if now - since > limit {
+                return Err(Death::NoAck(limit));
+            }
+        }
+        if self.sq.is_idle() && self.held.is_none() {
+            self.shared.idle_upto.store(self.taken, Ordering::Release);
+        }
+        self.publish_stats();
+        self.shared.notify.notify();
+        Ok(())
+    }
+
+    /// Moves caller messages into the serial queue while it has room.
+    fn take_outgoing(&mut self) {
+        if !matches!(self.phase, Phase::Running) {
+            return;
+        }
+        loop {
+            let Some(item) = self.held.take().or_else(|| self.shared.outgoing.pop()) else {
+                break;
+            };
+            if let Err(cmd) = self.sq.push(item.cmd, item.min_clock, item.req_clock) {
+                self.held = Some(Outgoing { cmd, ..item });
+                break;
+            }
+            self.taken += 1;
+        }
+        self.shared.taken.store(self.taken, Ordering::Release);
+    }
+
+    /// How long the next read may wait.
+    fn read_wait(&self, now: f64) -> Duration {
+        let mut wait = self.tuning.max_read_wait.as_secs_f64();
+        if let Some(at) = self.sq.poll_at() {
+            wait = wait.min(at - now);
+        }
+        if self.sq.has_upcoming() {
+            wait = wait.min(self.tuning.upcoming_read_wait.as_secs_f64());
+        }
+        if !matches!(self.phase, Phase::Identify { .. } | Phase::Uptime { .. }) && self.clock_query.is_none() {
+            wait = wait.min(self.next_clock_at - now);
+        }
+        if matches!(self.phase, Phase::Running) && self.held.is_none() && !self.shared.outgoing.is_empty() {
+            wait = 0.0;
+        }
+        Duration::from_secs_f64(wait.max(0.0))
+    }
+
+    /// Handshake steps, clock queries and their deadlines.
+    fn run_timers(&mut self, now: f64) -> Result<(), Death> {
+        let retry = self.tuning.identify_retry.as_secs_f64();
+        let idle = self.sq.is_idle();
+        let mut resend = None;
+        match &mut self.phase {
+            Phase::Identify {
+                offset,
+                deadline,
+                last_sent,
+                answered,
+                ..
+            } => {
+                if now > *deadline {
+                    return Err(if *answered {
+                        Death::Handshake(format!(
+                            "identify stopped answering at offset {offset} (no answer within {} s)",
+                            self.response_timeout
+                        ))
+                    } else {
+                        Death::IdentifyTimeout(self.identify_timeout)
+                    });
+                }
+                if now - *last_sent >= retry && idle {
+                    *last_sent = now;
+                    resend = Some(*offset);
+                }
+            }
+            Phase::Uptime { deadline } => {
+                if now > *deadline {
+                    return Err(Death::Handshake(format!(
+                        "no answer to get_uptime within {} s",
+                        self.response_timeout
+                    )));
+                }
+            }
+            Phase::InitialClock { .. } | Phase::Running => self.clock_timer(now)?,
+        }
+        if let Some(offset) = resend {
+            let cmd = self
+                .dict
+                .encode("identify", &[offset, IDENTIFY_CHUNK])
+                .map_err(|e| Death::Handshake(e.to_string()))?;
+            // The queue is idle here, so there is room.
+            let _ = self.sq.push(cmd, 0, 0);
+        }
+        Ok(())
+    }
+
+    fn clock_timer(&mut self, now: f64) -> Result<(), Death> {
+        if let Some(q) = self.clock_query {
+            if now - q.queued_at > self.response_timeout {
+                if !matches!(self.phase, Phase::Running) {
+                    return Err(Death::Handshake(format!(
+                        "no answer to get_clock within {} s",
+                        self.response_timeout
+                    )));
+                }
+                // Lost (or answered to someone else's query): ask again.
+                self.clock_query = None;
+                self.next_clock_at = now;
+            }
+            return Ok(());
+        }
+        if now >= self.next_clock_at {
+            if let Some(cmd) = self.known.get_clock {
+                if self.sq.push_marked(cmd).is_ok() {
+                    self.clock_query = Some(ClockQuery {
+                        queued_at: now,
+                        sent_at: None,
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Handles one received payload (one or more messages).
+    fn dispatch(&mut self, now: f64, payload: &[u8]) -> Result<(), Death> {
+        let dict = self.dict.clone();
+        let mut rest = payload;
+        while !rest.is_empty() {
+            let Some((id, id_len)) = Dictionary::peek_id(rest) else {
+                self.undecodable += 1;
+                break;
+            };
+            let Some((_, def)) = dict.message_by_id(id) else {
+                // Unknown length: the rest of the payload cannot be split.
+                self.undecodable += 1;
+                break;
+            };
+            let mut vals = [Value::Int(0); MAX_STACK_PARAMS];
+            let used = match decode_params_into(&def.params, &rest[id_len..], &mut vals) {
+                Some((_, used)) => used,
+                None => match dict.decode_one(rest) {
+                    Ok((_, total)) => total - id_len,
+                    Err(_) => {
+                        self.undecodable += 1;
+                        break;
+                    }
+                },
+            };
+            let msg = &rest[..id_len + used];
+            rest = &rest[id_len + used..];
+            self.handle(now, id, &vals, &dict)?;
+            if self.shared.waiter_count.load(Ordering::Acquire) > 0 {
+                self.offer_to_waiters(&dict, msg);
+            }
+        }
+        Ok(())
+    }
+
+    /// The IO thread's own use of a message.
+    fn handle(&mut self, now: f64, id: u32, vals: &[Value<'_>], dict: &Arc<Dictionary>) -> Result<(), Death> {
+        let int = |i: usize| vals.get(i).map_or(0, |v| v.int());
+        if id == crate::proto::ID_IDENTIFY_RESPONSE {
+            let chunk = match vals.get(1) {
+                Some(Value::Bytes(b)) => *b,
+                _ => &[],
+            };
+            return self.identify_chunk(now, int(0), chunk);
+        }
+        let k = self.known;
+        if Some(id) == k.clock {
+            self.clock_reply(now, int(0) as u32);
+        } else if Some(id) == k.uptime {
+            if let Phase::Uptime { .. } = self.phase {
+                let clock = ((int(0) as u64) << 32) | (int(1) as u64 & 0xFFFF_FFFF);
+                let sent = self.clock_query.take().and_then(|q| q.sent_at);
+                self.sync.start(clock, sent.unwrap_or(now), now);
+                self.publish_clock();
+                self.next_clock_at = sent.unwrap_or(now) + self.tuning.initial_clock_spacing.as_secs_f64();
+                self.phase = Phase::InitialClock { count: 0 };
+            }
+        } else if Some(id) == k.shutdown || Some(id) == k.is_shutdown {
+            let sid = if Some(id) == k.shutdown { int(1) } else { int(0) };
+            let reason = u32::try_from(sid)
+                .ok()
+                .and_then(|s| dict.static_string(s))
+                .map_or_else(|| format!("static_string_id {sid}"), str::to_owned);
+            self.record_shutdown(reason);
+        }
+        Ok(())
+    }
+
+    fn identify_chunk(&mut self, now: f64, chunk_offset: i64, chunk: &[u8]) -> Result<(), Death> {
+        let Phase::Identify {
+            offset,
+            data,
+            deadline,
+            last_sent,
+            answered,
+        } = &mut self.phase
+        else {
+            return Ok(());
+        };
+        if chunk_offset != *offset {
+            return Ok(()); // a duplicate answer to a resent request
+        }
+        *answered = true;
+        if !chunk.is_empty() {
+            data.extend_from_slice(chunk);
+            *offset += chunk.len() as i64;
+            *deadline = now + self.response_timeout;
+            *last_sent = now;
+            let cmd = self
+                .dict
+                .encode("identify", &[*offset, IDENTIFY_CHUNK])
+                .map_err(|e| Death::Handshake(e.to_string()))?;
+            let _ = self.sq.push(cmd, 0, 0);
+            return Ok(());
+        }
+        let dict = Dictionary::from_compressed(data).map_err(|e| Death::Dictionary(e.to_string()))?;
+        self.start_with_dictionary(now, dict)
+    }
+
+    /// The dictionary is complete: look up what the link needs and ask for the uptime.
+    fn start_with_dictionary(&mut self, now: f64, dict: Dictionary) -> Result<(), Death> {
+        let hs = |e: crate::dict::DictError| Death::Handshake(e.to_string());
+        let freq = dict.clock_freq().map_err(|e| Death::Dictionary(e.to_string()))?;
+        let get_uptime = dict.encode("get_uptime", &[]).map_err(hs)?;
+        self.known = Known {
+            get_clock: Some(dict.encode("get_clock", &[]).map_err(hs)?),
+            clock: Some(dict.response("clock").map_err(hs)?.id),
+            uptime: Some(dict.response("uptime").map_err(hs)?.id),
+            shutdown: dict.response("shutdown").ok().map(|d| d.id),
+            is_shutdown: dict.response("is_shutdown").ok().map(|d| d.id),
+        };
+        self.sq.set_receive_window(dict.receive_window());
+        self.sync = ClockSync::new(freq);
+        let dict = Arc::new(dict);
+        self.dict = dict.clone();
+        let _ = self.shared.dict.set(dict);
+        self.sq.take_marked_sent();
+        let _ = self.sq.push_marked(get_uptime);
+        self.clock_query = Some(ClockQuery {
+            queued_at: now,
+            sent_at: None,
+        });
+        self.phase = Phase::Uptime {
+            deadline: now + self.response_timeout,
+        };
+        Ok(())
+    }
+
+    fn clock_reply(&mut self, now: f64, wire: u32) {
+        let Some(ClockQuery {
+            sent_at: Some(sent), ..
+        }) = self.clock_query
+        else {
+            return; // an answer to someone else's get_clock
+        };
+        self.clock_query = None;
+        self.sync.handle_clock(wire, sent, now);
+        self.publish_clock();
+        match &mut self.phase {
+            Phase::InitialClock { count } => {
+                *count += 1;
+                self.next_clock_at = sent + self.tuning.initial_clock_spacing.as_secs_f64();
+                if *count >= self.tuning.initial_clock_queries {
+                    self.phase = Phase::Running;
+                    self.next_clock_at = sent + self.tuning.clock_interval.as_secs_f64();
+                    self.shared.state.store(RUNNING, Ordering::Release);
+                }
+            }
+            _ => self.next_clock_at = sent + self.tuning.clock_interval.as_secs_f64(),
+        }
+    }
+
+    fn publish_clock(&mut self) {
+        let est = self.sync.estimate();
+        self.sq.set_clock_est(est);
+        self.shared.clock.store(est);
+    }
+
+    fn record_shutdown(&mut self, reason: String) {
+        {
+            let mut s = lock(&self.shared.shutdown);
+            if s.is_none() {
+                *s = Some(reason.clone());
+            }
+        }
+        self.shared.is_shutdown.store(true, Ordering::Release);
+        let mut w = lock(&self.shared.waiters);
+        for waiter in w.iter_mut() {
+            if waiter.result.is_none() && !ANSWERED_WHEN_SHUT_DOWN.contains(&waiter.response.as_str()) {
+                waiter.result = Some(Err(WaitFail::Shutdown(reason.clone())));
+            }
+        }
+    }
+
+    /// Gives a decoded copy of `msg` to the first waiter it matches (allocates).
+    fn offer_to_waiters(&mut self, dict: &Dictionary, msg: &[u8]) {
+        let Ok((decoded, _)) = dict.decode_one(msg) else {
+            return;
+        };
+        let mut w = lock(&self.shared.waiters);
+        let found = w.iter_mut().find(|x| {
+            x.result.is_none()
+                && x.response == decoded.name
+                && x.matcher.as_ref().is_none_or(|(f, v)| decoded.get(f) == Some(*v))
+        });
+        if let Some(waiter) = found {
+            waiter.result = Some(Ok(decoded));
+        }
+    }
+
+    fn publish_stats(&self) {
+        let q = self.sq.stats();
+        let est = self.sync.estimate();
+        let stats = LinkStats {
+            queue: q,
+            min_lead_margin_ticks: q.min_lead_margin,
+            clocked_msgs: q.clocked_sent,
+            clock_residual_us: est.residual_us(),
+            clock_freq: est.freq(),
+            clock_samples: self.sync.samples(),
+            clock_outliers: self.sync.outliers(),
+            undecodable_msgs: self.undecodable,
+        };
+        *lock(&self.shared.stats) = stats;
+    }
+}

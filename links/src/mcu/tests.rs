@@ -1,0 +1,272 @@
+//! End-to-end tests of [`McuLink`] against the fake MCU. Timeouts are generous upper bounds so
+//! a loaded machine cannot make them flake; nothing asserts how long anything took.
+
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::Duration;
+
+use super::fake::{Control, FakeMcu};
+use super::*;
+use crate::transport::{FaultConfig, FaultyTransport, MemoryPair, PtyTransport};
+
+const NOMINAL: f64 = 50e6;
+const LONG: Duration = Duration::from_secs(20);
+
+fn opts() -> LinkOptions {
+    LinkOptions {
+        identify_timeout: Duration::from_secs(10),
+        response_timeout: Duration::from_secs(10),
+        queue_capacity: 256,
+        ..LinkOptions::default()
+    }
+}
+
+fn start(freq: f64) -> (McuLink, Arc<Control>, std::thread::JoinHandle<()>) {
+    let (host, mcu) = MemoryPair::new();
+    let (ctl, fake) = FakeMcu::spawn(Box::new(mcu), NOMINAL, freq, 123_456);
+    let link = McuLink::connect(Box::new(host), opts()).expect("connect");
+    (link, ctl, fake)
+}
+
+fn queue_step(link: &McuLink, oid: i64, interval: i64) -> Cmd {
+    link.dictionary().encode("queue_step", &[oid, interval, 10, 0]).unwrap()
+}
+
+#[test]
+fn connects_queries_and_streams_in_order() {
+    let (link, ctl, fake) = start(NOMINAL);
+    let d = link.dictionary();
+    assert_eq!(d.clock_freq().unwrap(), NOMINAL);
+    assert_eq!(d.receive_window(), Some(192));
+    let est = link.clock();
+    assert!(est.is_valid());
+    assert!((est.freq() / NOMINAL - 1.0).abs() < 0.1, "freq {}", est.freq());
+
+    let cfg = link
+        .query(d.encode("get_config", &[]).unwrap(), "config", None, LONG)
+        .unwrap();
+    assert_eq!(cfg.get("move_count"), Some(16));
+    let pos = link
+        .query(
+            d.encode("stepper_get_position", &[4]).unwrap(),
+            "stepper_position",
+            Some(("oid", 4)),
+            LONG,
+        )
+        .unwrap();
+    assert_eq!(pos.to_string(), "stepper_position oid=4 pos=-5");
+
+    let mut expected = Vec::new();
+    let now_clock = link.clock().clock_at(McuLink::system_now()) as u64;
+    for i in 0..300 {
+        let cmd = queue_step(&link, 1, 1000 + i);
+        expected.push(cmd.as_bytes().to_vec());
+        if i % 3 == 0 {
+            link.send(cmd).unwrap();
+        } else {
+            // Already due: ordered by req_clock, which grows with i.
+            link.send_clocked(cmd, now_clock, now_clock + 1_000_000 + i as u64).unwrap();
+        }
+    }
+    link.wait_idle(LONG).unwrap();
+    let got = ctl.received.lock().unwrap().clone();
+    assert_eq!(got.len(), 300);
+    // Plain messages keep their order, clocked ones keep theirs (each stream is in order).
+    let plain: Vec<_> = expected.iter().step_by(3).cloned().collect();
+    let got_plain: Vec<_> = got.iter().filter(|m| plain.contains(m)).cloned().collect();
+    assert_eq!(got_plain, plain);
+    let clocked: Vec<_> = expected.iter().enumerate().filter(|(i, _)| i % 3 != 0).map(|(_, m)| m.clone()).collect();
+    let got_clocked: Vec<_> = got.iter().filter(|m| !plain.contains(m)).cloned().collect();
+    assert_eq!(got_clocked, clocked);
+
+    let stats = link.close();
+    assert_eq!(stats.clocked_msgs, 200);
+    assert!(stats.min_lead_margin_ticks.is_some());
+    assert!(stats.queue.bytes_write > 0);
+    assert!(stats.clock_samples >= 8);
+    fake.join().unwrap();
+}
+
+#[test]
+fn min_clock_holds_a_message_until_its_time() {
+    let (link, ctl, fake) = start(NOMINAL);
+    let est = link.clock();
+    let now = McuLink::system_now();
+    let later = est.clock_at(now + 0.3) as u64;
+    let cmd = queue_step(&link, 2, 777);
+    link.send_clocked(cmd, later, later + 5_000_000).unwrap();
+    link.wait_idle(LONG).unwrap();
+    // It was written no earlier than the estimated clock reached min_clock.
+    let margin = link.stats().min_lead_margin_ticks.unwrap();
+    assert!(margin <= 5_000_000, "margin {margin}");
+    assert_eq!(ctl.received.lock().unwrap().len(), 1);
+    drop(link);
+    fake.join().unwrap();
+}
+
+#[test]
+fn time_scaled_clock_extends_across_wraps() {
+    // 50× time scale: 2.5 G ticks per second wraps the 32-bit clock every 1.7 s.
+    let freq = NOMINAL * 50.0;
+    let (host, mcu) = MemoryPair::new();
+    let c0 = 3 * (1u64 << 32) - 1_000_000_000;
+    let t0 = McuLink::system_now();
+    let (_ctl, fake) = FakeMcu::spawn(Box::new(mcu), NOMINAL, freq, c0);
+    let tuning = LinkTuning {
+        clock_interval: Duration::from_millis(300),
+        ..LinkTuning::default()
+    };
+    let link = McuLink::connect_with(Box::new(host), opts(), tuning).unwrap();
+    let get_clock = link.dictionary().encode("get_clock", &[]).unwrap();
+    for _ in 0..8 {
+        std::thread::sleep(Duration::from_millis(300));
+        let before = FakeMcu::clock_at(freq, c0, t0, McuLink::system_now());
+        let msg = link.query(get_clock, "clock", None, LONG).unwrap();
+        let after = FakeMcu::clock_at(freq, c0, t0 - 0.01, McuLink::system_now());
+        let wire = msg.get("clock").unwrap() as u32;
+        let full = link.clock().extend(wire, McuLink::system_now());
+        // The fake's t0 is a little later than ours, so the true clock lies in [.., after].
+        assert!(full <= after && full + 2_500_000_000 / 2 >= before, "{before} {full} {after}");
+        assert_eq!(full as u32, wire);
+    }
+    let f = link.clock().freq();
+    assert!((f / freq - 1.0).abs() < 0.05, "freq {f}");
+    drop(link);
+    fake.join().unwrap();
+}
+
+#[test]
+fn identify_timeout_names_the_mcu() {
+    let (host, mut mcu) = MemoryPair::new();
+    let silent = std::thread::spawn(move || {
+        let mut buf = [0u8; 256];
+        while mcu.read(&mut buf, Duration::from_millis(5)).is_ok() {}
+    });
+    let o = LinkOptions {
+        name: "toolboard".into(),
+        identify_timeout: Duration::from_millis(300),
+        ..opts()
+    };
+    let e = McuLink::connect(Box::new(host), o).unwrap_err();
+    assert_eq!(e.to_string(), "mcu 'toolboard': no answer to identify within 0.3 s");
+    silent.join().unwrap();
+}
+
+#[test]
+fn hang_up_is_reported_as_connection_lost() {
+    let (link, ctl, fake) = start(NOMINAL);
+    ctl.hang_up.store(true, Ordering::Release);
+    fake.join().unwrap();
+    let get_clock = link.dictionary().encode("get_clock", &[]).unwrap();
+    let e = link.query(get_clock, "clock", None, LONG).unwrap_err();
+    assert!(
+        e.to_string().starts_with("mcu 'mcu': connection lost (read from memory a: "),
+        "{e}"
+    );
+    assert!(link.send(get_clock).is_err());
+    assert!(link.wait_idle(LONG).is_err());
+}
+
+#[test]
+fn shutdown_is_recorded_with_its_reason() {
+    let (link, _ctl, fake) = start(NOMINAL);
+    link.send(queue_step(&link, 99, 10)).unwrap();
+    let cfg_cmd = link.dictionary().encode("get_config", &[]).unwrap();
+    for _ in 0..200 {
+        if link.shutdown_reason().is_some() {
+            break;
+        }
+        // The config reply comes after the shutdown message, so one query is usually enough.
+        let cfg = link.query(cfg_cmd, "config", None, LONG).unwrap();
+        if cfg.get("is_shutdown") == Some(1) {
+            break;
+        }
+    }
+    assert_eq!(link.shutdown_reason().as_deref(), Some("Timer too close"));
+    let e = link.send_clocked(queue_step(&link, 1, 10), 0, 1).unwrap_err();
+    assert_eq!(e.to_string(), "mcu 'mcu': shut down: Timer too close");
+    // A query the MCU answers with is_shutdown fails at once with the reason.
+    let pos = link.dictionary().encode("queue_step", &[1, 1, 1, 0]).unwrap();
+    let e = link.query(pos, "stepper_position", None, LONG).unwrap_err();
+    assert!(matches!(e, LinkError::Shutdown { .. }), "{e}");
+    drop(link);
+    fake.join().unwrap();
+}
+
+#[test]
+fn silence_after_connect_ends_in_no_ack() {
+    let (host, mcu) = MemoryPair::new();
+    let (ctl, fake) = FakeMcu::spawn(Box::new(mcu), NOMINAL, NOMINAL, 0);
+    let tuning = LinkTuning {
+        no_ack_timeout: Duration::from_millis(500),
+        ..LinkTuning::default()
+    };
+    let link = McuLink::connect_with(Box::new(host), opts(), tuning).unwrap();
+    ctl.silent.store(true, Ordering::Release);
+    link.send(queue_step(&link, 1, 5)).unwrap();
+    let e = link.wait_idle(LONG).unwrap_err();
+    assert_eq!(e.to_string(), "mcu 'mcu': no ack for 0.5 s");
+    assert_eq!(link.error(), Some(e));
+    let stats = link.close();
+    assert!(stats.queue.retransmits > 0);
+    ctl.hang_up.store(true, Ordering::Release);
+    fake.join().unwrap();
+}
+
+#[test]
+fn survives_a_lossy_link() {
+    let (host, mcu) = MemoryPair::new();
+    let (ctl, fake) = FakeMcu::spawn(Box::new(mcu), NOMINAL, NOMINAL, 0);
+    let faults = FaultConfig {
+        seed: 99,
+        drop_rate: 0.05,
+        corrupt_rate: 0.05,
+        duplicate_rate: 0.02,
+        on_read: true,
+    };
+    let link = McuLink::connect(Box::new(FaultyTransport::new(host, faults)), opts()).unwrap();
+    let mut expected = Vec::new();
+    for i in 0..400 {
+        let cmd = queue_step(&link, 3, 5000 + i);
+        expected.push(cmd.as_bytes().to_vec());
+        link.send(cmd).unwrap();
+    }
+    link.wait_idle(LONG).unwrap();
+    assert_eq!(*ctl.received.lock().unwrap(), expected);
+    let stats = link.close();
+    assert!(stats.queue.retransmits > 0);
+    fake.join().unwrap();
+}
+
+#[test]
+fn works_over_a_real_pty() {
+    let (master, path) = crate::transport::pty::tests::pty_pair();
+    let (ctl, fake) = FakeMcu::spawn(Box::new(master), NOMINAL, NOMINAL, 0);
+    let host = PtyTransport::open(&path).unwrap();
+    let link = McuLink::connect(Box::new(host), opts()).unwrap();
+    let cmd = queue_step(&link, 1, 42);
+    link.send(cmd).unwrap();
+    link.wait_idle(LONG).unwrap();
+    assert_eq!(*ctl.received.lock().unwrap(), vec![cmd.as_bytes().to_vec()]);
+    let stats = link.close(); // closing the slave hangs up the fake
+    assert!(stats.queue.srtt > 0.0);
+    fake.join().unwrap();
+}
+
+#[test]
+fn full_queue_blocks_then_drains() {
+    let (host, mcu) = MemoryPair::new();
+    let (ctl, fake) = FakeMcu::spawn(Box::new(mcu), NOMINAL, NOMINAL, 0);
+    let o = LinkOptions {
+        queue_capacity: 4,
+        ..opts()
+    };
+    let link = McuLink::connect(Box::new(host), o).unwrap();
+    for i in 0..100 {
+        link.send(queue_step(&link, 5, 100 + i)).unwrap();
+    }
+    link.wait_idle(LONG).unwrap();
+    assert_eq!(ctl.received.lock().unwrap().len(), 100);
+    drop(link);
+    fake.join().unwrap();
+}

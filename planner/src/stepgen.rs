@@ -1,0 +1,248 @@
+//! Step generation: each stepper's ideal step times for a move, and the step command type.
+//!
+//! Convention (Klipper's): step k (position k·step_dist) is taken when the commanded position
+//! crosses the half-step point between two step positions: going up from k−1 to k at
+//! (k − ½)·step_dist, going down from k to k−1 at (k − ½)·step_dist. The stepper's step index
+//! for a commanded position x is therefore n(x) = ⌊x / step_dist + ½⌋, and after a move ending at
+//! x the net step count is round(x / step_dist).
+//!
+//! Closed form for linear kinematics: along a move the stepper is at x0 + (x1 − x0)·s/d where s
+//! is the distance covered, so the crossing of boundary b happens at s = (b − x0)·d/(x1 − x0)
+//! and its time follows from the move's profile inverse ([`crate::toolhead::Phases`]): one square
+//! root per step while accelerating or decelerating, one division while cruising.
+//!
+//! Position redefinitions (G28 without motion, `set_position`) show up as a move whose start is
+//! not the previous move's end: the step index is then re-anchored at the new position without
+//! stepping.
+
+use crate::kinematics::StepperKin;
+use crate::toolhead::{Move, Phases};
+
+/// One step command for the MCU (see notes/contract.md "Step semantics").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StepCmd {
+    /// `set_next_step_dir`: true = position +1 per step.
+    SetDir { dir: bool },
+    /// `reset_step_clock`: the MCU's `last_clock` becomes `clock`.
+    ResetClock { clock: u64 },
+    /// `queue_step`: repeat `count` times { last_clock += interval; step; interval += add }.
+    /// `first_clock` / `last_clock` are the absolute clocks of its first and last step.
+    QueueStep { interval: u32, count: u16, add: i16, first_clock: u64, last_clock: u64 },
+}
+
+/// A step as generated: its ideal time in MCU ticks and its direction (true = +1).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct IdealStep {
+    pub clock: f64,
+    pub dir: bool,
+}
+
+/// Step-generation state of one stepper.
+#[derive(Debug, Clone)]
+pub struct StepGen {
+    step_dist: f64,
+    inv_step_dist: f64,
+    clock_freq: f64,
+    /// Stepper position (mm) at the end of the last move.
+    last_pos: f64,
+    /// Step index of `last_pos`.
+    cur_n: i64,
+    /// Ideal clock of the last step (steps are never emitted out of order).
+    last_clock: f64,
+}
+
+impl StepGen {
+    /// A stepper at `start_pos` mm whose clock runs `clock_freq` ticks per print second.
+    pub fn new(step_dist: f64, clock_freq: f64, start_pos: f64) -> StepGen {
+        let mut g = StepGen {
+            step_dist,
+            inv_step_dist: 1.0 / step_dist,
+            clock_freq,
+            last_pos: start_pos,
+            cur_n: 0,
+            last_clock: 0.0,
+        };
+        g.cur_n = g.step_index(start_pos);
+        g
+    }
+
+    /// n(x) = ⌊x / step_dist + ½⌋ (saturating for absurd positions).
+    #[inline]
+    pub fn step_index(&self, x: f64) -> i64 {
+        (x * self.inv_step_dist + 0.5).floor() as i64
+    }
+
+    /// Step index of the commanded position after the last move.
+    pub fn commanded_steps(&self) -> i64 {
+        self.cur_n
+    }
+
+    /// Generates the steps of `mv`, calling `emit(ideal_clock, dir)` for each in time order.
+    pub fn gen_move(&mut self, mv: &Move, kin: &StepperKin, mut emit: impl FnMut(f64, bool)) {
+        let x0 = kin.position(&mv.start_pos);
+        let x1 = kin.position(&mv.end_pos);
+        if x0 != self.last_pos {
+            self.cur_n = self.step_index(x0);
+        }
+        self.last_pos = x1;
+        let target = self.step_index(x1);
+        if target == self.cur_n {
+            return;
+        }
+        if kin.linear_coeffs().is_none() {
+            self.gen_iterative(mv, kin, target, emit);
+            return;
+        }
+        let base = mv.print_time * self.clock_freq;
+        let freq = self.clock_freq;
+        let phases = Phases::new(mv);
+        let d = mv.move_d;
+        let scale = d / (x1 - x0);
+        let sd = self.step_dist;
+        let mut last = self.last_clock;
+        let mut step = |b: f64, dir: bool| {
+            let s = ((b - x0) * scale).clamp(0.0, d);
+            let clock = (base + phases.time_at(s) * freq).max(last);
+            last = clock;
+            emit(clock, dir);
+        };
+        if target > self.cur_n {
+            for k in self.cur_n + 1..=target {
+                step((k as f64 - 0.5) * sd, true);
+            }
+        } else {
+            for k in (target + 1..=self.cur_n).rev() {
+                step((k as f64 - 0.5) * sd, false);
+            }
+        }
+        self.last_clock = last;
+        self.cur_n = target;
+    }
+
+    /// Fallback for non-linear kinematics: scans the move in short time slices and bisects each
+    /// half-step crossing. Reversals inside one slice (shorter than a step) net out unseen.
+    fn gen_iterative(&mut self, mv: &Move, kin: &StepperKin, target: i64, mut emit: impl FnMut(f64, bool)) {
+        const SLICE_S: f64 = 0.000_5;
+        const BISECT_ITERS: usize = 40;
+        let total = mv.duration();
+        let slices = ((total / SLICE_S).ceil() as usize).clamp(1, 1 << 24);
+        let base = mv.print_time * self.clock_freq;
+        let mut n = self.cur_n;
+        let mut ta = 0.0;
+        for i in 1..=slices {
+            let tb = if i == slices { total } else { total * i as f64 / slices as f64 };
+            let xb = if i == slices { self.last_pos } else { kin.position_at(mv, tb) };
+            let nb = self.step_index(xb);
+            while n != nb {
+                let dir = nb > n;
+                let boundary = if dir { (n as f64 + 0.5) * self.step_dist } else { (n as f64 - 0.5) * self.step_dist };
+                let (mut lo, mut hi) = (ta, tb);
+                for _ in 0..BISECT_ITERS {
+                    let mid = 0.5 * (lo + hi);
+                    let x = kin.position_at(mv, mid);
+                    let crossed = if dir { x >= boundary } else { x < boundary };
+                    if crossed {
+                        hi = mid;
+                    } else {
+                        lo = mid;
+                    }
+                }
+                let clock = (base + hi * self.clock_freq).max(self.last_clock);
+                self.last_clock = clock;
+                emit(clock, dir);
+                n += if dir { 1 } else { -1 };
+            }
+            ta = tb;
+        }
+        debug_assert_eq!(n, target);
+        self.cur_n = target;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn mv(start: f64, end: f64, v: f64) -> Move {
+        // Accelerate 0 → v, cruise, decelerate to 0 at 1000 mm/s² along X.
+        let d = (end - start).abs();
+        let a = 1000.0;
+        let ad = v * v / (2.0 * a);
+        let (vc, accel_d) = if 2.0 * ad > d { ((a * d).sqrt(), d / 2.0) } else { (v, ad) };
+        let at = vc / a;
+        Move {
+            print_time: 1.0,
+            start_pos: [start, 0.0, 0.0, 0.0],
+            end_pos: [end, 0.0, 0.0, 0.0],
+            axes_r: [(end - start).signum(), 0.0, 0.0, 0.0],
+            move_d: d,
+            start_v: 0.0,
+            cruise_v: vc,
+            end_v: 0.0,
+            accel: a,
+            accel_t: at,
+            cruise_t: (d - 2.0 * accel_d) / vc,
+            decel_t: at,
+        }
+    }
+
+    fn collect(g: &mut StepGen, m: &Move, kin: &StepperKin) -> Vec<(f64, bool)> {
+        let mut v = Vec::new();
+        g.gen_move(m, kin, |c, d| v.push((c, d)));
+        v
+    }
+
+    #[test]
+    fn steps_at_half_step_crossings() {
+        let kin = StepperKin::axis(0, 0.1);
+        let mut g = StepGen::new(0.1, 1e6, 0.0);
+        let m = mv(0.0, 1.0, 20.0);
+        let steps = collect(&mut g, &m, &kin);
+        assert_eq!(steps.len(), 10);
+        for (k, &(clock, dir)) in steps.iter().enumerate() {
+            assert!(dir);
+            let t = (clock - 1e6) / 1e6;
+            let x = m.position_at(t)[0];
+            assert!((x - (k as f64 + 0.5) * 0.1).abs() < 1e-9, "step {k}: x {x}");
+        }
+        assert!(steps.windows(2).all(|w| w[0].0 <= w[1].0));
+        assert_eq!(g.commanded_steps(), 10);
+        // Back down to 0.26 mm: 10 → 3 (round(2.6) = 3), seven steps down.
+        let back = mv(1.0, 0.26, 20.0);
+        let mut b = back;
+        b.print_time = m.end_time();
+        let steps = collect(&mut g, &b, &kin);
+        assert_eq!(steps.len(), 7);
+        assert!(steps.iter().all(|s| !s.1));
+        assert_eq!(g.commanded_steps(), 3);
+    }
+
+    #[test]
+    fn position_redefinition_reanchors_without_steps() {
+        let kin = StepperKin::axis(0, 0.1);
+        let mut g = StepGen::new(0.1, 1e6, 0.0);
+        let mut m = mv(5.0, 5.5, 20.0);
+        m.print_time = 2.0;
+        let steps = collect(&mut g, &m, &kin);
+        assert_eq!(steps.len(), 5);
+        assert_eq!(g.commanded_steps(), 55);
+    }
+
+    #[test]
+    fn iterative_fallback_matches_closed_form() {
+        let kin = StepperKin::axis(0, 0.0125);
+        let m = mv(10.0, 13.7, 80.0);
+        let mut g1 = StepGen::new(0.0125, 50e6, 10.0);
+        let closed = collect(&mut g1, &m, &kin);
+        let mut g2 = StepGen::new(0.0125, 50e6, 10.0);
+        let target = g2.step_index(13.7);
+        g2.last_pos = 13.7;
+        let mut iter = Vec::new();
+        g2.gen_iterative(&m, &kin, target, |c, d| iter.push((c, d)));
+        assert_eq!(closed.len(), iter.len());
+        for (a, b) in closed.iter().zip(&iter) {
+            assert_eq!(a.1, b.1);
+            assert!((a.0 - b.0).abs() < 0.01, "{a:?} vs {b:?}");
+        }
+    }
+}
