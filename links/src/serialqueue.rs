@@ -44,7 +44,9 @@ use std::fmt;
 use crate::clocksync::ClockEstimate;
 use crate::dict::Cmd;
 use crate::proto::block::block_payload;
-use crate::proto::{encode_block, find_block, Frame, MESSAGE_MAX, MESSAGE_MIN, MESSAGE_PAYLOAD_MAX, MESSAGE_SYNC};
+use crate::proto::{
+    encode_block, find_block, Frame, MESSAGE_MAX, MESSAGE_MIN, MESSAGE_PAYLOAD_MAX, MESSAGE_SYNC,
+};
 
 /// Most unacked blocks.
 pub const MAX_PENDING_BLOCKS: usize = 12;
@@ -320,7 +322,9 @@ impl SerialQueue {
     /// Since when the link has been waiting for an ack: the later of the last ack progress
     /// and the first write of the oldest unacked block. `None` when nothing is unacked.
     pub fn ack_wait_since(&self) -> Option<f64> {
-        self.inflight.front().map(|b| b.first_sent.max(self.last_ack_time))
+        self.inflight
+            .front()
+            .map(|b| b.first_sent.max(self.last_ack_time))
     }
 
     /// Counters and timers.
@@ -426,7 +430,8 @@ impl SerialQueue {
             if q.req_clock > 0 {
                 let margin = q.req_clock as i64 - clock as i64;
                 self.stats.clocked_sent += 1;
-                self.stats.min_lead_margin = Some(self.stats.min_lead_margin.map_or(margin, |m| m.min(margin)));
+                self.stats.min_lead_margin =
+                    Some(self.stats.min_lead_margin.map_or(margin, |m| m.min(margin)));
                 if let Some(hook) = self.margin_hook.as_mut() {
                     hook(q.req_clock, margin);
                 }

@@ -17,6 +17,7 @@
 //! Commands never go back in time (every interval ≥ 0) and a `reset_step_clock` precedes the
 //! first step and any step more than 2^29 ticks after the previous one.
 
+#![allow(unsafe_code, static_mut_refs)]
 use std::collections::VecDeque;
 
 use crate::kinematics::StepperKin;
@@ -58,6 +59,8 @@ pub struct StepCompressor {
     queue_steps: u64,
     record_ideal: bool,
     ideal: VecDeque<IdealStep>,
+    /// Ideal clock of the last step queued (steps are kept in time order).
+    last_ideal: f64,
 }
 
 impl StepCompressor {
@@ -80,6 +83,7 @@ impl StepCompressor {
             queue_steps: 0,
             record_ideal: false,
             ideal: VecDeque::new(),
+            last_ideal: 0.0,
         }
     }
 
@@ -130,15 +134,23 @@ impl StepCompressor {
         let pending = &mut self.pending;
         let ideal = &mut self.ideal;
         let record = self.record_ideal;
+        let mut last = self.last_ideal;
         self.gen.gen_move(mv, kin, |clock, dir| {
-            let clock = clock.max(0.0);
-            let hi = clock.floor() as u64;
-            let lo = (clock - max_err).ceil().max(0.0) as u64;
-            pending.push(Pending { lo, hi, dir });
-            if record {
-                ideal.push_back(IdealStep { clock, dir });
-            }
+            last = clock.max(last);
+            queue_step_time(pending, ideal, record, max_err, last, dir);
         });
+        self.last_ideal = last;
+    }
+
+    /// Queues one step at `ideal_clock` ticks (raised to the previous step's time if earlier),
+    /// for callers that compute step times themselves.
+    pub fn push_step(&mut self, ideal_clock: f64, dir: bool) {
+        if !ideal_clock.is_finite() {
+            return;
+        }
+        self.last_ideal = ideal_clock.max(self.last_ideal);
+        let max_err = self.max_err as f64;
+        queue_step_time(&mut self.pending, &mut self.ideal, self.record_ideal, max_err, self.last_ideal, dir);
     }
 
     /// Compresses every pending step whose ideal time is before `upto_clock` (commands may also
@@ -191,7 +203,16 @@ impl StepCompressor {
         }
         let run_end = self.dir_run_end.min(self.head + MAX_COUNT);
         let run = &self.pending[self.head..run_end];
-        let fit = best_fit(run, self.last_clock, self.max_err as i64, self.last_add);
+        let mut fit = best_fit(run, self.last_clock, self.max_err as i64, self.last_add);
+        if std::env::var_os("EXH").is_some() {
+            let ex = exhaustive(run, self.last_clock, self.max_err as i64, fit);
+            unsafe { STATS[0] += 1; if ex.count > fit.count { STATS[1] += 1; STATS[2] += (ex.count - fit.count) as u64; } }
+            if std::env::var_os("EXHUSE").is_some() { fit = ex; }
+        }
+        if std::env::var_os("LA").is_some() && run.len() > fit.count {
+            fit = two_step(run, self.last_clock, self.max_err as i64, fit);
+        }
+        if run.len() == fit.count { unsafe { STATS[3] += 1; if run_end == self.pending.len() { STATS[2] += 1; } } }
         let count = fit.count as u64;
         let interval = fit.interval as u64;
         let first_clock = self.last_clock + interval;
@@ -211,6 +232,88 @@ impl StepCompressor {
         self.queue_steps += 1;
         self.position_steps += if first.dir { count as i64 } else { -(count as i64) };
     }
+}
+
+/// Appends a step with ideal time `clock` (≥ 0, ≥ the previous one) and its window.
+#[inline]
+fn queue_step_time(
+    pending: &mut Vec<Pending>,
+    ideal: &mut VecDeque<IdealStep>,
+    record: bool,
+    max_err: f64,
+    clock: f64,
+    dir: bool,
+) {
+    let hi = clock.floor() as u64;
+    let lo = (clock - max_err).ceil().max(0.0) as u64;
+    pending.push(Pending { lo, hi, dir });
+    if record {
+        ideal.push_back(IdealStep { clock, dir });
+    }
+}
+
+fn range_for(steps: &[Pending], last: u64, add: i64) -> Option<(i64, i64)> {
+    const MAX: i64 = MAX_INTERVAL as i64;
+    let last = last as i64;
+    let mut lo_i: i64 = 0;
+    let mut hi_i: i64 = MAX;
+    let mut add_sum: i64 = 0;
+    for (k0, st) in steps.iter().enumerate() {
+        let k0 = k0 as i64;
+        let k = k0 + 1;
+        add_sum += k0 * add;
+        let l = st.lo as i64 - last - add_sum;
+        let u = st.hi as i64 - last - add_sum;
+        lo_i = lo_i.max(div_ceil(l, k)).max(-k0 * add);
+        hi_i = hi_i.min(div_floor(u, k)).min(MAX - k0 * add);
+    }
+    (lo_i <= hi_i).then_some((lo_i, hi_i))
+}
+
+fn two_step(run: &[Pending], last: u64, max_err: i64, fit: Fit) -> Fit {
+    let kback: usize = std::env::var("LAK").ok().and_then(|v| v.parse().ok()).unwrap_or(0);
+    let mut best = fit;
+    let mut best_total = 0;
+    for c in (fit.count.saturating_sub(kback).max(1)..=fit.count).rev() {
+    let rest = &run[c..];
+    let w: i64 = std::env::var("LAW").ok().and_then(|v| v.parse().ok()).unwrap_or(2);
+    let ni: i64 = std::env::var("LAI").ok().and_then(|v| v.parse().ok()).unwrap_or(8);
+    for a in fit.add - w..=fit.add + w {
+        if a < i16::MIN as i64 || a > i16::MAX as i64 { continue; }
+        let Some((lo, hi)) = range_for(&run[..c], last, a) else { continue };
+        let n = ni.min(hi - lo + 1);
+        for j in 0..n {
+            let i = if n == 1 { hi } else { hi - (hi - lo) * j / (n - 1) };
+            let t = (c * (c - 1) / 2) as i64;
+            let end = (last as i64 + c as i64 * i + t * a) as u64;
+            let nf = best_fit(rest, end, max_err, a);
+            if nf.count + c > best_total {
+                best_total = nf.count + c;
+                best = Fit { interval: i, count: c, add: a };
+            }
+        }
+    }
+    }
+    best
+}
+
+pub static mut STATS: [u64; 4] = [0; 4];
+#[allow(unsafe_code)]
+fn exhaustive(steps: &[Pending], last: u64, _max_err: i64, f: Fit) -> Fit {
+    let mut best = f;
+    if steps.len() < 2 { return best; }
+    let l = |i: usize| steps[i].lo as i64 - last as i64;
+    let u = |i: usize| steps[i].hi as i64 - last as i64;
+    let (l1, u1) = (l(0).max(0), u(0).min(MAX_INTERVAL as i64));
+    let amin = (l(1) - 2 * u1).max(i16::MIN as i64);
+    let amax = (u(1) - 2 * l1).min(i16::MAX as i64);
+    let mut a = amin;
+    while a <= amax {
+        let (count, interval, _) = run_with_add(steps, last, a);
+        if count > best.count { best = Fit { interval, count, add: a }; }
+        a += 1;
+    }
+    best
 }
 
 /// One command's parameters.

@@ -463,7 +463,11 @@ mod tests {
             sync.handle_clock(clock as u64 as u32, t, t + 0.0001);
         }
         let f = sync.estimate().freq();
-        assert!((f / 50.5e6 - 1.0).abs() < 1e-4, "freq {f} outliers {}", sync.outliers());
+        assert!(
+            (f / 50.5e6 - 1.0).abs() < 1e-4,
+            "freq {f} outliers {}",
+            sync.outliers()
+        );
         assert!(sync.outliers() <= 12);
     }
 

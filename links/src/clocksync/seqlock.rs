@@ -33,7 +33,10 @@ impl<const N: usize> SeqLock<N> {
                 continue;
             }
             // Acquire pairs with the Release store that ended the previous write.
-            match self.seq.compare_exchange_weak(s, s + 1, Ordering::Acquire, Ordering::Relaxed) {
+            match self
+                .seq
+                .compare_exchange_weak(s, s + 1, Ordering::Acquire, Ordering::Relaxed)
+            {
                 Ok(_) => break,
                 Err(now) => s = now,
             }
@@ -65,7 +68,7 @@ impl<const N: usize> SeqLock<N> {
                 }
             }
             spins += 1;
-            if spins % 64 == 0 {
+            if spins.is_multiple_of(64) {
                 // The writer was preempted mid-write: let it run.
                 std::thread::yield_now();
             } else {

@@ -202,12 +202,21 @@ mod tests {
             d.encode("queue_stepp", &[]).unwrap_err().to_string(),
             "MCU dictionary has no command 'queue_stepp'"
         );
-        assert!(matches!(d.encode("queue_step", &[1]), Err(DictError::ArgCount { expected: 4, .. })));
+        assert!(matches!(
+            d.encode("queue_step", &[1]),
+            Err(DictError::ArgCount { expected: 4, .. })
+        ));
         let e = d.encode("queue_step", &[1, 1, 70_000, 0]).unwrap_err();
-        assert_eq!(e.to_string(), "command 'queue_step' parameter 'count' value 70000 does not fit its type");
+        assert_eq!(
+            e.to_string(),
+            "command 'queue_step' parameter 'count' value 70000 does not fit its type"
+        );
         assert!(d.encode("queue_step", &[1, u32::MAX as i64, 1, -32768]).is_ok());
         assert!(d.encode("queue_step", &[1, 1 << 32, 1, 0]).is_err());
-        assert!(matches!(d.encode("debug_write", &[1]), Err(DictError::ArgType { .. })));
+        assert!(matches!(
+            d.encode("debug_write", &[1]),
+            Err(DictError::ArgType { .. })
+        ));
     }
 
     #[test]
@@ -218,7 +227,10 @@ mod tests {
         assert!(d.encode_values("debug_write", &[Value::Bytes(&[0; 58])]).is_err());
         assert!(d.encode_values("debug_write", &[Value::Int(1)]).is_err());
         let same = d
-            .encode_values("queue_step", &[Value::Int(2), Value::Int(40_000), Value::Int(20), Value::Int(-3)])
+            .encode_values(
+                "queue_step",
+                &[Value::Int(2), Value::Int(40_000), Value::Int(20), Value::Int(-3)],
+            )
             .unwrap();
         assert_eq!(same, d.encode("queue_step", &[2, 40_000, 20, -3]).unwrap());
     }

@@ -86,7 +86,10 @@ impl Dictionary {
         let msg = if kind == MsgKind::Output {
             Message {
                 name: OUTPUT_NAME.to_owned(),
-                fields: vec![("text".to_owned(), FieldValue::Bytes(render_output(&def.format, &fields)))],
+                fields: vec![(
+                    "text".to_owned(),
+                    FieldValue::Bytes(render_output(&def.format, &fields)),
+                )],
             }
         } else {
             Message {
@@ -204,7 +207,10 @@ mod tests {
         payload.extend_from_slice(d.encode("set_next_step_dir", &[2, 1]).unwrap().as_bytes());
         let msgs = d.decode(&payload).unwrap();
         assert_eq!(msgs.len(), 2);
-        assert_eq!(msgs[0].to_string(), "queue_step oid=2 interval=40000 count=20 add=-3");
+        assert_eq!(
+            msgs[0].to_string(),
+            "queue_step oid=2 interval=40000 count=20 add=-3"
+        );
         assert_eq!(msgs[0].get("add"), Some(-3));
         assert_eq!(msgs[1].to_string(), "set_next_step_dir oid=2 dir=1");
         assert_eq!(d.decode_command(&payload).unwrap(), msgs);
@@ -223,7 +229,10 @@ mod tests {
         // output "Got %u bytes: %.*s"
         let msgs = d.decode(&[90, 3, 3, b'a', b'b', b'c']).unwrap();
         assert_eq!(msgs[0].to_string(), "#output Got 3 bytes: abc");
-        assert!(matches!(d.decode_command(&[86, 1, 0]), Err(DictError::NotACommand(86, _))));
+        assert!(matches!(
+            d.decode_command(&[86, 1, 0]),
+            Err(DictError::NotACommand(86, _))
+        ));
     }
 
     #[test]

@@ -83,10 +83,18 @@ pub enum DictError {
     NoSymbol { enumeration: String, symbol: String },
     /// An enumeration value outside the range the caller needs.
     #[error("MCU dictionary value of {enumeration} '{symbol}' is out of range: {value}")]
-    SymbolRange { enumeration: String, symbol: String, value: i64 },
+    SymbolRange {
+        enumeration: String,
+        symbol: String,
+        value: i64,
+    },
     /// Wrong number of arguments.
     #[error("command '{name}' takes {expected} parameters, got {got}")]
-    ArgCount { name: String, expected: usize, got: usize },
+    ArgCount {
+        name: String,
+        expected: usize,
+        got: usize,
+    },
     /// An integer where bytes belong, or the reverse.
     #[error("command '{name}' parameter '{param}' has the wrong type")]
     ArgType { name: String, param: String },
@@ -126,7 +134,7 @@ pub struct MsgDef {
 }
 
 /// A parsed data dictionary.
-#[derive(Debug, Clone)]
+#[derive(Clone)]
 pub struct Dictionary {
     json: String,
     compressed: Vec<u8>,
@@ -137,6 +145,19 @@ pub struct Dictionary {
     enumerations: HashMap<String, HashMap<String, i64>>,
     static_strings: HashMap<u32, String>,
     config: serde_json::Map<String, Json>,
+}
+
+/// A summary: the JSON itself is large.
+impl std::fmt::Debug for Dictionary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Dictionary")
+            .field("json_bytes", &self.json.len())
+            .field("commands", &self.commands.len())
+            .field("responses", &self.responses.len())
+            .field("enumerations", &self.enumerations.len())
+            .field("config", &self.config.len())
+            .finish()
+    }
 }
 
 impl Dictionary {
@@ -179,7 +200,9 @@ impl Dictionary {
             ("output", MsgKind::Output),
         ] {
             if let Some(map) = root.get(section) {
-                let map = map.as_object().ok_or_else(|| malformed(section, "not an object"))?;
+                let map = map
+                    .as_object()
+                    .ok_or_else(|| malformed(section, "not an object"))?;
                 for (format, id) in map {
                     let id = id
                         .as_u64()
@@ -200,7 +223,8 @@ impl Dictionary {
                 .as_object()
                 .ok_or_else(|| malformed("enumerations", "not an object"))?;
             for (name, symbols) in enums {
-                dict.enumerations.insert(name.clone(), parse_enumeration(name, symbols)?);
+                dict.enumerations
+                    .insert(name.clone(), parse_enumeration(name, symbols)?);
             }
         }
         if let Some(strings) = dict.enumerations.get("static_string_id") {
@@ -553,16 +577,26 @@ pub(crate) mod tests {
         assert_eq!(d.pin("LED").unwrap(), 99);
         assert!(d.pin("PA8").is_err());
         assert!(d.pin("PC9").is_err());
-        assert_eq!(d.pin("PZ9").unwrap_err().to_string(), "MCU dictionary has no pin 'PZ9'");
+        assert_eq!(
+            d.pin("PZ9").unwrap_err().to_string(),
+            "MCU dictionary has no pin 'PZ9'"
+        );
         assert_eq!(d.static_string(3), Some("Timer too close"));
         assert_eq!(d.static_string(77), None);
-        assert_eq!(d.enumeration("static_string_id", "Invalid count parameter").unwrap(), 4);
+        assert_eq!(
+            d.enumeration("static_string_id", "Invalid count parameter")
+                .unwrap(),
+            4
+        );
         assert!(d.enumeration("spi_bus", "x").is_err());
     }
 
     #[test]
     fn rejects_bad_dictionaries() {
-        assert!(matches!(Dictionary::from_compressed(b"not zlib"), Err(DictError::Decompress(_))));
+        assert!(matches!(
+            Dictionary::from_compressed(b"not zlib"),
+            Err(DictError::Decompress(_))
+        ));
         assert!(matches!(Dictionary::from_json("[1]"), Err(DictError::Json(_))));
         assert!(matches!(
             Dictionary::from_json(r#"{"commands": {"a x=%q": 3}}"#),

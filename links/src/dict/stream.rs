@@ -18,7 +18,11 @@ pub enum StreamItem {
     /// An empty block (ack or nak).
     Ack { seq: u8 },
     /// A valid block whose payload did not decode with this dictionary.
-    Undecodable { seq: u8, payload: Vec<u8>, error: String },
+    Undecodable {
+        seq: u8,
+        payload: Vec<u8>,
+        error: String,
+    },
     /// Bytes that were not a valid block.
     Garbage { len: usize },
     /// Bytes at the end that do not make a whole block.

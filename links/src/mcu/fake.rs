@@ -82,7 +82,12 @@ pub(crate) struct FakeMcu {
 
 impl FakeMcu {
     /// Starts a fake on `t` whose clock runs at `freq` ticks per system second from `c0`.
-    pub(crate) fn spawn(t: Box<dyn Transport>, nominal: f64, freq: f64, c0: u64) -> (Arc<Control>, JoinHandle<()>) {
+    pub(crate) fn spawn(
+        t: Box<dyn Transport>,
+        nominal: f64,
+        freq: f64,
+        c0: u64,
+    ) -> (Arc<Control>, JoinHandle<()>) {
         let ctl = Arc::new(Control::default());
         let fake = FakeMcu {
             t,
@@ -194,7 +199,10 @@ impl FakeMcu {
                 }
                 7 => {
                     let shut = self.shut.is_some() as i64;
-                    self.respond(82, &[Value::Int(0), Value::Int(0), Value::Int(shut), Value::Int(16)]);
+                    self.respond(
+                        82,
+                        &[Value::Int(0), Value::Int(0), Value::Int(shut), Value::Int(16)],
+                    );
                 }
                 8 => self.shutdown(EMERGENCY),
                 20 | 21 => {

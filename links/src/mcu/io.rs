@@ -27,6 +27,8 @@ use crate::transport::Transport;
 const IDENTIFY_CHUNK: i64 = 40;
 /// Largest read per loop iteration.
 const READ_BUF: usize = 4096;
+/// Serial queue slots kept for the link's own messages.
+const INTERNAL_SLOTS: usize = 8;
 /// Most parameters decoded on the stack.
 const MAX_STACK_PARAMS: usize = 16;
 
@@ -35,6 +37,17 @@ pub(crate) fn system_now() -> f64 {
     nix::time::clock_gettime(nix::time::ClockId::CLOCK_MONOTONIC)
         .map(|t| t.tv_sec() as f64 + t.tv_nsec() as f64 * 1e-9)
         .unwrap_or(0.0)
+}
+
+/// Marks the link dead if the IO thread unwinds, so no caller waits for a thread that is gone.
+struct PanicGuard(Arc<Shared>);
+
+impl Drop for PanicGuard {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            self.0.die(Death::ConnectionLost("IO thread panicked".into()));
+        }
+    }
 }
 
 /// Ids and commands the IO thread itself uses, looked up once.
@@ -58,9 +71,11 @@ enum Phase {
     },
     Uptime {
         deadline: f64,
+        get_uptime: Cmd,
     },
     InitialClock {
         count: u32,
+        deadline: f64,
     },
     Running,
 }
@@ -86,6 +101,7 @@ pub(crate) struct IoThread {
     identify_timeout: f64,
     response_timeout: f64,
     held: Option<Outgoing>,
+    user_capacity: usize,
     taken: u64,
     payloads: Vec<u8>,
     undecodable: u64,
@@ -98,8 +114,10 @@ impl IoThread {
         opts: &LinkOptions,
         mut tuning: LinkTuning,
     ) -> IoThread {
+        let user_capacity = opts.queue_capacity.max(16);
         let mut sq = SerialQueue::new(QueueConfig {
-            capacity: opts.queue_capacity.max(16),
+            // Room kept free for the link's own messages (identify, get_clock).
+            capacity: user_capacity + INTERNAL_SLOTS,
             receive_window: None,
         });
         sq.set_margin_hook(tuning.margin_hook.take());
@@ -123,6 +141,7 @@ impl IoThread {
             identify_timeout: opts.identify_timeout.as_secs_f64(),
             response_timeout: opts.response_timeout.as_secs_f64(),
             held: None,
+            user_capacity,
             taken: 0,
             payloads: Vec::with_capacity(READ_BUF * 2),
             undecodable: 0,
@@ -131,6 +150,7 @@ impl IoThread {
 
     /// Runs until stopped or dead.
     pub(crate) fn run(mut self) {
+        let _guard = PanicGuard(self.shared.clone());
         let mut buf = [0u8; READ_BUF];
         let start = system_now();
         if let Phase::Identify { deadline, .. } = &mut self.phase {
@@ -202,7 +222,7 @@ impl IoThread {
         if !matches!(self.phase, Phase::Running) {
             return;
         }
-        loop {
+        while self.sq.len() < self.user_capacity {
             let Some(item) = self.held.take().or_else(|| self.shared.outgoing.pop()) else {
                 break;
             };
@@ -224,20 +244,27 @@ impl IoThread {
         if self.sq.has_upcoming() {
             wait = wait.min(self.tuning.upcoming_read_wait.as_secs_f64());
         }
-        if !matches!(self.phase, Phase::Identify { .. } | Phase::Uptime { .. }) && self.clock_query.is_none() {
+        if !matches!(self.phase, Phase::Identify { .. } | Phase::Uptime { .. }) && self.clock_query.is_none()
+        {
             wait = wait.min(self.next_clock_at - now);
         }
         if matches!(self.phase, Phase::Running) && self.held.is_none() && !self.shared.outgoing.is_empty() {
             wait = 0.0;
         }
-        Duration::from_secs_f64(wait.max(0.0))
+        Duration::try_from_secs_f64(wait.max(0.0)).unwrap_or(Duration::ZERO)
     }
 
-    /// Handshake steps, clock queries and their deadlines.
+    /// Handshake steps, clock queries and their deadlines. Requests whose block was acked
+    /// but whose answer did not come within `identify_retry` are sent again: MCU → host
+    /// traffic is not retransmitted, so a lost answer is only recovered this way.
     fn run_timers(&mut self, now: f64) -> Result<(), Death> {
         let retry = self.tuning.identify_retry.as_secs_f64();
         let idle = self.sq.is_idle();
-        let mut resend = None;
+        // Written `retry` ago and still unanswered: the block or its answer was lost (a block
+        // lost on the way out is resent by the serial queue well within that time).
+        let query_lost = self
+            .clock_query
+            .is_some_and(|q| q.sent_at.is_some_and(|t| now - t >= retry));
         match &mut self.phase {
             Phase::Identify {
                 offset,
@@ -258,56 +285,70 @@ impl IoThread {
                 }
                 if now - *last_sent >= retry && idle {
                     *last_sent = now;
-                    resend = Some(*offset);
+                    let cmd = self
+                        .dict
+                        .encode("identify", &[*offset, IDENTIFY_CHUNK])
+                        .map_err(|e| Death::Handshake(e.to_string()))?;
+                    // The queue is idle here, so there is room.
+                    let _ = self.sq.push(cmd, 0, 0);
                 }
+                Ok(())
             }
-            Phase::Uptime { deadline } => {
+            Phase::Uptime { deadline, get_uptime } => {
                 if now > *deadline {
                     return Err(Death::Handshake(format!(
                         "no answer to get_uptime within {} s",
                         self.response_timeout
                     )));
                 }
+                if query_lost {
+                    let cmd = *get_uptime;
+                    self.query_clock(now, cmd);
+                }
+                Ok(())
             }
-            Phase::InitialClock { .. } | Phase::Running => self.clock_timer(now)?,
-        }
-        if let Some(offset) = resend {
-            let cmd = self
-                .dict
-                .encode("identify", &[offset, IDENTIFY_CHUNK])
-                .map_err(|e| Death::Handshake(e.to_string()))?;
-            // The queue is idle here, so there is room.
-            let _ = self.sq.push(cmd, 0, 0);
-        }
-        Ok(())
-    }
-
-    fn clock_timer(&mut self, now: f64) -> Result<(), Death> {
-        if let Some(q) = self.clock_query {
-            if now - q.queued_at > self.response_timeout {
-                if !matches!(self.phase, Phase::Running) {
+            Phase::InitialClock { deadline, .. } => {
+                if now > *deadline {
                     return Err(Death::Handshake(format!(
                         "no answer to get_clock within {} s",
                         self.response_timeout
                     )));
                 }
-                // Lost (or answered to someone else's query): ask again.
-                self.clock_query = None;
-                self.next_clock_at = now;
+                self.clock_timer(now, query_lost);
+                Ok(())
             }
-            return Ok(());
+            Phase::Running => {
+                self.clock_timer(now, query_lost);
+                Ok(())
+            }
+        }
+    }
+
+    /// Sends `cmd` (get_uptime or get_clock) with its write time recorded.
+    fn query_clock(&mut self, now: f64, cmd: Cmd) {
+        self.sq.take_marked_sent();
+        if self.sq.push_marked(cmd).is_ok() {
+            self.clock_query = Some(ClockQuery {
+                queued_at: now,
+                sent_at: None,
+            });
+        }
+    }
+
+    fn clock_timer(&mut self, now: f64, query_lost: bool) {
+        if let Some(q) = self.clock_query {
+            if !query_lost && now - q.queued_at <= self.response_timeout {
+                return;
+            }
+            // Lost (or answered to someone else's query): ask again.
+            self.clock_query = None;
+            self.next_clock_at = now;
         }
         if now >= self.next_clock_at {
             if let Some(cmd) = self.known.get_clock {
-                if self.sq.push_marked(cmd).is_ok() {
-                    self.clock_query = Some(ClockQuery {
-                        queued_at: now,
-                        sent_at: None,
-                    });
-                }
+                self.query_clock(now, cmd);
             }
         }
-        Ok(())
     }
 
     /// Handles one received payload (one or more messages).
@@ -365,7 +406,10 @@ impl IoThread {
                 self.sync.start(clock, sent.unwrap_or(now), now);
                 self.publish_clock();
                 self.next_clock_at = sent.unwrap_or(now) + self.tuning.initial_clock_spacing.as_secs_f64();
-                self.phase = Phase::InitialClock { count: 0 };
+                self.phase = Phase::InitialClock {
+                    count: 0,
+                    deadline: now + self.response_timeout,
+                };
             }
         } else if Some(id) == k.shutdown || Some(id) == k.is_shutdown {
             let sid = if Some(id) == k.shutdown { int(1) } else { int(0) };
@@ -394,6 +438,12 @@ impl IoThread {
         }
         *answered = true;
         if !chunk.is_empty() {
+            if data.len() + chunk.len() > crate::dict::MAX_DICT_JSON {
+                return Err(Death::Dictionary(format!(
+                    "identify data larger than {} bytes",
+                    crate::dict::MAX_DICT_JSON
+                )));
+            }
             data.extend_from_slice(chunk);
             *offset += chunk.len() as i64;
             *deadline = now + self.response_timeout;
@@ -426,19 +476,18 @@ impl IoThread {
         let dict = Arc::new(dict);
         self.dict = dict.clone();
         let _ = self.shared.dict.set(dict);
-        self.sq.take_marked_sent();
-        let _ = self.sq.push_marked(get_uptime);
-        self.clock_query = Some(ClockQuery {
-            queued_at: now,
-            sent_at: None,
-        });
+        self.query_clock(now, get_uptime);
         self.phase = Phase::Uptime {
             deadline: now + self.response_timeout,
+            get_uptime,
         };
         Ok(())
     }
 
     fn clock_reply(&mut self, now: f64, wire: u32) {
+        if !matches!(self.phase, Phase::InitialClock { .. } | Phase::Running) {
+            return; // the pending query is get_uptime
+        }
         let Some(ClockQuery {
             sent_at: Some(sent), ..
         }) = self.clock_query
@@ -449,8 +498,9 @@ impl IoThread {
         self.sync.handle_clock(wire, sent, now);
         self.publish_clock();
         match &mut self.phase {
-            Phase::InitialClock { count } => {
+            Phase::InitialClock { count, deadline } => {
                 *count += 1;
+                *deadline = now + self.response_timeout;
                 self.next_clock_at = sent + self.tuning.initial_clock_spacing.as_secs_f64();
                 if *count >= self.tuning.initial_clock_queries {
                     self.phase = Phase::Running;

@@ -1,7 +1,7 @@
 //! One MCU connection: an IO thread that owns the transport, and the [`McuLink`] handle the
 //! rest of the host uses.
 //!
-//! The IO thread ([`io`]) connects (dictionary through `identify`, 64-bit clock through
+//! The IO thread (module `io`) connects (dictionary through `identify`, 64-bit clock through
 //! `get_uptime`, eight `get_clock` 50 ms apart for the first fit), then loops: read with a
 //! short timeout, feed the [`crate::serialqueue::SerialQueue`], write what it releases, query
 //! `get_clock` about every 0.98 s, dispatch responses. Callers hand messages over through a
@@ -130,7 +130,11 @@ pub enum LinkError {
     NoAck { mcu: String, secs: f64 },
     /// A query got no matching response in time.
     #[error("mcu '{mcu}': no '{response}' response within {secs} s")]
-    Timeout { mcu: String, response: String, secs: f64 },
+    Timeout {
+        mcu: String,
+        response: String,
+        secs: f64,
+    },
     /// `wait_idle` ran out of time.
     #[error("mcu '{mcu}': queued messages not all acked within {secs} s")]
     NotIdle { mcu: String, secs: f64 },
@@ -158,7 +162,7 @@ pub struct LinkStats {
     pub clock_residual_us: f64,
     /// Estimated MCU ticks per system second.
     pub clock_freq: f64,
-    /// Clock samples used and dropped as outliers.
+    /// Clock samples used in the fit.
     pub clock_samples: u64,
     /// Clock samples dropped as outliers.
     pub clock_outliers: u64,
@@ -223,7 +227,8 @@ impl McuLink {
                 Ok(link)
             }
             _ => {
-                link.shared.die(shared::Death::Handshake("connect did not finish".into()));
+                link.shared
+                    .die(shared::Death::Handshake("connect did not finish".into()));
                 link.stop_and_join();
                 Err(link.shared.dead_error().unwrap_or(LinkError::Closed {
                     mcu: link.opts.name.clone(),
@@ -296,9 +301,10 @@ impl McuLink {
                 }
                 Err(back) => item = back,
             }
-            sh.notify.wait_until(Instant::now() + Duration::from_millis(20), || {
-                !sh.outgoing.is_full() || sh.state.load(Ordering::Acquire) == DEAD
-            });
+            sh.notify
+                .wait_until(Instant::now() + Duration::from_millis(20), || {
+                    !sh.outgoing.is_full() || sh.state.load(Ordering::Acquire) == DEAD
+                });
             let taken = sh.taken.load(Ordering::Acquire);
             if taken != last_taken {
                 last_taken = taken;

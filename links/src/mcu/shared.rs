@@ -71,8 +71,14 @@ pub(crate) struct Waiter {
 
 /// Responses the MCU still sends while shut down: waiters for these are not failed by a
 /// shutdown.
-pub(crate) const ANSWERED_WHEN_SHUT_DOWN: [&str; 6] =
-    ["identify_response", "config", "clock", "uptime", "shutdown", "is_shutdown"];
+pub(crate) const ANSWERED_WHEN_SHUT_DOWN: [&str; 6] = [
+    "identify_response",
+    "config",
+    "clock",
+    "uptime",
+    "shutdown",
+    "is_shutdown",
+];
 
 /// Wakes callers blocked on the link; costs one atomic load when nobody waits.
 #[derive(Debug, Default)]
@@ -110,7 +116,11 @@ impl Notifier {
                 break false;
             }
             let sleep = (deadline - now).min(MAX_SLEEP);
-            g = self.cv.wait_timeout(g, sleep).map(|(g, _)| g).unwrap_or_else(|e| e.into_inner().0);
+            g = self
+                .cv
+                .wait_timeout(g, sleep)
+                .map(|(g, _)| g)
+                .unwrap_or_else(|e| e.into_inner().0);
         };
         drop(g);
         self.waiters.fetch_sub(1, Ordering::SeqCst);
@@ -188,7 +198,12 @@ impl Shared {
         if self.state.load(Ordering::Acquire) != DEAD {
             return None;
         }
-        Some(lock(&self.death).as_ref().unwrap_or(&Death::Closed).to_error(&self.name))
+        Some(
+            lock(&self.death)
+                .as_ref()
+                .unwrap_or(&Death::Closed)
+                .to_error(&self.name),
+        )
     }
 
     /// The shutdown error, if the MCU has shut down.

@@ -193,7 +193,11 @@ fn timeout_backs_off_and_caps() {
     let mut expected_rto = rto0;
     for _ in 0..12 {
         let at = sq.poll_at().unwrap();
-        assert!((at - (now + expected_rto)).abs() < 1e-9, "deadline {at} vs {}", now + expected_rto);
+        assert!(
+            (at - (now + expected_rto)).abs() < 1e-9,
+            "deadline {at} vs {}",
+            now + expected_rto
+        );
         assert!(sq.poll(at - 1e-6).is_empty(), "no retransmit before the deadline");
         now = at;
         let re = sq.poll(now).to_vec();
@@ -287,7 +291,9 @@ fn lead_margins_reach_the_hook() {
     sq.set_clock_est(ClockEstimate::new(0.0, 0.0, 1000.0));
     let seen = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
     let s2 = seen.clone();
-    sq.set_margin_hook(Some(Box::new(move |req, margin| s2.lock().unwrap().push((req, margin)))));
+    sq.set_margin_hook(Some(Box::new(move |req, margin| {
+        s2.lock().unwrap().push((req, margin))
+    })));
     sq.push(cmd(&[1]), 0, 1500).unwrap();
     sq.push(cmd(&[2]), 0, 900).unwrap();
     sq.poll(1.0);
@@ -320,7 +326,11 @@ fn adopts_the_sequence_a_running_mcu_expects() {
     sq.push(cmd(&[1]), 0, 0).unwrap();
     sq.push(cmd(&[2; 59]), 0, 0).unwrap();
     let out = sq.poll(0.0).to_vec();
-    assert_eq!(blocks(&out).len(), 1, "one block in flight until the first answer");
+    assert_eq!(
+        blocks(&out).len(),
+        1,
+        "one block in flight until the first answer"
+    );
     peer.feed(&out);
     assert_eq!(peer.naks, 1);
     feed(&mut sq, 0.001, &peer.take());
@@ -400,7 +410,14 @@ impl Wire {
 }
 
 /// Streams `msgs` through lossy wires both ways; returns what the peer received, in order.
-fn run_lossy(msgs: &[Vec<u8>], seed: u64, drop: f64, corrupt: f64, dup: f64, window: Option<usize>) -> Vec<u8> {
+fn run_lossy(
+    msgs: &[Vec<u8>],
+    seed: u64,
+    drop: f64,
+    corrupt: f64,
+    dup: f64,
+    window: Option<usize>,
+) -> Vec<u8> {
     let mut sq = SerialQueue::new(QueueConfig {
         capacity: 16,
         receive_window: window,
@@ -443,9 +460,40 @@ fn run_lossy(msgs: &[Vec<u8>], seed: u64, drop: f64, corrupt: f64, dup: f64, win
 
 #[test]
 fn lossy_link_delivers_everything_once() {
-    let msgs: Vec<Vec<u8>> = (0..500u32).map(|i| vec![(i % 251) as u8; 1 + (i % 23) as usize]).collect();
+    let msgs: Vec<Vec<u8>> = (0..500u32)
+        .map(|i| vec![(i % 251) as u8; 1 + (i % 23) as usize])
+        .collect();
     let got = run_lossy(&msgs, 42, 0.1, 0.1, 0.05, Some(192));
     assert_eq!(got, msgs.concat());
+}
+
+#[test]
+fn steady_state_does_not_grow_buffers() {
+    // Every queue is preallocated in `new`; streaming must never make one reallocate.
+    let (mut sq, mut peer) = synced(Some(192));
+    sq.set_clock_est(ClockEstimate::new(0.0, 0.0, 1000.0));
+    let caps = |sq: &SerialQueue| {
+        (
+            sq.upcoming.capacity(),
+            sq.ready.capacity(),
+            sq.inflight.capacity(),
+        )
+    };
+    let before = caps(&sq);
+    let mut now = 1.0;
+    for round in 0..200u64 {
+        while sq.space() > 0 {
+            let clock = round * 10;
+            if sq.push(cmd(&[(round % 200) as u8; 9]), clock, clock + 5).is_err() {
+                break;
+            }
+        }
+        now += 0.01;
+        let out = sq.poll(now).to_vec();
+        peer.feed(&out);
+        feed(&mut sq, now + 0.0001, &peer.take());
+        assert_eq!(caps(&sq), before, "round {round}");
+    }
 }
 
 proptest! {

@@ -115,7 +115,9 @@ impl Transport for PtyTransport {
                         return Err(io::Error::new(io::ErrorKind::BrokenPipe, "tty hung up"));
                     }
                 }
-                Err(Errno::EIO) => return Err(io::Error::new(io::ErrorKind::BrokenPipe, "tty hung up (EIO)")),
+                Err(Errno::EIO) => {
+                    return Err(io::Error::new(io::ErrorKind::BrokenPipe, "tty hung up (EIO)"))
+                }
                 Err(e) => return Err(e.into()),
             }
         }
@@ -139,7 +141,10 @@ pub(crate) mod tests {
         grantpt(&master).unwrap();
         unlockpt(&master).unwrap();
         let path = ptsname_r(&master).unwrap();
-        (PtyTransport::from_fd(OwnedFd::from(master), "pty master").unwrap(), path)
+        (
+            PtyTransport::from_fd(OwnedFd::from(master), "pty master").unwrap(),
+            path,
+        )
     }
 
     #[test]

@@ -37,13 +37,16 @@ impl Transport for SerialTransport {
     fn read(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize> {
         self.port.set_timeout(timeout).map_err(io::Error::from)?;
         match self.port.read(buf) {
-            Ok(0) if !buf.is_empty() => Err(io::Error::new(io::ErrorKind::UnexpectedEof, "serial port closed")),
+            Ok(0) if !buf.is_empty() => {
+                Err(io::Error::new(io::ErrorKind::UnexpectedEof, "serial port closed"))
+            }
             Ok(n) => Ok(n),
             Err(e) if matches!(e.kind(), io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock) => Ok(0),
             Err(e) if e.kind() == io::ErrorKind::Interrupted => Ok(0),
-            Err(e) if e.raw_os_error() == Some(libc::EIO) => {
-                Err(io::Error::new(io::ErrorKind::UnexpectedEof, "serial port hung up (EIO)"))
-            }
+            Err(e) if e.raw_os_error() == Some(libc::EIO) => Err(io::Error::new(
+                io::ErrorKind::UnexpectedEof,
+                "serial port hung up (EIO)",
+            )),
             Err(e) => Err(e),
         }
     }

@@ -1,0 +1,193 @@
+//! End-to-end tests: G-code text → merged step commands, replayed by the checker.
+
+use super::*;
+use crate::checker::Checker;
+use crate::gcode::GcodeReader;
+use proptest::prelude::*;
+
+const FREQ: f64 = 50e6;
+
+pub(crate) fn benchy_config() -> PipelineConfig {
+    PipelineConfig {
+        toolhead: ToolheadConfig {
+            max_velocity: 500.0,
+            max_accel: 3000.0,
+            minimum_cruise_ratio: 0.5,
+            square_corner_velocity: 5.0,
+            max_z_velocity: 25.0,
+            max_z_accel: 30.0,
+            max_extrude_only_velocity: 52.0,
+            max_extrude_only_accel: 312.0,
+            max_extrude_only_distance: 500.0,
+            axis_limits: [(0.0, 200.0), (0.0, 200.0), (0.0, 200.0)],
+        },
+        steppers: vec![
+            StepperSpec { name: "stepper_x".into(), axis: 0, step_dist: 1.0 / 80.0 },
+            StepperSpec { name: "stepper_y".into(), axis: 1, step_dist: 1.0 / 80.0 },
+            StepperSpec { name: "stepper_z".into(), axis: 2, step_dist: 1.0 / 400.0 },
+            StepperSpec { name: "extruder".into(), axis: 3, step_dist: 33.5 / 3200.0 },
+        ],
+        clock_freq: FREQ,
+        max_error_s: 25e-6,
+        home_position: [0.0, 0.0, 0.5],
+    }
+}
+
+/// What a run produced: per-stepper commands, the checkers' verdicts, the merged order.
+struct Run {
+    pipeline: Pipeline,
+    per_stepper: Vec<Vec<StepCmd>>,
+    keys: Vec<u64>,
+}
+
+/// Runs G-code text through a pipeline, checking every stepper incrementally.
+fn run_gcode(text: &str) -> Run {
+    let cfg = benchy_config();
+    let n = cfg.steppers.len();
+    let mut p = Pipeline::new(cfg, 0.25).unwrap();
+    p.set_record_ideal(true);
+    let mut checkers: Vec<Checker> = (0..n).map(|_| Checker::new(p.max_error_ticks())).collect();
+    let mut per_stepper = vec![Vec::new(); n];
+    let mut merged = Vec::new();
+    let mut out = Vec::new();
+    let mut last_planned = 0.0;
+    let mut feed = |p: &mut Pipeline, out: &mut Vec<(usize, StepCmd)>, checkers: &mut Vec<Checker>| {
+        for (i, c) in checkers.iter_mut().enumerate() {
+            c.push_ideal(p.take_ideal(i));
+        }
+        for &(i, cmd) in out.iter() {
+            if let Err(e) = checkers[i].check_cmd(&cmd) {
+                panic!("stepper {i}: {e}");
+            }
+            per_stepper[i].push(cmd);
+            merged.push((i, cmd));
+        }
+        out.clear();
+    };
+    for line in GcodeReader::new(text.as_bytes()) {
+        let line = line.unwrap();
+        p.apply(&line).unwrap();
+        p.generate(&mut out);
+        feed(&mut p, &mut out, &mut checkers);
+        assert!(p.planned_until() >= last_planned);
+        last_planned = p.planned_until();
+    }
+    p.finish(&mut out);
+    feed(&mut p, &mut out, &mut checkers);
+    for (i, c) in checkers.iter().enumerate() {
+        let stats = c.finish().unwrap_or_else(|e| panic!("stepper {i}: {e}"));
+        assert_eq!(stats.position, p.stepper_positions()[i]);
+    }
+    // Sort keys of the merged stream.
+    let mut keys = vec![0; merged.len()];
+    let mut next_key: Vec<Option<u64>> = vec![None; n];
+    for (j, &(i, cmd)) in merged.iter().enumerate().rev() {
+        if let StepCmd::QueueStep { first_clock, .. } = cmd {
+            next_key[i] = Some(first_clock);
+        }
+        keys[j] = next_key[i].expect("reset/dir must precede a queue_step");
+    }
+    Run { pipeline: p, per_stepper, keys }
+}
+
+/// round(b / step_dist) − round(a / step_dist), rounding half up like step generation.
+fn steps_between(a: f64, b: f64, step_dist: f64) -> i64 {
+    let n = |x: f64| (x * (1.0 / step_dist) + 0.5).floor() as i64;
+    n(b) - n(a)
+}
+
+#[test]
+fn square_with_extrusion() {
+    let g = "G28\nG1 Z0.3 F600\nM83\nG1 X10 Y10 F6000\nG1 X50 E2 F1800\nG1 Y50 E2\nG1 X10 E2\nG1 Y10 E2\n\
+             G1 E-1 F2400\nG4 P200\nG1 X100 Y100 F9000\n";
+    let r = run_gcode(g);
+    assert!(r.keys.windows(2).all(|w| w[0] <= w[1]), "merged output must be time-ordered");
+    let pos = r.pipeline.stepper_positions();
+    assert_eq!(pos, vec![8000, 8000, steps_between(0.5, 0.3, 0.0025), steps_between(0.0, 7.0, 33.5 / 3200.0)]);
+    assert_eq!(r.pipeline.position(), [100.0, 100.0, 0.3, 7.0]);
+    let stats = r.pipeline.stats();
+    assert_eq!(stats.moves, 8);
+    assert_eq!(stats.steps.iter().sum::<u64>(), r.per_stepper.iter().flatten().map(|c| match c {
+        StepCmd::QueueStep { count, .. } => *count as u64,
+        _ => 0,
+    }).sum::<u64>());
+    assert!(r.pipeline.planned_until() >= stats.print_time_end - 1e-3);
+}
+
+#[test]
+fn rejects_bad_configs() {
+    let mut c = benchy_config();
+    c.clock_freq = 0.0;
+    assert!(Pipeline::new(c, 0.0).is_err());
+    let mut c = benchy_config();
+    c.steppers[0].axis = 7;
+    assert!(Pipeline::new(c, 0.0).is_err());
+    let mut c = benchy_config();
+    c.max_error_s = 0.0;
+    assert!(Pipeline::new(c, 0.0).is_err());
+    let mut c = benchy_config();
+    c.toolhead.max_accel = f64::NAN;
+    assert!(Pipeline::new(c, 0.0).is_err());
+}
+
+fn arb_program() -> impl Strategy<Value = (String, [f64; 4])> {
+    let mv = (0.0f64..200.0, 0.0f64..200.0, 0.3f64..20.0, -1.0f64..3.0, 5.0f64..300.0, 0u8..12);
+    proptest::collection::vec(mv, 1..60).prop_map(|moves| {
+        let mut g = String::from("G28\nM83\n");
+        let mut pos = [0.0, 0.0, 0.5, 0.0];
+        let mut e_total = 0.0;
+        for (x, y, z, e, f, kind) in moves {
+            // Round like slicers do (3 decimals for XYZ, 5 for E).
+            let (x, y, z, e) = ((x * 1e3f64).round() / 1e3, (y * 1e3f64).round() / 1e3, (z * 1e3f64).round() / 1e3, (e * 1e5f64).round() / 1e5);
+            match kind {
+                0 => g.push_str(&format!("G1 E{e} F{}\n", f * 10.0)),
+                1 => g.push_str("G92 E0\n"),
+                2 => g.push_str("G4 P50\n"),
+                3 => g.push_str(&format!("G1 Z{z} F{}\n", f * 60.0)),
+                4..=7 => {
+                    // Short moves near the current position.
+                    let nx = (pos[0] + (x - 100.0) / 50.0).clamp(0.0, 200.0);
+                    let ny = (pos[1] + (y - 100.0) / 50.0).clamp(0.0, 200.0);
+                    let (nx, ny) = ((nx * 1e3f64).round() / 1e3, (ny * 1e3f64).round() / 1e3);
+                    g.push_str(&format!("G1 X{nx} Y{ny} E{} F{}\n", e.abs() / 10.0, f * 60.0));
+                    pos[0] = nx;
+                    pos[1] = ny;
+                    e_total += e.abs() / 10.0;
+                    continue;
+                }
+                _ => {
+                    g.push_str(&format!("G1 X{x} Y{y} F{}\n", f * 60.0));
+                    pos[0] = x;
+                    pos[1] = y;
+                    continue;
+                }
+            }
+            if kind == 0 {
+                e_total += e;
+            }
+            if kind == 3 {
+                pos[2] = z;
+            }
+        }
+        pos[3] = e_total;
+        (g, pos)
+    })
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+
+    #[test]
+    fn random_programs_step_exactly_and_check((program, end) in arb_program()) {
+        let r = run_gcode(&program);
+        prop_assert!(r.keys.windows(2).all(|w| w[0] <= w[1]));
+        let cfg = benchy_config();
+        let start = [0.0, 0.0, 0.5, 0.0];
+        let pos = r.pipeline.stepper_positions();
+        for (i, s) in cfg.steppers.iter().enumerate() {
+            let th = r.pipeline.position()[s.axis];
+            prop_assert!((th - end[s.axis]).abs() < 1e-6, "{} at {th}, expected {}", s.name, end[s.axis]);
+            prop_assert_eq!(pos[i], steps_between(start[s.axis], th, s.step_dist), "{}", s.name);
+        }
+    }
+}

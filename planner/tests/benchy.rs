@@ -1,0 +1,156 @@
+//! The 3DBenchy (PrusaSlicer, 64k moves) through the whole pipeline with the reference cartesian
+//! printer of shared/data/printers/benchy-cartesian.cfg, every stepper checked by the checker.
+//!
+//! The debug test runs a prefix (the crate builds at opt-level 0 in tests); the full file is the
+//! `#[ignore]`d test, meant for release builds:
+//! `CARGO_TARGET_DIR=/tmp/tgt-planner cargo test -p planner --release -- --ignored --nocapture`.
+
+use std::fs::File;
+use std::io::BufReader;
+use std::time::Instant;
+
+use planner::checker::Checker;
+use planner::gcode::GcodeReader;
+use planner::pipeline::{Pipeline, PipelineConfig, StepperSpec};
+use planner::stepgen::StepCmd;
+use planner::toolhead::ToolheadConfig;
+
+const BENCHY: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data/gcode/benchy-prusaslicer.gcode");
+
+/// benchy-cartesian.cfg: 80 steps/mm X/Y, 400 Z, 3200/33.5 E; Klipper's extruder defaults for a
+/// 0.5 mm nozzle and 3.5 mm filament (extrude-only limits = max × 4·nozzle² / filament area).
+fn config() -> PipelineConfig {
+    let area = std::f64::consts::PI * 1.75 * 1.75;
+    let ratio = 4.0 * 0.5 * 0.5 / area;
+    PipelineConfig {
+        toolhead: ToolheadConfig {
+            max_velocity: 500.0,
+            max_accel: 3000.0,
+            minimum_cruise_ratio: 0.5,
+            square_corner_velocity: 5.0,
+            max_z_velocity: 25.0,
+            max_z_accel: 30.0,
+            max_extrude_only_velocity: 500.0 * ratio,
+            max_extrude_only_accel: 3000.0 * ratio,
+            max_extrude_only_distance: 500.0,
+            axis_limits: [(0.0, 200.0), (0.0, 200.0), (0.0, 200.0)],
+        },
+        steppers: vec![
+            StepperSpec { name: "stepper_x".into(), axis: 0, step_dist: 40.0 / 3200.0 },
+            StepperSpec { name: "stepper_y".into(), axis: 1, step_dist: 40.0 / 3200.0 },
+            StepperSpec { name: "stepper_z".into(), axis: 2, step_dist: 8.0 / 3200.0 },
+            StepperSpec { name: "extruder".into(), axis: 3, step_dist: 33.5 / 3200.0 },
+        ],
+        clock_freq: 50e6,
+        max_error_s: 25e-6,
+        home_position: [0.0, 0.0, 0.5],
+    }
+}
+
+#[derive(Debug, Default)]
+struct Report {
+    lines: usize,
+    moves: u64,
+    queue_steps: u64,
+    steps: Vec<u64>,
+    print_time: f64,
+}
+
+/// Runs the first `max_lines` lines (all when None); with `check`, replays every command.
+fn run(max_lines: Option<usize>, check: bool) -> Option<Report> {
+    let Ok(file) = File::open(BENCHY) else {
+        eprintln!("note: {BENCHY} is absent; benchy test skipped");
+        return None;
+    };
+    let cfg = config();
+    let n = cfg.steppers.len();
+    let mut p = Pipeline::new(cfg, 0.25).expect("config");
+    p.set_record_ideal(check);
+    let mut checkers: Vec<Checker> = (0..n).map(|_| Checker::new(p.max_error_ticks())).collect();
+    let mut out: Vec<(usize, StepCmd)> = Vec::with_capacity(1 << 16);
+    let mut last_key = 0u64;
+    let mut verify = |p: &mut Pipeline, out: &mut Vec<(usize, StepCmd)>| {
+        if check {
+            for (i, c) in checkers.iter_mut().enumerate() {
+                c.push_ideal(p.take_ideal(i));
+            }
+            for &(i, cmd) in out.iter() {
+                if let StepCmd::QueueStep { first_clock, .. } = cmd {
+                    assert!(first_clock >= last_key, "output out of time order");
+                    last_key = first_clock;
+                }
+                checkers[i].check_cmd(&cmd).unwrap_or_else(|e| panic!("stepper {i}: {e}"));
+            }
+        }
+        out.clear();
+    };
+    let mut lines = 0;
+    for line in GcodeReader::new(BufReader::with_capacity(1 << 16, file)) {
+        let line = line.unwrap_or_else(|e| panic!("{e}"));
+        lines = line.line_no;
+        if max_lines.is_some_and(|m| lines > m) {
+            break;
+        }
+        p.apply(&line).unwrap_or_else(|e| panic!("{e}"));
+        p.generate(&mut out);
+        verify(&mut p, &mut out);
+    }
+    p.finish(&mut out);
+    verify(&mut p, &mut out);
+    if check {
+        for (i, c) in checkers.iter().enumerate() {
+            let stats = c.finish().unwrap_or_else(|e| panic!("stepper {i}: {e}"));
+            assert_eq!(stats.position, p.stepper_positions()[i]);
+            assert!(stats.max_early_ticks <= p.max_error_ticks() as f64);
+        }
+    }
+    let stats = p.stats();
+    Some(Report {
+        lines,
+        moves: stats.moves,
+        queue_steps: stats.queue_steps,
+        steps: stats.steps,
+        print_time: stats.print_time_end,
+    })
+}
+
+#[test]
+fn benchy_prefix_is_exact() {
+    let Some(r) = run(Some(5000), true) else { return };
+    assert!(r.moves > 3000, "{r:?}");
+    let steps: u64 = r.steps.iter().sum();
+    assert!(r.queue_steps > 0 && steps / r.queue_steps >= 10, "{r:?}");
+}
+
+#[test]
+#[ignore = "full file: run in release (see the module doc)"]
+fn benchy_full() {
+    let started = Instant::now();
+    let Some(r) = run(None, false) else { return };
+    let wall = started.elapsed().as_secs_f64();
+    let steps: u64 = r.steps.iter().sum();
+    println!(
+        "benchy: {} lines, {} moves, print time {:.1} s, {} queue_step, {} steps {:?}, {:.1} steps/cmd",
+        r.lines,
+        r.moves,
+        r.print_time,
+        r.queue_steps,
+        steps,
+        r.steps,
+        steps as f64 / r.queue_steps as f64
+    );
+    println!("benchy: parse + plan + generate + compress: {wall:.3} s wall (Klipper batch: 2.5 s, 456,811 queue_step, 12,251,999 steps)");
+    let started = Instant::now();
+    let checked = run(None, true).expect("file present");
+    println!("benchy: checked every step of every stepper in {:.3} s", started.elapsed().as_secs_f64());
+    assert_eq!(checked.queue_steps, r.queue_steps);
+}
+
+#[test]
+#[ignore]
+fn exh_stats() {
+    let r = run(Some(20000), false).unwrap();
+    #[allow(unsafe_code, static_mut_refs)]
+    let s = unsafe { planner::compress::STATS };
+    println!("{r:?} stats {s:?}");
+}
