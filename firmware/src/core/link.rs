@@ -10,7 +10,9 @@
 //! Transmit: responses are packed into one pending block payload; a block is written when the
 //! next message does not fit or on [`Link::flush`]. Every block carries the next expected
 //! receive sequence, so every response also acks. After each received block the caller calls
-//! [`Link::ack`], which sends an empty block only if no response has carried the new sequence.
+//! [`Link::ack`], which flushes the responses and then always sends an empty ack block, as
+//! Klipper's MCU does: the host tracks acks from empty blocks only, so that an empty block that
+//! repeats the last ack is recognised as a NAK.
 
 use super::board::Board;
 use links::proto::block::{block_payload, encode_block, find_block, Frame};
@@ -30,8 +32,6 @@ pub struct Link {
     need_valid: bool,
     tx: [u8; MESSAGE_PAYLOAD_MAX],
     tx_len: usize,
-    /// A block carrying the current `rx_seq` has been written.
-    acked: bool,
 }
 
 impl Default for Link {
@@ -50,7 +50,6 @@ impl Link {
             need_valid: false,
             tx: [0; MESSAGE_PAYLOAD_MAX],
             tx_len: 0,
-            acked: true,
         }
     }
 
@@ -110,7 +109,6 @@ impl Link {
                     out[..n].copy_from_slice(&payload[..n]);
                     self.consume(len);
                     self.rx_seq = (self.rx_seq + 1) & 0x0F;
-                    self.acked = false;
                     return Some(n);
                 }
             }
@@ -126,7 +124,6 @@ impl Link {
         let mut block = [0u8; MESSAGE_MAX];
         if let Some(n) = encode_block(self.rx_seq, payload, &mut block) {
             board.write(&block[..n]);
-            self.acked = true;
         }
     }
 
@@ -153,12 +150,10 @@ impl Link {
         }
     }
 
-    /// Call after a received block was dispatched: flushes responses, or sends an empty ack
-    /// block if none carried the new sequence yet.
+    /// Call after a received block was dispatched: flushes responses, then sends the empty
+    /// ack block.
     pub fn ack<B: Board>(&mut self, board: &mut B) {
         self.flush(board);
-        if !self.acked {
-            self.write_block(&[], board);
-        }
+        self.write_block(&[], board);
     }
 }
