@@ -218,7 +218,7 @@ fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: Fil
             return Err("--time-scale only applies to the simulated printer".to_string());
         }
         Box::new(
-            SerialTransport::open(Path::new(&mcu_cfg.serial), mcu_cfg.baud)
+            SerialTransport::open(&mcu_cfg.serial, mcu_cfg.baud)
                 .map_err(|e| format!("mcu '{}': {}: {e}", mcu_cfg.name, mcu_cfg.serial))?,
         )
     };
@@ -267,15 +267,21 @@ impl Summary {
             let flag = if mcu_pos == host_pos { "" } else { "  MISMATCH" };
             println!("  {name:<10} {steps:>10} {mcu_pos:>12} {host_pos:>12} {mm:>12.4}{flag}");
         }
-        let margin_ms = stats.min_lead_ticks as f64 / self.clock_freq * 1e3;
+        let margin_ms = stats.min_lead_margin_ticks.unwrap_or(0) as f64 / self.clock_freq * 1e3;
         println!(
             "  min lead margin {margin_ms:.1} ms over {} clocked messages (required {:.0} ms)",
-            stats.clocked_messages,
+            stats.clocked_msgs,
             MIN_LEAD_S * 1e3
         );
+        let q = &stats.queue;
         println!(
-            "  link: {} bytes written, {} read, {} retransmitted, {} invalid",
-            stats.bytes_write, stats.bytes_read, stats.bytes_retransmit, stats.bytes_invalid
+            "  link: {} bytes written, {} read, {} retransmitted, {} invalid; srtt {:.3} ms, clock residual {:.1} us",
+            q.bytes_write,
+            q.bytes_read,
+            q.bytes_retransmit,
+            q.bytes_invalid,
+            q.srtt * 1e3,
+            stats.clock_residual_us
         );
     }
 }
@@ -388,13 +394,14 @@ fn print_on_link(
     if let Some((name, _, m, h, _)) = rows.iter().find(|r| r.2 != r.3) {
         return Err(format!("{name}: the MCU reports position {m} steps but the host sent {h}"));
     }
-    let link_stats = link.stats();
-    if link_stats.clocked_messages > 0 && (link_stats.min_lead_ticks as f64) < MIN_LEAD_S * clock_freq {
-        return Err(format!(
-            "a step command reached the MCU with only {:.1} ms lead (at least {:.0} ms required)",
-            link_stats.min_lead_ticks as f64 / clock_freq * 1e3,
-            MIN_LEAD_S * 1e3
-        ));
+    if let Some(margin) = link.stats().min_lead_margin_ticks {
+        if (margin as f64) < MIN_LEAD_S * clock_freq {
+            return Err(format!(
+                "a step command reached the MCU with only {:.1} ms lead (at least {:.0} ms required)",
+                margin as f64 / clock_freq * 1e3,
+                MIN_LEAD_S * 1e3
+            ));
+        }
     }
     Ok(Summary {
         file: args.file.clone(),

@@ -151,5 +151,7 @@ fn benchy_full() {
 #[ignore]
 fn exh_stats() {
     let r = run(Some(20000), false).unwrap();
-    println!("{r:?}");
+    #[allow(unsafe_code, static_mut_refs)]
+    let s = unsafe { planner::compress::STATS };
+    println!("{r:?} {s:?}");
 }
