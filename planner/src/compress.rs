@@ -17,7 +17,6 @@
 //! Commands never go back in time (every interval ≥ 0) and a `reset_step_clock` precedes the
 //! first step and any step more than 2^29 ticks after the previous one.
 
-#![allow(unsafe_code, static_mut_refs)]
 use std::collections::VecDeque;
 
 use crate::kinematics::StepperKin;
@@ -203,16 +202,7 @@ impl StepCompressor {
         }
         let run_end = self.dir_run_end.min(self.head + MAX_COUNT);
         let run = &self.pending[self.head..run_end];
-        let mut fit = best_fit(run, self.last_clock, self.max_err as i64, self.last_add);
-        if std::env::var_os("EXH").is_some() {
-            let ex = exhaustive(run, self.last_clock, self.max_err as i64, fit);
-            unsafe { STATS[0] += 1; if ex.count > fit.count { STATS[1] += 1; STATS[2] += (ex.count - fit.count) as u64; } }
-            if std::env::var_os("EXHUSE").is_some() { fit = ex; }
-        }
-        if std::env::var_os("LA").is_some() && run.len() > fit.count {
-            fit = two_step(run, self.last_clock, self.max_err as i64, fit);
-        }
-        if run.len() == fit.count { unsafe { STATS[3] += 1; if run_end == self.pending.len() { STATS[2] += 1; } } }
+        let fit = best_fit(run, self.last_clock, self.max_err as i64, self.last_add);
         let count = fit.count as u64;
         let interval = fit.interval as u64;
         let first_clock = self.last_clock + interval;
@@ -227,7 +217,6 @@ impl StepCompressor {
         });
         self.last_clock = last_clock;
         self.last_add = fit.add;
-        unsafe { PREV_COUNT = fit.count; }
         self.head += fit.count;
         self.step_count += count;
         self.queue_steps += 1;
@@ -251,71 +240,6 @@ fn queue_step_time(
     if record {
         ideal.push_back(IdealStep { clock, dir });
     }
-}
-
-fn range_for(steps: &[Pending], last: u64, add: i64) -> Option<(i64, i64)> {
-    const MAX: i64 = MAX_INTERVAL as i64;
-    let last = last as i64;
-    let mut lo_i: i64 = 0;
-    let mut hi_i: i64 = MAX;
-    let mut add_sum: i64 = 0;
-    for (k0, st) in steps.iter().enumerate() {
-        let k0 = k0 as i64;
-        let k = k0 + 1;
-        add_sum += k0 * add;
-        let l = st.lo as i64 - last - add_sum;
-        let u = st.hi as i64 - last - add_sum;
-        lo_i = lo_i.max(div_ceil(l, k)).max(-k0 * add);
-        hi_i = hi_i.min(div_floor(u, k)).min(MAX - k0 * add);
-    }
-    (lo_i <= hi_i).then_some((lo_i, hi_i))
-}
-
-fn two_step(run: &[Pending], last: u64, max_err: i64, fit: Fit) -> Fit {
-    let kback: usize = std::env::var("LAK").ok().and_then(|v| v.parse().ok()).unwrap_or(0);
-    let mut best = fit;
-    let mut best_total = 0;
-    for c in (fit.count.saturating_sub(kback).max(1)..=fit.count).rev() {
-    let rest = &run[c..];
-    let w: i64 = std::env::var("LAW").ok().and_then(|v| v.parse().ok()).unwrap_or(2);
-    let ni: i64 = std::env::var("LAI").ok().and_then(|v| v.parse().ok()).unwrap_or(8);
-    for a in fit.add - w..=fit.add + w {
-        if a < i16::MIN as i64 || a > i16::MAX as i64 { continue; }
-        let Some((lo, hi)) = range_for(&run[..c], last, a) else { continue };
-        let n = ni.min(hi - lo + 1);
-        for j in 0..n {
-            let i = if n == 1 { hi } else { hi - (hi - lo) * j / (n - 1) };
-            let t = (c * (c - 1) / 2) as i64;
-            let end = (last as i64 + c as i64 * i + t * a) as u64;
-            let nf = best_fit(rest, end, max_err, a);
-            if nf.count + c > best_total {
-                best_total = nf.count + c;
-                best = Fit { interval: i, count: c, add: a };
-            }
-        }
-    }
-    }
-    best
-}
-
-pub static mut PREV_COUNT: usize = 0;
-pub static mut STATS: [u64; 4] = [0; 4];
-#[allow(unsafe_code)]
-fn exhaustive(steps: &[Pending], last: u64, _max_err: i64, f: Fit) -> Fit {
-    let mut best = f;
-    if steps.len() < 2 { return best; }
-    let l = |i: usize| steps[i].lo as i64 - last as i64;
-    let u = |i: usize| steps[i].hi as i64 - last as i64;
-    let (l1, u1) = (l(0).max(0), u(0).min(MAX_INTERVAL as i64));
-    let amin = (l(1) - 2 * u1).max(i16::MIN as i64);
-    let amax = (u(1) - 2 * l1).min(i16::MAX as i64);
-    let mut a = amin;
-    while a <= amax {
-        let (count, interval, _) = run_with_add(steps, last, a);
-        if count > best.count { best = Fit { interval, count, add: a }; }
-        a += 1;
-    }
-    best
 }
 
 /// One command's parameters.
@@ -422,18 +346,9 @@ fn best_fit(steps: &[Pending], last: u64, max_err: i64, guess_add: i64) -> Fit {
         return single();
     }
     let mut add = guess_add.clamp(amin, amax);
-    if std::env::var_os("CURV").is_some() {
-        let m = (unsafe { PREV_COUNT } / 2).min((steps.len() - 1) / 2);
-        if m >= 2 {
-            let mid = |i: usize| (steps[i].lo + steps[i].hi) as f64 * 0.5;
-            let a = (mid(2 * m - 1) - 2.0 * mid(m - 1) + last as f64) / (m * m) as f64;
-            add = (a.round() as i64).clamp(amin, amax);
-        }
-    }
     let mut best = Fit { interval: 0, count: 0, add: 0 };
     for _ in 0..MAX_TRIALS {
         let (count, interval, bend) = run_with_add(steps, last, add);
-        unsafe { STATS[0] += 1; STATS[1] += count as u64 + 1; }
         if count > best.count || (count == best.count && add.abs() < best.add.abs()) {
             best = Fit { interval, count, add };
         }

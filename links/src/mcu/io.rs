@@ -206,6 +206,10 @@ impl IoThread {
         if let Some(since) = self.sq.ack_wait_since() {
             let limit = self.tuning.no_ack_timeout.as_secs_f64();
             if now - since > limit {
+                // Silence from the very start is best described as an unanswered identify.
+                if matches!(self.phase, Phase::Identify { answered: false, .. }) {
+                    return Err(Death::IdentifyTimeout(self.identify_timeout));
+                }
                 return Err(Death::NoAck(limit));
             }
         }

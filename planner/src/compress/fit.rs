@@ -1,0 +1,239 @@
+//! Fitting one `queue_step` command to a run of step windows.
+//!
+//! Step k (1-based) of a command (interval I, add A) from the MCU's `last_clock` L lands at
+//! p_k = L + k·I + A·T_k with T_k = k(k−1)/2; its window is [lo_k, hi_k]. For a fixed integer A
+//! every window bounds I: ⌈(lo_k − L − A·T_k)/k⌉ ≤ I ≤ ⌊(hi_k − L − A·T_k)/k⌋, and each
+//! interval I + (k−1)·A must stay in [0, 2^29]. Intersecting these step by step gives the
+//! longest run for that A in one pass ([`run_with_add`]). When the intersection empties at step
+//! m, step m's window lies above the reachable range (a larger A moves late steps later) or below
+//! it (a smaller A).
+//!
+//! [`best_fit`] searches A: it starts at a guess (the previous command's A), then bisects with
+//! that direction, also bounded by how far apart the A of two valid sequences can be: two
+//! sequences valid on r steps differ by d_k = k·ΔI + T_k·ΔA with |d_k| ≤ max_error, and
+//! d_2h − 2·d_h = ΔA·h², so |ΔA| ≤ 3·max_error / h² with h = ⌊r/2⌋. Among the commands with
+//! the most steps it then takes the one whose last step is latest: for a fixed count c the last
+//! step c·I_max(A) + T_c·A never decreases with A (I_max(A) falls by at most (k−1)/2 ≤ (c−1)/2
+//! per unit of A), so that is the largest A still reaching c steps, found by binary search. A
+//! late end leaves the next command the most room (measured: 0.5 % fewer commands).
+
+/// A generated step waiting for compression: its clock window and direction.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct StepWindow {
+    pub lo: u64,
+    pub hi: u64,
+    pub dir: bool,
+}
+
+/// One command's parameters (interval is the largest feasible for that count and add).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Fit {
+    pub interval: i64,
+    pub count: usize,
+    pub add: i64,
+}
+
+impl Fit {
+    /// Clock of the command's last step when it starts from `last`.
+    #[inline]
+    pub fn end(&self, last: u64) -> u64 {
+        let c = self.count as i64;
+        (last as i64 + c * self.interval + c * (c - 1) / 2 * self.add) as u64
+    }
+}
+
+/// Which way `add` should move to extend a run that failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Bend {
+    /// The run covered every step given.
+    None,
+    Up,
+    Down,
+}
+
+const MAX_IV: i64 = super::MAX_INTERVAL as i64;
+/// Most values of `add` tried per command while looking for the longest run.
+const MAX_TRIALS: usize = 24;
+
+/// The longest run of `steps` from `last` with this `add`: (count, largest interval for that
+/// count, which way add should move to go further).
+#[inline]
+pub(crate) fn run_with_add(steps: &[StepWindow], last: u64, add: i64) -> (usize, i64, Bend) {
+    let last = last as i64;
+    let mut lo_i: i64 = 0;
+    let mut hi_i: i64 = MAX_IV;
+    let mut add_sum: i64 = 0; // add · T_k
+    for (k0, st) in steps.iter().enumerate() {
+        let k0 = k0 as i64; // steps before this one
+        let k = k0 + 1;
+        add_sum += k0 * add;
+        let l = st.lo as i64 - last - add_sum;
+        let u = st.hi as i64 - last - add_sum;
+        let mut nlo = lo_i;
+        let mut nhi = hi_i;
+        if k * nlo < l {
+            nlo = div_ceil(l, k);
+        }
+        if k * nhi > u {
+            nhi = div_floor(u, k);
+        }
+        // This step's interval, I + k0·add, must stay in [0, MAX_INTERVAL].
+        let ka = k0 * add;
+        nlo = nlo.max(-ka);
+        nhi = nhi.min(MAX_IV - ka);
+        if nlo > nhi {
+            let bend = if nlo > hi_i {
+                Bend::Up
+            } else if nhi < lo_i || nlo + nhi < lo_i + hi_i {
+                Bend::Down
+            } else {
+                Bend::Up
+            };
+            return (k0 as usize, hi_i, bend);
+        }
+        lo_i = nlo;
+        hi_i = nhi;
+    }
+    (steps.len(), hi_i, Bend::None)
+}
+
+#[inline]
+fn div_floor(a: i64, b: i64) -> i64 {
+    let q = a / b;
+    if a % b != 0 && a < 0 {
+        q - 1
+    } else {
+        q
+    }
+}
+
+#[inline]
+fn div_ceil(a: i64, b: i64) -> i64 {
+    let q = a / b;
+    if a % b != 0 && a > 0 {
+        q + 1
+    } else {
+        q
+    }
+}
+
+/// Largest |ΔA| between two sequences both valid on `count` steps.
+#[inline]
+fn add_deviation(count: usize, max_err: i64) -> i64 {
+    let h = (count / 2) as i64;
+    if h == 0 {
+        i64::MAX / 4
+    } else {
+        3 * max_err / (h * h)
+    }
+}
+
+/// The command covering the most of `steps` (one direction, non-empty) from `last`, ending as
+/// late as possible.
+pub(crate) fn best_fit(steps: &[StepWindow], last: u64, max_err: i64, guess_add: i64) -> Fit {
+    let single = || {
+        let (_, interval, _) = run_with_add(&steps[..1], last, 0);
+        Fit { interval, count: 1, add: 0 }
+    };
+    if steps.len() < 2 {
+        return single();
+    }
+    // From the first two steps: I ∈ [l1, u1] and 2I + A ∈ [l2, u2].
+    let l = |i: usize| steps[i].lo as i64 - last as i64;
+    let u = |i: usize| steps[i].hi as i64 - last as i64;
+    let (l1, u1) = (l(0).max(0), u(0).min(MAX_IV));
+    let mut amin = (l(1) - 2 * u1).max(i16::MIN as i64);
+    let mut amax = (u(1) - 2 * l1).min(i16::MAX as i64);
+    if amin > amax {
+        return single();
+    }
+    let mut add = guess_add.clamp(amin, amax);
+    let mut best = Fit { interval: 0, count: 0, add: 0 };
+    for _ in 0..MAX_TRIALS {
+        let (count, interval, bend) = run_with_add(steps, last, add);
+        if count > best.count || (count == best.count && add > best.add) {
+            best = Fit { interval, count, add };
+        }
+        if bend == Bend::None {
+            break;
+        }
+        if count >= 2 {
+            let dev = add_deviation(count, max_err);
+            amin = amin.max(add - dev);
+            amax = amax.min(add + dev);
+        }
+        if bend == Bend::Up {
+            amin = amin.max(add + 1);
+        } else {
+            amax = amax.min(add - 1);
+        }
+        if amin > amax {
+            break;
+        }
+        add = amin + (amax - amin) / 2;
+    }
+    if best.count < 2 {
+        return single();
+    }
+    // Latest end for that count: the largest add still reaching it.
+    let c = best.count;
+    let (mut lo, mut hi) = (best.add, (best.add + add_deviation(c, max_err)).min(i16::MAX as i64));
+    while lo < hi {
+        let mid = lo + (hi - lo + 1) / 2;
+        let (count, interval, _) = run_with_add(&steps[..c], last, mid);
+        if count == c {
+            lo = mid;
+            best = Fit { interval, count, add: mid };
+        } else {
+            hi = mid - 1;
+        }
+    }
+    best
+}
+
+/// The fit of exactly the first `count` steps with `add` (which must reach them), largest
+/// interval.
+pub(crate) fn fit_prefix(steps: &[StepWindow], last: u64, count: usize, add: i64) -> Option<Fit> {
+    let (c, interval, _) = run_with_add(steps.get(..count)?, last, add);
+    (c == count && count > 0).then_some(Fit { interval, count, add })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn windows(clocks: &[u64], err: u64) -> Vec<StepWindow> {
+        clocks.iter().map(|&c| StepWindow { lo: c - err, hi: c, dir: true }).collect()
+    }
+
+    #[test]
+    fn exact_quadratic_is_found_in_full() {
+        // p_k = 1000 + 300k + 7·k(k−1)/2
+        let clocks: Vec<u64> = (1..=200u64).map(|k| 1000 + 300 * k + 7 * k * (k - 1) / 2).collect();
+        let f = best_fit(&windows(&clocks, 0), 1000, 0, 0);
+        assert_eq!(f, Fit { interval: 300, count: 200, add: 7 });
+        assert_eq!(f.end(1000), *clocks.last().unwrap());
+    }
+
+    #[test]
+    fn run_reports_the_bend() {
+        let clocks: Vec<u64> = (1..=50u64).map(|k| 100 * k + 5 * k * k).collect();
+        let w = windows(&clocks, 2);
+        let (n, _, bend) = run_with_add(&w, 0, 0);
+        assert!(n < 50);
+        assert_eq!(bend, Bend::Up);
+        let (n, _, bend) = run_with_add(&w, 0, 40);
+        assert!(n < 50);
+        assert_eq!(bend, Bend::Down);
+    }
+
+    #[test]
+    fn division_helpers_round_correctly() {
+        assert_eq!(div_floor(-7, 2), -4);
+        assert_eq!(div_floor(7, 2), 3);
+        assert_eq!(div_ceil(-7, 2), -3);
+        assert_eq!(div_ceil(7, 2), 4);
+        assert_eq!(div_ceil(6, 3), 2);
+        assert_eq!(div_floor(-6, 3), -2);
+    }
+}
