@@ -43,7 +43,10 @@ impl Machine {
         for (axis, axis_name) in ["x", "y", "z"].iter().enumerate() {
             let name = format!("stepper_{axis_name}");
             let s = cfg.steppers.iter().find(|s| s.name == name).ok_or_else(|| {
-                format!("{}: section [{name}] is required for cartesian kinematics", cfg.source.display())
+                format!(
+                    "{}: section [{name}] is required for cartesian kinematics",
+                    cfg.source.display()
+                )
             })?;
             limits[axis] = (s.position_min, s.position_max);
             home[axis] = s.position_endstop.unwrap_or(s.position_min);
@@ -95,17 +98,25 @@ impl Machine {
                 }
             }
         }
-        Ok(Machine { steppers, toolhead, home_position: home })
+        Ok(Machine {
+            steppers,
+            toolhead,
+            home_position: home,
+        })
     }
 
     /// The planner configuration for MCU clocks at `clock_freq` ticks per print second.
     pub fn pipeline_config(&self, clock_freq: f64, max_error_s: f64) -> PipelineConfig {
         PipelineConfig {
-            toolhead: self.toolhead.clone(),
+            toolhead: self.toolhead,
             steppers: self
                 .steppers
                 .iter()
-                .map(|s| StepperSpec { name: s.name.clone(), axis: s.axis, step_dist: s.step_dist })
+                .map(|s| StepperSpec {
+                    name: s.name.clone(),
+                    axis: s.axis,
+                    step_dist: s.step_dist,
+                })
                 .collect(),
             clock_freq,
             max_error_s,

@@ -17,7 +17,11 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(Debug, Parser)]
-#[command(name = "cadence", version, about = "Deterministic real-time motion kernel for Klipper-protocol MCUs")]
+#[command(
+    name = "cadence",
+    version,
+    about = "Deterministic real-time motion kernel for Klipper-protocol MCUs"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Cmd,

@@ -54,7 +54,10 @@ const MAX_TIME_SCALE: f64 = 50.0;
 
 pub fn run(args: &PrintArgs) -> Result<(), String> {
     if !(args.max_error_us > 0.0 && args.max_error_us <= 1000.0) {
-        return Err(format!("--max-error-us {}: must be in (0, 1000]", args.max_error_us));
+        return Err(format!(
+            "--max-error-us {}: must be in (0, 1000]",
+            args.max_error_us
+        ));
     }
     if let Some(scale) = args.time_scale {
         if !(scale > 0.0 && scale <= MAX_TIME_SCALE) {
@@ -98,14 +101,27 @@ impl Warnings {
 fn config_commands(dict: &Dictionary, machine: &Machine) -> Result<Vec<Cmd>, String> {
     let mut cmds = Vec::new();
     let err = |e: links::dict::DictError| e.to_string();
-    cmds.push(dict.encode("allocate_oids", &[machine.steppers.len() as i64]).map_err(err)?);
+    cmds.push(
+        dict.encode("allocate_oids", &[machine.steppers.len() as i64])
+            .map_err(err)?,
+    );
     for s in &machine.steppers {
-        let step_pin = dict.pin(&s.step_pin.pin).map_err(|e| format!("[{}] step_pin: {e}", s.name))?;
-        let dir_pin = dict.pin(&s.dir_pin.pin).map_err(|e| format!("[{}] dir_pin: {e}", s.name))?;
+        let step_pin = dict
+            .pin(&s.step_pin.pin)
+            .map_err(|e| format!("[{}] step_pin: {e}", s.name))?;
+        let dir_pin = dict
+            .pin(&s.dir_pin.pin)
+            .map_err(|e| format!("[{}] dir_pin: {e}", s.name))?;
         cmds.push(
             dict.encode(
                 "config_stepper",
-                &[s.oid as i64, step_pin as i64, dir_pin as i64, s.step_pin.invert as i64, 0],
+                &[
+                    s.oid as i64,
+                    step_pin as i64,
+                    dir_pin as i64,
+                    s.step_pin.invert as i64,
+                    0,
+                ],
             )
             .map_err(err)?,
         );
@@ -114,7 +130,10 @@ fn config_commands(dict: &Dictionary, machine: &Machine) -> Result<Vec<Cmd>, Str
     for c in &cmds {
         crc.update(c.as_bytes());
     }
-    cmds.push(dict.encode("finalize_config", &[crc.finalize() as i64]).map_err(err)?);
+    cmds.push(
+        dict.encode("finalize_config", &[crc.finalize() as i64])
+            .map_err(err)?,
+    );
     Ok(cmds)
 }
 
@@ -133,9 +152,11 @@ fn plan_file(
     for line in GcodeReader::new(BufReader::with_capacity(1 << 16, gcode)) {
         let line = line.map_err(|e| format!("{}: {e}", args.file.display()))?;
         lines += 1;
-        match pipeline.apply(&line).map_err(|e| format!("{}: {e}", args.file.display()))? {
-            Applied::Unsupported(name) => warnings.unsupported(&args.file, line.line_no, &name),
-            _ => {}
+        let applied = pipeline
+            .apply(&line)
+            .map_err(|e| format!("{}: {e}", args.file.display()))?;
+        if let Applied::Unsupported(name) = applied {
+            warnings.unsupported(&args.file, line.line_no, &name);
         }
         pipeline.generate(&mut out);
         if !out.is_empty() {
@@ -149,7 +170,13 @@ fn plan_file(
     Ok(lines)
 }
 
-fn run_batch(args: &PrintArgs, _cfg: &PrinterConfig, machine: &Machine, gcode: File, out: &Path) -> Result<(), String> {
+fn run_batch(
+    args: &PrintArgs,
+    _cfg: &PrinterConfig,
+    machine: &Machine,
+    gcode: File,
+    out: &Path,
+) -> Result<(), String> {
     let started = Instant::now();
     let dict = match &args.dictionary {
         Some(p) => {
@@ -167,8 +194,11 @@ fn run_batch(args: &PrintArgs, _cfg: &PrinterConfig, machine: &Machine, gcode: F
     }
     let move_count = 16384;
     let mut streamer = StepStreamer::new(&machine.steppers, move_count)?;
-    let mut pipeline = Pipeline::new(machine.pipeline_config(clock_freq, args.max_error_us * 1e-6), 0.25)
-        .map_err(|e| e.to_string())?;
+    let mut pipeline = Pipeline::new(
+        machine.pipeline_config(clock_freq, args.max_error_us * 1e-6),
+        0.25,
+    )
+    .map_err(|e| e.to_string())?;
     let lines = plan_file(
         args,
         &mut pipeline,
@@ -184,7 +214,11 @@ fn run_batch(args: &PrintArgs, _cfg: &PrinterConfig, machine: &Machine, gcode: F
     sink.finish()?;
     let stats = pipeline.stats();
     println!("batch: {} -> {}", args.file.display(), out.display());
-    println!("  lines {lines}, moves {}, print time {:.3} s", stats.moves, pipeline.planned_until());
+    println!(
+        "  lines {lines}, moves {}, print time {:.3} s",
+        stats.moves,
+        pipeline.planned_until()
+    );
     for (s, n) in machine.steppers.iter().zip(streamer.steps_sent()) {
         println!("  {:<10} {n} steps", s.name);
     }
@@ -200,7 +234,10 @@ fn run_batch(args: &PrintArgs, _cfg: &PrinterConfig, machine: &Machine, gcode: F
 
 fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: File) -> Result<(), String> {
     let started = Instant::now();
-    let mcu_cfg = cfg.mcus.first().ok_or_else(|| "printer.cfg has no [mcu] section".to_string())?;
+    let mcu_cfg = cfg
+        .mcus
+        .first()
+        .ok_or_else(|| "printer.cfg has no [mcu] section".to_string())?;
     let mut sim = None;
     let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
     let transport: Box<dyn Transport> = if mcu_cfg.serial == "simulator" {
@@ -210,7 +247,8 @@ fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: Fil
             trace: args.trace.clone(),
         };
         let s = SimMcu::spawn(&mcu_cfg.name, &opts)?;
-        let t = PtyTransport::open(&s.pty).map_err(|e| format!("mcu '{}': {}: {e}", mcu_cfg.name, s.pty.display()))?;
+        let t = PtyTransport::open(&s.pty)
+            .map_err(|e| format!("mcu '{}': {}: {e}", mcu_cfg.name, s.pty.display()))?;
         sim = Some(s);
         Box::new(t)
     } else {
@@ -262,7 +300,10 @@ impl Summary {
             "  lines {}, moves {}, queue_step {}, print time {:.3} s, wall {:.3} s",
             self.lines, self.moves, self.queue_steps, self.print_time, self.wall
         );
-        println!("  {:<10} {:>10} {:>12} {:>12} {:>12}", "stepper", "steps", "mcu pos", "host pos", "position mm");
+        println!(
+            "  {:<10} {:>10} {:>12} {:>12} {:>12}",
+            "stepper", "steps", "mcu pos", "host pos", "position mm"
+        );
         for (name, steps, mcu_pos, host_pos, mm) in &self.rows {
             let flag = if mcu_pos == host_pos { "" } else { "  MISMATCH" };
             println!("  {name:<10} {steps:>10} {mcu_pos:>12} {host_pos:>12} {mm:>12.4}{flag}");
@@ -297,7 +338,12 @@ fn print_on_link(
     let dict = link.dictionary();
     let clock_freq = dict.clock_freq().map_err(|e| e.to_string())?;
     let cfg_reply = link
-        .query(dict.encode("get_config", &[]).map_err(|e| e.to_string())?, "config", None, Duration::from_secs(2))
+        .query(
+            dict.encode("get_config", &[]).map_err(|e| e.to_string())?,
+            "config",
+            None,
+            Duration::from_secs(2),
+        )
         .map_err(|e| e.to_string())?;
     if cfg_reply.get("is_config") == Some(1) {
         return Err("the MCU is already configured: restart it before printing".to_string());
@@ -306,14 +352,21 @@ fn print_on_link(
         link.send(c).map_err(|e| e.to_string())?;
     }
     let cfg_reply = link
-        .query(dict.encode("get_config", &[]).map_err(|e| e.to_string())?, "config", None, Duration::from_secs(2))
+        .query(
+            dict.encode("get_config", &[]).map_err(|e| e.to_string())?,
+            "config",
+            None,
+            Duration::from_secs(2),
+        )
         .map_err(|e| e.to_string())?;
     if cfg_reply.get("is_config") != Some(1) {
         return Err(format!("the MCU did not accept the configuration ({cfg_reply})"));
     }
     let move_count = cfg_reply.get("move_count").unwrap_or(0).max(0) as usize;
     if move_count < 64 {
-        return Err(format!("the MCU's move queue is too small ({move_count} entries)"));
+        return Err(format!(
+            "the MCU's move queue is too small ({move_count} entries)"
+        ));
     }
 
     let print_now = || link.clock().clock_at(McuLink::system_now()) / clock_freq;
@@ -324,8 +377,11 @@ fn print_on_link(
     let low_water = high_water / 2.0;
     let lead_ticks = (MIN_LEAD_S * clock_freq) as u64;
 
-    let mut pipeline = Pipeline::new(machine.pipeline_config(clock_freq, args.max_error_us * 1e-6), start)
-        .map_err(|e| e.to_string())?;
+    let mut pipeline = Pipeline::new(
+        machine.pipeline_config(clock_freq, args.max_error_us * 1e-6),
+        start,
+    )
+    .map_err(|e| e.to_string())?;
     let mut streamer = StepStreamer::new(&machine.steppers, move_count)?;
     let mut sink = LinkSink { link };
     let lines = plan_file(
@@ -367,7 +423,8 @@ fn print_on_link(
     let end_clock = streamer.last_step_clock;
     let wait_s = (end_clock as f64 / clock_freq - print_now()).max(0.0) / scale + 5.0;
     let deadline = Instant::now() + Duration::from_secs_f64(wait_s);
-    link.wait_idle(Duration::from_secs_f64(wait_s)).map_err(|e| e.to_string())?;
+    link.wait_idle(Duration::from_secs_f64(wait_s))
+        .map_err(|e| e.to_string())?;
     while print_now() * clock_freq < end_clock as f64 + 0.01 * clock_freq {
         check_link(link)?;
         if Instant::now() > deadline {
@@ -381,18 +438,33 @@ fn print_on_link(
     let commanded = pipeline.position();
     let mut rows = Vec::new();
     for (i, s) in machine.steppers.iter().enumerate() {
-        let q = dict.encode("stepper_get_position", &[s.oid as i64]).map_err(|e| e.to_string())?;
+        let q = dict
+            .encode("stepper_get_position", &[s.oid as i64])
+            .map_err(|e| e.to_string())?;
         let reply = link
-            .query(q, "stepper_position", Some(("oid", s.oid as i64)), Duration::from_secs(2))
+            .query(
+                q,
+                "stepper_position",
+                Some(("oid", s.oid as i64)),
+                Duration::from_secs(2),
+            )
             .map_err(|e| e.to_string())?;
         let raw = reply.get("pos").unwrap_or(0);
         let mcu_pos = if s.dir_pin.invert { -raw } else { raw };
         let host_pos = host_positions.get(i).copied().unwrap_or(0);
-        rows.push((s.name.clone(), streamer.steps_sent()[i], mcu_pos, host_pos, commanded[s.axis]));
+        rows.push((
+            s.name.clone(),
+            streamer.steps_sent()[i],
+            mcu_pos,
+            host_pos,
+            commanded[s.axis],
+        ));
     }
     let stats = pipeline.stats();
     if let Some((name, _, m, h, _)) = rows.iter().find(|r| r.2 != r.3) {
-        return Err(format!("{name}: the MCU reports position {m} steps but the host sent {h}"));
+        return Err(format!(
+            "{name}: the MCU reports position {m} steps but the host sent {h}"
+        ));
     }
     if let Some(margin) = link.stats().min_lead_margin_ticks {
         if (margin as f64) < MIN_LEAD_S * clock_freq {
@@ -431,6 +503,8 @@ impl Sink for LinkSink<'_> {
         self.link.send(cmd).map_err(|e| e.to_string())
     }
     fn send_clocked(&mut self, cmd: Cmd, min_clock: u64, req_clock: u64) -> Result<(), String> {
-        self.link.send_clocked(cmd, min_clock, req_clock).map_err(|e| e.to_string())
+        self.link
+            .send_clocked(cmd, min_clock, req_clock)
+            .map_err(|e| e.to_string())
     }
 }

@@ -18,7 +18,6 @@ const START_TIMEOUT: Duration = Duration::from_secs(10);
 /// A running simulated MCU.
 #[derive(Debug)]
 pub struct SimMcu {
-    pub name: String,
     pub pty: PathBuf,
     child: Child,
 }
@@ -33,14 +32,23 @@ pub struct SimOptions {
 
 fn mcu_command() -> Result<Command, String> {
     let exe = std::env::current_exe().map_err(|e| format!("cannot locate the running executable: {e}"))?;
-    let dirs: Vec<&Path> = exe.parent().into_iter().flat_map(|d| [Some(d), d.parent()]).flatten().collect();
+    let dirs: Vec<&Path> = exe
+        .parent()
+        .into_iter()
+        .flat_map(|d| [Some(d), d.parent()])
+        .flatten()
+        .collect();
     for dir in dirs {
         let candidate = dir.join("cadence-mcu");
         if candidate.is_file() {
             return Ok(Command::new(candidate));
         }
     }
-    let is_cadence = exe.file_name().and_then(|n| n.to_str()).map(|n| n == "cadence").unwrap_or(false);
+    let is_cadence = exe
+        .file_name()
+        .and_then(|n| n.to_str())
+        .map(|n| n == "cadence")
+        .unwrap_or(false);
     if is_cadence {
         let mut cmd = Command::new(exe);
         cmd.arg("mcu");
@@ -61,8 +69,12 @@ impl SimMcu {
         if let Some(trace) = &opts.trace {
             cmd.arg("--trace").arg(trace);
         }
-        cmd.stdin(Stdio::null()).stdout(Stdio::piped()).stderr(Stdio::inherit());
-        let mut child = cmd.spawn().map_err(|e| format!("mcu '{name}': cannot start the simulated MCU: {e}"))?;
+        cmd.stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit());
+        let mut child = cmd
+            .spawn()
+            .map_err(|e| format!("mcu '{name}': cannot start the simulated MCU: {e}"))?;
         let Some(stdout) = child.stdout.take() else {
             let _ = child.kill();
             return Err(format!("mcu '{name}': simulated MCU has no stdout"));
@@ -87,7 +99,9 @@ impl SimMcu {
             Ok(Err(e)) => {
                 let _ = child.kill();
                 let _ = child.wait();
-                return Err(format!("mcu '{name}': reading the simulated MCU's output failed: {e}"));
+                return Err(format!(
+                    "mcu '{name}': reading the simulated MCU's output failed: {e}"
+                ));
             }
             Err(_) => {
                 let _ = child.kill();
@@ -104,10 +118,16 @@ impl SimMcu {
             let _ = child.wait();
             return Err(match status {
                 Some(s) => format!("mcu '{name}': the simulated MCU exited ({s}) before opening its pty"),
-                None => format!("mcu '{name}': unexpected output from the simulated MCU: {:?}", line.trim()),
+                None => format!(
+                    "mcu '{name}': unexpected output from the simulated MCU: {:?}",
+                    line.trim()
+                ),
             });
         };
-        Ok(SimMcu { name: name.to_string(), pty: PathBuf::from(path), child })
+        Ok(SimMcu {
+            pty: PathBuf::from(path),
+            child,
+        })
     }
 
     /// Waits (bounded) for the MCU process to exit after the host closed its pty; kills it
@@ -117,7 +137,9 @@ impl SimMcu {
         loop {
             match self.child.try_wait() {
                 Ok(Some(status)) => return format!("exited ({status})"),
-                Ok(None) if std::time::Instant::now() < deadline => std::thread::sleep(Duration::from_millis(10)),
+                Ok(None) if std::time::Instant::now() < deadline => {
+                    std::thread::sleep(Duration::from_millis(10))
+                }
                 _ => {
                     let _ = self.child.kill();
                     let _ = self.child.wait();
@@ -125,11 +147,6 @@ impl SimMcu {
                 }
             }
         }
-    }
-
-    /// True while the MCU process is running.
-    pub fn is_running(&mut self) -> bool {
-        matches!(self.child.try_wait(), Ok(None))
     }
 }
 

@@ -71,7 +71,11 @@ impl StepStreamer {
             ring_pos: 0,
             queue_steps: 0,
             last_step_clock: 0,
-            ids: Ids { queue_step: "queue_step", set_dir: "set_next_step_dir", reset: "reset_step_clock" },
+            ids: Ids {
+                queue_step: "queue_step",
+                set_dir: "set_next_step_dir",
+                reset: "reset_step_clock",
+            },
         })
     }
 
@@ -86,9 +90,17 @@ impl StepStreamer {
     }
 
     /// Encodes and sends one planner command for stepper `idx`.
-    pub fn push(&mut self, dict: &Dictionary, idx: usize, cmd: StepCmd, sink: &mut dyn Sink) -> Result<(), String> {
+    pub fn push(
+        &mut self,
+        dict: &Dictionary,
+        idx: usize,
+        cmd: StepCmd,
+        sink: &mut dyn Sink,
+    ) -> Result<(), String> {
         let Some(stepper) = self.steppers.get(idx) else {
-            return Err(format!("internal error: step command for unknown stepper index {idx}"));
+            return Err(format!(
+                "internal error: step command for unknown stepper index {idx}"
+            ));
         };
         let oid = stepper.oid as i64;
         let invert = stepper.dir_pin.invert;
@@ -96,7 +108,13 @@ impl StepStreamer {
         match cmd {
             StepCmd::SetDir { dir } => st.pending_dir = Some(dir != invert),
             StepCmd::ResetClock { clock } => st.pending_reset = Some(clock),
-            StepCmd::QueueStep { interval, count, add, first_clock, last_clock } => {
+            StepCmd::QueueStep {
+                interval,
+                count,
+                add,
+                first_clock,
+                last_clock,
+            } => {
                 // Move-pool slot: free once the queue_step `pool` places back has started.
                 let slot_clock = self.ring[self.ring_pos];
                 let mut min_clock = st.min_clock.max(slot_clock);
@@ -104,15 +122,22 @@ impl StepStreamer {
                     // The stepper must be idle when the reset arrives.
                     min_clock = min_clock.max(st.last_clock + 1);
                     st.min_clock = min_clock;
-                    let m = dict.encode(self.ids.reset, &[oid, clock as u32 as i64]).map_err(|e| e.to_string())?;
+                    let m = dict
+                        .encode(self.ids.reset, &[oid, clock as u32 as i64])
+                        .map_err(|e| e.to_string())?;
                     sink.send_clocked(m, min_clock, first_clock)?;
                 }
                 if let Some(dir) = st.pending_dir.take() {
-                    let m = dict.encode(self.ids.set_dir, &[oid, dir as i64]).map_err(|e| e.to_string())?;
+                    let m = dict
+                        .encode(self.ids.set_dir, &[oid, dir as i64])
+                        .map_err(|e| e.to_string())?;
                     sink.send_clocked(m, min_clock, first_clock)?;
                 }
                 let m = dict
-                    .encode(self.ids.queue_step, &[oid, interval as i64, count as i64, add as i64])
+                    .encode(
+                        self.ids.queue_step,
+                        &[oid, interval as i64, count as i64, add as i64],
+                    )
                     .map_err(|e| e.to_string())?;
                 sink.send_clocked(m, min_clock, first_clock)?;
                 st.min_clock = min_clock;
@@ -141,7 +166,13 @@ pub struct BatchSink<W: std::io::Write> {
 
 impl<W: std::io::Write> BatchSink<W> {
     pub fn new(out: W) -> Self {
-        BatchSink { out, seq: 0, payload: Vec::with_capacity(64), bytes: 0, blocks: 0 }
+        BatchSink {
+            out,
+            seq: 0,
+            payload: Vec::with_capacity(64),
+            bytes: 0,
+            blocks: 0,
+        }
     }
 
     fn push_msg(&mut self, cmd: &Cmd) -> Result<(), String> {
@@ -160,7 +191,9 @@ impl<W: std::io::Write> BatchSink<W> {
         let mut block = [0u8; links::proto::MESSAGE_MAX];
         let n = links::proto::encode_block(self.seq as u8, &self.payload, &mut block)
             .ok_or_else(|| "internal error: message too long for a block".to_string())?;
-        self.out.write_all(&block[..n]).map_err(|e| format!("writing the batch output: {e}"))?;
+        self.out
+            .write_all(&block[..n])
+            .map_err(|e| format!("writing the batch output: {e}"))?;
         self.seq += 1;
         self.bytes += n as u64;
         self.blocks += 1;
@@ -171,7 +204,9 @@ impl<W: std::io::Write> BatchSink<W> {
     /// Flushes the last block and the writer.
     pub fn finish(&mut self) -> Result<(), String> {
         self.flush_block()?;
-        self.out.flush().map_err(|e| format!("writing the batch output: {e}"))
+        self.out
+            .flush()
+            .map_err(|e| format!("writing the batch output: {e}"))
     }
 }
 

@@ -1,43 +1,32 @@
 //! Step compression: packs one stepper's ideal step times into `queue_step` commands.
 //!
-//! Each step i has a window of MCU clocks [lo_i, hi_i] = [⌈ideal − max_error⌉, ⌊ideal⌋] it must
-//! land in. From the MCU's `last_clock` L, a command (interval I, count n, add A) puts its k-th
-//! step at p_k = L + k·I + A·k(k−1)/2. For a fixed integer A every window constrains I to an
-//! interval, ⌈(lo_k − L − A·T_k)/k⌉ ≤ I ≤ ⌊(hi_k − L − A·T_k)/k⌋ with T_k = k(k−1)/2, so the
-//! longest run for that A is found in one pass by intersecting them (plus 0 ≤ each interval ≤
-//! 2^29). When the intersection empties at step m, step m's window lies above the reachable
-//! range (a larger A bends the sequence up) or below it (a smaller A).
+//! Each step has a window of MCU clocks [⌈ideal − max_error⌉, ⌊ideal⌋] it must land in.
+//! Commands are chosen greedily from the oldest pending step ([`fit`] finds the command covering
+//! the most steps, ending as late as possible), with a one-command lookahead: ending the command
+//! one or two steps earlier moves the anchor of the next command, and is chosen when the two
+//! commands together then cover more steps (measured on the benchy: 0.4 % fewer commands).
+//! The next command computed by the lookahead is kept and reused.
 //!
-//! The search over A starts at the previous command's A, then bisects using that direction and
-//! a bound on how far apart the A of two valid sequences can be: two sequences valid for r steps
-//! differ by d_k = k·ΔI + T_k·ΔA with |d_k| ≤ max_error, and d_2h − 2·d_h = ΔA·h², so
-//! |ΔA| ≤ 3·max_error / h² with h = ⌊r/2⌋. The command with the most steps wins (ties: the
-//! smaller |A|); its I is the largest feasible (steps as close to their ideal time as allowed).
-//!
-//! Commands never go back in time (every interval ≥ 0) and a `reset_step_clock` precedes the
-//! first step and any step more than 2^29 ticks after the previous one.
+//! Commands never go back in time (every interval ≥ 0); a `reset_step_clock` precedes the first
+//! step and any step more than 2^29 ticks after the previous one; `set_next_step_dir` precedes
+//! the first step and each direction change.
+
+mod fit;
 
 use std::collections::VecDeque;
 
 use crate::kinematics::StepperKin;
 use crate::stepgen::StepGen;
 use crate::toolhead::Move;
+use fit::{best_fit, fit_prefix, Fit, StepWindow};
 pub use crate::stepgen::{IdealStep, StepCmd};
 
 /// Largest interval sent (and largest gap without a `reset_step_clock`), in ticks.
 pub const MAX_INTERVAL: u64 = 1 << 29;
 /// Most steps in one `queue_step` (`count` is a u16).
 pub const MAX_COUNT: usize = 65535;
-/// Most values of `add` tried per command.
-const MAX_TRIALS: usize = 24;
-
-/// A generated step waiting for compression.
-#[derive(Debug, Clone, Copy)]
-struct Pending {
-    lo: u64,
-    hi: u64,
-    dir: bool,
-}
+/// How many steps earlier than the longest fit the lookahead tries to end a command.
+const LOOKAHEAD_BACKOFF: usize = 2;
 
 /// The step generator and compressor of one stepper.
 #[derive(Debug)]
@@ -45,7 +34,7 @@ pub struct StepCompressor {
     gen: StepGen,
     step_dist: f64,
     max_err: u64,
-    pending: Vec<Pending>,
+    pending: Vec<StepWindow>,
     head: usize,
     /// All of pending[head..dir_run_end] share pending[head].dir.
     dir_run_end: usize,
@@ -60,6 +49,17 @@ pub struct StepCompressor {
     ideal: VecDeque<IdealStep>,
     /// Ideal clock of the last step queued (steps are kept in time order).
     last_ideal: f64,
+    /// The next command as the lookahead computed it, valid while nothing it depends on changed.
+    next: Option<NextFit>,
+}
+
+/// A command computed ahead: valid for this head index, MCU clock and run end.
+#[derive(Debug, Clone, Copy)]
+struct NextFit {
+    head: usize,
+    last_clock: u64,
+    run_end: usize,
+    fit: Fit,
 }
 
 impl StepCompressor {
@@ -83,6 +83,7 @@ impl StepCompressor {
             record_ideal: false,
             ideal: VecDeque::new(),
             last_ideal: 0.0,
+            next: None,
         }
     }
 
@@ -174,11 +175,45 @@ impl StepCompressor {
             self.pending.clear();
             self.head = 0;
             self.dir_run_end = 0;
+            self.next = None;
         } else if self.head > 4096 && self.head * 2 > self.pending.len() {
             self.pending.drain(..self.head);
             self.dir_run_end -= self.head;
             self.head = 0;
+            self.next = None;
         }
+    }
+
+    /// The command for the steps pending[head..run_end] (one direction), with the lookahead.
+    fn choose_fit(&mut self, run_end: usize) -> Fit {
+        let ahead = self.next.take();
+        let run = &self.pending[self.head..run_end];
+        let last = self.last_clock;
+        let max_err = self.max_err as i64;
+        let fit = match ahead {
+            Some(n) if n.head == self.head && n.last_clock == last && n.run_end == run_end => n.fit,
+            _ => best_fit(run, last, max_err, self.last_add),
+        };
+        if fit.count >= run.len() {
+            return fit;
+        }
+        let follow = |f: &Fit| best_fit(&run[f.count..], f.end(last), max_err, f.add);
+        let mut best = (fit, follow(&fit));
+        for back in 1..=LOOKAHEAD_BACKOFF.min(fit.count - 1) {
+            let Some(f) = fit_prefix(run, last, fit.count - back, fit.add) else { break };
+            let next = follow(&f);
+            if f.count + next.count > best.0.count + best.1.count {
+                best = (f, next);
+            }
+        }
+        let (chosen, next) = best;
+        self.next = Some(NextFit {
+            head: self.head + chosen.count,
+            last_clock: chosen.end(last),
+            run_end,
+            fit: next,
+        });
+        chosen
     }
 
     /// Emits one `queue_step` (preceded by a reset and/or direction change when needed).
@@ -201,13 +236,10 @@ impl StepCompressor {
             self.dir_run_end += 1;
         }
         let run_end = self.dir_run_end.min(self.head + MAX_COUNT);
-        let run = &self.pending[self.head..run_end];
-        let fit = best_fit(run, self.last_clock, self.max_err as i64, self.last_add);
+        let fit = self.choose_fit(run_end);
         let count = fit.count as u64;
-        let interval = fit.interval as u64;
-        let first_clock = self.last_clock + interval;
-        let t = count * (count - 1) / 2;
-        let last_clock = (self.last_clock as i64 + (count * interval) as i64 + t as i64 * fit.add) as u64;
+        let first_clock = self.last_clock + fit.interval as u64;
+        let last_clock = fit.end(self.last_clock);
         out.push(StepCmd::QueueStep {
             interval: fit.interval as u32,
             count: fit.count as u16,
@@ -227,7 +259,7 @@ impl StepCompressor {
 /// Appends a step with ideal time `clock` (≥ 0, ≥ the previous one) and its window.
 #[inline]
 fn queue_step_time(
-    pending: &mut Vec<Pending>,
+    pending: &mut Vec<StepWindow>,
     ideal: &mut VecDeque<IdealStep>,
     record: bool,
     max_err: f64,
@@ -236,145 +268,10 @@ fn queue_step_time(
 ) {
     let hi = clock.floor() as u64;
     let lo = (clock - max_err).ceil().max(0.0) as u64;
-    pending.push(Pending { lo, hi, dir });
+    pending.push(StepWindow { lo, hi, dir });
     if record {
         ideal.push_back(IdealStep { clock, dir });
     }
-}
-
-/// One command's parameters.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-struct Fit {
-    interval: i64,
-    count: usize,
-    add: i64,
-}
-
-/// Which way `add` should move to extend a run that failed.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Bend {
-    /// The run reached the end of the steps.
-    None,
-    Up,
-    Down,
-}
-
-/// The longest run of `steps` reachable from `last` with this `add`: (count, largest interval,
-/// which way add should move to go further).
-#[inline]
-fn run_with_add(steps: &[Pending], last: u64, add: i64) -> (usize, i64, Bend) {
-    const MAX: i64 = MAX_INTERVAL as i64;
-    let last = last as i64;
-    let mut lo_i: i64 = 0;
-    let mut hi_i: i64 = MAX;
-    let mut add_sum: i64 = 0; // add · T_k
-    for (k0, st) in steps.iter().enumerate() {
-        let k0 = k0 as i64; // steps before this one
-        let k = k0 + 1;
-        add_sum += k0 * add;
-        let l = st.lo as i64 - last - add_sum;
-        let u = st.hi as i64 - last - add_sum;
-        let mut nlo = lo_i;
-        let mut nhi = hi_i;
-        if k * nlo < l {
-            nlo = div_ceil(l, k);
-        }
-        if k * nhi > u {
-            nhi = div_floor(u, k);
-        }
-        // This step's interval, I + k0·add, must stay in [0, MAX].
-        let ka = k0 * add;
-        if nlo < -ka {
-            nlo = -ka;
-        }
-        if nhi > MAX - ka {
-            nhi = MAX - ka;
-        }
-        if nlo > nhi {
-            let bend = if nlo > hi_i {
-                Bend::Up
-            } else if nhi < lo_i || nlo + nhi < lo_i + hi_i {
-                Bend::Down
-            } else {
-                Bend::Up
-            };
-            return (k0 as usize, hi_i, bend);
-        }
-        lo_i = nlo;
-        hi_i = nhi;
-    }
-    (steps.len(), hi_i, Bend::None)
-}
-
-#[inline]
-fn div_floor(a: i64, b: i64) -> i64 {
-    let q = a / b;
-    if a % b != 0 && a < 0 {
-        q - 1
-    } else {
-        q
-    }
-}
-
-#[inline]
-fn div_ceil(a: i64, b: i64) -> i64 {
-    let q = a / b;
-    if a % b != 0 && a > 0 {
-        q + 1
-    } else {
-        q
-    }
-}
-
-/// The command covering the most of `steps` (all one direction, non-empty) from `last`.
-fn best_fit(steps: &[Pending], last: u64, max_err: i64, guess_add: i64) -> Fit {
-    let single = || {
-        let (count, interval, _) = run_with_add(&steps[..1], last, 0);
-        debug_assert_eq!(count, 1);
-        Fit { interval, count: count.max(1), add: 0 }
-    };
-    if steps.len() < 2 {
-        return single();
-    }
-    // From the first two steps: I ∈ [l1, u1] and 2I + A ∈ [l2, u2].
-    let l = |i: usize| steps[i].lo as i64 - last as i64;
-    let u = |i: usize| steps[i].hi as i64 - last as i64;
-    let (l1, u1) = (l(0).max(0), u(0).min(MAX_INTERVAL as i64));
-    let mut amin = (l(1) - 2 * u1).max(i16::MIN as i64);
-    let mut amax = (u(1) - 2 * l1).min(i16::MAX as i64);
-    if amin > amax {
-        return single();
-    }
-    let mut add = guess_add.clamp(amin, amax);
-    let mut best = Fit { interval: 0, count: 0, add: 0 };
-    for _ in 0..MAX_TRIALS {
-        let (count, interval, bend) = run_with_add(steps, last, add);
-        if count > best.count || (count == best.count && add.abs() < best.add.abs()) {
-            best = Fit { interval, count, add };
-        }
-        if bend == Bend::None {
-            break;
-        }
-        if count >= 2 {
-            let h = (count / 2) as i64;
-            let dev = 3 * max_err / (h * h);
-            amin = amin.max(add - dev);
-            amax = amax.min(add + dev);
-        }
-        if bend == Bend::Up {
-            amin = amin.max(add + 1);
-        } else {
-            amax = amax.min(add - 1);
-        }
-        if amin > amax {
-            break;
-        }
-        add = amin + (amax - amin) / 2;
-    }
-    if best.count == 0 {
-        return single();
-    }
-    best
 }
 
 #[cfg(test)]

@@ -147,11 +147,3 @@ fn benchy_full() {
 }
 
 
-#[test]
-#[ignore]
-fn exh_stats() {
-    let r = run(Some(20000), false).unwrap();
-    #[allow(unsafe_code, static_mut_refs)]
-    let s = unsafe { planner::compress::STATS };
-    println!("{r:?} {s:?}");
-}

@@ -8,7 +8,10 @@ use std::time::{Duration, Instant};
 
 /// The workspace root.
 pub fn workspace() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).parent().map(Path::to_path_buf).unwrap_or_default()
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .map(Path::to_path_buf)
+        .unwrap_or_default()
 }
 
 /// A binary of the workspace, built by `cargo test --workspace` into the same target directory
@@ -20,7 +23,11 @@ pub fn bin(name: &str) -> PathBuf {
         dir.pop();
     }
     let path = dir.join(name);
-    assert!(path.is_file(), "{} not built (run `cargo test --workspace`)", path.display());
+    assert!(
+        path.is_file(),
+        "{} not built (run `cargo test --workspace`)",
+        path.display()
+    );
     path
 }
 
@@ -72,8 +79,15 @@ pub fn run(cmd: &mut Command, timeout: Duration) -> Run {
     };
     let stdout = t_out.join().unwrap_or_default();
     let stderr = t_err.join().unwrap_or_default();
-    assert!(status.is_some(), "process hung for {timeout:?}\nstdout:\n{stdout}\nstderr:\n{stderr}");
-    Run { code: status.and_then(|s| s.code()), stdout, stderr }
+    assert!(
+        status.is_some(),
+        "process hung for {timeout:?}\nstdout:\n{stdout}\nstderr:\n{stderr}"
+    );
+    Run {
+        code: status.and_then(|s| s.code()),
+        stdout,
+        stderr,
+    }
 }
 
 /// A fresh scratch directory for one test.

@@ -8,7 +8,8 @@ use cadence_tests::{bin, cadence, scratch, workspace};
 
 /// The built-in printer's config with its MCU moved to `serial`.
 fn config_with_serial(dir: &std::path::Path, serial: &str) -> std::path::PathBuf {
-    let text = sysconfig::printer::SIMULATED_PRINTER_CFG.replace("serial: simulator", &format!("serial: {serial}"));
+    let text =
+        sysconfig::printer::SIMULATED_PRINTER_CFG.replace("serial: simulator", &format!("serial: {serial}"));
     assert!(text.contains(serial));
     // The [simulator] section is only for simulated MCUs; drop it.
     let text = text.replace("[simulator]", "[simulator]\n# unused here");
@@ -22,13 +23,30 @@ fn mcu_that_never_answers_identify() {
     let dir = scratch("silent");
     // A pty whose other end nobody serves: the host's identify goes unanswered.
     let pty = nix::pty::openpty(None, None).expect("openpty");
-    let slave = std::fs::read_link(format!("/proc/self/fd/{}", std::os::fd::AsRawFd::as_raw_fd(&pty.slave)))
-        .expect("slave path");
+    let slave = std::fs::read_link(format!(
+        "/proc/self/fd/{}",
+        std::os::fd::AsRawFd::as_raw_fd(&pty.slave)
+    ))
+    .expect("slave path");
     let cfg = config_with_serial(&dir, slave.to_str().unwrap());
     let gcode = workspace().join("examples/square.gcode");
     let started = Instant::now();
-    let run = cadence(&["print", gcode.to_str().unwrap(), "--config", cfg.to_str().unwrap()], Duration::from_secs(60));
-    assert_eq!(run.code, Some(1), "stdout:\n{}\nstderr:\n{}", run.stdout, run.stderr);
+    let run = cadence(
+        &[
+            "print",
+            gcode.to_str().unwrap(),
+            "--config",
+            cfg.to_str().unwrap(),
+        ],
+        Duration::from_secs(60),
+    );
+    assert_eq!(
+        run.code,
+        Some(1),
+        "stdout:\n{}\nstderr:\n{}",
+        run.stdout,
+        run.stderr
+    );
     assert!(run.stderr.contains("identify"), "{}", run.stderr);
     assert!(!run.stderr.contains("panicked"), "{}", run.stderr);
     assert!(started.elapsed() < Duration::from_secs(60));
@@ -41,7 +59,12 @@ fn mcu_process_dying_mid_print() {
     let trace = dir.join("t.trace");
     let gcode = workspace().join("examples/square.gcode");
     let mut child = Command::new(bin("cadence"))
-        .args(["print", gcode.to_str().unwrap(), "--trace", trace.to_str().unwrap()])
+        .args([
+            "print",
+            gcode.to_str().unwrap(),
+            "--trace",
+            trace.to_str().unwrap(),
+        ])
         .current_dir(workspace())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -51,7 +74,8 @@ fn mcu_process_dying_mid_print() {
     let deadline = Instant::now() + Duration::from_secs(30);
     let mcu_pid = loop {
         assert!(Instant::now() < deadline, "the simulated MCU never started");
-        let children = std::fs::read_to_string(format!("/proc/{0}/task/{0}/children", child.id())).unwrap_or_default();
+        let children =
+            std::fs::read_to_string(format!("/proc/{0}/task/{0}/children", child.id())).unwrap_or_default();
         if let Some(pid) = children.split_whitespace().next() {
             if trace.exists() {
                 break pid.to_string();

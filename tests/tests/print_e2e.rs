@@ -15,11 +15,26 @@ fn square_prints_exactly_on_the_simulated_mcu() {
     let trace = dir.join("square.trace");
     let gcode = workspace().join("examples/square.gcode");
     let run = cadence(
-        &["print", gcode.to_str().unwrap(), "--trace", trace.to_str().unwrap()],
+        &[
+            "print",
+            gcode.to_str().unwrap(),
+            "--trace",
+            trace.to_str().unwrap(),
+        ],
         TIMEOUT,
     );
-    assert_eq!(run.code, Some(0), "stdout:\n{}\nstderr:\n{}", run.stdout, run.stderr);
-    assert!(run.stdout.contains("min lead margin"), "summary missing:\n{}", run.stdout);
+    assert_eq!(
+        run.code,
+        Some(0),
+        "stdout:\n{}\nstderr:\n{}",
+        run.stdout,
+        run.stderr
+    );
+    assert!(
+        run.stdout.contains("min lead margin"),
+        "summary missing:\n{}",
+        run.stdout
+    );
 
     let cfg = sysconfig::printer::builtin_simulated().expect("built-in printer");
     let trace = read_trace(&trace).expect("trace");
@@ -34,12 +49,22 @@ fn square_prints_exactly_on_the_simulated_mcu() {
             TraceRecord::Step { oid, dir, clock, .. } => {
                 *net.entry(oid).or_default() += if dir { 1 } else { -1 };
                 let prev = last.insert(oid, clock).unwrap_or(0);
-                assert!(clock >= prev, "oid {oid}: step at {clock} before previous step at {prev}");
+                assert!(
+                    clock >= prev,
+                    "oid {oid}: step at {clock} before previous step at {prev}"
+                );
             }
-            TraceRecord::QueueStep { oid, received_clock, first_step_clock } => {
+            TraceRecord::QueueStep {
+                oid,
+                received_clock,
+                first_step_clock,
+            } => {
                 received += 1;
                 let lead_ms = (first_step_clock as f64 - received_clock as f64) / freq * 1e3;
-                assert!(lead_ms >= 100.0, "oid {oid}: queue_step arrived with only {lead_ms:.2} ms lead");
+                assert!(
+                    lead_ms >= 100.0,
+                    "oid {oid}: queue_step arrived with only {lead_ms:.2} ms lead"
+                );
             }
             TraceRecord::Shutdown { .. } => panic!("the MCU shut down: {rec:?}"),
         }
@@ -48,7 +73,11 @@ fn square_prints_exactly_on_the_simulated_mcu() {
 
     // Commanded net distances of examples/square.gcode (G28 sets the endstop positions).
     let home = |axis: &str| {
-        cfg.steppers.iter().find(|s| s.name == axis).and_then(|s| s.position_endstop).unwrap_or(0.0)
+        cfg.steppers
+            .iter()
+            .find(|s| s.name == axis)
+            .and_then(|s| s.position_endstop)
+            .unwrap_or(0.0)
     };
     let step_dist = |axis: &str| cfg.steppers.iter().find(|s| s.name == axis).unwrap().step_dist();
     let e_dist = cfg.extruder.as_ref().expect("extruder").step_dist();
@@ -60,7 +89,10 @@ fn square_prints_exactly_on_the_simulated_mcu() {
     ];
     for (oid, want) in expected {
         let got = net.get(&oid).copied().unwrap_or(0) as f64;
-        assert!((got - want).abs() <= 1.0, "oid {oid}: {got} net steps, commanded {want:.2}");
+        assert!(
+            (got - want).abs() <= 1.0,
+            "oid {oid}: {got} net steps, commanded {want:.2}"
+        );
     }
 }
 
@@ -78,9 +110,16 @@ fn bad_gcode_line_names_line_and_text() {
     let g = dir.join("bad.gcode");
     std::fs::write(&g, "G28\nG1 X10 F3000\nG1 X1..2\n").unwrap();
     let out = dir.join("out.bin");
-    let run = cadence(&["print", g.to_str().unwrap(), "--batch", out.to_str().unwrap()], TIMEOUT);
+    let run = cadence(
+        &["print", g.to_str().unwrap(), "--batch", out.to_str().unwrap()],
+        TIMEOUT,
+    );
     assert_eq!(run.code, Some(1), "{}", run.stderr);
-    assert!(run.stderr.contains(":3") || run.stderr.contains("line 3"), "{}", run.stderr);
+    assert!(
+        run.stderr.contains(":3") || run.stderr.contains("line 3"),
+        "{}",
+        run.stderr
+    );
     assert!(run.stderr.contains("X1..2"), "{}", run.stderr);
     assert!(!run.stderr.contains("panicked"), "{}", run.stderr);
 }
@@ -89,11 +128,19 @@ fn bad_gcode_line_names_line_and_text() {
 fn config_error_names_section_and_option() {
     let dir = scratch("badcfg");
     let cfg = dir.join("printer.cfg");
-    let text = sysconfig::printer::SIMULATED_PRINTER_CFG.replace("rotation_distance: 40", "rotation_distance: -40");
-    assert_ne!(text, sysconfig::printer::SIMULATED_PRINTER_CFG, "example config changed shape");
+    let text =
+        sysconfig::printer::SIMULATED_PRINTER_CFG.replace("rotation_distance: 40", "rotation_distance: -40");
+    assert_ne!(
+        text,
+        sysconfig::printer::SIMULATED_PRINTER_CFG,
+        "example config changed shape"
+    );
     std::fs::write(&cfg, text).unwrap();
     let g = workspace().join("examples/square.gcode");
-    let run = cadence(&["print", g.to_str().unwrap(), "--config", cfg.to_str().unwrap()], TIMEOUT);
+    let run = cadence(
+        &["print", g.to_str().unwrap(), "--config", cfg.to_str().unwrap()],
+        TIMEOUT,
+    );
     assert_eq!(run.code, Some(1), "{}", run.stderr);
     assert!(run.stderr.contains("rotation_distance"), "{}", run.stderr);
     assert!(run.stderr.contains("stepper_"), "{}", run.stderr);
@@ -104,12 +151,19 @@ fn batch_then_decode_round_trip() {
     let dir = scratch("batch");
     let out = dir.join("square.bin");
     let g = workspace().join("examples/square.gcode");
-    let run = cadence(&["print", g.to_str().unwrap(), "--batch", out.to_str().unwrap()], TIMEOUT);
+    let run = cadence(
+        &["print", g.to_str().unwrap(), "--batch", out.to_str().unwrap()],
+        TIMEOUT,
+    );
     assert_eq!(run.code, Some(0), "{}", run.stderr);
     let run = cadence(&["decode", out.to_str().unwrap()], TIMEOUT);
     assert_eq!(run.code, Some(0), "{}", run.stderr);
     let lines: Vec<&str> = run.stdout.lines().collect();
-    assert!(lines.first().is_some_and(|l| l.starts_with("allocate_oids")), "{:?}", lines.first());
+    assert!(
+        lines.first().is_some_and(|l| l.starts_with("allocate_oids")),
+        "{:?}",
+        lines.first()
+    );
     assert!(lines.iter().any(|l| l.starts_with("config_stepper oid=3")));
     assert!(lines.iter().any(|l| l.starts_with("finalize_config")));
     assert!(lines.iter().filter(|l| l.starts_with("queue_step")).count() > 10);

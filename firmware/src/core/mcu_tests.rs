@@ -159,8 +159,14 @@ impl Host {
         let payload = self.encode(msgs);
         let bytes = self.block(&payload);
         let mut blocks = self.raw(&bytes);
-        let ack = blocks.iter().rposition(|b| b.msgs.is_empty()).expect("an empty ack block");
-        assert_eq!(blocks[ack].seq, self.seq, "the ack carries the next expected sequence");
+        let ack = blocks
+            .iter()
+            .rposition(|b| b.msgs.is_empty())
+            .expect("an empty ack block");
+        assert_eq!(
+            blocks[ack].seq, self.seq,
+            "the ack carries the next expected sequence"
+        );
         if blocks.len() > 1 {
             blocks.remove(ack);
         }
