@@ -18,7 +18,8 @@ use std::collections::VecDeque;
 use crate::kinematics::StepperKin;
 use crate::stepgen::StepGen;
 use crate::toolhead::Move;
-use fit::{best_fit, fit_prefix, Fit, StepWindow};
+
+use fit::{best_fit, fit_prefix, latest_end, longest_fit, Fit, StepWindow};
 pub use crate::stepgen::{IdealStep, StepCmd};
 
 /// Largest interval sent (and largest gap without a `reset_step_clock`), in ticks.
@@ -191,20 +192,29 @@ impl StepCompressor {
         let last = self.last_clock;
         let max_err = self.max_err as i64;
         let fit = match ahead {
-            Some(n) if n.head == self.head && n.last_clock == last && n.run_end == run_end => n.fit,
+            Some(n) if n.head == self.head && n.last_clock == last && n.run_end == run_end => {
+                latest_end(run, last, max_err, n.fit)
+            }
             _ => best_fit(run, last, max_err, self.last_add),
         };
         if fit.count >= run.len() {
             return fit;
         }
-        let follow = |f: &Fit| best_fit(&run[f.count..], f.end(last), max_err, f.add);
+        // Only the length of the following command matters here.
+        let follow = |f: &Fit| longest_fit(&run[f.count..], f.end(last), max_err, f.add);
         let mut best = (fit, follow(&fit));
+        let guess = best.1.add;
+        let mut improved = false;
         for back in 1..=LOOKAHEAD_BACKOFF.min(fit.count - 1) {
             let Some(f) = fit_prefix(run, last, fit.count - back, fit.add) else { break };
-            let next = follow(&f);
-            if f.count + next.count > best.0.count + best.1.count {
-                best = (f, next);
+            let (n, _, _) = fit::run_with_add(&run[f.count..], f.end(last), guess);
+            if f.count + n > best.0.count + best.1.count {
+                best = (f, Fit { interval: 0, count: n, add: guess });
+                improved = true;
             }
+        }
+        if improved {
+            best.1 = follow(&best.0);
         }
         let (chosen, next) = best;
         self.next = Some(NextFit {

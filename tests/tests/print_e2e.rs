@@ -168,3 +168,90 @@ fn batch_then_decode_round_trip() {
     assert!(lines.iter().any(|l| l.starts_with("finalize_config")));
     assert!(lines.iter().filter(|l| l.starts_with("queue_step")).count() > 10);
 }
+
+#[test]
+fn time_scaled_print_keeps_the_lead_in_mcu_time() {
+    let dir = scratch("scaled");
+    let trace = dir.join("scaled.trace");
+    let gcode = workspace().join("examples/square.gcode");
+    let run = cadence(
+        &[
+            "print",
+            gcode.to_str().unwrap(),
+            "--time-scale",
+            "5",
+            "--trace",
+            trace.to_str().unwrap(),
+        ],
+        TIMEOUT,
+    );
+    assert_eq!(
+        run.code,
+        Some(0),
+        "stdout:\n{}\nstderr:\n{}",
+        run.stdout,
+        run.stderr
+    );
+    let trace = read_trace(&trace).expect("trace");
+    assert_eq!(trace.time_scale, 5.0);
+    let freq = trace.clock_freq as f64;
+    let mut steps = 0;
+    for rec in &trace.records {
+        match *rec {
+            TraceRecord::QueueStep {
+                received_clock,
+                first_step_clock,
+                oid,
+            } => {
+                let lead_ms = (first_step_clock as f64 - received_clock as f64) / freq * 1e3;
+                assert!(lead_ms >= 100.0, "oid {oid}: {lead_ms:.2} ms lead (MCU time)");
+            }
+            TraceRecord::Step { .. } => steps += 1,
+            TraceRecord::Shutdown { .. } => panic!("the MCU shut down: {rec:?}"),
+        }
+    }
+    assert!(steps > 1000, "{steps} steps");
+}
+
+#[test]
+fn batch_with_an_explicit_dictionary_matches_the_default() {
+    let dir = scratch("dict");
+    let dict = dir.join("mcu.dict");
+    std::fs::write(&dict, firmware::dictionary_bytes(50_000_000)).unwrap();
+    let g = workspace().join("examples/square.gcode");
+    let a = dir.join("a.bin");
+    let b = dir.join("b.bin");
+    let run = cadence(
+        &["print", g.to_str().unwrap(), "--batch", a.to_str().unwrap()],
+        TIMEOUT,
+    );
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    let run = cadence(
+        &[
+            "print",
+            g.to_str().unwrap(),
+            "--batch",
+            b.to_str().unwrap(),
+            "--dictionary",
+            dict.to_str().unwrap(),
+        ],
+        TIMEOUT,
+    );
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    assert_eq!(std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap());
+    // A dictionary that is not one is refused clearly.
+    std::fs::write(&dict, b"not zlib").unwrap();
+    let run = cadence(
+        &[
+            "print",
+            g.to_str().unwrap(),
+            "--batch",
+            b.to_str().unwrap(),
+            "--dictionary",
+            dict.to_str().unwrap(),
+        ],
+        TIMEOUT,
+    );
+    assert_eq!(run.code, Some(1));
+    assert!(run.stderr.contains("mcu.dict"), "{}", run.stderr);
+}

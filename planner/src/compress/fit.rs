@@ -128,9 +128,8 @@ fn add_deviation(count: usize, max_err: i64) -> i64 {
     }
 }
 
-/// The command covering the most of `steps` (one direction, non-empty) from `last`, ending as
-/// late as possible.
-pub(crate) fn best_fit(steps: &[StepWindow], last: u64, max_err: i64, guess_add: i64) -> Fit {
+/// A command covering the most of `steps` (one direction, non-empty) from `last`.
+pub(crate) fn longest_fit(steps: &[StepWindow], last: u64, max_err: i64, guess_add: i64) -> Fit {
     let single = || {
         let (_, interval, _) = run_with_add(&steps[..1], last, 0);
         Fit { interval, count: 1, add: 0 }
@@ -175,8 +174,22 @@ pub(crate) fn best_fit(steps: &[StepWindow], last: u64, max_err: i64, guess_add:
     if best.count < 2 {
         return single();
     }
-    // Latest end for that count: the largest add still reaching it.
+    best
+}
+
+/// The command covering the most of `steps` (one direction, non-empty) from `last`, ending as
+/// late as possible.
+pub(crate) fn best_fit(steps: &[StepWindow], last: u64, max_err: i64, guess_add: i64) -> Fit {
+    latest_end(steps, last, max_err, longest_fit(steps, last, max_err, guess_add))
+}
+
+/// Among the commands with `fit.count` steps, the one whose last step is latest.
+pub(crate) fn latest_end(steps: &[StepWindow], last: u64, max_err: i64, fit: Fit) -> Fit {
+    let mut best = fit;
     let c = best.count;
+    if c < 2 {
+        return best;
+    }
     let (mut lo, mut hi) = (best.add, (best.add + add_deviation(c, max_err)).min(i16::MAX as i64));
     while lo < hi {
         let mid = lo + (hi - lo + 1) / 2;
