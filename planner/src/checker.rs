@@ -38,7 +38,11 @@ pub enum CheckError {
     #[error("command {cmd}: interval {interval} outside 0..={max}")]
     BadInterval { cmd: u64, interval: i64, max: u64 },
     #[error("command {cmd}: first/last clock fields {fields:?} but the replay gives {replay:?}")]
-    ClockFields { cmd: u64, fields: (u64, u64), replay: (u64, u64) },
+    ClockFields {
+        cmd: u64,
+        fields: (u64, u64),
+        replay: (u64, u64),
+    },
     #[error("step {step}: at clock {clock}, before the previous step at {prev}")]
     OutOfOrder { step: u64, clock: u64, prev: u64 },
     #[error("step {step}: more steps commanded than generated")]
@@ -46,7 +50,13 @@ pub enum CheckError {
     #[error("step {step}: direction {dir} but the ideal step's is {ideal}")]
     WrongDir { step: u64, dir: bool, ideal: bool },
     #[error("step {step}: at clock {clock}, {early:.1} ticks before its ideal time {ideal:.1} (max {max})")]
-    TooEarly { step: u64, clock: u64, ideal: f64, early: f64, max: u32 },
+    TooEarly {
+        step: u64,
+        clock: u64,
+        ideal: f64,
+        early: f64,
+        max: u32,
+    },
     #[error("step {step}: at clock {clock}, after its ideal time {ideal:.1}")]
     TooLate { step: u64, clock: u64, ideal: f64 },
     #[error("{missing} generated steps were never commanded")]
@@ -96,14 +106,28 @@ impl Checker {
             }
             StepCmd::ResetClock { clock } => {
                 if self.stats.steps > 0 && clock < self.prev_step {
-                    return Err(CheckError::ResetBackwards { cmd, clock, prev: self.prev_step });
+                    return Err(CheckError::ResetBackwards {
+                        cmd,
+                        clock,
+                        prev: self.prev_step,
+                    });
                 }
                 self.last_clock = Some(clock);
                 self.stats.resets += 1;
             }
-            StepCmd::QueueStep { interval, count, add, first_clock, last_clock } => {
-                let Some(mut clock) = self.last_clock else { return Err(CheckError::NoClock { cmd }) };
-                let Some(dir) = self.dir else { return Err(CheckError::NoDir { cmd }) };
+            StepCmd::QueueStep {
+                interval,
+                count,
+                add,
+                first_clock,
+                last_clock,
+            } => {
+                let Some(mut clock) = self.last_clock else {
+                    return Err(CheckError::NoClock { cmd });
+                };
+                let Some(dir) = self.dir else {
+                    return Err(CheckError::NoDir { cmd });
+                };
                 if count == 0 {
                     return Err(CheckError::ZeroCount { cmd });
                 }
@@ -111,16 +135,28 @@ impl Checker {
                 let mut first = None;
                 for _ in 0..count {
                     if iv < 0 || iv as u64 > MAX_INTERVAL {
-                        return Err(CheckError::BadInterval { cmd, interval: iv, max: MAX_INTERVAL });
+                        return Err(CheckError::BadInterval {
+                            cmd,
+                            interval: iv,
+                            max: MAX_INTERVAL,
+                        });
                     }
-                    clock += iv as u64;
+                    clock = clock.checked_add(iv as u64).ok_or(CheckError::BadInterval {
+                        cmd,
+                        interval: iv,
+                        max: MAX_INTERVAL,
+                    })?;
                     first.get_or_insert(clock);
                     self.step(clock, dir)?;
                     iv += add as i64;
                 }
                 let replay = (first.unwrap_or(clock), clock);
                 if (first_clock, last_clock) != replay {
-                    return Err(CheckError::ClockFields { cmd, fields: (first_clock, last_clock), replay });
+                    return Err(CheckError::ClockFields {
+                        cmd,
+                        fields: (first_clock, last_clock),
+                        replay,
+                    });
                 }
                 self.last_clock = Some(clock);
                 self.stats.queue_steps += 1;
@@ -131,20 +167,40 @@ impl Checker {
 
     fn step(&mut self, clock: u64, dir: bool) -> Result<(), CheckError> {
         let step = self.stats.steps;
-        let Some(ideal) = self.ideal.pop_front() else { return Err(CheckError::ExtraStep { step }) };
+        let Some(ideal) = self.ideal.pop_front() else {
+            return Err(CheckError::ExtraStep { step });
+        };
         if step > 0 && clock < self.prev_step {
-            return Err(CheckError::OutOfOrder { step, clock, prev: self.prev_step });
+            return Err(CheckError::OutOfOrder {
+                step,
+                clock,
+                prev: self.prev_step,
+            });
         }
         if dir != ideal.dir {
-            return Err(CheckError::WrongDir { step, dir, ideal: ideal.dir });
+            return Err(CheckError::WrongDir {
+                step,
+                dir,
+                ideal: ideal.dir,
+            });
         }
         let c = clock as f64;
         if c > ideal.clock {
-            return Err(CheckError::TooLate { step, clock, ideal: ideal.clock });
+            return Err(CheckError::TooLate {
+                step,
+                clock,
+                ideal: ideal.clock,
+            });
         }
         let early = ideal.clock - c;
         if c < ideal.clock - self.max_err as f64 {
-            return Err(CheckError::TooEarly { step, clock, ideal: ideal.clock, early, max: self.max_err });
+            return Err(CheckError::TooEarly {
+                step,
+                clock,
+                ideal: ideal.clock,
+                early,
+                max: self.max_err,
+            });
         }
         self.stats.max_early_ticks = self.stats.max_early_ticks.max(early);
         self.stats.steps += 1;
@@ -161,7 +217,9 @@ impl Checker {
     /// Statistics so far, failing if generated steps were never commanded.
     pub fn finish(&self) -> Result<CheckStats, CheckError> {
         if !self.ideal.is_empty() {
-            return Err(CheckError::MissingSteps { missing: self.ideal.len() });
+            return Err(CheckError::MissingSteps {
+                missing: self.ideal.len(),
+            });
         }
         Ok(self.stats)
     }
@@ -182,7 +240,10 @@ mod tests {
     use super::*;
 
     fn ideal(clocks: &[f64]) -> Vec<IdealStep> {
-        clocks.iter().map(|&clock| IdealStep { clock, dir: true }).collect()
+        clocks
+            .iter()
+            .map(|&clock| IdealStep { clock, dir: true })
+            .collect()
     }
 
     #[test]
@@ -190,7 +251,13 @@ mod tests {
         let cmds = [
             StepCmd::ResetClock { clock: 1000 },
             StepCmd::SetDir { dir: true },
-            StepCmd::QueueStep { interval: 100, count: 3, add: 10, first_clock: 1100, last_clock: 1330 },
+            StepCmd::QueueStep {
+                interval: 100,
+                count: 3,
+                add: 10,
+                first_clock: 1100,
+                last_clock: 1330,
+            },
         ];
         let stats = check(&cmds, &ideal(&[1100.5, 1210.0, 1335.0]), 10).unwrap();
         assert_eq!(stats.steps, 3);
@@ -210,23 +277,53 @@ mod tests {
         let r = StepCmd::ResetClock { clock: 0 };
         let d = StepCmd::SetDir { dir: true };
         let one = ideal(&[100.0]);
-        assert!(matches!(check(&[d, q(100, 1, 0, 100, 100)], &one, 5), Err(CheckError::NoClock { .. })));
-        assert!(matches!(check(&[r, q(100, 1, 0, 100, 100)], &one, 5), Err(CheckError::NoDir { .. })));
-        assert!(matches!(check(&[r, d, q(100, 0, 0, 100, 100)], &one, 5), Err(CheckError::ZeroCount { .. })));
-        assert!(matches!(check(&[r, d, q(101, 1, 0, 101, 101)], &one, 5), Err(CheckError::TooLate { .. })));
-        assert!(matches!(check(&[r, d, q(94, 1, 0, 94, 94)], &one, 5), Err(CheckError::TooEarly { .. })));
+        assert!(matches!(
+            check(&[d, q(100, 1, 0, 100, 100)], &one, 5),
+            Err(CheckError::NoClock { .. })
+        ));
+        assert!(matches!(
+            check(&[r, q(100, 1, 0, 100, 100)], &one, 5),
+            Err(CheckError::NoDir { .. })
+        ));
+        assert!(matches!(
+            check(&[r, d, q(100, 0, 0, 100, 100)], &one, 5),
+            Err(CheckError::ZeroCount { .. })
+        ));
+        assert!(matches!(
+            check(&[r, d, q(101, 1, 0, 101, 101)], &one, 5),
+            Err(CheckError::TooLate { .. })
+        ));
+        assert!(matches!(
+            check(&[r, d, q(94, 1, 0, 94, 94)], &one, 5),
+            Err(CheckError::TooEarly { .. })
+        ));
         assert!(check(&[r, d, q(95, 1, 0, 95, 95)], &one, 5).is_ok());
-        assert!(matches!(check(&[r, d, q(100, 1, 0, 99, 100)], &one, 5), Err(CheckError::ClockFields { .. })));
-        assert!(matches!(check(&[r, d, q(100, 2, 0, 100, 200)], &one, 5), Err(CheckError::ExtraStep { .. })));
-        assert!(matches!(check(&[r, d], &one, 5), Err(CheckError::MissingSteps { missing: 1 })));
+        assert!(matches!(
+            check(&[r, d, q(100, 1, 0, 99, 100)], &one, 5),
+            Err(CheckError::ClockFields { .. })
+        ));
+        assert!(matches!(
+            check(&[r, d, q(100, 2, 0, 100, 200)], &one, 5),
+            Err(CheckError::ExtraStep { .. })
+        ));
+        assert!(matches!(
+            check(&[r, d], &one, 5),
+            Err(CheckError::MissingSteps { missing: 1 })
+        ));
         let down = StepCmd::SetDir { dir: false };
-        assert!(matches!(check(&[r, down, q(100, 1, 0, 100, 100)], &one, 5), Err(CheckError::WrongDir { .. })));
+        assert!(matches!(
+            check(&[r, down, q(100, 1, 0, 100, 100)], &one, 5),
+            Err(CheckError::WrongDir { .. })
+        ));
         let two = ideal(&[100.0, 100.0]);
         assert!(matches!(
             check(&[r, d, q(100, 2, -150, 100, 50)], &two, 100),
             Err(CheckError::BadInterval { .. })
         ));
         let late = [r, d, q(100, 1, 0, 100, 100), StepCmd::ResetClock { clock: 50 }];
-        assert!(matches!(check(&late, &one, 5), Err(CheckError::ResetBackwards { .. })));
+        assert!(matches!(
+            check(&late, &one, 5),
+            Err(CheckError::ResetBackwards { .. })
+        ));
     }
 }

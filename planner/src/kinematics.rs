@@ -11,7 +11,7 @@ use crate::toolhead::Move;
 /// How a stepper's position follows the toolhead.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum StepperMap {
-    /// stepper = Σ coeffs[i] · pos[i] over X, Y, Z, E.
+    /// stepper = Σ coeffs\[i\] · pos\[i\] over X, Y, Z, E.
     Linear([f64; 4]),
 }
 
@@ -29,7 +29,10 @@ impl StepperKin {
         if let Some(v) = c.get_mut(axis) {
             *v = 1.0;
         }
-        StepperKin { map: StepperMap::Linear(c), step_dist }
+        StepperKin {
+            map: StepperMap::Linear(c),
+            step_dist,
+        }
     }
 
     /// Inverse kinematics: the stepper's position (mm) for toolhead position `pos`.

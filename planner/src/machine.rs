@@ -100,7 +100,10 @@ impl GcodeState {
 
     /// Applies one line to the toolhead.
     pub fn apply(&mut self, line: &GcodeLine, th: &mut Toolhead) -> Result<Applied, PlanError> {
-        let err = |kind: PlanErrorKind| PlanError { line: line.line_no, kind };
+        let err = |kind: PlanErrorKind| PlanError {
+            line: line.line_no,
+            kind,
+        };
         match &line.cmd {
             Command::Move { x, y, z, e, f } => {
                 if let Some(f) = *f {
@@ -111,7 +114,11 @@ impl GcodeState {
                 let mut next = self.last;
                 for (i, v) in [x, y, z].into_iter().enumerate() {
                     if let Some(v) = *v {
-                        next[i] = if self.absolute_coord { v + self.base[i] } else { self.last[i] + v };
+                        next[i] = if self.absolute_coord {
+                            v + self.base[i]
+                        } else {
+                            self.last[i] + v
+                        };
                     }
                 }
                 if let Some(v) = *e {
@@ -125,7 +132,9 @@ impl GcodeState {
                 if next != self.last {
                     for axis in 0..3 {
                         if next[axis] != self.last[axis] && !self.homed[axis] {
-                            return Err(err(PlanErrorKind::NotHomed { axis: AXIS_NAMES[axis] }));
+                            return Err(err(PlanErrorKind::NotHomed {
+                                axis: AXIS_NAMES[axis],
+                            }));
                         }
                     }
                     th.move_to(next, speed).map_err(|e| err(e.into()))?;
@@ -160,7 +169,7 @@ impl GcodeState {
                     }
                 }
             }
-            Command::Dwell { seconds } => th.dwell(*seconds),
+            Command::Dwell { seconds } => th.dwell(*seconds).map_err(|e| err(e.into()))?,
             Command::WaitMoves => th.flush(),
             Command::Other { name, .. } => match name.as_str() {
                 "G21" => {}
@@ -240,14 +249,41 @@ mod tests {
     #[test]
     fn errors_and_unsupported() {
         let (_, _, res) = run(&["G1 X10", "G28", "G1 X500", "G1 F0", "M104 S200", "G20", "G21"]);
-        assert_eq!(res[0], Err(PlanError { line: 1, kind: PlanErrorKind::NotHomed { axis: 'X' } }));
-        assert!(matches!(res[2], Err(PlanError { line: 3, kind: PlanErrorKind::Move(MoveError::OutOfRange { .. }) })));
-        assert!(matches!(res[3], Err(PlanError { kind: PlanErrorKind::BadFeedrate(_), .. })));
+        assert_eq!(
+            res[0],
+            Err(PlanError {
+                line: 1,
+                kind: PlanErrorKind::NotHomed { axis: 'X' }
+            })
+        );
+        assert!(matches!(
+            res[2],
+            Err(PlanError {
+                line: 3,
+                kind: PlanErrorKind::Move(MoveError::OutOfRange { .. })
+            })
+        ));
+        assert!(matches!(
+            res[3],
+            Err(PlanError {
+                kind: PlanErrorKind::BadFeedrate(_),
+                ..
+            })
+        ));
         assert_eq!(res[4], Ok(Applied::Unsupported("M104".into())));
-        assert!(matches!(res[5], Err(PlanError { kind: PlanErrorKind::Inches, .. })));
+        assert!(matches!(
+            res[5],
+            Err(PlanError {
+                kind: PlanErrorKind::Inches,
+                ..
+            })
+        ));
         assert_eq!(res[6], Ok(Applied::Done));
         let e = res[2].clone().unwrap_err();
-        assert_eq!(e.to_string(), "line 3: Move out of range: X=500.000 Y=0.000 Z=0.500 [E=0.000]");
+        assert_eq!(
+            e.to_string(),
+            "line 3: Move out of range: X=500.000 Y=0.000 Z=0.500 [E=0.000]"
+        );
     }
 
     #[test]

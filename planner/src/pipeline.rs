@@ -94,7 +94,10 @@ impl Pipeline {
     /// A pipeline whose toolhead is at rest at position 0 and whose first move starts at
     /// `start_print_time`.
     pub fn new(cfg: PipelineConfig, start_print_time: f64) -> Result<Pipeline, PlanError> {
-        let bad = |msg: String| PlanError { line: 0, kind: PlanErrorKind::Config(msg) };
+        let bad = |msg: String| PlanError {
+            line: 0,
+            kind: PlanErrorKind::Config(msg),
+        };
         cfg.toolhead.validate().map_err(|e| bad(e.to_string()))?;
         if !(cfg.clock_freq.is_finite() && cfg.clock_freq >= 1.0) {
             return Err(bad(format!("clock_freq {} must be ≥ 1", cfg.clock_freq)));
@@ -106,20 +109,30 @@ impl Pipeline {
                 cfg.max_error_s, cfg.clock_freq
             )));
         }
-        if !(start_print_time.is_finite() && start_print_time >= 0.0) {
-            return Err(bad(format!("start print time {start_print_time} must be ≥ 0")));
+        if !(start_print_time.is_finite() && (0.0..=1e9).contains(&start_print_time)) {
+            return Err(bad(format!(
+                "start print time {start_print_time} must be in 0 ..= 1e9 s"
+            )));
         }
         if cfg.home_position.iter().any(|v| !v.is_finite()) {
-            return Err(bad(format!("home position {:?} must be finite", cfg.home_position)));
+            return Err(bad(format!(
+                "home position {:?} must be finite",
+                cfg.home_position
+            )));
         }
         let max_err_ticks = max_err.round() as u32;
         let kinematics = Kinematics::Cartesian;
         let mut lanes = Vec::with_capacity(cfg.steppers.len());
         for s in &cfg.steppers {
             if !(s.step_dist.is_finite() && s.step_dist > 1e-9 && s.step_dist < 1e3) {
-                return Err(bad(format!("stepper '{}': step_dist {} must be in (1e-9, 1000) mm", s.name, s.step_dist)));
+                return Err(bad(format!(
+                    "stepper '{}': step_dist {} must be in (1e-9, 1000) mm",
+                    s.name, s.step_dist
+                )));
             }
-            let kin = kinematics.stepper(s.axis, s.step_dist).map_err(|e| bad(format!("stepper '{}': {e}", s.name)))?;
+            let kin = kinematics
+                .stepper(s.axis, s.step_dist)
+                .map_err(|e| bad(format!("stepper '{}': {e}", s.name)))?;
             lanes.push(Lane {
                 kin,
                 comp: StepCompressor::new(s.step_dist, cfg.clock_freq, max_err_ticks),
@@ -162,14 +175,18 @@ impl Pipeline {
         }
         let idle = self.th.queued_moves() == 0;
         let end = self.th.print_time();
-        let horizon = if idle { end * self.clock_freq + 1.0 } else { (end - COMPRESS_LOOKAHEAD_S) * self.clock_freq };
+        let horizon = if idle {
+            end * self.clock_freq + 1.0
+        } else {
+            (end - COMPRESS_LOOKAHEAD_S) * self.clock_freq
+        };
         let upto = if horizon > 0.0 { horizon as u64 } else { 0 };
         self.upto = self.upto.max(upto);
         self.run_lanes(false);
         if idle {
             self.release(u64::MAX, out);
             // Later steps may be up to max_error early: start them that much later.
-            self.th.dwell(self.max_err_ticks as f64 / self.clock_freq);
+            let _ = self.th.dwell(self.max_err_ticks as f64 / self.clock_freq);
             self.planned_until = end;
         } else {
             let bound = self.upto.saturating_sub(self.max_err_ticks as u64);
@@ -215,6 +232,14 @@ impl Pipeline {
         }
     }
 
+    /// Compression lookahead of every stepper (see [`StepCompressor::set_lookahead_backoff`]):
+    /// 0 is fastest, the default gives the fewest commands.
+    pub fn set_lookahead_backoff(&mut self, steps: usize) {
+        for l in &mut self.lanes {
+            l.comp.set_lookahead_backoff(steps);
+        }
+    }
+
     /// Maximum step error in ticks.
     pub fn max_error_ticks(&self) -> u32 {
         self.max_err_ticks
@@ -239,7 +264,10 @@ impl Pipeline {
 
     /// Ideal steps generated for stepper `idx` since the last call (empty for a bad index).
     pub fn take_ideal(&mut self, idx: usize) -> Vec<IdealStep> {
-        self.lanes.get_mut(idx).map(|l| l.comp.take_ideal()).unwrap_or_default()
+        self.lanes
+            .get_mut(idx)
+            .map(|l| l.comp.take_ideal())
+            .unwrap_or_default()
     }
 
     /// Step generation and compression for every lane (independent of each other).

@@ -27,7 +27,13 @@ pub enum StepCmd {
     ResetClock { clock: u64 },
     /// `queue_step`: repeat `count` times { last_clock += interval; step; interval += add }.
     /// `first_clock` / `last_clock` are the absolute clocks of its first and last step.
-    QueueStep { interval: u32, count: u16, add: i16, first_clock: u64, last_clock: u64 },
+    QueueStep {
+        interval: u32,
+        count: u16,
+        add: i16,
+        first_clock: u64,
+        last_clock: u64,
+    },
 }
 
 /// A step as generated: its ideal time in MCU ticks and its direction (true = +1).
@@ -69,7 +75,14 @@ impl StepGen {
     /// n(x) = ⌊x / step_dist + ½⌋ (saturating for absurd positions).
     #[inline]
     pub fn step_index(&self, x: f64) -> i64 {
-        (x * self.inv_step_dist + 0.5).floor() as i64
+        let v = x * self.inv_step_dist + 0.5;
+        let t = v as i64;
+        // Truncation rounds toward zero: step down for negative non-integers.
+        if (t as f64) > v {
+            t - 1
+        } else {
+            t
+        }
     }
 
     /// Step index of the commanded position after the last move.
@@ -130,12 +143,24 @@ impl StepGen {
         let mut n = self.cur_n;
         let mut ta = 0.0;
         for i in 1..=slices {
-            let tb = if i == slices { total } else { total * i as f64 / slices as f64 };
-            let xb = if i == slices { self.last_pos } else { kin.position_at(mv, tb) };
+            let tb = if i == slices {
+                total
+            } else {
+                total * i as f64 / slices as f64
+            };
+            let xb = if i == slices {
+                self.last_pos
+            } else {
+                kin.position_at(mv, tb)
+            };
             let nb = self.step_index(xb);
             while n != nb {
                 let dir = nb > n;
-                let boundary = if dir { (n as f64 + 0.5) * self.step_dist } else { (n as f64 - 0.5) * self.step_dist };
+                let boundary = if dir {
+                    (n as f64 + 0.5) * self.step_dist
+                } else {
+                    (n as f64 - 0.5) * self.step_dist
+                };
                 let (mut lo, mut hi) = (ta, tb);
                 for _ in 0..BISECT_ITERS {
                     let mid = 0.5 * (lo + hi);
@@ -168,7 +193,11 @@ mod tests {
         let d = (end - start).abs();
         let a = 1000.0;
         let ad = v * v / (2.0 * a);
-        let (vc, accel_d) = if 2.0 * ad > d { ((a * d).sqrt(), d / 2.0) } else { (v, ad) };
+        let (vc, accel_d) = if 2.0 * ad > d {
+            ((a * d).sqrt(), d / 2.0)
+        } else {
+            (v, ad)
+        };
         let at = vc / a;
         Move {
             print_time: 1.0,

@@ -63,10 +63,10 @@ pub(crate) fn run_with_add(steps: &[StepWindow], last: u64, add: i64) -> (usize,
     let mut lo_i: i64 = 0;
     let mut hi_i: i64 = MAX_IV;
     let mut add_sum: i64 = 0; // add · T_k
+    let mut ka: i64 = 0; // add · (k − 1): this step's interval is I + ka
     for (k0, st) in steps.iter().enumerate() {
-        let k0 = k0 as i64; // steps before this one
-        let k = k0 + 1;
-        add_sum += k0 * add;
+        let k = k0 as i64 + 1;
+        add_sum += ka;
         let l = st.lo as i64 - last - add_sum;
         let u = st.hi as i64 - last - add_sum;
         let mut nlo = lo_i;
@@ -77,8 +77,7 @@ pub(crate) fn run_with_add(steps: &[StepWindow], last: u64, add: i64) -> (usize,
         if k * nhi > u {
             nhi = div_floor(u, k);
         }
-        // This step's interval, I + k0·add, must stay in [0, MAX_INTERVAL].
-        let ka = k0 * add;
+        // This step's interval must stay in [0, MAX_INTERVAL].
         nlo = nlo.max(-ka);
         nhi = nhi.min(MAX_IV - ka);
         if nlo > nhi {
@@ -89,10 +88,11 @@ pub(crate) fn run_with_add(steps: &[StepWindow], last: u64, add: i64) -> (usize,
             } else {
                 Bend::Up
             };
-            return (k0 as usize, hi_i, bend);
+            return (k0, hi_i, bend);
         }
         lo_i = nlo;
         hi_i = nhi;
+        ka += add;
     }
     (steps.len(), hi_i, Bend::None)
 }
@@ -132,7 +132,11 @@ fn add_deviation(count: usize, max_err: i64) -> i64 {
 pub(crate) fn longest_fit(steps: &[StepWindow], last: u64, max_err: i64, guess_add: i64) -> Fit {
     let single = || {
         let (_, interval, _) = run_with_add(&steps[..1], last, 0);
-        Fit { interval, count: 1, add: 0 }
+        Fit {
+            interval,
+            count: 1,
+            add: 0,
+        }
     };
     if steps.len() < 2 {
         return single();
@@ -147,7 +151,11 @@ pub(crate) fn longest_fit(steps: &[StepWindow], last: u64, max_err: i64, guess_a
         return single();
     }
     let mut add = guess_add.clamp(amin, amax);
-    let mut best = Fit { interval: 0, count: 0, add: 0 };
+    let mut best = Fit {
+        interval: 0,
+        count: 0,
+        add: 0,
+    };
     for _ in 0..MAX_TRIALS {
         let (count, interval, bend) = run_with_add(steps, last, add);
         if count > best.count || (count == best.count && add > best.add) {
@@ -190,13 +198,20 @@ pub(crate) fn latest_end(steps: &[StepWindow], last: u64, max_err: i64, fit: Fit
     if c < 2 {
         return best;
     }
-    let (mut lo, mut hi) = (best.add, (best.add + add_deviation(c, max_err)).min(i16::MAX as i64));
+    let (mut lo, mut hi) = (
+        best.add,
+        (best.add + add_deviation(c, max_err)).min(i16::MAX as i64),
+    );
     while lo < hi {
         let mid = lo + (hi - lo + 1) / 2;
         let (count, interval, _) = run_with_add(&steps[..c], last, mid);
         if count == c {
             lo = mid;
-            best = Fit { interval, count, add: mid };
+            best = Fit {
+                interval,
+                count,
+                add: mid,
+            };
         } else {
             hi = mid - 1;
         }
@@ -216,15 +231,31 @@ mod tests {
     use super::*;
 
     fn windows(clocks: &[u64], err: u64) -> Vec<StepWindow> {
-        clocks.iter().map(|&c| StepWindow { lo: c - err, hi: c, dir: true }).collect()
+        clocks
+            .iter()
+            .map(|&c| StepWindow {
+                lo: c - err,
+                hi: c,
+                dir: true,
+            })
+            .collect()
     }
 
     #[test]
     fn exact_quadratic_is_found_in_full() {
         // p_k = 1000 + 300k + 7·k(k−1)/2
-        let clocks: Vec<u64> = (1..=200u64).map(|k| 1000 + 300 * k + 7 * k * (k - 1) / 2).collect();
+        let clocks: Vec<u64> = (1..=200u64)
+            .map(|k| 1000 + 300 * k + 7 * k * (k - 1) / 2)
+            .collect();
         let f = best_fit(&windows(&clocks, 0), 1000, 0, 0);
-        assert_eq!(f, Fit { interval: 300, count: 200, add: 7 });
+        assert_eq!(
+            f,
+            Fit {
+                interval: 300,
+                count: 200,
+                add: 7
+            }
+        );
         assert_eq!(f.end(1000), *clocks.last().unwrap());
     }
 

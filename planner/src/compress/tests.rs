@@ -8,7 +8,12 @@ const MAX_ERR: u32 = 1250;
 
 /// Compresses `steps` (ideal clock, dir) in one go and checks the result.
 fn compress_all(steps: &[(f64, bool)]) -> (Vec<StepCmd>, CheckStats) {
+    compress_with(steps, DEFAULT_LOOKAHEAD_BACKOFF)
+}
+
+fn compress_with(steps: &[(f64, bool)], backoff: usize) -> (Vec<StepCmd>, CheckStats) {
     let mut c = StepCompressor::new(0.01, 50e6, MAX_ERR);
+    c.set_lookahead_backoff(backoff);
     c.set_record_ideal(true);
     for &(clock, dir) in steps {
         c.push_step(clock, dir);
@@ -28,7 +33,9 @@ fn compress_all(steps: &[(f64, bool)]) -> (Vec<StepCmd>, CheckStats) {
 fn queue_steps(cmds: &[StepCmd]) -> Vec<(u32, u16, i16)> {
     cmds.iter()
         .filter_map(|c| match *c {
-            StepCmd::QueueStep { interval, count, add, .. } => Some((interval, count, add)),
+            StepCmd::QueueStep {
+                interval, count, add, ..
+            } => Some((interval, count, add)),
             _ => None,
         })
         .collect()
@@ -38,7 +45,12 @@ fn queue_steps(cmds: &[StepCmd]) -> Vec<(u32, u16, i16)> {
 fn constant_rate_packs_into_one_command() {
     let steps: Vec<_> = (1..=1000).map(|k| (1e6 + k as f64 * 5000.0, true)).collect();
     let (cmds, stats) = compress_all(&steps);
-    assert_eq!(cmds[0], StepCmd::ResetClock { clock: 1e6 as u64 + 5000 - MAX_ERR as u64 - 1 });
+    assert_eq!(
+        cmds[0],
+        StepCmd::ResetClock {
+            clock: 1e6 as u64 + 5000 - MAX_ERR as u64 - 1
+        }
+    );
     assert_eq!(cmds[1], StepCmd::SetDir { dir: true });
     assert!(stats.queue_steps <= 2, "{cmds:?}");
     assert_eq!(queue_steps(&cmds).last().map(|q| q.0), Some(5000));
@@ -49,25 +61,41 @@ fn fractional_rate_needs_few_commands() {
     // 3333.3 ticks per step: an integer interval drifts 0.3 tick per step.
     let steps: Vec<_> = (1..=20000).map(|k| (k as f64 * 3333.3, true)).collect();
     let (_, stats) = compress_all(&steps);
-    assert!(stats.queue_steps <= 20000 / 2000, "{} commands", stats.queue_steps);
+    assert!(
+        stats.queue_steps <= 20000 / 2000,
+        "{} commands",
+        stats.queue_steps
+    );
 }
 
 #[test]
 fn constant_acceleration_uses_add() {
     // Accelerating at 3000 mm/s² from rest with 80 steps/mm: t_k = sqrt(2k / (80·3000)).
-    let steps: Vec<_> = (1..=3000).map(|k| (1e7 + (2.0 * k as f64 / 240_000.0).sqrt() * 50e6, true)).collect();
+    let steps: Vec<_> = (1..=3000)
+        .map(|k| (1e7 + (2.0 * k as f64 / 240_000.0).sqrt() * 50e6, true))
+        .collect();
     let (_, stats) = compress_all(&steps);
     assert!(stats.queue_steps < 60, "{} commands", stats.queue_steps);
 }
 
 #[test]
 fn long_gap_resets_the_clock() {
-    let steps = [(1000.0, true), (2000.0, true), (1e10, false), (1e10 + 4000.0, false)];
+    let steps = [
+        (1000.0, true),
+        (2000.0, true),
+        (1e10, false),
+        (1e10 + 4000.0, false),
+    ];
     let (cmds, stats) = compress_all(&steps);
     assert_eq!(stats.resets, 2);
     assert_eq!(stats.dir_changes, 1);
     assert_eq!(stats.position, 0);
-    assert!(cmds.iter().filter(|c| matches!(c, StepCmd::ResetClock { .. })).count() == 2);
+    assert!(
+        cmds.iter()
+            .filter(|c| matches!(c, StepCmd::ResetClock { .. }))
+            .count()
+            == 2
+    );
 }
 
 #[test]
@@ -80,7 +108,13 @@ fn count_is_capped() {
 
 #[test]
 fn simultaneous_steps_and_reversals() {
-    let steps = [(5000.0, true), (5000.0, false), (5000.0, true), (9000.0, true), (9000.5, true)];
+    let steps = [
+        (5000.0, true),
+        (5000.0, false),
+        (5000.0, true),
+        (9000.0, true),
+        (9000.5, true),
+    ];
     compress_all(&steps);
 }
 
@@ -134,8 +168,8 @@ proptest! {
     #![proptest_config(ProptestConfig { cases: 300, ..ProptestConfig::default() })]
 
     #[test]
-    fn any_monotone_step_times_compress_correctly(steps in arb_steps()) {
-        compress_all(&steps);
+    fn any_monotone_step_times_compress_correctly(steps in arb_steps(), backoff in 0usize..4) {
+        compress_with(&steps, backoff);
     }
 
     #[test]

@@ -22,10 +22,26 @@ pub(crate) fn benchy_config() -> PipelineConfig {
             axis_limits: [(0.0, 200.0), (0.0, 200.0), (0.0, 200.0)],
         },
         steppers: vec![
-            StepperSpec { name: "stepper_x".into(), axis: 0, step_dist: 1.0 / 80.0 },
-            StepperSpec { name: "stepper_y".into(), axis: 1, step_dist: 1.0 / 80.0 },
-            StepperSpec { name: "stepper_z".into(), axis: 2, step_dist: 1.0 / 400.0 },
-            StepperSpec { name: "extruder".into(), axis: 3, step_dist: 33.5 / 3200.0 },
+            StepperSpec {
+                name: "stepper_x".into(),
+                axis: 0,
+                step_dist: 1.0 / 80.0,
+            },
+            StepperSpec {
+                name: "stepper_y".into(),
+                axis: 1,
+                step_dist: 1.0 / 80.0,
+            },
+            StepperSpec {
+                name: "stepper_z".into(),
+                axis: 2,
+                step_dist: 1.0 / 400.0,
+            },
+            StepperSpec {
+                name: "extruder".into(),
+                axis: 3,
+                step_dist: 33.5 / 3200.0,
+            },
         ],
         clock_freq: FREQ,
         max_error_s: 25e-6,
@@ -87,7 +103,11 @@ fn run_gcode(text: &str) -> Run {
         }
         keys[j] = next_key[i].expect("reset/dir must precede a queue_step");
     }
-    Run { pipeline: p, per_stepper, keys }
+    Run {
+        pipeline: p,
+        per_stepper,
+        keys,
+    }
 }
 
 /// round(b / step_dist) − round(a / step_dist), rounding half up like step generation.
@@ -101,17 +121,55 @@ fn square_with_extrusion() {
     let g = "G28\nG1 Z0.3 F600\nM83\nG1 X10 Y10 F6000\nG1 X50 E2 F1800\nG1 Y50 E2\nG1 X10 E2\nG1 Y10 E2\n\
              G1 E-1 F2400\nG4 P200\nG1 X100 Y100 F9000\n";
     let r = run_gcode(g);
-    assert!(r.keys.windows(2).all(|w| w[0] <= w[1]), "merged output must be time-ordered");
+    assert!(
+        r.keys.windows(2).all(|w| w[0] <= w[1]),
+        "merged output must be time-ordered"
+    );
     let pos = r.pipeline.stepper_positions();
-    assert_eq!(pos, vec![8000, 8000, steps_between(0.5, 0.3, 0.0025), steps_between(0.0, 7.0, 33.5 / 3200.0)]);
+    assert_eq!(
+        pos,
+        vec![
+            8000,
+            8000,
+            steps_between(0.5, 0.3, 0.0025),
+            steps_between(0.0, 7.0, 33.5 / 3200.0)
+        ]
+    );
     assert_eq!(r.pipeline.position(), [100.0, 100.0, 0.3, 7.0]);
     let stats = r.pipeline.stats();
     assert_eq!(stats.moves, 8);
-    assert_eq!(stats.steps.iter().sum::<u64>(), r.per_stepper.iter().flatten().map(|c| match c {
-        StepCmd::QueueStep { count, .. } => *count as u64,
-        _ => 0,
-    }).sum::<u64>());
+    assert_eq!(
+        stats.steps.iter().sum::<u64>(),
+        r.per_stepper
+            .iter()
+            .flatten()
+            .map(|c| match c {
+                StepCmd::QueueStep { count, .. } => *count as u64,
+                _ => 0,
+            })
+            .sum::<u64>()
+    );
     assert!(r.pipeline.planned_until() >= stats.print_time_end - 1e-3);
+}
+
+#[test]
+fn idle_flush_releases_everything() {
+    let mut p = Pipeline::new(benchy_config(), 1.0).unwrap();
+    p.set_homed([true; 3]);
+    let mut out = Vec::new();
+    for (i, g) in ["G1 X10 Y5 F3000", "G1 X20 Y5"].iter().enumerate() {
+        let cmd = crate::gcode::parse_line(i + 1, g.as_bytes()).unwrap().unwrap();
+        p.apply(&GcodeLine { line_no: i + 1, cmd }).unwrap();
+        p.generate(&mut out);
+    }
+    assert!(out.is_empty(), "moves are still in the lookahead");
+    p.flush_lookahead();
+    p.generate(&mut out);
+    assert_eq!(p.stepper_positions(), vec![1600, 400, 0, 0]);
+    assert!((p.planned_until() - p.stats().print_time_end).abs() < 1e-3);
+    let n = out.len();
+    p.generate(&mut out);
+    assert_eq!(out.len(), n, "nothing new");
 }
 
 #[test]
@@ -131,14 +189,26 @@ fn rejects_bad_configs() {
 }
 
 fn arb_program() -> impl Strategy<Value = (String, [f64; 4])> {
-    let mv = (0.0f64..200.0, 0.0f64..200.0, 0.3f64..20.0, -1.0f64..3.0, 5.0f64..300.0, 0u8..12);
+    let mv = (
+        0.0f64..200.0,
+        0.0f64..200.0,
+        0.3f64..20.0,
+        -1.0f64..3.0,
+        5.0f64..300.0,
+        0u8..12,
+    );
     proptest::collection::vec(mv, 1..60).prop_map(|moves| {
         let mut g = String::from("G28\nM83\n");
         let mut pos = [0.0, 0.0, 0.5, 0.0];
         let mut e_total = 0.0;
         for (x, y, z, e, f, kind) in moves {
             // Round like slicers do (3 decimals for XYZ, 5 for E).
-            let (x, y, z, e) = ((x * 1e3f64).round() / 1e3, (y * 1e3f64).round() / 1e3, (z * 1e3f64).round() / 1e3, (e * 1e5f64).round() / 1e5);
+            let (x, y, z, e) = (
+                (x * 1e3f64).round() / 1e3,
+                (y * 1e3f64).round() / 1e3,
+                (z * 1e3f64).round() / 1e3,
+                (e * 1e5f64).round() / 1e5,
+            );
             match kind {
                 0 => g.push_str(&format!("G1 E{e} F{}\n", f * 10.0)),
                 1 => g.push_str("G92 E0\n"),

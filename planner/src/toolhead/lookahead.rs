@@ -152,7 +152,11 @@ pub(crate) fn plan(moves: &mut [Queued], falling: &mut Vec<Falling>, lazy: bool)
                 }
             }
         } else {
-            falling.push(Falling { index: i, start_v2, end_v2: next_start_v2 });
+            falling.push(Falling {
+                index: i,
+                start_v2,
+                end_v2: next_start_v2,
+            });
         }
         next_start_v2 = start_v2;
         next_smoothed_v2 = smoothed_v2;

@@ -33,8 +33,14 @@ const KEEP_QUEUED_TIME: f64 = 1.0;
 const UNLIMITED_ACCEL: f64 = 99_999_999.9;
 /// Coordinates beyond this (mm) are rejected as absurd.
 const ABSURD_COORD: f64 = 1e9;
-/// Moves shorter than this in X/Y/Z are extrude-only (mm).
+/// Moves shorter than this in X/Y/Z are extrude-only (mm); shorter extrude-only moves are
+/// ignored.
 const MIN_XYZ_MOVE: f64 = 1e-9;
+/// Extrusion per mm of X/Y/Z travel beyond which a move is refused as absurd (the real limit,
+/// Klipper's max_extrude_cross_section, needs nozzle data the toolhead does not have).
+const MAX_EXTRUDE_RATIO: f64 = 100.0;
+/// Longest dwell accepted (s).
+pub const MAX_DWELL: f64 = 1e6;
 /// Klipper's default `instantaneous_corner_velocity` of the extruder (mm/s).
 pub const DEFAULT_INSTANT_CORNER_VELOCITY: f64 = 1.0;
 
@@ -133,6 +139,10 @@ pub enum MoveError {
     BadSpeed(f64),
     #[error("Extrude only move too long ({dist:.3} mm vs max_extrude_only_distance {max:.3} mm)")]
     ExtrudeOnlyTooLong { dist: f64, max: f64 },
+    #[error("Move exceeds maximum extrusion ({ratio:.1} mm of filament per mm, max {max})")]
+    ExtrudeRatio { ratio: f64, max: f64 },
+    #[error("invalid dwell {0} s (0 ..= {MAX_DWELL})")]
+    BadDwell(f64),
     #[error("move limits are not finite (check the toolhead config)")]
     BadLimits,
 }
@@ -167,7 +177,11 @@ impl Toolhead {
             queue: VecDeque::with_capacity(1024),
             falling: Vec::with_capacity(256),
             ready: VecDeque::with_capacity(1024),
-            print_time: if start_print_time.is_finite() { start_print_time } else { 0.0 },
+            print_time: if start_print_time.is_finite() {
+                start_print_time
+            } else {
+                0.0
+            },
             flush_countdown: LOOKAHEAD_FLUSH_TIME,
             queued_time: 0.0,
             moves_total: 0,
@@ -224,18 +238,35 @@ impl Toolhead {
             d[0] = 0.0;
             d[1] = 0.0;
             d[2] = 0.0;
-            (false, [start[0], start[1], start[2], end[3]], d[3].abs(), speed_mm_s, UNLIMITED_ACCEL)
+            (
+                false,
+                [start[0], start[1], start[2], end[3]],
+                d[3].abs(),
+                speed_mm_s,
+                UNLIMITED_ACCEL,
+            )
         } else {
             for i in 0..3 {
                 let (lo, hi) = cfg.axis_limits[i];
                 if d[i] != 0.0 && !(lo..=hi).contains(&end[i]) {
-                    return Err(MoveError::OutOfRange { x: end[0], y: end[1], z: end[2], e: end[3] });
+                    return Err(MoveError::OutOfRange {
+                        x: end[0],
+                        y: end[1],
+                        z: end[2],
+                        e: end[3],
+                    });
                 }
             }
             (true, end, xyz_d, speed_mm_s.min(cfg.max_velocity), cfg.max_accel)
         };
-        if move_d == 0.0 {
+        if move_d < MIN_XYZ_MOVE {
             return Ok(());
+        }
+        if kinematic && d[3].abs() > MAX_EXTRUDE_RATIO * move_d && d[3].abs() > 1.0 {
+            return Err(MoveError::ExtrudeRatio {
+                ratio: d[3].abs() / move_d,
+                max: MAX_EXTRUDE_RATIO,
+            });
         }
         let inv_d = 1.0 / move_d;
         let axes_r = [d[0] * inv_d, d[1] * inv_d, d[2] * inv_d, d[3] * inv_d];
@@ -271,12 +302,24 @@ impl Toolhead {
         }
         if d[3] != 0.0 && ((d[0] == 0.0 && d[1] == 0.0) || axes_r[3] < 0.0) {
             if d[3].abs() > cfg.max_extrude_only_distance {
-                return Err(MoveError::ExtrudeOnlyTooLong { dist: d[3].abs(), max: cfg.max_extrude_only_distance });
+                return Err(MoveError::ExtrudeOnlyTooLong {
+                    dist: d[3].abs(),
+                    max: cfg.max_extrude_only_distance,
+                });
             }
             let inv_r = 1.0 / axes_r[3].abs();
-            q.limit_speed(cfg.max_extrude_only_velocity * inv_r, cfg.max_extrude_only_accel * inv_r);
+            q.limit_speed(
+                cfg.max_extrude_only_velocity * inv_r,
+                cfg.max_extrude_only_accel * inv_r,
+            );
         }
-        let limits = [q.max_cruise_v2, q.delta_v2, q.smooth_delta_v2, q.min_move_t, q.mv.accel];
+        let limits = [
+            q.max_cruise_v2,
+            q.delta_v2,
+            q.smooth_delta_v2,
+            q.min_move_t,
+            q.mv.accel,
+        ];
         if limits.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
             return Err(MoveError::BadLimits);
         }
@@ -301,12 +344,14 @@ impl Toolhead {
         self.commit(n, false);
     }
 
-    /// Waits `seconds` after the last move (flushes the lookahead first).
-    pub fn dwell(&mut self, seconds: f64) {
-        self.flush();
-        if seconds.is_finite() && seconds > 0.0 {
-            self.print_time += seconds;
+    /// Waits `seconds` (0 ..= [`MAX_DWELL`]) after the last move (flushes the lookahead first).
+    pub fn dwell(&mut self, seconds: f64) -> Result<(), MoveError> {
+        if !(seconds.is_finite() && (0.0..=MAX_DWELL).contains(&seconds)) {
+            return Err(MoveError::BadDwell(seconds));
         }
+        self.flush();
+        self.print_time += seconds;
+        Ok(())
     }
 
     /// Redefines the commanded position without moving (flushes the lookahead first).
@@ -383,9 +428,21 @@ fn finalize(q: &Queued, print_time: f64) -> Move {
     mv.cruise_v = q.cruise_v2.max(0.0).sqrt();
     mv.end_v = q.end_v2.max(0.0).sqrt();
     let mean = |a: f64, b: f64| 0.5 * (a + b);
-    mv.accel_t = if accel_d > 0.0 { accel_d / mean(mv.start_v, mv.cruise_v) } else { 0.0 };
-    mv.cruise_t = if cruise_d > 0.0 && mv.cruise_v > 0.0 { cruise_d / mv.cruise_v } else { 0.0 };
-    mv.decel_t = if decel_d > 0.0 { decel_d / mean(mv.end_v, mv.cruise_v) } else { 0.0 };
+    mv.accel_t = if accel_d > 0.0 {
+        accel_d / mean(mv.start_v, mv.cruise_v)
+    } else {
+        0.0
+    };
+    mv.cruise_t = if cruise_d > 0.0 && mv.cruise_v > 0.0 {
+        cruise_d / mv.cruise_v
+    } else {
+        0.0
+    };
+    mv.decel_t = if decel_d > 0.0 {
+        decel_d / mean(mv.end_v, mv.cruise_v)
+    } else {
+        0.0
+    };
     debug_assert!(mv.duration().is_finite() && mv.duration() > 0.0, "{q:?}");
     mv.print_time = print_time;
     mv

@@ -204,8 +204,8 @@ mod tests {
         assert!((m.velocity_at(0.05) - 5.0).abs() < 1e-12);
         assert!((m.velocity_at(0.26) - 4.0).abs() < 1e-9);
         let p = m.position_at(0.26);
-        for i in 0..4 {
-            assert!((p[i] - m.end_pos[i]).abs() < 1e-12);
+        for (a, b) in p.iter().zip(m.end_pos) {
+            assert!((a - b).abs() < 1e-12);
         }
     }
 

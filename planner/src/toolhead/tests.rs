@@ -32,16 +32,25 @@ fn run(th: &mut Toolhead, targets: &[([f64; 4], f64)]) -> Vec<Move> {
 fn check_sequence(moves: &[Move], cfg: &ToolheadConfig) {
     let tol = |v: f64| 1e-6 * v.max(1.0);
     for (i, m) in moves.iter().enumerate() {
-        assert!(m.accel_t >= 0.0 && m.cruise_t >= 0.0 && m.decel_t >= 0.0, "{i}: {m:?}");
+        assert!(
+            m.accel_t >= 0.0 && m.cruise_t >= 0.0 && m.decel_t >= 0.0,
+            "{i}: {m:?}"
+        );
         assert!(m.duration() > 0.0, "{i}: {m:?}");
-        assert!(m.start_v <= m.cruise_v + tol(m.cruise_v) && m.end_v <= m.cruise_v + tol(m.cruise_v), "{i}: {m:?}");
+        assert!(
+            m.start_v <= m.cruise_v + tol(m.cruise_v) && m.end_v <= m.cruise_v + tol(m.cruise_v),
+            "{i}: {m:?}"
+        );
         if m.is_kinematic() {
             assert!(m.cruise_v <= cfg.max_velocity + 1e-9, "{i}: {m:?}");
             assert!(m.accel <= cfg.max_accel + 1e-9);
         }
         // The profile covers exactly the move distance.
         let covered = m.accel_d() + m.cruise_d() + (m.cruise_v + m.end_v) * 0.5 * m.decel_t;
-        assert!((covered - m.move_d).abs() < 1e-6 * m.move_d.max(1.0), "{i}: {covered} vs {m:?}");
+        assert!(
+            (covered - m.move_d).abs() < 1e-6 * m.move_d.max(1.0),
+            "{i}: {covered} vs {m:?}"
+        );
         if m.accel_t > 1e-9 {
             let a = (m.cruise_v - m.start_v) / m.accel_t;
             assert!((a - m.accel).abs() < 1e-6 * m.accel, "{i}: accel {a} vs {m:?}");
@@ -54,7 +63,12 @@ fn check_sequence(moves: &[Move], cfg: &ToolheadConfig) {
             let p = &moves[i - 1];
             assert_eq!(p.end_pos, m.start_pos, "{i}: positions must chain exactly");
             assert!((p.end_time() - m.print_time).abs() < 1e-9, "{i}: time gap");
-            assert!((p.end_v - m.start_v).abs() < tol(m.start_v), "{i}: speed jump {} -> {}", p.end_v, m.start_v);
+            assert!(
+                (p.end_v - m.start_v).abs() < tol(m.start_v),
+                "{i}: speed jump {} -> {}",
+                p.end_v,
+                m.start_v
+            );
         } else {
             assert_eq!(m.start_v, 0.0);
         }
@@ -85,7 +99,13 @@ fn single_move_trapezoid() {
 fn speed_is_capped_by_max_velocity_and_z_limits() {
     let c = cfg();
     let mut th = Toolhead::new(c, 0.0);
-    let moves = run(&mut th, &[([200.0, 0.0, 0.0, 0.0], 1000.0), ([200.0, 0.0, 10.0, 0.0], 1000.0)]);
+    let moves = run(
+        &mut th,
+        &[
+            ([200.0, 0.0, 0.0, 0.0], 1000.0),
+            ([200.0, 0.0, 10.0, 0.0], 1000.0),
+        ],
+    );
     check_sequence(&moves, &c);
     assert!((moves[0].cruise_v - 500.0).abs() < 1e-9);
     assert!(moves[1].cruise_v <= 25.0 + 1e-9);
@@ -96,7 +116,9 @@ fn speed_is_capped_by_max_velocity_and_z_limits() {
 fn collinear_segments_do_not_slow_down() {
     let c = cfg();
     let mut th = Toolhead::new(c, 0.0);
-    let targets: Vec<_> = (1..=40).map(|i| ([i as f64 * 5.0, 0.0, 0.0, i as f64 * 0.2], 100.0)).collect();
+    let targets: Vec<_> = (1..=40)
+        .map(|i| ([i as f64 * 5.0, 0.0, 0.0, i as f64 * 0.2], 100.0))
+        .collect();
     let moves = run(&mut th, &targets);
     check_sequence(&moves, &c);
     // Cruise at 100 mm/s needs 1.67 mm to reach: from the second segment on, every joint
@@ -111,12 +133,18 @@ fn collinear_segments_do_not_slow_down() {
 fn square_corner_respects_square_corner_velocity() {
     let c = cfg();
     let mut th = Toolhead::new(c, 0.0);
-    let moves = run(&mut th, &[([50.0, 0.0, 0.0, 0.0], 100.0), ([50.0, 50.0, 0.0, 0.0], 100.0)]);
+    let moves = run(
+        &mut th,
+        &[([50.0, 0.0, 0.0, 0.0], 100.0), ([50.0, 50.0, 0.0, 0.0], 100.0)],
+    );
     check_sequence(&moves, &c);
     assert!((moves[0].end_v - 5.0).abs() < 1e-6, "{:?}", moves[0]);
     assert!((moves[1].start_v - 5.0).abs() < 1e-6);
     // A reversal stops.
-    let moves = run(&mut th, &[([10.0, 50.0, 0.0, 0.0], 100.0), ([40.0, 50.0, 0.0, 0.0], 100.0)]);
+    let moves = run(
+        &mut th,
+        &[([10.0, 50.0, 0.0, 0.0], 100.0), ([40.0, 50.0, 0.0, 0.0], 100.0)],
+    );
     check_sequence(&moves, &c);
     assert!(moves[0].end_v.abs() < 1e-9);
 }
@@ -127,7 +155,11 @@ fn extrude_only_moves_stop_and_use_extruder_limits() {
     let mut th = Toolhead::new(c, 0.0);
     let moves = run(
         &mut th,
-        &[([10.0, 0.0, 0.0, 0.0], 100.0), ([10.0, 0.0, 0.0, -1.0], 100.0), ([20.0, 0.0, 0.0, -1.0], 100.0)],
+        &[
+            ([10.0, 0.0, 0.0, 0.0], 100.0),
+            ([10.0, 0.0, 0.0, -1.0], 100.0),
+            ([20.0, 0.0, 0.0, -1.0], 100.0),
+        ],
     );
     check_sequence(&moves, &c);
     assert_eq!(moves.len(), 3);
@@ -142,18 +174,33 @@ fn refuses_bad_moves_and_stays_put() {
     let c = cfg();
     let mut th = Toolhead::new(c, 0.0);
     th.move_to([10.0, 10.0, 1.0, 0.0], 50.0).unwrap();
-    assert!(matches!(th.move_to([250.0, 10.0, 1.0, 0.0], 50.0), Err(MoveError::OutOfRange { .. })));
+    assert!(matches!(
+        th.move_to([250.0, 10.0, 1.0, 0.0], 50.0),
+        Err(MoveError::OutOfRange { .. })
+    ));
     assert_eq!(
         th.move_to([10.0, 10.0, 1.0, 0.0], 50.0).map(|_| th.moves_total()),
         Ok(1),
         "zero-length move is ignored"
     );
-    assert!(matches!(th.move_to([f64::NAN, 0.0, 0.0, 0.0], 50.0), Err(MoveError::BadPosition(_))));
-    assert!(matches!(th.move_to([1.0, 0.0, 0.0, 0.0], 0.0), Err(MoveError::BadSpeed(_))));
-    assert!(matches!(th.move_to([10.0, 10.0, 1.0, 80.0], 5.0), Err(MoveError::ExtrudeOnlyTooLong { .. })));
+    assert!(matches!(
+        th.move_to([f64::NAN, 0.0, 0.0, 0.0], 50.0),
+        Err(MoveError::BadPosition(_))
+    ));
+    assert!(matches!(
+        th.move_to([1.0, 0.0, 0.0, 0.0], 0.0),
+        Err(MoveError::BadSpeed(_))
+    ));
+    assert!(matches!(
+        th.move_to([10.0, 10.0, 1.0, 80.0], 5.0),
+        Err(MoveError::ExtrudeOnlyTooLong { .. })
+    ));
     assert_eq!(th.position(), [10.0, 10.0, 1.0, 0.0]);
     let e = th.move_to([10.0, -1.0, 1.0, 0.0], 5.0).unwrap_err();
-    assert_eq!(e.to_string(), "Move out of range: X=10.000 Y=-1.000 Z=1.000 [E=0.000]");
+    assert_eq!(
+        e.to_string(),
+        "Move out of range: X=10.000 Y=-1.000 Z=1.000 [E=0.000]"
+    );
 }
 
 #[test]
@@ -161,7 +208,8 @@ fn dwell_and_set_position() {
     let c = cfg();
     let mut th = Toolhead::new(c, 0.0);
     th.move_to([10.0, 0.0, 0.0, 0.0], 50.0).unwrap();
-    th.dwell(1.5);
+    th.dwell(1.5).unwrap();
+    assert!(th.dwell(f64::NAN).is_err() && th.dwell(-1.0).is_err() && th.dwell(2e6).is_err());
     let t = th.print_time();
     th.set_position([0.0, 0.0, 0.0, 0.0]);
     th.move_to([5.0, 0.0, 0.0, 0.0], 50.0).unwrap();
@@ -200,7 +248,8 @@ fn long_straight_runs_are_flushed_in_parts() {
     let mut th = Toolhead::new(c, 0.0);
     let mut out = Vec::new();
     for i in 1..=5000 {
-        th.move_to([10.0 + (i as f64) * 0.03, 10.0, 0.0, 0.0], 10.0).unwrap();
+        th.move_to([10.0 + (i as f64) * 0.03, 10.0, 0.0, 0.0], 10.0)
+            .unwrap();
         th.take_moves(&mut out);
     }
     assert!(out.len() > 4000, "only {} final moves", out.len());
@@ -208,33 +257,51 @@ fn long_straight_runs_are_flushed_in_parts() {
     th.take_moves(&mut out);
     check_sequence(&out, &c);
     for m in &out[1..out.len() - 1] {
-        assert!((m.cruise_v - 10.0).abs() < 1e-9 && (m.start_v - 10.0).abs() < 1e-6, "{m:?}");
+        assert!(
+            (m.cruise_v - 10.0).abs() < 1e-9 && (m.start_v - 10.0).abs() < 1e-6,
+            "{m:?}"
+        );
     }
 }
 
 fn arb_targets() -> impl Strategy<Value = Vec<([f64; 4], f64)>> {
-    let pt = (0.0f64..200.0, 0.0f64..200.0, 0.0f64..5.0, -2.0f64..2.0, 1.0f64..400.0);
-    let small = (-3.0f64..3.0, -3.0f64..3.0, 0.0f64..1.0, 0.0f64..0.2, 5.0f64..200.0);
-    (proptest::collection::vec(prop_oneof![pt.prop_map(|p| (true, p)), small.prop_map(|p| (false, p))], 1..120))
-        .prop_map(|steps| {
-            let mut pos = [100.0, 100.0, 1.0, 0.0];
-            let mut out = Vec::new();
-            for (absolute, (a, b, c, e, v)) in steps {
-                if absolute {
-                    pos = [a, b, c, pos[3] + e];
-                } else {
-                    // Mostly small steps: zero Z change half of the time.
-                    pos[0] = (pos[0] + a).clamp(0.0, 200.0);
-                    pos[1] = (pos[1] + b).clamp(0.0, 200.0);
-                    if c > 0.5 {
-                        pos[2] = (pos[2] + c - 0.5).min(200.0);
-                    }
-                    pos[3] += e;
+    let pt = (
+        0.0f64..200.0,
+        0.0f64..200.0,
+        0.0f64..5.0,
+        -2.0f64..2.0,
+        1.0f64..400.0,
+    );
+    let small = (
+        -3.0f64..3.0,
+        -3.0f64..3.0,
+        0.0f64..1.0,
+        0.0f64..0.2,
+        5.0f64..200.0,
+    );
+    (proptest::collection::vec(
+        prop_oneof![pt.prop_map(|p| (true, p)), small.prop_map(|p| (false, p))],
+        1..120,
+    ))
+    .prop_map(|steps| {
+        let mut pos = [100.0, 100.0, 1.0, 0.0];
+        let mut out = Vec::new();
+        for (absolute, (a, b, c, e, v)) in steps {
+            if absolute {
+                pos = [a, b, c, pos[3] + e];
+            } else {
+                // Mostly small steps: zero Z change half of the time.
+                pos[0] = (pos[0] + a).clamp(0.0, 200.0);
+                pos[1] = (pos[1] + b).clamp(0.0, 200.0);
+                if c > 0.5 {
+                    pos[2] = (pos[2] + c - 0.5).min(200.0);
                 }
-                out.push((pos, v));
+                pos[3] += e;
             }
-            out
-        })
+            out.push((pos, v));
+        }
+        out
+    })
 }
 
 proptest! {

@@ -1,0 +1,264 @@
+//! Parser tests: syntax, errors, streaming, and properties (no panic, round trip).
+use super::*;
+use proptest::prelude::*;
+
+fn parse(s: &str) -> Result<Option<Command>, GcodeError> {
+    parse_line(7, s.as_bytes())
+}
+
+fn mv(x: Option<f64>, y: Option<f64>, z: Option<f64>, e: Option<f64>, f: Option<f64>) -> Command {
+    Command::Move { x, y, z, e, f }
+}
+
+#[test]
+fn moves_and_numbers() {
+    assert_eq!(
+        parse("G1 X10.5 Y-3 E.4 F1200").unwrap(),
+        Some(mv(Some(10.5), Some(-3.0), None, Some(0.4), Some(1200.0)))
+    );
+    assert_eq!(
+        parse("g0x1y+2z-.5").unwrap(),
+        Some(mv(Some(1.0), Some(2.0), Some(-0.5), None, None))
+    );
+    assert_eq!(
+        parse("G01 X3.").unwrap(),
+        Some(mv(Some(3.0), None, None, None, None))
+    );
+    assert_eq!(
+        parse("G1 F1800.000").unwrap(),
+        Some(mv(None, None, None, None, Some(1800.0)))
+    );
+    assert_eq!(
+        parse("  G1 X1 ; move (not a comment here)").unwrap(),
+        Some(mv(Some(1.0), None, None, None, None))
+    );
+    assert_eq!(
+        parse("G1 (go) X1 (there)").unwrap(),
+        Some(mv(Some(1.0), None, None, None, None))
+    );
+}
+
+#[test]
+fn skips_blank_and_comment_lines() {
+    for s in ["", "   ", "; hello", "(just a comment)", "N10", "%", "\r"] {
+        assert_eq!(parse(s).unwrap(), None, "{s:?}");
+    }
+}
+
+#[test]
+fn other_commands() {
+    let c = parse("M104 S200 ; heat").unwrap();
+    assert_eq!(
+        c,
+        Some(Command::Other {
+            name: "M104".into(),
+            raw: "M104 S200".into()
+        })
+    );
+    let c = parse("set_velocity_limit ACCEL=1000 SQUARE_CORNER_VELOCITY=5").unwrap();
+    assert!(matches!(c, Some(Command::Other { ref name, .. }) if name == "SET_VELOCITY_LIMIT"));
+    let c = parse("M117 Printing benchy... 12%").unwrap();
+    assert!(
+        matches!(c, Some(Command::Other { ref name, ref raw }) if name == "M117" && raw.ends_with("12%"))
+    );
+    assert!(matches!(parse("T0").unwrap(), Some(Command::Other { ref name, .. }) if name == "T0"));
+    assert!(matches!(parse("G29.1").unwrap(), Some(Command::Other { ref name, .. }) if name == "G29.1"));
+}
+
+#[test]
+fn modal_and_misc_commands() {
+    assert_eq!(
+        parse("G28").unwrap(),
+        Some(Command::Home {
+            x: true,
+            y: true,
+            z: true
+        })
+    );
+    assert_eq!(
+        parse("G28 X0").unwrap(),
+        Some(Command::Home {
+            x: true,
+            y: false,
+            z: false
+        })
+    );
+    assert_eq!(
+        parse("G28 Y Z").unwrap(),
+        Some(Command::Home {
+            x: false,
+            y: true,
+            z: true
+        })
+    );
+    assert_eq!(parse("G90").unwrap(), Some(Command::AbsolutePositioning));
+    assert_eq!(parse("G91").unwrap(), Some(Command::RelativePositioning));
+    assert_eq!(parse("M82").unwrap(), Some(Command::AbsoluteExtrusion));
+    assert_eq!(parse("M83").unwrap(), Some(Command::RelativeExtrusion));
+    assert_eq!(parse("M400").unwrap(), Some(Command::WaitMoves));
+    assert_eq!(
+        parse("G92 E0").unwrap(),
+        Some(Command::SetPosition {
+            x: None,
+            y: None,
+            z: None,
+            e: Some(0.0)
+        })
+    );
+    assert_eq!(parse("G4 P500").unwrap(), Some(Command::Dwell { seconds: 0.5 }));
+    assert_eq!(parse("G4 S2").unwrap(), Some(Command::Dwell { seconds: 2.0 }));
+    assert_eq!(parse("G4").unwrap(), Some(Command::Dwell { seconds: 0.0 }));
+}
+
+#[test]
+fn line_numbers_and_checksums() {
+    let body = "N123 G1 X10";
+    let cs = body.bytes().fold(0u8, |a, b| a ^ b);
+    let line = format!("{body}*{cs}");
+    assert_eq!(
+        parse(&line).unwrap(),
+        Some(mv(Some(10.0), None, None, None, None))
+    );
+    let bad = format!("{body}*{}", cs.wrapping_add(1));
+    let e = parse(&bad).unwrap_err();
+    assert!(matches!(e.kind, GcodeErrorKind::ChecksumMismatch { .. }), "{e}");
+    assert!(matches!(
+        parse("G1 X1*").unwrap_err().kind,
+        GcodeErrorKind::BadChecksum(_)
+    ));
+    assert!(matches!(
+        parse("G1 X1*300").unwrap_err().kind,
+        GcodeErrorKind::BadChecksum(_)
+    ));
+}
+
+#[test]
+fn errors_say_line_and_word() {
+    let e = parse_line(12, b"G1 X1..2").unwrap_err();
+    assert_eq!(e.to_string(), "line 12: bad number 'X1..2' in `G1 X1..2`");
+    assert!(matches!(
+        parse("G1 X1 X2").unwrap_err().kind,
+        GcodeErrorKind::DuplicateParameter('X')
+    ));
+    assert!(matches!(
+        parse("G1 X").unwrap_err().kind,
+        GcodeErrorKind::MissingValue(_)
+    ));
+    assert!(matches!(
+        parse("G1 X-").unwrap_err().kind,
+        GcodeErrorKind::BadNumber(_)
+    ));
+    assert!(matches!(
+        parse("G1 X1-2").unwrap_err().kind,
+        GcodeErrorKind::BadNumber(_)
+    ));
+    let big = format!("G1 X1{}", "0".repeat(400));
+    assert!(matches!(
+        parse(&big).unwrap_err().kind,
+        GcodeErrorKind::NotFinite(_)
+    ));
+    assert!(parse("G1 Xnan").is_err());
+    assert!(matches!(
+        parse("G1 Xinf").unwrap_err().kind,
+        GcodeErrorKind::MissingValue(_)
+    ));
+    assert!(matches!(
+        parse("G1 #5").unwrap_err().kind,
+        GcodeErrorKind::BadWord(_)
+    ));
+    assert!(matches!(
+        parse("#5").unwrap_err().kind,
+        GcodeErrorKind::BadCommand(_)
+    ));
+    assert!(matches!(
+        parse("G1 (oops").unwrap_err().kind,
+        GcodeErrorKind::UnterminatedComment
+    ));
+    assert!(matches!(
+        parse("G4 P-5").unwrap_err().kind,
+        GcodeErrorKind::Negative(_)
+    ));
+    assert!(matches!(
+        parse_line(1, b"G1 X\xff").unwrap_err().kind,
+        GcodeErrorKind::NotUtf8
+    ));
+    assert!(matches!(
+        parse_line(1, b"G1\x00X1").unwrap_err().kind,
+        GcodeErrorKind::Binary(0)
+    ));
+    assert!(matches!(
+        parse("BAD-NAME X=1").unwrap_err().kind,
+        GcodeErrorKind::BadCommand(_)
+    ));
+}
+
+#[test]
+fn reader_streams_lines_with_numbers() {
+    let text = "; header\nG90\n\nG1 X1 Y2\nG1 X1..2\r\nM83\n";
+    let items: Vec<_> = GcodeReader::new(text.as_bytes()).collect();
+    assert_eq!(items.len(), 4);
+    assert_eq!(items[0].as_ref().unwrap().line_no, 2);
+    assert_eq!(items[1].as_ref().unwrap().line_no, 4);
+    assert_eq!(items[2].as_ref().unwrap_err().line, 5);
+    assert_eq!(
+        items[3].as_ref().unwrap(),
+        &GcodeLine {
+            line_no: 6,
+            cmd: Command::RelativeExtrusion
+        }
+    );
+}
+
+#[test]
+fn reader_caps_line_length() {
+    let mut text = vec![b'M'; MAX_LINE_LEN + 10];
+    text.extend_from_slice(b"\nG90");
+    let items: Vec<_> = GcodeReader::new(&text[..]).collect();
+    assert_eq!(items.len(), 2);
+    assert!(matches!(
+        items[0].as_ref().unwrap_err().kind,
+        GcodeErrorKind::LineTooLong
+    ));
+    assert_eq!(items[1].as_ref().unwrap().cmd, Command::AbsolutePositioning);
+}
+
+fn coord() -> impl Strategy<Value = Option<f64>> {
+    prop_oneof![
+        Just(None),
+        (-1e6f64..1e6).prop_map(Some),
+        (-1000i32..1000).prop_map(|v| Some(v as f64 / 8.0))
+    ]
+}
+
+proptest! {
+    #[test]
+    fn never_panics_on_bytes(bytes in proptest::collection::vec(any::<u8>(), 0..300)) {
+        for item in GcodeReader::new(&bytes[..]) {
+            let _ = item.map(|l| l.cmd.to_string()).map_err(|e| e.to_string());
+        }
+    }
+
+    #[test]
+    fn never_panics_on_gcode_like_text(s in "[GMNXYZEFPS*;()0-9 .+\\-=_a-z\n\t]{0,120}") {
+        for item in GcodeReader::new(s.as_bytes()) {
+            let _ = item.map(|l| l.cmd.to_string()).map_err(|e| e.to_string());
+        }
+    }
+
+    #[test]
+    fn moves_round_trip(x in coord(), y in coord(), z in coord(), e in coord(),
+                        f in prop_oneof![Just(None), (1.0f64..1e5).prop_map(Some)]) {
+        let cmd = Command::Move { x, y, z, e, f };
+        let text = cmd.to_string();
+        let back = parse_line(1, text.as_bytes()).unwrap();
+        prop_assert_eq!(back, Some(cmd));
+    }
+
+    #[test]
+    fn checksummed_lines_round_trip(n in 0u32..100000, x in -1000.0f64..1000.0) {
+        let body = format!("N{n} G1 X{x}");
+        let cs = body.bytes().fold(0u8, |a, b| a ^ b);
+        let line = format!("{body}*{cs}");
+        prop_assert_eq!(parse_line(1, line.as_bytes()).unwrap(), Some(mv(Some(x), None, None, None, None)));
+    }
+}
