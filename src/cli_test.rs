@@ -1,0 +1,44 @@
+//! CLI smoke tests of the `cadence` executable (the end-to-end prints live in `tests/`).
+
+use std::process::Command;
+
+fn cadence(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_cadence"))
+        .args(args)
+        .output()
+        .expect("run cadence")
+}
+
+#[test]
+fn help_lists_the_subcommands() {
+    let out = cadence(&["--help"]);
+    assert!(out.status.success());
+    let text = String::from_utf8_lossy(&out.stdout);
+    for sub in ["print", "decode"] {
+        assert!(text.contains(sub), "{sub} missing from:\n{text}");
+    }
+}
+
+#[test]
+fn bad_arguments_are_a_clear_error_not_a_panic() {
+    for args in [
+        &["print"][..],
+        &["print", "x.gcode", "--time-scale", "abc"],
+        &["print", "x.gcode", "--time-scale", "0"],
+        &["print", "x.gcode", "--max-error-us", "-1"],
+        &["frobnicate"],
+    ] {
+        let out = cadence(args);
+        assert!(!out.status.success(), "{args:?} succeeded");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!err.contains("panicked"), "{args:?}: {err}");
+        assert!(!err.trim().is_empty(), "{args:?}: no error message");
+    }
+}
+
+#[test]
+fn decode_of_a_missing_file_names_it() {
+    let out = cadence(&["decode", "/nonexistent/stream.bin"]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/stream.bin"));
+}
