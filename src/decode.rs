@@ -18,15 +18,21 @@ pub struct DecodeArgs {
     pub dictionary: Option<PathBuf>,
 }
 
-pub fn run(args: &DecodeArgs) -> Result<(), String> {
-    let dict = match &args.dictionary {
+/// The data dictionary in `path` (zlib-compressed JSON as served by identify), or the Cadence
+/// firmware's own when none is given.
+pub fn load_dictionary(path: Option<&std::path::Path>) -> Result<Dictionary, String> {
+    match path {
         Some(p) => {
             let bytes = std::fs::read(p).map_err(|e| format!("{}: {e}", p.display()))?;
-            Dictionary::from_compressed(&bytes).map_err(|e| format!("{}: {e}", p.display()))?
+            Dictionary::from_compressed(&bytes).map_err(|e| format!("{}: {e}", p.display()))
         }
         None => Dictionary::from_compressed(&firmware::dictionary_bytes(50_000_000))
-            .map_err(|e| format!("firmware dictionary: {e}"))?,
-    };
+            .map_err(|e| format!("firmware dictionary: {e}")),
+    }
+}
+
+pub fn run(args: &DecodeArgs) -> Result<(), String> {
+    let dict = crate::decode::load_dictionary(args.dictionary.as_deref())?;
     let data = std::fs::read(&args.file).map_err(|e| format!("{}: {e}", args.file.display()))?;
     let stdout = std::io::stdout();
     let mut out = std::io::BufWriter::new(stdout.lock());

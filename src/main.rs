@@ -8,6 +8,7 @@
 
 mod decode;
 mod machine;
+mod mcus;
 mod print;
 mod simmcu;
 mod sink;

@@ -7,9 +7,8 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use clap::Args;
-use links::dict::{Cmd, Dictionary};
-use links::mcu::{LinkOptions, McuLink};
-use links::transport::{PtyTransport, SerialTransport, Transport};
+use links::dict::Cmd;
+use links::mcu::McuLink;
 use planner::gcode::GcodeReader;
 use planner::machine::Applied;
 use planner::pipeline::Pipeline;
@@ -17,7 +16,7 @@ use planner::stepgen::StepCmd;
 use sysconfig::printer::PrinterConfig;
 
 use crate::machine::Machine;
-use crate::simmcu::{SimMcu, SimOptions};
+use crate::mcus::{ConnectOptions, Mcus};
 use crate::sink::{BatchSink, Sink, StepStreamer};
 
 /// Arguments of `cadence print`.
@@ -97,46 +96,6 @@ impl Warnings {
     }
 }
 
-/// Encodes the MCU configuration: oids, steppers, finalize with the config CRC.
-fn config_commands(dict: &Dictionary, machine: &Machine) -> Result<Vec<Cmd>, String> {
-    let mut cmds = Vec::new();
-    let err = |e: links::dict::DictError| e.to_string();
-    cmds.push(
-        dict.encode("allocate_oids", &[machine.steppers.len() as i64])
-            .map_err(err)?,
-    );
-    for s in &machine.steppers {
-        let step_pin = dict
-            .pin(&s.step_pin.pin)
-            .map_err(|e| format!("[{}] step_pin: {e}", s.name))?;
-        let dir_pin = dict
-            .pin(&s.dir_pin.pin)
-            .map_err(|e| format!("[{}] dir_pin: {e}", s.name))?;
-        cmds.push(
-            dict.encode(
-                "config_stepper",
-                &[
-                    s.oid as i64,
-                    step_pin as i64,
-                    dir_pin as i64,
-                    s.step_pin.invert as i64,
-                    0,
-                ],
-            )
-            .map_err(err)?,
-        );
-    }
-    let mut crc = crc32fast::Hasher::new();
-    for c in &cmds {
-        crc.update(c.as_bytes());
-    }
-    cmds.push(
-        dict.encode("finalize_config", &[crc.finalize() as i64])
-            .map_err(err)?,
-    );
-    Ok(cmds)
-}
-
 /// Feeds the G-code through the planner, handing step commands to `emit` as they become final.
 /// `pace` runs between lines (live flow control; batch passes a no-op).
 fn plan_file(
@@ -178,18 +137,11 @@ fn run_batch(
     out: &Path,
 ) -> Result<(), String> {
     let started = Instant::now();
-    let dict = match &args.dictionary {
-        Some(p) => {
-            let bytes = std::fs::read(p).map_err(|e| format!("{}: {e}", p.display()))?;
-            Dictionary::from_compressed(&bytes).map_err(|e| format!("{}: {e}", p.display()))?
-        }
-        None => Dictionary::from_compressed(&firmware::dictionary_bytes(50_000_000))
-            .map_err(|e| format!("firmware dictionary: {e}"))?,
-    };
+    let dict = crate::decode::load_dictionary(args.dictionary.as_deref())?;
     let clock_freq = dict.clock_freq().map_err(|e| e.to_string())?;
     let file = File::create(out).map_err(|e| format!("{}: {e}", out.display()))?;
     let mut sink = BatchSink::new(BufWriter::with_capacity(1 << 16, file));
-    for c in config_commands(&dict, machine)? {
+    for c in crate::mcus::config_commands(&dict, machine, "mcu")?.0 {
         sink.send(c)?;
     }
     let move_count = 16384;
@@ -234,47 +186,15 @@ fn run_batch(
 
 fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: File) -> Result<(), String> {
     let started = Instant::now();
-    let mcu_cfg = cfg
-        .mcus
-        .first()
-        .ok_or_else(|| "printer.cfg has no [mcu] section".to_string())?;
-    let mut sim = None;
-    let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
-    let transport: Box<dyn Transport> = if mcu_cfg.serial == "simulator" {
-        let opts = SimOptions {
-            clock_freq: cfg.simulator.clock_freq,
-            time_scale,
-            trace: args.trace.clone(),
-        };
-        let s = SimMcu::spawn(&mcu_cfg.name, &opts)?;
-        let t = PtyTransport::open(&s.pty)
-            .map_err(|e| format!("mcu '{}': {}: {e}", mcu_cfg.name, s.pty.display()))?;
-        sim = Some(s);
-        Box::new(t)
-    } else {
-        if args.time_scale.is_some() {
-            return Err("--time-scale only applies to the simulated printer".to_string());
-        }
-        Box::new(
-            SerialTransport::open(&mcu_cfg.serial, mcu_cfg.baud)
-                .map_err(|e| format!("mcu '{}': {}: {e}", mcu_cfg.name, mcu_cfg.serial))?,
-        )
-    };
-    let opts = LinkOptions {
-        name: mcu_cfg.name.clone(),
-        identify_timeout: Duration::from_secs(5),
-        response_timeout: Duration::from_secs(2),
-        queue_capacity: 4096,
-    };
-    let link = McuLink::connect(transport, opts).map_err(|e| e.to_string())?;
-    let result = print_on_link(args, machine, &link, gcode, started, time_scale);
-    let stats = link.close();
-    if let Some(s) = sim {
-        let how = s.finish(Duration::from_secs(5));
-        if result.is_err() {
-            eprintln!("cadence: simulated MCU {how}");
-        }
+    let simulated = cfg.mcus.iter().any(|m| m.is_simulated());
+    if args.time_scale.is_some() && !simulated {
+        return Err("--time-scale only applies to a simulated printer".to_string());
     }
+    let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
+    let opts = ConnectOptions { time_scale, trace: args.trace.clone() };
+    let mut mcus = Mcus::connect(cfg, machine, &opts)?;
+    let result = print_on(args, machine, &mcus, gcode, started, time_scale);
+    let stats = mcus.close();
     let summary = result?;
     summary.print(&stats);
     Ok(())
@@ -294,7 +214,7 @@ struct Summary {
 }
 
 impl Summary {
-    fn print(&self, stats: &links::mcu::LinkStats) {
+    fn print(&self, all_stats: &[(String, links::mcu::LinkStats)]) {
         println!("print: {}", self.file.display());
         println!(
             "  lines {}, moves {}, queue_step {}, print time {:.3} s, wall {:.3} s",
@@ -308,66 +228,43 @@ impl Summary {
             let flag = if mcu_pos == host_pos { "" } else { "  MISMATCH" };
             println!("  {name:<10} {steps:>10} {mcu_pos:>12} {host_pos:>12} {mm:>12.4}{flag}");
         }
-        let margin_ms = stats.min_lead_margin_ticks.unwrap_or(0) as f64 / self.clock_freq * 1e3;
-        println!(
-            "  min lead margin {margin_ms:.1} ms over {} clocked messages (required {:.0} ms)",
-            stats.clocked_msgs,
-            MIN_LEAD_S * 1e3
-        );
-        let q = &stats.queue;
-        println!(
-            "  link: {} bytes written, {} read, {} retransmitted, {} invalid; srtt {:.3} ms, clock residual {:.1} us",
-            q.bytes_write,
-            q.bytes_read,
-            q.bytes_retransmit,
-            q.bytes_invalid,
-            q.srtt * 1e3,
-            stats.clock_residual_us
-        );
+        for (name, stats) in all_stats {
+            if let Some(margin) = stats.min_lead_margin_ticks {
+                println!(
+                    "  mcu '{name}': min lead margin {:.1} ms over {} clocked messages (required {:.0} ms)",
+                    margin as f64 / self.clock_freq * 1e3,
+                    stats.clocked_msgs,
+                    MIN_LEAD_S * 1e3
+                );
+            }
+            let q = &stats.queue;
+            println!(
+                "  mcu '{name}': {} bytes written, {} read, {} retransmitted, {} invalid; srtt {:.3} ms, \
+                 clock residual {:.1} us",
+                q.bytes_write,
+                q.bytes_read,
+                q.bytes_retransmit,
+                q.bytes_invalid,
+                q.srtt * 1e3,
+                stats.clock_residual_us
+            );
+        }
     }
 }
 
-fn print_on_link(
+fn print_on(
     args: &PrintArgs,
     machine: &Machine,
-    link: &McuLink,
+    mcus: &Mcus,
     gcode: File,
     started: Instant,
     scale: f64,
 ) -> Result<Summary, String> {
+    let main = mcus.main();
+    let link = &main.link;
     let dict = link.dictionary();
-    let clock_freq = dict.clock_freq().map_err(|e| e.to_string())?;
-    let cfg_reply = link
-        .query(
-            dict.encode("get_config", &[]).map_err(|e| e.to_string())?,
-            "config",
-            None,
-            Duration::from_secs(2),
-        )
-        .map_err(|e| e.to_string())?;
-    if cfg_reply.get("is_config") == Some(1) {
-        return Err("the MCU is already configured: restart it before printing".to_string());
-    }
-    for c in config_commands(dict, machine)? {
-        link.send(c).map_err(|e| e.to_string())?;
-    }
-    let cfg_reply = link
-        .query(
-            dict.encode("get_config", &[]).map_err(|e| e.to_string())?,
-            "config",
-            None,
-            Duration::from_secs(2),
-        )
-        .map_err(|e| e.to_string())?;
-    if cfg_reply.get("is_config") != Some(1) {
-        return Err(format!("the MCU did not accept the configuration ({cfg_reply})"));
-    }
-    let move_count = cfg_reply.get("move_count").unwrap_or(0).max(0) as usize;
-    if move_count < 64 {
-        return Err(format!(
-            "the MCU's move queue is too small ({move_count} entries)"
-        ));
-    }
+    let clock_freq = main.clock_freq;
+    let move_count = main.move_count;
 
     let print_now = || link.clock().clock_at(McuLink::system_now()) / clock_freq;
     // Start far enough ahead that the first batch is planned long before it is due.
@@ -411,11 +308,11 @@ fn print_on_link(
             // Flow control: keep between the low and high water marks of buffered print time.
             if p.planned_until() - print_now() > high_water {
                 while p.planned_until() - print_now() > low_water {
-                    check_link(link)?;
+                    mcus.check()?;
                     std::thread::sleep(Duration::from_millis(5));
                 }
             }
-            check_link(link)
+            mcus.check()
         },
     )?;
 
@@ -426,13 +323,13 @@ fn print_on_link(
     link.wait_idle(Duration::from_secs_f64(wait_s))
         .map_err(|e| e.to_string())?;
     while print_now() * clock_freq < end_clock as f64 + 0.01 * clock_freq {
-        check_link(link)?;
+        mcus.check()?;
         if Instant::now() > deadline {
             return Err("the MCU clock did not reach the end of the print in time".to_string());
         }
         std::thread::sleep(Duration::from_millis(5));
     }
-    check_link(link)?;
+    mcus.check()?;
 
     let host_positions = pipeline.stepper_positions();
     let commanded = pipeline.position();
@@ -485,13 +382,6 @@ fn print_on_link(
         rows,
         clock_freq,
     })
-}
-
-fn check_link(link: &McuLink) -> Result<(), String> {
-    match link.shutdown_reason() {
-        Some(reason) => Err(format!("mcu shut down: {reason}")),
-        None => Ok(()),
-    }
 }
 
 struct LinkSink<'a> {

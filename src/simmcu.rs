@@ -28,6 +28,8 @@ pub struct SimOptions {
     pub clock_freq: u64,
     pub time_scale: f64,
     pub trace: Option<PathBuf>,
+    /// Further arguments (the simulated world: axes, endstops).
+    pub extra: Vec<String>,
 }
 
 fn mcu_command() -> Result<Command, String> {
@@ -69,6 +71,7 @@ impl SimMcu {
         if let Some(trace) = &opts.trace {
             cmd.arg("--trace").arg(trace);
         }
+        cmd.args(&opts.extra);
         cmd.stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit());

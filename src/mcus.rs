@@ -1,0 +1,226 @@
+//! The printer's MCUs: spawning simulated ones, connecting links, configuring objects, and
+//! shutting everything down cleanly.
+//!
+//! Object ids per MCU: that MCU's steppers first (in machine order), then its endstops, then
+//! one trsync (homing trigger sync) object.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use links::dict::{Cmd, Dictionary};
+use links::mcu::{LinkOptions, LinkStats, McuLink};
+use links::transport::{PtyTransport, SerialTransport, Transport};
+use sysconfig::printer::PrinterConfig;
+
+use crate::machine::Machine;
+use crate::simmcu::{SimMcu, SimOptions};
+
+/// One connected MCU.
+#[derive(Debug)]
+pub struct McuConn {
+    pub name: String,
+    pub link: McuLink,
+    sim: Option<SimMcu>,
+    /// Entries of the MCU's move queue (from `config`).
+    pub move_count: usize,
+    /// The dictionary's nominal CLOCK_FREQ.
+    pub clock_freq: f64,
+    /// Oid of this MCU's trsync object.
+    pub trsync_oid: u8,
+}
+
+/// All MCUs of the printer; `list[0]` is the main `[mcu]`.
+#[derive(Debug)]
+pub struct Mcus {
+    pub list: Vec<McuConn>,
+}
+
+/// How to start simulated MCUs.
+#[derive(Debug, Clone)]
+pub struct ConnectOptions {
+    pub time_scale: f64,
+    /// Step trace of the main MCU; others get `-<name>` inserted before the extension.
+    pub trace: Option<PathBuf>,
+}
+
+/// The trace path for MCU `name`.
+pub fn trace_path(base: &Path, name: &str, main: bool) -> PathBuf {
+    if main {
+        return base.to_path_buf();
+    }
+    let stem = base.file_stem().and_then(|s| s.to_str()).unwrap_or("trace");
+    let file = match base.extension().and_then(|e| e.to_str()) {
+        Some(ext) => format!("{stem}-{name}.{ext}"),
+        None => format!("{stem}-{name}"),
+    };
+    base.with_file_name(file)
+}
+
+impl Mcus {
+    /// Starts (for `serial: simulator`) and connects every MCU, then configures its objects.
+    pub fn connect(cfg: &PrinterConfig, machine: &Machine, opts: &ConnectOptions) -> Result<Mcus, String> {
+        let world = format!("cadence-{}", std::process::id());
+        let mut mcus = Mcus { list: Vec::new() };
+        for (i, mcu_cfg) in cfg.mcus.iter().enumerate() {
+            let name = mcu_cfg.name.clone();
+            let mut sim = None;
+            let transport: Box<dyn Transport> = if mcu_cfg.is_simulated() {
+                let sim_opts = SimOptions {
+                    clock_freq: cfg.simulator.clock_freq,
+                    time_scale: opts.time_scale,
+                    trace: opts.trace.as_deref().map(|t| trace_path(t, &name, i == 0)),
+                    extra: machine.sim_world_args(&name, &world),
+                };
+                let s = SimMcu::spawn(&name, &sim_opts)?;
+                let t = PtyTransport::open(&s.pty)
+                    .map_err(|e| format!("mcu '{name}': {}: {e}", s.pty.display()))?;
+                sim = Some(s);
+                Box::new(t)
+            } else {
+                Box::new(
+                    SerialTransport::open(&mcu_cfg.serial, mcu_cfg.baud)
+                        .map_err(|e| format!("mcu '{name}': {}: {e}", mcu_cfg.serial))?,
+                )
+            };
+            let link_opts = LinkOptions {
+                name: name.clone(),
+                identify_timeout: Duration::from_secs(5),
+                response_timeout: Duration::from_secs(2),
+                queue_capacity: 4096,
+            };
+            let link = match McuLink::connect(transport, link_opts) {
+                Ok(l) => l,
+                Err(e) => {
+                    mcus.close();
+                    if let Some(s) = sim {
+                        s.finish(Duration::from_secs(2));
+                    }
+                    return Err(e.to_string());
+                }
+            };
+            let clock_freq = match link.dictionary().clock_freq() {
+                Ok(f) => f,
+                Err(e) => {
+                    mcus.close();
+                    return Err(format!("mcu '{name}': {e}"));
+                }
+            };
+            mcus.list.push(McuConn { name, link, sim, move_count: 0, clock_freq, trsync_oid: 0 });
+        }
+        for i in 0..mcus.list.len() {
+            if let Err(e) = mcus.configure(i, machine) {
+                mcus.close();
+                return Err(e);
+            }
+        }
+        Ok(mcus)
+    }
+
+    /// Sends one MCU its configuration and checks that it took it.
+    fn configure(&mut self, i: usize, machine: &Machine) -> Result<(), String> {
+        let conn = &self.list[i];
+        let name = conn.name.clone();
+        let dict = conn.link.dictionary();
+        let get_config = dict.encode("get_config", &[]).map_err(|e| format!("mcu '{name}': {e}"))?;
+        let reply = conn
+            .link
+            .query(get_config, "config", None, Duration::from_secs(2))
+            .map_err(|e| e.to_string())?;
+        if reply.get("is_config") == Some(1) {
+            return Err(format!("mcu '{name}': already configured: restart the MCU before printing"));
+        }
+        let (cmds, trsync_oid) = config_commands(dict, machine, &name).map_err(|e| format!("mcu '{name}': {e}"))?;
+        for c in cmds {
+            conn.link.send(c).map_err(|e| e.to_string())?;
+        }
+        let reply = conn
+            .link
+            .query(get_config, "config", None, Duration::from_secs(2))
+            .map_err(|e| e.to_string())?;
+        if reply.get("is_config") != Some(1) {
+            return Err(format!("mcu '{name}': did not accept the configuration ({reply})"));
+        }
+        let move_count = reply.get("move_count").unwrap_or(0).max(0) as usize;
+        if move_count < 64 {
+            return Err(format!("mcu '{name}': its move queue is too small ({move_count} entries)"));
+        }
+        let conn = &mut self.list[i];
+        conn.move_count = move_count;
+        conn.trsync_oid = trsync_oid;
+        Ok(())
+    }
+
+    /// The main MCU.
+    pub fn main(&self) -> &McuConn {
+        &self.list[0]
+    }
+
+    /// The MCU called `name`.
+    pub fn get(&self, name: &str) -> Option<&McuConn> {
+        self.list.iter().find(|m| m.name == name)
+    }
+
+    /// The first MCU that reported a shutdown, as an error.
+    pub fn check(&self) -> Result<(), String> {
+        for m in &self.list {
+            if let Some(reason) = m.link.shutdown_reason() {
+                return Err(format!("mcu '{}' shut down: {reason}", m.name));
+            }
+        }
+        Ok(())
+    }
+
+    /// Closes every link and waits (bounded) for simulated MCUs to exit.
+    pub fn close(&mut self) -> Vec<(String, LinkStats)> {
+        let mut out = Vec::new();
+        for m in self.list.drain(..) {
+            let stats = m.link.close();
+            if let Some(s) = m.sim {
+                s.finish(Duration::from_secs(5));
+            }
+            out.push((m.name, stats));
+        }
+        out
+    }
+}
+
+/// Encodes one MCU's configuration: oids, steppers, endstops, trsync, finalize with the
+/// config CRC (CRC-32 of the configuration messages). Returns the commands and the trsync oid.
+pub fn config_commands(dict: &Dictionary, machine: &Machine, mcu: &str) -> Result<(Vec<Cmd>, u8), String> {
+    let steppers: Vec<_> = machine.steppers.iter().filter(|s| s.mcu == mcu).collect();
+    let endstops: Vec<_> = machine.endstops.iter().filter(|e| e.pin.mcu == mcu).collect();
+    let count = steppers.len() + endstops.len() + 1;
+    let trsync_oid = u8::try_from(count - 1).map_err(|_| "too many objects".to_string())?;
+    let err = |e: links::dict::DictError| e.to_string();
+    let mut cmds = vec![dict.encode("allocate_oids", &[count as i64]).map_err(err)?];
+    for s in &steppers {
+        let step_pin = dict.pin(&s.step_pin.pin).map_err(|e| format!("[{}] step_pin: {e}", s.name))?;
+        let dir_pin = dict.pin(&s.dir_pin.pin).map_err(|e| format!("[{}] dir_pin: {e}", s.name))?;
+        cmds.push(
+            dict.encode(
+                "config_stepper",
+                &[s.oid as i64, step_pin as i64, dir_pin as i64, s.step_pin.invert as i64, 0],
+            )
+            .map_err(err)?,
+        );
+    }
+    let has_endstops = dict.command("config_endstop").is_ok() && dict.command("config_trsync").is_ok();
+    if !endstops.is_empty() && !has_endstops {
+        return Err("the MCU has no endstop/trsync support in its dictionary".to_string());
+    }
+    for e in &endstops {
+        let pin = dict.pin(&e.pin.pin).map_err(|x| format!("[{}] endstop_pin: {x}", e.stepper))?;
+        cmds.push(dict.encode("config_endstop", &[e.oid as i64, pin as i64, e.pin.pullup as i64]).map_err(err)?);
+    }
+    if has_endstops {
+        cmds.push(dict.encode("config_trsync", &[trsync_oid as i64]).map_err(err)?);
+    } else {
+        // Without trsync support the last oid is simply unused.
+    }
+    let mut crc = crc32fast::Hasher::new();
+    for c in &cmds {
+        crc.update(c.as_bytes());
+    }
+    cmds.push(dict.encode("finalize_config", &[crc.finalize() as i64]).map_err(err)?);
+    Ok((cmds, trsync_oid))
+}
