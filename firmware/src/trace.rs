@@ -9,7 +9,13 @@
 //! Kinds: 0 step (`clock` = scheduled 64-bit step clock, `aux` = lateness in µs of MCU time,
 //! actual execution − scheduled, saturating); 1 `queue_step` received (`clock` = MCU clock at
 //! receipt, `aux` = lead in µs = first step − receipt, 0 if already late); 2 shutdown
-//! (`clock` = MCU clock, `aux` = `static_string_id`).
+//! (`clock` = MCU clock, `aux` = `static_string_id`); 3 trigger (`clock` = trigger clock,
+//! `oid` = the trsync or endstop, `dir` = 0 trsync triggered / 1 endstop confirmed, `aux` = the
+//! trigger reason).
+//!
+//! Kind-3 records are read into [`TraceFile::triggers`] as [`TriggerRecord`]s, apart from
+//! [`TraceFile::records`] (kinds 0–2), so code matching exhaustively on [`TraceRecord`] keeps
+//! compiling; `triggers` keeps file order, and every record carries its clock.
 //!
 //! [`TraceRecord`] is the decoded view (an enum per kind); a `queue_step` record keeps the
 //! first step as `first_step_clock`, rebuilt on reading from the µs lead and `clock_freq`.
@@ -88,6 +94,80 @@ pub enum TraceRecord {
         /// The reason's id in the dictionary's `static_string_id` enumeration.
         static_string_id: u16,
     },
+}
+
+/// Kind byte of a trigger record.
+pub const TRIGGER_KIND: u8 = 3;
+
+/// A trigger (kind 3): trsync `oid` triggered (`endstop` false), or endstop `oid` confirmed its
+/// trigger (`endstop` true), at `clock` with `reason`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct TriggerRecord {
+    /// The trsync or endstop oid.
+    pub oid: u8,
+    /// True for an endstop, false for a trsync.
+    pub endstop: bool,
+    /// Trigger reason (1 endstop hit, 2 host request, 3 past end time, 4 communication timeout).
+    pub reason: u8,
+    /// The trigger clock (64-bit MCU clock).
+    pub clock: u64,
+}
+
+impl TriggerRecord {
+    /// The 16-byte binary form.
+    pub fn to_bytes(&self) -> [u8; RECORD_LEN] {
+        let mut b = [0u8; RECORD_LEN];
+        b[0] = TRIGGER_KIND;
+        b[1] = self.oid;
+        b[2] = self.endstop as u8;
+        b[4..8].copy_from_slice(&(self.reason as u32).to_le_bytes());
+        b[8..16].copy_from_slice(&self.clock.to_le_bytes());
+        b
+    }
+
+    fn from_fields(oid: u8, dir: u8, aux: u32, clock: u64) -> TriggerRecord {
+        TriggerRecord {
+            oid,
+            endstop: dir != 0,
+            reason: aux as u8,
+            clock,
+        }
+    }
+}
+
+/// One line or binary record: a step-trace record or a trigger.
+enum Entry {
+    Record(TraceRecord),
+    Trigger(TriggerRecord),
+}
+
+fn entry_from_bytes(b: &[u8; RECORD_LEN], clock_freq: u64) -> Option<Entry> {
+    if b[0] == TRIGGER_KIND {
+        let mut aux = [0u8; 4];
+        aux.copy_from_slice(&b[4..8]);
+        let mut clock = [0u8; 8];
+        clock.copy_from_slice(&b[8..16]);
+        let t = TriggerRecord::from_fields(b[1], b[2], u32::from_le_bytes(aux), u64::from_le_bytes(clock));
+        return Some(Entry::Trigger(t));
+    }
+    TraceRecord::from_bytes(b, clock_freq).map(Entry::Record)
+}
+
+fn entry_from_csv(line: &str, clock_freq: u64) -> Option<Entry> {
+    let kind: u8 = line.trim().split(',').next()?.trim().parse().ok()?;
+    if kind != TRIGGER_KIND {
+        return TraceRecord::parse_csv(line, clock_freq).map(Entry::Record);
+    }
+    let f: Vec<&str> = line.trim().split(',').map(str::trim).collect();
+    let [_, oid, dir, aux, clock] = f.as_slice() else {
+        return None;
+    };
+    Some(Entry::Trigger(TriggerRecord::from_fields(
+        oid.parse().ok()?,
+        dir.parse().ok()?,
+        aux.parse().ok()?,
+        clock.parse().ok()?,
+    )))
 }
 
 /// The raw fields of one record: `(kind, oid, dir, aux, clock)`.
@@ -214,8 +294,10 @@ pub struct TraceFile {
     pub clock_freq: u64,
     /// MCU seconds per wall second.
     pub time_scale: f64,
-    /// Records in the order they happened.
+    /// Records (kinds 0–2) in the order they happened.
     pub records: Vec<TraceRecord>,
+    /// Trigger records (kind 3) in the order they happened.
+    pub triggers: Vec<TriggerRecord>,
 }
 
 /// On-disk form of a trace.
@@ -276,6 +358,18 @@ impl<W: Write> TraceWriter<W> {
         }
     }
 
+    /// Appends one trigger record.
+    pub fn write_trigger(&mut self, t: &TriggerRecord) -> io::Result<()> {
+        match self.format {
+            TraceFormat::Bin => self.out.write_all(&t.to_bytes()),
+            TraceFormat::Csv => writeln!(
+                self.out,
+                "{TRIGGER_KIND},{},{},{},{}",
+                t.oid, t.endstop as u8, t.reason, t.clock
+            ),
+        }
+    }
+
     /// Flushes and returns the inner writer.
     pub fn finish(mut self) -> io::Result<W> {
         self.out.flush()?;
@@ -311,17 +405,20 @@ fn parse_bin(bytes: &[u8]) -> io::Result<TraceFile> {
     scale.copy_from_slice(&header[16..24]);
     let clock_freq = u64::from_le_bytes(freq);
     let mut records = Vec::with_capacity((bytes.len() - HEADER_LEN) / RECORD_LEN);
+    let mut triggers = Vec::new();
     for chunk in bytes[HEADER_LEN..].chunks_exact(RECORD_LEN) {
         let mut b = [0u8; RECORD_LEN];
         b.copy_from_slice(chunk);
-        let r =
-            TraceRecord::from_bytes(&b, clock_freq).ok_or_else(|| invalid("unknown trace record kind"))?;
-        records.push(r);
+        match entry_from_bytes(&b, clock_freq).ok_or_else(|| invalid("unknown trace record kind"))? {
+            Entry::Record(r) => records.push(r),
+            Entry::Trigger(t) => triggers.push(t),
+        }
     }
     Ok(TraceFile {
         clock_freq,
         time_scale: f64::from_le_bytes(scale),
         records,
+        triggers,
     })
 }
 
@@ -344,17 +441,22 @@ fn parse_csv(text: &str) -> io::Result<TraceFile> {
         return Err(invalid("trace header lacks clock_freq or time_scale"));
     };
     let mut records = Vec::new();
+    let mut triggers = Vec::new();
     for line in lines {
         let line = line.trim();
         if line.is_empty() || line.starts_with('#') || line.starts_with("kind") {
             continue;
         }
-        records.push(TraceRecord::parse_csv(line, clock_freq).ok_or_else(|| invalid("bad trace line"))?);
+        match entry_from_csv(line, clock_freq).ok_or_else(|| invalid("bad trace line"))? {
+            Entry::Record(r) => records.push(r),
+            Entry::Trigger(t) => triggers.push(t),
+        }
     }
     Ok(TraceFile {
         clock_freq,
         time_scale,
         records,
+        triggers,
     })
 }
 
@@ -456,6 +558,31 @@ mod tests {
         );
         assert!(parse_trace(b"# CDTRACE1 clock_freq=1\n").is_err());
         assert!(parse_trace(b"# CDTRACE1 clock_freq=1 time_scale=1\n0,0,1\n").is_err());
+    }
+
+    #[test]
+    fn trigger_records_both_formats() {
+        let step = TraceRecord::Step {
+            oid: 0,
+            dir: true,
+            clock: 500,
+            lateness_us: 1,
+        };
+        let trig = TriggerRecord {
+            oid: 4,
+            endstop: true,
+            reason: 1,
+            clock: 1 << 40,
+        };
+        for format in [TraceFormat::Bin, TraceFormat::Csv] {
+            let mut w = TraceWriter::new(Vec::new(), format, FREQ, 1.0).unwrap();
+            w.write(&step).unwrap();
+            w.write_trigger(&trig).unwrap();
+            let t = parse_trace(&w.finish().unwrap()).unwrap();
+            assert_eq!(t.records, [step]);
+            assert_eq!(t.triggers, [trig]);
+        }
+        assert_eq!(trig.to_bytes()[..4], [3, 4, 1, 0]);
     }
 
     #[test]

@@ -7,6 +7,30 @@
 use super::stepper::StepperConfig;
 use rt_core::WireClock;
 
+/// What triggered, in [`Board::triggered`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TriggerSource {
+    /// A trsync triggered (and stopped its steppers).
+    Trsync,
+    /// An endstop confirmed its trigger.
+    Endstop,
+}
+
+/// Step lateness percentiles in µs of MCU time (`cadence_lateness`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Lateness {
+    /// Steps measured.
+    pub count: u32,
+    /// Median.
+    pub p50: u32,
+    /// 99th percentile.
+    pub p99: u32,
+    /// 99.9th percentile.
+    pub p999: u32,
+    /// Maximum.
+    pub max: u32,
+}
+
 /// Hardware hooks of the firmware core.
 pub trait Board {
     /// Take one step on stepper `oid` in direction `dir` (true = position +1). `clock` is the
@@ -21,6 +45,28 @@ pub trait Board {
 
     /// A `queue_step` arrived at `now`; its first step is due at `first_clock`.
     fn queue_step_received(&mut self, _oid: u8, _first_clock: WireClock, _now: WireClock) {}
+
+    /// Level of input `pin` now (endstops).
+    fn read_pin(&mut self, _pin: u8) -> bool {
+        false
+    }
+
+    /// ADC reading of `pin` now, `0..=ADC_MAX` (analog in).
+    fn read_adc(&mut self, _pin: u8) -> u16 {
+        0
+    }
+
+    /// Drive output `pin` to `value`; `clock` is the event's scheduled time.
+    fn set_pin(&mut self, _pin: u8, _value: bool, _clock: WireClock) {}
+
+    /// Trsync or endstop `oid` triggered at `clock` with `reason`.
+    fn triggered(&mut self, _source: TriggerSource, _oid: u8, _reason: u8, _clock: WireClock) {}
+
+    /// Step lateness so far (`cadence_get_lateness`); a board that does not measure it
+    /// reports zeros.
+    fn lateness(&self) -> Lateness {
+        Lateness::default()
+    }
 
     /// The MCU shut down at `clock` for `reason` (`static_string_id` is its dictionary id).
     fn shutdown(&mut self, _clock: WireClock, _static_string_id: u16, _reason: &'static str) {}

@@ -37,6 +37,36 @@ pub enum Cmd {
     ResetStepClock,
     /// `stepper_get_position`.
     StepperGetPosition,
+    /// `stepper_stop_on_trigger`.
+    StepperStopOnTrigger,
+    /// `config_endstop`.
+    ConfigEndstop,
+    /// `endstop_home`.
+    EndstopHome,
+    /// `endstop_query_state`.
+    EndstopQueryState,
+    /// `config_trsync`.
+    ConfigTrsync,
+    /// `trsync_start`.
+    TrsyncStart,
+    /// `trsync_set_timeout`.
+    TrsyncSetTimeout,
+    /// `trsync_trigger`.
+    TrsyncTrigger,
+    /// `config_digital_out`.
+    ConfigDigitalOut,
+    /// `set_digital_out_pwm_cycle`.
+    SetDigitalOutPwmCycle,
+    /// `queue_digital_out`.
+    QueueDigitalOut,
+    /// `update_digital_out`.
+    UpdateDigitalOut,
+    /// `config_analog_in`.
+    ConfigAnalogIn,
+    /// `query_analog_in`.
+    QueryAnalogIn,
+    /// `cadence_get_lateness` (Cadence extension).
+    CadenceGetLateness,
 }
 
 /// Whether a table entry is a command or a response.
@@ -88,6 +118,15 @@ pub const FMT_STATS: &str = "stats count=%u sum=%u sumsq=%u";
 /// `stepper_position` response.
 pub const FMT_STEPPER_POSITION: &str = "stepper_position oid=%c pos=%i";
 
+/// `endstop_state` response.
+pub const FMT_ENDSTOP_STATE: &str = "endstop_state oid=%c homing=%c next_clock=%u pin_value=%c";
+/// `trsync_state` response (periodic, and at once on a trigger).
+pub const FMT_TRSYNC_STATE: &str = "trsync_state oid=%c can_trigger=%c trigger_reason=%c clock=%u";
+/// `analog_in_state` response (after each sampling round).
+pub const FMT_ANALOG_IN_STATE: &str = "analog_in_state oid=%c next_clock=%u value=%hu";
+/// `cadence_lateness` response (Cadence extension): step lateness in µs of MCU time.
+pub const FMT_CADENCE_LATENESS: &str = "cadence_lateness count=%u p50=%u p99=%u p999=%u max=%u";
+
 /// Every message the firmware knows; the index is the message id.
 pub const MESSAGES: &[MessageDef] = &[
     resp(FMT_IDENTIFY_RESPONSE),
@@ -120,10 +159,63 @@ pub const MESSAGES: &[MessageDef] = &[
     resp(FMT_STARTING),
     resp(FMT_STATS),
     resp(FMT_STEPPER_POSITION),
+    cmd(
+        "stepper_stop_on_trigger oid=%c trsync_oid=%c",
+        Cmd::StepperStopOnTrigger,
+        false,
+    ),
+    cmd(
+        "config_endstop oid=%c pin=%c pull_up=%c",
+        Cmd::ConfigEndstop,
+        false,
+    ),
+    cmd(
+        "endstop_home oid=%c clock=%u sample_ticks=%u sample_count=%c rest_ticks=%u pin_value=%c \
+         trsync_oid=%c trigger_reason=%c",
+        Cmd::EndstopHome,
+        false,
+    ),
+    cmd("endstop_query_state oid=%c", Cmd::EndstopQueryState, true),
+    cmd("config_trsync oid=%c", Cmd::ConfigTrsync, false),
+    cmd(
+        "trsync_start oid=%c report_clock=%u report_ticks=%u expire_reason=%c",
+        Cmd::TrsyncStart,
+        false,
+    ),
+    cmd("trsync_set_timeout oid=%c clock=%u", Cmd::TrsyncSetTimeout, false),
+    cmd("trsync_trigger oid=%c reason=%c", Cmd::TrsyncTrigger, false),
+    cmd(
+        "config_digital_out oid=%c pin=%u value=%c default_value=%c max_duration=%u",
+        Cmd::ConfigDigitalOut,
+        false,
+    ),
+    cmd(
+        "set_digital_out_pwm_cycle oid=%c cycle_ticks=%u",
+        Cmd::SetDigitalOutPwmCycle,
+        false,
+    ),
+    cmd(
+        "queue_digital_out oid=%c clock=%u on_ticks=%u",
+        Cmd::QueueDigitalOut,
+        false,
+    ),
+    cmd("update_digital_out oid=%c value=%c", Cmd::UpdateDigitalOut, false),
+    cmd("config_analog_in oid=%c pin=%u", Cmd::ConfigAnalogIn, false),
+    cmd(
+        "query_analog_in oid=%c clock=%u sample_ticks=%u sample_count=%c rest_ticks=%u \
+         min_value=%hu max_value=%hu range_check_count=%c",
+        Cmd::QueryAnalogIn,
+        false,
+    ),
+    cmd("cadence_get_lateness", Cmd::CadenceGetLateness, true),
+    resp(FMT_ENDSTOP_STATE),
+    resp(FMT_TRSYNC_STATE),
+    resp(FMT_ANALOG_IN_STATE),
+    resp(FMT_CADENCE_LATENESS),
 ];
 
 /// Most parameters of any message in the table (checked by a test).
-pub const MAX_PARAMS: usize = 6;
+pub const MAX_PARAMS: usize = 8;
 
 /// The id of the message whose format is exactly `format`. Evaluated at compile time for the
 /// response ids below: an unknown format stops the build.
@@ -169,6 +261,14 @@ pub const ID_IS_SHUTDOWN: u32 = message_id(FMT_IS_SHUTDOWN);
 pub const ID_STATS: u32 = message_id(FMT_STATS);
 /// Id of `stepper_position`.
 pub const ID_STEPPER_POSITION: u32 = message_id(FMT_STEPPER_POSITION);
+/// Id of `endstop_state`.
+pub const ID_ENDSTOP_STATE: u32 = message_id(FMT_ENDSTOP_STATE);
+/// Id of `trsync_state`.
+pub const ID_TRSYNC_STATE: u32 = message_id(FMT_TRSYNC_STATE);
+/// Id of `analog_in_state`.
+pub const ID_ANALOG_IN_STATE: u32 = message_id(FMT_ANALOG_IN_STATE);
+/// Id of `cadence_lateness`.
+pub const ID_CADENCE_LATENESS: u32 = message_id(FMT_CADENCE_LATENESS);
 
 #[cfg(test)]
 mod tests {
@@ -196,6 +296,25 @@ mod tests {
                 "duplicate {name}"
             );
         }
+    }
+
+    #[test]
+    fn klipper_formats_are_exact() {
+        let has = |f: &str| MESSAGES.iter().any(|m| m.format == f);
+        assert!(has(
+            "endstop_home oid=%c clock=%u sample_ticks=%u sample_count=%c rest_ticks=%u \
+                     pin_value=%c trsync_oid=%c trigger_reason=%c"
+        ));
+        assert!(has(
+            "query_analog_in oid=%c clock=%u sample_ticks=%u sample_count=%c \
+                     rest_ticks=%u min_value=%hu max_value=%hu range_check_count=%c"
+        ));
+        assert!(has(
+            "config_digital_out oid=%c pin=%u value=%c default_value=%c max_duration=%u"
+        ));
+        assert!(has(
+            "trsync_start oid=%c report_clock=%u report_ticks=%u expire_reason=%c"
+        ));
     }
 
     #[test]

@@ -31,6 +31,14 @@ pub mod reason {
     pub const INVALID_COMMAND: &str = "Invalid command";
     /// `emergency_stop`.
     pub const COMMAND_REQUEST: &str = "Command request";
+    /// A periodic timer's next wake was already far in the past (the MCU fell behind).
+    pub const RESCHEDULED_PAST: &str = "Rescheduled timer in the past";
+    /// A step ran far later than scheduled (the MCU fell behind).
+    pub const STEPPER_TOO_FAR_IN_PAST: &str = "Stepper too far in past";
+    /// A digital out update scheduled in the past, or `max_duration` passed without an update.
+    pub const MISSED_DIGITAL_OUT: &str = "Missed scheduling of next digital out event";
+    /// An analog input out of its range for `range_check_count` rounds.
+    pub const ADC_OUT_OF_RANGE: &str = "ADC out of range";
     /// A reason not in the table (never sent by this firmware; kept so lookups cannot fail).
     pub const UNKNOWN: &str = "Unknown shutdown reason";
 }
@@ -50,6 +58,10 @@ pub const SHUTDOWN_REASONS: &[&str] = &[
     reason::PARSER_ERROR,
     reason::INVALID_COMMAND,
     reason::COMMAND_REQUEST,
+    reason::RESCHEDULED_PAST,
+    reason::STEPPER_TOO_FAR_IN_PAST,
+    reason::MISSED_DIGITAL_OUT,
+    reason::ADC_OUT_OF_RANGE,
 ];
 
 /// The `static_string_id` of `reason` (0, "Unknown shutdown reason", if it is not listed).

@@ -104,6 +104,21 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                     None => self.shutdown(reason::INVALID_OID, now),
                 }
             }
+            Cmd::StepperStopOnTrigger
+            | Cmd::ConfigEndstop
+            | Cmd::EndstopHome
+            | Cmd::EndstopQueryState
+            | Cmd::ConfigTrsync
+            | Cmd::TrsyncStart
+            | Cmd::TrsyncSetTimeout
+            | Cmd::TrsyncTrigger
+            | Cmd::ConfigDigitalOut
+            | Cmd::SetDigitalOutPwmCycle
+            | Cmd::QueueDigitalOut
+            | Cmd::UpdateDigitalOut
+            | Cmd::ConfigAnalogIn
+            | Cmd::QueryAnalogIn
+            | Cmd::CadenceGetLateness => self.handle_object(cmd, args, now),
             Cmd::StepperGetPosition => {
                 let oid = arg(0);
                 match self.stepper(oid).map(|s| s.position()) {
@@ -143,18 +158,33 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
     }
 
     fn config_stepper(&mut self, oid: i64, config: StepperConfig, now: WireClock) {
+        if self.config_object(oid, Object::Stepper(Stepper::new(config)), now) {
+            self.board.config_stepper(oid as u8, &config);
+        }
+    }
+
+    /// Puts `obj` in slot `oid` during configuration; false (after a shutdown) if the oid is not
+    /// allocated, already configured, or configuration is over.
+    pub(super) fn config_object(&mut self, oid: i64, obj: Object, now: WireClock) -> bool {
         if self.is_config {
-            return self.shutdown(reason::ALREADY_CONFIGURED, now);
+            self.shutdown(reason::ALREADY_CONFIGURED, now);
+            return false;
         }
         let allocated = self.oid_count.unwrap_or(0) as i64;
         let slot = usize::try_from(oid).ok().filter(|_| oid < allocated);
         match slot.and_then(|i| self.objects.get_mut(i)) {
-            Some(obj @ Object::Free) => {
-                *obj = Object::Stepper(Stepper::new(config));
-                self.board.config_stepper(oid as u8, &config);
+            Some(o @ Object::Free) => {
+                *o = obj;
+                true
             }
-            Some(Object::Stepper(_)) => self.shutdown(reason::CANT_ASSIGN_OID, now),
-            None => self.shutdown(reason::INVALID_OID, now),
+            Some(_) => {
+                self.shutdown(reason::CANT_ASSIGN_OID, now);
+                false
+            }
+            None => {
+                self.shutdown(reason::INVALID_OID, now);
+                false
+            }
         }
     }
 

@@ -19,6 +19,7 @@ use super::link::Link;
 use super::moves::MovePool;
 use super::sched::Scheduler;
 use super::stepper::Stepper;
+use super::{analog_in::AnalogIn, digital_out::DigitalOut, endstop::Endstop, trsync::Trsync};
 use links::proto::block::MESSAGE_PAYLOAD_MAX;
 use links::proto::format::{encode_message, Value};
 use rt_core::WireClock;
@@ -30,6 +31,9 @@ pub struct McuConfig {
     pub clock_freq: u32,
     /// Moves the pool may hold at once (clamped to the pool's capacity); reported in `config`.
     pub move_count: u16,
+    /// How late (ticks) a step or a periodic timer may run before the MCU shuts down
+    /// ("Stepper too far in past", "Rescheduled timer in the past"); 0 = never.
+    pub late_limit: u32,
 }
 
 /// What an oid refers to.
@@ -39,6 +43,14 @@ pub(super) enum Object {
     Free,
     /// A stepper.
     Stepper(Stepper),
+    /// An endstop.
+    Endstop(Endstop),
+    /// A trsync.
+    Trsync(Trsync),
+    /// A digital out.
+    DigitalOut(DigitalOut),
+    /// An analog in.
+    AnalogIn(AnalogIn),
 }
 
 /// The periodic `stats` accumulator.
@@ -65,6 +77,8 @@ pub struct Mcu<B: Board, const OIDS: usize, const MOVES: usize> {
     pub(super) config_crc: u32,
     /// The reason of the current shutdown.
     pub(super) shutdown_reason: Option<&'static str>,
+    /// See [`McuConfig::late_limit`].
+    pub(super) late_limit: u32,
     uptime_high: u32,
     last_now: WireClock,
     stats: Stats,
@@ -103,6 +117,7 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
             is_config: false,
             config_crc: 0,
             shutdown_reason: None,
+            late_limit: config.late_limit,
             uptime_high: 0,
             last_now: now,
             stats: Stats {
@@ -204,22 +219,29 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
     fn run_due(&mut self, now: WireClock) {
         self.observe(now);
         while let Some((oid, at)) = self.sched.pop_due(now) {
-            self.timer_event(oid, at);
+            self.timer_event(oid, at, now);
         }
         if !now.is_before(self.stats.next_report) {
             self.report_stats(now);
         }
     }
 
-    /// The timer of `oid` fired for the event scheduled at `at`.
-    fn timer_event(&mut self, oid: u8, at: WireClock) {
-        if let Some(Object::Stepper(s)) = self.objects.get_mut(oid as usize) {
-            if let Some(taken) = s.step_event(&mut self.pool, at) {
-                self.board.step(oid, taken.dir, at);
-                if let Some(next) = taken.next {
-                    self.sched.arm(oid, next);
+    /// The timer of `oid` fired at `now` for the event scheduled at `at`.
+    fn timer_event(&mut self, oid: u8, at: WireClock, now: WireClock) {
+        match self.objects.get_mut(oid as usize) {
+            Some(Object::Stepper(s)) => {
+                if self.late_limit > 0 && at.add(self.late_limit).is_before(now) {
+                    return self.shutdown(super::constants::reason::STEPPER_TOO_FAR_IN_PAST, now);
+                }
+                if let Some(taken) = s.step_event(&mut self.pool, at) {
+                    self.board.step(oid, taken.dir, at);
+                    if let Some(next) = taken.next {
+                        self.sched.arm(oid, next);
+                    }
                 }
             }
+            Some(Object::Free) | None => {}
+            Some(_) => self.object_timer(oid, at, now),
         }
     }
 
@@ -262,8 +284,17 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
         }
         self.shutdown_reason = Some(reason);
         for obj in self.objects.iter_mut() {
-            if let Object::Stepper(s) = obj {
-                s.stop();
+            match obj {
+                Object::Stepper(s) => s.stop(),
+                Object::Endstop(e) => e.halt(),
+                Object::Trsync(t) => t.halt(),
+                Object::AnalogIn(a) => a.halt(),
+                Object::DigitalOut(d) => {
+                    let pin = d.config().pin;
+                    let level = d.halt();
+                    self.board.set_pin(pin, level, now);
+                }
+                Object::Free => {}
             }
         }
         self.sched.clear();

@@ -3,6 +3,7 @@
 
 use super::*;
 use crate::core::constants::reason;
+use crate::core::TriggerSource;
 use crate::core::IDENTIFY_CHUNK_MAX;
 use links::proto::block::{block_payload, encode_block, find_block, Frame};
 use links::proto::format::{decode_params, encode_message, message_name, Value};
@@ -20,11 +21,43 @@ struct FakeBoard {
     out: Vec<u8>,
     queued: Vec<(u8, u32, u32)>,
     shutdowns: Vec<(u32, u16, &'static str)>,
+    /// Net steps per stepper oid.
+    pos: HashMap<u8, i32>,
+    /// An endstop input: (pin, stepper oid, position at or above which the pin reads 1).
+    endstop: Option<(u8, u8, i32)>,
+    adc: HashMap<u8, u16>,
+    pin_sets: Vec<(u8, bool, u32)>,
+    triggers: Vec<(TriggerSource, u8, u8, u32)>,
 }
 
 impl Board for FakeBoard {
     fn step(&mut self, oid: u8, dir: bool, clock: WireClock) {
         self.steps.push((oid, dir, clock.0));
+        *self.pos.entry(oid).or_default() += if dir { 1 } else { -1 };
+    }
+    fn read_pin(&mut self, pin: u8) -> bool {
+        match self.endstop {
+            Some((p, oid, at)) if p == pin => self.pos.get(&oid).copied().unwrap_or(0) >= at,
+            _ => false,
+        }
+    }
+    fn read_adc(&mut self, pin: u8) -> u16 {
+        self.adc.get(&pin).copied().unwrap_or(0)
+    }
+    fn set_pin(&mut self, pin: u8, value: bool, clock: WireClock) {
+        self.pin_sets.push((pin, value, clock.0));
+    }
+    fn triggered(&mut self, source: TriggerSource, oid: u8, reason: u8, clock: WireClock) {
+        self.triggers.push((source, oid, reason, clock.0));
+    }
+    fn lateness(&self) -> crate::core::Lateness {
+        crate::core::Lateness {
+            count: 7,
+            p50: 1,
+            p99: 2,
+            p999: 3,
+            max: 4,
+        }
     }
     fn write(&mut self, bytes: &[u8]) {
         self.out.extend_from_slice(bytes);
@@ -69,9 +102,14 @@ fn leaked_dictionary() -> &'static [u8] {
 
 impl Host {
     fn new(move_count: u16, start: u64) -> Host {
+        Host::with_late_limit(move_count, start, 0)
+    }
+
+    fn with_late_limit(move_count: u16, start: u64, late_limit: u32) -> Host {
         let config = McuConfig {
             clock_freq: FREQ,
             move_count,
+            late_limit,
         };
         let mcu = Mcu::new(
             FakeBoard::default(),
@@ -597,3 +635,6 @@ proptest! {
         host.advance(host.now + 10 * FREQ as u64);
     }
 }
+
+#[path = "objects_tests.rs"]
+mod objects;

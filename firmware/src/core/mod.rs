@@ -3,6 +3,8 @@
 //! Layers (bottom up):
 //! - [`sched`]: one timer per oid on the wrapping 32-bit clock;
 //! - [`moves`] and [`stepper`]: the shared move pool and the `queue_step` replay;
+//! - [`endstop`], [`trsync`], [`digital_out`], [`analog_in`]: the other oid objects, each a
+//!   state machine that returns what to do; `objects` wires them to commands and timers;
 //! - [`commands`] and [`constants`]: the message table and the dictionary's static data,
 //!   declared once (the dispatcher and the dictionary generator both read them);
 //! - [`link`]: block framing, sequence checks, NAK and ack, response blocks;
@@ -13,17 +15,22 @@
 //! Guarantees: no input makes the core panic (faults end in [`Mcu::shutdown`]); nothing
 //! allocates; the core never reads a clock.
 
+pub mod analog_in;
 pub mod board;
 pub mod commands;
 pub mod constants;
+pub mod digital_out;
 mod dispatch;
+pub mod endstop;
 pub mod link;
 pub mod mcu;
 pub mod moves;
+mod objects;
 pub mod sched;
 pub mod stepper;
+pub mod trsync;
 
-pub use board::Board;
+pub use board::{Board, Lateness, TriggerSource};
 pub use commands::{Cmd, Kind, MessageDef, MESSAGES};
 pub use constants::{reason, static_string_id, ConstValue, CONSTANTS, SHUTDOWN_REASONS};
 pub use dispatch::IDENTIFY_CHUNK_MAX;

@@ -82,6 +82,8 @@ pub struct Stepper {
     dir: bool,
     queue: MoveQueue,
     position: i32,
+    /// `stepper_stop_on_trigger`: the trsync whose trigger stops this stepper.
+    stop_on: Option<u8>,
 }
 
 impl Stepper {
@@ -97,6 +99,7 @@ impl Stepper {
             dir: false,
             queue: MoveQueue::new(),
             position: 0,
+            stop_on: None,
         }
     }
 
@@ -196,6 +199,25 @@ impl Stepper {
     pub fn stop(&mut self) {
         self.count = 0;
         self.queue = MoveQueue::new();
+        self.stop_on = None;
+    }
+
+    /// The trsync this stepper is attached to (`stepper_stop_on_trigger`), if any.
+    pub const fn stop_on(&self) -> Option<u8> {
+        self.stop_on
+    }
+
+    /// `stepper_stop_on_trigger`: stop when trsync `trsync_oid` triggers (`None` detaches).
+    pub fn set_stop_on(&mut self, trsync_oid: Option<u8>) {
+        self.stop_on = trsync_oid;
+    }
+
+    /// A trsync trigger: drop the active move and give every queued move back to `pool`. The
+    /// position stays where the last executed step left it; the caller disarms the timer.
+    pub fn discard<const N: usize>(&mut self, pool: &mut MovePool<N>) {
+        self.count = 0;
+        while pool.pop(&mut self.queue).is_some() {}
+        self.stop_on = None;
     }
 }
 

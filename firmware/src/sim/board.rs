@@ -5,9 +5,15 @@
 //! the event loop before every call into the core) and widens each 32-bit clock with
 //! [`McuClock::extend`], valid because every clock the core reports is within 2^31 ticks of now.
 //! Lateness and lead are converted to µs of MCU time: `ticks × 10^6 / clock_freq`.
+//!
+//! Pins: steps move the [`World`]'s axes (and publish them to other processes of the same
+//! world); endstop inputs read the world; heater outputs drive [`Heater`]s whose thermistors
+//! are the ADC inputs. Triggers go to the trace as kind-3 records.
 
-use crate::core::{Board, StepperConfig};
-use crate::trace::{ticks_to_us, TraceRecord, TraceWriter};
+use super::heater::Heater;
+use super::world::World;
+use crate::core::{Board, Lateness, StepperConfig, TriggerSource};
+use crate::trace::{ticks_to_us, TraceRecord, TraceWriter, TriggerRecord};
 use hdrhistogram::{CreationError, Histogram};
 use rt_core::{McuClock, WireClock};
 use std::fs::File;
@@ -47,6 +53,9 @@ pub struct SimBoard {
     trace_error: Option<io::Error>,
     lateness: Histogram<u64>,
     queue_steps: u64,
+    /// Simulated axes and endstops.
+    pub world: World,
+    heaters: Vec<Heater>,
 }
 
 impl SimBoard {
@@ -66,7 +75,25 @@ impl SimBoard {
             trace_error: None,
             lateness,
             queue_steps: 0,
+            world: World::local(Vec::new(), Vec::new()),
+            heaters: Vec::new(),
         })
+    }
+
+    /// Uses `world` for axes and endstops.
+    pub fn with_world(mut self, world: World) -> SimBoard {
+        self.world = world;
+        self
+    }
+
+    /// Adds heaters `(heater pin, sensor pin)`.
+    pub fn with_heaters(mut self, heaters: &[(u8, u8)]) -> SimBoard {
+        self.heaters = heaters.iter().map(|&(h, s)| Heater::new(h, s)).collect();
+        self
+    }
+
+    fn seconds(&self, clock: u64) -> f64 {
+        clock as f64 / self.clock_freq.max(1) as f64
     }
 
     fn to_us(&self, ticks: u64) -> u32 {
@@ -92,7 +119,7 @@ impl SimBoard {
     }
 
     /// Percentiles of step lateness so far.
-    pub fn lateness(&self) -> LatenessSummary {
+    pub fn lateness_summary(&self) -> LatenessSummary {
         let h = &self.lateness;
         LatenessSummary {
             steps: h.len(),
@@ -120,6 +147,7 @@ impl Board for SimBoard {
         let scheduled = self.extend(clock);
         let late_us = self.to_us(self.now.saturating_sub(scheduled));
         self.lateness.saturating_record(late_us as u64);
+        self.world.step(oid, dir);
         self.record(TraceRecord::Step {
             oid,
             dir,
@@ -136,7 +164,55 @@ impl Board for SimBoard {
         self.out.extend_from_slice(bytes);
     }
 
-    fn config_stepper(&mut self, _oid: u8, _config: &StepperConfig) {}
+    fn config_stepper(&mut self, oid: u8, config: &StepperConfig) {
+        self.world.config_stepper(oid, config.step_pin);
+    }
+
+    fn read_pin(&mut self, pin: u8) -> bool {
+        self.world.read_endstop(pin).unwrap_or(false)
+    }
+
+    fn read_adc(&mut self, pin: u8) -> u16 {
+        let t = self.seconds(self.now);
+        match self.heaters.iter_mut().find(|h| h.sensor_pin == pin) {
+            Some(h) => h.adc(t),
+            None => 0,
+        }
+    }
+
+    fn set_pin(&mut self, pin: u8, value: bool, clock: WireClock) {
+        let t = self.seconds(self.extend(clock));
+        for h in self.heaters.iter_mut().filter(|h| h.heater_pin == pin) {
+            h.set(value, t);
+        }
+    }
+
+    fn triggered(&mut self, source: TriggerSource, oid: u8, reason: u8, clock: WireClock) {
+        let t = TriggerRecord {
+            oid,
+            endstop: source == TriggerSource::Endstop,
+            reason,
+            clock: self.extend(clock),
+        };
+        if let Some(w) = self.trace.as_mut() {
+            if let Err(e) = w.write_trigger(&t) {
+                self.trace_error.get_or_insert(e);
+                self.trace = None;
+            }
+        }
+    }
+
+    fn lateness(&self) -> Lateness {
+        let l = self.lateness_summary();
+        let c = |v: u64| u32::try_from(v).unwrap_or(u32::MAX);
+        Lateness {
+            count: c(l.steps),
+            p50: c(l.p50),
+            p99: c(l.p99),
+            p999: c(l.p999),
+            max: c(l.max),
+        }
+    }
 
     fn queue_step_received(&mut self, oid: u8, first_clock: WireClock, now: WireClock) {
         self.queue_steps += 1;
@@ -199,7 +275,7 @@ mod tests {
             },
         ];
         assert_eq!(trace.records, expect);
-        let l = b.lateness();
+        let l = b.lateness_summary();
         assert_eq!(l.steps, 1);
         assert!(l.max >= 100 && l.max <= 101);
         assert_eq!(b.queue_steps(), 2);

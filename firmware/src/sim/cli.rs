@@ -1,5 +1,7 @@
 //! The `cadence-mcu` command line (docs/contract.md).
 
+use super::world::{AxisSpec, EndstopSpec};
+use crate::core::constants::{PINS_PER_PORT, PIN_PORTS};
 use crate::trace::TraceFormat;
 use clap::{Parser, ValueEnum};
 use std::path::PathBuf;
@@ -49,6 +51,128 @@ pub struct Cli {
     #[arg(long, value_name = "N", default_value_t = 16384,
           value_parser = clap::value_parser!(u16).range(1..=MAX_MOVE_COUNT as i64))]
     pub move_count: u16,
+    /// Shut down ("Stepper too far in past", "Rescheduled timer in the past") when a step or
+    /// periodic timer runs more than US µs of MCU time late; 0 = never.
+    #[arg(long, value_name = "US", default_value_t = 0)]
+    pub late_limit_us: u32,
+    /// Name of the simulated printer shared by several cadence-mcu processes (iceoryx2).
+    #[arg(long, value_name = "ID")]
+    pub world: Option<String>,
+    /// A stepper (by its step pin) driving an axis: position = START_MM + steps / STEPS_PER_MM.
+    #[arg(long = "axis", value_name = "AXIS=STEP_PIN,STEPS_PER_MM,START_MM", value_parser = parse_axis)]
+    pub axes: Vec<AxisSpec>,
+    /// An endstop input reading 1 while AXIS is at or below (min) / at or above (max) TRIGGER_MM.
+    #[arg(long = "endstop", value_name = "PIN=AXIS,TRIGGER_MM,min|max", value_parser = parse_endstop)]
+    pub endstops: Vec<EndstopSpec>,
+    /// A heater output and the thermistor ADC input it warms (100K NTC beta 3950, 4.7k pull-up).
+    #[arg(long = "heater", value_name = "HEATER_PIN=SENSOR_PIN", value_parser = parse_heater)]
+    pub heaters: Vec<(u8, u8)>,
+    /// Drop this fraction (0..=1) of outgoing bytes.
+    #[arg(long, value_name = "RATE", default_value_t = 0.0, value_parser = parse_rate)]
+    pub drop_tx: f64,
+    /// Seed of the byte-dropping generator.
+    #[arg(long, value_name = "N", default_value_t = 1)]
+    pub fault_seed: u64,
+    /// Hold every outgoing byte this long before writing it.
+    #[arg(long, value_name = "MS", default_value_t = 0)]
+    pub tx_delay_ms: u64,
+    /// Freeze (stop processing entirely) this long after start ...
+    #[arg(long, value_name = "MS", requires = "freeze_ms")]
+    pub freeze_after_ms: Option<u64>,
+    /// ... for this long.
+    #[arg(long, value_name = "MS", requires = "freeze_after_ms")]
+    pub freeze_ms: Option<u64>,
+}
+
+/// A pin by name (`PA0`..`PL7`, the dictionary's `pin` enumeration) or number.
+pub fn parse_pin(s: &str) -> Result<u8, String> {
+    let s = s.trim();
+    let max = PIN_PORTS.len() * PINS_PER_PORT as usize;
+    if let Ok(n) = s.parse::<u8>() {
+        return if (n as usize) < max {
+            Ok(n)
+        } else {
+            Err(format!("pin {n} is out of range (0..{max})"))
+        };
+    }
+    let b = s.as_bytes();
+    let port = (b.len() == 3 && (b[0] == b'P' || b[0] == b'p'))
+        .then(|| PIN_PORTS.iter().position(|&p| p == b[1].to_ascii_uppercase()))
+        .flatten();
+    let bit = b
+        .get(2)
+        .map(|c| c.wrapping_sub(b'0'))
+        .filter(|&d| d < PINS_PER_PORT);
+    match (port, bit) {
+        (Some(p), Some(d)) => Ok(p as u8 * PINS_PER_PORT + d),
+        _ => Err(format!("`{s}` is not a pin (PA0..PL7 or a number)")),
+    }
+}
+
+fn parse_f64(s: &str, what: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(v) if v.is_finite() => Ok(v),
+        _ => Err(format!("{what} `{s}` is not a number")),
+    }
+}
+
+fn parse_axis_name(s: &str) -> Result<String, String> {
+    let s = s.trim();
+    if s.is_empty() || s.len() > super::world::NAME_LEN {
+        return Err(format!("axis name `{s}` must have 1 to 8 bytes"));
+    }
+    Ok(s.to_owned())
+}
+
+fn parse_axis(s: &str) -> Result<AxisSpec, String> {
+    let (name, rest) = s
+        .split_once('=')
+        .ok_or("expected AXIS=STEP_PIN,STEPS_PER_MM,START_MM")?;
+    let f: Vec<&str> = rest.split(',').collect();
+    let [pin, spm, start] = f.as_slice() else {
+        return Err("expected AXIS=STEP_PIN,STEPS_PER_MM,START_MM".into());
+    };
+    let steps_per_mm = parse_f64(spm, "steps per mm")?;
+    if steps_per_mm == 0.0 {
+        return Err("steps per mm must not be 0".into());
+    }
+    Ok(AxisSpec {
+        name: parse_axis_name(name)?,
+        step_pin: parse_pin(pin)?,
+        steps_per_mm,
+        start_mm: parse_f64(start, "start position")?,
+    })
+}
+
+fn parse_endstop(s: &str) -> Result<EndstopSpec, String> {
+    let (pin, rest) = s.split_once('=').ok_or("expected PIN=AXIS,TRIGGER_MM,min|max")?;
+    let f: Vec<&str> = rest.split(',').collect();
+    let [axis, at, side] = f.as_slice() else {
+        return Err("expected PIN=AXIS,TRIGGER_MM,min|max".into());
+    };
+    let at_min = match side.trim() {
+        "min" => true,
+        "max" => false,
+        other => return Err(format!("`{other}` is neither min nor max")),
+    };
+    Ok(EndstopSpec {
+        pin: parse_pin(pin)?,
+        axis: parse_axis_name(axis)?,
+        trigger_mm: parse_f64(at, "trigger position")?,
+        at_min,
+    })
+}
+
+fn parse_heater(s: &str) -> Result<(u8, u8), String> {
+    let (h, t) = s.split_once('=').ok_or("expected HEATER_PIN=SENSOR_PIN")?;
+    Ok((parse_pin(h)?, parse_pin(t)?))
+}
+
+fn parse_rate(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if (0.0..=1.0).contains(&v) => Ok(v),
+        _ => Err(format!("`{s}` is not a fraction in 0..=1")),
+    }
 }
 
 fn parse_time_scale(s: &str) -> Result<f64, String> {
@@ -61,6 +185,22 @@ fn parse_time_scale(s: &str) -> Result<f64, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        /// Pin names round-trip; no input makes a parser panic.
+        #[test]
+        fn parsers_never_panic(s in ".{0,40}", pin in 0u8..96) {
+            let name = format!("P{}{}", PIN_PORTS[(pin / 8) as usize] as char, pin % 8);
+            prop_assert_eq!(parse_pin(&name), Ok(pin));
+            prop_assert_eq!(parse_pin(&pin.to_string()), Ok(pin));
+            let _ = parse_pin(&s);
+            let _ = parse_axis(&s);
+            let _ = parse_endstop(&s);
+            let _ = parse_heater(&s);
+            let _ = parse_rate(&s);
+        }
+    }
 
     fn parse(args: &[&str]) -> Result<Cli, clap::Error> {
         Cli::try_parse_from(std::iter::once("cadence-mcu").chain(args.iter().copied()))
@@ -96,6 +236,82 @@ mod tests {
         assert_eq!(c.pty_link.as_deref(), Some(std::path::Path::new("/tmp/x")));
         assert_eq!((c.clock_freq, c.time_scale, c.move_count), (1_000_000, 10.0, 500));
         assert_eq!(c.trace_format, TraceFormatArg::Csv);
+    }
+
+    #[test]
+    fn world_fault_and_heater_options() {
+        let c = parse(&[
+            "--world",
+            "printer1",
+            "--axis",
+            "z=PC2,400,5.5",
+            "--axis",
+            "x=3,80,0",
+            "--endstop",
+            "PD1=z,0.25,min",
+            "--endstop",
+            "7=x,200,max",
+            "--heater",
+            "PE0=PF1",
+            "--drop-tx",
+            "0.01",
+            "--fault-seed",
+            "42",
+            "--tx-delay-ms",
+            "30",
+            "--freeze-after-ms",
+            "500",
+            "--freeze-ms",
+            "100",
+            "--late-limit-us",
+            "1000",
+        ])
+        .unwrap();
+        assert_eq!(c.world.as_deref(), Some("printer1"));
+        assert_eq!(
+            c.axes[0],
+            AxisSpec {
+                name: "z".into(),
+                step_pin: 18,
+                steps_per_mm: 400.0,
+                start_mm: 5.5
+            }
+        );
+        assert_eq!(c.axes[1].step_pin, 3);
+        assert_eq!(
+            c.endstops[0],
+            EndstopSpec {
+                pin: 25,
+                axis: "z".into(),
+                trigger_mm: 0.25,
+                at_min: true
+            }
+        );
+        assert!(!c.endstops[1].at_min);
+        assert_eq!(c.heaters, [(32, 41)]);
+        assert_eq!((c.drop_tx, c.fault_seed, c.tx_delay_ms), (0.01, 42, 30));
+        assert_eq!((c.freeze_after_ms, c.freeze_ms), (Some(500), Some(100)));
+        assert_eq!(c.late_limit_us, 1000);
+    }
+
+    #[test]
+    fn rejects_bad_world_options() {
+        for bad in [
+            &["--axis", "z=PC2,0,1"][..],
+            &["--axis", "z=PZ2,400,1"],
+            &["--axis", "averylongname=1,1,1"],
+            &["--axis", "z=1,2"],
+            &["--endstop", "PA1=z,1,middle"],
+            &["--endstop", "PA8=z,1,min"],
+            &["--heater", "PA1"],
+            &["--drop-tx", "1.5"],
+            &["--freeze-ms", "10"],
+            &["--freeze-after-ms", "10"],
+        ] {
+            assert!(parse(bad).is_err(), "{bad:?}");
+        }
+        assert_eq!(parse_pin("96"), Err("pin 96 is out of range (0..96)".into()));
+        assert_eq!(parse_pin("PL7"), Ok(95));
     }
 
     #[test]

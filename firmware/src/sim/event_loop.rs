@@ -1,10 +1,18 @@
 //! The simulator's main loop: sleep until the next timer or input, feed bytes, run timers,
 //! write responses.
 //!
-//! One iteration: run due timers at the current clock; write pending output; check the parent;
-//! then `ppoll` the pty master and the signalfd with the exact time left until the core's next
-//! wake (capped at [`PARENT_POLL`] so a dead parent is noticed); then read everything the host
-//! sent, feeding each chunk to the core at the clock of its arrival.
+//! One iteration: (freeze if `--freeze-after-ms` has come); run due timers at the current
+//! clock; pass pending output through the fault stage ([`TxFaults`]) to the pty; check the
+//! parent process (at most every [`PARENT_POLL`]); then wait for the next timer:
+//! - more than [`SPIN_WINDOW`] of wall time away: publish the world's positions and `ppoll` the
+//!   pty master and the signalfd until [`SPIN_WINDOW`] before the timer (capped at
+//!   [`PARENT_POLL`] and at the next release of delayed output), so the wake-up overshoot is
+//!   absorbed by the spin below;
+//! - within [`SPIN_WINDOW`]: do not sleep; loop reading the (vDSO) clock and run the timers the
+//!   moment they are due, checking input and signals with a zero-timeout poll at most every
+//!   [`INPUT_POLL`].
+//!
+//! Each chunk the host sent is fed to the core at the clock of its arrival.
 //!
 //! Hang-up: the master reports POLLHUP once the host has opened and closed the slave — but also
 //! if anything else opened and closed it before the host came. So a hang-up counts only after
@@ -15,6 +23,7 @@
 
 use super::board::SimBoard;
 use super::clock::SimClock;
+use super::faults::TxFaults;
 use super::pty::{Io, Pty};
 use super::{SimError, SimMcu};
 use nix::errno::Errno;
@@ -25,12 +34,16 @@ use nix::sys::time::TimeSpec;
 use nix::unistd::{getppid, Pid};
 use rt_core::{McuClock, WireClock};
 use std::os::fd::AsFd;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
-/// Longest sleep between parent-process checks.
+/// Longest sleep between parent-process checks (and the period of those checks).
 pub const PARENT_POLL: Duration = Duration::from_millis(100);
 /// Sleep between checks while the pty shows a hang-up before the host's first byte.
 pub const HANGUP_RETRY: Duration = Duration::from_millis(20);
+/// A timer this close (wall time) is waited for by spinning, not sleeping.
+pub const SPIN_WINDOW: Duration = Duration::from_micros(50);
+/// Longest time between two input checks while spinning.
+pub const INPUT_POLL: Duration = Duration::from_micros(100);
 const READ_CHUNK: usize = 4096;
 
 /// Why the loop ended.
@@ -55,11 +68,19 @@ pub struct EventLoop<'a> {
     host_seen: bool,
     /// The master shows a hang-up although the host never spoke: do not poll it.
     hangup_wait: bool,
+    faults: TxFaults,
+    /// Output released by the fault stage, not yet written.
+    staged: Vec<u8>,
+    /// `(start, length)` of the freeze still to come.
+    freeze: Option<(Instant, Duration)>,
+    last_parent_check: Instant,
+    last_input_poll: Instant,
 }
 
 impl<'a> EventLoop<'a> {
     /// A loop over `pty` and `sigfd`, exiting if the parent is no longer `parent`.
     pub fn new(pty: &'a Pty, sigfd: &'a SignalFd, clock: SimClock, parent: Pid) -> Self {
+        let now = Instant::now();
         EventLoop {
             pty,
             sigfd,
@@ -67,7 +88,24 @@ impl<'a> EventLoop<'a> {
             parent,
             host_seen: false,
             hangup_wait: false,
+            faults: TxFaults::new(0.0, Duration::ZERO, 1),
+            staged: Vec::new(),
+            freeze: None,
+            last_parent_check: now,
+            last_input_poll: now,
         }
+    }
+
+    /// Passes output through `faults` (`--drop-tx`, `--tx-delay-ms`).
+    pub fn with_faults(mut self, faults: TxFaults) -> Self {
+        self.faults = faults;
+        self
+    }
+
+    /// Freezes for `length`, `after` from now (`--freeze-after-ms`, `--freeze-ms`).
+    pub fn with_freeze(mut self, after: Duration, length: Duration) -> Self {
+        self.freeze = Some((Instant::now() + after, length));
+        self
     }
 
     /// Runs until the host hangs up, a signal arrives or the parent dies.
@@ -75,25 +113,44 @@ impl<'a> EventLoop<'a> {
         let mut buf = [0u8; READ_CHUNK];
         let mut busy_since = self.clock.now();
         loop {
+            if let Some((at, length)) = self.freeze {
+                if Instant::now() >= at {
+                    std::thread::sleep(length);
+                    self.freeze = None;
+                }
+            }
             let now = self.clock.now();
             mcu.board_mut().now = now;
             mcu.run_timers(WireClock(now as u32));
             if self.pump_output(mcu.board_mut())? && self.host_seen {
                 return Ok(Exit::HostClosed);
             }
-            if getppid() != self.parent {
-                return Ok(Exit::ParentDied);
+            if self.last_parent_check.elapsed() >= PARENT_POLL {
+                self.last_parent_check = Instant::now();
+                if getppid() != self.parent {
+                    return Ok(Exit::ParentDied);
+                }
             }
             let now = self.clock.now();
-            mcu.record_loop(u32::try_from(now.saturating_sub(busy_since)).unwrap_or(u32::MAX));
             let wake = McuClock(now).extend(mcu.next_wake()).0;
-            let mut timeout = self.clock.wall_until(now, wake).min(PARENT_POLL);
-            if self.hangup_wait {
-                timeout = timeout.min(HANGUP_RETRY);
+            let until_wake = self.clock.wall_until(now, wake);
+            let timeout = if until_wake <= SPIN_WINDOW && !self.hangup_wait {
+                if self.last_input_poll.elapsed() < INPUT_POLL {
+                    mcu.board_mut().world.flush_due();
+                    continue;
+                }
+                Duration::ZERO
+            } else {
+                mcu.board_mut().world.flush();
+                mcu.record_loop(u32::try_from(now.saturating_sub(busy_since)).unwrap_or(u32::MAX));
+                self.sleep_for(until_wake)
+            };
+            let want_write = !mcu.board().out.is_empty() || !self.staged.is_empty();
+            let (sig_ready, master) = self.wait(timeout, want_write)?;
+            self.last_input_poll = Instant::now();
+            if !timeout.is_zero() {
+                busy_since = self.clock.now();
             }
-
-            let (sig_ready, master) = self.wait(timeout, !mcu.board().out.is_empty())?;
-            busy_since = self.clock.now();
             if sig_ready {
                 if let Some(info) = self.sigfd.read_signal().map_err(super::sys("read signalfd"))? {
                     let sig = Signal::try_from(info.ssi_signo as i32).unwrap_or(Signal::SIGTERM);
@@ -116,6 +173,22 @@ impl<'a> EventLoop<'a> {
                 self.hangup_wait = true;
             }
         }
+    }
+
+    /// How long to sleep when the next timer is `until_wake` away.
+    fn sleep_for(&self, until_wake: Duration) -> Duration {
+        let mut timeout = until_wake.saturating_sub(SPIN_WINDOW).min(PARENT_POLL);
+        if self.hangup_wait {
+            timeout = timeout.min(HANGUP_RETRY);
+        }
+        let now = Instant::now();
+        for at in [self.faults.next_release(), self.freeze.map(|f| f.0)]
+            .into_iter()
+            .flatten()
+        {
+            timeout = timeout.min(at.saturating_duration_since(now));
+        }
+        timeout
     }
 
     /// Sleeps in `ppoll` for at most `timeout`; returns (signal ready, master revents if polled).
@@ -169,21 +242,33 @@ impl<'a> EventLoop<'a> {
         }
     }
 
-    /// Writes pending output; returns true on a hang-up. Before the host's first byte the
-    /// output is discarded.
+    /// Writes pending output (through the fault stage); returns true on a hang-up. Before the
+    /// host's first byte the output is discarded.
     fn pump_output(&mut self, board: &mut SimBoard) -> Result<bool, SimError> {
         if !self.host_seen {
             board.out.clear();
             return Ok(false);
         }
+        if self.faults.is_transparent() && self.staged.is_empty() {
+            return self.write_out(&mut board.out);
+        }
+        if !board.out.is_empty() {
+            self.faults.push(&board.out, Instant::now());
+            board.out.clear();
+        }
+        self.faults.ready(Instant::now(), &mut self.staged);
+        let mut staged = std::mem::take(&mut self.staged);
+        let hung_up = self.write_out(&mut staged);
+        self.staged = staged;
+        hung_up
+    }
+
+    /// Writes as much of `out` as the pty takes and removes it from `out`.
+    fn write_out(&mut self, out: &mut Vec<u8>) -> Result<bool, SimError> {
         let mut written = 0;
         let mut hung_up = false;
-        while written < board.out.len() {
-            match self
-                .pty
-                .write(&board.out[written..])
-                .map_err(super::sys("write pty"))?
-            {
+        while written < out.len() {
+            match self.pty.write(&out[written..]).map_err(super::sys("write pty"))? {
                 Io::Done(n) => written += n,
                 Io::WouldBlock => break,
                 Io::HangUp => {
@@ -192,7 +277,12 @@ impl<'a> EventLoop<'a> {
                 }
             }
         }
-        board.out.drain(..written);
+        out.drain(..written);
         Ok(hung_up)
+    }
+
+    /// Bytes dropped by `--drop-tx` so far.
+    pub fn dropped_tx(&self) -> u64 {
+        self.faults.dropped
     }
 }

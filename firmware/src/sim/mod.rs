@@ -13,7 +13,10 @@ pub mod board;
 pub mod cli;
 pub mod clock;
 pub mod event_loop;
+pub mod faults;
+pub mod heater;
 pub mod pty;
+pub mod world;
 
 use crate::core::{Mcu, McuConfig};
 use crate::trace::TraceWriter;
@@ -22,11 +25,13 @@ use clap::Parser;
 use cli::Cli;
 use clock::SimClock;
 use event_loop::{EventLoop, Exit};
+use faults::TxFaults;
 use nix::sys::signal::{SigSet, Signal};
 use nix::sys::signalfd::{SfdFlags, SignalFd};
 use rt_core::WireClock;
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 /// Oid slots of the simulated MCU (every `allocate_oids count=%c` fits).
 pub const SIM_OIDS: usize = 255;
@@ -70,6 +75,9 @@ pub enum SimError {
     /// The lateness histogram could not be created.
     #[error("histogram: {0}")]
     Histogram(#[from] hdrhistogram::CreationError),
+    /// The shared world could not be joined.
+    #[error(transparent)]
+    World(#[from] world::WorldError),
     /// The event loop thread could not be started or panicked.
     #[error("event loop thread: {0}")]
     Thread(String),
@@ -143,11 +151,16 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
         ),
         None => None,
     };
-    let board = SimBoard::new(cli.clock_freq, trace)?;
+    let world = world::World::new(cli.world.as_deref(), cli.axes.clone(), cli.endstops.clone())?;
+    let board = SimBoard::new(cli.clock_freq, trace)?
+        .with_world(world)
+        .with_heaters(&cli.heaters);
     let dictionary: &'static [u8] = Box::leak(crate::dictionary_bytes(cli.clock_freq).into_boxed_slice());
     let config = McuConfig {
         clock_freq: cli.clock_freq,
         move_count: cli.move_count,
+        late_limit: u32::try_from(cli.late_limit_us as u64 * cli.clock_freq as u64 / 1_000_000)
+            .unwrap_or(u32::MAX),
     };
     let clock = SimClock::start(cli.clock_freq, cli.time_scale);
     let mut mcu = Box::new(SimMcu::new(
@@ -163,7 +176,19 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
         .map_err(SimError::Stdout)?;
     drop(stdout);
 
-    let exit = EventLoop::new(&pty, &sigfd, clock, parent).run(&mut mcu);
+    let faults = TxFaults::new(
+        cli.drop_tx,
+        Duration::from_millis(cli.tx_delay_ms),
+        cli.fault_seed,
+    );
+    let mut event_loop = EventLoop::new(&pty, &sigfd, clock, parent).with_faults(faults);
+    if let (Some(after), Some(length)) = (cli.freeze_after_ms, cli.freeze_ms) {
+        event_loop = event_loop.with_freeze(Duration::from_millis(after), Duration::from_millis(length));
+    }
+    let exit = event_loop.run(&mut mcu);
+    if event_loop.dropped_tx() > 0 {
+        eprintln!("cadence-mcu: --drop-tx dropped {} bytes", event_loop.dropped_tx());
+    }
 
     let board = mcu.board_mut();
     let trace_result = board.finish_trace();
@@ -185,7 +210,7 @@ fn report(board: &SimBoard, exit: &Result<Exit, SimError>) {
         Ok(Exit::ParentDied) => "parent process exited".to_owned(),
         Err(e) => format!("error: {e}"),
     };
-    let l = board.lateness();
+    let l = board.lateness_summary();
     eprintln!(
         "cadence-mcu: exit ({why}); queue_steps={} steps={}; step lateness µs (MCU time): \
          p50={} p99={} p99.9={} max={}",

@@ -1,0 +1,244 @@
+//! A digital output pin with scheduled updates and software PWM.
+//!
+//! `queue_digital_out clock on_ticks` schedules an update at `clock`: `on_ticks = 0` is off,
+//! `on_ticks ≥ cycle_ticks` (or any non-zero value while `cycle_ticks = 0`) is on, anything in
+//! between is software PWM — on at the update clock `c`, off at `c + on_ticks`, on again at
+//! `c + cycle_ticks`, and so on until the next update. Updates wait in a small FIFO
+//! ([`QUEUE_LEN`]). `max_duration` (non-zero): after an update leaves the pin away from its
+//! default, the next update must be applied within `max_duration` ticks, else the MCU shuts down
+//! ("Missed scheduling of next digital out event"). `update_digital_out` sets the pin at once.
+//!
+//! The timer wakes at the earliest of the next queued update, the next PWM edge and the
+//! `max_duration` deadline.
+
+use rt_core::WireClock;
+
+/// Scheduled updates a digital out can hold.
+pub const QUEUE_LEN: usize = 8;
+
+/// `config_digital_out` parameters.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct DigitalOutConfig {
+    /// The pin.
+    pub pin: u8,
+    /// Initial value.
+    pub value: bool,
+    /// Value on shutdown.
+    pub default_value: bool,
+    /// Longest time away from the default without an update (0 = unlimited).
+    pub max_duration: u32,
+}
+
+/// Why a digital out command or event failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DigitalOutError {
+    /// An update scheduled in the past, or the `max_duration` deadline passed.
+    Missed,
+    /// The update FIFO is full.
+    QueueFull,
+}
+
+/// The state of one digital out.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct DigitalOut {
+    config: DigitalOutConfig,
+    cycle_ticks: u32,
+    value: bool,
+    queue: [(WireClock, u32); QUEUE_LEN],
+    head: usize,
+    len: usize,
+    on_ticks: u32,
+    cycle_start: WireClock,
+    toggle_at: Option<WireClock>,
+    deadline: Option<WireClock>,
+}
+
+fn earliest(a: Option<WireClock>, b: Option<WireClock>) -> Option<WireClock> {
+    match (a, b) {
+        (Some(x), Some(y)) => Some(if y.is_before(x) { y } else { x }),
+        (x, y) => x.or(y),
+    }
+}
+
+impl DigitalOut {
+    /// `config_digital_out` (the caller sets the pin to `config.value`).
+    pub const fn new(config: DigitalOutConfig) -> DigitalOut {
+        DigitalOut {
+            config,
+            cycle_ticks: 0,
+            value: config.value,
+            queue: [(WireClock(0), 0); QUEUE_LEN],
+            head: 0,
+            len: 0,
+            on_ticks: 0,
+            cycle_start: WireClock(0),
+            toggle_at: None,
+            deadline: None,
+        }
+    }
+
+    /// The configuration.
+    pub const fn config(&self) -> &DigitalOutConfig {
+        &self.config
+    }
+
+    /// The pin's current level.
+    pub const fn value(&self) -> bool {
+        self.value
+    }
+
+    /// `set_digital_out_pwm_cycle`.
+    pub fn set_cycle(&mut self, cycle_ticks: u32) {
+        self.cycle_ticks = cycle_ticks;
+    }
+
+    /// `queue_digital_out` received at `now`.
+    pub fn queue(&mut self, clock: WireClock, on_ticks: u32, now: WireClock) -> Result<(), DigitalOutError> {
+        if clock.is_before(now) {
+            return Err(DigitalOutError::Missed);
+        }
+        if self.len == QUEUE_LEN {
+            return Err(DigitalOutError::QueueFull);
+        }
+        self.queue[(self.head + self.len) % QUEUE_LEN] = (clock, on_ticks);
+        self.len += 1;
+        Ok(())
+    }
+
+    /// `update_digital_out` at `now`: the new level (queued updates are dropped).
+    pub fn update(&mut self, value: bool, now: WireClock) -> bool {
+        self.len = 0;
+        self.apply(if value { u32::MAX } else { 0 }, now)
+    }
+
+    fn is_on(&self, on_ticks: u32) -> bool {
+        on_ticks > 0
+    }
+
+    fn apply(&mut self, on_ticks: u32, at: WireClock) -> bool {
+        self.on_ticks = on_ticks;
+        self.value = self.is_on(on_ticks);
+        let pwm = on_ticks > 0 && self.cycle_ticks > 0 && on_ticks < self.cycle_ticks;
+        self.cycle_start = at;
+        self.toggle_at = pwm.then(|| at.add(on_ticks));
+        let away = self.value != self.config.default_value || pwm;
+        self.deadline = (away && self.config.max_duration > 0).then(|| at.add(self.config.max_duration));
+        self.value
+    }
+
+    /// When the timer must fire next.
+    pub fn next_wake(&self) -> Option<WireClock> {
+        let front = (self.len > 0).then(|| self.queue[self.head].0);
+        earliest(earliest(front, self.toggle_at), self.deadline)
+    }
+
+    /// The timer fired at `at`: the pin's new level if it changed.
+    pub fn event(&mut self, at: WireClock) -> Result<Option<bool>, DigitalOutError> {
+        let before = self.value;
+        if self.len > 0 && !at.is_before(self.queue[self.head].0) {
+            let (_, on_ticks) = self.queue[self.head];
+            self.head = (self.head + 1) % QUEUE_LEN;
+            self.len -= 1;
+            self.apply(on_ticks, at);
+        } else if self.toggle_at.is_some_and(|t| !at.is_before(t)) {
+            if self.value {
+                self.value = false;
+                self.toggle_at = Some(self.cycle_start.add(self.cycle_ticks));
+            } else {
+                self.value = true;
+                self.cycle_start = self.cycle_start.add(self.cycle_ticks);
+                self.toggle_at = Some(self.cycle_start.add(self.on_ticks));
+            }
+        } else if self.deadline.is_some_and(|d| !at.is_before(d)) {
+            return Err(DigitalOutError::Missed);
+        }
+        Ok((self.value != before).then_some(self.value))
+    }
+
+    /// Shutdown: back to the default level, nothing scheduled. Returns that level.
+    pub fn halt(&mut self) -> bool {
+        self.len = 0;
+        self.toggle_at = None;
+        self.deadline = None;
+        self.value = self.config.default_value;
+        self.value
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn out(max_duration: u32) -> DigitalOut {
+        DigitalOut::new(DigitalOutConfig {
+            pin: 1,
+            value: false,
+            default_value: false,
+            max_duration,
+        })
+    }
+
+    /// Runs every event until `until`; returns (clock, level) of each change.
+    fn run(d: &mut DigitalOut, until: u32) -> Result<Vec<(u32, bool)>, DigitalOutError> {
+        let mut edges = Vec::new();
+        while let Some(t) = d.next_wake().filter(|t| t.0 <= until) {
+            if let Some(v) = d.event(t)? {
+                edges.push((t.0, v));
+            }
+        }
+        Ok(edges)
+    }
+
+    #[test]
+    fn scheduled_on_off_and_pwm() {
+        let mut d = out(0);
+        d.set_cycle(100);
+        d.queue(WireClock(1000), 100, WireClock(0)).unwrap(); // fully on
+        d.queue(WireClock(1500), 0, WireClock(0)).unwrap();
+        d.queue(WireClock(2000), 30, WireClock(0)).unwrap(); // 30 % PWM
+        d.queue(WireClock(2250), 0, WireClock(0)).unwrap();
+        let edges = run(&mut d, 5000).unwrap();
+        assert_eq!(
+            edges,
+            [
+                (1000, true),
+                (1500, false),
+                (2000, true),
+                (2030, false),
+                (2100, true),
+                (2130, false),
+                (2200, true),
+                (2230, false)
+            ]
+        );
+        assert_eq!(d.next_wake(), None);
+    }
+
+    #[test]
+    fn past_update_and_max_duration_are_missed() {
+        let mut d = out(500);
+        assert_eq!(
+            d.queue(WireClock(10), 1, WireClock(20)),
+            Err(DigitalOutError::Missed)
+        );
+        d.queue(WireClock(100), 1, WireClock(20)).unwrap();
+        assert_eq!(run(&mut d, 599), Ok(vec![(100, true)]));
+        assert_eq!(run(&mut d, 600), Err(DigitalOutError::Missed));
+        // Renewed in time: no fault; back at the default: no deadline.
+        let mut d = out(500);
+        d.queue(WireClock(100), 1, WireClock(0)).unwrap();
+        d.queue(WireClock(550), 0, WireClock(0)).unwrap();
+        assert_eq!(run(&mut d, 10_000), Ok(vec![(100, true), (550, false)]));
+        for i in 0..QUEUE_LEN as u32 {
+            d.queue(WireClock(20_000 + i), 0, WireClock(0)).unwrap();
+        }
+        assert_eq!(
+            d.queue(WireClock(30_000), 0, WireClock(0)),
+            Err(DigitalOutError::QueueFull)
+        );
+        assert!(d.update(true, WireClock(11_000)));
+        assert_eq!(d.next_wake(), Some(WireClock(11_500)));
+        assert!(!d.halt());
+        assert_eq!(d.next_wake(), None);
+    }
+}

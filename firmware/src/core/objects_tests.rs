@@ -1,0 +1,287 @@
+//! Protocol tests of endstops, trsyncs, digital outs and analog ins (virtual clock, fake board).
+
+use super::*;
+
+/// oids: 0 stepper, 1 trsync, 2 endstop on pin 10 (reads 1 once stepper 0 is at ≥ `trip`).
+fn homing_host(trip: i32) -> Host {
+    let mut host = Host::new(64, 0);
+    host.mcu.board_mut().endstop = Some((10, 0, trip));
+    host.exchange(&[("allocate_oids", &[3])]);
+    host.exchange(&[("config_stepper", &[0, 0, 1, 0, 2])]);
+    host.exchange(&[("config_trsync", &[1]), ("config_endstop", &[2, 10, 0])]);
+    host.exchange(&[("finalize_config", &[1])]);
+    host
+}
+
+fn named<'a>(msgs: &'a [Resp], name: &str) -> Vec<&'a [i64]> {
+    msgs.iter()
+        .filter(|r| r.name == name)
+        .map(|r| r.ints.as_slice())
+        .collect()
+}
+
+#[test]
+fn endstop_trigger_stops_the_attached_stepper_at_the_right_step() {
+    let mut host = homing_host(20);
+    host.exchange(&[
+        ("trsync_start", &[1, 0, 0, 4]),
+        ("stepper_stop_on_trigger", &[0, 1]),
+        ("trsync_set_timeout", &[1, 1_000_000]),
+    ]);
+    host.exchange(&[("endstop_home", &[2, 1000, 15, 4, 110, 1, 1, 1])]);
+    host.exchange(&[
+        ("reset_step_clock", &[0, 1000]),
+        ("set_next_step_dir", &[0, 1]),
+        ("queue_step", &[0, 50, 1000, 0]),
+        ("queue_step", &[0, 50, 1000, 0]),
+    ]);
+    // Steps at 1050, 1100, …: position 20 at 2000. Reads at 1000 + 110k: 2100 is the first match
+    // (position 22), confirmed at 2115, 2130, 2145 (no step in between): trigger at 2145.
+    let msgs = all_msgs(&host.advance(100_000));
+    assert_eq!(named(&msgs, "trsync_state"), [&[1, 0, 1, 2145][..]]);
+    assert_eq!(host.mcu.stepper_position(0), Some(22));
+    assert_eq!(host.mcu.board().steps.len(), 22);
+    assert_eq!(host.mcu.board().steps.last(), Some(&(0, true, 2100)));
+    assert_eq!(
+        host.mcu.pool.used(),
+        0,
+        "the discarded move went back to the pool"
+    );
+    assert_eq!(
+        host.mcu.board().triggers,
+        [
+            (TriggerSource::Endstop, 2, 1, 2145),
+            (TriggerSource::Trsync, 1, 1, 2145)
+        ]
+    );
+    let msgs = all_msgs(&host.exchange(&[("endstop_query_state", &[2]), ("stepper_get_position", &[0])]));
+    assert_eq!(named(&msgs, "endstop_state"), [&[2, 0, 2145, 1][..]]);
+    assert_eq!(named(&msgs, "stepper_position"), [&[0, 22][..]]);
+    // The host's own trsync_trigger afterwards only reports the original reason.
+    let msgs = all_msgs(&host.exchange(&[("trsync_trigger", &[1, 2])]));
+    assert_eq!(named(&msgs, "trsync_state"), [&[1, 0, 1, 2145][..]]);
+    // The stepper is idle: a new move after reset_step_clock runs.
+    host.exchange(&[
+        ("reset_step_clock", &[0, 200_000]),
+        ("queue_step", &[0, 10, 2, 0]),
+    ]);
+    host.advance(300_000);
+    assert_eq!(host.mcu.stepper_position(0), Some(24));
+}
+
+#[test]
+fn while_homing_next_clock_is_the_next_read() {
+    let mut host = homing_host(1000);
+    host.exchange(&[("trsync_start", &[1, 0, 0, 4])]);
+    host.exchange(&[("endstop_home", &[2, 1000, 15, 4, 110, 1, 1, 1])]);
+    host.advance(1500);
+    let msgs = all_msgs(&host.exchange(&[("endstop_query_state", &[2])]));
+    assert_eq!(named(&msgs, "endstop_state"), [&[2, 1, 1550, 0][..]]);
+    // Cancel (sample_count 0): no more reads, homing off.
+    host.exchange(&[("endstop_home", &[2, 0, 0, 0, 0, 0, 0, 0])]);
+    let msgs = all_msgs(&host.exchange(&[("endstop_query_state", &[2])]));
+    assert_eq!(named(&msgs, "endstop_state")[0][1], 0);
+    assert_eq!(host.mcu.sched.armed_count(), 0);
+}
+
+#[test]
+fn trsync_reports_at_the_right_clocks_and_expires_with_reason_4() {
+    let mut host = homing_host(1_000_000);
+    host.exchange(&[
+        ("trsync_start", &[1, 5000, 3000, 4]),
+        ("stepper_stop_on_trigger", &[0, 1]),
+        ("trsync_set_timeout", &[1, 10_500]),
+        ("reset_step_clock", &[0, 1000]),
+        ("set_next_step_dir", &[0, 1]),
+        ("queue_step", &[0, 1000, 60, 0]),
+    ]);
+    let msgs = all_msgs(&host.advance(9_999));
+    assert_eq!(
+        named(&msgs, "trsync_state"),
+        [&[1, 1, 0, 5000][..], &[1, 1, 0, 8000][..]]
+    );
+    // Expiry at 10 500: triggers itself with the expire reason, the stepper (steps at 2000,
+    // 3000, …, 10 000) stops at once.
+    let msgs = all_msgs(&host.advance(10_999));
+    assert_eq!(named(&msgs, "trsync_state"), [&[1, 0, 4, 10_500][..]]);
+    assert_eq!(host.mcu.stepper_position(0), Some(9));
+    let msgs = all_msgs(&host.advance(11_000));
+    assert_eq!(
+        named(&msgs, "trsync_state"),
+        [&[1, 0, 4, 10_500][..]],
+        "periodic reports carry the trigger clock"
+    );
+    host.advance(100_000);
+    assert_eq!(host.mcu.stepper_position(0), Some(9));
+}
+
+#[test]
+fn renewed_timeout_does_not_expire_and_host_trigger_reports() {
+    let mut host = homing_host(1_000_000);
+    host.exchange(&[
+        ("trsync_start", &[1, 0, 0, 4]),
+        ("trsync_set_timeout", &[1, 10_000]),
+    ]);
+    host.advance(9_000);
+    host.exchange(&[("trsync_set_timeout", &[1, 20_000])]);
+    let msgs = all_msgs(&host.advance(15_000));
+    assert!(
+        named(&msgs, "trsync_state").is_empty(),
+        "10 000 passed after the renewal"
+    );
+    let msgs = all_msgs(&host.exchange(&[("trsync_trigger", &[1, 2])]));
+    assert_eq!(named(&msgs, "trsync_state"), [&[1, 0, 2, 15_000][..]]);
+    let msgs = all_msgs(&host.advance(30_000));
+    assert!(named(&msgs, "trsync_state").is_empty(), "expiry was cancelled");
+    // A restart re-arms it.
+    host.exchange(&[
+        ("trsync_start", &[1, 0, 0, 4]),
+        ("trsync_set_timeout", &[1, 40_000]),
+    ]);
+    let msgs = all_msgs(&host.advance(40_000));
+    assert_eq!(named(&msgs, "trsync_state"), [&[1, 0, 4, 40_000][..]]);
+}
+
+#[test]
+fn bad_homing_oids_shut_down() {
+    let mut host = homing_host(0);
+    let msgs = all_msgs(&host.exchange(&[("stepper_stop_on_trigger", &[0, 2])]));
+    assert_eq!(
+        find(&msgs, "shutdown").unwrap().ints[1],
+        host.reason_id("Invalid oid")
+    );
+    let mut host = homing_host(0);
+    let msgs = all_msgs(&host.exchange(&[("endstop_home", &[2, 1000, 15, 4, 110, 1, 0, 1])]));
+    assert_eq!(
+        find(&msgs, "shutdown").unwrap().ints[1],
+        host.reason_id("Invalid oid")
+    );
+}
+
+#[test]
+fn digital_out_schedules_pwm_and_faults() {
+    let mut host = Host::new(64, 0);
+    host.exchange(&[("allocate_oids", &[1])]);
+    host.exchange(&[("config_digital_out", &[0, 12, 0, 0, 0])]);
+    host.exchange(&[("finalize_config", &[1])]);
+    host.exchange(&[
+        ("set_digital_out_pwm_cycle", &[0, 1000]),
+        ("queue_digital_out", &[0, 5000, 250]),
+        ("queue_digital_out", &[0, 7000, 0]),
+    ]);
+    host.advance(10_000);
+    assert_eq!(
+        host.mcu.board().pin_sets,
+        [
+            (12, false, 0),
+            (12, true, 5000),
+            (12, false, 5250),
+            (12, true, 6000),
+            (12, false, 6250),
+        ]
+    );
+    host.exchange(&[("update_digital_out", &[0, 1])]);
+    assert_eq!(host.mcu.board().pin_sets.last(), Some(&(12, true, 10_000)));
+    let msgs = all_msgs(&host.exchange(&[("queue_digital_out", &[0, 9_000, 1000])]));
+    assert_eq!(
+        find(&msgs, "shutdown").unwrap().ints[1],
+        host.reason_id("Missed scheduling of next digital out event")
+    );
+    assert_eq!(
+        host.mcu.board().pin_sets.last(),
+        Some(&(12, false, 10_000)),
+        "shutdown sets the default value"
+    );
+}
+
+#[test]
+fn digital_out_max_duration_shuts_down() {
+    let mut host = Host::new(64, 0);
+    host.exchange(&[("allocate_oids", &[1])]);
+    host.exchange(&[("config_digital_out", &[0, 3, 0, 0, 2000])]);
+    host.exchange(&[("finalize_config", &[1])]);
+    host.exchange(&[("queue_digital_out", &[0, 1000, 1])]);
+    let msgs = all_msgs(&host.advance(2_999));
+    assert!(find(&msgs, "shutdown").is_none());
+    let msgs = all_msgs(&host.advance(3_000));
+    assert_eq!(
+        find(&msgs, "shutdown").unwrap().ints,
+        [
+            3_000,
+            host.reason_id("Missed scheduling of next digital out event")
+        ]
+    );
+}
+
+#[test]
+fn analog_in_reports_sums_and_checks_range() {
+    let mut host = Host::new(64, 0);
+    host.mcu.board_mut().adc.insert(20, 1000);
+    host.exchange(&[("allocate_oids", &[1])]);
+    host.exchange(&[("config_analog_in", &[0, 20])]);
+    host.exchange(&[("finalize_config", &[1])]);
+    host.exchange(&[("query_analog_in", &[0, 1000, 10, 4, 5000, 100, 60_000, 2])]);
+    let msgs = all_msgs(&host.advance(10_999));
+    assert_eq!(
+        named(&msgs, "analog_in_state"),
+        [&[0, 6000, 4000][..], &[0, 11_000, 4000][..]]
+    );
+    host.mcu.board_mut().adc.insert(20, 10); // sum 40 < 100: first bad round reported
+    let msgs = all_msgs(&host.advance(16_029));
+    assert_eq!(named(&msgs, "analog_in_state"), [&[0, 16_000, 40][..]]);
+    let msgs = all_msgs(&host.advance(16_030));
+    assert_eq!(
+        find(&msgs, "shutdown").unwrap().ints,
+        [16_030, host.reason_id("ADC out of range")]
+    );
+}
+
+#[test]
+fn zero_interval_steps_are_simultaneous() {
+    let mut host = Host::new(64, 0);
+    host.configure(1);
+    host.exchange(&[
+        ("reset_step_clock", &[0, 1000]),
+        ("set_next_step_dir", &[0, 1]),
+        ("queue_step", &[0, 100, 1, 0]),
+        ("queue_step", &[0, 0, 2, 0]),
+        ("queue_step", &[0, 50, 1, 0]),
+    ]);
+    host.advance(10_000);
+    let clocks: Vec<u32> = host.mcu.board().steps.iter().map(|s| s.2).collect();
+    assert_eq!(clocks, [1100, 1100, 1100, 1150]);
+    assert!(host.mcu.shutdown_reason().is_none());
+}
+
+#[test]
+fn late_steps_and_timers_shut_down_when_limited() {
+    let mut host = Host::with_late_limit(64, 0, 100);
+    host.configure(1);
+    host.exchange(&[("reset_step_clock", &[0, 1000]), ("queue_step", &[0, 100, 5, 0])]);
+    host.now = 1201;
+    host.mcu.run_timers(host.wire_now());
+    let msgs = all_msgs(&host.take());
+    assert_eq!(
+        find(&msgs, "shutdown").unwrap().ints,
+        [1201, host.reason_id("Stepper too far in past")]
+    );
+    // A periodic analog timer that cannot keep up.
+    let mut host = Host::with_late_limit(64, 0, 100);
+    host.exchange(&[("allocate_oids", &[1]), ("config_analog_in", &[0, 20])]);
+    host.exchange(&[("query_analog_in", &[0, 1000, 10, 1, 10, 0, 60_000, 0])]);
+    host.now = 5000;
+    host.mcu.run_timers(host.wire_now());
+    let msgs = all_msgs(&host.take());
+    assert_eq!(
+        find(&msgs, "shutdown").unwrap().ints,
+        [5000, host.reason_id("Rescheduled timer in the past")]
+    );
+}
+
+#[test]
+fn lateness_extension_reports_the_board_figures() {
+    let mut host = Host::new(64, 0);
+    assert!(host.dict["commands"]["cadence_get_lateness"].is_u64());
+    let msgs = all_msgs(&host.exchange(&[("cadence_get_lateness", &[])]));
+    assert_eq!(named(&msgs, "cadence_lateness"), [&[7, 1, 2, 3, 4][..]]);
+}

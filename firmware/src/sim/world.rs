@@ -1,0 +1,403 @@
+//! The simulated printer's world: axis positions shared by every `cadence-mcu` process of one
+//! printer, so an endstop on one MCU sees a stepper on another.
+//!
+//! Model: `--axis AXIS=STEP_PIN,STEPS_PER_MM,START_MM` makes the stepper configured with that
+//! step pin drive axis AXIS: `position_mm = START_MM + net_steps / STEPS_PER_MM` (dir = 1 is +).
+//! `--endstop PIN=AXIS,TRIGGER_MM,min|max` makes input PIN read 1 while the axis is at or below
+//! (`min`) / at or above (`max`) TRIGGER_MM. An endstop on an axis nobody drives reads 0.
+//!
+//! Sharing (with `--world ID`): iceoryx2 publish-subscribe on the service `cadence/world/ID`.
+//! Each process publishes a fixed-size [`WorldUpdate`] (its pid, a sequence number and up to
+//! [`MAX_AXES`] `(name, position)` pairs of the axes it drives) after a step, at most every
+//! [`PUBLISH_PERIOD`] of wall time, plus a final flush whenever the event loop goes idle; every
+//! process drains its subscriber before reading an endstop pin and keeps the latest position per
+//! axis name. Safe overflow is on (a slow reader only ever wants the newest sample) and the
+//! history is 1, so a process that joins late sees the current positions. Stale resources of
+//! dead processes are removed at start.
+
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+use std::collections::HashMap;
+use std::time::{Duration, Instant};
+
+/// Axes per update (per process).
+pub const MAX_AXES: usize = 8;
+/// Bytes of an axis name.
+pub const NAME_LEN: usize = 8;
+/// Shortest wall time between two publications while stepping.
+pub const PUBLISH_PERIOD: Duration = Duration::from_micros(20);
+
+/// One axis position on the wire.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+pub struct AxisSample {
+    /// Axis name, NUL padded.
+    pub name: [u8; NAME_LEN],
+    /// Position in mm.
+    pub position_mm: f64,
+}
+
+/// The payload: the axes one process drives.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+pub struct WorldUpdate {
+    /// The publishing [`World`]: process id << 32 | instance number within the process.
+    pub source: u64,
+    /// Increases with every publication of this source.
+    pub seq: u64,
+    /// Valid entries of `axes`.
+    pub count: u32,
+    /// Padding (0).
+    pub reserved: u32,
+    /// The axes.
+    pub axes: [AxisSample; MAX_AXES],
+}
+
+/// `--axis`: a stepper (by step pin) driving a named axis.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AxisSpec {
+    /// Axis name (≤ 8 bytes).
+    pub name: String,
+    /// Step pin number.
+    pub step_pin: u8,
+    /// Steps per mm (non-zero).
+    pub steps_per_mm: f64,
+    /// Position at start.
+    pub start_mm: f64,
+}
+
+/// `--endstop`: an input pin driven by an axis position.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EndstopSpec {
+    /// Input pin number.
+    pub pin: u8,
+    /// Axis name.
+    pub axis: String,
+    /// Trigger coordinate.
+    pub trigger_mm: f64,
+    /// true: reads 1 at or below `trigger_mm`; false: at or above.
+    pub at_min: bool,
+}
+
+/// Why the world could not be joined.
+#[derive(Debug, thiserror::Error)]
+#[error("world {world}: {what}: {detail}")]
+pub struct WorldError {
+    world: String,
+    what: &'static str,
+    detail: String,
+}
+
+struct Bus {
+    _node: Node<ipc::Service>,
+    publisher: Publisher<ipc::Service, WorldUpdate, ()>,
+    subscriber: Subscriber<ipc::Service, WorldUpdate, ()>,
+}
+
+impl std::fmt::Debug for Bus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Bus(iceoryx2)")
+    }
+}
+
+#[derive(Debug, Clone)]
+struct LocalAxis {
+    spec: AxisSpec,
+    net_steps: i64,
+}
+
+/// Axis positions of this process and of the others in the world.
+#[derive(Debug)]
+pub struct World {
+    local: Vec<LocalAxis>,
+    /// Stepper oid → index in `local`.
+    by_oid: HashMap<u8, usize>,
+    endstops: Vec<EndstopSpec>,
+    remote: HashMap<[u8; NAME_LEN], f64>,
+    bus: Option<Bus>,
+    source: u64,
+    seq: u64,
+    dirty: bool,
+    last_publish: Option<Instant>,
+}
+
+/// Worlds created in this process so far (tells two worlds of one process apart).
+static INSTANCES: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+
+fn name_bytes(name: &str) -> [u8; NAME_LEN] {
+    let mut b = [0u8; NAME_LEN];
+    for (d, s) in b.iter_mut().zip(name.bytes()) {
+        *d = s;
+    }
+    b
+}
+
+impl World {
+    /// A world of `axes` and `endstops`, shared through iceoryx2 if `world` is given.
+    pub fn new(
+        world: Option<&str>,
+        axes: Vec<AxisSpec>,
+        endstops: Vec<EndstopSpec>,
+    ) -> Result<World, WorldError> {
+        let bus = world.map(open_bus).transpose()?;
+        Ok(World {
+            bus,
+            ..World::local(axes, endstops)
+        })
+    }
+
+    /// A world of this process only (nothing shared).
+    pub fn local(axes: Vec<AxisSpec>, endstops: Vec<EndstopSpec>) -> World {
+        World {
+            local: axes
+                .into_iter()
+                .map(|spec| LocalAxis { spec, net_steps: 0 })
+                .collect(),
+            by_oid: HashMap::new(),
+            endstops,
+            remote: HashMap::new(),
+            bus: None,
+            source: (std::process::id() as u64) << 32
+                | INSTANCES.fetch_add(1, std::sync::atomic::Ordering::Relaxed) as u64,
+            seq: 0,
+            dirty: true,
+            last_publish: None,
+        }
+    }
+
+    /// True if nothing is simulated (no axes, no endstops, no world).
+    pub fn is_empty(&self) -> bool {
+        self.local.is_empty() && self.endstops.is_empty() && self.bus.is_none()
+    }
+
+    /// `config_stepper oid step_pin`: attach the stepper to the axis with that step pin.
+    pub fn config_stepper(&mut self, oid: u8, step_pin: u8) {
+        if let Some(i) = self.local.iter().position(|a| a.spec.step_pin == step_pin) {
+            self.by_oid.insert(oid, i);
+        }
+    }
+
+    /// Stepper `oid` stepped; publishes if [`PUBLISH_PERIOD`] has passed since the last time.
+    pub fn step(&mut self, oid: u8, dir: bool) {
+        let Some(&i) = self.by_oid.get(&oid) else {
+            return;
+        };
+        self.local[i].net_steps += if dir { 1 } else { -1 };
+        self.dirty = true;
+        let due = self.last_publish.is_none_or(|t| t.elapsed() >= PUBLISH_PERIOD);
+        if due {
+            self.publish();
+        }
+    }
+
+    /// Publishes the local axes if they changed and [`PUBLISH_PERIOD`] has passed.
+    pub fn flush_due(&mut self) {
+        if self.dirty && self.last_publish.is_none_or(|t| t.elapsed() >= PUBLISH_PERIOD) {
+            self.publish();
+        }
+    }
+
+    /// Publishes the local axes if they changed since the last publication.
+    pub fn flush(&mut self) {
+        if self.dirty {
+            self.publish();
+        }
+    }
+
+    fn publish(&mut self) {
+        self.dirty = false;
+        self.last_publish = Some(Instant::now());
+        let Some(bus) = &self.bus else {
+            return;
+        };
+        self.seq += 1;
+        let mut u = WorldUpdate {
+            source: self.source,
+            seq: self.seq,
+            count: 0,
+            reserved: 0,
+            axes: [AxisSample {
+                name: [0; NAME_LEN],
+                position_mm: 0.0,
+            }; MAX_AXES],
+        };
+        for (slot, a) in u.axes.iter_mut().zip(&self.local) {
+            *slot = AxisSample {
+                name: name_bytes(&a.spec.name),
+                position_mm: position(a),
+            };
+            u.count += 1;
+        }
+        // A full or vanished peer must not stop the MCU: the next step publishes again.
+        let _ = bus.publisher.send_copy(u);
+    }
+
+    /// Drains the subscriber: the latest remote position of every axis.
+    pub fn refresh(&mut self) {
+        let Some(bus) = &self.bus else {
+            return;
+        };
+        while let Ok(Some(sample)) = bus.subscriber.receive() {
+            let u: &WorldUpdate = &sample;
+            if u.source == self.source {
+                continue;
+            }
+            for a in u.axes.iter().take((u.count as usize).min(MAX_AXES)) {
+                self.remote.insert(a.name, a.position_mm);
+            }
+        }
+    }
+
+    /// Position of axis `name`: driven here, else the latest published by another process.
+    pub fn position(&self, name: &str) -> Option<f64> {
+        match self.local.iter().find(|a| a.spec.name == name) {
+            Some(a) => Some(position(a)),
+            None => self.remote.get(&name_bytes(name)).copied(),
+        }
+    }
+
+    /// Level of input `pin` if it is a simulated endstop (refreshes remote positions first).
+    pub fn read_endstop(&mut self, pin: u8) -> Option<bool> {
+        let e = self.endstops.iter().find(|e| e.pin == pin)?.clone();
+        self.refresh();
+        let pos = self.position(&e.axis)?;
+        Some(if e.at_min {
+            pos <= e.trigger_mm
+        } else {
+            pos >= e.trigger_mm
+        })
+    }
+}
+
+fn position(a: &LocalAxis) -> f64 {
+    a.spec.start_mm + a.net_steps as f64 / a.spec.steps_per_mm
+}
+
+fn open_bus(world: &str) -> Result<Bus, WorldError> {
+    let err = |what: &'static str| {
+        let world = world.to_owned();
+        move |e: &dyn std::fmt::Debug| WorldError {
+            world,
+            what,
+            detail: format!("{e:?}"),
+        }
+    };
+    set_log_level(LogLevel::Error);
+    remove_stale_nodes();
+    let name: ServiceName = format!("cadence/world/{world}")
+        .as_str()
+        .try_into()
+        .map_err(|e| err("service name")(&e))?;
+    let node = NodeBuilder::new()
+        .create::<ipc::Service>()
+        .map_err(|e| err("node")(&e))?;
+    let service = node
+        .service_builder(&name)
+        .publish_subscribe::<WorldUpdate>()
+        .max_publishers(16)
+        .max_subscribers(16)
+        .subscriber_max_buffer_size(64)
+        .history_size(1)
+        .enable_safe_overflow(true)
+        .open_or_create()
+        .map_err(|e| err("service")(&e))?;
+    let publisher = service
+        .publisher_builder()
+        .create()
+        .map_err(|e| err("publisher")(&e))?;
+    let subscriber = service
+        .subscriber_builder()
+        .create()
+        .map_err(|e| err("subscriber")(&e))?;
+    Ok(Bus {
+        _node: node,
+        publisher,
+        subscriber,
+    })
+}
+
+/// Removes what crashed `cadence-mcu` (or other iceoryx2) processes left behind.
+fn remove_stale_nodes() {
+    let _ = Node::<ipc::Service>::list(Config::global_config(), |state| {
+        if let NodeState::Dead(view) = state {
+            let _ = view.try_remove_stale_resources();
+        }
+        CallbackProgression::Continue
+    });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn axis(name: &str, step_pin: u8) -> AxisSpec {
+        AxisSpec {
+            name: name.into(),
+            step_pin,
+            steps_per_mm: 100.0,
+            start_mm: 10.0,
+        }
+    }
+
+    #[test]
+    fn local_axis_drives_its_endstops() {
+        let endstops = vec![
+            EndstopSpec {
+                pin: 5,
+                axis: "x".into(),
+                trigger_mm: 9.95,
+                at_min: true,
+            },
+            EndstopSpec {
+                pin: 6,
+                axis: "x".into(),
+                trigger_mm: 10.02,
+                at_min: false,
+            },
+            EndstopSpec {
+                pin: 7,
+                axis: "nobody".into(),
+                trigger_mm: 0.0,
+                at_min: true,
+            },
+        ];
+        let mut w = World::new(None, vec![axis("x", 3)], endstops).unwrap();
+        w.config_stepper(0, 3);
+        w.step(1, true); // not an axis stepper
+        assert_eq!(w.position("x"), Some(10.0));
+        assert_eq!(w.read_endstop(5), Some(false));
+        for _ in 0..5 {
+            w.step(0, false);
+        }
+        assert_eq!(w.read_endstop(5), Some(true), "9.95 is at the trigger");
+        for _ in 0..7 {
+            w.step(0, true);
+        }
+        assert_eq!(w.read_endstop(5), Some(false));
+        assert_eq!(w.read_endstop(6), Some(true));
+        assert_eq!(w.read_endstop(7), None);
+        assert_eq!(w.read_endstop(8), None);
+    }
+
+    #[test]
+    fn two_worlds_share_positions_across_ports() {
+        let id = format!("unit-{}", std::process::id());
+        let endstop = EndstopSpec {
+            pin: 1,
+            axis: "z".into(),
+            trigger_mm: 10.5,
+            at_min: false,
+        };
+        let mut stepper = World::new(Some(&id), vec![axis("z", 2)], vec![]).unwrap();
+        let mut probe = World::new(Some(&id), vec![], vec![endstop]).unwrap();
+        stepper.config_stepper(4, 2);
+        assert_eq!(probe.read_endstop(1), None, "nothing published yet");
+        for _ in 0..50 {
+            stepper.step(4, true);
+        }
+        stepper.flush();
+        assert_eq!(probe.read_endstop(1), Some(true));
+        assert_eq!(probe.position("z"), Some(10.5));
+    }
+}
