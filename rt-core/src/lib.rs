@@ -3,10 +3,31 @@
 //! Layers:
 //! - [`time`]: one type per kind of time (system time, print time, 64-bit host MCU clock,
 //!   32-bit wire/MCU clock) and the only place where 32-bit clocks are compared or extended.
+//! - `std` only:
+//!   - [`os`]: the thread runtime (pinning, SCHED_FIFO, mlockall, stack prefault,
+//!     `/dev/cpu_dma_latency`) with a process-wide report of refused guarantees.
+//!   - [`alloc_count`]: a counting global allocator for tests that prove "no allocation in RT
+//!     loops".
+//!   - [`hist`]: fixed-bound latency/margin histograms (hdrhistogram), summaries, interval logs.
+//!   - [`logger`]: the logger thread; other threads push fixed-size records, never block.
+//!   - [`shm`]: iceoryx2 services for step batches and telemetry (fixed-size `#[repr(C)]`
+//!     payloads, no loss, sequence-checked).
 //!
 //! The crate is `no_std` unless the `std` feature is on (the firmware core uses it bare).
+//! `unsafe` is denied everywhere except the OS layer (`os::sys`, `alloc_count`).
 #![cfg_attr(not(feature = "std"), no_std)]
 
 pub mod time;
+
+#[cfg(feature = "std")]
+pub mod alloc_count;
+#[cfg(feature = "std")]
+pub mod hist;
+#[cfg(feature = "std")]
+pub mod logger;
+#[cfg(feature = "std")]
+pub mod os;
+#[cfg(feature = "std")]
+pub mod shm;
 
 pub use time::{McuClock, PrintTime, SystemTime, WireClock};
