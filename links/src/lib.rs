@@ -10,7 +10,8 @@
 //!   - [`serialqueue`]: the reliable transport state machine (sequence numbers, ack/nak,
 //!     retransmit, flow control, scheduling by MCU clock), time passed in as an argument;
 //!   - [`clocksync`]: the regression from system time to MCU clock, published lock-free;
-//!   - [`mcu`]: the per-MCU IO thread tying them together, and its handle [`mcu::McuLink`].
+//!   - [`mcu`]: the per-MCU IO thread tying them together, and its handle [`mcu::McuLink`];
+//!   - [`trsync`]: homing trigger groups across MCUs, relayed by the IO threads.
 //!
 //! Guarantees: nothing in this crate panics on bytes from the wire; every wait in [`mcu`] is
 //! bounded; the IO thread's steady-state loop allocates only to decode rare responses.
@@ -28,3 +29,5 @@ pub mod mcu;
 pub mod serialqueue;
 #[cfg(feature = "std")]
 pub mod transport;
+#[cfg(feature = "std")]
+pub mod trsync;

@@ -9,6 +9,9 @@
 //! beyond what was sent is invalid. Sequences start at 16 (low bits 0, what a freshly booted
 //! MCU expects). Before the first MCU block only one block is in flight; if that first answer
 //! shows the MCU expects another sequence, the unacked blocks are renumbered and resent.
+//! A valid block acking beyond what was sent is counted ([`SerialQueue::impossible_ack_run`]
+//! counts them in a row: a reset MCU) and triggers an immediate resend; its payload is still
+//! delivered.
 //!
 //! **Ack/nak.** An empty MCU block whose sequence is not newer than the previous empty block's
 //! is a NAK: everything unacked is resent at once (one write starting with a sync byte that
@@ -59,6 +62,9 @@ const RTO_GRANULARITY: f64 = 0.001;
 /// The first sequence number (low bits 0).
 pub const FIRST_SEQ: u64 = 16;
 const SEQ_MASK: u64 = 0x0F;
+/// Submission orders below this belong to urgent messages, so they sort before every other
+/// ready message (2^48 urgent messages are never reached).
+const URGENT_ORDERS: u64 = 1 << 48;
 const RX_BUF: usize = 4096;
 const TX_BUF: usize = 1 + MAX_PENDING_BLOCKS * MESSAGE_MAX;
 
@@ -175,6 +181,7 @@ pub struct SerialQueue {
     upcoming: BinaryHeap<ByMinClock>,
     ready: BinaryHeap<ByReqClock>,
     next_order: u64,
+    next_urgent_order: u64,
     synced: bool,
     inflight: VecDeque<SentBlock>,
     inflight_bytes: usize,
@@ -192,6 +199,7 @@ pub struct SerialQueue {
     tx: Box<[u8; TX_BUF]>,
     tx_len: usize,
     margin_hook: Option<MarginHook>,
+    impossible_run: u32,
     stats: QueueStats,
 }
 
@@ -212,8 +220,9 @@ impl SerialQueue {
             cfg: QueueConfig { capacity, ..cfg },
             est: ClockEstimate::INVALID,
             upcoming: BinaryHeap::with_capacity(capacity),
-            ready: BinaryHeap::with_capacity(capacity),
-            next_order: 0,
+            ready: BinaryHeap::with_capacity(capacity + 1),
+            next_order: URGENT_ORDERS,
+            next_urgent_order: 0,
             synced: false,
             inflight: VecDeque::with_capacity(MAX_PENDING_BLOCKS),
             inflight_bytes: 0,
@@ -231,6 +240,7 @@ impl SerialQueue {
             tx: Box::new([0; TX_BUF]),
             tx_len: 0,
             margin_hook: None,
+            impossible_run: 0,
             stats: QueueStats {
                 rto: MIN_RTO,
                 send_seq: FIRST_SEQ,
@@ -292,6 +302,25 @@ impl SerialQueue {
         self.push_inner(cmd, 0, 0, true)
     }
 
+    /// Queues a plain message ahead of every ready message (a homing trigger). It may use one
+    /// slot beyond the capacity; gives the message back when even that is taken.
+    pub fn push_urgent(&mut self, cmd: Cmd) -> Result<(), Cmd> {
+        if self.len() > self.cfg.capacity {
+            return Err(cmd);
+        }
+        let order = self.next_urgent_order;
+        self.next_urgent_order += 1;
+        self.stats.ready_bytes += cmd.len() as u64;
+        self.ready.push(ByReqClock(Queued {
+            cmd,
+            min_clock: 0,
+            req_clock: 0,
+            order,
+            mark: false,
+        }));
+        Ok(())
+    }
+
     fn push_inner(&mut self, cmd: Cmd, min_clock: u64, req_clock: u64, mark: bool) -> Result<(), Cmd> {
         if self.len() >= self.cfg.capacity {
             return Err(cmd);
@@ -325,6 +354,12 @@ impl SerialQueue {
         self.inflight
             .front()
             .map(|b| b.first_sent.max(self.last_ack_time))
+    }
+
+    /// Valid MCU blocks in a row whose ack acknowledges blocks never sent: an MCU whose
+    /// sequence restarted (it reset). Any block with a possible ack ends the run.
+    pub fn impossible_ack_run(&self) -> u32 {
+        self.impossible_run
     }
 
     /// Counters and timers.
@@ -547,11 +582,23 @@ impl SerialQueue {
                 r += SEQ_MASK + 1;
             }
             if r > self.stats.send_seq {
+                // An ack of blocks never sent: a stale duplicate, or an MCU whose sequence
+                // restarted. Resend at once (as Klipper does) so a reset MCU shows itself
+                // quickly; the payload is still the MCU's data (MCU → host data carries no
+                // sequence of its own), so it is delivered.
                 self.stats.bytes_invalid += block.len() as u64;
+                self.impossible_run = self.impossible_run.saturating_add(1);
+                if !self.inflight.is_empty() {
+                    self.retransmit_now = true;
+                }
+                if block.len() > MESSAGE_MIN {
+                    on_payload(block_payload(block));
+                }
                 return;
             }
             r
         };
+        self.impossible_run = 0;
         if rseq != self.stats.receive_seq {
             self.ack_to(now, rseq);
         }

@@ -22,6 +22,8 @@ pub(crate) const COMMANDS: &[(u32, &str)] = &[
     (20, "queue_step oid=%c interval=%u count=%hu add=%hi"),
     (21, "set_next_step_dir oid=%c dir=%c"),
     (22, "stepper_get_position oid=%c"),
+    (30, "trsync_set_timeout oid=%c clock=%u"),
+    (31, "trsync_trigger oid=%c reason=%c"),
 ];
 /// The fake's response table.
 pub(crate) const RESPONSES: &[(u32, &str)] = &[
@@ -33,6 +35,11 @@ pub(crate) const RESPONSES: &[(u32, &str)] = &[
     (84, "is_shutdown static_string_id=%hu"),
     (85, "stats count=%u sum=%u sumsq=%u"),
     (86, "stepper_position oid=%c pos=%i"),
+    (87, "starting"),
+    (
+        88,
+        "trsync_state oid=%c can_trigger=%c trigger_reason=%c clock=%u",
+    ),
 ];
 const TIMER_TOO_CLOSE: i64 = 3;
 const EMERGENCY: i64 = 2;
@@ -64,6 +71,18 @@ pub(crate) struct Control {
     pub hang_up: AtomicBool,
     /// Raw bytes of every `queue_step` / `set_next_step_dir` accepted, in order.
     pub received: Mutex<Vec<Vec<u8>>>,
+    /// Serve bytes that are not zlib data as the dictionary.
+    pub corrupt_dict: AtomicBool,
+    /// Be shut down without having said so (answer with `is_shutdown` only).
+    pub shut_silently: AtomicBool,
+    /// Reboot now: sequence back to 0, shutdown cleared, receive buffer lost.
+    pub reset: AtomicBool,
+    /// Send `starting` after a reset.
+    pub send_starting: AtomicBool,
+    /// `trsync_set_timeout` / `trsync_trigger` received: (command id, oid, clock or reason).
+    pub trsync_log: Mutex<Vec<(u32, i64, i64)>>,
+    /// `trsync_state` reports to send: (oid, can_trigger, reason, clock).
+    pub send_states: Mutex<Vec<[i64; 4]>>,
 }
 
 /// The fake MCU.
@@ -88,7 +107,17 @@ impl FakeMcu {
         freq: f64,
         c0: u64,
     ) -> (Arc<Control>, JoinHandle<()>) {
-        let ctl = Arc::new(Control::default());
+        FakeMcu::spawn_with(t, nominal, freq, c0, Arc::new(Control::default()))
+    }
+
+    /// [`Self::spawn`] with control flags set beforehand.
+    pub(crate) fn spawn_with(
+        t: Box<dyn Transport>,
+        nominal: f64,
+        freq: f64,
+        c0: u64,
+        ctl: Arc<Control>,
+    ) -> (Arc<Control>, JoinHandle<()>) {
         let fake = FakeMcu {
             t,
             zdict: crate::dict::tests::compress(&dict_json(nominal)),
@@ -117,6 +146,22 @@ impl FakeMcu {
         loop {
             if self.ctl.hang_up.load(Ordering::Acquire) {
                 return;
+            }
+            if self.ctl.shut_silently.swap(false, Ordering::AcqRel) {
+                self.shut = Some(TIMER_TOO_CLOSE);
+            }
+            let states = self.ctl.send_states.lock().map(|mut v| std::mem::take(&mut *v));
+            for st in states.unwrap_or_default() {
+                let args = st.map(Value::Int);
+                self.respond(88, &args);
+            }
+            if self.ctl.reset.swap(false, Ordering::AcqRel) {
+                self.expected = 0;
+                self.shut = None;
+                self.rx.clear();
+                if self.ctl.send_starting.load(Ordering::Acquire) {
+                    self.respond(87, &[]);
+                }
             }
             match self.t.read(&mut buf, Duration::from_millis(5)) {
                 Ok(n) => self.feed(&buf[..n]),
@@ -186,7 +231,10 @@ impl FakeMcu {
                 1 => {
                     let (off, count) = (v(0).max(0) as usize, v(1).max(0) as usize);
                     let end = (off + count).min(self.zdict.len());
-                    let chunk = self.zdict.get(off.min(end)..end).unwrap_or(&[]).to_vec();
+                    let mut chunk = self.zdict.get(off.min(end)..end).unwrap_or(&[]).to_vec();
+                    if self.ctl.corrupt_dict.load(Ordering::Acquire) {
+                        chunk.iter_mut().for_each(|b| *b = 0xA5);
+                    }
                     self.respond(0, &[Value::Int(v(0)), Value::Bytes(&chunk)]);
                 }
                 5 => {
@@ -215,6 +263,11 @@ impl FakeMcu {
                     }
                 }
                 22 => self.respond(86, &[Value::Int(v(0)), Value::Int(-5)]),
+                30 | 31 => {
+                    if let Ok(mut log) = self.ctl.trsync_log.lock() {
+                        log.push((id, v(0), v(1)));
+                    }
+                }
                 _ => {}
             }
         }

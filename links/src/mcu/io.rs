@@ -29,6 +29,12 @@ const IDENTIFY_CHUNK: i64 = 40;
 const READ_BUF: usize = 4096;
 /// Serial queue slots kept for the link's own messages.
 const INTERNAL_SLOTS: usize = 8;
+/// Valid MCU blocks in a row with an impossible ack that mean the MCU restarted (a single
+/// one could be a stale duplicate; a reset MCU NAKs every block of each immediate resend).
+const RESET_ACK_RUN: u32 = 4;
+/// Longest read wait while a homing group is registered, seconds: bounds how late a trigger
+/// relayed by another IO thread is written.
+const ARMED_READ_WAIT: f64 = 0.000_5;
 /// Most parameters decoded on the stack.
 const MAX_STACK_PARAMS: usize = 16;
 
@@ -58,6 +64,9 @@ struct Known {
     uptime: Option<u32>,
     shutdown: Option<u32>,
     is_shutdown: Option<u32>,
+    starting: Option<u32>,
+    trsync_state: Option<u32>,
+    stats: Option<u32>,
 }
 
 #[derive(Debug)]
@@ -105,6 +114,12 @@ pub(crate) struct IoThread {
     taken: u64,
     payloads: Vec<u8>,
     undecodable: u64,
+    nominal_freq: f64,
+    sumsq_base: f64,
+    mcu_stats_reports: u64,
+    mcu_awake: f64,
+    mcu_task_avg: f64,
+    mcu_task_stddev: f64,
 }
 
 impl IoThread {
@@ -145,6 +160,12 @@ impl IoThread {
             taken: 0,
             payloads: Vec::with_capacity(READ_BUF * 2),
             undecodable: 0,
+            nominal_freq: 1.0,
+            sumsq_base: 256.0,
+            mcu_stats_reports: 0,
+            mcu_awake: 0.0,
+            mcu_task_avg: 0.0,
+            mcu_task_stddev: 0.0,
         }
     }
 
@@ -202,6 +223,12 @@ impl IoThread {
             }
             self.payloads = payloads;
         }
+        let run = self.sq.impossible_ack_run();
+        if run >= RESET_ACK_RUN && !matches!(self.phase, Phase::Identify { answered: false, .. }) {
+            return Err(Death::Reset(format!(
+                "{run} blocks in a row acked sequence numbers never sent: its sequence restarted"
+            )));
+        }
         let now = system_now();
         if let Some(since) = self.sq.ack_wait_since() {
             let limit = self.tuning.no_ack_timeout.as_secs_f64();
@@ -225,6 +252,11 @@ impl IoThread {
     fn take_outgoing(&mut self) {
         if !matches!(self.phase, Phase::Running) {
             return;
+        }
+        while let Some(item) = self.shared.urgent.pop() {
+            if self.sq.push_urgent(item.cmd).is_err() {
+                self.shared.urgent_dropped.fetch_add(1, Ordering::Relaxed);
+            }
         }
         while self.sq.len() < self.user_capacity {
             let Some(item) = self.held.take().or_else(|| self.shared.outgoing.pop()) else {
@@ -252,7 +284,14 @@ impl IoThread {
         {
             wait = wait.min(self.next_clock_at - now);
         }
-        if matches!(self.phase, Phase::Running) && self.held.is_none() && !self.shared.outgoing.is_empty() {
+        if self.shared.armed.load(Ordering::Acquire) > 0 {
+            // A homing group relies on this thread to pick up triggers other IO threads hand
+            // it: read in short slices while one is registered.
+            wait = wait.min(ARMED_READ_WAIT);
+        }
+        if matches!(self.phase, Phase::Running)
+            && (!self.shared.urgent.is_empty() || (self.held.is_none() && !self.shared.outgoing.is_empty()))
+        {
             wait = 0.0;
         }
         Duration::try_from_secs_f64(wait.max(0.0)).unwrap_or(Duration::ZERO)
@@ -415,6 +454,14 @@ impl IoThread {
                     deadline: now + self.response_timeout,
                 };
             }
+        } else if Some(id) == k.stats {
+            self.mcu_stats(int(0), int(1), int(2));
+        } else if Some(id) == k.trsync_state {
+            let clock = self.shared.clock.load().extend(int(3) as u32, now);
+            crate::trsync::on_state(&self.shared, now, int(0), int(1) != 0, int(2), clock);
+        } else if Some(id) == k.starting && matches!(self.phase, Phase::Running) {
+            // Sent once by a freshly booted MCU: after the handshake it means a restart.
+            return Err(Death::Reset("it sent 'starting'".into()));
         } else if Some(id) == k.shutdown || Some(id) == k.is_shutdown {
             let sid = if Some(id) == k.shutdown { int(1) } else { int(0) };
             let reason = u32::try_from(sid)
@@ -474,8 +521,13 @@ impl IoThread {
             uptime: Some(dict.response("uptime").map_err(hs)?.id),
             shutdown: dict.response("shutdown").ok().map(|d| d.id),
             is_shutdown: dict.response("is_shutdown").ok().map(|d| d.id),
+            starting: dict.response("starting").ok().map(|d| d.id),
+            trsync_state: dict.response("trsync_state").ok().map(|d| d.id),
+            stats: dict.response("stats").ok().map(|d| d.id),
         };
         self.sq.set_receive_window(dict.receive_window());
+        self.nominal_freq = freq;
+        self.sumsq_base = dict.config_f64("STATS_SUMSQ_BASE").unwrap_or(256.0);
         self.sync = ClockSync::new(freq);
         let dict = Arc::new(dict);
         self.dict = dict.clone();
@@ -513,6 +565,21 @@ impl IoThread {
                 }
             }
             _ => self.next_clock_at = sent + self.tuning.clock_interval.as_secs_f64(),
+        }
+    }
+
+    /// Klipper's reading of `stats count sum sumsq` (sums of main-loop task ticks; `sumsq` is
+    /// in units of `STATS_SUMSQ_BASE` ticks²).
+    fn mcu_stats(&mut self, count: i64, sum: i64, sumsq: i64) {
+        let (count, sum, sumsq) = (count as u32 as f64, sum as u32 as f64, sumsq as u32 as f64);
+        let freq = self.nominal_freq;
+        self.mcu_stats_reports += 1;
+        self.mcu_awake = sum / freq;
+        if count > 0.0 {
+            let c = 1.0 / (count * freq);
+            self.mcu_task_avg = sum * c;
+            let diff = count * sumsq * self.sumsq_base - sum * sum;
+            self.mcu_task_stddev = c * diff.max(0.0).sqrt();
         }
     }
 
@@ -566,6 +633,11 @@ impl IoThread {
             clock_samples: self.sync.samples(),
             clock_outliers: self.sync.outliers(),
             undecodable_msgs: self.undecodable,
+            mcu_awake: self.mcu_awake,
+            mcu_task_avg: self.mcu_task_avg,
+            mcu_task_stddev: self.mcu_task_stddev,
+            mcu_stats_reports: self.mcu_stats_reports,
+            urgent_dropped: self.shared.urgent_dropped.load(Ordering::Relaxed),
         };
         *lock(&self.shared.stats) = stats;
     }

@@ -16,10 +16,10 @@
 //! some `query` waits for, for `shutdown`/`is_shutdown`, and during the handshake.
 
 mod io;
-mod shared;
+pub(crate) mod shared;
 
 #[cfg(test)]
-mod fake;
+pub(crate) mod fake;
 #[cfg(test)]
 mod tests;
 
@@ -125,6 +125,10 @@ pub enum LinkError {
     /// The MCU reported a shutdown.
     #[error("mcu '{mcu}': shut down: {reason}")]
     Shutdown { mcu: String, reason: String },
+    /// The MCU restarted while connected (it sent `starting`, its sequence numbers restarted,
+    /// or `get_config` reported it unconfigured); `detail` says which.
+    #[error("mcu '{mcu}': MCU reset during the print ({detail})")]
+    Reset { mcu: String, detail: String },
     /// Data stayed unacked too long.
     #[error("mcu '{mcu}': no ack for {secs:.1} s")]
     NoAck { mcu: String, secs: f64 },
@@ -168,6 +172,55 @@ pub struct LinkStats {
     pub clock_outliers: u64,
     /// Received messages the dictionary could not decode.
     pub undecodable_msgs: u64,
+    /// From the MCU's last `stats` report: seconds of MCU time its main loop was busy in the
+    /// report period (`sum / CLOCK_FREQ`).
+    pub mcu_awake: f64,
+    /// Mean main-loop task time, seconds (`sum / (count · CLOCK_FREQ)`).
+    pub mcu_task_avg: f64,
+    /// Standard deviation of the task time, seconds
+    /// (`√(count · sumsq · STATS_SUMSQ_BASE − sum²) / (count · CLOCK_FREQ)`).
+    pub mcu_task_stddev: f64,
+    /// `stats` reports received.
+    pub mcu_stats_reports: u64,
+    /// Urgent (homing) messages lost because their queue was full (should stay 0).
+    pub urgent_dropped: u64,
+}
+
+/// One line in the manner of Klipper's periodic stats (`name: key=value …`; the caller adds
+/// the MCU's name).
+impl std::fmt::Display for LinkStats {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let q = &self.queue;
+        write!(
+            f,
+            "mcu_awake={:.3} mcu_task_avg={:.6} mcu_task_stddev={:.6} bytes_write={} bytes_read={} \
+             bytes_retransmit={} bytes_invalid={} retransmits={} send_seq={} receive_seq={} \
+             srtt={:.3} rttvar={:.3} rto={:.3} ready_bytes={} upcoming_bytes={} freq={:.0} \
+             clock_residual_us={:.1} clock_outliers={}",
+            self.mcu_awake,
+            self.mcu_task_avg,
+            self.mcu_task_stddev,
+            q.bytes_write,
+            q.bytes_read,
+            q.bytes_retransmit,
+            q.bytes_invalid,
+            q.retransmits,
+            q.send_seq,
+            q.receive_seq,
+            q.srtt,
+            q.rttvar,
+            q.rto,
+            q.ready_bytes,
+            q.upcoming_bytes,
+            self.clock_freq,
+            self.clock_residual_us,
+            self.clock_outliers,
+        )?;
+        match self.min_lead_margin_ticks {
+            Some(m) => write!(f, " min_lead_margin_ticks={m}"),
+            None => Ok(()),
+        }
+    }
 }
 
 /// The handle of one MCU connection.
@@ -235,6 +288,11 @@ impl McuLink {
                 }))
             }
         }
+    }
+
+    /// The state shared with the IO thread.
+    pub(crate) fn shared(&self) -> &Arc<Shared> {
+        &self.shared
     }
 
     /// The MCU's name.
@@ -387,6 +445,29 @@ impl McuLink {
                     secs: timeout.as_secs_f64(),
                 })),
         }
+    }
+
+    /// Asks `get_config` and checks the MCU is still configured: `is_config=0` from an MCU the
+    /// host configured means it reset, and the link dies with [`LinkError::Reset`] (so every
+    /// later send fails too). Call only after `finalize_config`.
+    pub fn expect_configured(&self, timeout: Duration) -> Result<Message, LinkError> {
+        let cmd = self
+            .dict
+            .encode("get_config", &[])
+            .map_err(|e| LinkError::Handshake {
+                mcu: self.opts.name.clone(),
+                detail: e.to_string(),
+            })?;
+        let msg = self.query(cmd, "config", None, timeout)?;
+        if msg.get("is_config") == Some(0) {
+            let detail = "get_config reports is_config=0".to_owned();
+            self.shared.die(shared::Death::Reset(detail.clone()));
+            return Err(LinkError::Reset {
+                mcu: self.opts.name.clone(),
+                detail,
+            });
+        }
+        Ok(msg)
     }
 
     /// Waits until every message queued before this call has been sent and acked.

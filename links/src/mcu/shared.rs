@@ -6,7 +6,7 @@
 //! snapshots); the IO thread never holds one while doing IO.
 
 use std::sync::atomic::{fence, AtomicBool, AtomicU64, AtomicU8, AtomicUsize, Ordering};
-use std::sync::{Condvar, Mutex, MutexGuard, OnceLock};
+use std::sync::{Condvar, Mutex, MutexGuard, OnceLock, RwLock, RwLockReadGuard, RwLockWriteGuard};
 use std::time::{Duration, Instant};
 
 use crossbeam_queue::ArrayQueue;
@@ -37,6 +37,7 @@ pub(crate) enum Death {
     Handshake(String),
     ConnectionLost(String),
     NoAck(f64),
+    Reset(String),
     Closed,
 }
 
@@ -49,6 +50,7 @@ impl Death {
             Death::Handshake(detail) => LinkError::Handshake { mcu, detail },
             Death::ConnectionLost(detail) => LinkError::ConnectionLost { mcu, detail },
             Death::NoAck(secs) => LinkError::NoAck { mcu, secs },
+            Death::Reset(detail) => LinkError::Reset { mcu, detail },
             Death::Closed => LinkError::Closed { mcu },
         }
     }
@@ -128,6 +130,19 @@ impl Notifier {
     }
 }
 
+/// Slots of the urgent queue.
+pub(crate) const URGENT_CAPACITY: usize = 64;
+
+/// Read-locks an `RwLock`, ignoring poisoning.
+pub(crate) fn read<T>(m: &RwLock<T>) -> RwLockReadGuard<'_, T> {
+    m.read().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Write-locks an `RwLock`, ignoring poisoning.
+pub(crate) fn write<T>(m: &RwLock<T>) -> RwLockWriteGuard<'_, T> {
+    m.write().unwrap_or_else(|e| e.into_inner())
+}
+
 /// Locks a mutex, ignoring poisoning (a panicked holder leaves plain data behind).
 pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
@@ -156,6 +171,14 @@ pub(crate) struct Shared {
     pub idle_upto: AtomicU64,
     pub stats: Mutex<LinkStats>,
     pub notify: Notifier,
+    /// Messages that go ahead of everything queued (homing triggers, trsync timeouts).
+    pub urgent: ArrayQueue<Outgoing>,
+    /// Urgent messages lost because `urgent` was full.
+    pub urgent_dropped: AtomicU64,
+    /// Trsyncs of homing groups on this MCU (written on register/unregister only).
+    pub trsyncs: RwLock<Vec<crate::trsync::Registration>>,
+    /// Number of registered trsyncs: while > 0 the IO thread reads with a short timeout.
+    pub armed: AtomicUsize,
 }
 
 impl Shared {
@@ -178,6 +201,10 @@ impl Shared {
             idle_upto: AtomicU64::new(0),
             stats: Mutex::new(LinkStats::default()),
             notify: Notifier::default(),
+            urgent: ArrayQueue::new(URGENT_CAPACITY),
+            urgent_dropped: AtomicU64::new(0),
+            trsyncs: RwLock::new(Vec::with_capacity(8)),
+            armed: AtomicUsize::new(0),
         }
     }
 

@@ -283,3 +283,209 @@ fn full_queue_blocks_then_drains() {
     drop(link);
     fake.join().unwrap();
 }
+
+/// Polls `link` (with `get_clock` queries that also prompt traffic) until it died or `LONG`.
+fn wait_dead(link: &McuLink) -> LinkError {
+    let get_clock = link.dictionary().encode("get_clock", &[]).unwrap();
+    let deadline = std::time::Instant::now() + LONG;
+    while std::time::Instant::now() < deadline {
+        if let Some(e) = link.error() {
+            return e;
+        }
+        let _ = link.query(get_clock, "clock", None, Duration::from_millis(100));
+    }
+    panic!("link still alive: {:?}", link.stats());
+}
+
+#[test]
+fn corrupt_dictionary_names_the_mcu() {
+    let (host, mcu) = MemoryPair::new();
+    let ctl = Arc::new(Control::default());
+    ctl.corrupt_dict.store(true, Ordering::Release);
+    let (_ctl, fake) = FakeMcu::spawn_with(Box::new(mcu), NOMINAL, NOMINAL, 0, ctl);
+    let o = LinkOptions {
+        name: "toolboard".into(),
+        ..opts()
+    };
+    let e = McuLink::connect(Box::new(host), o).unwrap_err();
+    assert!(matches!(e, LinkError::Dictionary { .. }), "{e}");
+    let text = e.to_string();
+    assert!(
+        text.starts_with("mcu 'toolboard': bad data dictionary: "),
+        "{text}"
+    );
+    assert!(text.contains("zlib"), "{text}");
+    fake.join().unwrap();
+}
+
+#[test]
+fn is_shutdown_alone_is_recorded_with_its_reason() {
+    let (link, ctl, fake) = start(NOMINAL);
+    // The MCU is shut down but its `shutdown` message was lost: only is_shutdown tells.
+    ctl.shut_silently.store(true, Ordering::Release);
+    let pos = link.dictionary().encode("stepper_get_position", &[1]).unwrap();
+    for _ in 0..200 {
+        if link.shutdown_reason().is_some() {
+            break;
+        }
+        link.send(queue_step(&link, 1, 10)).unwrap();
+        let _ = link.query(pos, "stepper_position", None, Duration::from_millis(50));
+    }
+    assert_eq!(link.shutdown_reason().as_deref(), Some("Timer too close"));
+    let e = link.send_clocked(queue_step(&link, 1, 10), 0, 1).unwrap_err();
+    assert_eq!(e.to_string(), "mcu 'mcu': shut down: Timer too close");
+    drop(link);
+    fake.join().unwrap();
+}
+
+/// Sends plain messages until the host's next sequence has non-zero low bits, so a reset MCU
+/// (expecting 0) is out of step with it.
+fn make_seq_nonzero(link: &McuLink) {
+    for i in 0..16 {
+        link.wait_idle(LONG).unwrap();
+        if link.stats().queue.send_seq & 0x0F != 0 {
+            return;
+        }
+        link.send(queue_step(link, 1, 100 + i)).unwrap();
+    }
+    panic!("sequence stuck at 0");
+}
+
+#[test]
+fn reset_announced_by_starting_is_reported() {
+    let (link, ctl, fake) = start(NOMINAL);
+    make_seq_nonzero(&link);
+    ctl.send_starting.store(true, Ordering::Release);
+    ctl.reset.store(true, Ordering::Release);
+    let e = wait_dead(&link);
+    assert!(matches!(e, LinkError::Reset { .. }), "{e}");
+    assert!(
+        e.to_string().starts_with("mcu 'mcu': MCU reset during the print"),
+        "{e}"
+    );
+    assert!(link.send(queue_step(&link, 1, 5)).is_err());
+    drop(link);
+    fake.join().unwrap();
+}
+
+#[test]
+fn reset_seen_as_restarted_sequence_is_reported() {
+    let (link, ctl, fake) = start(NOMINAL);
+    make_seq_nonzero(&link);
+    ctl.reset.store(true, Ordering::Release);
+    link.send(queue_step(&link, 1, 5)).unwrap();
+    let e = wait_dead(&link);
+    assert!(matches!(e, LinkError::Reset { .. }), "{e}");
+    assert!(e.to_string().contains("sequence restarted"), "{e}");
+    drop(link);
+    fake.join().unwrap();
+}
+
+#[test]
+fn unconfigured_mcu_is_reported_as_reset() {
+    // The fake always answers is_config=0: as if it lost the configuration the host sent.
+    let (link, _ctl, fake) = start(NOMINAL);
+    let e = link.expect_configured(LONG).unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "mcu 'mcu': MCU reset during the print (get_config reports is_config=0)"
+    );
+    assert_eq!(link.error(), Some(e));
+    drop(link);
+    fake.join().unwrap();
+}
+
+/// A transport that starts failing every read and write with `EIO` once told to (a USB
+/// adapter that was unplugged).
+struct Unplugged {
+    inner: crate::transport::MemoryEnd,
+    gone: Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl Transport for Unplugged {
+    fn read(&mut self, buf: &mut [u8], timeout: Duration) -> std::io::Result<usize> {
+        if self.gone.load(Ordering::Acquire) {
+            return Err(std::io::Error::from_raw_os_error(libc::EIO));
+        }
+        self.inner.read(buf, timeout)
+    }
+    fn write_all(&mut self, data: &[u8]) -> std::io::Result<()> {
+        if self.gone.load(Ordering::Acquire) {
+            return Err(std::io::Error::from_raw_os_error(libc::EIO));
+        }
+        self.inner.write_all(data)
+    }
+    fn describe(&self) -> String {
+        "serial /dev/ttyACM0".into()
+    }
+}
+
+#[test]
+fn eio_from_an_unplugged_device_is_connection_lost() {
+    let (host, mcu) = MemoryPair::new();
+    let (_ctl, fake) = FakeMcu::spawn(Box::new(mcu), NOMINAL, NOMINAL, 0);
+    let gone = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let t = Unplugged {
+        inner: host,
+        gone: gone.clone(),
+    };
+    let link = McuLink::connect(Box::new(t), opts()).unwrap();
+    gone.store(true, Ordering::Release);
+    let e = wait_dead(&link);
+    let text = e.to_string();
+    assert!(
+        text.starts_with("mcu 'mcu': connection lost (read from serial /dev/ttyACM0")
+            || text.starts_with("mcu 'mcu': connection lost (write to serial /dev/ttyACM0"),
+        "{text}"
+    );
+    assert!(text.contains("os error 5"), "{text}");
+    drop(link);
+    fake.join().unwrap();
+}
+
+#[test]
+fn pty_hang_up_is_connection_lost() {
+    let (master, path) = crate::transport::pty::tests::pty_pair();
+    let (ctl, fake) = FakeMcu::spawn(Box::new(master), NOMINAL, NOMINAL, 0);
+    let link = McuLink::connect(Box::new(PtyTransport::open(&path).unwrap()), opts()).unwrap();
+    ctl.hang_up.store(true, Ordering::Release);
+    fake.join().unwrap(); // the master is closed: the slave reads EIO or end of file
+    let e = wait_dead(&link);
+    assert!(
+        e.to_string()
+            .starts_with("mcu 'mcu': connection lost (read from pty "),
+        "{e}"
+    );
+    assert!(e.to_string().contains("tty"), "{e}");
+}
+
+#[test]
+fn stats_line_reads_like_klipper() {
+    let (link, _ctl, fake) = start(NOMINAL);
+    let s = link.stats();
+    let line = s.to_string();
+    for key in [
+        "mcu_awake=",
+        "mcu_task_avg=",
+        "mcu_task_stddev=",
+        "bytes_write=",
+        "bytes_read=",
+        "bytes_retransmit=",
+        "bytes_invalid=",
+        "send_seq=",
+        "receive_seq=",
+        "srtt=",
+        "rttvar=",
+        "rto=",
+        "ready_bytes=",
+        "upcoming_bytes=",
+        "freq=",
+        "clock_residual_us=",
+    ] {
+        assert!(line.contains(key), "{key} missing in {line}");
+    }
+    assert!(!line.contains('\n'));
+    assert!(line.contains(&format!("send_seq={}", s.queue.send_seq)), "{line}");
+    drop(link);
+    fake.join().unwrap();
+}
