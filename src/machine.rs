@@ -150,7 +150,12 @@ impl Machine {
             e.oid = *n;
             *n += 1;
         }
-        Ok(Machine { steppers, endstops, toolhead, home_position: home })
+        Ok(Machine {
+            steppers,
+            endstops,
+            toolhead,
+            home_position: home,
+        })
     }
 
     /// The planner configuration for MCU clocks at `clock_freq` ticks per print second.
@@ -181,14 +186,27 @@ impl Machine {
         let axis_names = ["x", "y", "z", "e"];
         for s in self.steppers.iter().filter(|s| s.mcu == mcu && s.axis < 3) {
             let (min, max) = self.toolhead.axis_limits[s.axis];
-            let steps_per_mm = if s.dir_pin.invert { -1.0 / s.step_dist } else { 1.0 / s.step_dist };
+            let steps_per_mm = if s.dir_pin.invert {
+                -1.0 / s.step_dist
+            } else {
+                1.0 / s.step_dist
+            };
             args.push("--axis".to_string());
-            args.push(format!("{}={},{},{}", axis_names[s.axis], s.step_pin.pin, steps_per_mm, (min + max) / 2.0));
+            args.push(format!(
+                "{}={},{},{}",
+                axis_names[s.axis],
+                s.step_pin.pin,
+                steps_per_mm,
+                (min + max) / 2.0
+            ));
         }
         for e in self.endstops.iter().filter(|e| e.pin.mcu == mcu) {
             let side = if e.homing_positive_dir { "max" } else { "min" };
             args.push("--endstop".to_string());
-            args.push(format!("{}={},{},{side}", e.pin.pin, axis_names[e.axis], e.position_endstop));
+            args.push(format!(
+                "{}={},{},{side}",
+                e.pin.pin, axis_names[e.axis], e.position_endstop
+            ));
         }
         if !args.is_empty() {
             args.push("--world".to_string());

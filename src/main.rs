@@ -7,6 +7,7 @@
 //!   separate `cadence-mcu` executable was not built.
 
 mod decode;
+mod live;
 mod machine;
 mod mcus;
 mod print;
@@ -41,6 +42,10 @@ enum Cmd {
         args: Vec<String>,
     },
 }
+
+/// Counts allocations per thread so the real-time loops can prove they allocate nothing.
+#[global_allocator]
+static ALLOC: rt_core::alloc_count::CountingAlloc = rt_core::alloc_count::CountingAlloc;
 
 fn main() -> ExitCode {
     let cli = Cli::parse();

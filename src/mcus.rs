@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use links::dict::{Cmd, Dictionary};
-use links::mcu::{LinkOptions, LinkStats, McuLink};
+use links::mcu::{LinkOptions, LinkStats, LinkTuning, McuLink};
 use links::transport::{PtyTransport, SerialTransport, Transport};
 use sysconfig::printer::PrinterConfig;
 
@@ -36,11 +36,21 @@ pub struct Mcus {
 }
 
 /// How to start simulated MCUs.
-#[derive(Debug, Clone)]
 pub struct ConnectOptions {
     pub time_scale: f64,
     /// Step trace of the main MCU; others get `-<name>` inserted before the extension.
     pub trace: Option<PathBuf>,
+    /// Called by the main MCU's IO thread with the lead margin of each clocked message.
+    pub lead_hook: Option<links::serialqueue::MarginHook>,
+}
+
+impl std::fmt::Debug for ConnectOptions {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ConnectOptions")
+            .field("time_scale", &self.time_scale)
+            .field("trace", &self.trace)
+            .finish_non_exhaustive()
+    }
 }
 
 /// The trace path for MCU `name`.
@@ -58,7 +68,7 @@ pub fn trace_path(base: &Path, name: &str, main: bool) -> PathBuf {
 
 impl Mcus {
     /// Starts (for `serial: simulator`) and connects every MCU, then configures its objects.
-    pub fn connect(cfg: &PrinterConfig, machine: &Machine, opts: &ConnectOptions) -> Result<Mcus, String> {
+    pub fn connect(cfg: &PrinterConfig, machine: &Machine, mut opts: ConnectOptions) -> Result<Mcus, String> {
         let world = format!("cadence-{}", std::process::id());
         let mut mcus = Mcus { list: Vec::new() };
         for (i, mcu_cfg) in cfg.mcus.iter().enumerate() {
@@ -69,7 +79,11 @@ impl Mcus {
                     clock_freq: cfg.simulator.clock_freq,
                     time_scale: opts.time_scale,
                     trace: opts.trace.as_deref().map(|t| trace_path(t, &name, i == 0)),
-                    extra: machine.sim_world_args(&name, &world),
+                    extra: {
+                        let mut extra = machine.sim_world_args(&name, &world);
+                        extra.extend(sim_env_args(&name));
+                        extra
+                    },
                 };
                 let s = SimMcu::spawn(&name, &sim_opts)?;
                 let t = PtyTransport::open(&s.pty)
@@ -88,7 +102,11 @@ impl Mcus {
                 response_timeout: Duration::from_secs(2),
                 queue_capacity: 4096,
             };
-            let link = match McuLink::connect(transport, link_opts) {
+            let tuning = LinkTuning {
+                margin_hook: if i == 0 { opts.lead_hook.take() } else { None },
+                ..LinkTuning::default()
+            };
+            let link = match McuLink::connect_with(transport, link_opts, tuning) {
                 Ok(l) => l,
                 Err(e) => {
                     mcus.close();
@@ -105,7 +123,14 @@ impl Mcus {
                     return Err(format!("mcu '{name}': {e}"));
                 }
             };
-            mcus.list.push(McuConn { name, link, sim, move_count: 0, clock_freq, trsync_oid: 0 });
+            mcus.list.push(McuConn {
+                name,
+                link,
+                sim,
+                move_count: 0,
+                clock_freq,
+                trsync_oid: 0,
+            });
         }
         for i in 0..mcus.list.len() {
             if let Err(e) = mcus.configure(i, machine) {
@@ -121,15 +146,20 @@ impl Mcus {
         let conn = &self.list[i];
         let name = conn.name.clone();
         let dict = conn.link.dictionary();
-        let get_config = dict.encode("get_config", &[]).map_err(|e| format!("mcu '{name}': {e}"))?;
+        let get_config = dict
+            .encode("get_config", &[])
+            .map_err(|e| format!("mcu '{name}': {e}"))?;
         let reply = conn
             .link
             .query(get_config, "config", None, Duration::from_secs(2))
             .map_err(|e| e.to_string())?;
         if reply.get("is_config") == Some(1) {
-            return Err(format!("mcu '{name}': already configured: restart the MCU before printing"));
+            return Err(format!(
+                "mcu '{name}': already configured: restart the MCU before printing"
+            ));
         }
-        let (cmds, trsync_oid) = config_commands(dict, machine, &name).map_err(|e| format!("mcu '{name}': {e}"))?;
+        let (cmds, trsync_oid) =
+            config_commands(dict, machine, &name).map_err(|e| format!("mcu '{name}': {e}"))?;
         for c in cmds {
             conn.link.send(c).map_err(|e| e.to_string())?;
         }
@@ -138,11 +168,15 @@ impl Mcus {
             .query(get_config, "config", None, Duration::from_secs(2))
             .map_err(|e| e.to_string())?;
         if reply.get("is_config") != Some(1) {
-            return Err(format!("mcu '{name}': did not accept the configuration ({reply})"));
+            return Err(format!(
+                "mcu '{name}': did not accept the configuration ({reply})"
+            ));
         }
         let move_count = reply.get("move_count").unwrap_or(0).max(0) as usize;
         if move_count < 64 {
-            return Err(format!("mcu '{name}': its move queue is too small ({move_count} entries)"));
+            return Err(format!(
+                "mcu '{name}': its move queue is too small ({move_count} entries)"
+            ));
         }
         let conn = &mut self.list[i];
         conn.move_count = move_count;
@@ -184,6 +218,30 @@ impl Mcus {
     }
 }
 
+/// Environment variable with extra `cadence-mcu` arguments for simulated MCU `name` (fault
+/// injection in tests and benches, e.g. `CADENCE_SIM_ARGS_PROBE_MCU="--tx-delay-ms 30"`): the
+/// name upper-cased, other characters than letters and digits as `_`.
+pub fn sim_env_var(name: &str) -> String {
+    let tail: String = name
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() {
+                c.to_ascii_uppercase()
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    format!("CADENCE_SIM_ARGS_{tail}")
+}
+
+/// The extra simulator arguments of [`sim_env_var`], split at whitespace (none when unset).
+fn sim_env_args(name: &str) -> Vec<String> {
+    std::env::var(sim_env_var(name))
+        .map(|v| v.split_whitespace().map(str::to_string).collect())
+        .unwrap_or_default()
+}
+
 /// Encodes one MCU's configuration: oids, steppers, endstops, trsync, finalize with the
 /// config CRC (CRC-32 of the configuration messages). Returns the commands and the trsync oid.
 pub fn config_commands(dict: &Dictionary, machine: &Machine, mcu: &str) -> Result<(Vec<Cmd>, u8), String> {
@@ -194,12 +252,22 @@ pub fn config_commands(dict: &Dictionary, machine: &Machine, mcu: &str) -> Resul
     let err = |e: links::dict::DictError| e.to_string();
     let mut cmds = vec![dict.encode("allocate_oids", &[count as i64]).map_err(err)?];
     for s in &steppers {
-        let step_pin = dict.pin(&s.step_pin.pin).map_err(|e| format!("[{}] step_pin: {e}", s.name))?;
-        let dir_pin = dict.pin(&s.dir_pin.pin).map_err(|e| format!("[{}] dir_pin: {e}", s.name))?;
+        let step_pin = dict
+            .pin(&s.step_pin.pin)
+            .map_err(|e| format!("[{}] step_pin: {e}", s.name))?;
+        let dir_pin = dict
+            .pin(&s.dir_pin.pin)
+            .map_err(|e| format!("[{}] dir_pin: {e}", s.name))?;
         cmds.push(
             dict.encode(
                 "config_stepper",
-                &[s.oid as i64, step_pin as i64, dir_pin as i64, s.step_pin.invert as i64, 0],
+                &[
+                    s.oid as i64,
+                    step_pin as i64,
+                    dir_pin as i64,
+                    s.step_pin.invert as i64,
+                    0,
+                ],
             )
             .map_err(err)?,
         );
@@ -209,8 +277,13 @@ pub fn config_commands(dict: &Dictionary, machine: &Machine, mcu: &str) -> Resul
         return Err("the MCU has no endstop/trsync support in its dictionary".to_string());
     }
     for e in &endstops {
-        let pin = dict.pin(&e.pin.pin).map_err(|x| format!("[{}] endstop_pin: {x}", e.stepper))?;
-        cmds.push(dict.encode("config_endstop", &[e.oid as i64, pin as i64, e.pin.pullup as i64]).map_err(err)?);
+        let pin = dict
+            .pin(&e.pin.pin)
+            .map_err(|x| format!("[{}] endstop_pin: {x}", e.stepper))?;
+        cmds.push(
+            dict.encode("config_endstop", &[e.oid as i64, pin as i64, e.pin.pullup as i64])
+                .map_err(err)?,
+        );
     }
     if has_endstops {
         cmds.push(dict.encode("config_trsync", &[trsync_oid as i64]).map_err(err)?);
@@ -221,6 +294,9 @@ pub fn config_commands(dict: &Dictionary, machine: &Machine, mcu: &str) -> Resul
     for c in &cmds {
         crc.update(c.as_bytes());
     }
-    cmds.push(dict.encode("finalize_config", &[crc.finalize() as i64]).map_err(err)?);
+    cmds.push(
+        dict.encode("finalize_config", &[crc.finalize() as i64])
+            .map_err(err)?,
+    );
     Ok((cmds, trsync_oid))
 }

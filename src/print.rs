@@ -4,17 +4,16 @@ use std::collections::BTreeSet;
 use std::fs::File;
 use std::io::{BufReader, BufWriter};
 use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use clap::Args;
-use links::dict::Cmd;
-use links::mcu::McuLink;
 use planner::gcode::GcodeReader;
 use planner::machine::Applied;
 use planner::pipeline::Pipeline;
 use planner::stepgen::StepCmd;
 use sysconfig::printer::PrinterConfig;
 
+use crate::live::{self, Hists, RtConfig};
 use crate::machine::Machine;
 use crate::mcus::{ConnectOptions, Mcus};
 use crate::sink::{BatchSink, Sink, StepStreamer};
@@ -44,10 +43,16 @@ pub struct PrintArgs {
     /// Maximum step time error of the compression, in microseconds.
     #[arg(long, default_value_t = 25.0)]
     pub max_error_us: f64,
+    /// Don't pin threads, use SCHED_FIFO or lock memory.
+    #[arg(long)]
+    pub no_realtime: bool,
+    /// Save the print's latency histograms to this file (HdrHistogram V2 interval log).
+    #[arg(long)]
+    pub histograms: Option<PathBuf>,
 }
 
 /// Lead every step command must have at the MCU, in print seconds.
-const MIN_LEAD_S: f64 = 0.100;
+pub(crate) const MIN_LEAD_S: f64 = 0.100;
 /// Most time scale the simulator's 32-bit clock allows (it wraps every 86 s / scale at 50 MHz).
 const MAX_TIME_SCALE: f64 = 50.0;
 
@@ -98,7 +103,7 @@ impl Warnings {
 
 /// Feeds the G-code through the planner, handing step commands to `emit` as they become final.
 /// `pace` runs between lines (live flow control; batch passes a no-op).
-fn plan_file(
+pub(crate) fn plan_file(
     args: &PrintArgs,
     pipeline: &mut Pipeline,
     gcode: File,
@@ -145,7 +150,7 @@ fn run_batch(
         sink.send(c)?;
     }
     let move_count = 16384;
-    let mut streamer = StepStreamer::new(&machine.steppers, move_count)?;
+    let mut streamer = StepStreamer::new(&dict, &machine.steppers, move_count)?;
     let mut pipeline = Pipeline::new(
         machine.pipeline_config(clock_freq, args.max_error_us * 1e-6),
         0.25,
@@ -157,7 +162,7 @@ fn run_batch(
         gcode,
         |cmds| {
             for &(idx, cmd) in cmds.iter() {
-                streamer.push(&dict, idx, cmd, &mut sink)?;
+                streamer.push(idx, cmd, &mut sink)?;
             }
             Ok(())
         },
@@ -191,26 +196,45 @@ fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: Fil
         return Err("--time-scale only applies to a simulated printer".to_string());
     }
     let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
-    let opts = ConnectOptions { time_scale, trace: args.trace.clone() };
-    let mut mcus = Mcus::connect(cfg, machine, &opts)?;
-    let result = print_on(args, machine, &mcus, gcode, started, time_scale);
+    let hists = Hists::new();
+    let opts = ConnectOptions {
+        time_scale,
+        trace: args.trace.clone(),
+        lead_hook: Some(hists.lead_hook()),
+    };
+    let mut mcus = Mcus::connect(cfg, machine, opts)?;
+    let rt = RtConfig {
+        enabled: !args.no_realtime,
+        ..RtConfig::default()
+    };
+    let result = live::print_on(args, machine, &mcus, gcode, started, time_scale, &rt, &hists);
     let stats = mcus.close();
-    let summary = result?;
+    let mut summary = result?;
+    summary.wall = started.elapsed().as_secs_f64();
+    if let Some(path) = &args.histograms {
+        hists.save(path, summary.wall)?;
+    }
     summary.print(&stats);
+    for line in rt_core::os::rt_report() {
+        eprintln!("cadence: {line}");
+    }
     Ok(())
 }
 
 /// What a live print reports at the end.
 #[derive(Debug)]
-struct Summary {
-    file: PathBuf,
-    lines: u64,
-    moves: u64,
-    print_time: f64,
-    wall: f64,
-    queue_steps: u64,
-    rows: Vec<(String, u64, i64, i64, f64)>,
-    clock_freq: f64,
+pub(crate) struct Summary {
+    pub file: PathBuf,
+    pub lines: u64,
+    pub moves: u64,
+    pub print_time: f64,
+    pub wall: f64,
+    pub queue_steps: u64,
+    /// (stepper, steps sent, MCU position, host position, commanded axis position)
+    pub rows: Vec<(String, u64, i64, i64, f64)>,
+    pub clock_freq: f64,
+    /// Further report lines (histograms, allocation counts).
+    pub extra: Vec<String>,
 }
 
 impl Summary {
@@ -227,6 +251,9 @@ impl Summary {
         for (name, steps, mcu_pos, host_pos, mm) in &self.rows {
             let flag = if mcu_pos == host_pos { "" } else { "  MISMATCH" };
             println!("  {name:<10} {steps:>10} {mcu_pos:>12} {host_pos:>12} {mm:>12.4}{flag}");
+        }
+        for line in &self.extra {
+            println!("  {line}");
         }
         for (name, stats) in all_stats {
             if let Some(margin) = stats.min_lead_margin_ticks {
@@ -249,152 +276,5 @@ impl Summary {
                 stats.clock_residual_us
             );
         }
-    }
-}
-
-fn print_on(
-    args: &PrintArgs,
-    machine: &Machine,
-    mcus: &Mcus,
-    gcode: File,
-    started: Instant,
-    scale: f64,
-) -> Result<Summary, String> {
-    let main = mcus.main();
-    let link = &main.link;
-    let dict = link.dictionary();
-    let clock_freq = main.clock_freq;
-    let move_count = main.move_count;
-
-    let print_now = || link.clock().clock_at(McuLink::system_now()) / clock_freq;
-    // Start far enough ahead that the first batch is planned long before it is due.
-    let start = print_now() + (0.5f64).max(0.25 * scale);
-    // Buffering window in print time: 2 s, or 1 s of wall time when the clock runs faster.
-    let high_water = (2.0f64).max(1.0 * scale);
-    let low_water = high_water / 2.0;
-    let lead_ticks = (MIN_LEAD_S * clock_freq) as u64;
-
-    let mut pipeline = Pipeline::new(
-        machine.pipeline_config(clock_freq, args.max_error_us * 1e-6),
-        start,
-    )
-    .map_err(|e| e.to_string())?;
-    let mut streamer = StepStreamer::new(&machine.steppers, move_count)?;
-    let mut sink = LinkSink { link };
-    let lines = plan_file(
-        args,
-        &mut pipeline,
-        gcode,
-        |cmds| {
-            let now_clock = (print_now() * clock_freq) as u64;
-            for &(idx, cmd) in cmds.iter() {
-                if let StepCmd::QueueStep { first_clock, .. } = cmd {
-                    if first_clock < now_clock + lead_ticks {
-                        return Err(format!(
-                            "the planner fell behind: a step for {} at print time {:.3} s was ready only {:.1} ms \
-                             before it is due (at least {:.0} ms required); print stopped before sending it",
-                            machine.steppers[idx].name,
-                            first_clock as f64 / clock_freq,
-                            (first_clock as f64 - now_clock as f64) / clock_freq * 1e3,
-                            MIN_LEAD_S * 1e3
-                        ));
-                    }
-                }
-                streamer.push(dict, idx, cmd, &mut sink)?;
-            }
-            Ok(())
-        },
-        |p| {
-            // Flow control: keep between the low and high water marks of buffered print time.
-            if p.planned_until() - print_now() > high_water {
-                while p.planned_until() - print_now() > low_water {
-                    mcus.check()?;
-                    std::thread::sleep(Duration::from_millis(5));
-                }
-            }
-            mcus.check()
-        },
-    )?;
-
-    // Wait until the MCU has executed the last step (bounded).
-    let end_clock = streamer.last_step_clock;
-    let wait_s = (end_clock as f64 / clock_freq - print_now()).max(0.0) / scale + 5.0;
-    let deadline = Instant::now() + Duration::from_secs_f64(wait_s);
-    link.wait_idle(Duration::from_secs_f64(wait_s))
-        .map_err(|e| e.to_string())?;
-    while print_now() * clock_freq < end_clock as f64 + 0.01 * clock_freq {
-        mcus.check()?;
-        if Instant::now() > deadline {
-            return Err("the MCU clock did not reach the end of the print in time".to_string());
-        }
-        std::thread::sleep(Duration::from_millis(5));
-    }
-    mcus.check()?;
-
-    let host_positions = pipeline.stepper_positions();
-    let commanded = pipeline.position();
-    let mut rows = Vec::new();
-    for (i, s) in machine.steppers.iter().enumerate() {
-        let q = dict
-            .encode("stepper_get_position", &[s.oid as i64])
-            .map_err(|e| e.to_string())?;
-        let reply = link
-            .query(
-                q,
-                "stepper_position",
-                Some(("oid", s.oid as i64)),
-                Duration::from_secs(2),
-            )
-            .map_err(|e| e.to_string())?;
-        let raw = reply.get("pos").unwrap_or(0);
-        let mcu_pos = if s.dir_pin.invert { -raw } else { raw };
-        let host_pos = host_positions.get(i).copied().unwrap_or(0);
-        rows.push((
-            s.name.clone(),
-            streamer.steps_sent()[i],
-            mcu_pos,
-            host_pos,
-            commanded[s.axis],
-        ));
-    }
-    let stats = pipeline.stats();
-    if let Some((name, _, m, h, _)) = rows.iter().find(|r| r.2 != r.3) {
-        return Err(format!(
-            "{name}: the MCU reports position {m} steps but the host sent {h}"
-        ));
-    }
-    if let Some(margin) = link.stats().min_lead_margin_ticks {
-        if (margin as f64) < MIN_LEAD_S * clock_freq {
-            return Err(format!(
-                "a step command reached the MCU with only {:.1} ms lead (at least {:.0} ms required)",
-                margin as f64 / clock_freq * 1e3,
-                MIN_LEAD_S * 1e3
-            ));
-        }
-    }
-    Ok(Summary {
-        file: args.file.clone(),
-        lines,
-        moves: stats.moves,
-        print_time: pipeline.planned_until() - start,
-        wall: started.elapsed().as_secs_f64(),
-        queue_steps: streamer.queue_steps(),
-        rows,
-        clock_freq,
-    })
-}
-
-struct LinkSink<'a> {
-    link: &'a McuLink,
-}
-
-impl Sink for LinkSink<'_> {
-    fn send(&mut self, cmd: Cmd) -> Result<(), String> {
-        self.link.send(cmd).map_err(|e| e.to_string())
-    }
-    fn send_clocked(&mut self, cmd: Cmd, min_clock: u64, req_clock: u64) -> Result<(), String> {
-        self.link
-            .send_clocked(cmd, min_clock, req_clock)
-            .map_err(|e| e.to_string())
     }
 }

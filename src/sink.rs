@@ -9,7 +9,7 @@
 //!   size minus a margin. A `reset_step_clock` may only arrive once its stepper is idle (after
 //!   its previous last step).
 
-use links::dict::{Cmd, Dictionary};
+use links::dict::{Cmd, CmdEncoder, Dictionary};
 use planner::stepgen::StepCmd;
 
 use crate::machine::StepperOut;
@@ -49,20 +49,25 @@ pub struct StepStreamer {
     queue_steps: u64,
     /// Largest step clock sent.
     pub last_step_clock: u64,
-    /// Smallest (first step clock − now) seen at hand-off, for live streams (ticks).
-    ids: Ids,
+    /// Encoders looked up once in the MCU's dictionary (encoding then allocates nothing).
+    enc: Encoders,
 }
 
-#[derive(Debug, Clone)]
-struct Ids {
-    queue_step: &'static str,
-    set_dir: &'static str,
-    reset: &'static str,
+#[derive(Debug)]
+struct Encoders {
+    queue_step: CmdEncoder,
+    set_dir: CmdEncoder,
+    reset: CmdEncoder,
 }
 
 impl StepStreamer {
     /// A streamer for `steppers` on an MCU whose move pool holds `move_count` entries.
-    pub fn new(steppers: &[StepperOut], move_count: usize) -> Result<StepStreamer, String> {
+    pub fn new(
+        dict: &Dictionary,
+        steppers: &[StepperOut],
+        move_count: usize,
+    ) -> Result<StepStreamer, String> {
+        let enc = |name: &str| dict.encoder(name).map_err(|e| e.to_string());
         let pool = move_count.saturating_sub(POOL_MARGIN).max(1);
         Ok(StepStreamer {
             steppers: steppers.to_vec(),
@@ -71,10 +76,10 @@ impl StepStreamer {
             ring_pos: 0,
             queue_steps: 0,
             last_step_clock: 0,
-            ids: Ids {
-                queue_step: "queue_step",
-                set_dir: "set_next_step_dir",
-                reset: "reset_step_clock",
+            enc: Encoders {
+                queue_step: enc("queue_step")?,
+                set_dir: enc("set_next_step_dir")?,
+                reset: enc("reset_step_clock")?,
             },
         })
     }
@@ -89,14 +94,23 @@ impl StepStreamer {
         self.state.iter().map(|s| s.steps_sent).collect()
     }
 
+    // homing: after a stop on trigger the MCU discarded the queued steps of these steppers.
+    /// The MCU stopped stepper `idx` (homing): its queue is empty and it is idle by `now_clock`,
+    /// so its next `reset_step_clock` may go at once, and the move-pool slots of its discarded
+    /// `queue_step`s are free. Call once the steppers stopped and nothing else is moving.
+    pub fn note_stopped(&mut self, idx: usize, now_clock: u64) {
+        if let Some(st) = self.state.get_mut(idx) {
+            st.last_clock = st.last_clock.min(now_clock);
+            st.min_clock = st.min_clock.min(now_clock);
+        }
+        for slot in self.ring.iter_mut() {
+            *slot = (*slot).min(now_clock);
+        }
+        self.last_step_clock = self.state.iter().map(|s| s.last_clock).max().unwrap_or(0);
+    }
+
     /// Encodes and sends one planner command for stepper `idx`.
-    pub fn push(
-        &mut self,
-        dict: &Dictionary,
-        idx: usize,
-        cmd: StepCmd,
-        sink: &mut dyn Sink,
-    ) -> Result<(), String> {
+    pub fn push(&mut self, idx: usize, cmd: StepCmd, sink: &mut dyn Sink) -> Result<(), String> {
         let Some(stepper) = self.steppers.get(idx) else {
             return Err(format!(
                 "internal error: step command for unknown stepper index {idx}"
@@ -122,22 +136,25 @@ impl StepStreamer {
                     // The stepper must be idle when the reset arrives.
                     min_clock = min_clock.max(st.last_clock + 1);
                     st.min_clock = min_clock;
-                    let m = dict
-                        .encode(self.ids.reset, &[oid, clock as u32 as i64])
+                    let m = self
+                        .enc
+                        .reset
+                        .encode(&[oid, clock as u32 as i64])
                         .map_err(|e| e.to_string())?;
                     sink.send_clocked(m, min_clock, first_clock)?;
                 }
                 if let Some(dir) = st.pending_dir.take() {
-                    let m = dict
-                        .encode(self.ids.set_dir, &[oid, dir as i64])
+                    let m = self
+                        .enc
+                        .set_dir
+                        .encode(&[oid, dir as i64])
                         .map_err(|e| e.to_string())?;
                     sink.send_clocked(m, min_clock, first_clock)?;
                 }
-                let m = dict
-                    .encode(
-                        self.ids.queue_step,
-                        &[oid, interval as i64, count as i64, add as i64],
-                    )
+                let m = self
+                    .enc
+                    .queue_step
+                    .encode(&[oid, interval as i64, count as i64, add as i64])
                     .map_err(|e| e.to_string())?;
                 sink.send_clocked(m, min_clock, first_clock)?;
                 st.min_clock = min_clock;

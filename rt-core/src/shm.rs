@@ -11,14 +11,15 @@
 //! | `cadence/<instance>/telemetry` | event | — | default |
 //!
 //! Every process must open a service with the same settings (the `ChannelConfig` constructors)
-//! and the same payload type names (`cadence::StepBatch.v1`, `cadence::Telemetry.v1`).
+//! and the same payload type names (`cadence::StepBatch.v2`, `cadence::Telemetry.v1`).
 //!
 //! # Payload layouts (`#[repr(C)]`, native endian, sizes asserted in tests)
 //!
 //! - [`WireMsg`] (80 bytes, align 8): `min_clock: u64` @0, `req_clock: u64` @8, `len: u8` @16,
 //!   `data: [u8; 59]` @17 (one encoded MCU message, like `links::dict::Cmd`), 4 bytes padding.
-//! - [`StepBatch`] (16 + 80·[`BATCH_MSGS`] = 5136 bytes, align 8): `seq: u64` @0,
-//!   `mcu: u32` @8, `count: u32` @12, `msgs: [WireMsg; 64]` @16 (first `count` valid).
+//! - [`StepBatch`] (24 + 80·[`BATCH_MSGS`] = 5144 bytes, align 8): `seq: u64` @0,
+//!   `mcu: u32` @8, `count: u32` @12, `t_ns: u64` @16 (CLOCK_MONOTONIC ns at hand-off),
+//!   `msgs: [WireMsg; 64]` @24 (first `count` valid).
 //! - [`Telemetry`] (160 bytes, align 8): `seq: u64` @0, `kind: u32` @8, `source: u32` @12,
 //!   `t_ns: u64` @16, `count: u32` @24, 4 bytes padding, `values: [f64; 16]` @32.
 //!
@@ -102,7 +103,7 @@ impl WireMsg {
 /// A batch of messages for one MCU, planner side → that MCU's IO stage.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ZeroCopySend)]
-#[type_name("cadence::StepBatch.v1")]
+#[type_name("cadence::StepBatch.v2")]
 pub struct StepBatch {
     /// Assigned by the publisher: 0, 1, 2, ... per channel.
     pub seq: u64,
@@ -110,6 +111,8 @@ pub struct StepBatch {
     pub mcu: u32,
     /// Valid entries in `msgs`.
     pub count: u32,
+    /// CLOCK_MONOTONIC ns when the publisher handed the batch over (hand-off latency).
+    pub t_ns: u64,
     pub msgs: [WireMsg; BATCH_MSGS],
 }
 
@@ -119,6 +122,7 @@ impl Default for StepBatch {
             seq: 0,
             mcu: 0,
             count: 0,
+            t_ns: 0,
             msgs: [WireMsg::default(); BATCH_MSGS],
         }
     }

@@ -28,9 +28,10 @@ fn payload_layouts() {
     assert_eq!(offset_of!(WireMsg, data), 17);
     assert_eq!(
         (size_of::<StepBatch>(), align_of::<StepBatch>()),
-        (16 + 80 * BATCH_MSGS, 8)
+        (24 + 80 * BATCH_MSGS, 8)
     );
-    assert_eq!(offset_of!(StepBatch, msgs), 16);
+    assert_eq!(offset_of!(StepBatch, t_ns), 16);
+    assert_eq!(offset_of!(StepBatch, msgs), 24);
     assert_eq!((size_of::<Telemetry>(), align_of::<Telemetry>()), (160, 8));
     assert_eq!(offset_of!(Telemetry, count), 24);
     assert_eq!(offset_of!(Telemetry, values), 32);
