@@ -1,1 +1,4 @@
 //! Benchmarks live here; see `cadence bench`.
+
+pub mod handoff;
+pub mod plan;

@@ -14,6 +14,7 @@
 //! the first step and each direction change.
 
 mod fit;
+mod resync; // homing: resync after a stop on trigger
 
 use std::collections::VecDeque;
 
@@ -227,7 +228,15 @@ impl StepCompressor {
         let follow = |f: &Fit, guess: i64| longest_fit(&run[f.count..], f.end(last), max_err, guess);
         let mut best = (fit, follow(&fit, fit.add));
         let guess = best.1.add;
-        for back in 1..=self.backoff.min(fit.count - 1) {
+        // Ending earlier cannot help when the next command already reaches the run's end.
+        // (Trying only when the next command is under half as long takes 30 % off compression
+        // time on the benchy but gives 457,645 commands: more than Klipper's 456,811.)
+        let tries = if fit.count + best.1.count >= run.len() {
+            0
+        } else {
+            self.backoff.min(fit.count - 1)
+        };
+        for back in 1..=tries {
             let Some(f) = fit_prefix(run, last, fit.count - back, fit.add) else {
                 break;
             };

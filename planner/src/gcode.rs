@@ -41,6 +41,18 @@ pub enum Command {
         e: Option<f64>,
         f: Option<f64>,
     },
+    /// G2 (clockwise) / G3 (counter-clockwise) arc in the XY plane: end point like G1, centre
+    /// offset `i`, `j` from the start point (the `R` form is not supported).
+    Arc {
+        clockwise: bool,
+        x: Option<f64>,
+        y: Option<f64>,
+        z: Option<f64>,
+        e: Option<f64>,
+        f: Option<f64>,
+        i: Option<f64>,
+        j: Option<f64>,
+    },
     /// G28: axes to home (no axis letter = all).
     Home { x: bool, y: bool, z: bool },
     /// G90.
@@ -360,6 +372,24 @@ fn parse_body(body: &str) -> Result<Option<Command>, GcodeErrorKind> {
                 f: p.value('F')?,
             }
         }
+        (b'G', 2 | 3) if known => {
+            let p = Params::parse(params)?;
+            if p.has('R') {
+                return Err(GcodeErrorKind::BadWord(
+                    "R (radius arcs are not supported: use I/J)".to_string(),
+                ));
+            }
+            Command::Arc {
+                clockwise: code == 2,
+                x: p.value('X')?,
+                y: p.value('Y')?,
+                z: p.value('Z')?,
+                e: p.value('E')?,
+                f: p.value('F')?,
+                i: p.value('I')?,
+                j: p.value('J')?,
+            }
+        }
         (b'G', 28) if known => {
             let p = Params::parse(params)?;
             let (x, y, z) = (p.has('X'), p.has('Y'), p.has('Z'));
@@ -420,6 +450,69 @@ fn parse_extended(rest: &str) -> Result<Option<Command>, GcodeErrorKind> {
         name: name.to_ascii_uppercase(),
         raw: rest.to_string(),
     }))
+}
+
+/// The parameters of an [`Command::Other`] command's `raw` text: `S200 T0` words for
+/// traditional commands, `KEY=value` for extended ones (keys upper-cased).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct OtherParams {
+    pairs: Vec<(String, String)>,
+}
+
+impl OtherParams {
+    /// Parses `raw` (as in [`Command::Other`]); the command word itself is skipped.
+    pub fn parse(raw: &str) -> Result<OtherParams, GcodeErrorKind> {
+        let raw = raw.trim();
+        let name = first_word(raw);
+        let rest = &raw[name.len()..];
+        let extended = !name.as_bytes().get(1).is_some_and(|b| b.is_ascii_digit());
+        let mut pairs = Vec::new();
+        if extended {
+            for tok in rest.split_ascii_whitespace() {
+                let Some((k, v)) = tok.split_once('=') else {
+                    return Err(GcodeErrorKind::BadWord(tok.to_string()));
+                };
+                if k.is_empty() || !k.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_') {
+                    return Err(GcodeErrorKind::BadWord(tok.to_string()));
+                }
+                pairs.push((k.to_ascii_uppercase(), v.to_string()));
+            }
+        } else {
+            let p = Params::parse(rest)?;
+            for (i, w) in p.words.iter().enumerate() {
+                if let Some(w) = w {
+                    pairs.push((((b'A' + i as u8) as char).to_string(), w[1..].to_string()));
+                }
+            }
+        }
+        Ok(OtherParams { pairs })
+    }
+
+    /// The text of `key`.
+    pub fn get(&self, key: &str) -> Option<&str> {
+        self.pairs.iter().find(|(k, _)| k == key).map(|(_, v)| v.as_str())
+    }
+
+    /// The number of `key` (finite), `None` when absent.
+    pub fn float(&self, key: &str) -> Result<Option<f64>, GcodeErrorKind> {
+        let Some(v) = self.get(key) else {
+            return Ok(None);
+        };
+        let word = format!("{key}={v}");
+        let x: f64 = v
+            .trim()
+            .parse()
+            .map_err(|_| GcodeErrorKind::BadNumber(word.clone()))?;
+        if !x.is_finite() {
+            return Err(GcodeErrorKind::NotFinite(word));
+        }
+        Ok(Some(x))
+    }
+
+    /// Every key given.
+    pub fn keys(&self) -> impl Iterator<Item = &str> {
+        self.pairs.iter().map(|(k, _)| k.as_str())
+    }
 }
 
 fn first_word(s: &str) -> &str {
@@ -546,6 +639,30 @@ impl fmt::Display for Command {
                 opt(f, 'Z', *z)?;
                 opt(f, 'E', *e)?;
                 opt(f, 'F', *feed)
+            }
+            Command::Arc {
+                clockwise,
+                x,
+                y,
+                z,
+                e,
+                f: feed,
+                i,
+                j,
+            } => {
+                write!(f, "{}", if *clockwise { "G2" } else { "G3" })?;
+                for (l, v) in [
+                    ('X', x),
+                    ('Y', y),
+                    ('Z', z),
+                    ('E', e),
+                    ('F', feed),
+                    ('I', i),
+                    ('J', j),
+                ] {
+                    opt(f, l, *v)?;
+                }
+                Ok(())
             }
             Command::Home { x, y, z } => {
                 write!(f, "G28")?;

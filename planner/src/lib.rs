@@ -7,17 +7,20 @@
 //!   `minimum_cruise_ratio`, Z and extrude-only limits).
 //! - [`machine`]: modal G-code state (G90/G91, M82/M83, G92, feedrate, homed axes) applied to a
 //!   toolhead.
-//! - [`kinematics`]: which stepper moves how when the toolhead moves (cartesian for now).
+//! - [`kinematics`]: which stepper moves how when the toolhead moves (cartesian, corexy, corexz,
+//!   delta).
+//! - [`pressure_advance`]: the extruder with pressure advance (iterative step solver).
 //! - [`stepgen`]: each stepper's ideal step times, in closed form for linear kinematics.
 //! - [`compress`]: greedy packing of step times into `queue_step` (interval, count, add)
 //!   commands within the maximum step error.
 //! - [`checker`]: replays commands like the MCU does and proves every step is within its window.
 //! - [`pipeline`]: the top level the `cadence` binary drives.
 //!
-//! Guarantees: no panics on any input (G-code bytes, configuration numbers); no threads, no IO
-//! besides reading the `BufRead` handed to [`gcode::GcodeReader`]; after warm-up the step path
-//! reuses its buffers (no allocation per move or per step). Each stepper's step generation and
-//! compression is independent state, so it can later run on its own thread.
+//! Guarantees: no panics on any input (G-code bytes, configuration numbers); no IO besides
+//! reading the `BufRead` handed to [`gcode::GcodeReader`]; after warm-up the step path reuses
+//! its buffers (no allocation per step). Each stepper's step generation and compression is
+//! independent state; [`pipeline::PipelineOptions::threads`] runs them on worker threads (std
+//! threads and channels, pure computation).
 
 pub mod checker;
 pub mod compress;
@@ -25,5 +28,6 @@ pub mod gcode;
 pub mod kinematics;
 pub mod machine;
 pub mod pipeline;
+pub mod pressure_advance;
 pub mod stepgen;
 pub mod toolhead;

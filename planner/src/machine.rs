@@ -5,21 +5,60 @@
 //! G-code value plus that axis's G92 offset (`base`). In relative mode a value adds to the last
 //! commanded position. E is relative when either G91 or M83 is in force. G92 sets `base` so the
 //! current position reads as the given value (no argument: every axis reads 0). Feedrate F is in
-//! mm/min; the toolhead gets mm/s. G28 does no motion yet: it declares the named axes (all if
-//! none) homed at the configured `home_position`.
+//! mm/min; the toolhead gets mm/s, times the M220 speed factor. M221 scales E like Klipper (the
+//! E offset is rebased so the current position keeps reading the same). G28 does no motion
+//! yet: it declares the named axes (all if none) homed at the configured `home_position`.
+//!
+//! Arcs (G2/G3, XY plane, centre offset I/J): split into chords like Klipper's `[gcode_arcs]`
+//! with `resolution` 1 mm: n = max(1, ⌊hypot(angle·r, Δz) / 1 mm⌋) segments, Z and E spread
+//! evenly. Firmware retraction (G10/G11) moves E by `retract_length` (+ the unretract extra) at
+//! the retract/unretract speeds, like Klipper's `[firmware_retraction]` (defaults: length 0,
+//! speeds 20 and 10 mm/s; SET_RETRACTION changes them). Heaters, fans, motors off, M114 and
+//! M117 are returned to the caller as [`Applied`] values. Unknown commands are
+//! [`Applied::Unsupported`] (the caller warns), or errors with [`GcodeState::set_unknown_is_error`].
 
-use crate::gcode::{Command, GcodeLine};
+use crate::gcode::{Command, GcodeErrorKind, GcodeLine, OtherParams};
 use crate::toolhead::{MoveError, Toolhead, AXIS_NAMES};
 
 /// Speed before any F word (mm/s), as Klipper.
 const DEFAULT_SPEED: f64 = 25.0;
+/// Slowest feedrate accepted (mm/s): anything slower is a broken file, not a print.
+const MIN_SPEED: f64 = 0.01;
+/// Arc chord length (mm), Klipper's `[gcode_arcs] resolution` default.
+pub const ARC_RESOLUTION: f64 = 1.0;
+/// Most chords one arc may be split into.
+const MAX_ARC_SEGMENTS: f64 = 1e6;
+
+/// Which heater a temperature command addresses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum HeaterId {
+    Extruder,
+    Bed,
+}
 
 /// What [`GcodeState::apply`] did with a line.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub enum Applied {
     Done,
     /// A well-formed command the planner does not implement; the caller warns once per name.
     Unsupported(String),
+    /// M104/M109 (extruder) and M140/M190 (bed): new target in °C (0 = off); `wait` for
+    /// M109/M190 (the caller waits for the temperature before going on).
+    Heater {
+        heater: HeaterId,
+        target: f64,
+        wait: bool,
+    },
+    /// M106/M107: part-cooling fan speed in 0 ..= 1.
+    Fan {
+        speed: f64,
+    },
+    /// M84/M18: steppers off; every axis must be homed again before moving.
+    MotorsOff,
+    /// M114: the position report, Klipper's text (`X:… Y:… Z:… E:…`).
+    Report(String),
+    /// M117: a display message.
+    Message(String),
 }
 
 /// A G-code line the planner refused.
@@ -41,6 +80,12 @@ pub enum PlanErrorKind {
     BadFeedrate(f64),
     #[error("G20 (inches) is not supported: use millimeters (G21)")]
     Inches,
+    #[error("Unknown command: \"{0}\"")]
+    UnknownCommand(String),
+    #[error("{0}")]
+    BadParameter(String),
+    #[error("bad arc: {0}")]
+    BadArc(String),
     #[error("invalid configuration: {0}")]
     Config(String),
 }
@@ -58,6 +103,34 @@ pub struct GcodeState {
     speed: f64,
     homed: [bool; 3],
     home_position: [f64; 3],
+    /// M220 factor on feedrates.
+    speed_factor: f64,
+    /// M221 factor on E.
+    extrude_factor: f64,
+    unknown_is_error: bool,
+    retract: Retraction,
+    retracted: bool,
+    pressure_advance: (f64, f64),
+}
+
+/// Firmware retraction settings (Klipper's `[firmware_retraction]`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Retraction {
+    pub retract_length: f64,
+    pub retract_speed: f64,
+    pub unretract_extra_length: f64,
+    pub unretract_speed: f64,
+}
+
+impl Default for Retraction {
+    fn default() -> Self {
+        Retraction {
+            retract_length: 0.0,
+            retract_speed: 20.0,
+            unretract_extra_length: 0.0,
+            unretract_speed: 10.0,
+        }
+    }
 }
 
 impl GcodeState {
@@ -71,7 +144,33 @@ impl GcodeState {
             speed: DEFAULT_SPEED,
             homed: [false; 3],
             home_position,
+            speed_factor: 1.0,
+            extrude_factor: 1.0,
+            unknown_is_error: false,
+            retract: Retraction::default(),
+            retracted: false,
+            pressure_advance: (0.0, 0.04),
         }
+    }
+
+    /// Unknown commands become errors (`true`) or [`Applied::Unsupported`] (default).
+    pub fn set_unknown_is_error(&mut self, on: bool) {
+        self.unknown_is_error = on;
+    }
+
+    /// Firmware retraction settings (e.g. from a `[firmware_retraction]` section).
+    pub fn set_retraction(&mut self, r: Retraction) {
+        self.retract = r;
+    }
+
+    /// The pressure advance the steps are generated with (from the configuration).
+    pub fn set_pressure_advance(&mut self, advance: f64, smooth_time: f64) {
+        self.pressure_advance = (advance, smooth_time);
+    }
+
+    /// Pressure advance and its smooth time as last set (SET_PRESSURE_ADVANCE).
+    pub fn pressure_advance(&self) -> (f64, f64) {
+        self.pressure_advance
     }
 
     /// Axes homed so far (X, Y, Z).
@@ -84,12 +183,14 @@ impl GcodeState {
         self.homed = homed;
     }
 
-    /// The position as G-code reads it (toolhead position minus the G92 offsets).
+    /// The position as G-code reads it (toolhead position minus the G92 offsets, E divided by the
+    /// M221 factor).
     pub fn gcode_position(&self) -> [f64; 4] {
         let mut p = self.last;
         for (p, b) in p.iter_mut().zip(self.base) {
             *p -= b;
         }
+        p[3] /= self.extrude_factor;
         p
     }
 
@@ -106,40 +207,24 @@ impl GcodeState {
         };
         match &line.cmd {
             Command::Move { x, y, z, e, f } => {
-                if let Some(f) = *f {
-                    if f <= 0.0 {
-                        return Err(err(PlanErrorKind::BadFeedrate(f)));
-                    }
-                }
-                let mut next = self.last;
-                for (i, v) in [x, y, z].into_iter().enumerate() {
-                    if let Some(v) = *v {
-                        next[i] = if self.absolute_coord {
-                            v + self.base[i]
-                        } else {
-                            self.last[i] + v
-                        };
-                    }
-                }
-                if let Some(v) = *e {
-                    next[3] = if self.absolute_coord && self.absolute_extrude {
-                        v + self.base[3]
-                    } else {
-                        self.last[3] + v
-                    };
-                }
-                let speed = f.map_or(self.speed, |f| f / 60.0);
-                if next != self.last {
-                    for axis in 0..3 {
-                        if next[axis] != self.last[axis] && !self.homed[axis] {
-                            return Err(err(PlanErrorKind::NotHomed {
-                                axis: AXIS_NAMES[axis],
-                            }));
-                        }
-                    }
-                    th.move_to(next, speed).map_err(|e| err(e.into()))?;
-                    self.last = next;
-                }
+                let speed = self.feed(*f).map_err(err)?;
+                let next = self.target([*x, *y, *z, *e]);
+                self.move_to(next, speed, th).map_err(err)?;
+                self.speed = speed;
+            }
+            Command::Arc {
+                clockwise,
+                x,
+                y,
+                z,
+                e,
+                f,
+                i,
+                j,
+            } => {
+                let speed = self.feed(*f).map_err(err)?;
+                let next = self.target([*x, *y, *z, *e]);
+                self.arc(next, (*i, *j), *clockwise, speed, th).map_err(err)?;
                 self.speed = speed;
             }
             Command::Home { x, y, z } => {
@@ -164,18 +249,275 @@ impl GcodeState {
                 } else {
                     for (i, v) in given.into_iter().enumerate() {
                         if let Some(v) = *v {
-                            self.base[i] = self.last[i] - v;
+                            let f = if i == 3 { self.extrude_factor } else { 1.0 };
+                            self.base[i] = self.last[i] - v * f;
                         }
                     }
                 }
             }
             Command::Dwell { seconds } => th.dwell(*seconds).map_err(|e| err(e.into()))?,
             Command::WaitMoves => th.flush(),
-            Command::Other { name, .. } => match name.as_str() {
-                "G21" => {}
-                "G20" => return Err(err(PlanErrorKind::Inches)),
-                _ => return Ok(Applied::Unsupported(name.clone())),
-            },
+            Command::Other { name, raw } => return self.other(name, raw, th).map_err(err),
+        }
+        Ok(Applied::Done)
+    }
+
+    /// The speed (mm/s) of a move with feedrate word `f` (mm/min).
+    fn feed(&self, f: Option<f64>) -> Result<f64, PlanErrorKind> {
+        match f {
+            Some(f) if !(f.is_finite() && f / 60.0 >= MIN_SPEED) => Err(PlanErrorKind::BadFeedrate(f)),
+            Some(f) => Ok(f / 60.0),
+            None => Ok(self.speed),
+        }
+    }
+
+    /// The toolhead position a G1/G2/G3 with these words goes to.
+    fn target(&self, words: [Option<f64>; 4]) -> [f64; 4] {
+        let mut next = self.last;
+        for (i, v) in words.into_iter().enumerate().take(3) {
+            if let Some(v) = v {
+                next[i] = if self.absolute_coord {
+                    v + self.base[i]
+                } else {
+                    self.last[i] + v
+                };
+            }
+        }
+        if let Some(v) = words[3] {
+            let v = v * self.extrude_factor;
+            next[3] = if self.absolute_coord && self.absolute_extrude {
+                v + self.base[3]
+            } else {
+                self.last[3] + v
+            };
+        }
+        next
+    }
+
+    /// One straight move to `next` (toolhead coordinates) at `speed` mm/s (before M220).
+    fn move_to(&mut self, next: [f64; 4], speed: f64, th: &mut Toolhead) -> Result<(), PlanErrorKind> {
+        if next == self.last {
+            return Ok(());
+        }
+        for axis in 0..3 {
+            if next[axis] != self.last[axis] && !self.homed[axis] {
+                return Err(PlanErrorKind::NotHomed {
+                    axis: AXIS_NAMES[axis],
+                });
+            }
+        }
+        th.move_to(next, speed * self.speed_factor)?;
+        self.last = next;
+        Ok(())
+    }
+
+    /// G2/G3: chords from the current position to `end` around centre start + (i, j).
+    fn arc(
+        &mut self,
+        end: [f64; 4],
+        ij: (Option<f64>, Option<f64>),
+        clockwise: bool,
+        speed: f64,
+        th: &mut Toolhead,
+    ) -> Result<(), PlanErrorKind> {
+        let start = self.last;
+        if ij.0.is_none() && ij.1.is_none() {
+            return Err(PlanErrorKind::BadArc(
+                "needs I and/or J (the centre offset)".into(),
+            ));
+        }
+        let (ci, cj) = (ij.0.unwrap_or(0.0), ij.1.unwrap_or(0.0));
+        let (cx, cy) = (start[0] + ci, start[1] + cj);
+        let r = ci.hypot(cj);
+        if !(r.is_finite() && r > 1e-6) {
+            return Err(PlanErrorKind::BadArc(format!("radius {r} is too small")));
+        }
+        let a0 = (start[1] - cy).atan2(start[0] - cx);
+        let a1 = (end[1] - cy).atan2(end[0] - cx);
+        let tau = std::f64::consts::TAU;
+        let mut travel = if clockwise { a0 - a1 } else { a1 - a0 };
+        if travel <= 1e-9 {
+            travel += tau;
+        }
+        if travel > tau {
+            travel -= tau;
+        }
+        let dz = end[2] - start[2];
+        let length = (travel * r).hypot(dz);
+        let n = (length / ARC_RESOLUTION).floor().max(1.0);
+        if !n.is_finite() || n > MAX_ARC_SEGMENTS {
+            return Err(PlanErrorKind::BadArc(format!(
+                "{length:.1} mm long: too many segments"
+            )));
+        }
+        let n = n as usize;
+        let sign = if clockwise { -1.0 } else { 1.0 };
+        for k in 1..=n {
+            let p = if k == n {
+                end
+            } else {
+                let f = k as f64 / n as f64;
+                let a = a0 + sign * travel * f;
+                [
+                    cx + r * a.cos(),
+                    cy + r * a.sin(),
+                    start[2] + dz * f,
+                    start[3] + (end[3] - start[3]) * f,
+                ]
+            };
+            self.move_to(p, speed, th)?;
+        }
+        Ok(())
+    }
+
+    /// Commands the parser leaves as [`Command::Other`].
+    fn other(&mut self, name: &str, raw: &str, th: &mut Toolhead) -> Result<Applied, PlanErrorKind> {
+        let bad = |e: GcodeErrorKind| PlanErrorKind::BadParameter(format!("{name}: {e}"));
+        if name == "M117" {
+            let text = raw.trim().get(4..).unwrap_or("").trim();
+            return Ok(Applied::Message(text.to_string()));
+        }
+        let p = OtherParams::parse(raw).map_err(bad)?;
+        let num = |k: &str| p.float(k).map_err(bad);
+        let non_neg = |k: &str| -> Result<Option<f64>, PlanErrorKind> {
+            match num(k)? {
+                Some(v) if v < 0.0 => Err(PlanErrorKind::BadParameter(format!(
+                    "{name}: {k}={v} must be ≥ 0"
+                ))),
+                v => Ok(v),
+            }
+        };
+        let positive = |k: &str| -> Result<Option<f64>, PlanErrorKind> {
+            match num(k)? {
+                Some(v) if v <= 0.0 => Err(PlanErrorKind::BadParameter(format!(
+                    "{name}: {k}={v} must be > 0"
+                ))),
+                v => Ok(v),
+            }
+        };
+        let limits = |e: crate::toolhead::ConfigError| PlanErrorKind::BadParameter(format!("{name}: {e}"));
+        match name {
+            "G21" => {}
+            "G20" => return Err(PlanErrorKind::Inches),
+            "M104" | "M109" | "M140" | "M190" => {
+                let target = non_neg("S")?.unwrap_or(0.0);
+                if target > 1000.0 {
+                    return Err(PlanErrorKind::BadParameter(format!(
+                        "{name}: S{target} is not a plausible temperature"
+                    )));
+                }
+                let heater = if matches!(name, "M140" | "M190") {
+                    HeaterId::Bed
+                } else {
+                    HeaterId::Extruder
+                };
+                if matches!(name, "M109" | "M190") {
+                    // The caller waits for the heater: moves queued so far run first.
+                    th.flush();
+                }
+                let wait = matches!(name, "M109" | "M190");
+                return Ok(Applied::Heater { heater, target, wait });
+            }
+            "M106" => {
+                let s = non_neg("S")?.unwrap_or(255.0);
+                return Ok(Applied::Fan {
+                    speed: (s / 255.0).min(1.0),
+                });
+            }
+            "M107" => return Ok(Applied::Fan { speed: 0.0 }),
+            "M84" | "M18" => {
+                th.flush();
+                self.homed = [false; 3];
+                return Ok(Applied::MotorsOff);
+            }
+            "M114" => {
+                let p = self.gcode_position();
+                return Ok(Applied::Report(format!(
+                    "X:{:.3} Y:{:.3} Z:{:.3} E:{:.3}",
+                    p[0], p[1], p[2], p[3]
+                )));
+            }
+            "M204" => {
+                let accel = match (positive("S")?, positive("P")?, positive("T")?) {
+                    (Some(s), _, _) => Some(s),
+                    (None, Some(a), Some(b)) => Some(a.min(b)),
+                    (None, a, b) => a.or(b),
+                };
+                let Some(accel) = accel else {
+                    return Err(PlanErrorKind::BadParameter(format!(
+                        "{name}: needs S, or P and T"
+                    )));
+                };
+                th.set_limits(None, Some(accel), None, None).map_err(limits)?;
+            }
+            "M220" => self.speed_factor = positive("S")?.unwrap_or(100.0) / 100.0,
+            "M221" => {
+                let f = positive("S")?.unwrap_or(100.0) / 100.0;
+                // Keep the E position reading the same under the new factor.
+                let e = (self.last[3] - self.base[3]) / self.extrude_factor;
+                self.base[3] = self.last[3] - e * f;
+                self.extrude_factor = f;
+            }
+            "SET_VELOCITY_LIMIT" => {
+                let accel_to_decel = positive("ACCEL_TO_DECEL")?;
+                let accel = positive("ACCEL")?;
+                let mut mcr = num("MINIMUM_CRUISE_RATIO")?;
+                if let (None, Some(a2d)) = (mcr, accel_to_decel) {
+                    let a = accel.unwrap_or(th.config().max_accel);
+                    mcr = Some(1.0 - (a2d / a).min(1.0));
+                }
+                th.set_limits(
+                    positive("VELOCITY")?,
+                    accel,
+                    non_neg("SQUARE_CORNER_VELOCITY")?,
+                    mcr,
+                )
+                .map_err(limits)?;
+            }
+            "SET_PRESSURE_ADVANCE" => {
+                let advance = non_neg("ADVANCE")?.unwrap_or(self.pressure_advance.0);
+                let smooth = non_neg("SMOOTH_TIME")?.unwrap_or(self.pressure_advance.1);
+                if smooth > 0.2 {
+                    return Err(PlanErrorKind::BadParameter(format!(
+                        "{name}: SMOOTH_TIME={smooth} must be ≤ 0.2"
+                    )));
+                }
+                if (advance, smooth) != self.pressure_advance {
+                    return Ok(Applied::Unsupported(
+                        "SET_PRESSURE_ADVANCE (changing pressure advance during a print is not supported yet: \
+                         the printer.cfg values apply)"
+                            .into(),
+                    ));
+                }
+            }
+            "SET_RETRACTION" => {
+                let r = &mut self.retract;
+                let new = Retraction {
+                    retract_length: non_neg("RETRACT_LENGTH")?.unwrap_or(r.retract_length),
+                    retract_speed: positive("RETRACT_SPEED")?.unwrap_or(r.retract_speed),
+                    unretract_extra_length: non_neg("UNRETRACT_EXTRA_LENGTH")?
+                        .unwrap_or(r.unretract_extra_length),
+                    unretract_speed: positive("UNRETRACT_SPEED")?.unwrap_or(r.unretract_speed),
+                };
+                self.retract = new;
+            }
+            "G10" | "G11" => {
+                let retract = name == "G10";
+                if retract != self.retracted {
+                    let r = self.retract;
+                    let (de, v) = if retract {
+                        (-r.retract_length, r.retract_speed)
+                    } else {
+                        (r.retract_length + r.unretract_extra_length, r.unretract_speed)
+                    };
+                    let mut next = self.last;
+                    next[3] += de;
+                    self.move_to(next, v, th)?;
+                    self.retracted = retract;
+                }
+            }
+            _ if self.unknown_is_error => return Err(PlanErrorKind::UnknownCommand(name.to_string())),
+            _ => return Ok(Applied::Unsupported(name.to_string())),
         }
         Ok(Applied::Done)
     }
@@ -270,7 +612,14 @@ mod tests {
                 ..
             })
         ));
-        assert_eq!(res[4], Ok(Applied::Unsupported("M104".into())));
+        assert_eq!(
+            res[4],
+            Ok(Applied::Heater {
+                heater: HeaterId::Extruder,
+                target: 200.0,
+                wait: false
+            })
+        );
         assert!(matches!(
             res[5],
             Err(PlanError {
@@ -293,5 +642,238 @@ mod tests {
         let m = moves(&mut th);
         assert_eq!(m.len(), 1);
         assert!(m[0].cruise_v <= 5.0 + 1e-9);
+    }
+
+    #[test]
+    fn arcs_follow_the_circle() {
+        for (g, side) in [("G2", 1.0), ("G3", -1.0)] {
+            let l = format!("{g} X30 Y10 I10 J0 F3000");
+            let (_, mut th, res) = run(&["G28", "G1 X10 Y10 F6000", &l]);
+            assert!(res.iter().all(|r| r == &Ok(Applied::Done)), "{res:?}");
+            let m = moves(&mut th);
+            // ⌊π·10 / 1 mm⌋ chords after the first line.
+            assert_eq!(m.len(), 1 + 31);
+            for mv in &m[1..] {
+                let r = (mv.end_pos[0] - 20.0).hypot(mv.end_pos[1] - 10.0);
+                assert!((r - 10.0).abs() < 1e-9);
+            }
+            assert_eq!(m.last().unwrap().end_pos, [30.0, 10.0, 0.5, 0.0]);
+            // Clockwise from the left goes over the top (y = 20), counter-clockwise under.
+            let mid = m[16].end_pos[1];
+            assert!((mid - 10.0) * side > 9.0, "{g}: {mid}");
+        }
+        let (_, _, res) = run(&["G28", "G2 X10 Y0", "G2 X10 Y0 I0.0000001"]);
+        assert!(matches!(
+            res[1],
+            Err(PlanError {
+                kind: PlanErrorKind::BadArc(_),
+                ..
+            })
+        ));
+        assert!(matches!(
+            res[2],
+            Err(PlanError {
+                kind: PlanErrorKind::BadArc(_),
+                ..
+            })
+        ));
+        assert!(parse_line(1, b"G2 X1 Y1 R5").is_err());
+    }
+
+    #[test]
+    fn full_circle_when_end_is_start() {
+        let (_, mut th, res) = run(&["G28", "G1 X50 Y50 F6000", "G3 X50 Y50 I-10 J0 E3"]);
+        assert!(res.iter().all(|r| r.is_ok()));
+        let m = moves(&mut th);
+        assert_eq!(m.len(), 1 + 62);
+        assert_eq!(m.last().unwrap().end_pos, [50.0, 50.0, 0.5, 3.0]);
+    }
+
+    #[test]
+    fn firmware_retraction_and_factors() {
+        let (st, mut th, res) = run(&[
+            "G28",
+            "SET_RETRACTION RETRACT_LENGTH=1.5 RETRACT_SPEED=30 UNRETRACT_EXTRA_LENGTH=0.1",
+            "G10",
+            "G10",
+            "G11",
+            "M220 S50",
+            "G1 X10 F6000",
+            "M221 S50",
+            "M83",
+            "G1 X20 E2",
+        ]);
+        assert!(res.iter().all(|r| r == &Ok(Applied::Done)), "{res:?}");
+        let m = moves(&mut th);
+        assert_eq!(m.len(), 4);
+        assert_eq!(m[0].end_pos[3], -1.5);
+        assert!((m[1].end_pos[3] - 0.1).abs() < 1e-12);
+        assert!(m[2].cruise_v <= 50.0 + 1e-9);
+        assert!((m[3].end_pos[3] - 1.1).abs() < 1e-12, "E scaled by M221");
+        assert!((st.gcode_position()[3] - 2.1).abs() < 1e-12);
+    }
+
+    #[test]
+    fn velocity_limits() {
+        let (_, mut th, res) = run(&[
+            "G28",
+            "SET_VELOCITY_LIMIT VELOCITY=40 ACCEL=500 SQUARE_CORNER_VELOCITY=2 MINIMUM_CRUISE_RATIO=0.2",
+            "G1 X100 F12000",
+            "M204 S800",
+            "G1 X0",
+        ]);
+        assert!(res.iter().all(|r| r == &Ok(Applied::Done)), "{res:?}");
+        let m = moves(&mut th);
+        assert!(m[0].cruise_v <= 40.0 + 1e-9);
+        assert_eq!(m[0].accel, 500.0);
+        assert_eq!(m[1].accel, 800.0);
+        let (_, _, res) = run(&[
+            "SET_VELOCITY_LIMIT VELOCITY=-1",
+            "SET_VELOCITY_LIMIT ACCEL=nan",
+            "SET_VELOCITY_LIMIT MINIMUM_CRUISE_RATIO=1",
+            "M204",
+            "G1 F0.001",
+            "SET_VELOCITY_LIMIT VELOCITY",
+        ]);
+        assert!(res.iter().all(|r| r.is_err()), "{res:?}");
+    }
+
+    #[test]
+    fn host_commands() {
+        let (_, _, res) = run(&[
+            "M140 S60",
+            "M190 S60",
+            "M109 S215",
+            "M106 S127.5",
+            "M107",
+            "G28",
+            "G1 X5 F3000",
+            "M114",
+            "M117 Printing benchy",
+            "M84",
+            "G1 X6",
+            "FOO_BAR X=1",
+        ]);
+        let heater = |heater, target, wait| Ok(Applied::Heater { heater, target, wait });
+        assert_eq!(res[0], heater(HeaterId::Bed, 60.0, false));
+        assert_eq!(res[1], heater(HeaterId::Bed, 60.0, true));
+        assert_eq!(res[2], heater(HeaterId::Extruder, 215.0, true));
+        assert_eq!(res[3], Ok(Applied::Fan { speed: 0.5 }));
+        assert_eq!(res[4], Ok(Applied::Fan { speed: 0.0 }));
+        assert_eq!(
+            res[7],
+            Ok(Applied::Report("X:5.000 Y:0.000 Z:0.500 E:0.000".into()))
+        );
+        assert_eq!(res[8], Ok(Applied::Message("Printing benchy".into())));
+        assert_eq!(res[9], Ok(Applied::MotorsOff));
+        assert!(matches!(
+            res[10],
+            Err(PlanError {
+                kind: PlanErrorKind::NotHomed { .. },
+                ..
+            })
+        ));
+        assert_eq!(res[11], Ok(Applied::Unsupported("FOO_BAR".into())));
+    }
+
+    #[test]
+    fn unknown_commands_can_be_errors() {
+        let mut st = GcodeState::new([0.0; 3]);
+        st.set_unknown_is_error(true);
+        let mut th = Toolhead::new(ToolheadConfig::default(), 0.0);
+        let cmd = parse_line(7, b"M999 S1").unwrap().unwrap();
+        let e = st.apply(&GcodeLine { line_no: 7, cmd }, &mut th).unwrap_err();
+        assert_eq!(e.to_string(), "line 7: Unknown command: \"M999\"");
+    }
+
+    fn arb_line() -> impl proptest::strategy::Strategy<Value = String> {
+        use proptest::prelude::*;
+        let num = prop_oneof![
+            -1e3f64..1e3,
+            Just(0.0),
+            Just(1e300),
+            Just(-1e-300),
+            Just(f64::NAN),
+            Just(f64::INFINITY)
+        ];
+        let cmd = prop_oneof![
+            Just("G1"),
+            Just("G0"),
+            Just("G2"),
+            Just("G3"),
+            Just("G4"),
+            Just("G10"),
+            Just("G11"),
+            Just("G28"),
+            Just("G90"),
+            Just("G91"),
+            Just("G92"),
+            Just("M82"),
+            Just("M83"),
+            Just("M84"),
+            Just("M104"),
+            Just("M109"),
+            Just("M106"),
+            Just("M114"),
+            Just("M117"),
+            Just("M204"),
+            Just("M220"),
+            Just("M221"),
+            Just("M400"),
+            Just("SET_VELOCITY_LIMIT"),
+            Just("SET_PRESSURE_ADVANCE"),
+            Just("SET_RETRACTION"),
+            Just("G20"),
+            Just("M999")
+        ];
+        let word = (
+            prop_oneof![
+                Just("X"),
+                Just("Y"),
+                Just("Z"),
+                Just("E"),
+                Just("F"),
+                Just("I"),
+                Just("J"),
+                Just("S"),
+                Just("P"),
+                Just("T"),
+                Just("VELOCITY="),
+                Just("ACCEL="),
+                Just("ADVANCE="),
+                Just("RETRACT_LENGTH="),
+                Just("SQUARE_CORNER_VELOCITY="),
+                Just("MINIMUM_CRUISE_RATIO=")
+            ],
+            num,
+        );
+        (cmd, proptest::collection::vec(word, 0..5)).prop_map(|(c, words)| {
+            let mut l = c.to_string();
+            for (w, v) in words {
+                l.push_str(&format!(" {w}{v}"));
+            }
+            l
+        })
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig { cases: 256, ..Default::default() })]
+
+        /// Any sequence of (possibly absurd) commands: errors, never panics, and the toolhead
+        /// keeps producing finite moves.
+        #[test]
+        fn command_soup_never_panics(lines in proptest::collection::vec(arb_line(), 1..30)) {
+            let mut st = GcodeState::new([0.0, 0.0, 0.5]);
+            let mut th = Toolhead::new(ToolheadConfig::default(), 0.0);
+            for (i, l) in lines.iter().enumerate() {
+                if let Ok(Some(cmd)) = parse_line(i + 1, l.as_bytes()) {
+                    let _ = st.apply(&GcodeLine { line_no: i + 1, cmd }, &mut th);
+                }
+            }
+            th.flush();
+            for m in moves(&mut th) {
+                proptest::prop_assert!(m.end_time().is_finite() && m.move_d.is_finite());
+            }
+        }
     }
 }

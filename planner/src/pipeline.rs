@@ -1,7 +1,8 @@
 //! The planner's top level: G-code lines in, per-stepper step commands out, in time order.
 //!
 //! Flow per [`Pipeline::generate`] call: final moves from the toolhead → every stepper generates
-//! its steps (independently: each lane could run on its own thread) → each compressor emits the
+//! its steps (independently: inline, or each lane on a worker thread, see `lanes`) → each
+//! compressor emits the
 //! commands whose first step's ideal time is before the horizon (the end of the final moves minus
 //! [`COMPRESS_LOOKAHEAD_S`], so commands near the horizon still see the steps after it) → a k-way
 //! merge by clock.
@@ -12,16 +13,26 @@
 //! keys below that are released, the rest wait for the next call. The output is therefore
 //! globally sorted. When the toolhead is at rest everything is released, and the next move is
 //! delayed by max_error so that later commands still sort after the released ones.
+//!
+//! With worker threads the moves go out in batches (jobs); a job's bound may be used only once
+//! every lane has answered it, so the merger releases below the bound of the newest job all
+//! lanes have answered. At rest it waits for every lane, as the inline mode does.
+
+mod homing; // homing: stop part-way through a homing move, resync
+mod lanes;
 
 use std::cmp::Reverse;
-use std::collections::BinaryHeap;
+use std::collections::{BinaryHeap, VecDeque};
+use std::sync::Arc;
 
 use crate::compress::StepCompressor;
 use crate::gcode::GcodeLine;
-use crate::kinematics::{Kinematics, StepperKin};
+use crate::kinematics::Kinematics;
 use crate::machine::{Applied, GcodeState, PlanError, PlanErrorKind};
+use crate::pressure_advance::{PaGen, PressureAdvance};
 use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::{Move, Toolhead, ToolheadConfig};
+use lanes::{LaneOut, LaneState, Msg, Workers};
 
 /// Print time of final moves kept back from compression as lookahead (s).
 pub const COMPRESS_LOOKAHEAD_S: f64 = 0.25;
@@ -30,7 +41,8 @@ pub const COMPRESS_LOOKAHEAD_S: f64 = 0.25;
 #[derive(Debug, Clone, PartialEq)]
 pub struct StepperSpec {
     pub name: String,
-    /// 0..=3 = X, Y, Z, E.
+    /// Which of the kinematics' steppers: 0..=2 (cartesian X, Y, Z; corexy A, B, Z; corexz A, Y,
+    /// B), 3 = the extruder.
     pub axis: usize,
     pub step_dist: f64,
 }
@@ -48,6 +60,34 @@ pub struct PipelineConfig {
     pub home_position: [f64; 3],
 }
 
+/// How the pipeline runs (everything has a default; [`Pipeline::new`] uses them).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PipelineOptions {
+    pub kinematics: Kinematics,
+    /// Worker threads for step generation and compression; 0 = all on the caller's thread.
+    /// With threads, final moves are handed over in batches (see `batch_moves`), so output lags
+    /// the input by up to one batch until the toolhead comes to rest.
+    pub threads: usize,
+    /// With threads: hand moves to the workers once this many are final...
+    pub batch_moves: usize,
+    /// ... or once they span this much print time (s).
+    pub batch_print_time: f64,
+    /// Pressure advance of the extruder (stepper axis 3); `None` or advance 0: off.
+    pub pressure_advance: Option<PressureAdvance>,
+}
+
+impl Default for PipelineOptions {
+    fn default() -> Self {
+        PipelineOptions {
+            kinematics: Kinematics::Cartesian,
+            threads: 0,
+            batch_moves: 512,
+            batch_print_time: 4.0,
+            pressure_advance: None,
+        }
+    }
+}
+
 /// Counters for reports.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct PipelineStats {
@@ -63,15 +103,22 @@ pub struct PipelineStats {
     pub print_time_end: f64,
 }
 
-/// One stepper's step path.
-#[derive(Debug)]
-struct Lane {
-    kin: StepperKin,
-    comp: StepCompressor,
-    /// Commands emitted by the compressor and not yet released, with their sort keys.
+/// The main thread's view of one lane: commands not released yet, counters.
+#[derive(Debug, Default)]
+struct LaneView {
+    /// Commands received and not yet released, with their sort keys.
     held: Vec<(u64, StepCmd)>,
-    /// Scratch for the compressor's output.
-    fresh: Vec<StepCmd>,
+    ideal: Vec<IdealStep>,
+    position: i64,
+    steps: u64,
+    queue_steps: u64,
+}
+
+/// Where the lanes run.
+#[derive(Debug)]
+enum Backend {
+    Inline(Vec<LaneState>, Vec<LaneOut>),
+    Threads(Workers),
 }
 
 /// G-code → step commands.
@@ -79,21 +126,42 @@ struct Lane {
 pub struct Pipeline {
     state: GcodeState,
     th: Toolhead,
-    lanes: Vec<Lane>,
+    backend: Backend,
+    views: Vec<LaneView>,
     clock_freq: f64,
     max_err_ticks: u32,
+    /// Final moves not handed to the lanes yet.
     moves: Vec<Move>,
     heap: BinaryHeap<Reverse<(u64, usize)>>,
     cursor: Vec<usize>,
     /// Compression horizon reached so far (ticks).
     upto: u64,
     planned_until: f64,
+    opts: PipelineOptions,
+    next_seq: u64,
+    /// Per worker (one for inline): sequence number of the last job answered + 1.
+    done: Vec<u64>,
+    /// (job sequence, release bound once every lane answered it).
+    bounds: VecDeque<(u64, u64)>,
+    worker_error: Option<String>,
+    /// How long after the toolhead stops step positions still change (pressure advance
+    /// smoothing: half its window), s.
+    settle: f64,
 }
 
 impl Pipeline {
     /// A pipeline whose toolhead is at rest at position 0 and whose first move starts at
-    /// `start_print_time`.
+    /// `start_print_time` (cartesian, single-threaded).
     pub fn new(cfg: PipelineConfig, start_print_time: f64) -> Result<Pipeline, PlanError> {
+        Self::with_options(cfg, start_print_time, PipelineOptions::default())
+    }
+
+    /// [`Self::new`] with a kinematics and threading choice.
+    pub fn with_options(
+        cfg: PipelineConfig,
+        start_print_time: f64,
+        opts: PipelineOptions,
+    ) -> Result<Pipeline, PlanError> {
         let bad = |msg: String| PlanError {
             line: 0,
             kind: PlanErrorKind::Config(msg),
@@ -120,8 +188,22 @@ impl Pipeline {
                 cfg.home_position
             )));
         }
+        if !(opts.batch_print_time.is_finite() && opts.batch_print_time >= 0.0) {
+            return Err(bad(format!(
+                "batch_print_time {} must be ≥ 0",
+                opts.batch_print_time
+            )));
+        }
         let max_err_ticks = max_err.round() as u32;
-        let kinematics = Kinematics::Cartesian;
+        let mut th = Toolhead::new(cfg.toolhead, start_print_time);
+        if let Kinematics::Delta(g) = &opts.kinematics {
+            g.validate().map_err(bad)?;
+            th.set_xy_radius_limit(Some(g.max_xy_radius()));
+        }
+        let pa = opts.pressure_advance.filter(|p| p.advance > 0.0);
+        if let Some(p) = &pa {
+            p.validate().map_err(bad)?;
+        }
         let mut lanes = Vec::with_capacity(cfg.steppers.len());
         for s in &cfg.steppers {
             if !(s.step_dist.is_finite() && s.step_dist > 1e-9 && s.step_dist < 1e3) {
@@ -130,21 +212,39 @@ impl Pipeline {
                     s.name, s.step_dist
                 )));
             }
-            let kin = kinematics
+            let kin = opts
+                .kinematics
                 .stepper(s.axis, s.step_dist)
                 .map_err(|e| bad(format!("stepper '{}': {e}", s.name)))?;
-            lanes.push(Lane {
+            let pa_gen = pa
+                .filter(|_| s.axis == 3)
+                .map(|p| PaGen::new(p, s.step_dist, cfg.clock_freq));
+            lanes.push(LaneState::new(
                 kin,
-                comp: StepCompressor::new(s.step_dist, cfg.clock_freq, max_err_ticks),
-                held: Vec::with_capacity(1024),
-                fresh: Vec::with_capacity(1024),
-            });
+                StepCompressor::new(s.step_dist, cfg.clock_freq, max_err_ticks),
+                pa_gen,
+            ));
         }
         let n = lanes.len();
+        let settle = pa.map_or(0.0, |p| 0.5 * p.smooth_time);
+        let mut state = GcodeState::new(cfg.home_position);
+        if let Some(p) = opts.pressure_advance {
+            state.set_pressure_advance(p.advance, p.smooth_time);
+        }
+        let (backend, workers) = if opts.threads == 0 || n == 0 {
+            let outs = (0..n).map(|_| LaneOut::default()).collect();
+            (Backend::Inline(lanes, outs), 1)
+        } else {
+            let w = Workers::spawn(lanes, opts.threads)
+                .map_err(|e| bad(format!("cannot start planner threads: {e}")))?;
+            let c = w.count();
+            (Backend::Threads(w), c)
+        };
         Ok(Pipeline {
-            state: GcodeState::new(cfg.home_position),
-            th: Toolhead::new(cfg.toolhead, start_print_time),
-            lanes,
+            state,
+            th,
+            backend,
+            views: (0..n).map(|_| LaneView::default()).collect(),
             clock_freq: cfg.clock_freq,
             max_err_ticks,
             moves: Vec::with_capacity(1024),
@@ -152,6 +252,12 @@ impl Pipeline {
             cursor: vec![0; n],
             upto: 0,
             planned_until: start_print_time,
+            opts,
+            next_seq: 0,
+            done: vec![0; workers],
+            bounds: VecDeque::new(),
+            worker_error: None,
+            settle,
         })
     }
 
@@ -168,30 +274,44 @@ impl Pipeline {
 
     /// Appends the step commands that can no longer change, in clock order.
     pub fn generate(&mut self, out: &mut Vec<(usize, StepCmd)>) {
+        let before = self.moves.len();
         self.th.take_moves(&mut self.moves);
-        if self.moves.is_empty() {
+        let idle = self.th.queued_moves() == 0;
+        let threaded = matches!(self.backend, Backend::Threads(_));
+        if self.moves.is_empty() || (before == self.moves.len() && !idle) {
             // Nothing new: everything earlier was released already, or waits for more moves.
+            self.collect(false, out);
             return;
         }
-        let idle = self.th.queued_moves() == 0;
         let end = self.th.print_time();
+        if threaded && !idle {
+            let first = self.moves.first().map_or(end, |m| m.print_time);
+            if self.moves.len() < self.opts.batch_moves && end - first < self.opts.batch_print_time {
+                self.collect(false, out);
+                return;
+            }
+        }
         let horizon = if idle {
-            end * self.clock_freq + 1.0
+            (end + self.settle) * self.clock_freq + 1.0
         } else {
             (end - COMPRESS_LOOKAHEAD_S) * self.clock_freq
         };
         let upto = if horizon > 0.0 { horizon as u64 } else { 0 };
         self.upto = self.upto.max(upto);
-        self.run_lanes(false);
         if idle {
+            self.dispatch(false, true, 0);
+            self.collect(true, out);
             self.release(u64::MAX, out);
-            // Later steps may be up to max_error early: start them that much later.
-            let _ = self.th.dwell(self.max_err_ticks as f64 / self.clock_freq);
-            self.planned_until = end;
+            // Later steps may be up to max_error early (and pressure advance moves the extruder
+            // up to `settle` before a move): start them that much later.
+            let _ = self
+                .th
+                .dwell(self.settle + self.max_err_ticks as f64 / self.clock_freq);
+            self.planned_until = end + self.settle;
         } else {
             let bound = self.upto.saturating_sub(self.max_err_ticks as u64);
-            self.release(bound, out);
-            self.planned_until = self.planned_until.max(bound as f64 / self.clock_freq);
+            self.dispatch(false, false, bound);
+            self.collect(false, out);
         }
     }
 
@@ -199,9 +319,10 @@ impl Pipeline {
     pub fn finish(&mut self, out: &mut Vec<(usize, StepCmd)>) {
         self.th.flush();
         self.th.take_moves(&mut self.moves);
-        self.run_lanes(true);
+        self.dispatch(true, true, 0);
+        self.collect(true, out);
         self.release(u64::MAX, out);
-        self.planned_until = self.planned_until.max(self.th.print_time());
+        self.planned_until = self.planned_until.max(self.th.print_time() + self.settle);
     }
 
     /// Print time up to which every step has been emitted.
@@ -216,13 +337,13 @@ impl Pipeline {
 
     /// Net steps emitted per stepper.
     pub fn stepper_positions(&self) -> Vec<i64> {
-        self.lanes.iter().map(|l| l.comp.position_steps()).collect()
+        self.views.iter().map(|l| l.position).collect()
     }
 
     /// Counters so far.
     pub fn stats(&self) -> PipelineStats {
-        let steps: Vec<u64> = self.lanes.iter().map(|l| l.comp.step_count()).collect();
-        let qs: Vec<u64> = self.lanes.iter().map(|l| l.comp.queue_step_count()).collect();
+        let steps: Vec<u64> = self.views.iter().map(|l| l.steps).collect();
+        let qs: Vec<u64> = self.views.iter().map(|l| l.queue_steps).collect();
         PipelineStats {
             moves: self.th.moves_total(),
             queue_steps: qs.iter().sum(),
@@ -232,11 +353,21 @@ impl Pipeline {
         }
     }
 
+    /// A worker thread that stopped answering (its steps are missing from the output).
+    pub fn worker_error(&self) -> Option<&str> {
+        self.worker_error.as_deref()
+    }
+
     /// Compression lookahead of every stepper (see [`StepCompressor::set_lookahead_backoff`]):
     /// 0 is fastest, the default gives the fewest commands.
     pub fn set_lookahead_backoff(&mut self, steps: usize) {
-        for l in &mut self.lanes {
-            l.comp.set_lookahead_backoff(steps);
+        match &mut self.backend {
+            Backend::Inline(lanes, _) => lanes.iter_mut().for_each(|l| l.comp.set_lookahead_backoff(steps)),
+            Backend::Threads(w) => {
+                if !w.broadcast(|| Msg::Backoff(steps)) {
+                    self.worker_error = Some("a planner thread stopped".into());
+                }
+            }
         }
     }
 
@@ -250,6 +381,12 @@ impl Pipeline {
         &self.state
     }
 
+    /// Unknown G-code commands become errors naming the line (`true`) instead of
+    /// [`Applied::Unsupported`] (the default, for callers that warn).
+    pub fn set_unknown_commands_are_errors(&mut self, on: bool) {
+        self.state.set_unknown_is_error(on);
+    }
+
     /// Declares axes homed without G28 (printers without endstops, tests).
     pub fn set_homed(&mut self, homed: [bool; 3]) {
         self.state.set_homed(homed);
@@ -257,50 +394,105 @@ impl Pipeline {
 
     /// Records every generated step's ideal time, per stepper, for [`Self::take_ideal`].
     pub fn set_record_ideal(&mut self, on: bool) {
-        for l in &mut self.lanes {
-            l.comp.set_record_ideal(on);
+        match &mut self.backend {
+            Backend::Inline(lanes, _) => lanes.iter_mut().for_each(|l| l.comp.set_record_ideal(on)),
+            Backend::Threads(w) => {
+                if !w.broadcast(|| Msg::RecordIdeal(on)) {
+                    self.worker_error = Some("a planner thread stopped".into());
+                }
+            }
         }
     }
 
-    /// Ideal steps generated for stepper `idx` since the last call (empty for a bad index).
+    /// Ideal steps generated for stepper `idx` whose commands were received since the last
+    /// call (empty for a bad index).
     pub fn take_ideal(&mut self, idx: usize) -> Vec<IdealStep> {
-        self.lanes
+        self.views
             .get_mut(idx)
-            .map(|l| l.comp.take_ideal())
+            .map(|l| std::mem::take(&mut l.ideal))
             .unwrap_or_default()
     }
 
-    /// Step generation and compression for every lane (independent of each other).
-    fn run_lanes(&mut self, all: bool) {
+    /// Hands the final moves to every lane as one job whose commands may be released below
+    /// `bound` once every lane has answered it (`all`: compress every pending step).
+    fn dispatch(&mut self, all: bool, rest: bool, bound: u64) {
+        let seq = self.next_seq;
+        self.next_seq += 1;
+        self.bounds.push_back((seq, bound));
         let upto = self.upto;
-        for lane in &mut self.lanes {
-            for mv in &self.moves {
-                lane.comp.push_move(mv, &lane.kin);
-            }
-            lane.fresh.clear();
-            if all {
-                lane.comp.finish(&mut lane.fresh);
-            } else {
-                lane.comp.flush(upto, &mut lane.fresh);
-            }
-            // Keys: a queue_step's first clock; reset/dir take the next queue_step's.
-            let start = lane.held.len();
-            let mut key = u64::MAX;
-            lane.held.extend(lane.fresh.iter().map(|&c| (0, c)));
-            for h in lane.held[start..].iter_mut().rev() {
-                if let StepCmd::QueueStep { first_clock, .. } = h.1 {
-                    key = first_clock;
+        match &mut self.backend {
+            Backend::Inline(lanes, outs) => {
+                for (i, (lane, o)) in lanes.iter_mut().zip(outs.iter_mut()).enumerate() {
+                    lane.run(&self.moves, upto, all, rest, o);
+                    absorb(&mut self.views[i], o);
                 }
-                h.0 = key;
+                self.done[0] = seq + 1;
+            }
+            Backend::Threads(w) => {
+                let moves: Arc<[Move]> = Arc::from(self.moves.as_slice());
+                if !w.broadcast(|| Msg::Job {
+                    seq,
+                    moves: moves.clone(),
+                    upto,
+                    all,
+                    rest,
+                }) {
+                    self.worker_error = Some("a planner thread stopped".into());
+                }
             }
         }
         self.moves.clear();
     }
 
+    /// Takes in the workers' answers (`wait`: until every job sent is answered) and releases
+    /// the commands every lane is past.
+    fn collect(&mut self, wait: bool, out: &mut Vec<(usize, StepCmd)>) {
+        if let Backend::Threads(w) = &self.backend {
+            loop {
+                let all_done = self.done.iter().all(|&d| d == self.next_seq);
+                let reply = if wait && !all_done && self.worker_error.is_none() {
+                    w.replies.recv().ok()
+                } else {
+                    w.replies.try_recv().ok()
+                };
+                let Some(r) = reply else {
+                    if wait && !all_done && self.worker_error.is_none() {
+                        self.worker_error = Some("a planner thread stopped".into());
+                    }
+                    break;
+                };
+                for (i, mut o) in r.lanes {
+                    if let Some(v) = self.views.get_mut(i) {
+                        absorb(v, &mut o);
+                    }
+                }
+                if let Some(d) = self.done.get_mut(r.worker) {
+                    *d = r.seq + 1;
+                }
+            }
+        }
+        let answered = self.done.iter().copied().min().unwrap_or(0);
+        // The last job every lane answered decides the bound.
+        let mut bound = None;
+        while let Some(&(seq, b)) = self.bounds.front() {
+            if seq >= answered {
+                break;
+            }
+            bound = Some(b);
+            self.bounds.pop_front();
+        }
+        if let Some(b) = bound {
+            if b > 0 {
+                self.release(b, out);
+                self.planned_until = self.planned_until.max(b as f64 / self.clock_freq);
+            }
+        }
+    }
+
     /// Moves every held command with key < `bound` to `out`, merged by key (ties by stepper).
     fn release(&mut self, bound: u64, out: &mut Vec<(usize, StepCmd)>) {
         self.heap.clear();
-        for (i, lane) in self.lanes.iter().enumerate() {
+        for (i, lane) in self.views.iter().enumerate() {
             self.cursor[i] = 0;
             if let Some(&(key, _)) = lane.held.first() {
                 if key < bound || bound == u64::MAX {
@@ -309,7 +501,7 @@ impl Pipeline {
             }
         }
         while let Some(Reverse((_, i))) = self.heap.pop() {
-            let lane = &self.lanes[i];
+            let lane = &self.views[i];
             let pos = self.cursor[i];
             out.push((i, lane.held[pos].1));
             self.cursor[i] = pos + 1;
@@ -319,10 +511,19 @@ impl Pipeline {
                 }
             }
         }
-        for (i, lane) in self.lanes.iter_mut().enumerate() {
+        for (i, lane) in self.views.iter_mut().enumerate() {
             lane.held.drain(..self.cursor[i]);
         }
     }
+}
+
+/// Moves a lane's output into its view.
+fn absorb(v: &mut LaneView, o: &mut LaneOut) {
+    v.held.append(&mut o.cmds);
+    v.ideal.append(&mut o.ideal);
+    v.position = o.position;
+    v.steps = o.steps;
+    v.queue_steps = o.queue_steps;
 }
 
 #[cfg(test)]

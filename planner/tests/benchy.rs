@@ -11,7 +11,7 @@ use std::time::Instant;
 
 use planner::checker::Checker;
 use planner::gcode::GcodeReader;
-use planner::pipeline::{Pipeline, PipelineConfig, StepperSpec};
+use planner::pipeline::{Pipeline, PipelineConfig, PipelineOptions, StepperSpec};
 use planner::stepgen::StepCmd;
 use planner::toolhead::ToolheadConfig;
 
@@ -76,15 +76,20 @@ struct Report {
     print_time: f64,
 }
 
-/// Runs the first `max_lines` lines (all when None); with `check`, replays every command.
-fn run(max_lines: Option<usize>, check: bool) -> Option<Report> {
+/// Runs the first `max_lines` lines (all when None) with `threads` lane workers (0 = inline);
+/// with `check`, replays every command.
+fn run(max_lines: Option<usize>, check: bool, threads: usize) -> Option<Report> {
     let Ok(file) = File::open(BENCHY) else {
         eprintln!("note: {BENCHY} is absent; benchy test skipped");
         return None;
     };
     let cfg = config();
     let n = cfg.steppers.len();
-    let mut p = Pipeline::new(cfg, 0.25).expect("config");
+    let opts = PipelineOptions {
+        threads,
+        ..PipelineOptions::default()
+    };
+    let mut p = Pipeline::with_options(cfg, 0.25, opts).expect("config");
     p.set_record_ideal(check);
     let mut checkers: Vec<Checker> = (0..n).map(|_| Checker::new(p.max_error_ticks())).collect();
     let mut out: Vec<(usize, StepCmd)> = Vec::with_capacity(1 << 16);
@@ -139,8 +144,9 @@ fn run(max_lines: Option<usize>, check: bool) -> Option<Report> {
 
 #[test]
 fn benchy_is_exact() {
-    // The whole file, every step checked: about 4 s in a debug build.
-    let Some(r) = run(None, true) else { return };
+    // The whole file, every step checked, lanes on two worker threads: about 4 s in a debug
+    // build (the inline mode is covered by the unit tests).
+    let Some(r) = run(None, true, 2) else { return };
     assert!(r.moves > 60_000, "{r:?}");
     let steps: u64 = r.steps.iter().sum();
     assert!(steps > 12_000_000, "{r:?}");
@@ -152,7 +158,7 @@ fn benchy_is_exact() {
 #[ignore = "full file: run in release (see the module doc)"]
 fn benchy_full() {
     let started = Instant::now();
-    let Some(r) = run(None, false) else { return };
+    let Some(r) = run(None, false, 0) else { return };
     let wall = started.elapsed().as_secs_f64();
     let steps: u64 = r.steps.iter().sum();
     println!(
@@ -168,7 +174,14 @@ fn benchy_full() {
     );
     println!("benchy: parse + plan + generate + compress: {wall:.3} s wall (Klipper batch: 2.5 s, 456,811 queue_step, 12,251,999 steps)");
     let started = Instant::now();
-    let checked = run(None, true).expect("file present");
+    let threaded = run(None, false, 2).expect("file present");
+    println!(
+        "benchy: the same on 2 lane threads: {:.3} s wall, {} queue_step",
+        started.elapsed().as_secs_f64(),
+        threaded.queue_steps
+    );
+    let started = Instant::now();
+    let checked = run(None, true, 0).expect("file present");
     println!(
         "benchy: checked every step of every stepper in {:.3} s",
         started.elapsed().as_secs_f64()

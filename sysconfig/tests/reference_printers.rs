@@ -71,7 +71,8 @@ fn check(name: &str, kinematics: Kinematics, max_velocity: f64) {
         (e.max_extrude_cross_section, e.max_extrude_only_distance),
         (50.0, 500.0)
     );
-    let ratio = 50.0 / e.filament_area();
+    // Extrude-only defaults follow a 4·nozzle² bead, not max_extrude_cross_section (Klipper).
+    let ratio = 4.0 * 0.5 * 0.5 / e.filament_area();
     assert!((e.max_extrude_only_velocity - max_velocity * ratio).abs() < 1e-9);
     assert!((e.max_extrude_only_accel - 3000.0 * ratio).abs() < 1e-9);
     assert_eq!(

@@ -262,3 +262,26 @@ proptest! {
         prop_assert_eq!(parse_line(1, line.as_bytes()).unwrap(), Some(mv(Some(x), None, None, None, None)));
     }
 }
+
+proptest! {
+    #[test]
+    fn other_params_never_panic(s in "[A-Z_0-9]{1,8}( [A-Za-z_=0-9.+\\-é]{0,12}){0,4}") {
+        if let Ok(p) = OtherParams::parse(&s) {
+            for k in p.keys().map(str::to_string).collect::<Vec<_>>() {
+                let _ = p.float(&k);
+            }
+        }
+    }
+}
+
+#[test]
+fn other_params_both_styles() {
+    let p = OtherParams::parse("M104 S215 T0").unwrap();
+    assert_eq!(p.float("S"), Ok(Some(215.0)));
+    assert_eq!(p.float("T"), Ok(Some(0.0)));
+    let p = OtherParams::parse("SET_VELOCITY_LIMIT velocity=300 ACCEL=nan").unwrap();
+    assert_eq!(p.float("VELOCITY"), Ok(Some(300.0)));
+    assert!(p.float("ACCEL").is_err());
+    assert!(OtherParams::parse("SET_VELOCITY_LIMIT VELOCITY").is_err());
+    assert!(OtherParams::parse("M104 S2..5").is_err());
+}

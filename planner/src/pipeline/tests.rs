@@ -3,6 +3,8 @@
 use super::*;
 use crate::checker::Checker;
 use crate::gcode::GcodeReader;
+use crate::kinematics::Kinematics;
+use crate::pressure_advance::PressureAdvance;
 use proptest::prelude::*;
 
 const FREQ: f64 = 50e6;
@@ -58,9 +60,18 @@ struct Run {
 
 /// Runs G-code text through a pipeline, checking every stepper incrementally.
 fn run_gcode(text: &str) -> Run {
-    let cfg = benchy_config();
+    run_gcode_with(text, PipelineOptions::default())
+}
+
+/// [`run_gcode`] with a kinematics / threading choice.
+fn run_gcode_with(text: &str, opts: PipelineOptions) -> Run {
+    run_cfg(text, benchy_config(), opts)
+}
+
+/// [`run_gcode`] with a configuration and options.
+fn run_cfg(text: &str, cfg: PipelineConfig, opts: PipelineOptions) -> Run {
     let n = cfg.steppers.len();
-    let mut p = Pipeline::new(cfg, 0.25).unwrap();
+    let mut p = Pipeline::with_options(cfg, 0.25, opts).unwrap();
     p.set_record_ideal(true);
     let mut checkers: Vec<Checker> = (0..n).map(|_| Checker::new(p.max_error_ticks())).collect();
     let mut per_stepper = vec![Vec::new(); n];
@@ -244,20 +255,145 @@ fn arb_program() -> impl Strategy<Value = (String, [f64; 4])> {
     })
 }
 
+#[test]
+fn threaded_matches_inline_order_and_counts() {
+    let g = "G28\nG1 Z0.3 F600\nM83\nG1 X10 Y10 F6000\nG1 X50 E2 F1800\nG1 Y50 E2\nG1 X10 E2\nG1 Y10 E2\n\
+             G1 E-1 F2400\nG4 P200\nG1 X100 Y100 F9000\nG1 X0 Y20\n";
+    for threads in [1, 2, 3] {
+        let opts = PipelineOptions {
+            threads,
+            batch_moves: 2,
+            ..PipelineOptions::default()
+        };
+        let r = run_gcode_with(g, opts);
+        assert!(r.keys.windows(2).all(|w| w[0] <= w[1]), "threads {threads}");
+        assert_eq!(
+            r.pipeline.stepper_positions(),
+            vec![0, 1600, -80, steps_between(0.0, 7.0, 33.5 / 3200.0)]
+        );
+        assert!(r.pipeline.worker_error().is_none());
+    }
+}
+
+/// Rails (stepper positions in mm) of a toolhead position.
+fn rails(kin: Kinematics, p: [f64; 4]) -> [f64; 4] {
+    let r = kin.inverse([p[0], p[1], p[2]]);
+    [r[0], r[1], r[2], p[3]]
+}
+
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+    #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
 
     #[test]
-    fn random_programs_step_exactly_and_check((program, end) in arb_program()) {
-        let r = run_gcode(&program);
+    fn random_programs_step_exactly_and_check(
+        (program, end) in arb_program(),
+        kin in prop_oneof![
+            Just(Kinematics::Cartesian),
+            Just(Kinematics::CoreXY),
+            Just(Kinematics::CoreXZ)
+        ],
+        threads in 0usize..3,
+        batch_moves in 1usize..20,
+        pa in proptest::option::of((0.0f64..0.2, 0.005f64..0.1)),
+    ) {
+        let pressure_advance = pa.map(|(advance, smooth_time)| PressureAdvance { advance, smooth_time });
+        let opts = PipelineOptions {
+            kinematics: kin,
+            threads,
+            batch_moves,
+            pressure_advance,
+            ..PipelineOptions::default()
+        };
+        let r = run_gcode_with(&program, opts);
         prop_assert!(r.keys.windows(2).all(|w| w[0] <= w[1]));
         let cfg = benchy_config();
-        let start = [0.0, 0.0, 0.5, 0.0];
+        let start = rails(kin, [0.0, 0.0, 0.5, 0.0]);
+        let th = r.pipeline.position();
+        for i in 0..4 {
+            prop_assert!((th[i] - end[i]).abs() < 1e-6, "axis {i} at {}, expected {}", th[i], end[i]);
+        }
+        let rail = rails(kin, th);
         let pos = r.pipeline.stepper_positions();
         for (i, s) in cfg.steppers.iter().enumerate() {
-            let th = r.pipeline.position()[s.axis];
-            prop_assert!((th - end[s.axis]).abs() < 1e-6, "{} at {th}, expected {}", s.name, end[s.axis]);
-            prop_assert_eq!(pos[i], steps_between(start[s.axis], th, s.step_dist), "{}", s.name);
+            prop_assert_eq!(pos[i], steps_between(start[s.axis], rail[s.axis], s.step_dist), "{}", s.name);
+        }
+    }
+}
+
+fn delta_geometry() -> crate::kinematics::DeltaGeometry {
+    crate::kinematics::DeltaGeometry {
+        radius: 140.0,
+        arm_length: [270.0, 270.0, 271.0],
+        angles: [210.0, 330.0, 90.0],
+    }
+}
+
+fn delta_config() -> PipelineConfig {
+    let mut c = benchy_config();
+    c.toolhead.axis_limits = [(-130.0, 130.0), (-130.0, 130.0), (0.0, 250.0)];
+    c.toolhead.max_z_velocity = 200.0;
+    c.toolhead.max_z_accel = 3000.0;
+    for s in c.steppers.iter_mut().take(3) {
+        s.step_dist = 0.0125;
+    }
+    c.home_position = [0.0, 0.0, 250.0];
+    c
+}
+
+#[test]
+fn delta_refuses_moves_outside_its_radius() {
+    let opts = PipelineOptions {
+        kinematics: Kinematics::Delta(delta_geometry()),
+        ..PipelineOptions::default()
+    };
+    let mut p = Pipeline::with_options(delta_config(), 0.25, opts).unwrap();
+    let lines = ["G28", "G1 X100 Y100 Z10"];
+    let mut res = Vec::new();
+    for (i, g) in lines.iter().enumerate() {
+        let cmd = crate::gcode::parse_line(i + 1, g.as_bytes()).unwrap().unwrap();
+        res.push(p.apply(&GcodeLine { line_no: i + 1, cmd }));
+    }
+    assert_eq!(
+        res[1].as_ref().unwrap_err().to_string(),
+        "line 2: Move out of range: X=100.000 Y=100.000 Z=10.000 [E=0.000]"
+    );
+    let mut bad = delta_geometry();
+    bad.arm_length[0] = 10.0;
+    let opts = PipelineOptions {
+        kinematics: Kinematics::Delta(bad),
+        ..PipelineOptions::default()
+    };
+    assert!(Pipeline::with_options(delta_config(), 0.25, opts).is_err());
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 12, ..ProptestConfig::default() })]
+
+    /// Random moves on a delta (iterative solver): every carriage ends exactly at the step
+    /// count of its final height and the checker passes.
+    #[test]
+    fn delta_programs_step_exactly_and_check(
+        pts in proptest::collection::vec((-1.0f64..1.0, -1.0f64..1.0, 1.0f64..60.0, 0.0f64..1.0), 1..8),
+        threads in 0usize..3,
+    ) {
+        let kin = Kinematics::Delta(delta_geometry());
+        let mut g = String::from("G28\nM83\n");
+        let mut end = [0.0, 0.0, 250.0, 0.0];
+        for (x, y, z, e) in pts {
+            let (x, y) = ((x * 90.0 * 1e3f64).round() / 1e3, (y * 90.0 * 1e3f64).round() / 1e3);
+            let z = (z * 1e3f64).round() / 1e3;
+            let e = (e * 1e3f64).round() / 1e3;
+            g.push_str(&format!("G1 X{x} Y{y} Z{z} E{e} F9000\n"));
+            end = [x, y, z, end[3] + e];
+        }
+        let opts = PipelineOptions { kinematics: kin, threads, ..PipelineOptions::default() };
+        let r = run_cfg(&g, delta_config(), opts);
+        prop_assert!(r.keys.windows(2).all(|w| w[0] <= w[1]));
+        let start = rails(kin, [0.0, 0.0, 250.0, 0.0]);
+        let rail = rails(kin, end);
+        let pos = r.pipeline.stepper_positions();
+        for (i, s) in delta_config().steppers.iter().enumerate() {
+            prop_assert_eq!(pos[i], steps_between(start[s.axis], rail[s.axis], s.step_dist), "{}", s.name);
         }
     }
 }

@@ -15,6 +15,7 @@
 //! front part is then finalized assuming a stop after the last queued move, which is always
 //! safe), or on [`Toolhead::flush`]. [`Toolhead::take_moves`] drains them in order.
 
+mod homing; // homing: stop part-way through a move
 pub mod lookahead;
 pub mod moves;
 
@@ -162,6 +163,8 @@ pub struct Toolhead {
     flush_countdown: f64,
     queued_time: f64,
     moves_total: u64,
+    /// Largest x² + y² of a move's end (delta printers), ∞ when unlimited.
+    max_xy2: f64,
 }
 
 impl Toolhead {
@@ -185,6 +188,7 @@ impl Toolhead {
             flush_countdown: LOOKAHEAD_FLUSH_TIME,
             queued_time: 0.0,
             moves_total: 0,
+            max_xy2: f64::INFINITY,
         }
     }
 
@@ -197,6 +201,37 @@ impl Toolhead {
         if v.is_finite() && v >= 0.0 {
             self.instant_corner_v = v;
         }
+    }
+
+    /// Changes the velocity limits for moves queued from now on (SET_VELOCITY_LIMIT, M204):
+    /// `None` keeps a value. The new values are validated like the config's; on error nothing
+    /// changes.
+    pub fn set_limits(
+        &mut self,
+        max_velocity: Option<f64>,
+        max_accel: Option<f64>,
+        square_corner_velocity: Option<f64>,
+        minimum_cruise_ratio: Option<f64>,
+    ) -> Result<(), ConfigError> {
+        let mut cfg = self.cfg;
+        cfg.max_velocity = max_velocity.unwrap_or(cfg.max_velocity);
+        cfg.max_accel = max_accel.unwrap_or(cfg.max_accel);
+        cfg.square_corner_velocity = square_corner_velocity.unwrap_or(cfg.square_corner_velocity);
+        cfg.minimum_cruise_ratio = minimum_cruise_ratio.unwrap_or(cfg.minimum_cruise_ratio);
+        cfg.validate()?;
+        let scv = cfg.square_corner_velocity;
+        self.junction_deviation = scv * scv * (std::f64::consts::SQRT_2 - 1.0) / cfg.max_accel;
+        self.accel_to_decel = cfg.max_accel * (1.0 - cfg.minimum_cruise_ratio);
+        self.cfg = cfg;
+        Ok(())
+    }
+
+    /// Limits moves to a circle of `radius` around X = Y = 0 (delta printers); `None` lifts it.
+    pub fn set_xy_radius_limit(&mut self, radius: Option<f64>) {
+        self.max_xy2 = match radius {
+            Some(r) if r.is_finite() && r >= 0.0 => r * r,
+            _ => f64::INFINITY,
+        };
     }
 
     /// Commanded position (the end of the last accepted move).
@@ -256,6 +291,14 @@ impl Toolhead {
                         e: end[3],
                     });
                 }
+            }
+            if (d[0] != 0.0 || d[1] != 0.0) && end[0] * end[0] + end[1] * end[1] > self.max_xy2 {
+                return Err(MoveError::OutOfRange {
+                    x: end[0],
+                    y: end[1],
+                    z: end[2],
+                    e: end[3],
+                });
             }
             (true, end, xyz_d, speed_mm_s.min(cfg.max_velocity), cfg.max_accel)
         };

@@ -1,10 +1,11 @@
 //! `[extruder]`: the filament motor, extrusion limits, pressure advance and its heater.
 //!
 //! Extrude-only moves are limited in filament space. With filament area
-//! `A = π·(filament_diameter/2)²` and `r = max_extrude_cross_section / A` (how much faster the
-//! filament may move than the toolhead would for the widest allowed bead), the defaults are
-//! `max_extrude_only_velocity = max_velocity·r` and `max_extrude_only_accel = max_accel·r`.
-//! `max_extrude_cross_section` defaults to `4·nozzle_diameter²`.
+//! `A = π·(filament_diameter/2)²` and `r = 4·nozzle_diameter² / A` (how much faster the filament
+//! moves than the toolhead for a bead of cross section 4·nozzle_diameter²), the defaults are
+//! `max_extrude_only_velocity = max_velocity·r` and `max_extrude_only_accel = max_accel·r`, as
+//! Klipper documents them (independent of `max_extrude_cross_section`, which only bounds
+//! printing moves). `max_extrude_cross_section` defaults to `4·nozzle_diameter²`.
 
 use std::f64::consts::PI;
 
@@ -82,7 +83,7 @@ pub(crate) fn read_extruder(
         4.0 * nozzle_diameter * nozzle_diameter,
         Bounds::ANY.above(0.0),
     )?;
-    let ratio = max_extrude_cross_section / (PI * (filament_diameter / 2.0).powi(2));
+    let ratio = 4.0 * nozzle_diameter * nozzle_diameter / (PI * (filament_diameter / 2.0).powi(2));
     let max_extrude_only_velocity = s.float_or(
         "max_extrude_only_velocity",
         printer.max_velocity * ratio,
@@ -159,6 +160,15 @@ mod tests {
     }
 
     #[test]
+    fn extrude_only_defaults_ignore_the_cross_section_limit() {
+        let e = extruder("nozzle_diameter: 0.5\nfilament_diameter: 3.5\nmax_extrude_cross_section: 50\n")
+            .unwrap_or_else(|e| panic!("{e}"));
+        let ratio = 4.0 * 0.5 * 0.5 / e.filament_area();
+        assert!((e.max_extrude_only_velocity - 300.0 * ratio).abs() < 1e-9);
+        assert_eq!(e.max_extrude_cross_section, 50.0);
+    }
+
+    #[test]
     fn derived_defaults() {
         let e = extruder("nozzle_diameter: 0.4\nfilament_diameter: 1.75\n").unwrap_or_else(|e| panic!("{e}"));
         assert!((e.step_dist() - 33.5 / 3200.0).abs() < 1e-15);
@@ -194,7 +204,8 @@ mod tests {
             (50.0, 500.0)
         );
         assert_eq!((e.max_extrude_only_velocity, e.pressure_advance), (120.0, 0.05));
-        assert!((e.max_extrude_only_accel - 3000.0 * 50.0 / e.filament_area()).abs() < 1e-9);
+        // The accel default follows the nozzle, not max_extrude_cross_section (as Klipper).
+        assert!((e.max_extrude_only_accel - 3000.0 * 4.0 * 0.5 * 0.5 / e.filament_area()).abs() < 1e-9);
     }
 
     #[test]

@@ -10,6 +10,7 @@
 //! them), `[printer]`, the steppers its kinematics needs, `[extruder]`, `[heater_bed]`,
 //! `[simulator]`, then the unused-option/section check.
 
+mod delta;
 mod error;
 mod extruder;
 mod heater;
@@ -24,6 +25,7 @@ use std::path::{Path, PathBuf};
 
 use crate::ini::{self, ConfigFile};
 
+pub use delta::{DeltaSection, DEFAULT_ANGLES};
 pub use error::{ConfigError, ValueProblem};
 pub use extruder::ExtruderSection;
 pub use heater::{HeaterControl, HeaterSection, ABSOLUTE_ZERO_C};
@@ -48,8 +50,11 @@ pub struct PrinterConfig {
     /// The main config file, as given.
     pub source: PathBuf,
     pub printer: PrinterSection,
-    /// The kinematics' steppers in axis order: `stepper_x`, `stepper_y`, `stepper_z`.
+    /// The kinematics' steppers in axis order: `stepper_x`, `stepper_y`, `stepper_z` (delta:
+    /// `stepper_a`, `stepper_b`, `stepper_c`).
     pub steppers: Vec<StepperSection>,
+    /// The geometry, for delta kinematics.
+    pub delta: Option<DeltaSection>,
     pub extruder: Option<ExtruderSection>,
     /// `[mcu]` first, then each `[mcu NAME]` in file order.
     pub mcus: Vec<McuSection>,
@@ -83,16 +88,36 @@ impl PrinterConfig {
                 needed_by: None,
             })?;
         let printer = toolhead::read_printer(&printer_section)?;
+        let is_delta = printer.kinematics == Kinematics::Delta;
+        let delta_printer = match is_delta {
+            true => Some(delta::read_printer_delta(&printer_section)?),
+            false => None,
+        };
 
         let mut steppers = Vec::new();
-        for &name in printer.kinematics.stepper_sections() {
+        let mut towers = Vec::new();
+        for (i, &name) in printer.kinematics.stepper_sections().iter().enumerate() {
             let s = reader.section(name).ok_or_else(|| ConfigError::MissingSection {
                 file: source.clone(),
                 section: name.to_string(),
                 needed_by: Some(format!("kinematics: {}", printer.kinematics.name())),
             })?;
-            steppers.push(stepper::read_rail(&s, &mut pins)?);
+            steppers.push(stepper::read_rail(&s, &mut pins, is_delta)?);
+            if let Some((radius, _, _)) = delta_printer {
+                let first_arm = towers.first().map(|&(a, _)| a);
+                towers.push(delta::read_tower(&s, i, first_arm, radius)?);
+            }
         }
+        let delta = match (delta_printer, towers.as_slice()) {
+            (Some((delta_radius, print_radius, minimum_z_position)), &[a, b, c]) => Some(DeltaSection {
+                delta_radius,
+                print_radius,
+                minimum_z_position,
+                arm_length: [a.0, b.0, c.0],
+                angles: [a.1, b.1, c.1],
+            }),
+            _ => None,
+        };
 
         let extruder = match reader.section("extruder") {
             Some(s) => Some(extruder::read_extruder(&s, &printer, &mut pins)?),
@@ -121,6 +146,7 @@ impl PrinterConfig {
             source,
             printer,
             steppers,
+            delta,
             extruder,
             mcus,
             heater_bed,

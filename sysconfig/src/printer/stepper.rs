@@ -139,18 +139,25 @@ pub(crate) fn read_motor(s: &SectionReader<'_>, pins: &mut PinRegistry) -> Resul
 }
 
 /// A linear rail: motor, endstop, range and homing.
+/// A rail; `delta`: a delta tower, whose `position_endstop` is required and is the default
+/// `position_max`.
 pub(crate) fn read_rail(
     s: &SectionReader<'_>,
     pins: &mut PinRegistry,
+    delta: bool,
 ) -> Result<StepperSection, ConfigError> {
     let m = read_motor(s, pins)?;
     let endstop_pin = s.opt_pin("endstop_pin", PinKind::Input, pins, Share::Exclusive)?;
     let position_endstop = match endstop_pin {
         Some(_) => Some(s.float("position_endstop", Bounds::ANY)?),
+        None if delta => Some(s.float("position_endstop", Bounds::ANY)?),
         None => s.opt_float("position_endstop", Bounds::ANY)?,
     };
     let position_min = s.float_or("position_min", 0.0, Bounds::ANY)?;
-    let position_max = s.float("position_max", Bounds::ANY.above(position_min))?;
+    let position_max = match (delta, position_endstop) {
+        (true, Some(e)) => s.float_or("position_max", e, Bounds::ANY.above(position_min))?,
+        _ => s.float("position_max", Bounds::ANY.above(position_min))?,
+    };
     let homing_speed = s.float_or("homing_speed", 5.0, Bounds::ANY.above(0.0))?;
     let second_homing_speed =
         s.float_or("second_homing_speed", homing_speed / 2.0, Bounds::ANY.above(0.0))?;
@@ -238,7 +245,7 @@ mod tests {
         let reader = Reader::new(&file);
         let s = reader.section("stepper_x").ok_or("no section")?;
         let mut pins = PinRegistry::new(vec!["mcu".into(), "ebb".into()]);
-        let r = read_rail(&s, &mut pins).map_err(|e| e.to_string())?;
+        let r = read_rail(&s, &mut pins, false).map_err(|e| e.to_string())?;
         reader.finish(|_| false).map_err(|e| e.to_string())?;
         Ok(r)
     }
@@ -356,7 +363,9 @@ mod tests {
             .unwrap_or_else(|| panic!("no section"));
         let mut pins = PinRegistry::new(vec!["mcu".into(), "ebb".into()]);
         assert_eq!(
-            read_rail(&s, &mut pins).map(|_| ()).map_err(|e| e.to_string()),
+            read_rail(&s, &mut pins, false)
+                .map(|_| ())
+                .map_err(|e| e.to_string()),
             Err(
                 "printer.cfg:3: [stepper_x] dir_pin: must be on the same mcu as step_pin ('mcu')".to_string()
             )
@@ -369,7 +378,9 @@ mod tests {
             .unwrap_or_else(|| panic!("no section"));
         let mut pins = PinRegistry::new(vec!["mcu".into()]);
         assert_eq!(
-            read_rail(&s, &mut pins).map(|_| ()).map_err(|e| e.to_string()),
+            read_rail(&s, &mut pins, false)
+                .map(|_| ())
+                .map_err(|e| e.to_string()),
             Err("printer.cfg:5: [stepper_x] microsteps: expected an integer, got 'abc'".to_string())
         );
     }

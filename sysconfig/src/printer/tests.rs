@@ -331,3 +331,47 @@ proptest! {
         let _ = parse_str(&text, Path::new("/nonexistent-dir/p.cfg"));
     }
 }
+
+const DELTA: &str = "[mcu]\nserial: /dev/ttyACM0\n\
+[printer]\nkinematics: delta\nmax_velocity: 300\nmax_accel: 3000\ndelta_radius: 140\n\
+[stepper_a]\nstep_pin: PA0\ndir_pin: PA1\nmicrosteps: 16\nrotation_distance: 40\nendstop_pin: PA2\n\
+position_endstop: 250\narm_length: 270\n\
+[stepper_b]\nstep_pin: PA3\ndir_pin: PA4\nmicrosteps: 16\nrotation_distance: 40\nendstop_pin: PA5\n\
+position_endstop: 251\n\
+[stepper_c]\nstep_pin: PA6\ndir_pin: PA7\nmicrosteps: 16\nrotation_distance: 40\nendstop_pin: PB0\n\
+position_endstop: 249\narm_length: 271\nangle: 91\n";
+
+#[test]
+fn delta_geometry() {
+    let cfg = ok(DELTA);
+    let d = cfg.delta.expect("delta section");
+    assert_eq!(d.delta_radius, 140.0);
+    assert_eq!(d.print_radius, 140.0);
+    assert_eq!(d.minimum_z_position, 0.0);
+    assert_eq!(d.arm_length, [270.0, 270.0, 271.0]);
+    assert_eq!(d.angles, [210.0, 330.0, 91.0]);
+    let names: Vec<&str> = cfg.steppers.iter().map(|s| s.name.as_str()).collect();
+    assert_eq!(names, ["stepper_a", "stepper_b", "stepper_c"]);
+    assert_eq!(cfg.steppers[1].position_max, 251.0);
+    assert!(cfg.steppers[0].homing_positive_dir);
+    assert!(ok(MINIMAL).delta.is_none());
+}
+
+#[test]
+fn delta_errors_name_the_option() {
+    assert_eq!(
+        parse(&DELTA.replace("delta_radius: 140\n", "")).map(|_| ()),
+        Err("printer.cfg:3: Option 'delta_radius' in section 'printer' must be specified".to_string())
+    );
+    assert_eq!(
+        parse(&DELTA.replace("arm_length: 270\n", "")).map(|_| ()),
+        Err("printer.cfg:8: Option 'arm_length' in section 'stepper_a' must be specified".to_string())
+    );
+    let short = parse(&DELTA.replace("arm_length: 271", "arm_length: 100")).map(|_| ());
+    assert!(
+        short
+            .as_ref()
+            .is_err_and(|e| e.contains("stepper_c") && e.contains("arm_length")),
+        "{short:?}"
+    );
+}

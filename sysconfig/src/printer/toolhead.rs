@@ -5,7 +5,7 @@
 //! `1 - min(1, max_accel_to_decel / max_accel)` when `minimum_cruise_ratio` is absent.
 //! `max_z_velocity` / `max_z_accel` default to `max_velocity` / `max_accel`.
 
-use super::error::{ConfigError, ValueProblem};
+use super::error::ConfigError;
 use super::reader::{Bounds, SectionReader};
 
 /// The `kinematics:` choice.
@@ -14,7 +14,7 @@ pub enum Kinematics {
     Cartesian,
     CoreXY,
     CoreXZ,
-    /// Known to Klipper; rejected by [`super::load`] until Cadence implements it.
+    /// Linear delta: towers `stepper_a`, `stepper_b`, `stepper_c` (see [`super::DeltaSection`]).
     Delta,
     None,
 }
@@ -71,11 +71,6 @@ pub struct PrinterSection {
 
 pub(crate) fn read_printer(s: &SectionReader<'_>) -> Result<PrinterSection, ConfigError> {
     let kinematics = s.choice("kinematics", &CHOICES, None)?;
-    if kinematics == Kinematics::Delta {
-        let v = s.required("kinematics")?;
-        let why = "delta kinematics are not supported by Cadence yet".to_string();
-        return Err(s.bad("kinematics", v, ValueProblem::Invalid(why)));
-    }
     let max_velocity = s.float("max_velocity", Bounds::ANY.above(0.0))?;
     let max_accel = s.float("max_accel", Bounds::ANY.above(0.0))?;
     let accel_to_decel = s.opt_float("max_accel_to_decel", Bounds::ANY.above(0.0))?;
@@ -149,13 +144,6 @@ mod tests {
             Err("printer.cfg:2: [printer] kinematics: expected one of cartesian, corexy, corexz, delta, none, \
                  got 'polar'"
                 .to_string())
-        );
-        assert_eq!(
-            read("[printer]\nkinematics: delta\n"),
-            Err(
-                "printer.cfg:2: [printer] kinematics: delta kinematics are not supported by Cadence yet"
-                    .to_string()
-            )
         );
         assert_eq!(
             read("[printer]\nkinematics: cartesian\nmax_velocity: 0\n"),

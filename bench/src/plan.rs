@@ -1,0 +1,378 @@
+//! Planner throughput benchmark: G-code file → planned moves → compressed step commands, in batch
+//! mode (no MCU), with the figures issue 3 asks for: moves/s, steps/s, `queue_step` commands,
+//! wire bytes, wall time and peak RSS.
+//!
+//! Wire bytes are computed exactly as the batch sink would write them: every command is encoded
+//! (VLQ message id and parameters, with the ids of a data dictionary when one is given, else
+//! one-byte ids as in Klipper's firmware) and packed in order into blocks of at most
+//! `MESSAGE_PAYLOAD_MAX` payload bytes plus `MESSAGE_MIN` bytes of framing.
+//! Peak RSS is the process's `VmHWM` (Linux), so it covers everything the process did so far.
+
+use std::fs::File;
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::time::Instant;
+
+use links::proto::{vlq, MESSAGE_MIN, MESSAGE_PAYLOAD_MAX};
+use planner::gcode::GcodeReader;
+use planner::kinematics::{DeltaGeometry, Kinematics};
+use planner::machine::Applied;
+use planner::pipeline::{Pipeline, PipelineConfig, PipelineOptions, StepperSpec};
+use planner::pressure_advance::PressureAdvance;
+use planner::stepgen::StepCmd;
+use planner::toolhead::ToolheadConfig;
+use sysconfig::printer::PrinterConfig;
+
+/// What to run.
+#[derive(Debug, Clone)]
+pub struct PlanOptions {
+    /// Largest step time error (s); Klipper's 25 µs by default.
+    pub max_error_s: f64,
+    /// MCU clock (Hz).
+    pub clock_freq: f64,
+    /// Worker threads for step generation + compression (0 = everything on the caller's thread).
+    pub threads: usize,
+    /// Stop after this many G-code lines (`None`: the whole file).
+    pub max_lines: Option<usize>,
+    /// Message ids of `queue_step`, `set_next_step_dir`, `reset_step_clock`.
+    pub msg_ids: [u32; 3],
+}
+
+impl Default for PlanOptions {
+    fn default() -> Self {
+        PlanOptions {
+            max_error_s: 25e-6,
+            clock_freq: 50e6,
+            threads: 2,
+            max_lines: None,
+            msg_ids: [20, 21, 22],
+        }
+    }
+}
+
+impl PlanOptions {
+    /// Takes the message ids from a data dictionary.
+    pub fn with_dictionary(mut self, dict: &links::dict::Dictionary) -> Result<Self, String> {
+        let id = |n: &str| dict.encoder(n).map(|e| e.id()).map_err(|e| e.to_string());
+        self.msg_ids = [
+            id("queue_step")?,
+            id("set_next_step_dir")?,
+            id("reset_step_clock")?,
+        ];
+        self.clock_freq = dict.clock_freq().map_err(|e| e.to_string())?;
+        Ok(self)
+    }
+}
+
+/// Figures of one run.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct PlanReport {
+    pub lines: u64,
+    pub moves: u64,
+    pub steps: u64,
+    pub queue_steps: u64,
+    /// All step commands (queue_step, set_next_step_dir, reset_step_clock).
+    pub commands: u64,
+    pub wire_bytes: u64,
+    pub wall_s: f64,
+    /// Peak resident set of the process (bytes), 0 when unknown.
+    pub peak_rss_bytes: u64,
+    /// Print time covered (s).
+    pub print_time_s: f64,
+}
+
+impl PlanReport {
+    pub fn moves_per_s(&self) -> f64 {
+        self.moves as f64 / self.wall_s.max(1e-9)
+    }
+    pub fn steps_per_s(&self) -> f64 {
+        self.steps as f64 / self.wall_s.max(1e-9)
+    }
+}
+
+impl std::fmt::Display for PlanReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "lines {}, moves {}, steps {}, queue_step {}, wire bytes {}, wall {:.4} s, \
+             {:.0} moves/s, {:.0} steps/s, peak RSS {:.1} MB, print time {:.1} s",
+            self.lines,
+            self.moves,
+            self.steps,
+            self.queue_steps,
+            self.wire_bytes,
+            self.wall_s,
+            self.moves_per_s(),
+            self.steps_per_s(),
+            self.peak_rss_bytes as f64 / 1e6,
+            self.print_time_s
+        )
+    }
+}
+
+/// The planner configuration of a validated printer config (like the host's).
+pub fn pipeline_config(
+    cfg: &PrinterConfig,
+    opts: &PlanOptions,
+) -> Result<(PipelineConfig, Kinematics), String> {
+    use sysconfig::printer::Kinematics as K;
+    let kin = match cfg.printer.kinematics {
+        K::Cartesian => Kinematics::Cartesian,
+        K::CoreXY => Kinematics::CoreXY,
+        K::CoreXZ => Kinematics::CoreXZ,
+        K::Delta => {
+            let d = cfg
+                .delta
+                .as_ref()
+                .ok_or("delta kinematics without delta geometry")?;
+            Kinematics::Delta(DeltaGeometry {
+                radius: d.delta_radius,
+                arm_length: d.arm_length,
+                angles: d.angles,
+            })
+        }
+        other => {
+            return Err(format!(
+                "kinematics '{}' is not supported by the benchmark",
+                other.name()
+            ))
+        }
+    };
+    let mut steppers = Vec::new();
+    let mut limits = [(0.0, 0.0); 3];
+    let mut home = [0.0; 3];
+    for (axis, s) in cfg.steppers.iter().enumerate().take(3) {
+        limits[axis] = (s.position_min, s.position_max);
+        home[axis] = s.position_endstop.unwrap_or(s.position_min);
+        steppers.push(StepperSpec {
+            name: s.name.clone(),
+            axis,
+            step_dist: s.step_dist(),
+        });
+    }
+    if let (Kinematics::Delta(g), Some(d)) = (kin, &cfg.delta) {
+        // Each position_endstop is the nozzle height at the centre when that carriage homes.
+        let carriages: Vec<f64> = (0..3)
+            .map(|i| {
+                let e = cfg
+                    .steppers
+                    .get(i)
+                    .and_then(|s| s.position_endstop)
+                    .unwrap_or(0.0);
+                e + (g.arm_length[i].powi(2) - g.radius.powi(2)).max(0.0).sqrt()
+            })
+            .collect();
+        home = kin.forward([carriages[0], carriages[1], carriages[2]]);
+        let max_z = limits.iter().map(|l| l.1).fold(f64::INFINITY, f64::min);
+        let r = d.print_radius;
+        limits = [(-r, r), (-r, r), (d.minimum_z_position, max_z)];
+    }
+    let p = &cfg.printer;
+    let mut toolhead = ToolheadConfig {
+        max_velocity: p.max_velocity,
+        max_accel: p.max_accel,
+        minimum_cruise_ratio: p.minimum_cruise_ratio,
+        square_corner_velocity: p.square_corner_velocity,
+        max_z_velocity: p.max_z_velocity,
+        max_z_accel: p.max_z_accel,
+        max_extrude_only_velocity: p.max_velocity,
+        max_extrude_only_accel: p.max_accel,
+        max_extrude_only_distance: 50.0,
+        axis_limits: limits,
+    };
+    if let Some(e) = &cfg.extruder {
+        toolhead.max_extrude_only_velocity = e.max_extrude_only_velocity;
+        toolhead.max_extrude_only_accel = e.max_extrude_only_accel;
+        toolhead.max_extrude_only_distance = e.max_extrude_only_distance;
+        steppers.push(StepperSpec {
+            name: "extruder".to_string(),
+            axis: 3,
+            step_dist: e.step_dist(),
+        });
+    }
+    let pc = PipelineConfig {
+        toolhead,
+        steppers,
+        clock_freq: opts.clock_freq,
+        max_error_s: opts.max_error_s,
+        home_position: home,
+    };
+    Ok((pc, kin))
+}
+
+/// Packs encoded messages into blocks and counts the bytes.
+#[derive(Debug, Default)]
+struct WireCounter {
+    payload: usize,
+    bytes: u64,
+}
+
+impl WireCounter {
+    fn msg(&mut self, fields: &[u32]) {
+        let mut buf = [0u8; 8];
+        let len: usize = fields
+            .iter()
+            .map(|&v| vlq::encode(v, &mut buf).unwrap_or(5))
+            .sum();
+        if self.payload + len > MESSAGE_PAYLOAD_MAX {
+            self.flush();
+        }
+        self.payload += len;
+    }
+    fn flush(&mut self) {
+        if self.payload > 0 {
+            self.bytes += (self.payload + MESSAGE_MIN) as u64;
+            self.payload = 0;
+        }
+    }
+}
+
+/// Plans a G-code file for a printer config; see the module docs.
+pub fn plan_file(gcode: &Path, cfg: &PrinterConfig, opts: &PlanOptions) -> Result<PlanReport, String> {
+    let file = File::open(gcode).map_err(|e| format!("{}: {e}", gcode.display()))?;
+    plan_reader(BufReader::with_capacity(1 << 16, file), cfg, opts)
+        .map_err(|e| format!("{}: {e}", gcode.display()))
+}
+
+/// [`plan_file`] over any reader.
+pub fn plan_reader(src: impl BufRead, cfg: &PrinterConfig, opts: &PlanOptions) -> Result<PlanReport, String> {
+    let started = Instant::now();
+    let (pc, kin) = pipeline_config(cfg, opts)?;
+    let pressure_advance = cfg.extruder.as_ref().map(|e| PressureAdvance {
+        advance: e.pressure_advance,
+        smooth_time: e.pressure_advance_smooth_time,
+    });
+    let popts = PipelineOptions {
+        kinematics: kin,
+        threads: opts.threads,
+        pressure_advance,
+        ..PipelineOptions::default()
+    };
+    let mut p = Pipeline::with_options(pc, 0.25, popts).map_err(|e| e.to_string())?;
+    let mut wire = WireCounter::default();
+    let mut rep = PlanReport::default();
+    let mut out = Vec::with_capacity(1 << 14);
+    let [q_id, d_id, r_id] = opts.msg_ids;
+    let mut count = |out: &mut Vec<(usize, StepCmd)>, rep: &mut PlanReport| {
+        for &(oid, c) in out.iter() {
+            let oid = oid as u32;
+            rep.commands += 1;
+            match c {
+                StepCmd::QueueStep {
+                    interval, count, add, ..
+                } => {
+                    rep.queue_steps += 1;
+                    rep.steps += count as u64;
+                    wire.msg(&[q_id, oid, interval, count as u32, add as i32 as u32]);
+                }
+                StepCmd::SetDir { dir } => wire.msg(&[d_id, oid, dir as u32]),
+                StepCmd::ResetClock { clock } => wire.msg(&[r_id, oid, clock as u32]),
+            }
+        }
+        out.clear();
+    };
+    for line in GcodeReader::new(src) {
+        if opts.max_lines.is_some_and(|m| rep.lines as usize >= m) {
+            break;
+        }
+        let line = line.map_err(|e| e.to_string())?;
+        rep.lines += 1;
+        // Heaters, fans and unsupported commands do not affect planning.
+        let _: Applied = p.apply(&line).map_err(|e| e.to_string())?;
+        p.generate(&mut out);
+        if !out.is_empty() {
+            count(&mut out, &mut rep);
+        }
+    }
+    p.finish(&mut out);
+    count(&mut out, &mut rep);
+    wire.flush();
+    let st = p.stats();
+    rep.moves = st.moves;
+    rep.print_time_s = st.print_time_end;
+    rep.wire_bytes = wire.bytes;
+    rep.wall_s = started.elapsed().as_secs_f64();
+    rep.peak_rss_bytes = peak_rss_bytes();
+    Ok(rep)
+}
+
+/// The process's peak resident set (`VmHWM` from /proc/self/status), 0 when unavailable.
+pub fn peak_rss_bytes() -> u64 {
+    let Ok(s) = std::fs::read_to_string("/proc/self/status") else {
+        return 0;
+    };
+    s.lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+        .map_or(0, |kb| kb * 1024)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const CFG: &str = "[mcu]\nserial: /dev/null\n[printer]\nkinematics: cartesian\nmax_velocity: 300\n\
+        max_accel: 3000\n[stepper_x]\nstep_pin: PA0\ndir_pin: PA1\nmicrosteps: 16\nrotation_distance: 40\n\
+        endstop_pin: PA2\nposition_endstop: 0\nposition_max: 200\n[stepper_y]\nstep_pin: PA3\ndir_pin: PA4\n\
+        microsteps: 16\nrotation_distance: 40\nendstop_pin: PA5\nposition_endstop: 0\nposition_max: 200\n\
+        [stepper_z]\nstep_pin: PA6\ndir_pin: PA7\nmicrosteps: 16\nrotation_distance: 8\nendstop_pin: PB0\n\
+        position_endstop: 0\nposition_max: 200\n";
+
+    #[test]
+    fn plans_a_square_in_both_modes() {
+        let cfg = sysconfig::parse_str(CFG, Path::new("t.cfg")).unwrap();
+        let g = "G28\nG1 X10 Y10 F6000\nG1 X50\nG1 Y50\nG1 X10\nG1 Y10\n";
+        let mut reports = Vec::new();
+        for threads in [0, 2] {
+            let opts = PlanOptions {
+                threads,
+                ..PlanOptions::default()
+            };
+            reports.push(plan_reader(g.as_bytes(), &cfg, &opts).unwrap());
+        }
+        let r = &reports[0];
+        assert_eq!(r.steps, 2 * 800 + 4 * 3200);
+        assert_eq!(r.moves, 5);
+        assert!(r.queue_steps > 0 && r.wire_bytes > r.queue_steps * 5);
+        assert_eq!(reports[1].queue_steps, r.queue_steps);
+        assert_eq!(reports[1].wire_bytes, r.wire_bytes);
+    }
+
+    #[test]
+    fn wire_counter_packs_blocks() {
+        let mut w = WireCounter::default();
+        for _ in 0..20 {
+            w.msg(&[1, 2, 3]); // 3 bytes each: 19 fit in 59
+        }
+        w.flush();
+        assert_eq!(w.bytes, (57 + 5) + (3 + 5));
+    }
+
+    #[test]
+    fn plans_on_a_delta() {
+        let cfg = "[mcu]\nserial: /dev/null\n[printer]\nkinematics: delta\nmax_velocity: 300\nmax_accel: 3000\n\
+            delta_radius: 140\n[stepper_a]\nstep_pin: PA0\ndir_pin: PA1\nmicrosteps: 16\nrotation_distance: 40\n\
+            endstop_pin: PA2\nposition_endstop: 250\narm_length: 270\n[stepper_b]\nstep_pin: PA3\ndir_pin: PA4\n\
+            microsteps: 16\nrotation_distance: 40\nendstop_pin: PA5\nposition_endstop: 250\n[stepper_c]\n\
+            step_pin: PA6\ndir_pin: PA7\nmicrosteps: 16\nrotation_distance: 40\nendstop_pin: PB0\n\
+            position_endstop: 250\n";
+        let cfg = sysconfig::parse_str(cfg, Path::new("delta.cfg")).unwrap();
+        let g = "G28\nG1 Z10 F6000\nG1 X50 Y20\nG1 X-50\nG1 X0 Y0 Z250\n";
+        let a = plan_reader(
+            g.as_bytes(),
+            &cfg,
+            &PlanOptions {
+                threads: 0,
+                ..PlanOptions::default()
+            },
+        )
+        .unwrap();
+        let b = plan_reader(g.as_bytes(), &cfg, &PlanOptions::default()).unwrap();
+        assert_eq!(a.moves, 4);
+        assert!(a.steps > 3 * 2 * 240 * 80, "{a}");
+        assert_eq!(a.steps, b.steps);
+        let far = "G28\nG1 X139 Y0 Z10\n";
+        assert!(plan_reader(far.as_bytes(), &cfg, &PlanOptions::default())
+            .is_err_and(|e| e.contains("Move out of range")));
+    }
+}

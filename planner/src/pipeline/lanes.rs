@@ -1,0 +1,202 @@
+//! The per-stepper step paths ("lanes") and where they run: inline on the caller's thread, or
+//! spread over worker threads (lane i on worker i mod threads) fed by a bounded queue of jobs.
+//!
+//! A job is a batch of final moves, shared by every lane, plus the compression horizon; each
+//! lane generates the batch's steps, compresses those before the horizon and returns the
+//! commands with their sort keys (a `queue_step`'s first clock; `reset_step_clock` and
+//! `set_next_step_dir` take the key of the `queue_step` they precede, which the compressor emits
+//! in the same batch). Replies carry the job's sequence number so the merger knows how far every
+//! lane has got. Lanes are independent: the threads share nothing but the moves (read-only).
+
+use std::sync::mpsc::{channel, sync_channel, Receiver, Sender, SyncSender};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+
+use crate::compress::StepCompressor;
+use crate::kinematics::StepperKin;
+use crate::pressure_advance::PaGen;
+use crate::stepgen::{IdealStep, StepCmd};
+use crate::toolhead::Move;
+
+/// Jobs queued per worker before the producer waits.
+const JOB_QUEUE: usize = 4;
+
+/// One stepper's step generation and compression.
+#[derive(Debug)]
+pub(crate) struct LaneState {
+    pub kin: StepperKin,
+    pub comp: StepCompressor,
+    /// The extruder's generator when pressure advance is on.
+    pub pa: Option<PaGen>,
+    fresh: Vec<StepCmd>,
+}
+
+/// What a lane produced for one job.
+#[derive(Debug, Default)]
+pub(crate) struct LaneOut {
+    pub cmds: Vec<(u64, StepCmd)>,
+    pub ideal: Vec<IdealStep>,
+    pub position: i64,
+    pub steps: u64,
+    pub queue_steps: u64,
+}
+
+impl LaneState {
+    pub fn new(kin: StepperKin, comp: StepCompressor, pa: Option<PaGen>) -> LaneState {
+        LaneState {
+            kin,
+            comp,
+            pa,
+            fresh: Vec::with_capacity(1024),
+        }
+    }
+
+    /// Generates and compresses one batch; appends keyed commands to `out.cmds`. `rest`: the
+    /// toolhead stops after these moves (steps that depend on later times can be generated).
+    pub fn run(&mut self, moves: &[Move], upto: u64, all: bool, rest: bool, out: &mut LaneOut) {
+        match &mut self.pa {
+            Some(pa) => {
+                for mv in moves {
+                    pa.push_move(mv);
+                }
+                let comp = &mut self.comp;
+                pa.generate(all || rest, |clock, dir| comp.push_step(clock, dir));
+            }
+            None => {
+                for mv in moves {
+                    self.comp.push_move(mv, &self.kin);
+                }
+            }
+        }
+        self.fresh.clear();
+        if all {
+            self.comp.finish(&mut self.fresh);
+        } else {
+            self.comp.flush(upto, &mut self.fresh);
+        }
+        let start = out.cmds.len();
+        out.cmds.extend(self.fresh.iter().map(|&c| (u64::MAX, c)));
+        let mut key = u64::MAX;
+        for h in out.cmds[start..].iter_mut().rev() {
+            if let StepCmd::QueueStep { first_clock, .. } = h.1 {
+                key = first_clock;
+            }
+            h.0 = key;
+        }
+        out.ideal.extend(self.comp.take_ideal());
+        out.position = self.comp.position_steps();
+        out.steps = self.comp.step_count();
+        out.queue_steps = self.comp.queue_step_count();
+    }
+}
+
+/// A message to a worker.
+#[derive(Debug)]
+pub(crate) enum Msg {
+    Job {
+        seq: u64,
+        moves: Arc<[Move]>,
+        upto: u64,
+        all: bool,
+        rest: bool,
+    },
+    Backoff(usize),
+    RecordIdeal(bool),
+}
+
+/// A worker's answer to one job: (lane index, output) for each of its lanes.
+#[derive(Debug)]
+pub(crate) struct Reply {
+    pub worker: usize,
+    pub seq: u64,
+    pub lanes: Vec<(usize, LaneOut)>,
+}
+
+/// Worker threads owning the lanes.
+#[derive(Debug)]
+pub(crate) struct Workers {
+    senders: Vec<SyncSender<Msg>>,
+    pub replies: Receiver<Reply>,
+    handles: Vec<JoinHandle<()>>,
+}
+
+impl Workers {
+    /// Moves `lanes` onto `threads` (≥ 1) worker threads.
+    pub fn spawn(lanes: Vec<LaneState>, threads: usize) -> std::io::Result<Workers> {
+        let threads = threads.clamp(1, lanes.len().max(1));
+        let mut groups: Vec<Vec<(usize, LaneState)>> = (0..threads).map(|_| Vec::new()).collect();
+        for (i, l) in lanes.into_iter().enumerate() {
+            groups[i % threads].push((i, l));
+        }
+        let (reply_tx, replies) = channel();
+        let mut senders = Vec::with_capacity(threads);
+        let mut handles = Vec::with_capacity(threads);
+        for (w, group) in groups.into_iter().enumerate() {
+            let (tx, rx) = sync_channel(JOB_QUEUE);
+            let reply_tx = reply_tx.clone();
+            let h = std::thread::Builder::new()
+                .name(format!("planner-lanes-{w}"))
+                .spawn(move || worker(w, group, rx, reply_tx))?;
+            senders.push(tx);
+            handles.push(h);
+        }
+        Ok(Workers {
+            senders,
+            replies,
+            handles,
+        })
+    }
+
+    pub fn count(&self) -> usize {
+        self.senders.len()
+    }
+
+    /// Sends `msg` (cloned) to every worker; false when a worker is gone.
+    pub fn broadcast(&self, msg: impl Fn() -> Msg) -> bool {
+        self.senders.iter().all(|s| s.send(msg()).is_ok())
+    }
+}
+
+impl Drop for Workers {
+    fn drop(&mut self) {
+        self.senders.clear();
+        for h in self.handles.drain(..) {
+            let _ = h.join();
+        }
+    }
+}
+
+fn worker(w: usize, mut lanes: Vec<(usize, LaneState)>, rx: Receiver<Msg>, tx: Sender<Reply>) {
+    while let Ok(msg) = rx.recv() {
+        match msg {
+            Msg::Job {
+                seq,
+                moves,
+                upto,
+                all,
+                rest,
+            } => {
+                let mut out = Vec::with_capacity(lanes.len());
+                for (i, lane) in &mut lanes {
+                    let mut o = LaneOut::default();
+                    lane.run(&moves, upto, all, rest, &mut o);
+                    out.push((*i, o));
+                }
+                if tx
+                    .send(Reply {
+                        worker: w,
+                        seq,
+                        lanes: out,
+                    })
+                    .is_err()
+                {
+                    return;
+                }
+            }
+            Msg::Backoff(n) => lanes
+                .iter_mut()
+                .for_each(|(_, l)| l.comp.set_lookahead_backoff(n)),
+            Msg::RecordIdeal(on) => lanes.iter_mut().for_each(|(_, l)| l.comp.set_record_ideal(on)),
+        }
+    }
+}
