@@ -410,9 +410,10 @@ fn planner_stage(
     let lead_ticks = (MIN_LEAD_S * clock_freq) as u64;
     let pace = Duration::from_millis(5);
 
-    let mut pipeline = Pipeline::new(
+    let mut pipeline = Pipeline::with_options(
         machine.pipeline_config(clock_freq, args.max_error_us * 1e-6),
         start,
+        machine.options,
     )
     .map_err(|e| e.to_string())?;
     let mut streamer = StepStreamer::new(dict, &machine.steppers, main.move_count)?;

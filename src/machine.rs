@@ -1,7 +1,7 @@
 //! The printer as the host drives it: which steppers exist, on which MCU and oid, with which
 //! pins, and the planner configuration derived from printer.cfg.
 
-use planner::pipeline::{PipelineConfig, StepperSpec};
+use planner::pipeline::{PipelineConfig, PipelineOptions, StepperSpec};
 use planner::toolhead::ToolheadConfig;
 use sysconfig::printer::{PinRef, PrinterConfig};
 
@@ -47,32 +47,20 @@ pub struct Machine {
     pub endstops: Vec<EndstopOut>,
     pub toolhead: ToolheadConfig,
     pub home_position: [f64; 3],
+    /// Kinematics and pressure advance for the planner.
+    pub options: PipelineOptions,
 }
 
 impl Machine {
     /// Derives the machine from a validated config. Single-MCU printers only for now.
     pub fn from_config(cfg: &PrinterConfig) -> Result<Machine, String> {
-        use sysconfig::printer::Kinematics;
-        if !matches!(cfg.printer.kinematics, Kinematics::Cartesian) {
-            return Err(format!(
-                "{}: [printer] kinematics: only 'cartesian' is supported by this version",
-                cfg.source.display()
-            ));
-        }
+        // Toolhead limits, kinematics and home position come from one shared derivation.
+        let (planning, kinematics) =
+            sysconfig::planning::pipeline_config(cfg, 1.0, 25e-6).map_err(|e| format!("{}: {e}", cfg.source.display()))?;
         let mut steppers = Vec::new();
         let mut endstops = Vec::new();
-        let mut limits = [(0.0, 0.0); 3];
-        let mut home = [0.0; 3];
-        for (axis, axis_name) in ["x", "y", "z"].iter().enumerate() {
-            let name = format!("stepper_{axis_name}");
-            let s = cfg.steppers.iter().find(|s| s.name == name).ok_or_else(|| {
-                format!(
-                    "{}: section [{name}] is required for cartesian kinematics",
-                    cfg.source.display()
-                )
-            })?;
-            limits[axis] = (s.position_min, s.position_max);
-            home[axis] = s.position_endstop.unwrap_or(s.position_min);
+        for (axis, s) in cfg.steppers.iter().enumerate().take(3) {
+            let name = s.name.clone();
             if let (Some(pin), Some(position_endstop)) = (&s.endstop_pin, s.position_endstop) {
                 endstops.push(EndstopOut {
                     stepper: name.clone(),
@@ -89,7 +77,7 @@ impl Machine {
                 });
             }
             steppers.push(StepperOut {
-                name: name.clone(),
+                name,
                 mcu: s.step_pin.mcu.clone(),
                 oid: 0,
                 axis,
@@ -98,23 +86,9 @@ impl Machine {
                 step_dist: s.step_dist(),
             });
         }
-        let p = &cfg.printer;
-        let mut toolhead = ToolheadConfig {
-            max_velocity: p.max_velocity,
-            max_accel: p.max_accel,
-            minimum_cruise_ratio: p.minimum_cruise_ratio,
-            square_corner_velocity: p.square_corner_velocity,
-            max_z_velocity: p.max_z_velocity,
-            max_z_accel: p.max_z_accel,
-            max_extrude_only_velocity: p.max_velocity,
-            max_extrude_only_accel: p.max_accel,
-            max_extrude_only_distance: 50.0,
-            axis_limits: limits,
-        };
+        let toolhead = planning.toolhead;
+        let home = planning.home_position;
         if let Some(e) = &cfg.extruder {
-            toolhead.max_extrude_only_velocity = e.max_extrude_only_velocity;
-            toolhead.max_extrude_only_accel = e.max_extrude_only_accel;
-            toolhead.max_extrude_only_distance = e.max_extrude_only_distance;
             steppers.push(StepperOut {
                 name: "extruder".to_string(),
                 mcu: e.step_pin.mcu.clone(),
@@ -150,12 +124,8 @@ impl Machine {
             e.oid = *n;
             *n += 1;
         }
-        Ok(Machine {
-            steppers,
-            endstops,
-            toolhead,
-            home_position: home,
-        })
+        let options = sysconfig::planning::pipeline_options(cfg, kinematics);
+        Ok(Machine { steppers, endstops, toolhead, home_position: home, options })
     }
 
     /// The planner configuration for MCU clocks at `clock_freq` ticks per print second.

@@ -9,7 +9,7 @@ use std::time::Instant;
 use clap::Args;
 use planner::gcode::GcodeReader;
 use planner::machine::Applied;
-use planner::pipeline::Pipeline;
+use planner::pipeline::{Pipeline, PipelineOptions};
 use planner::stepgen::StepCmd;
 use sysconfig::printer::PrinterConfig;
 
@@ -151,11 +151,11 @@ fn run_batch(
     }
     let move_count = 16384;
     let mut streamer = StepStreamer::new(&dict, &machine.steppers, move_count)?;
-    let mut pipeline = Pipeline::new(
-        machine.pipeline_config(clock_freq, args.max_error_us * 1e-6),
-        0.25,
-    )
-    .map_err(|e| e.to_string())?;
+    // Batch mode runs flat out: step generation and compression on every core.
+    let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    let options = PipelineOptions { threads, ..machine.options };
+    let mut pipeline = Pipeline::with_options(machine.pipeline_config(clock_freq, args.max_error_us * 1e-6), 0.25, options)
+        .map_err(|e| e.to_string())?;
     let lines = plan_file(
         args,
         &mut pipeline,

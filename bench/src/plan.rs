@@ -15,12 +15,10 @@ use std::time::Instant;
 
 use links::proto::{vlq, MESSAGE_MIN, MESSAGE_PAYLOAD_MAX};
 use planner::gcode::GcodeReader;
-use planner::kinematics::{DeltaGeometry, Kinematics};
+use planner::kinematics::Kinematics;
 use planner::machine::Applied;
-use planner::pipeline::{Pipeline, PipelineConfig, PipelineOptions, StepperSpec};
-use planner::pressure_advance::PressureAdvance;
+use planner::pipeline::{Pipeline, PipelineConfig, PipelineOptions};
 use planner::stepgen::StepCmd;
-use planner::toolhead::ToolheadConfig;
 use sysconfig::printer::PrinterConfig;
 
 /// What to run.
@@ -110,94 +108,9 @@ impl std::fmt::Display for PlanReport {
     }
 }
 
-/// The planner configuration of a validated printer config (like the host's).
-pub fn pipeline_config(
-    cfg: &PrinterConfig,
-    opts: &PlanOptions,
-) -> Result<(PipelineConfig, Kinematics), String> {
-    use sysconfig::printer::Kinematics as K;
-    let kin = match cfg.printer.kinematics {
-        K::Cartesian => Kinematics::Cartesian,
-        K::CoreXY => Kinematics::CoreXY,
-        K::CoreXZ => Kinematics::CoreXZ,
-        K::Delta => {
-            let d = cfg
-                .delta
-                .as_ref()
-                .ok_or("delta kinematics without delta geometry")?;
-            Kinematics::Delta(DeltaGeometry {
-                radius: d.delta_radius,
-                arm_length: d.arm_length,
-                angles: d.angles,
-            })
-        }
-        other => {
-            return Err(format!(
-                "kinematics '{}' is not supported by the benchmark",
-                other.name()
-            ))
-        }
-    };
-    let mut steppers = Vec::new();
-    let mut limits = [(0.0, 0.0); 3];
-    let mut home = [0.0; 3];
-    for (axis, s) in cfg.steppers.iter().enumerate().take(3) {
-        limits[axis] = (s.position_min, s.position_max);
-        home[axis] = s.position_endstop.unwrap_or(s.position_min);
-        steppers.push(StepperSpec {
-            name: s.name.clone(),
-            axis,
-            step_dist: s.step_dist(),
-        });
-    }
-    if let (Kinematics::Delta(g), Some(d)) = (kin, &cfg.delta) {
-        // Each position_endstop is the nozzle height at the centre when that carriage homes.
-        let carriages: Vec<f64> = (0..3)
-            .map(|i| {
-                let e = cfg
-                    .steppers
-                    .get(i)
-                    .and_then(|s| s.position_endstop)
-                    .unwrap_or(0.0);
-                e + (g.arm_length[i].powi(2) - g.radius.powi(2)).max(0.0).sqrt()
-            })
-            .collect();
-        home = kin.forward([carriages[0], carriages[1], carriages[2]]);
-        let max_z = limits.iter().map(|l| l.1).fold(f64::INFINITY, f64::min);
-        let r = d.print_radius;
-        limits = [(-r, r), (-r, r), (d.minimum_z_position, max_z)];
-    }
-    let p = &cfg.printer;
-    let mut toolhead = ToolheadConfig {
-        max_velocity: p.max_velocity,
-        max_accel: p.max_accel,
-        minimum_cruise_ratio: p.minimum_cruise_ratio,
-        square_corner_velocity: p.square_corner_velocity,
-        max_z_velocity: p.max_z_velocity,
-        max_z_accel: p.max_z_accel,
-        max_extrude_only_velocity: p.max_velocity,
-        max_extrude_only_accel: p.max_accel,
-        max_extrude_only_distance: 50.0,
-        axis_limits: limits,
-    };
-    if let Some(e) = &cfg.extruder {
-        toolhead.max_extrude_only_velocity = e.max_extrude_only_velocity;
-        toolhead.max_extrude_only_accel = e.max_extrude_only_accel;
-        toolhead.max_extrude_only_distance = e.max_extrude_only_distance;
-        steppers.push(StepperSpec {
-            name: "extruder".to_string(),
-            axis: 3,
-            step_dist: e.step_dist(),
-        });
-    }
-    let pc = PipelineConfig {
-        toolhead,
-        steppers,
-        clock_freq: opts.clock_freq,
-        max_error_s: opts.max_error_s,
-        home_position: home,
-    };
-    Ok((pc, kin))
+/// The planner configuration of a validated printer config (see [`sysconfig::planning`]).
+pub fn pipeline_config(cfg: &PrinterConfig, opts: &PlanOptions) -> Result<(PipelineConfig, Kinematics), String> {
+    sysconfig::planning::pipeline_config(cfg, opts.clock_freq, opts.max_error_s)
 }
 
 /// Packs encoded messages into blocks and counts the bytes.
@@ -238,15 +151,9 @@ pub fn plan_file(gcode: &Path, cfg: &PrinterConfig, opts: &PlanOptions) -> Resul
 pub fn plan_reader(src: impl BufRead, cfg: &PrinterConfig, opts: &PlanOptions) -> Result<PlanReport, String> {
     let started = Instant::now();
     let (pc, kin) = pipeline_config(cfg, opts)?;
-    let pressure_advance = cfg.extruder.as_ref().map(|e| PressureAdvance {
-        advance: e.pressure_advance,
-        smooth_time: e.pressure_advance_smooth_time,
-    });
     let popts = PipelineOptions {
-        kinematics: kin,
         threads: opts.threads,
-        pressure_advance,
-        ..PipelineOptions::default()
+        ..sysconfig::planning::pipeline_options(cfg, kin)
     };
     let mut p = Pipeline::with_options(pc, 0.25, popts).map_err(|e| e.to_string())?;
     let mut wire = WireCounter::default();

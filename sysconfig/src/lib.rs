@@ -12,6 +12,7 @@
 #![deny(unsafe_code)]
 
 pub mod ini;
+pub mod planning;
 pub mod printer;
 
 pub use printer::{builtin_simulated, load, parse_str, ConfigError, PrinterConfig, SIMULATED_PRINTER_CFG};

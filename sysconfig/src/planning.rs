@@ -1,0 +1,112 @@
+//! printer.cfg → the planner's configuration (toolhead limits, kinematics, steppers, pressure
+//! advance). One place, used by the host and the benchmarks.
+
+use planner::kinematics::{DeltaGeometry, Kinematics};
+use planner::pipeline::{PipelineConfig, PipelineOptions, StepperSpec};
+use planner::pressure_advance::PressureAdvance;
+use planner::toolhead::ToolheadConfig;
+
+use crate::printer::PrinterConfig;
+
+/// The planner configuration of a validated printer config: kinematics, steppers in the
+/// kinematics' order (then the extruder), limits, home position; for MCU clocks at `clock_freq`
+/// ticks per print second and a step compression bound of `max_error_s`.
+pub fn pipeline_config(
+    cfg: &PrinterConfig,
+    clock_freq: f64,
+    max_error_s: f64,
+) -> Result<(PipelineConfig, Kinematics), String> {
+    use crate::printer::Kinematics as K;
+    let kin = match cfg.printer.kinematics {
+        K::Cartesian => Kinematics::Cartesian,
+        K::CoreXY => Kinematics::CoreXY,
+        K::CoreXZ => Kinematics::CoreXZ,
+        K::Delta => {
+            let d = cfg
+                .delta
+                .as_ref()
+                .ok_or("delta kinematics without delta geometry")?;
+            Kinematics::Delta(DeltaGeometry {
+                radius: d.delta_radius,
+                arm_length: d.arm_length,
+                angles: d.angles,
+            })
+        }
+        other => {
+            return Err(format!(
+                "kinematics '{}' is not supported",
+                other.name()
+            ))
+        }
+    };
+    let mut steppers = Vec::new();
+    let mut limits = [(0.0, 0.0); 3];
+    let mut home = [0.0; 3];
+    for (axis, s) in cfg.steppers.iter().enumerate().take(3) {
+        limits[axis] = (s.position_min, s.position_max);
+        home[axis] = s.position_endstop.unwrap_or(s.position_min);
+        steppers.push(StepperSpec {
+            name: s.name.clone(),
+            axis,
+            step_dist: s.step_dist(),
+        });
+    }
+    if let (Kinematics::Delta(g), Some(d)) = (kin, &cfg.delta) {
+        // Each position_endstop is the nozzle height at the centre when that carriage homes.
+        let carriages: Vec<f64> = (0..3)
+            .map(|i| {
+                let e = cfg
+                    .steppers
+                    .get(i)
+                    .and_then(|s| s.position_endstop)
+                    .unwrap_or(0.0);
+                e + (g.arm_length[i].powi(2) - g.radius.powi(2)).max(0.0).sqrt()
+            })
+            .collect();
+        home = kin.forward([carriages[0], carriages[1], carriages[2]]);
+        let max_z = limits.iter().map(|l| l.1).fold(f64::INFINITY, f64::min);
+        let r = d.print_radius;
+        limits = [(-r, r), (-r, r), (d.minimum_z_position, max_z)];
+    }
+    let p = &cfg.printer;
+    let mut toolhead = ToolheadConfig {
+        max_velocity: p.max_velocity,
+        max_accel: p.max_accel,
+        minimum_cruise_ratio: p.minimum_cruise_ratio,
+        square_corner_velocity: p.square_corner_velocity,
+        max_z_velocity: p.max_z_velocity,
+        max_z_accel: p.max_z_accel,
+        max_extrude_only_velocity: p.max_velocity,
+        max_extrude_only_accel: p.max_accel,
+        max_extrude_only_distance: 50.0,
+        axis_limits: limits,
+    };
+    if let Some(e) = &cfg.extruder {
+        toolhead.max_extrude_only_velocity = e.max_extrude_only_velocity;
+        toolhead.max_extrude_only_accel = e.max_extrude_only_accel;
+        toolhead.max_extrude_only_distance = e.max_extrude_only_distance;
+        steppers.push(StepperSpec {
+            name: "extruder".to_string(),
+            axis: 3,
+            step_dist: e.step_dist(),
+        });
+    }
+    let pc = PipelineConfig {
+        toolhead,
+        steppers,
+        clock_freq,
+        max_error_s,
+        home_position: home,
+    };
+    Ok((pc, kin))
+}
+
+/// Pipeline options derived from the config: kinematics and the extruder's pressure advance
+/// (planning on the caller's thread; set `threads` for worker threads).
+pub fn pipeline_options(cfg: &PrinterConfig, kinematics: Kinematics) -> PipelineOptions {
+    let pressure_advance = cfg.extruder.as_ref().map(|e| PressureAdvance {
+        advance: e.pressure_advance,
+        smooth_time: e.pressure_advance_smooth_time,
+    });
+    PipelineOptions { kinematics, pressure_advance, ..PipelineOptions::default() }
+}
