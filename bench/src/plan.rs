@@ -109,7 +109,10 @@ impl std::fmt::Display for PlanReport {
 }
 
 /// The planner configuration of a validated printer config (see [`sysconfig::planning`]).
-pub fn pipeline_config(cfg: &PrinterConfig, opts: &PlanOptions) -> Result<(PipelineConfig, Kinematics), String> {
+pub fn pipeline_config(
+    cfg: &PrinterConfig,
+    opts: &PlanOptions,
+) -> Result<(PipelineConfig, Kinematics), String> {
     sysconfig::planning::pipeline_config(cfg, opts.clock_freq, opts.max_error_s)
 }
 

@@ -32,12 +32,7 @@ pub fn pipeline_config(
                 angles: d.angles,
             })
         }
-        other => {
-            return Err(format!(
-                "kinematics '{}' is not supported",
-                other.name()
-            ))
-        }
+        other => return Err(format!("kinematics '{}' is not supported", other.name())),
     };
     let mut steppers = Vec::new();
     let mut limits = [(0.0, 0.0); 3];
@@ -108,5 +103,9 @@ pub fn pipeline_options(cfg: &PrinterConfig, kinematics: Kinematics) -> Pipeline
         advance: e.pressure_advance,
         smooth_time: e.pressure_advance_smooth_time,
     });
-    PipelineOptions { kinematics, pressure_advance, ..PipelineOptions::default() }
+    PipelineOptions {
+        kinematics,
+        pressure_advance,
+        ..PipelineOptions::default()
+    }
 }
