@@ -55,8 +55,8 @@ impl Machine {
     /// Derives the machine from a validated config. Single-MCU printers only for now.
     pub fn from_config(cfg: &PrinterConfig) -> Result<Machine, String> {
         // Toolhead limits, kinematics and home position come from one shared derivation.
-        let (planning, kinematics) =
-            sysconfig::planning::pipeline_config(cfg, 1.0, 25e-6).map_err(|e| format!("{}: {e}", cfg.source.display()))?;
+        let (planning, kinematics) = sysconfig::planning::pipeline_config(cfg, 1.0, 25e-6)
+            .map_err(|e| format!("{}: {e}", cfg.source.display()))?;
         let mut steppers = Vec::new();
         let mut endstops = Vec::new();
         for (axis, s) in cfg.steppers.iter().enumerate().take(3) {
@@ -125,7 +125,13 @@ impl Machine {
             *n += 1;
         }
         let options = sysconfig::planning::pipeline_options(cfg, kinematics);
-        Ok(Machine { steppers, endstops, toolhead, home_position: home, options })
+        Ok(Machine {
+            steppers,
+            endstops,
+            toolhead,
+            home_position: home,
+            options,
+        })
     }
 
     /// The planner configuration for MCU clocks at `clock_freq` ticks per print second.

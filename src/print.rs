@@ -153,9 +153,16 @@ fn run_batch(
     let mut streamer = StepStreamer::new(&dict, &machine.steppers, move_count)?;
     // Batch mode runs flat out: step generation and compression on every core.
     let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-    let options = PipelineOptions { threads, ..machine.options };
-    let mut pipeline = Pipeline::with_options(machine.pipeline_config(clock_freq, args.max_error_us * 1e-6), 0.25, options)
-        .map_err(|e| e.to_string())?;
+    let options = PipelineOptions {
+        threads,
+        ..machine.options
+    };
+    let mut pipeline = Pipeline::with_options(
+        machine.pipeline_config(clock_freq, args.max_error_us * 1e-6),
+        0.25,
+        options,
+    )
+    .map_err(|e| e.to_string())?;
     let lines = plan_file(
         args,
         &mut pipeline,
