@@ -2,11 +2,14 @@
 //! - `print FILE.gcode [--config printer.cfg]`: plan, compress and stream a print to the MCUs
 //!   (the built-in simulated printer when no config is given), or with `--batch OUT.bin`
 //!   write the exact wire stream to a file without any MCU.
+//! - `home [--config printer.cfg] [--axes xyz] [--cycles N]`: G28 with motion on the MCUs,
+//!   reporting overshoot and trigger → stop latencies (see `homing`).
 //! - `decode OUT.bin`: print a wire stream one message a line.
 //! - `mcu …` (hidden): the simulated MCU (the firmware's Linux-process target), for when the
 //!   separate `cadence-mcu` executable was not built.
 
 mod decode;
+mod homing;
 mod live;
 mod machine;
 mod mcus;
@@ -33,6 +36,8 @@ struct Cli {
 enum Cmd {
     /// Print a G-code file on the configured printer (default: the built-in simulated printer).
     Print(print::PrintArgs),
+    /// Home the printer's axes with real motion (G28), once or in cycles with latency figures.
+    Home(homing::HomeArgs),
     /// Decode a wire stream written by `print --batch` into one message per line.
     Decode(decode::DecodeArgs),
     /// Run the simulated MCU (same code as the `cadence-mcu` executable).
@@ -52,6 +57,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Cmd::Print(args) => print::run(&args),
         Cmd::Decode(args) => decode::run(&args),
+        Cmd::Home(args) => homing::run_cli(&args),
         Cmd::Mcu { args } => {
             let argv = std::iter::once("cadence-mcu".to_string()).chain(args);
             let code = firmware::sim::main_with_args(argv);

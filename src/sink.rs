@@ -20,6 +20,11 @@ pub trait Sink {
     fn send(&mut self, cmd: Cmd) -> Result<(), String>;
     /// A message not to be sent before `min_clock`, ordered and lead-checked by `req_clock`.
     fn send_clocked(&mut self, cmd: Cmd, min_clock: u64, req_clock: u64) -> Result<(), String>;
+    // homing: a sink that batches must hand its batch on when homing waits for the MCUs.
+    /// Hands on whatever the sink holds back (default: it holds nothing back).
+    fn flush(&mut self) -> Result<(), String> {
+        Ok(())
+    }
 }
 
 /// Slots kept free in the MCU's move pool as a safety margin.

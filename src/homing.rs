@@ -1,0 +1,784 @@
+//! G28 with motion, across MCUs (docs/protocol.md "Homing: endstop + trsync",
+//! docs/architecture.md "Homing").
+//!
+//! Per axis, per pass (the second at `second_homing_speed` after retracting
+//! `homing_retract_dist`, skipped when that is 0):
+//! 1. every step already planned is sent and executed (the MCUs are idle);
+//! 2. the toolhead pretends to be 1.5 × travel (second pass: 2 × retract) away from the endstop
+//!    on the far side;
+//! 3. one trsync per involved MCU (the endstop's and the axis steppers') gets `trsync_start`
+//!    (reports every 0.3 × timeout from ~2 ms on) and `trsync_set_timeout`; the stepper MCUs get
+//!    `stepper_stop_on_trigger`; after a `get_clock` round trip per MCU (stale reports of the
+//!    previous pass are in) a [`TriggerGroup`] registers them, then the endstop MCU gets
+//!    `endstop_home` (15 µs samples, 4 of them, a read every ≤ 1 ms) from the move's start `t0`
+//!    (≥ now + lead + a margin);
+//! 4. the move to `position_endstop` at the homing speed is planned and all its steps are sent;
+//!    the IO threads relay the trigger and extend the timeouts while we wait;
+//! 5. whatever happened, every member is told to stop (`trsync_trigger`, host request) and the
+//!    endstop stops sampling; once the stepper links are idle the axis steppers are stopped a
+//!    second time (a step command the trigger overtook would restart them); then the endstop's trigger clock (`endstop_query_state`) and each
+//!    axis stepper's position (`stepper_get_position`) are read;
+//! 6. the position: with `n(x) = ⌊x / step_dist + ½⌋` the step index of position x, the
+//!    stepper was at index `n_start = n(start)` and the MCU says it took `k` net steps, so it
+//!    halted at `n_halt = n_start + k`; at the trigger print time `t` the commanded position was
+//!    `x(t)` on the move's profile, index `n_trig = n(x(t))`. The trigger defines
+//!    `position_endstop`, so the toolhead is now at `position_endstop + (n_halt − n_trig) ·
+//!    step_dist` (the overshoot is accounted for); the planner and the step streamer are resynced
+//!    to that, the next move starting at now + lead + margin.
+//!
+//! Errors: a trsync that expired or a member silent past the timeout →
+//! exactly `Communication timeout during homing`; no trigger by the end of the move →
+//! `No trigger on <axis> after full movement`; the endstop still triggered after the retract →
+//! `Endstop <axis> still triggered after retract`. In every case all involved steppers have been
+//! told to stop first, and the planner is resynced to where they stopped when the MCUs still
+//! answer.
+//!
+//! Latency figures per pass (host's view, print-time seconds): the executed steps' times are
+//! known from the move profile, so the last executed step and the first cancelled one bound
+//! the moment the stepper MCU stopped, relative to the endstop's trigger.
+
+mod bench;
+
+pub use bench::{run as run_cli, HomeArgs};
+
+use std::fmt;
+use std::time::{Duration, Instant};
+
+use links::mcu::McuLink;
+use links::trsync::{
+    TriggerGroup, TrsyncError, COMM_TIMEOUT_MSG, REASON_ENDSTOP_HIT, REASON_HOST_REQUEST,
+    REASON_PAST_END_TIME,
+};
+use planner::pipeline::Pipeline;
+use planner::stepgen::StepCmd;
+use planner::toolhead::Move;
+
+use crate::machine::{EndstopOut, Machine};
+use crate::mcus::{McuConn, Mcus};
+use crate::sink::{Sink, StepStreamer};
+
+/// Endstop confirmation sample spacing (s of MCU time).
+pub const SAMPLE_TIME: f64 = 15e-6;
+/// Matching samples needed for a trigger.
+pub const SAMPLE_COUNT: u8 = 4;
+/// Longest time between endstop reads while waiting for a match (s).
+pub const MAX_REST_TIME: f64 = 1e-3;
+/// Shortest time between endstop reads (s).
+pub const MIN_REST_TIME: f64 = 100e-6;
+/// Margin on top of the lead between "now" and the start of a homing move (s of print time):
+/// the set-up messages go out in it.
+pub const START_MARGIN: f64 = 0.030;
+/// The first homing move pretends to start this many axis travels away from the endstop.
+pub const TRAVEL_FACTOR: f64 = 1.5;
+/// Tries of a position / endstop-state query (a reply can be lost on a noisy line).
+const QUERY_TRIES: u32 = 5;
+/// Wait for one query reply (wall time).
+const QUERY_TIMEOUT: Duration = Duration::from_millis(300);
+/// First trsync report this long after the set-up is sent (wall time, s).
+const FIRST_REPORT_DELAY: f64 = 0.002;
+/// Extra wall time after the homing move's end before "no trigger" is concluded.
+const END_GRACE: Duration = Duration::from_millis(50);
+
+const AXIS_NAMES: [char; 3] = ['x', 'y', 'z'];
+
+/// What homing borrows from the live print.
+pub struct HomingCtx<'a> {
+    pub mcus: &'a Mcus,
+    pub machine: &'a Machine,
+    pub pipeline: &'a mut Pipeline,
+    /// The main MCU's step streamer (every stepper is on the main MCU in this version).
+    pub streamer: &'a mut StepStreamer,
+    /// Where the main MCU's step commands go (the live link).
+    pub sink: &'a mut dyn Sink,
+    /// Lead every step command must have at the MCU (print seconds, 0.100).
+    pub lead: f64,
+    /// MCU seconds per wall second (simulator `time_scale`; 1 for real MCUs): bounds waits.
+    pub time_scale: f64,
+}
+
+impl fmt::Debug for HomingCtx<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("HomingCtx")
+            .field("lead", &self.lead)
+            .field("time_scale", &self.time_scale)
+            .finish_non_exhaustive()
+    }
+}
+
+/// One homing move of one axis.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PassReport {
+    /// Homing speed (mm/s).
+    pub speed: f64,
+    /// The MCU whose endstop triggered.
+    pub trigger_mcu: String,
+    /// Its trigger clock (64-bit, its own clock).
+    pub trigger_clock: u64,
+    /// The trigger on the main MCU's print time.
+    pub trigger_print_time: f64,
+    /// Position past the trigger point at which the axis halted (mm, ≥ 0 normally).
+    pub overshoot_mm: f64,
+    /// Net steps the first axis stepper took during the move.
+    pub steps: i64,
+    /// Last executed step − trigger (s of print time): a lower bound of the stop latency
+    /// (negative when no step fell between the trigger and the stop).
+    pub last_step_after_s: f64,
+    /// First cancelled step − trigger (s): an upper bound of the stop latency.
+    pub next_step_after_s: f64,
+}
+
+/// One homed axis.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AxisReport {
+    /// 0 = X, 1 = Y, 2 = Z.
+    pub axis: usize,
+    /// The MCUs of its trigger group.
+    pub mcus: Vec<String>,
+    pub passes: Vec<PassReport>,
+    /// Toolhead position of the axis after homing (position_endstop + last overshoot).
+    pub position: f64,
+}
+
+/// What [`home_axes`] did.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct HomingReport {
+    pub axes: Vec<AxisReport>,
+}
+
+impl fmt::Display for HomingReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for a in &self.axes {
+            let name = AXIS_NAMES[a.axis.min(2)];
+            write!(f, "homing {name}: mcus {}", a.mcus.join("+"))?;
+            for (i, p) in a.passes.iter().enumerate() {
+                write!(
+                    f,
+                    "; pass {} at {} mm/s: trigger on '{}', overshoot {:.4} mm, stop {:.0}..{:.0} us after trigger",
+                    i + 1,
+                    p.speed,
+                    p.trigger_mcu,
+                    p.overshoot_mm,
+                    p.last_step_after_s * 1e6,
+                    p.next_step_after_s * 1e6
+                )?;
+            }
+            writeln!(f, "; position {:.6}", a.position)?;
+        }
+        Ok(())
+    }
+}
+
+/// Checks the homing wiring: the steppers of one axis may sit on several MCUs only if the
+/// endstop is on one of them... and Klipper refuses even that; Cadence refuses the case the
+/// trigger relay cannot serve: steppers of one axis on different MCUs while the endstop is on
+/// yet another.
+pub fn check_config(machine: &Machine) -> Result<(), String> {
+    for e in &machine.endstops {
+        let mut mcus: Vec<&str> = Vec::new();
+        for s in machine.steppers.iter().filter(|s| s.axis == e.axis) {
+            if !mcus.contains(&s.mcu.as_str()) {
+                mcus.push(&s.mcu);
+            }
+        }
+        if mcus.len() > 1 && !mcus.contains(&e.pin.mcu.as_str()) {
+            return Err(format!(
+                "[{}] endstop_pin '{}': the steppers of axis {} are on MCUs '{}' while its endstop is on \
+                 yet another MCU '{}': put the endstop on one of the steppers' MCUs or all steppers of the \
+                 axis on one MCU",
+                e.stepper,
+                e.pin,
+                AXIS_NAMES[e.axis.min(2)],
+                mcus.join("', '"),
+                e.pin.mcu
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Homes the named axes (X, Y, Z order) on a live print: `G28` with motion. On success the
+/// axes are homed in the G-code state and the planner continues from the homed position.
+pub fn home_axes(ctx: &mut HomingCtx<'_>, axes: [bool; 3]) -> Result<HomingReport, String> {
+    if !ctx.pipeline.supports_homing() {
+        return Err("G28: homing needs the inline planner without pressure advance".to_string());
+    }
+    check_config(ctx.machine)?;
+    let mut report = HomingReport::default();
+    for axis in (0..3).filter(|&a| axes[a]) {
+        let mut homed = ctx.pipeline.gcode_state().homed();
+        homed[axis] = false;
+        ctx.pipeline.set_homed(homed);
+        match ctx.machine.endstops.iter().find(|e| e.axis == axis).cloned() {
+            Some(e) => report.axes.push(home_axis(ctx, &e)?),
+            None => {
+                // No endstop: the old behaviour, the position is declared.
+                let mut pos = ctx.pipeline.position();
+                pos[axis] = ctx.machine.home_position[axis];
+                ctx.pipeline.set_toolhead_position(pos);
+            }
+        }
+        let mut homed = ctx.pipeline.gcode_state().homed();
+        homed[axis] = true;
+        ctx.pipeline.set_homed(homed);
+    }
+    Ok(report)
+}
+
+/// Both passes of one axis.
+fn home_axis(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisReport, String> {
+    let axis = e.axis;
+    let travel = e.position_max - e.position_min;
+    let dir = if e.homing_positive_dir { 1.0 } else { -1.0 };
+    let mut passes = Vec::new();
+    let start = e.position_endstop - dir * TRAVEL_FACTOR * travel;
+    let (first, mcus) = homing_pass(ctx, e, start, e.homing_speed)?;
+    passes.push(first);
+    let retract = e.homing_retract_dist;
+    if retract > 0.0 {
+        let mut pos = ctx.pipeline.position();
+        pos[axis] = e.position_endstop - dir * retract;
+        plain_move(ctx, pos, e.homing_speed)?;
+        wait_motion_done(ctx)?;
+        if endstop_state(ctx, e)?.1 {
+            return Err(format!(
+                "Endstop {} still triggered after retract",
+                AXIS_NAMES[axis]
+            ));
+        }
+        let start = e.position_endstop - dir * 2.0 * retract;
+        let (second, _) = homing_pass(ctx, e, start, e.second_homing_speed)?;
+        passes.push(second);
+    }
+    Ok(AxisReport {
+        axis,
+        mcus,
+        passes,
+        position: ctx.pipeline.position()[axis],
+    })
+}
+
+/// A plain move of the toolhead to `pos` (retract, bench moves), sent at once.
+pub(crate) fn plain_move(ctx: &mut HomingCtx<'_>, pos: [f64; 4], speed: f64) -> Result<(), String> {
+    let t0 = print_now(ctx.mcus) + ctx.lead + START_MARGIN;
+    ctx.pipeline.raise_print_time(t0).map_err(|e| e.to_string())?;
+    ctx.pipeline.home_move(pos, speed).map_err(|e| e.to_string())?;
+    let mut out = Vec::new();
+    ctx.pipeline.generate(&mut out);
+    push_cmds(ctx, &out)
+}
+
+/// The main MCU's print time now (its estimated clock / nominal CLOCK_FREQ).
+pub fn print_now(mcus: &Mcus) -> f64 {
+    let main = mcus.main();
+    main.link.clock().clock_at(McuLink::system_now()) / main.clock_freq
+}
+
+/// MCU `m`'s clock at main print time `t`.
+fn clock_at_print_time(mcus: &Mcus, m: &McuConn, t: f64) -> u64 {
+    let main = mcus.main();
+    if std::ptr::eq(main, m) {
+        return (t * main.clock_freq).max(0.0) as u64;
+    }
+    let sys = main.link.clock().system_time_at(t * main.clock_freq);
+    m.link.clock().clock_at(sys).max(0.0) as u64
+}
+
+/// Main print time at MCU `m`'s clock `clock`.
+fn print_time_of_clock(mcus: &Mcus, m: &McuConn, clock: u64) -> f64 {
+    let main = mcus.main();
+    if std::ptr::eq(main, m) {
+        return clock as f64 / main.clock_freq;
+    }
+    let sys = m.link.clock().system_time_at(clock as f64);
+    main.link.clock().clock_at(sys) / main.clock_freq
+}
+
+/// Hands released step commands to the sink, refusing any that would reach the MCU late.
+fn push_cmds(ctx: &mut HomingCtx<'_>, out: &[(usize, StepCmd)]) -> Result<(), String> {
+    let main = ctx.mcus.main();
+    let now_clock = print_now(ctx.mcus) * main.clock_freq;
+    let lead_ticks = ctx.lead * main.clock_freq;
+    for &(idx, cmd) in out {
+        if let StepCmd::QueueStep { first_clock, .. } = cmd {
+            if (first_clock as f64) < now_clock + lead_ticks {
+                return Err(format!(
+                    "homing: a step for {} was ready only {:.1} ms before it is due (at least {:.0} ms required)",
+                    ctx.machine.steppers.get(idx).map_or("?", |s| s.name.as_str()),
+                    (first_clock as f64 - now_clock) / main.clock_freq * 1e3,
+                    ctx.lead * 1e3
+                ));
+            }
+        }
+        ctx.streamer.push(idx, cmd, ctx.sink)?;
+    }
+    ctx.sink.flush()
+}
+
+/// Sends everything planned so far and waits (bounded) until the main MCU executed it.
+fn wait_motion_done(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
+    ctx.pipeline.flush_lookahead();
+    let mut out = Vec::new();
+    ctx.pipeline.generate(&mut out);
+    push_cmds(ctx, &out)?;
+    let main = ctx.mcus.main();
+    let end = ctx.streamer.last_step_clock as f64 + 0.001 * main.clock_freq;
+    let remaining = (end / main.clock_freq - print_now(ctx.mcus)).max(0.0);
+    let deadline = Instant::now() + Duration::from_secs_f64(remaining / ctx.time_scale.max(1e-3) + 5.0);
+    while print_now(ctx.mcus) * main.clock_freq < end {
+        ctx.mcus.check()?;
+        if let Some(e) = main.link.error() {
+            return Err(e.to_string());
+        }
+        if Instant::now() > deadline {
+            return Err(
+                "homing: the MCU clock did not reach the end of the planned moves in time".to_string(),
+            );
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    ctx.mcus.check()
+}
+
+/// `query` with retries (the reply of an idempotent query can be lost on a noisy line).
+fn query(
+    conn: &McuConn,
+    name: &str,
+    args: &[i64],
+    response: &str,
+    oid: i64,
+) -> Result<links::dict::Message, String> {
+    let dict = conn.link.dictionary();
+    let cmd = dict
+        .encode(name, args)
+        .map_err(|e| format!("mcu '{}': {e}", conn.name))?;
+    let mut last = String::new();
+    for _ in 0..QUERY_TRIES {
+        match conn.link.query(cmd, response, Some(("oid", oid)), QUERY_TIMEOUT) {
+            Ok(m) => return Ok(m),
+            Err(e @ links::mcu::LinkError::Timeout { .. }) => last = e.to_string(),
+            Err(e) => return Err(e.to_string()),
+        }
+    }
+    Err(last)
+}
+
+fn mcu<'m>(mcus: &'m Mcus, name: &str) -> Result<&'m McuConn, String> {
+    mcus.get(name)
+        .ok_or_else(|| format!("homing: no MCU called '{name}'"))
+}
+
+/// Net steps of stepper `idx` as the host counts them (the MCU's count, sign-corrected for an
+/// inverted dir pin).
+fn stepper_position(ctx: &HomingCtx<'_>, idx: usize) -> Result<i64, String> {
+    let s = &ctx.machine.steppers[idx];
+    let conn = mcu(ctx.mcus, &s.mcu)?;
+    let reply = query(
+        conn,
+        "stepper_get_position",
+        &[s.oid as i64],
+        "stepper_position",
+        s.oid as i64,
+    )?;
+    let raw = reply.get("pos").ok_or("stepper_position without pos")?;
+    Ok(if s.dir_pin.invert { -raw } else { raw })
+}
+
+/// (`next_clock` extended to 64 bits, the pin reads triggered, still homing) of endstop `e`.
+fn endstop_state(ctx: &HomingCtx<'_>, e: &EndstopOut) -> Result<(u64, bool, bool), String> {
+    let conn = mcu(ctx.mcus, &e.pin.mcu)?;
+    let reply = query(
+        conn,
+        "endstop_query_state",
+        &[e.oid as i64],
+        "endstop_state",
+        e.oid as i64,
+    )?;
+    let wire = reply.get("next_clock").unwrap_or(0) as u32;
+    let clock = conn.link.clock().extend(wire, McuLink::system_now());
+    let pin = reply.get("pin_value").unwrap_or(0) != 0;
+    let homing = reply.get("homing").unwrap_or(0) != 0;
+    Ok((clock, pin != e.pin.invert, homing))
+}
+
+/// n(x) = ⌊x / step_dist + ½⌋.
+fn step_index(x: f64, step_dist: f64) -> i64 {
+    (x / step_dist + 0.5).floor() as i64
+}
+
+/// Print time at which `mv` reaches axis coordinate `x` (clamped to the move).
+fn time_at_axis_pos(mv: &Move, axis: usize, x: f64) -> f64 {
+    let r = mv.axes_r[axis];
+    if r == 0.0 {
+        return mv.end_time();
+    }
+    let s = ((x - mv.start_pos[axis]) / r).clamp(0.0, mv.move_d);
+    mv.print_time + mv.time_at_distance(s)
+}
+
+/// The axis coordinate of `mv` at print time `t` (clamped to the move).
+fn axis_pos_at(mv: &Move, axis: usize, t: f64) -> f64 {
+    let rel = (t - mv.print_time).clamp(0.0, mv.duration());
+    mv.start_pos[axis] + mv.axes_r[axis] * mv.distance_at(rel)
+}
+
+/// One homing move of endstop `e`'s axis from the pretended `start` toward `position_endstop`.
+/// Returns the pass report and the group's MCU names.
+fn homing_pass(
+    ctx: &mut HomingCtx<'_>,
+    e: &EndstopOut,
+    start: f64,
+    speed: f64,
+) -> Result<(PassReport, Vec<String>), String> {
+    let axis = e.axis;
+    let axis_name = AXIS_NAMES[axis];
+    wait_motion_done(ctx)?;
+    let idxs: Vec<usize> = (0..ctx.machine.steppers.len())
+        .filter(|&i| ctx.machine.steppers[i].axis == axis)
+        .collect();
+    let Some(&idx0) = idxs.first() else {
+        return Err(format!("homing {axis_name}: the axis has no stepper"));
+    };
+    if let Some(i) = idxs
+        .iter()
+        .find(|&&i| ctx.machine.steppers[i].mcu != ctx.mcus.main().name)
+    {
+        return Err(format!(
+            "homing {axis_name}: [{}] is not on the main MCU (not supported by this version)",
+            ctx.machine.steppers[*i].name
+        ));
+    }
+    // The group: the endstop's MCU first, then the steppers' MCUs.
+    let mut names = vec![e.pin.mcu.clone()];
+    for &i in &idxs {
+        let m = &ctx.machine.steppers[i].mcu;
+        if !names.contains(m) {
+            names.push(m.clone());
+        }
+    }
+    let mut conns = Vec::with_capacity(names.len());
+    for n in &names {
+        conns.push(mcu(ctx.mcus, n)?);
+    }
+    let endstop_conn = conns[0];
+    let before: Vec<i64> = idxs
+        .iter()
+        .map(|&i| stepper_position(ctx, i))
+        .collect::<Result<_, _>>()?;
+
+    let mut pos = ctx.pipeline.position();
+    pos[axis] = start;
+    ctx.pipeline.set_toolhead_position(pos);
+    let mut target = pos;
+    target[axis] = e.position_endstop;
+
+    let timeout = TriggerGroup::default_timeout(conns.len());
+    let members: Vec<(&McuLink, u8)> = conns.iter().map(|c| (&c.link, c.trsync_oid)).collect();
+    // Arm the trsyncs, then a round trip per member: every `trsync_state` still in flight from
+    // the previous pass (a triggered trsync keeps reporting) has arrived before the group
+    // listens. The endstop is armed only after that, so no trigger can be missed meanwhile.
+    let t_arm = print_now(ctx.mcus) + ctx.lead + START_MARGIN;
+    if let Err(err) = arm(ctx, &conns, &idxs, t_arm, timeout).and_then(|()| barrier(&conns)) {
+        quiet(&conns);
+        return Err(err);
+    }
+    let group = TriggerGroup::new(&members, timeout).map_err(|e| e.to_string())?;
+    let t0 = (print_now(ctx.mcus) + ctx.lead + START_MARGIN).max(ctx.pipeline.toolhead_print_time());
+    let setup = ctx
+        .pipeline
+        .raise_print_time(t0)
+        .map_err(|e| e.to_string())
+        .and_then(|()| {
+            arm_endstop(
+                ctx,
+                e,
+                endstop_conn,
+                ctx.machine.steppers[idx0].step_dist,
+                t0,
+                speed,
+            )
+        });
+    if let Err(err) = setup {
+        group.trigger_all(REASON_HOST_REQUEST);
+        group.close();
+        quiet(&conns);
+        return Err(err);
+    }
+    let mv = ctx.pipeline.home_move(target, speed).map_err(|e| e.to_string());
+    let mv = match mv {
+        Ok(Some(mv)) => Ok(mv),
+        Ok(None) => Err(format!("homing {axis_name}: the homing move has no length")),
+        Err(err) => Err(err),
+    };
+    let sent = match mv {
+        Ok(mv) => {
+            let mut out = Vec::new();
+            ctx.pipeline.generate(&mut out);
+            push_cmds(ctx, &out).map(|()| mv)
+        }
+        Err(err) => Err(err),
+    };
+    let outcome = match &sent {
+        Ok(mv) => {
+            let main = ctx.mcus.main();
+            let end_sys = main.link.clock().system_time_at(mv.end_time() * main.clock_freq);
+            let wait = (end_sys - McuLink::system_now()).clamp(0.0, 1e6);
+            group.wait(Instant::now() + Duration::from_secs_f64(wait) + END_GRACE)
+        }
+        Err(_) => Err(TrsyncError::NotTriggered),
+    };
+    // Whatever happened: every member stops, the endstop stops sampling.
+    let reason = match &outcome {
+        Err(TrsyncError::NotTriggered) => REASON_PAST_END_TIME,
+        _ => REASON_HOST_REQUEST,
+    };
+    group.trigger_all(reason);
+    restop(ctx, &conns, &idxs);
+    let cancel = endstop_conn
+        .link
+        .dictionary()
+        .encode(
+            "endstop_home",
+            &[e.oid as i64, 0, 0, 0, 0, 0, endstop_conn.trsync_oid as i64, 0],
+        )
+        .map_err(|x| x.to_string())
+        .and_then(|c| endstop_conn.link.send(c).map_err(|x| x.to_string()));
+    let mv = match sent {
+        Ok(mv) => mv,
+        Err(err) => {
+            group.close();
+            quiet(&conns);
+            return Err(err);
+        }
+    };
+    // The trigger clock, and where the steppers halted.
+    let trig = match &outcome {
+        Ok(o) if o.reason == REASON_ENDSTOP_HIT => endstop_state(ctx, e).and_then(|(c, _, homing)| {
+            if homing || c < clock_at_print_time(ctx.mcus, endstop_conn, t0) {
+                Err(format!(
+                    "homing {axis_name}: '{}' reported a trigger but the endstop did not trigger",
+                    o.mcu
+                ))
+            } else {
+                Ok(Some((e.pin.mcu.clone(), c)))
+            }
+        }),
+        _ => Ok(None),
+    };
+    let after: Result<Vec<i64>, String> = idxs.iter().map(|&i| stepper_position(ctx, i)).collect();
+    group.close();
+    quiet(&conns);
+    let primary_error = match outcome {
+        Ok(o) if o.reason == REASON_ENDSTOP_HIT => None,
+        Ok(o) => Some(format!(
+            "homing {axis_name}: the move stopped with trigger reason {}",
+            o.reason
+        )),
+        Err(TrsyncError::CommTimeout { .. }) => Some(COMM_TIMEOUT_MSG.to_string()),
+        Err(TrsyncError::NotTriggered) => Some(format!("No trigger on {axis_name} after full movement")),
+        Err(other) => Some(other.to_string()),
+    };
+    let after = match after {
+        Ok(a) => a,
+        Err(err) => return Err(primary_error.unwrap_or(err)),
+    };
+    let sd = ctx.machine.steppers[idx0].step_dist;
+    let n_start = step_index(mv.start_pos[axis], sd);
+    let n_halt = n_start + (after[0] - before[0]);
+    let halt_pos = n_halt as f64 * sd;
+    let resume = print_now(ctx.mcus) + ctx.lead + START_MARGIN;
+    let stopped: Vec<(usize, i64)> = idxs.iter().copied().zip(after.iter().copied()).collect();
+    let now_clock = (print_now(ctx.mcus) * ctx.mcus.main().clock_freq) as u64;
+    let resync = |ctx: &mut HomingCtx<'_>, axis_pos: f64| -> Result<(), String> {
+        let mut p = ctx.pipeline.position();
+        p[axis] = axis_pos;
+        ctx.pipeline
+            .resync_after_stop(resume, p, &stopped)
+            .map_err(|e| e.to_string())?;
+        for &(i, _) in &stopped {
+            ctx.streamer.note_stopped(i, now_clock);
+        }
+        Ok(())
+    };
+    let (trig, error) = match (primary_error, trig) {
+        (Some(err), _) => (None, Some(err)),
+        (None, Ok(Some(t))) => (Some(t), None),
+        (None, Ok(None)) => (None, Some(format!("homing {axis_name}: no trigger clock"))),
+        (None, Err(err)) => (None, Some(err)),
+    };
+    let (Some((trigger_mcu, trigger_clock)), None) = (trig, error.clone()) else {
+        // Keep host and MCU in agreement (positions in the pretended frame; axis not homed).
+        let _ = resync(ctx, halt_pos);
+        return Err(error.unwrap_or_else(|| format!("homing {axis_name}: failed")));
+    };
+    cancel?;
+    let trig_conn = mcu(ctx.mcus, &trigger_mcu)?;
+    let t_trig = print_time_of_clock(ctx.mcus, trig_conn, trigger_clock);
+    let n_trig = step_index(axis_pos_at(&mv, axis, t_trig), sd);
+    let overshoot_steps = n_halt - n_trig;
+    let dir = if mv.axes_r[axis] >= 0.0 { 1.0 } else { -1.0 };
+    let overshoot_mm = overshoot_steps as f64 * sd * dir + 0.0;
+    let position = e.position_endstop + overshoot_steps as f64 * sd;
+    // The last executed step reached index n_halt at boundary (n_halt − dir·½)·sd.
+    let last_b = (n_halt as f64 - 0.5 * dir) * sd;
+    let last_step = time_at_axis_pos(&mv, axis, last_b);
+    let next_step = time_at_axis_pos(&mv, axis, last_b + dir * sd);
+    resync(ctx, position)?;
+    Ok((
+        PassReport {
+            speed,
+            trigger_mcu,
+            trigger_clock,
+            trigger_print_time: t_trig,
+            overshoot_mm,
+            steps: after[0] - before[0],
+            last_step_after_s: last_step - t_trig,
+            next_step_after_s: next_step - t_trig,
+        },
+        names,
+    ))
+}
+
+/// Stops the axis steppers a second time once every step command queued before the trigger
+/// has reached its MCU: the trigger overtakes queued messages, and a `queue_step` arriving
+/// after the stop would start the stepper again (the firmware accepts steps after a stop).
+/// Per stepper MCU: wait until its link is idle, re-arm its trsync (no reports), attach the
+/// axis steppers, trigger it. Best effort (a dead link stops nothing anyway).
+fn restop(ctx: &HomingCtx<'_>, conns: &[&McuConn], idxs: &[usize]) {
+    for c in conns {
+        let attached: Vec<i64> = idxs
+            .iter()
+            .map(|&i| &ctx.machine.steppers[i])
+            .filter(|s| s.mcu == c.name)
+            .map(|s| s.oid as i64)
+            .collect();
+        if attached.is_empty() || c.link.wait_idle(Duration::from_secs(2)).is_err() {
+            continue;
+        }
+        let dict = c.link.dictionary();
+        let oid = c.trsync_oid as i64;
+        let mut cmds = vec![dict.encode("trsync_start", &[oid, 0, 0, 0])];
+        for s in &attached {
+            cmds.push(dict.encode("stepper_stop_on_trigger", &[*s, oid]));
+        }
+        cmds.push(dict.encode("trsync_trigger", &[oid, REASON_HOST_REQUEST as i64]));
+        for cmd in cmds.into_iter().flatten() {
+            let _ = c.link.send(cmd);
+        }
+    }
+}
+
+/// One `get_clock` round trip per MCU: everything each sent before it has been received.
+fn barrier(conns: &[&McuConn]) -> Result<(), String> {
+    for c in conns {
+        let cmd = c
+            .link
+            .dictionary()
+            .encode("get_clock", &[])
+            .map_err(|x| format!("mcu '{}': {x}", c.name))?;
+        let mut result = Ok(());
+        for _ in 0..QUERY_TRIES {
+            result = c.link.query(cmd, "clock", None, QUERY_TIMEOUT).map(|_| ());
+            if !matches!(result, Err(links::mcu::LinkError::Timeout { .. })) {
+                break;
+            }
+        }
+        result.map_err(|x| x.to_string())?;
+    }
+    Ok(())
+}
+
+/// Stops the periodic reports of the group's trsyncs (re-armed without reports or expiry,
+/// no stepper attached) until the next homing move. Best effort.
+fn quiet(conns: &[&McuConn]) {
+    for c in conns {
+        if let Ok(cmd) = c
+            .link
+            .dictionary()
+            .encode("trsync_start", &[c.trsync_oid as i64, 0, 0, 0])
+        {
+            let _ = c.link.send(cmd);
+        }
+    }
+}
+
+/// Starts the trsyncs of the group (reports from ~2 ms on, expiry at `t_arm` + timeout until
+/// the host extends it) and attaches the axis steppers.
+fn arm(
+    ctx: &HomingCtx<'_>,
+    conns: &[&McuConn],
+    idxs: &[usize],
+    t_arm: f64,
+    timeout: f64,
+) -> Result<(), String> {
+    let now = McuLink::system_now();
+    for c in conns {
+        let dict = c.link.dictionary();
+        let est = c.link.clock();
+        let freq = if est.is_valid() { est.freq() } else { c.clock_freq };
+        let report_clock = est.clock_at(now + FIRST_REPORT_DELAY).max(0.0) as u64;
+        let report_ticks = (0.3 * timeout * freq) as u64;
+        let expire = clock_at_print_time(ctx.mcus, c, t_arm).max(report_clock) + (timeout * freq) as u64;
+        let oid = c.trsync_oid as i64;
+        let enc = |name: &str, args: &[i64]| {
+            dict.encode(name, args)
+                .map_err(|x| format!("mcu '{}': {x}", c.name))
+        };
+        let mut cmds = vec![
+            enc(
+                "trsync_start",
+                &[
+                    oid,
+                    report_clock as u32 as i64,
+                    report_ticks as i64,
+                    links::trsync::REASON_COMMS_TIMEOUT as i64,
+                ],
+            )?,
+            enc("trsync_set_timeout", &[oid, expire as u32 as i64])?,
+        ];
+        for &i in idxs {
+            let s = &ctx.machine.steppers[i];
+            if s.mcu == c.name {
+                cmds.push(enc("stepper_stop_on_trigger", &[s.oid as i64, oid])?);
+            }
+        }
+        for cmd in cmds {
+            c.link.send(cmd).map_err(|x| x.to_string())?;
+        }
+    }
+    Ok(())
+}
+
+/// Arms endstop `e` on its MCU `c` to sample from print time `t0` at a rest time of about one
+/// step at `speed` (clamped to [`MIN_REST_TIME`, `MAX_REST_TIME`]).
+fn arm_endstop(
+    ctx: &HomingCtx<'_>,
+    e: &EndstopOut,
+    c: &McuConn,
+    step_dist: f64,
+    t0: f64,
+    speed: f64,
+) -> Result<(), String> {
+    let rest_time = (step_dist / speed.max(1e-6)).clamp(MIN_REST_TIME, MAX_REST_TIME);
+    let clock = clock_at_print_time(ctx.mcus, c, t0);
+    let cmd = c
+        .link
+        .dictionary()
+        .encode(
+            "endstop_home",
+            &[
+                e.oid as i64,
+                clock as u32 as i64,
+                (SAMPLE_TIME * c.clock_freq).round().max(1.0) as i64,
+                SAMPLE_COUNT as i64,
+                (rest_time * c.clock_freq).round().max(1.0) as i64,
+                !e.pin.invert as i64,
+                c.trsync_oid as i64,
+                REASON_ENDSTOP_HIT as i64,
+            ],
+        )
+        .map_err(|x| format!("mcu '{}': {x}", c.name))?;
+    c.link.send(cmd).map_err(|x| x.to_string())
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,332 @@
+//! `cadence home`: homes the printer (default: the built-in simulated one) with real motion,
+//! once or `--cycles N` times (each cycle first moves the homed axes `--away` mm off their
+//! endstops), and reports the homed position, the overshoot and trigger → stop latencies.
+//!
+//! Latencies, per homing pass:
+//! - host view (always): the last executed step and the first cancelled step of the axis
+//!   stepper, from the move profile and the MCU's step count, minus the endstop's trigger time;
+//! - trace view (with `--trace`, for an axis whose endstop is on another MCU than its steppers):
+//!   the stepper MCU's trsync trigger record (the moment its steppers stopped) and its last step
+//!   record, minus the endstop MCU's trigger record, each converted to system time with that
+//!   MCU's clock estimate (both simulated MCUs count CLOCK_MONOTONIC). Pairing: each endstop
+//!   trigger with the first unused stop on the stepper MCU at or after it (−5 ms tolerance).
+//!
+//! Figures are µs of system time (MCU time when the simulator's time scale is 1).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use clap::Args;
+use links::clocksync::ClockEstimate;
+use links::dict::Cmd;
+use links::mcu::McuLink;
+use links::trsync::COMM_TIMEOUT_MSG;
+use planner::pipeline::Pipeline;
+use rt_core::hist::LatencyHist;
+
+use super::{plain_move, print_now, HomingCtx, HomingReport, AXIS_NAMES};
+use crate::machine::Machine;
+use crate::mcus::{trace_path, ConnectOptions, Mcus};
+use crate::sink::{Sink, StepStreamer};
+
+/// Arguments of `cadence home`.
+#[derive(Debug, Args)]
+pub struct HomeArgs {
+    /// Klipper-format printer.cfg (default: the built-in simulated cartesian printer).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Axes to home, as letters (e.g. `z`, `xy`).
+    #[arg(long, default_value = "xyz")]
+    pub axes: String,
+    /// Homing cycles; before each one after the first, the axes move `--away` mm off their
+    /// endstops.
+    #[arg(long, default_value_t = 1)]
+    pub cycles: u32,
+    /// Distance (mm) the axes move off their endstops between cycles.
+    #[arg(long, default_value_t = 5.0)]
+    pub away: f64,
+    /// Simulated MCU clock runs this many times faster than the wall clock.
+    #[arg(long)]
+    pub time_scale: Option<f64>,
+    /// Write the simulated MCUs' step traces (others than the main one get `-NAME` inserted).
+    #[arg(long)]
+    pub trace: Option<PathBuf>,
+    /// Maximum step time error of the compression, in microseconds.
+    #[arg(long, default_value_t = 25.0)]
+    pub max_error_us: f64,
+}
+
+/// Lead every step command must have at the MCU, in print seconds.
+const MIN_LEAD_S: f64 = 0.100;
+
+pub fn run(args: &HomeArgs) -> Result<(), String> {
+    let mut axes = [false; 3];
+    for c in args.axes.chars() {
+        match AXIS_NAMES.iter().position(|&a| a == c.to_ascii_lowercase()) {
+            Some(i) => axes[i] = true,
+            None => return Err(format!("--axes {}: '{c}' is not x, y or z", args.axes)),
+        }
+    }
+    if !(args.away.is_finite() && args.away > 0.0) {
+        return Err(format!("--away {}: must be > 0", args.away));
+    }
+    if let Some(scale) = args.time_scale {
+        if !(scale > 0.0 && scale <= 50.0) {
+            return Err(format!("--time-scale {scale}: must be in (0, 50]"));
+        }
+    }
+    let cfg = match &args.config {
+        Some(path) => sysconfig::printer::load(path).map_err(|e| e.to_string())?,
+        None => sysconfig::printer::builtin_simulated().map_err(|e| format!("built-in printer: {e}"))?,
+    };
+    for w in &cfg.warnings {
+        eprintln!("cadence: warning: {w}");
+    }
+    let machine = Machine::from_config(&cfg)?;
+    super::check_config(&machine)?;
+    let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
+    let opts = ConnectOptions {
+        time_scale,
+        trace: args.trace.clone(),
+        lead_hook: None,
+    };
+    let mut mcus = Mcus::connect(&cfg, &machine, opts)?;
+    let clocks: Vec<(String, ClockEstimate)> = mcus
+        .list
+        .iter()
+        .map(|m| (m.name.clone(), m.link.clock()))
+        .collect();
+    let result = cycles(args, &machine, &mcus, axes, time_scale);
+    // Fresh estimates for the trace conversion (the fit keeps improving).
+    let clocks: Vec<(String, ClockEstimate)> = mcus
+        .list
+        .iter()
+        .map(|m| (m.name.clone(), m.link.clock()))
+        .chain(clocks)
+        .collect();
+    let trsync_oid = mcus.main().trsync_oid;
+    let main_name = mcus.main().name.clone();
+    mcus.close();
+    result?;
+    if let Some(base) = &args.trace {
+        trace_latency(&machine, axes, base, &main_name, trsync_oid, &clocks)?;
+    }
+    Ok(())
+}
+
+/// Homes `cycles` times and prints the reports and the host-view histograms.
+fn cycles(
+    args: &HomeArgs,
+    machine: &Machine,
+    mcus: &Mcus,
+    axes: [bool; 3],
+    scale: f64,
+) -> Result<(), String> {
+    let main = mcus.main();
+    let start = print_now(mcus) + (0.5f64).max(0.25 * scale);
+    let mut pipeline = Pipeline::new(
+        machine.pipeline_config(main.clock_freq, args.max_error_us * 1e-6),
+        start,
+    )
+    .map_err(|e| e.to_string())?;
+    let mut streamer = StepStreamer::new(main.link.dictionary(), &machine.steppers, main.move_count)?;
+    let mut sink = LinkSink { link: &main.link };
+    let mut ctx = HomingCtx {
+        mcus,
+        machine,
+        pipeline: &mut pipeline,
+        streamer: &mut streamer,
+        sink: &mut sink,
+        lead: MIN_LEAD_S,
+        time_scale: scale,
+    };
+    let mut last_step = LatencyHist::new();
+    let mut next_step = LatencyHist::new();
+    let mut overshoot = LatencyHist::new();
+    let started = Instant::now();
+    let mut last_report = HomingReport::default();
+    let mut timeouts = 0u32;
+    let mut failed_last = false;
+    for cycle in 0..args.cycles {
+        // After a failed cycle the axis is not homed: its position is unknown, so no away move.
+        if cycle > 0 && !failed_last {
+            let mut pos = ctx.pipeline.position();
+            for e in machine.endstops.iter().filter(|e| axes[e.axis]) {
+                let dir = if e.homing_positive_dir { 1.0 } else { -1.0 };
+                pos[e.axis] = (e.position_endstop - dir * args.away).clamp(e.position_min, e.position_max);
+            }
+            plain_move(
+                &mut ctx,
+                pos,
+                machine.endstops.first().map_or(10.0, |e| e.homing_speed),
+            )?;
+        }
+        // A communication timeout is an outcome to count here, not the end of the bench (the
+        // planner was resynced to where the steppers stopped; the next cycle homes again).
+        let report = match super::home_axes(&mut ctx, axes) {
+            Ok(r) => r,
+            Err(e) if e == COMM_TIMEOUT_MSG && args.cycles > 1 => {
+                timeouts += 1;
+                failed_last = true;
+                eprintln!("cadence: cycle {}: {e}", cycle + 1);
+                continue;
+            }
+            Err(e) => return Err(e),
+        };
+        failed_last = false;
+        for p in report.axes.iter().flat_map(|a| &a.passes) {
+            last_step.record_signed((p.last_step_after_s * 1e9) as i64);
+            next_step.record_signed((p.next_step_after_s * 1e9) as i64);
+            overshoot.record_signed((p.overshoot_mm * 1e6) as i64); // nm
+        }
+        if cycle == 0 {
+            print!("{report}");
+        }
+        last_report = report;
+    }
+    if args.cycles > 1 {
+        println!("last cycle:");
+        print!("{last_report}");
+    }
+    // Everything executed, host and MCU agree on every stepper position.
+    super::wait_motion_done(&mut ctx)?;
+    let host = ctx.pipeline.stepper_positions();
+    for (i, s) in machine.steppers.iter().enumerate() {
+        let mcu_pos = super::stepper_position(&ctx, i)?;
+        if host.get(i) != Some(&mcu_pos) {
+            return Err(format!(
+                "{}: the MCU reports position {mcu_pos} steps but the host counts {:?}",
+                s.name,
+                host.get(i)
+            ));
+        }
+    }
+    let pos = ctx.pipeline.position();
+    println!("homed position: x={:.6} y={:.6} z={:.6}", pos[0], pos[1], pos[2]);
+    let passes = last_step.count();
+    println!(
+        "homing: {} cycles, {passes} passes, {timeouts} communication timeouts, wall {:.1} s",
+        args.cycles,
+        started.elapsed().as_secs_f64()
+    );
+    println!(
+        "  host view, last executed step after trigger:  {}",
+        last_step.summary().format_latency()
+    );
+    println!(
+        "  host view, first cancelled step after trigger: {}",
+        next_step.summary().format_latency()
+    );
+    let o = overshoot.summary();
+    let mm = |nm: u64| nm as f64 * 1e-6;
+    println!(
+        "  overshoot: p50 {:.4} mm p99 {:.4} mm p99.9 {:.4} mm max {:.4} mm",
+        mm(o.p50),
+        mm(o.p99),
+        mm(o.p999),
+        mm(o.max)
+    );
+    Ok(())
+}
+
+/// Trigger → stop latencies from the simulated MCUs' traces (see the module doc).
+fn trace_latency(
+    machine: &Machine,
+    axes: [bool; 3],
+    base: &Path,
+    main: &str,
+    trsync_oid: u8,
+    clocks: &[(String, ClockEstimate)],
+) -> Result<(), String> {
+    let est = |name: &str| clocks.iter().find(|(n, _)| n == name).map(|&(_, e)| e);
+    let main_est = est(main).ok_or("no clock estimate of the main MCU")?;
+    let read = |name: &str| {
+        let path = trace_path(base, name, name == main);
+        firmware::trace::read_trace(&path).map_err(|e| format!("{}: {e}", path.display()))
+    };
+    let main_trace = read(main)?;
+    for e in machine
+        .endstops
+        .iter()
+        .filter(|e| axes[e.axis] && e.pin.mcu != main)
+    {
+        let Some(e_est) = est(&e.pin.mcu) else { continue };
+        let e_trace = read(&e.pin.mcu)?;
+        let triggers: Vec<f64> = e_trace
+            .triggers
+            .iter()
+            .filter(|t| t.endstop && t.oid == e.oid)
+            .map(|t| e_est.system_time_at(t.clock as f64))
+            .collect();
+        let stops: Vec<(u64, f64)> = main_trace
+            .triggers
+            .iter()
+            .filter(|t| !t.endstop && t.oid == trsync_oid)
+            .map(|t| (t.clock, main_est.system_time_at(t.clock as f64)))
+            .collect();
+        let oids: Vec<u8> = machine
+            .steppers
+            .iter()
+            .filter(|s| s.axis == e.axis)
+            .map(|s| s.oid)
+            .collect();
+        let mut steps: Vec<u64> = main_trace
+            .records
+            .iter()
+            .filter_map(|r| match *r {
+                firmware::trace::TraceRecord::Step { oid, clock, .. } if oids.contains(&oid) => Some(clock),
+                _ => None,
+            })
+            .collect();
+        steps.sort_unstable();
+        let mut stop_h = LatencyHist::new();
+        let mut last_h = LatencyHist::new();
+        let mut j = 0;
+        for &t in &triggers {
+            while j < stops.len() && stops[j].1 < t - 0.005 {
+                j += 1;
+            }
+            let Some(&(stop_clock, stop_sys)) = stops.get(j) else {
+                break;
+            };
+            j += 1;
+            stop_h.record_signed(((stop_sys - t) * 1e9) as i64);
+            let k = steps.partition_point(|&c| c <= stop_clock);
+            if k > 0 {
+                last_h.record_signed(((main_est.system_time_at(steps[k - 1] as f64) - t) * 1e9) as i64);
+            }
+        }
+        let name = AXIS_NAMES[e.axis.min(2)];
+        println!(
+            "trace {name} ({} → {main}): trigger → stepper MCU stop:      {}",
+            e.pin.mcu,
+            stop_h.summary().format_latency()
+        );
+        println!(
+            "trace {name} ({} → {main}): trigger → last step before stop: {}",
+            e.pin.mcu,
+            last_h.summary().format_latency()
+        );
+        let s = last_h.summary();
+        if s.negative > 0 {
+            println!("  ({} passes had their last step before the trigger)", s.negative);
+        }
+    }
+    Ok(())
+}
+
+/// The main MCU's link as a step-command sink.
+struct LinkSink<'a> {
+    link: &'a McuLink,
+}
+
+impl Sink for LinkSink<'_> {
+    fn send(&mut self, cmd: Cmd) -> Result<(), String> {
+        self.link.send(cmd).map_err(|e| e.to_string())
+    }
+    fn send_clocked(&mut self, cmd: Cmd, min_clock: u64, req_clock: u64) -> Result<(), String> {
+        self.link
+            .send_clocked(cmd, min_clock, req_clock)
+            .map_err(|e| e.to_string())
+    }
+}
