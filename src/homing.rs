@@ -65,8 +65,8 @@ pub const SAMPLE_COUNT: u8 = 4;
 pub const MAX_REST_TIME: f64 = 1e-3;
 /// Shortest time between endstop reads (s).
 pub const MIN_REST_TIME: f64 = 100e-6;
-/// Margin on top of the lead between "now" and the start of a homing move (s of print time):
-/// the set-up messages go out in it.
+/// Margin on top of the lead between "now" and the start of a homing move, in seconds of wall
+/// time (× the simulator's time scale in print time): the set-up messages go out in it.
 pub const START_MARGIN: f64 = 0.030;
 /// The first homing move pretends to start this many axis travels away from the endstop.
 pub const TRAVEL_FACTOR: f64 = 1.5;
@@ -259,7 +259,7 @@ fn home_axis(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisReport, Stri
 
 /// A plain move of the toolhead to `pos` (retract, bench moves), sent at once.
 pub(crate) fn plain_move(ctx: &mut HomingCtx<'_>, pos: [f64; 4], speed: f64) -> Result<(), String> {
-    let t0 = print_now(ctx.mcus) + ctx.lead + START_MARGIN;
+    let t0 = print_now(ctx.mcus) + ctx.lead + START_MARGIN * ctx.time_scale.max(1.0);
     ctx.pipeline.raise_print_time(t0).map_err(|e| e.to_string())?;
     ctx.pipeline.home_move(pos, speed).map_err(|e| e.to_string())?;
     let mut out = Vec::new();
@@ -476,13 +476,14 @@ fn homing_pass(
     // Arm the trsyncs, then a round trip per member: every `trsync_state` still in flight from
     // the previous pass (a triggered trsync keeps reporting) has arrived before the group
     // listens. The endstop is armed only after that, so no trigger can be missed meanwhile.
-    let t_arm = print_now(ctx.mcus) + ctx.lead + START_MARGIN;
+    let t_arm = print_now(ctx.mcus) + ctx.lead + START_MARGIN * ctx.time_scale.max(1.0);
     if let Err(err) = arm(ctx, &conns, &idxs, t_arm, timeout).and_then(|()| barrier(&conns)) {
         quiet(&conns);
         return Err(err);
     }
     let group = TriggerGroup::new(&members, timeout).map_err(|e| e.to_string())?;
-    let t0 = (print_now(ctx.mcus) + ctx.lead + START_MARGIN).max(ctx.pipeline.toolhead_print_time());
+    let t0 = (print_now(ctx.mcus) + ctx.lead + START_MARGIN * ctx.time_scale.max(1.0))
+        .max(ctx.pipeline.toolhead_print_time());
     let setup = ctx
         .pipeline
         .raise_print_time(t0)
@@ -585,7 +586,7 @@ fn homing_pass(
     let n_start = step_index(mv.start_pos[axis], sd);
     let n_halt = n_start + (after[0] - before[0]);
     let halt_pos = n_halt as f64 * sd;
-    let resume = print_now(ctx.mcus) + ctx.lead + START_MARGIN;
+    let resume = print_now(ctx.mcus) + ctx.lead + START_MARGIN * ctx.time_scale.max(1.0);
     let stopped: Vec<(usize, i64)> = idxs.iter().copied().zip(after.iter().copied()).collect();
     let now_clock = (print_now(ctx.mcus) * ctx.mcus.main().clock_freq) as u64;
     let resync = |ctx: &mut HomingCtx<'_>, axis_pos: f64| -> Result<(), String> {

@@ -14,8 +14,9 @@
 //! and each stage's wake-up lateness. When the OS refuses pinning or SCHED_FIFO, the threads run
 //! anyway and rt-core reports once which guarantees are off.
 
+use std::cell::RefCell;
 use std::fs::File;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{mpsc, Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -30,10 +31,11 @@ use rt_core::shm::{
     open_node, steps_service_name, ChannelConfig, ShmPublisher, ShmSubscriber, StepBatch, WireMsg,
 };
 
+use crate::homing::{home_axes, HomingCtx};
 use crate::machine::Machine;
 use crate::mcus::Mcus;
 use crate::print::{plan_file, PrintArgs, Summary, MIN_LEAD_S};
-use crate::sink::{Sink, StepStreamer};
+use crate::sink::{LinkSink, Sink, StepStreamer};
 
 type Ipc = iceoryx2::prelude::ipc::Service;
 
@@ -231,6 +233,7 @@ fn io_stage(
     service: &str,
     ready: mpsc::Sender<Result<(), String>>,
     done: &AtomicBool,
+    consumed: &AtomicU64,
     hists: &Hists,
     clock_freq: f64,
 ) -> Result<IoReport, String> {
@@ -290,6 +293,8 @@ fn io_stage(
             }
         }
         report.batches += 1;
+        // Pairs with the planner's Acquire load before homing talks to the link directly.
+        consumed.store(batch.seq + 1, Ordering::Release);
         if report.batches == WARMUP_BATCHES {
             warm = Some(AllocCounter::snapshot());
         }
@@ -316,6 +321,8 @@ pub fn print_on(
     let service = steps_service_name(&instance, &main.name);
     let done_flag = AtomicBool::new(false);
     let done = &done_flag;
+    let consumed_count = AtomicU64::new(0);
+    let consumed = &consumed_count;
     let service = service.as_str();
 
     std::thread::scope(|scope| {
@@ -325,7 +332,7 @@ pub fn print_on(
             .name(io_spec.name.clone())
             .spawn_scoped(scope, move || {
                 apply_rt(&io_spec);
-                io_stage(link, service, ready_tx, done, hists, clock_freq)
+                io_stage(link, service, ready_tx, done, consumed, hists, clock_freq)
             })
             .map_err(|e| format!("cannot start the IO stage thread: {e}"))?;
         match ready_rx.recv_timeout(Duration::from_secs(10)) {
@@ -338,7 +345,9 @@ pub fn print_on(
             .name("planner".to_string())
             .spawn_scoped(scope, move || {
                 apply_rt(&planner_spec);
-                let r = planner_stage(args, machine, mcus, gcode, started, scale, service, hists);
+                let r = planner_stage(
+                    args, machine, mcus, gcode, started, scale, service, consumed, hists,
+                );
                 done.store(true, Ordering::Release);
                 r
             })
@@ -379,6 +388,7 @@ fn planner_stage(
     started: Instant,
     scale: f64,
     service: &str,
+    consumed: &AtomicU64,
     hists: &Hists,
 ) -> Result<Planned, String> {
     let main = mcus.main();
@@ -396,10 +406,10 @@ fn planner_stage(
         }
         std::thread::sleep(Duration::from_millis(1));
     }
-    let mut sink = ShmSink {
+    let sink = RefCell::new(ShmSink {
         publisher,
         batch: StepBatch::default(),
-    };
+    });
 
     let print_now = || link.clock().clock_at(McuLink::system_now()) / clock_freq;
     // Start far enough ahead that the first batch is planned long before it is due.
@@ -416,13 +426,15 @@ fn planner_stage(
         machine.options,
     )
     .map_err(|e| e.to_string())?;
-    let mut streamer = StepStreamer::new(dict, &machine.steppers, main.move_count)?;
+    let streamer = RefCell::new(StepStreamer::new(dict, &machine.steppers, main.move_count)?);
     let mut warm: Option<AllocCounter> = None;
     let lines = plan_file(
         args,
         &mut pipeline,
         gcode,
         |cmds| {
+            let mut streamer = streamer.borrow_mut();
+            let mut sink = sink.borrow_mut();
             let now_clock = (print_now() * clock_freq) as u64;
             for &(idx, cmd) in cmds.iter() {
                 if let StepCmd::QueueStep { first_clock, .. } = cmd {
@@ -437,7 +449,7 @@ fn planner_stage(
                         ));
                     }
                 }
-                streamer.push(idx, cmd, &mut sink)?;
+                streamer.push(idx, cmd, &mut *sink)?;
             }
             sink.flush()
         },
@@ -458,7 +470,43 @@ fn planner_stage(
             }
             mcus.check()
         },
+        |pipeline, axes| {
+            if machine.endstops.is_empty() {
+                return Ok(false);
+            }
+            // Drain the shared-memory hand-off: everything planned so far must be in the link
+            // before homing talks to the MCUs directly.
+            let published = {
+                let mut sink = sink.borrow_mut();
+                sink.flush()?;
+                sink.publisher.next_seq()
+            };
+            let deadline = Instant::now() + Duration::from_secs(10);
+            while consumed.load(Ordering::Acquire) < published {
+                if Instant::now() > deadline {
+                    return Err("the IO stage did not take the planned steps before homing".to_string());
+                }
+                mcus.check()?;
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            let mut streamer = streamer.borrow_mut();
+            let mut direct = LinkSink { link };
+            let mut ctx = HomingCtx {
+                mcus,
+                machine,
+                pipeline,
+                streamer: &mut streamer,
+                sink: &mut direct,
+                lead: MIN_LEAD_S,
+                time_scale: scale,
+            };
+            let report = home_axes(&mut ctx, axes)?;
+            println!("{report}");
+            Ok(true)
+        },
     )?;
+    let mut sink = sink.into_inner();
+    let streamer = streamer.into_inner();
     sink.flush()?;
     let allocs = warm.map(|w| AllocCounter::snapshot().since(w).allocations());
     let stats = pipeline.stats();

@@ -168,12 +168,15 @@ impl Machine {
                 1.0 / s.step_dist
             };
             args.push("--axis".to_string());
+            // The carriage starts 10% of the travel away from its endstop (homing stays short).
+            let start = match self.endstops.iter().find(|e| e.axis == s.axis) {
+                Some(e) if e.homing_positive_dir => e.position_endstop - 0.1 * (max - min),
+                Some(e) => e.position_endstop + 0.1 * (max - min),
+                None => (min + max) / 2.0,
+            };
             args.push(format!(
                 "{}={},{},{}",
-                axis_names[s.axis],
-                s.step_pin.pin,
-                steps_per_mm,
-                (min + max) / 2.0
+                axis_names[s.axis], s.step_pin.pin, steps_per_mm, start
             ));
         }
         for e in self.endstops.iter().filter(|e| e.pin.mcu == mcu) {

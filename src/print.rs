@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use clap::Args;
-use planner::gcode::GcodeReader;
+use planner::gcode::{Command, GcodeReader};
 use planner::machine::Applied;
 use planner::pipeline::{Pipeline, PipelineOptions};
 use planner::stepgen::StepCmd;
@@ -109,6 +109,7 @@ pub(crate) fn plan_file(
     gcode: File,
     mut emit: impl FnMut(&mut Vec<(usize, StepCmd)>) -> Result<(), String>,
     mut pace: impl FnMut(&Pipeline) -> Result<(), String>,
+    mut home: impl FnMut(&mut Pipeline, [bool; 3]) -> Result<bool, String>,
 ) -> Result<u64, String> {
     let mut warnings = Warnings::default();
     let mut out = Vec::with_capacity(4096);
@@ -116,6 +117,15 @@ pub(crate) fn plan_file(
     for line in GcodeReader::new(BufReader::with_capacity(1 << 16, gcode)) {
         let line = line.map_err(|e| format!("{}: {e}", args.file.display()))?;
         lines += 1;
+        // G28 with real motion where the printer can home; otherwise the planner's own G28
+        // (which sets the configured endstop positions).
+        if let Command::Home { x, y, z } = line.cmd {
+            if home(pipeline, [x, y, z])
+                .map_err(|e| format!("{}:{}: G28: {e}", args.file.display(), line.line_no))?
+            {
+                continue;
+            }
+        }
         let applied = pipeline
             .apply(&line)
             .map_err(|e| format!("{}: {e}", args.file.display()))?;
@@ -174,6 +184,7 @@ fn run_batch(
             Ok(())
         },
         |_| Ok(()),
+        |_, _| Ok(false),
     )?;
     sink.finish()?;
     let stats = pipeline.stats();

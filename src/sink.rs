@@ -240,3 +240,21 @@ impl<W: std::io::Write> Sink for BatchSink<W> {
         self.push_msg(&cmd)
     }
 }
+
+/// Hands messages straight to one MCU link (used while homing, when the planner thread talks to
+/// the MCUs directly after the shared-memory hand-off has drained).
+#[derive(Debug)]
+pub struct LinkSink<'a> {
+    pub link: &'a links::mcu::McuLink,
+}
+
+impl Sink for LinkSink<'_> {
+    fn send(&mut self, cmd: Cmd) -> Result<(), String> {
+        self.link.send(cmd).map_err(|e| e.to_string())
+    }
+    fn send_clocked(&mut self, cmd: Cmd, min_clock: u64, req_clock: u64) -> Result<(), String> {
+        self.link
+            .send_clocked(cmd, min_clock, req_clock)
+            .map_err(|e| e.to_string())
+    }
+}

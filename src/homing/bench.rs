@@ -18,8 +18,6 @@ use std::time::Instant;
 
 use clap::Args;
 use links::clocksync::ClockEstimate;
-use links::dict::Cmd;
-use links::mcu::McuLink;
 use links::trsync::COMM_TIMEOUT_MSG;
 use planner::pipeline::Pipeline;
 use rt_core::hist::LatencyHist;
@@ -27,7 +25,7 @@ use rt_core::hist::LatencyHist;
 use super::{plain_move, print_now, HomingCtx, HomingReport, AXIS_NAMES};
 use crate::machine::Machine;
 use crate::mcus::{trace_path, ConnectOptions, Mcus};
-use crate::sink::{Sink, StepStreamer};
+use crate::sink::{LinkSink, StepStreamer};
 
 /// Arguments of `cadence home`.
 #[derive(Debug, Args)]
@@ -313,20 +311,4 @@ fn trace_latency(
         }
     }
     Ok(())
-}
-
-/// The main MCU's link as a step-command sink.
-struct LinkSink<'a> {
-    link: &'a McuLink,
-}
-
-impl Sink for LinkSink<'_> {
-    fn send(&mut self, cmd: Cmd) -> Result<(), String> {
-        self.link.send(cmd).map_err(|e| e.to_string())
-    }
-    fn send_clocked(&mut self, cmd: Cmd, min_clock: u64, req_clock: u64) -> Result<(), String> {
-        self.link
-            .send_clocked(cmd, min_clock, req_clock)
-            .map_err(|e| e.to_string())
-    }
 }

@@ -99,10 +99,15 @@ pub fn pipeline_config(
 /// Pipeline options derived from the config: kinematics and the extruder's pressure advance
 /// (planning on the caller's thread; set `threads` for worker threads).
 pub fn pipeline_options(cfg: &PrinterConfig, kinematics: Kinematics) -> PipelineOptions {
-    let pressure_advance = cfg.extruder.as_ref().map(|e| PressureAdvance {
-        advance: e.pressure_advance,
-        smooth_time: e.pressure_advance_smooth_time,
-    });
+    // Pressure advance 0 is no pressure advance (the plain extruder path).
+    let pressure_advance = cfg
+        .extruder
+        .as_ref()
+        .filter(|e| e.pressure_advance > 0.0)
+        .map(|e| PressureAdvance {
+            advance: e.pressure_advance,
+            smooth_time: e.pressure_advance_smooth_time,
+        });
     PipelineOptions {
         kinematics,
         pressure_advance,

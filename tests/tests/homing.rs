@@ -14,9 +14,10 @@ use cadence_tests::{bin, run, scratch, workspace, Run};
 use firmware::trace::{read_trace, TraceFile, TraceRecord};
 
 const TIMEOUT: Duration = Duration::from_secs(180);
-/// Steps per mm of X, Y (index 0, 1) and Z (index 2), and the simulated start (mid-travel).
+/// Steps per mm of X, Y (index 0, 1) and Z (index 2), and the simulated start: 10% of the
+/// 20 mm travel away from the endstops at 0 (src/machine.rs `sim_world_args`).
 const STEPS_PER_MM: [f64; 3] = [80.0, 80.0, 400.0];
-const START_MM: f64 = 10.0;
+const START_MM: f64 = 2.0;
 /// The main MCU's trsync (after steppers x, y, z, extruder and endstops x, y).
 const TRSYNC_OID: u8 = 6;
 /// Second-pass speeds (mm/s) and the endstop's sampling: a read every ≤ 1 ms, 4 × 15 µs to
