@@ -559,14 +559,25 @@ fn finish_print(
         let q = dict
             .encode("stepper_get_position", &[s.oid as i64])
             .map_err(|e| e.to_string())?;
-        let reply = link
-            .query(
+        // Retried: an answer lost on a noisy line is not retransmitted (the query is idempotent).
+        let mut reply = link.query(
+            q,
+            "stepper_position",
+            Some(("oid", s.oid as i64)),
+            Duration::from_secs(1),
+        );
+        for _ in 0..3 {
+            if reply.is_ok() || link.error().is_some() {
+                break;
+            }
+            reply = link.query(
                 q,
                 "stepper_position",
                 Some(("oid", s.oid as i64)),
-                Duration::from_secs(2),
-            )
-            .map_err(|e| e.to_string())?;
+                Duration::from_secs(1),
+            );
+        }
+        let reply = reply.map_err(|e| e.to_string())?;
         let raw = reply.get("pos").unwrap_or(0);
         let mcu_pos = if s.dir_pin.invert { -raw } else { raw };
         let host_pos = host_positions.get(i).copied().unwrap_or(0);

@@ -149,10 +149,7 @@ impl Mcus {
         let get_config = dict
             .encode("get_config", &[])
             .map_err(|e| format!("mcu '{name}': {e}"))?;
-        let reply = conn
-            .link
-            .query(get_config, "config", None, Duration::from_secs(2))
-            .map_err(|e| e.to_string())?;
+        let reply = query_config(&conn.link, get_config)?;
         if reply.get("is_config") == Some(1) {
             return Err(format!(
                 "mcu '{name}': already configured: restart the MCU before printing"
@@ -163,10 +160,7 @@ impl Mcus {
         for c in cmds {
             conn.link.send(c).map_err(|e| e.to_string())?;
         }
-        let reply = conn
-            .link
-            .query(get_config, "config", None, Duration::from_secs(2))
-            .map_err(|e| e.to_string())?;
+        let reply = query_config(&conn.link, get_config)?;
         if reply.get("is_config") != Some(1) {
             return Err(format!(
                 "mcu '{name}': did not accept the configuration ({reply})"
@@ -299,4 +293,18 @@ pub fn config_commands(dict: &Dictionary, machine: &Machine, mcu: &str) -> Resul
             .map_err(err)?,
     );
     Ok((cmds, trsync_oid))
+}
+
+/// `get_config` → `config`, retried: MCU → host traffic is not retransmitted, so on a noisy line
+/// an answer can be lost; the query itself is idempotent. Bounded: 4 tries of 1 s.
+fn query_config(link: &McuLink, get_config: Cmd) -> Result<links::dict::Message, String> {
+    let mut last = String::new();
+    for _ in 0..4 {
+        match link.query(get_config, "config", None, Duration::from_secs(1)) {
+            Ok(reply) => return Ok(reply),
+            Err(e) if link.error().is_none() && link.shutdown_reason().is_none() => last = e.to_string(),
+            Err(e) => return Err(e.to_string()),
+        }
+    }
+    Err(last)
 }
