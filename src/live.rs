@@ -303,17 +303,30 @@ fn io_stage(
     Ok(report)
 }
 
+/// How a live print runs: when it started, the simulator's time scale, thread placement and
+/// where its histograms go.
+#[derive(Debug)]
+pub struct LiveRun<'a> {
+    pub started: Instant,
+    pub scale: f64,
+    pub rt: &'a RtConfig,
+    pub hists: &'a Arc<Hists>,
+}
+
 /// Runs the live print of `gcode` on the connected MCUs.
 pub fn print_on(
     args: &PrintArgs,
     machine: &Machine,
     mcus: &Mcus,
     gcode: File,
-    started: Instant,
-    scale: f64,
-    rt: &RtConfig,
-    hists: &Arc<Hists>,
+    run: &LiveRun<'_>,
 ) -> Result<Summary, String> {
+    let LiveRun {
+        started,
+        scale,
+        rt,
+        hists,
+    } = *run;
     let main = mcus.main();
     let link = &main.link;
     let clock_freq = main.clock_freq;

@@ -225,7 +225,13 @@ fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: Fil
         enabled: !args.no_realtime,
         ..RtConfig::default()
     };
-    let result = live::print_on(args, machine, &mcus, gcode, started, time_scale, &rt, &hists);
+    let run = live::LiveRun {
+        started,
+        scale: time_scale,
+        rt: &rt,
+        hists: &hists,
+    };
+    let result = live::print_on(args, machine, &mcus, gcode, &run);
     let stats = mcus.close();
     let mut summary = result?;
     summary.wall = started.elapsed().as_secs_f64();
