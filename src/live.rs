@@ -65,6 +65,12 @@ impl Default for RtConfig {
 }
 
 impl RtConfig {
+    /// Settings of the MCU links' own IO threads: on the IO core, above the IO stage (they
+    /// write the bytes and relay homing triggers).
+    pub fn link_spec(&self) -> RtSpec {
+        self.spec("io-link", self.io_core, self.io_priority + 5)
+    }
+
     fn spec(&self, name: &str, core: usize, priority: i32) -> RtSpec {
         let mut spec = RtSpec::new(name);
         if self.enabled {

@@ -42,6 +42,8 @@ pub struct ConnectOptions {
     pub trace: Option<PathBuf>,
     /// Called by the main MCU's IO thread with the lead margin of each clocked message.
     pub lead_hook: Option<links::serialqueue::MarginHook>,
+    /// Real-time settings of each link's IO thread (`None`: normal thread).
+    pub io_rt: Option<rt_core::os::RtSpec>,
 }
 
 impl std::fmt::Debug for ConnectOptions {
@@ -102,8 +104,17 @@ impl Mcus {
                 response_timeout: Duration::from_secs(2),
                 queue_capacity: 4096,
             };
+            let io_rt = opts.io_rt.clone().map(|mut spec| {
+                spec.name = format!("io-{name}");
+                spec
+            });
             let tuning = LinkTuning {
                 margin_hook: if i == 0 { opts.lead_hook.take() } else { None },
+                thread_setup: io_rt.map(|spec| -> Box<dyn FnOnce() + Send> {
+                    Box::new(move || {
+                        rt_core::os::apply_rt(&spec);
+                    })
+                }),
                 ..LinkTuning::default()
             };
             let link = match McuLink::connect_with(transport, link_opts, tuning) {

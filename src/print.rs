@@ -215,16 +215,17 @@ fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: Fil
     }
     let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
     let hists = Hists::new();
-    let opts = ConnectOptions {
-        time_scale,
-        trace: args.trace.clone(),
-        lead_hook: Some(hists.lead_hook()),
-    };
-    let mut mcus = Mcus::connect(cfg, machine, opts)?;
     let rt = RtConfig {
         enabled: !args.no_realtime,
         ..RtConfig::default()
     };
+    let opts = ConnectOptions {
+        time_scale,
+        trace: args.trace.clone(),
+        lead_hook: Some(hists.lead_hook()),
+        io_rt: Some(rt.link_spec()),
+    };
+    let mut mcus = Mcus::connect(cfg, machine, opts)?;
     let run = live::LiveRun {
         started,
         scale: time_scale,

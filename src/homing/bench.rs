@@ -87,6 +87,7 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
         time_scale,
         trace: args.trace.clone(),
         lead_hook: None,
+        io_rt: None,
     };
     let mut mcus = Mcus::connect(&cfg, &machine, opts)?;
     let clocks: Vec<(String, ClockEstimate)> = mcus

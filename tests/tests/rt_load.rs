@@ -1,4 +1,4 @@
-//! Issue 6's proof: a real sliced print on the simulated printer, time-compressed 10× (the
+//! Issue 6's proof: a real sliced print on the simulated printer, time-compressed 5× (the
 //! lead arithmetic stays in MCU time), while a CPU hog spins on every core: no step message may
 //! reach the MCU with less than 100 ms of lead. The host's histograms are printed for the record.
 
@@ -47,9 +47,10 @@ fn benchy_prefix_under_cpu_load_keeps_the_lead() {
         return;
     }
     let dir = scratch("rtload");
-    // The first 2500 lines: ~90 s of print time, ~10 s of wall time at 10×.
+    // The first 1800 lines (homing, then the first layers): ~55 s of print time, ~12 s of wall
+    // time at 5×.
     let reader = std::io::BufReader::new(std::fs::File::open(&gcode_src).unwrap());
-    let prefix: Vec<String> = reader.lines().take(2500).map(|l| l.unwrap()).collect();
+    let prefix: Vec<String> = reader.lines().take(1800).map(|l| l.unwrap()).collect();
     let gcode = dir.join("benchy-prefix.gcode");
     std::fs::write(&gcode, prefix.join("\n")).unwrap();
     let cfg_text = std::fs::read_to_string(&cfg_src)
@@ -68,7 +69,7 @@ fn benchy_prefix_under_cpu_load_keeps_the_lead() {
             "--config",
             cfg.to_str().unwrap(),
             "--time-scale",
-            "10",
+            "5",
             "--histograms",
             hist.to_str().unwrap(),
         ],

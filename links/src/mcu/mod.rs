@@ -78,6 +78,8 @@ pub struct LinkTuning {
     pub upcoming_read_wait: Duration,
     /// Called by the IO thread with `(req_clock, lead margin ticks)` for each clocked message.
     pub margin_hook: Option<MarginHook>,
+    /// Run first inside the IO thread (e.g. pinning it and giving it a real-time priority).
+    pub thread_setup: Option<Box<dyn FnOnce() + Send>>,
 }
 
 impl Default for LinkTuning {
@@ -92,6 +94,7 @@ impl Default for LinkTuning {
             max_read_wait: Duration::from_millis(5),
             upcoming_read_wait: Duration::from_millis(1),
             margin_hook: None,
+            thread_setup: None,
         }
     }
 }
@@ -248,10 +251,17 @@ impl McuLink {
     ) -> Result<McuLink, LinkError> {
         let shared = Arc::new(Shared::new(&opts.name, opts.queue_capacity));
         let stall_timeout = tuning.queue_stall_timeout;
+        let mut tuning = tuning;
+        let setup = tuning.thread_setup.take();
         let io = io::IoThread::new(shared.clone(), transport, &opts, tuning);
         let thread = std::thread::Builder::new()
             .name(format!("io-{}", opts.name))
-            .spawn(move || io.run())
+            .spawn(move || {
+                if let Some(setup) = setup {
+                    setup();
+                }
+                io.run()
+            })
             .map_err(|e| LinkError::Spawn {
                 mcu: opts.name.clone(),
                 detail: e.to_string(),
