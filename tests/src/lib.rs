@@ -97,3 +97,68 @@ pub fn scratch(test: &str) -> PathBuf {
     std::fs::create_dir_all(&dir).expect("scratch dir");
     dir
 }
+
+/// Fails the test unless `run` exited 0, showing both outputs.
+pub fn assert_success(run: &Run) {
+    assert_eq!(
+        run.code,
+        Some(0),
+        "stdout:\n{}\nstderr:\n{}",
+        run.stdout,
+        run.stderr
+    );
+}
+
+/// What a simulated MCU's step trace shows, after the checks every print must pass: step
+/// times never go backwards per stepper and the MCU never shut down.
+#[derive(Debug)]
+pub struct TraceCheck {
+    /// Net steps per stepper oid.
+    pub net: std::collections::HashMap<u8, i64>,
+    /// Steps in all.
+    pub steps: u64,
+    /// `queue_step` commands received.
+    pub queue_steps: u64,
+    /// Smallest lead (first step − receipt) of a received `queue_step`, ms of MCU time.
+    pub min_lead_ms: f64,
+    pub time_scale: f64,
+}
+
+/// Reads and checks the trace at `path` (see [`TraceCheck`]).
+pub fn check_trace(path: &Path) -> TraceCheck {
+    use firmware::trace::{read_trace, TraceRecord};
+    let trace = read_trace(path).expect("trace");
+    let freq = trace.clock_freq as f64;
+    let mut check = TraceCheck {
+        net: Default::default(),
+        steps: 0,
+        queue_steps: 0,
+        min_lead_ms: f64::INFINITY,
+        time_scale: trace.time_scale,
+    };
+    let mut last: std::collections::HashMap<u8, u64> = Default::default();
+    for rec in &trace.records {
+        match *rec {
+            TraceRecord::Step { oid, dir, clock, .. } => {
+                *check.net.entry(oid).or_default() += if dir { 1 } else { -1 };
+                check.steps += 1;
+                let prev = last.insert(oid, clock).unwrap_or(0);
+                assert!(
+                    clock >= prev,
+                    "oid {oid}: step at {clock} before previous step at {prev}"
+                );
+            }
+            TraceRecord::QueueStep {
+                received_clock,
+                first_step_clock,
+                ..
+            } => {
+                check.queue_steps += 1;
+                let lead_ms = (first_step_clock as f64 - received_clock as f64) / freq * 1e3;
+                check.min_lead_ms = check.min_lead_ms.min(lead_ms);
+            }
+            TraceRecord::Shutdown { .. } => panic!("the MCU shut down: {rec:?}"),
+        }
+    }
+    check
+}

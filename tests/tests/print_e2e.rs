@@ -1,11 +1,9 @@
 //! End to end: `cadence print` drives the simulated MCU process over a real pty; the MCU's
 //! step trace proves what happened on the pins.
 
-use std::collections::HashMap;
 use std::time::Duration;
 
-use cadence_tests::{cadence, scratch, workspace};
-use firmware::trace::{read_trace, TraceRecord};
+use cadence_tests::{assert_success, cadence, check_trace, scratch, workspace};
 
 const TIMEOUT: Duration = Duration::from_secs(120);
 
@@ -23,13 +21,7 @@ fn square_prints_exactly_on_the_simulated_mcu() {
         ],
         TIMEOUT,
     );
-    assert_eq!(
-        run.code,
-        Some(0),
-        "stdout:\n{}\nstderr:\n{}",
-        run.stdout,
-        run.stderr
-    );
+    assert_success(&run);
     assert!(
         run.stdout.contains("min lead margin"),
         "summary missing:\n{}",
@@ -37,39 +29,14 @@ fn square_prints_exactly_on_the_simulated_mcu() {
     );
 
     let cfg = sysconfig::printer::builtin_simulated().expect("built-in printer");
-    let trace = read_trace(&trace).expect("trace");
-    let freq = trace.clock_freq as f64;
-
-    // Net steps and monotonic step times per oid; lead of every received queue_step.
-    let mut net: HashMap<u8, i64> = HashMap::new();
-    let mut last: HashMap<u8, u64> = HashMap::new();
-    let mut received = 0;
-    for rec in &trace.records {
-        match *rec {
-            TraceRecord::Step { oid, dir, clock, .. } => {
-                *net.entry(oid).or_default() += if dir { 1 } else { -1 };
-                let prev = last.insert(oid, clock).unwrap_or(0);
-                assert!(
-                    clock >= prev,
-                    "oid {oid}: step at {clock} before previous step at {prev}"
-                );
-            }
-            TraceRecord::QueueStep {
-                oid,
-                received_clock,
-                first_step_clock,
-            } => {
-                received += 1;
-                let lead_ms = (first_step_clock as f64 - received_clock as f64) / freq * 1e3;
-                assert!(
-                    lead_ms >= 100.0,
-                    "oid {oid}: queue_step arrived with only {lead_ms:.2} ms lead"
-                );
-            }
-            TraceRecord::Shutdown { .. } => panic!("the MCU shut down: {rec:?}"),
-        }
-    }
-    assert!(received > 0, "no queue_step was received");
+    let check = check_trace(&trace);
+    assert!(check.queue_steps > 0, "no queue_step was received");
+    assert!(
+        check.min_lead_ms >= 100.0,
+        "a queue_step arrived with only {:.2} ms lead",
+        check.min_lead_ms
+    );
+    let net = &check.net;
 
     // G28 homes for real: the simulated carriages start 10% of their travel away from their
     // endstops (src/machine.rs), so the net steps of each axis take it from there to the final
@@ -190,31 +157,15 @@ fn time_scaled_print_keeps_the_lead_in_mcu_time() {
         ],
         TIMEOUT,
     );
-    assert_eq!(
-        run.code,
-        Some(0),
-        "stdout:\n{}\nstderr:\n{}",
-        run.stdout,
-        run.stderr
+    assert_success(&run);
+    let check = check_trace(&trace);
+    assert_eq!(check.time_scale, 5.0);
+    assert!(
+        check.min_lead_ms >= 100.0,
+        "{:.2} ms lead (MCU time)",
+        check.min_lead_ms
     );
-    let trace = read_trace(&trace).expect("trace");
-    assert_eq!(trace.time_scale, 5.0);
-    let freq = trace.clock_freq as f64;
-    let mut steps = 0;
-    for rec in &trace.records {
-        match *rec {
-            TraceRecord::QueueStep {
-                received_clock,
-                first_step_clock,
-                oid,
-            } => {
-                let lead_ms = (first_step_clock as f64 - received_clock as f64) / freq * 1e3;
-                assert!(lead_ms >= 100.0, "oid {oid}: {lead_ms:.2} ms lead (MCU time)");
-            }
-            TraceRecord::Step { .. } => steps += 1,
-            TraceRecord::Shutdown { .. } => panic!("the MCU shut down: {rec:?}"),
-        }
-    }
+    let steps = check.steps;
     assert!(steps > 1000, "{steps} steps");
 }
 
