@@ -42,3 +42,12 @@ fn decode_of_a_missing_file_names_it() {
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/stream.bin"));
 }
+
+#[test]
+fn bench_plan_reports_figures() {
+    let gcode = concat!(env!("CARGO_MANIFEST_DIR"), "/examples/square.gcode");
+    let out = cadence(&["bench", "plan", gcode]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("queue_step") && text.contains("steps/s"), "{text}");
+}

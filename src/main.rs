@@ -8,6 +8,7 @@
 //! - `mcu …` (hidden): the simulated MCU (the firmware's Linux-process target), for when the
 //!   separate `cadence-mcu` executable was not built.
 
+mod benchcmd;
 mod decode;
 mod homing;
 mod live;
@@ -40,6 +41,8 @@ enum Cmd {
     Home(homing::HomeArgs),
     /// Decode a wire stream written by `print --batch` into one message per line.
     Decode(decode::DecodeArgs),
+    /// Benchmarks: `bench plan FILE` measures planning + step compression.
+    Bench(benchcmd::BenchArgs),
     /// Run the simulated MCU (same code as the `cadence-mcu` executable).
     #[command(hide = true, disable_help_flag = true)]
     Mcu {
@@ -57,6 +60,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Cmd::Print(args) => print::run(&args),
         Cmd::Decode(args) => decode::run(&args),
+        Cmd::Bench(args) => benchcmd::run(&args),
         Cmd::Home(args) => homing::run_cli(&args),
         Cmd::Mcu { args } => {
             let argv = std::iter::once("cadence-mcu".to_string()).chain(args);
