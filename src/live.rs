@@ -28,7 +28,8 @@ use rt_core::alloc_count::AllocCounter;
 use rt_core::hist::LatencyHist;
 use rt_core::os::{apply_rt, RtSpec};
 use rt_core::shm::{
-    open_node, steps_service_name, ChannelConfig, ShmPublisher, ShmSubscriber, StepBatch, WireMsg,
+    open_node, steps_service_name, telemetry_kind, telemetry_service_name, ChannelConfig, ShmPublisher,
+    ShmSubscriber, StepBatch, Telemetry, WireMsg,
 };
 
 use crate::homing::{home_axes, HomingCtx};
@@ -152,6 +153,38 @@ impl Hists {
             }
         }
         out
+    }
+
+    /// Publishes a summary of each histogram on the telemetry service (see the module docs):
+    /// kind `HIST_SUMMARY`, values = [count, negative, min, p0.1, p1, p50, p99, p99.9, max,
+    /// mean, ns_per_unit], source 0 = lead margin (MCU ticks), 1 = hand-off (ns), 2 = planner
+    /// wake-up lateness (ns). Monitors never stall the printer (safe overflow on).
+    fn publish(&self, publisher: &mut ShmPublisher<Ipc, Telemetry>, t_ns: u64) {
+        for (source, m) in [(0u32, &self.lead), (1, &self.handoff), (2, &self.wake_planner)] {
+            let Ok(h) = m.try_lock() else { continue };
+            let x = h.summary();
+            drop(h);
+            let values = [
+                x.count as f64,
+                x.negative as f64,
+                x.min as f64,
+                x.p0_1 as f64,
+                x.p1 as f64,
+                x.p50 as f64,
+                x.p99 as f64,
+                x.p999 as f64,
+                x.max as f64,
+                x.mean,
+                x.ns_per_unit,
+            ];
+            let _ = publisher.send_with(|t| {
+                t.kind = telemetry_kind::HIST_SUMMARY;
+                t.source = source;
+                t.t_ns = t_ns;
+                t.count = values.len() as u32;
+                t.values[..values.len()].copy_from_slice(&values);
+            });
+        }
     }
 
     /// Saves every histogram as an HdrHistogram V2 interval log.
@@ -425,6 +458,13 @@ fn planner_stage(
         }
         std::thread::sleep(Duration::from_millis(1));
     }
+    let mut telemetry = ShmPublisher::<Ipc, Telemetry>::open(
+        &node,
+        &telemetry_service_name(&format!("p{}", std::process::id())),
+        &ChannelConfig::telemetry(),
+    )
+    .map_err(|e| format!("telemetry: {e}"))?;
+    let mut last_telemetry = Instant::now();
     let sink = RefCell::new(ShmSink {
         publisher,
         batch: StepBatch::default(),
@@ -479,6 +519,10 @@ fn planner_stage(
                     warm = Some(AllocCounter::snapshot());
                 }
                 while p.planned_until() - print_now() > low_water {
+                    if last_telemetry.elapsed() >= Duration::from_secs(1) {
+                        last_telemetry = Instant::now();
+                        hists.publish(&mut telemetry, started.elapsed().as_nanos() as u64);
+                    }
                     mcus.check()?;
                     let t = Instant::now();
                     std::thread::sleep(pace);
@@ -524,6 +568,7 @@ fn planner_stage(
             Ok(true)
         },
     )?;
+    hists.publish(&mut telemetry, started.elapsed().as_nanos() as u64);
     let mut sink = sink.into_inner();
     let streamer = streamer.into_inner();
     sink.flush()?;
@@ -540,7 +585,6 @@ fn planner_stage(
         clock_freq,
         extra: Vec::new(),
     };
-    let _ = started;
     Ok((summary, pipeline, streamer, allocs))
 }
 
