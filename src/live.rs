@@ -40,7 +40,7 @@ use crate::sink::{LinkSink, Sink, StepStreamer};
 
 type Ipc = iceoryx2::prelude::ipc::Service;
 
-/// Thread placement and priorities of a live print.
+/// Thread placement and priorities of a live print (from printer.cfg's `[realtime]`).
 #[derive(Debug, Clone)]
 pub struct RtConfig {
     /// Apply pinning / SCHED_FIFO / mlockall at all.
@@ -50,19 +50,6 @@ pub struct RtConfig {
     pub planner_priority: i32,
     pub io_priority: i32,
     pub lock_memory: bool,
-}
-
-impl Default for RtConfig {
-    fn default() -> Self {
-        RtConfig {
-            enabled: true,
-            planner_core: 0,
-            io_core: 1,
-            planner_priority: 30,
-            io_priority: 40,
-            lock_memory: true,
-        }
-    }
 }
 
 impl RtConfig {

@@ -18,6 +18,7 @@ mod ignored;
 mod mcu;
 mod pins;
 mod reader;
+mod realtime;
 mod stepper;
 mod toolhead;
 
@@ -32,6 +33,7 @@ pub use heater::{HeaterControl, HeaterSection, ABSOLUTE_ZERO_C};
 pub use ignored::{is_ignored, IGNORED_SECTIONS};
 pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
 pub use pins::{is_simulator_pin, PinKind, PinProblem, PinRef, MAIN_MCU};
+pub use realtime::RealtimeSection;
 pub use stepper::StepperSection;
 pub use toolhead::{Kinematics, PrinterSection};
 
@@ -61,6 +63,8 @@ pub struct PrinterConfig {
     pub heater_bed: Option<HeaterSection>,
     /// `[simulator]`, or its defaults.
     pub simulator: SimulatorSection,
+    /// `[realtime]`, or its defaults.
+    pub realtime: RealtimeSection,
     /// Accepted-but-ignored sections and other things worth telling the user.
     pub warnings: Vec<String>,
 }
@@ -133,6 +137,11 @@ impl PrinterConfig {
             None => SimulatorSection::default(),
         };
 
+        let realtime = match reader.section("realtime") {
+            Some(s) => realtime::read_realtime(&s)?,
+            None => RealtimeSection::default(),
+        };
+
         let mut warnings = reader.finish(is_ignored)?;
         if let Some(s) = simulator_section {
             if !mcus.iter().any(McuSection::is_simulated) {
@@ -151,6 +160,7 @@ impl PrinterConfig {
             mcus,
             heater_bed,
             simulator,
+            realtime,
             warnings,
         })
     }

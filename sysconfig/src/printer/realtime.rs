@@ -1,0 +1,79 @@
+//! `[realtime]` (Cadence-specific, optional): where the live print's threads run and with which
+//! SCHED_FIFO priorities, and whether memory is locked. When the OS refuses any of it the host
+//! runs anyway and says once which guarantee is off.
+
+use super::error::ConfigError;
+use super::reader::SectionReader;
+
+/// Thread placement of a live print.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RealtimeSection {
+    /// Apply pinning, SCHED_FIFO and mlockall at all (default true).
+    pub enabled: bool,
+    /// CPU of the planner thread (default 0).
+    pub planner_cpu: usize,
+    /// CPU of the IO stage and the MCU links' IO threads (default 1).
+    pub io_cpu: usize,
+    /// SCHED_FIFO priority of the planner, 1..=99 (default 30).
+    pub planner_priority: i32,
+    /// SCHED_FIFO priority of the IO stage, 1..=94 (default 40; the links' IO threads run 5 above).
+    pub io_priority: i32,
+    /// mlockall(MCL_CURRENT | MCL_FUTURE) (default true).
+    pub lock_memory: bool,
+}
+
+impl Default for RealtimeSection {
+    fn default() -> Self {
+        RealtimeSection {
+            enabled: true,
+            planner_cpu: 0,
+            io_cpu: 1,
+            planner_priority: 30,
+            io_priority: 40,
+            lock_memory: true,
+        }
+    }
+}
+
+pub(crate) fn read_realtime(s: &SectionReader<'_>) -> Result<RealtimeSection, ConfigError> {
+    let d = RealtimeSection::default();
+    Ok(RealtimeSection {
+        enabled: s.opt_bool("enabled")?.unwrap_or(d.enabled),
+        planner_cpu: s.int("planner_cpu", Some(d.planner_cpu), 0..=1023)?,
+        io_cpu: s.int("io_cpu", Some(d.io_cpu), 0..=1023)?,
+        planner_priority: s.int("planner_priority", Some(d.planner_priority), 1..=99)?,
+        io_priority: s.int("io_priority", Some(d.io_priority), 1..=94)?,
+        lock_memory: s.opt_bool("lock_memory")?.unwrap_or(d.lock_memory),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::printer::parse_str;
+    use std::path::Path;
+
+    fn with(section: &str) -> Result<super::RealtimeSection, String> {
+        let text = format!("{}\n{section}\n", crate::printer::SIMULATED_PRINTER_CFG);
+        parse_str(&text, Path::new("printer.cfg"))
+            .map(|c| c.realtime)
+            .map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn defaults_and_values() {
+        assert_eq!(with("").unwrap(), super::RealtimeSection::default());
+        let rt = with("[realtime]\nplanner_cpu: 1\nio_cpu: 0\nio_priority: 50\nlock_memory: False").unwrap();
+        assert_eq!(
+            (rt.planner_cpu, rt.io_cpu, rt.io_priority, rt.lock_memory),
+            (1, 0, 50, false)
+        );
+    }
+
+    #[test]
+    fn bad_values_name_section_and_option() {
+        let e = with("[realtime]\nio_priority: 120").unwrap_err();
+        assert!(e.contains("[realtime]") && e.contains("io_priority"), "{e}");
+        let e = with("[realtime]\nspin: 1").unwrap_err();
+        assert!(e.contains("spin") && e.contains("realtime"), "{e}");
+    }
+}
