@@ -444,13 +444,26 @@ impl<S: Service, T: Sequenced> ShmPublisher<S, T> {
     /// stamps the sequence number, sends it and wakes the listeners. Returns the number of
     /// subscribers that got it. Blocks at most `backpressure_timeout` while a subscriber's
     /// buffer is full; then fails (the payload is not delivered to that subscriber).
+    ///
+    /// A subscriber that has not yet connected to this publisher's data segment (it connects on
+    /// its next receive) makes iceoryx2 report 0 receivers instead of applying back-pressure;
+    /// when fewer than `min_receivers` got nothing at all, the same payload (same sequence
+    /// number) is sent again until the bound, so nobody sees it twice.
     pub fn send_with(&mut self, fill: impl FnOnce(&mut T)) -> Result<usize, ShmError> {
         let mut sample = self.publisher.loan().map_err(|e| io("loan", &self.name, e))?;
         let payload = sample.payload_mut();
         fill(payload);
         payload.set_seq(self.next_seq);
+        let copy = *payload;
         let started = std::time::Instant::now();
-        match sample.send() {
+        let mut result = sample.send();
+        while matches!(result, Ok(0)) && self.min_receivers > 0 && started.elapsed() < self.timeout {
+            std::thread::sleep(Duration::from_micros(200));
+            let mut again = self.publisher.loan().map_err(|e| io("loan", &self.name, e))?;
+            *again.payload_mut() = copy;
+            result = again.send();
+        }
+        match result {
             Ok(n) if n < self.min_receivers => Err(ShmError::Undelivered {
                 service: self.name.clone(),
                 seq: self.next_seq,
