@@ -183,17 +183,7 @@ impl Dictionary {
         let Json::Object(root) = root else {
             return Err(DictError::Json("top level is not an object".into()));
         };
-        let mut dict = Dictionary {
-            json: json.to_owned(),
-            compressed: Vec::new(),
-            defs: Vec::new(),
-            by_id: HashMap::new(),
-            commands: HashMap::new(),
-            responses: HashMap::new(),
-            enumerations: HashMap::new(),
-            static_strings: HashMap::new(),
-            config: serde_json::Map::new(),
-        };
+        let mut dict = Dictionary::empty(json.to_owned());
         for (section, kind) in [
             ("commands", MsgKind::Command),
             ("responses", MsgKind::Response),
@@ -246,8 +236,13 @@ impl Dictionary {
     /// The minimal dictionary every MCU has before identify: only ids 0 and 1.
     pub fn bootstrap() -> Dictionary {
         // The two fixed formats are valid, so this cannot fail; fall back to an empty one anyway.
-        Dictionary::from_json("{}").unwrap_or_else(|_| Dictionary {
-            json: String::new(),
+        Dictionary::from_json("{}").unwrap_or_else(|_| Dictionary::empty(String::new()))
+    }
+
+    /// A dictionary with nothing in it but its JSON text.
+    fn empty(json: String) -> Dictionary {
+        Dictionary {
+            json,
             compressed: Vec::new(),
             defs: Vec::new(),
             by_id: HashMap::new(),
@@ -256,7 +251,7 @@ impl Dictionary {
             enumerations: HashMap::new(),
             static_strings: HashMap::new(),
             config: serde_json::Map::new(),
-        })
+        }
     }
 
     fn add(&mut self, kind: MsgKind, id: u32, format: &str) -> Result<(), DictError> {
