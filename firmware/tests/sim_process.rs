@@ -110,3 +110,24 @@ fn identify_config_steps_and_trace() {
         assert_eq!(*first, want);
     }
 }
+
+/// A real-time request the OS refuses (a core that does not exist) is reported once on stderr
+/// and the simulator still serves the host.
+#[test]
+fn refused_real_time_falls_back_and_says_so_once() {
+    let mut host = spawn_with(&[
+        "--cpu".as_ref(),
+        "1000".as_ref(),
+        "--spin-us".as_ref(),
+        "0".as_ref(),
+    ]);
+    host.identify();
+    host.send(&[("get_config", &[])]);
+    assert_eq!(host.wait_for("config").0[0], 0);
+    let stderr = host.close();
+    let refusals: Vec<&str> = stderr.lines().filter(|l| l.contains("realtime:")).collect();
+    assert_eq!(refusals.len(), 1, "{stderr}");
+    assert!(refusals[0].contains("core 1000"), "{stderr}");
+    assert!(refusals[0].ends_with("running unpinned"), "{stderr}");
+    assert!(stderr.contains("host closed the pty"), "{stderr}");
+}

@@ -97,8 +97,12 @@ fn a_stepper_on_one_mcu_trips_an_endstop_on_another() {
     assert!(t.triggers[0].endstop && t.triggers[0].oid == 1 && t.triggers[0].reason == 1);
     assert!(!t.triggers[1].endstop && t.triggers[1].oid == 0);
     assert_eq!(t.triggers[0].clock, t.triggers[1].clock);
+    // Klipper's meaning: next_clock = first matching read + rest_ticks (100); the trigger
+    // (the 4th matching read, 15 ticks apart) came 3 × 15 ticks after that first read.
+    let first_match = (t.triggers[0].clock as u32).wrapping_sub(3 * 15);
     assert_eq!(
-        es[2] as u32, t.triggers[0].clock as u32,
-        "next_clock is the trigger clock"
+        es[2] as u32,
+        first_match.wrapping_add(100),
+        "next_clock − rest_ticks is the first matching read"
     );
 }

@@ -194,7 +194,8 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
         };
         let result = match self.objects.get_mut(slot) {
             Some(Object::Stepper(s)) => {
-                if count > 0 {
+                // A stepper stopped by a trigger drops the move (not recorded as received).
+                if count > 0 && !s.needs_reset() {
                     self.board
                         .queue_step_received(oid as u8, s.next_first_clock(interval), now);
                 }

@@ -7,8 +7,12 @@
 //! homing; a failed confirmation goes back to resting, continuing `rest_ticks` after the first
 //! matching read. `sample_count = 0` (or `clock = 0`) cancels homing.
 //!
-//! `endstop_query_state` reports `next_clock`: the next read while homing, the trigger clock
-//! once triggered.
+//! `endstop_query_state` reports `next_clock` with Klipper's meaning: while resting (no match
+//! yet), the clock of the next read; from the first matching read on — while confirming, and
+//! after the trigger until the next `endstop_home` — that read's clock + `rest_ticks` (where
+//! resting would resume). So the host recovers the trigger time as `next_clock − rest_ticks`:
+//! the first read that saw the pin triggered, not the last confirming read (which is when the
+//! trsync fired and the steppers stopped). A cancel (`sample_count = 0`) keeps the value.
 
 use rt_core::WireClock;
 
@@ -103,7 +107,8 @@ impl Endstop {
         self.homing
     }
 
-    /// `next_clock` of `endstop_state`.
+    /// `next_clock` of `endstop_state` (see the module doc): the next read while resting, the
+    /// first matching read + `rest_ticks` once a read matched.
     pub const fn next_clock(&self) -> WireClock {
         self.next_clock
     }
@@ -121,6 +126,7 @@ impl Endstop {
                 return EndstopEvent::Rearm(self.next_clock);
             }
             self.resume = at.add(p.rest_ticks);
+            self.next_clock = self.resume;
             self.confirming = p.sample_count;
         } else if !matched {
             self.confirming = 0;
@@ -130,14 +136,12 @@ impl Endstop {
         self.confirming -= 1;
         if self.confirming == 0 {
             self.homing = false;
-            self.next_clock = at;
             return EndstopEvent::Trigger {
                 trsync_oid: p.trsync_oid,
                 reason: p.trigger_reason,
             };
         }
-        self.next_clock = at.add(p.sample_ticks);
-        EndstopEvent::Rearm(self.next_clock)
+        EndstopEvent::Rearm(at.add(p.sample_ticks))
     }
 
     /// Shutdown: stop homing.
@@ -189,8 +193,31 @@ mod tests {
         assert_eq!(reads, [1000, 1100, 1200, 1300, 1315, 1330, 1345]);
         assert_eq!(trig, Some(1345));
         assert!(!e.homing());
-        assert_eq!(e.next_clock(), WireClock(1345));
+        // Klipper's meaning: first matching read (1300) + rest_ticks; the host subtracts them.
+        assert_eq!(e.next_clock(), WireClock(1400));
+        assert_eq!(e.home(params(0)), None, "a cancel keeps next_clock");
+        assert_eq!(e.next_clock(), WireClock(1400));
         assert_eq!(e.event(WireClock(2000), true), EndstopEvent::Idle);
+    }
+
+    #[test]
+    fn next_clock_while_resting_and_confirming() {
+        let mut e = Endstop::new(5, true);
+        let first = e.home(params(4)).unwrap();
+        assert_eq!(e.next_clock(), WireClock(1000), "armed: the first read");
+        assert_eq!(e.event(first, false), EndstopEvent::Rearm(WireClock(1100)));
+        assert_eq!(e.next_clock(), WireClock(1100), "resting: the next read");
+        assert_eq!(
+            e.event(WireClock(1100), true),
+            EndstopEvent::Rearm(WireClock(1115))
+        );
+        assert_eq!(e.next_clock(), WireClock(1200), "confirming: first match + rest");
+        assert_eq!(
+            e.event(WireClock(1115), false),
+            EndstopEvent::Rearm(WireClock(1200))
+        );
+        assert_eq!(e.next_clock(), WireClock(1200), "glitch: resting resumes there");
+        assert!(e.homing());
     }
 
     #[test]

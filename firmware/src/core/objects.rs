@@ -4,8 +4,8 @@
 //! Homing path: an endstop's timer reads its pin through the board; a confirmed trigger calls
 //! [`Mcu::trsync_trigger`], which (once per `trsync_start`) stops every stepper attached with
 //! `stepper_stop_on_trigger` — timer disarmed, queued moves given back to the pool, position
-//! left at the last executed step — records the trigger on the board and sends `trsync_state`
-//! at once. The trsync's own timer sends the periodic reports and expires it (self-trigger with
+//! left at the last executed step, later `queue_step`s ignored until `reset_step_clock` —
+//! records the trigger on the board and sends `trsync_state` at once. The trsync's own timer sends the periodic reports and expires it (self-trigger with
 //! its `expire_reason`) when `trsync_set_timeout` was not renewed in time.
 //!
 //! A periodic timer re-armed more than `late_limit` ticks in the past shuts the MCU down with

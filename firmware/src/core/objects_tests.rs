@@ -54,19 +54,30 @@ fn endstop_trigger_stops_the_attached_stepper_at_the_right_step() {
             (TriggerSource::Trsync, 1, 1, 2145)
         ]
     );
+    // next_clock = first matching read (2100) + rest_ticks (110): Klipper's host subtracts them.
     let msgs = all_msgs(&host.exchange(&[("endstop_query_state", &[2]), ("stepper_get_position", &[0])]));
-    assert_eq!(named(&msgs, "endstop_state"), [&[2, 0, 2145, 1][..]]);
+    assert_eq!(named(&msgs, "endstop_state"), [&[2, 0, 2210, 1][..]]);
     assert_eq!(named(&msgs, "stepper_position"), [&[0, 22][..]]);
     // The host's own trsync_trigger afterwards only reports the original reason.
     let msgs = all_msgs(&host.exchange(&[("trsync_trigger", &[1, 2])]));
     assert_eq!(named(&msgs, "trsync_state"), [&[1, 0, 1, 2145][..]]);
-    // The stepper is idle: a new move after reset_step_clock runs.
+    // A step command the trigger overtook is dropped (the stepper needs a reset): no shutdown,
+    // no step, no pool slot.
+    let msgs = all_msgs(&host.exchange(&[("queue_step", &[0, 50, 10, 0])]));
+    assert!(named(&msgs, "shutdown").is_empty());
+    assert_eq!(host.mcu.pool.used(), 0);
+    host.advance(150_000);
+    assert_eq!(host.mcu.stepper_position(0), Some(22));
+    assert_eq!(host.mcu.board().steps.len(), 22);
+    // reset_step_clock re-enables it: a new move runs from the new base.
     host.exchange(&[
         ("reset_step_clock", &[0, 200_000]),
         ("queue_step", &[0, 10, 2, 0]),
     ]);
     host.advance(300_000);
     assert_eq!(host.mcu.stepper_position(0), Some(24));
+    assert_eq!(host.mcu.board().steps.last(), Some(&(0, true, 200_020)));
+    assert!(host.mcu.shutdown_reason().is_none());
 }
 
 #[test]

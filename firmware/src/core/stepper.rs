@@ -10,6 +10,14 @@
 //!
 //! The stepper never touches the scheduler: its methods return the clock at which its timer
 //! must fire next, and the caller arms it.
+//!
+//! Stop on trigger (Klipper's "needs reset" state): when the trsync it is attached to fires,
+//! the stepper drops its active move and its queue ([`Stepper::discard`]) and from then on
+//! silently discards every `queue_step` (no shutdown, no move-pool slot used) until the next
+//! `reset_step_clock`. So step commands that were already on their way when the trigger
+//! happened can never restart it, and the host re-anchors the step clock before new moves.
+//! The position stays the count of steps actually taken. A shutdown leaves it in the same
+//! state.
 
 use super::moves::{Move, MovePool, MoveQueue};
 use rt_core::WireClock;
@@ -45,8 +53,11 @@ pub enum StepperError {
 pub struct Queued {
     /// Clock of the move's first step.
     pub first_clock: WireClock,
-    /// `Some(t)`: the stepper was idle, arm its timer at `t`. `None`: the move waits in the queue.
+    /// `Some(t)`: the stepper was idle, arm its timer at `t`. `None`: the move waits in the
+    /// queue (or was discarded).
     pub arm_at: Option<WireClock>,
+    /// The stepper needs a `reset_step_clock` (stopped by a trigger): the move was dropped.
+    pub discarded: bool,
 }
 
 /// A step the timer event just took.
@@ -84,6 +95,8 @@ pub struct Stepper {
     position: i32,
     /// `stepper_stop_on_trigger`: the trsync whose trigger stops this stepper.
     stop_on: Option<u8>,
+    /// Stopped by a trigger (or a shutdown): `queue_step` is ignored until `reset_step_clock`.
+    need_reset: bool,
 }
 
 impl Stepper {
@@ -100,6 +113,7 @@ impl Stepper {
             queue: MoveQueue::new(),
             position: 0,
             stop_on: None,
+            need_reset: false,
         }
     }
 
@@ -118,6 +132,11 @@ impl Stepper {
         self.count > 0
     }
 
+    /// True after a stop on trigger until the next `reset_step_clock`: `queue_step` is ignored.
+    pub const fn needs_reset(&self) -> bool {
+        self.need_reset
+    }
+
     /// Clock of the first step of a `queue_step` with `interval`, if it were queued now.
     pub fn next_first_clock(&self, interval: u32) -> WireClock {
         self.last_clock.add(interval)
@@ -128,17 +147,19 @@ impl Stepper {
         self.next_dir = dir;
     }
 
-    /// `reset_step_clock`: only valid while idle.
+    /// `reset_step_clock`: only valid while idle; ends the "needs reset" state.
     pub fn reset_clock(&mut self, clock: WireClock) -> Result<(), StepperError> {
         if self.is_active() {
             return Err(StepperError::ResetWhileActive);
         }
         self.last_clock = clock;
+        self.need_reset = false;
         Ok(())
     }
 
     /// `queue_step`. An idle stepper loads the move right away (refusing it if its first
-    /// step is before `now`); a busy one queues it in `pool`.
+    /// step is before `now`); a busy one queues it in `pool`; a stepper that needs a reset
+    /// drops it (`discarded`, nothing changes; count 0 is still refused).
     pub fn queue_step<const N: usize>(
         &mut self,
         pool: &mut MovePool<N>,
@@ -151,6 +172,13 @@ impl Stepper {
             return Err(StepperError::InvalidCount);
         }
         let first_clock = self.last_clock.add(interval);
+        if self.need_reset {
+            return Ok(Queued {
+                first_clock,
+                arm_at: None,
+                discarded: true,
+            });
+        }
         let arm_at = if self.is_active() {
             if !pool.push(&mut self.queue, Move::new(interval, count, add, self.next_dir)) {
                 return Err(StepperError::QueueOverflow);
@@ -164,7 +192,11 @@ impl Stepper {
             Some(first_clock)
         };
         self.last_clock = move_end(self.last_clock, interval, count, add);
-        Ok(Queued { first_clock, arm_at })
+        Ok(Queued {
+            first_clock,
+            arm_at,
+            discarded: false,
+        })
     }
 
     fn load(&mut self, m: Move) {
@@ -195,11 +227,13 @@ impl Stepper {
         Some(StepTaken { dir, next })
     }
 
-    /// Shutdown: drop the active move and the queue (the caller clears the pool).
+    /// Shutdown: drop the active move and the queue (the caller clears the pool); needs a
+    /// reset from now on.
     pub fn stop(&mut self) {
         self.count = 0;
         self.queue = MoveQueue::new();
         self.stop_on = None;
+        self.need_reset = true;
     }
 
     /// The trsync this stepper is attached to (`stepper_stop_on_trigger`), if any.
@@ -212,12 +246,14 @@ impl Stepper {
         self.stop_on = trsync_oid;
     }
 
-    /// A trsync trigger: drop the active move and give every queued move back to `pool`. The
-    /// position stays where the last executed step left it; the caller disarms the timer.
+    /// A trsync trigger: drop the active move and give every queued move back to `pool`, and
+    /// ignore `queue_step` until the next `reset_step_clock`. The position stays where the last
+    /// executed step left it; the caller disarms the timer.
     pub fn discard<const N: usize>(&mut self, pool: &mut MovePool<N>) {
         self.count = 0;
         while pool.pop(&mut self.queue).is_some() {}
         self.stop_on = None;
+        self.need_reset = true;
     }
 }
 
@@ -326,7 +362,121 @@ mod tests {
         assert_eq!(positions, [1, 2, 3, 2]);
     }
 
+    /// Runs due steps of `s` up to and including clock `until`; returns the next wake time.
+    fn run_until<const N: usize>(
+        s: &mut Stepper,
+        pool: &mut MovePool<N>,
+        mut wake: Option<WireClock>,
+        until: u32,
+    ) -> Option<WireClock> {
+        while let Some(at) = wake.filter(|t| t.0 <= until) {
+            wake = s.step_event(pool, at).unwrap().next;
+        }
+        wake
+    }
+
+    #[test]
+    fn trigger_mid_queue_stops_and_needs_reset() {
+        let mut pool = MovePool::<8>::new(8);
+        let mut s = Stepper::new(StepperConfig::default());
+        s.reset_clock(WireClock(1000)).unwrap();
+        s.set_next_dir(true);
+        let mut wake = s
+            .queue_step(&mut pool, 100, 5, 0, WireClock(1000))
+            .unwrap()
+            .arm_at;
+        s.queue_step(&mut pool, 100, 5, 0, WireClock(1000)).unwrap();
+        s.set_next_dir(false);
+        s.queue_step(&mut pool, 50, 4, 0, WireClock(1000)).unwrap();
+        assert_eq!(pool.used(), 2);
+        // Steps at 1100, 1200, …: seven taken by 1750, inside the second move.
+        wake = run_until(&mut s, &mut pool, wake, 1750);
+        assert_eq!(wake, Some(WireClock(1800)));
+        assert_eq!(s.position(), 7);
+        s.discard(&mut pool);
+        assert!(!s.is_active() && s.needs_reset());
+        assert_eq!(pool.used(), 0, "the queued moves went back to the pool");
+        assert_eq!(
+            s.step_event(&mut pool, WireClock(1800)),
+            None,
+            "stale timer: no step"
+        );
+        assert_eq!(s.position(), 7, "the position is the steps actually taken");
+
+        // Later queue_steps (e.g. sent before the host knew of the trigger) are dropped.
+        let q = s.queue_step(&mut pool, 100, 3, 0, WireClock(1800)).unwrap();
+        assert!(q.discarded);
+        assert_eq!(q.arm_at, None);
+        // Even one whose first step is long past: dropped, not "Timer too close".
+        let q = s.queue_step(&mut pool, 1, 1, 0, WireClock(1_000_000)).unwrap();
+        assert!(q.discarded);
+        assert_eq!(
+            s.queue_step(&mut pool, 100, 0, 0, WireClock(1800)),
+            Err(StepperError::InvalidCount),
+            "count 0 is still a protocol error"
+        );
+        assert!(!s.is_active() && pool.used() == 0);
+        assert_eq!(s.position(), 7);
+
+        // reset_step_clock re-enables it; new moves start from the new base.
+        s.reset_clock(WireClock(5000)).unwrap();
+        assert!(!s.needs_reset());
+        s.set_next_dir(false);
+        let q = s.queue_step(&mut pool, 10, 3, 0, WireClock(4000)).unwrap();
+        assert!(!q.discarded);
+        assert_eq!(q.arm_at, Some(WireClock(5010)));
+        assert_eq!(run_until(&mut s, &mut pool, q.arm_at, u32::MAX), None);
+        assert_eq!(s.position(), 4);
+        assert_eq!(s.next_first_clock(10), WireClock(5040));
+    }
+
+    #[test]
+    fn shutdown_stop_also_needs_reset() {
+        let mut pool = MovePool::<2>::new(2);
+        let mut s = Stepper::new(StepperConfig::default());
+        assert!(!s.needs_reset(), "a fresh stepper takes moves");
+        s.queue_step(&mut pool, 100, 1, 0, WireClock(0)).unwrap();
+        s.stop();
+        pool.clear();
+        assert!(s.needs_reset());
+        assert!(
+            s.queue_step(&mut pool, 100, 1, 0, WireClock(0))
+                .unwrap()
+                .discarded
+        );
+    }
+
     proptest! {
+        /// A stop after any number of executed steps: the position is exactly the net count of
+        /// the steps taken, nothing runs until a reset, and the pool is whole again.
+        #[test]
+        fn stop_anywhere_keeps_the_exact_position(
+            moves in proptest::collection::vec((1u32..500, 1u16..20, any::<bool>()), 1..8),
+            stop_after in 0usize..200,
+        ) {
+            let mut pool = MovePool::<16>::new(16);
+            let mut s = Stepper::new(StepperConfig::default());
+            s.reset_clock(WireClock(0)).unwrap();
+            let mut wake = None;
+            for &(i, c, d) in &moves {
+                s.set_next_dir(d);
+                wake = wake.or(s.queue_step(&mut pool, i, c, 0, WireClock(0)).unwrap().arm_at);
+            }
+            let mut expect = 0i32;
+            let mut taken = 0;
+            while let Some(at) = wake.filter(|_| taken < stop_after) {
+                let t = s.step_event(&mut pool, at).unwrap();
+                expect += if t.dir { 1 } else { -1 };
+                taken += 1;
+                wake = t.next;
+            }
+            s.discard(&mut pool);
+            prop_assert_eq!(s.position(), expect);
+            prop_assert_eq!(pool.used(), 0);
+            prop_assert!(s.queue_step(&mut pool, 10, 1, 0, WireClock(0)).unwrap().discarded);
+            prop_assert_eq!(s.position(), expect);
+        }
+
         /// Postcondition: the replay reproduces the contract loop exactly, across the 32-bit wrap.
         #[test]
         fn replay_matches_reference(

@@ -3,6 +3,8 @@
 use super::world::{AxisSpec, EndstopSpec};
 use crate::core::constants::{PINS_PER_PORT, PIN_PORTS};
 use crate::trace::TraceFormat;
+#[cfg(test)]
+use clap::CommandFactory;
 use clap::{Parser, ValueEnum};
 use std::path::PathBuf;
 
@@ -82,7 +84,54 @@ pub struct Cli {
     /// ... for this long.
     #[arg(long, value_name = "MS", requires = "freeze_after_ms")]
     pub freeze_ms: Option<u64>,
+    /// Busy-wait at most US µs (wall time) before each timer, and at most US µs in a row: the
+    /// loop sleeps until US before the next timer, then spins; when timers are denser than
+    /// that it sleeps anyway once the US are used up, so it never keeps a core busy. 0 =
+    /// never busy-wait (lowest CPU use, later steps).
+    #[arg(long, value_name = "US", default_value_t = 50,
+          value_parser = clap::value_parser!(u64).range(0..=100_000))]
+    pub spin_us: u64,
+    /// Real time (off by default): pin the simulator's loop thread to CPU core N.
+    #[arg(
+        long,
+        value_name = "N",
+        help_heading = "Real time (refusals are reported once on stderr; the simulator then runs without)"
+    )]
+    pub cpu: Option<usize>,
+    /// Real time: run the loop thread under SCHED_FIFO at priority PRIO (1..=99; needs
+    /// CAP_SYS_NICE or RLIMIT_RTPRIO).
+    #[arg(long, value_name = "PRIO", help_heading = "Real time (refusals are reported once on stderr; the simulator then runs without)",
+          value_parser = clap::value_parser!(i32).range(1..=99))]
+    pub fifo: Option<i32>,
+    /// Real time: lock all memory in RAM (mlockall; needs CAP_IPC_LOCK or a large
+    /// RLIMIT_MEMLOCK) and prefault the loop thread's stack.
+    #[arg(
+        long,
+        help_heading = "Real time (refusals are reported once on stderr; the simulator then runs without)"
+    )]
+    pub lock_memory: bool,
 }
+
+impl Cli {
+    /// The real-time requests of `--cpu`, `--fifo` and `--lock-memory` (nothing by default).
+    pub fn rt_spec(&self) -> rt_core::os::RtSpec {
+        rt_core::os::RtSpec {
+            core: self.cpu,
+            fifo_priority: self.fifo,
+            lock_memory: self.lock_memory,
+            prefault_stack: if self.lock_memory { PREFAULT_STACK } else { 0 },
+            ..rt_core::os::RtSpec::new("cadence-mcu")
+        }
+    }
+
+    /// True if any real-time option was given.
+    pub fn wants_rt(&self) -> bool {
+        self.cpu.is_some() || self.fifo.is_some() || self.lock_memory
+    }
+}
+
+/// Stack prefaulted by `--lock-memory` (the loop thread's stack is far larger).
+pub const PREFAULT_STACK: usize = 1 << 20;
 
 /// A pin by name (`PA0`..`PL7`, the dictionary's `pin` enumeration) or number.
 pub fn parse_pin(s: &str) -> Result<u8, String> {
@@ -214,6 +263,41 @@ mod tests {
         assert_eq!(c.move_count, 16384);
         assert_eq!(c.trace_format, TraceFormatArg::Bin);
         assert!(c.trace.is_none() && c.pty_link.is_none());
+        assert_eq!(c.spin_us, 50);
+        assert!(!c.wants_rt(), "real time is off by default");
+        let spec = c.rt_spec();
+        assert_eq!(
+            (spec.core, spec.fifo_priority, spec.lock_memory),
+            (None, None, false)
+        );
+        assert_eq!(spec.prefault_stack, 0);
+    }
+
+    #[test]
+    fn real_time_and_spin_options() {
+        let c = parse(&["--cpu", "1", "--fifo", "40", "--lock-memory", "--spin-us", "0"]).unwrap();
+        assert!(c.wants_rt());
+        let spec = c.rt_spec();
+        assert_eq!(spec.core, Some(1));
+        assert_eq!(spec.fifo_priority, Some(40));
+        assert!(spec.lock_memory);
+        assert_eq!(spec.prefault_stack, PREFAULT_STACK);
+        assert_eq!(spec.name, "cadence-mcu");
+        assert_eq!(c.spin_us, 0);
+        assert!(parse(&["--cpu", "1"]).unwrap().wants_rt());
+        for bad in [
+            &["--fifo", "0"][..],
+            &["--fifo", "100"],
+            &["--cpu", "-1"],
+            &["--spin-us", "100001"],
+            &["--lock-memory", "yes"],
+        ] {
+            assert!(parse(bad).is_err(), "{bad:?}");
+        }
+        let help = Cli::command().render_long_help().to_string();
+        for opt in ["--cpu", "--fifo", "--lock-memory", "--spin-us", "Real time"] {
+            assert!(help.contains(opt), "{opt} missing from --help");
+        }
     }
 
     #[test]

@@ -3,14 +3,17 @@
 //!
 //! One iteration: (freeze if `--freeze-after-ms` has come); run due timers at the current
 //! clock; pass pending output through the fault stage ([`TxFaults`]) to the pty; check the
-//! parent process (at most every [`PARENT_POLL`]); then wait for the next timer:
-//! - more than [`SPIN_WINDOW`] of wall time away: publish the world's positions and `ppoll` the
-//!   pty master and the signalfd until [`SPIN_WINDOW`] before the timer (capped at
-//!   [`PARENT_POLL`] and at the next release of delayed output), so the wake-up overshoot is
-//!   absorbed by the spin below;
-//! - within [`SPIN_WINDOW`]: do not sleep; loop reading the (vDSO) clock and run the timers the
-//!   moment they are due, checking input and signals with a zero-timeout poll at most every
-//!   [`INPUT_POLL`].
+//! parent process (at most every [`PARENT_POLL`]); then wait for the next timer as the
+//! [`SpinPolicy`] says (`--spin-us`, default [`DEFAULT_SPIN`]):
+//! - sleep: publish the world's positions and `ppoll` the pty master and the signalfd until the
+//!   spin window before the timer (or, once the spin streak is used up, until the timer itself),
+//!   capped at [`PARENT_POLL`] and at the next release of delayed output;
+//! - spin (within the window, for at most the window in a row): do not sleep; loop reading the
+//!   (vDSO) clock and run the timers the moment they are due, checking input and signals with a
+//!   zero-timeout poll at most every [`INPUT_POLL`], and yielding the CPU on every turn (so a
+//!   runnable host thread on the same core is not kept waiting). The bounded streak keeps
+//!   dense steps from turning into an endless busy loop that starves the host on a small
+//!   machine.
 //!
 //! Each chunk the host sent is fed to the core at the clock of its arrival.
 //!
@@ -25,6 +28,8 @@ use super::board::SimBoard;
 use super::clock::SimClock;
 use super::faults::TxFaults;
 use super::pty::{Io, Pty};
+pub use super::spin::DEFAULT_SPIN;
+use super::spin::{SpinPolicy, Wait};
 use super::{SimError, SimMcu};
 use nix::errno::Errno;
 use nix::poll::{poll, ppoll, PollFd, PollFlags, PollTimeout};
@@ -40,8 +45,6 @@ use std::time::{Duration, Instant};
 pub const PARENT_POLL: Duration = Duration::from_millis(100);
 /// Sleep between checks while the pty shows a hang-up before the host's first byte.
 pub const HANGUP_RETRY: Duration = Duration::from_millis(20);
-/// A timer this close (wall time) is waited for by spinning, not sleeping.
-pub const SPIN_WINDOW: Duration = Duration::from_micros(50);
 /// Longest time between two input checks while spinning.
 pub const INPUT_POLL: Duration = Duration::from_micros(100);
 const READ_CHUNK: usize = 4096;
@@ -75,6 +78,7 @@ pub struct EventLoop<'a> {
     freeze: Option<(Instant, Duration)>,
     last_parent_check: Instant,
     last_input_poll: Instant,
+    spin: SpinPolicy,
 }
 
 impl<'a> EventLoop<'a> {
@@ -93,12 +97,20 @@ impl<'a> EventLoop<'a> {
             freeze: None,
             last_parent_check: now,
             last_input_poll: now,
+            spin: SpinPolicy::new(DEFAULT_SPIN),
         }
     }
 
     /// Passes output through `faults` (`--drop-tx`, `--tx-delay-ms`).
     pub fn with_faults(mut self, faults: TxFaults) -> Self {
         self.faults = faults;
+        self
+    }
+
+    /// Busy-waits at most `window` before a timer and at most `window` in a row (`--spin-us`;
+    /// zero: never busy-wait).
+    pub fn with_spin(mut self, window: Duration) -> Self {
+        self.spin = SpinPolicy::new(window);
         self
     }
 
@@ -134,16 +146,27 @@ impl<'a> EventLoop<'a> {
             let now = self.clock.now();
             let wake = McuClock(now).extend(mcu.next_wake()).0;
             let until_wake = self.clock.wall_until(now, wake);
-            let timeout = if until_wake <= SPIN_WINDOW && !self.hangup_wait {
-                if self.last_input_poll.elapsed() < INPUT_POLL {
-                    mcu.board_mut().world.flush_due();
-                    continue;
+            let wait = match self.spin.decide(until_wake, Instant::now()) {
+                // While waiting out an early hang-up the master is not polled: never spin.
+                Wait::Spin if self.hangup_wait => Wait::Sleep(until_wake.saturating_sub(self.spin.window())),
+                w => w,
+            };
+            let timeout = match wait {
+                Wait::Spin => {
+                    if self.last_input_poll.elapsed() < INPUT_POLL {
+                        mcu.board_mut().world.flush_due();
+                        // A polite spin: another runnable thread of this core (the host) gets
+                        // the CPU at once; with none, this returns at once.
+                        std::thread::yield_now();
+                        continue;
+                    }
+                    Duration::ZERO
                 }
-                Duration::ZERO
-            } else {
-                mcu.board_mut().world.flush();
-                mcu.record_loop(u32::try_from(now.saturating_sub(busy_since)).unwrap_or(u32::MAX));
-                self.sleep_for(until_wake)
+                Wait::Sleep(sleep) => {
+                    mcu.board_mut().world.flush();
+                    mcu.record_loop(u32::try_from(now.saturating_sub(busy_since)).unwrap_or(u32::MAX));
+                    self.sleep_for(sleep)
+                }
             };
             let want_write = !mcu.board().out.is_empty() || !self.staged.is_empty();
             let (sig_ready, master) = self.wait(timeout, want_write)?;
@@ -175,9 +198,10 @@ impl<'a> EventLoop<'a> {
         }
     }
 
-    /// How long to sleep when the next timer is `until_wake` away.
-    fn sleep_for(&self, until_wake: Duration) -> Duration {
-        let mut timeout = until_wake.saturating_sub(SPIN_WINDOW).min(PARENT_POLL);
+    /// How long to sleep when the policy asks for `sleep`: capped by the periodic checks and
+    /// the next output release or freeze.
+    fn sleep_for(&self, sleep: Duration) -> Duration {
+        let mut timeout = sleep.min(PARENT_POLL);
         if self.hangup_wait {
             timeout = timeout.min(HANGUP_RETRY);
         }

@@ -5,6 +5,12 @@
 //! event loop ([`event_loop`]) until the host hangs up, a signal arrives or the parent dies.
 //! On exit the trace is flushed and the step lateness percentiles go to stderr.
 //!
+//! Real time is off by default. `--cpu N`, `--fifo PRIO` and `--lock-memory` ask rt-core's OS
+//! layer ([`rt_core::os::apply_rt`]) to pin the loop thread, run it under SCHED_FIFO and
+//! `mlockall` + prefault its stack, once everything is allocated and before the pty line is
+//! printed; each refusal is reported once on stderr and the simulator runs on without it.
+//! `--spin-us` bounds the loop's busy-waiting ([`spin`]).
+//!
 //! The core ([`SimMcu`]) is large (a 65534-move pool inline), so it lives on the heap and the
 //! loop runs on a thread with a generous stack (a debug build may copy the value through the
 //! stack while boxing it).
@@ -16,6 +22,7 @@ pub mod event_loop;
 pub mod faults;
 pub mod heater;
 pub mod pty;
+pub mod spin;
 pub mod world;
 
 use crate::core::{Mcu, McuConfig};
@@ -170,6 +177,19 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
         WireClock(clock.now() as u32),
     ));
 
+    if cli.wants_rt() {
+        // After every allocation and mapping above (mlockall's MCL_FUTURE could otherwise make
+        // later mappings fail), before the host can connect. Each refusal is printed once on
+        // stderr by the runtime and the loop runs on without that guarantee.
+        let got = rt_core::os::apply_rt(&cli.rt_spec());
+        if got != rt_core::os::RtApplied::default() {
+            eprintln!(
+                "cadence-mcu: real time: pinned={} fifo={} memory_locked={} stack_prefaulted={}",
+                got.pinned, got.fifo, got.memory_locked, got.stack_prefaulted
+            );
+        }
+    }
+
     let mut stdout = io::stdout().lock();
     writeln!(stdout, "cadence-mcu: pty {}", pty.slave_path().display())
         .and_then(|()| stdout.flush())
@@ -181,7 +201,9 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
         Duration::from_millis(cli.tx_delay_ms),
         cli.fault_seed,
     );
-    let mut event_loop = EventLoop::new(&pty, &sigfd, clock, parent).with_faults(faults);
+    let mut event_loop = EventLoop::new(&pty, &sigfd, clock, parent)
+        .with_faults(faults)
+        .with_spin(Duration::from_micros(cli.spin_us));
     if let (Some(after), Some(length)) = (cli.freeze_after_ms, cli.freeze_ms) {
         event_loop = event_loop.with_freeze(Duration::from_millis(after), Duration::from_millis(length));
     }
