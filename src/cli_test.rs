@@ -26,6 +26,10 @@ fn bad_arguments_are_a_clear_error_not_a_panic() {
         &["print", "x.gcode", "--time-scale", "abc"],
         &["print", "x.gcode", "--time-scale", "0"],
         &["print", "x.gcode", "--max-error-us", "-1"],
+        &["print", "x.gcode", "--log-level", "loud"],
+        &["print", "x.gcode", "--io-process", "--io-attach", "x"],
+        &["serve"],
+        &["serve", "--role", "planner"],
         &["frobnicate"],
     ] {
         let out = cadence(args);
@@ -34,6 +38,36 @@ fn bad_arguments_are_a_clear_error_not_a_panic() {
         assert!(!err.contains("panicked"), "{args:?}: {err}");
         assert!(!err.trim().is_empty(), "{args:?}: no error message");
     }
+}
+
+#[test]
+fn serve_and_print_document_the_io_process_options() {
+    let out = cadence(&["serve", "--help"]);
+    assert!(out.status.success());
+    let text = String::from_utf8_lossy(&out.stdout);
+    for opt in [
+        "--role",
+        "--instance",
+        "--parent-pid",
+        "--idle-timeout",
+        "--log-file",
+    ] {
+        assert!(text.contains(opt), "{opt} missing from:\n{text}");
+    }
+    let out = cadence(&["print", "--help"]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    for opt in ["--io-process", "--io-attach", "--log-file", "--log-level"] {
+        assert!(text.contains(opt), "{opt} missing from:\n{text}");
+    }
+}
+
+#[test]
+fn serve_with_a_missing_config_names_it() {
+    let out = cadence(&["serve", "--role", "io", "--config", "/nonexistent/printer.cfg"]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("/nonexistent/printer.cfg"), "{err}");
+    assert!(err.contains("cadence serve: error"), "{err}");
 }
 
 #[test]

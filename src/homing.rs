@@ -33,11 +33,17 @@
 //! told to stop first, and the planner is resynced to where they stopped when the MCUs still
 //! answer.
 //!
+//! Probing (`PROBE`, module `probe`) runs the same pass in probe mode ([`PassKind::Probe`]):
+//! no pretended start, the move heads for the probe's `z_position`, the trigger's position
+//! `n_trig · step_dist` is the measurement and the toolhead keeps its coordinates (resynced to
+//! `n_halt · step_dist`). With `probe:z_virtual_endstop` the probe's pin is Z's endstop.
+//!
 //! Latency figures per pass (host's view, print-time seconds): the executed steps' times are
 //! known from the move profile, so the last executed step and the first cancelled one bound
 //! the moment the stepper MCU stopped, relative to the endstop's trigger.
 
 mod bench;
+pub(crate) mod probe;
 
 pub use bench::{run as run_cli, HomeArgs};
 
@@ -55,6 +61,7 @@ use planner::toolhead::Move;
 
 use crate::machine::{EndstopOut, Machine};
 use crate::mcus::{McuConn, Mcus};
+use crate::print::MotionCmd;
 use crate::sink::{Sink, StepStreamer};
 
 /// Endstop confirmation sample spacing (s of MCU time).
@@ -74,8 +81,9 @@ pub const TRAVEL_FACTOR: f64 = 1.5;
 const QUERY_TRIES: u32 = 5;
 /// Wait for one query reply (wall time).
 const QUERY_TIMEOUT: Duration = Duration::from_millis(300);
-/// First trsync report this long after the set-up is sent (wall time, s).
-const FIRST_REPORT_DELAY: f64 = 0.002;
+/// First trsync report this long after the set-up is sent (wall time, s): room for a slow line
+/// (the command must arrive before it), well inside the 25 ms multi-MCU timeout.
+const FIRST_REPORT_DELAY: f64 = 0.010;
 /// Extra wall time after the homing move's end before "no trigger" is concluded.
 const END_GRACE: Duration = Duration::from_millis(50);
 
@@ -118,6 +126,9 @@ pub struct PassReport {
     pub trigger_print_time: f64,
     /// Position past the trigger point at which the axis halted (mm, ≥ 0 normally).
     pub overshoot_mm: f64,
+    /// Axis coordinate of the trigger: `position_endstop` when homing (the trigger defines
+    /// it), the measured position when probing.
+    pub trigger_position: f64,
     /// Net steps the first axis stepper took during the move.
     pub steps: i64,
     /// Last executed step − trigger (s of print time): a lower bound of the stop latency
@@ -173,7 +184,8 @@ impl fmt::Display for HomingReport {
 /// trigger relay cannot serve: steppers of one axis on different MCUs while the endstop is on
 /// yet another.
 pub fn check_config(machine: &Machine) -> Result<(), String> {
-    for e in &machine.endstops {
+    let probe = machine.probe.as_ref().map(|p| &p.endstop);
+    for e in machine.endstops.iter().chain(probe) {
         let mut mcus: Vec<&str> = Vec::new();
         for s in machine.steppers.iter().filter(|s| s.axis == e.axis) {
             if !mcus.contains(&s.mcu.as_str()) {
@@ -182,10 +194,15 @@ pub fn check_config(machine: &Machine) -> Result<(), String> {
         }
         if mcus.len() > 1 && !mcus.contains(&e.pin.mcu.as_str()) {
             return Err(format!(
-                "[{}] endstop_pin '{}': the steppers of axis {} are on MCUs '{}' while its endstop is on \
+                "[{}] {} '{}': the steppers of axis {} are on MCUs '{}' while its endstop is on \
                  yet another MCU '{}': put the endstop on one of the steppers' MCUs or all steppers of the \
                  axis on one MCU",
                 e.stepper,
+                if e.stepper == "probe" {
+                    "pin"
+                } else {
+                    "endstop_pin"
+                },
                 e.pin,
                 AXIS_NAMES[e.axis.min(2)],
                 mcus.join("', '"),
@@ -194,6 +211,23 @@ pub fn check_config(machine: &Machine) -> Result<(), String> {
         }
     }
     Ok(())
+}
+
+/// Runs a G-code command that needs the MCUs in the loop (G28 with motion, the probe
+/// commands) on a live print; its report lines go to `out` (also those before an error).
+pub(crate) fn run_motion(
+    ctx: &mut HomingCtx<'_>,
+    cmd: &MotionCmd<'_>,
+    out: &mut Vec<String>,
+) -> Result<(), String> {
+    match cmd {
+        MotionCmd::Home(axes) => {
+            let report = home_axes(ctx, *axes)?;
+            out.extend(report.to_string().lines().map(str::to_string));
+            Ok(())
+        }
+        MotionCmd::Probe { name, raw } => probe::run(ctx, name, raw, out),
+    }
 }
 
 /// Homes the named axes (X, Y, Z order) on a live print: `G28` with motion. On success the
@@ -231,7 +265,7 @@ fn home_axis(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisReport, Stri
     let dir = if e.homing_positive_dir { 1.0 } else { -1.0 };
     let mut passes = Vec::new();
     let start = e.position_endstop - dir * TRAVEL_FACTOR * travel;
-    let (first, mcus) = homing_pass(ctx, e, start, e.homing_speed)?;
+    let (first, mcus) = homing_pass(ctx, e, PassKind::Home { start }, e.homing_speed)?;
     passes.push(first);
     let retract = e.homing_retract_dist;
     if retract > 0.0 {
@@ -246,7 +280,7 @@ fn home_axis(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisReport, Stri
             ));
         }
         let start = e.position_endstop - dir * 2.0 * retract;
-        let (second, _) = homing_pass(ctx, e, start, e.second_homing_speed)?;
+        let (second, _) = homing_pass(ctx, e, PassKind::Home { start }, e.second_homing_speed)?;
         passes.push(second);
     }
     Ok(AxisReport {
@@ -315,7 +349,7 @@ fn push_cmds(ctx: &mut HomingCtx<'_>, out: &[(usize, StepCmd)]) -> Result<(), St
 }
 
 /// Sends everything planned so far and waits (bounded) until the main MCU executed it.
-fn wait_motion_done(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
+pub(crate) fn wait_motion_done(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
     ctx.pipeline.flush_lookahead();
     let mut out = Vec::new();
     ctx.pipeline.generate(&mut out);
@@ -384,7 +418,7 @@ fn stepper_position(ctx: &HomingCtx<'_>, idx: usize) -> Result<i64, String> {
 }
 
 /// (`next_clock` extended to 64 bits, the pin reads triggered, still homing) of endstop `e`.
-fn endstop_state(ctx: &HomingCtx<'_>, e: &EndstopOut) -> Result<(u64, bool, bool), String> {
+pub(crate) fn endstop_state(ctx: &HomingCtx<'_>, e: &EndstopOut) -> Result<(u64, bool, bool), String> {
     let conn = mcu(ctx.mcus, &e.pin.mcu)?;
     let reply = query(
         conn,
@@ -421,16 +455,31 @@ fn axis_pos_at(mv: &Move, axis: usize, t: f64) -> f64 {
     mv.start_pos[axis] + mv.axes_r[axis] * mv.distance_at(rel)
 }
 
-/// One homing move of endstop `e`'s axis from the pretended `start` toward `position_endstop`.
-/// Returns the pass report and the group's MCU names.
-fn homing_pass(
+/// What a homing move is for.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum PassKind {
+    /// G28: the axis position is unknown; the move pretends to start at `start` and heads for
+    /// `position_endstop`, which the trigger defines.
+    Home { start: f64 },
+    /// PROBE: from the current (homed) position toward `target`; the trigger's position is
+    /// measured and the axis keeps its coordinates.
+    Probe { target: f64 },
+}
+
+/// One homing move of endstop `e`'s axis (see [`PassKind`]). Returns the pass report and the
+/// group's MCU names.
+pub(crate) fn homing_pass(
     ctx: &mut HomingCtx<'_>,
     e: &EndstopOut,
-    start: f64,
+    kind: PassKind,
     speed: f64,
 ) -> Result<(PassReport, Vec<String>), String> {
     let axis = e.axis;
     let axis_name = AXIS_NAMES[axis];
+    let trigger_name = match kind {
+        PassKind::Home { .. } => axis_name.to_string(),
+        PassKind::Probe { .. } => "probe".to_string(),
+    };
     wait_motion_done(ctx)?;
     let idxs: Vec<usize> = (0..ctx.machine.steppers.len())
         .filter(|&i| ctx.machine.steppers[i].axis == axis)
@@ -466,10 +515,16 @@ fn homing_pass(
         .collect::<Result<_, _>>()?;
 
     let mut pos = ctx.pipeline.position();
-    pos[axis] = start;
-    ctx.pipeline.set_toolhead_position(pos);
     let mut target = pos;
-    target[axis] = e.position_endstop;
+    match kind {
+        PassKind::Home { start } => {
+            pos[axis] = start;
+            ctx.pipeline.set_toolhead_position(pos);
+            target = pos;
+            target[axis] = e.position_endstop;
+        }
+        PassKind::Probe { target: to } => target[axis] = to,
+    }
 
     let timeout = TriggerGroup::default_timeout(conns.len());
     let members: Vec<(&McuLink, u8)> = conns.iter().map(|c| (&c.link, c.trsync_oid)).collect();
@@ -498,12 +553,15 @@ fn homing_pass(
                 speed,
             )
         });
-    if let Err(err) = setup {
-        group.trigger_all(REASON_HOST_REQUEST);
-        group.close();
-        quiet(&conns);
-        return Err(err);
-    }
+    let rest_ticks = match setup {
+        Ok(rest_ticks) => rest_ticks,
+        Err(err) => {
+            group.trigger_all(REASON_HOST_REQUEST);
+            group.close();
+            quiet(&conns);
+            return Err(err);
+        }
+    };
     let mv = ctx.pipeline.home_move(target, speed).map_err(|e| e.to_string());
     let mv = match mv {
         Ok(Some(mv)) => Ok(mv),
@@ -553,7 +611,9 @@ fn homing_pass(
     };
     // The trigger clock, and where the steppers halted.
     let trig = match &outcome {
-        Ok(o) if o.reason == REASON_ENDSTOP_HIT => endstop_state(ctx, e).and_then(|(c, _, homing)| {
+        Ok(o) if o.reason == REASON_ENDSTOP_HIT => endstop_state(ctx, e).and_then(|(next, _, homing)| {
+            // After a trigger the endstop reports the matching read's clock + rest_ticks.
+            let c = next.saturating_sub(rest_ticks);
             if homing || c < clock_at_print_time(ctx.mcus, endstop_conn, t0) {
                 Err(format!(
                     "homing {axis_name}: '{}' reported a trigger but the endstop did not trigger",
@@ -575,7 +635,7 @@ fn homing_pass(
             o.reason
         )),
         Err(TrsyncError::CommTimeout { .. }) => Some(COMM_TIMEOUT_MSG.to_string()),
-        Err(TrsyncError::NotTriggered) => Some(format!("No trigger on {axis_name} after full movement")),
+        Err(TrsyncError::NotTriggered) => Some(format!("No trigger on {trigger_name} after full movement")),
         Err(other) => Some(other.to_string()),
     };
     let after = match after {
@@ -618,7 +678,13 @@ fn homing_pass(
     let overshoot_steps = n_halt - n_trig;
     let dir = if mv.axes_r[axis] >= 0.0 { 1.0 } else { -1.0 };
     let overshoot_mm = overshoot_steps as f64 * sd * dir + 0.0;
-    let position = e.position_endstop + overshoot_steps as f64 * sd;
+    let (position, trigger_position) = match kind {
+        PassKind::Home { .. } => (
+            e.position_endstop + overshoot_steps as f64 * sd,
+            e.position_endstop,
+        ),
+        PassKind::Probe { .. } => (halt_pos, n_trig as f64 * sd),
+    };
     // The last executed step reached index n_halt at boundary (n_halt − dir·½)·sd.
     let last_b = (n_halt as f64 - 0.5 * dir) * sd;
     let last_step = time_at_axis_pos(&mv, axis, last_b);
@@ -631,6 +697,7 @@ fn homing_pass(
             trigger_clock,
             trigger_print_time: t_trig,
             overshoot_mm,
+            trigger_position,
             steps: after[0] - before[0],
             last_step_after_s: last_step - t_trig,
             next_step_after_s: next_step - t_trig,
@@ -702,7 +769,7 @@ fn quiet(conns: &[&McuConn]) {
     }
 }
 
-/// Starts the trsyncs of the group (reports from ~2 ms on, expiry at `t_arm` + timeout until
+/// Starts the trsyncs of the group (reports from ~10 ms on, expiry at `t_arm` + timeout until
 /// the host extends it) and attaches the axis steppers.
 fn arm(
     ctx: &HomingCtx<'_>,
@@ -716,6 +783,9 @@ fn arm(
         let dict = c.link.dictionary();
         let est = c.link.clock();
         let freq = if est.is_valid() { est.freq() } else { c.clock_freq };
+        // The first report must come well inside the group's timeout (the host watches for
+        // silence from the moment the group is made), yet its clock must not have passed when
+        // `trsync_start` arrives: Klipper's firmware shuts down ("Timer too close") if it has.
         let report_clock = est.clock_at(now + FIRST_REPORT_DELAY).max(0.0) as u64;
         let report_ticks = (0.3 * timeout * freq) as u64;
         let expire = clock_at_print_time(ctx.mcus, c, t_arm).max(report_clock) + (timeout * freq) as u64;
@@ -750,7 +820,8 @@ fn arm(
 }
 
 /// Arms endstop `e` on its MCU `c` to sample from print time `t0` at a rest time of about one
-/// step at `speed` (clamped to [`MIN_REST_TIME`, `MAX_REST_TIME`]).
+/// step at `speed` (clamped to [`MIN_REST_TIME`, `MAX_REST_TIME`]); returns the rest time in
+/// ticks (the trigger clock is `endstop_state`'s `next_clock` minus it).
 fn arm_endstop(
     ctx: &HomingCtx<'_>,
     e: &EndstopOut,
@@ -758,8 +829,9 @@ fn arm_endstop(
     step_dist: f64,
     t0: f64,
     speed: f64,
-) -> Result<(), String> {
+) -> Result<u64, String> {
     let rest_time = (step_dist / speed.max(1e-6)).clamp(MIN_REST_TIME, MAX_REST_TIME);
+    let rest_ticks = (rest_time * c.clock_freq).round().max(1.0) as u64;
     let clock = clock_at_print_time(ctx.mcus, c, t0);
     let cmd = c
         .link
@@ -771,14 +843,15 @@ fn arm_endstop(
                 clock as u32 as i64,
                 (SAMPLE_TIME * c.clock_freq).round().max(1.0) as i64,
                 SAMPLE_COUNT as i64,
-                (rest_time * c.clock_freq).round().max(1.0) as i64,
+                rest_ticks as i64,
                 !e.pin.invert as i64,
                 c.trsync_oid as i64,
                 REASON_ENDSTOP_HIT as i64,
             ],
         )
         .map_err(|x| format!("mcu '{}': {x}", c.name))?;
-    c.link.send(cmd).map_err(|x| x.to_string())
+    c.link.send(cmd).map_err(|x| x.to_string())?;
+    Ok(rest_ticks)
 }
 
 #[cfg(test)]

@@ -13,32 +13,170 @@
 //! message (in the link IO thread, when its bytes leave), hand-off latency planner → IO stage,
 //! and each stage's wake-up lateness. When the OS refuses pinning or SCHED_FIFO, the threads run
 //! anyway and rt-core reports once which guarantees are off.
+//!
+//! The planner reaches the MCUs through [`McuSide`]: in this process (the IO stage is a thread
+//! here; homing works) or in a `cadence serve --role io` process (`--io-process`, see
+//! `remote`): then the dictionary, move queue size and clock snapshots come over shared memory.
+//!
+//! Logging during a print: the threads push fixed-size records to rt-core's logger thread
+//! ([`Logging`]), the only one that formats or writes; nobody prints from a real-time thread.
+//! Telemetry is published by a thread of its own ([`telemetry_thread`]), off the planner's loop.
 
 use std::cell::RefCell;
 use std::fs::File;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
 use std::sync::{mpsc, Arc, Mutex};
+use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use links::dict::Cmd;
+use clap::Args;
+use links::clocksync::ClockEstimate;
+use links::dict::{Cmd, Dictionary};
 use links::mcu::McuLink;
 use planner::pipeline::Pipeline;
 use planner::stepgen::StepCmd;
 use rt_core::alloc_count::AllocCounter;
 use rt_core::hist::LatencyHist;
+use rt_core::logger::{Arg, Level, Logger, LoggerConfig, LoggerHandle};
 use rt_core::os::{apply_rt, RtSpec};
 use rt_core::shm::{
     open_node, steps_service_name, telemetry_kind, telemetry_service_name, ChannelConfig, ShmPublisher,
     ShmSubscriber, StepBatch, Telemetry, WireMsg,
 };
 
-use crate::homing::{home_axes, HomingCtx};
+use crate::homing::{run_motion, HomingCtx};
 use crate::machine::Machine;
 use crate::mcus::Mcus;
-use crate::print::{plan_file, PrintArgs, Summary, MIN_LEAD_S};
+use crate::print::{plan_file, MotionCmd, PrintArgs, Summary, MIN_LEAD_S};
 use crate::sink::{LinkSink, Sink, StepStreamer};
 
 type Ipc = iceoryx2::prelude::ipc::Service;
+
+/// Options of a live print beyond the G-code and the printer (flattened into `print`'s).
+#[derive(Debug, Clone, Args)]
+pub struct LiveArgs {
+    /// Also write the print's log (records of the planner, IO stage and link threads) to this
+    /// file (appended).
+    #[arg(long, value_name = "PATH")]
+    pub log_file: Option<PathBuf>,
+    /// Most verbose log level recorded: error, warn, info, debug or trace.
+    #[arg(long, default_value = "info", value_name = "LEVEL")]
+    pub log_level: Level,
+    /// Run the IO stage (the MCU connections) in a separate `cadence serve --role io` process
+    /// started for this print. G28 with endstops is refused in this mode.
+    #[arg(long)]
+    pub io_process: bool,
+    /// Like --io-process, but attach to a running `cadence serve --role io --instance NAME`.
+    #[arg(long, value_name = "NAME", conflicts_with = "io_process")]
+    pub io_attach: Option<String>,
+}
+
+impl LiveArgs {
+    /// True when the IO stage runs in another process.
+    pub fn remote(&self) -> bool {
+        self.io_process || self.io_attach.is_some()
+    }
+}
+
+/// The print's logger thread: the only thread that formats or writes log text during a print.
+#[derive(Debug)]
+pub struct Logging {
+    pub handle: LoggerHandle,
+    join: Option<JoinHandle<u64>>,
+}
+
+impl Logging {
+    /// Starts the logger thread (stderr, plus `file` if given).
+    pub fn start(level: Level, file: Option<PathBuf>) -> Result<Logging, String> {
+        let (handle, join) = Logger::start(LoggerConfig {
+            level,
+            file,
+            stderr: true,
+            ..LoggerConfig::default()
+        })
+        .map_err(|e| e.to_string())?;
+        Ok(Logging {
+            handle,
+            join: Some(join),
+        })
+    }
+
+    /// A handle for thread `tag`.
+    pub fn handle(&self, tag: &'static str) -> LoggerHandle {
+        self.handle.with_tag(tag)
+    }
+
+    /// Drains and stops the logger thread; returns the report line (records written, dropped).
+    pub fn finish(mut self) -> String {
+        let written = self.stop();
+        format!(
+            "log: {written} records written, {} dropped (queue full)",
+            self.handle.dropped()
+        )
+    }
+
+    fn stop(&mut self) -> u64 {
+        self.handle.shutdown();
+        self.join.take().and_then(|j| j.join().ok()).unwrap_or(0)
+    }
+}
+
+impl Drop for Logging {
+    fn drop(&mut self) {
+        if self.join.is_some() {
+            self.stop();
+        }
+    }
+}
+
+/// Where the planner thread's MCU-side needs come from.
+#[derive(Debug, Clone, Copy)]
+pub(crate) enum McuSide<'a> {
+    /// The MCUs are connected in this process (the IO stage is a thread here).
+    Local(&'a Mcus),
+    /// The MCUs live in a `cadence serve --role io` process.
+    Remote(&'a crate::remote::RemoteMcu),
+}
+
+impl McuSide<'_> {
+    fn dictionary(&self) -> &Dictionary {
+        match self {
+            McuSide::Local(m) => m.main().link.dictionary(),
+            McuSide::Remote(r) => &r.dict,
+        }
+    }
+
+    fn clock_freq(&self) -> f64 {
+        match self {
+            McuSide::Local(m) => m.main().clock_freq,
+            McuSide::Remote(r) => r.clock_freq,
+        }
+    }
+
+    fn move_count(&self) -> usize {
+        match self {
+            McuSide::Local(m) => m.main().move_count,
+            McuSide::Remote(r) => r.move_count,
+        }
+    }
+
+    /// The main MCU's clock fit (lock-free).
+    fn clock(&self) -> ClockEstimate {
+        match self {
+            McuSide::Local(m) => m.main().link.clock(),
+            McuSide::Remote(r) => r.clock(),
+        }
+    }
+
+    /// An MCU shutdown or a failed IO process, as an error.
+    fn check(&self) -> Result<(), String> {
+        match self {
+            McuSide::Local(m) => m.check(),
+            McuSide::Remote(r) => r.check(),
+        }
+    }
+}
 
 /// Thread placement and priorities of a live print (from printer.cfg's `[realtime]`).
 #[derive(Debug, Clone)]
@@ -57,6 +195,16 @@ impl RtConfig {
     /// write the bytes and relay homing triggers).
     pub fn link_spec(&self) -> RtSpec {
         self.spec("io-link", self.io_core, self.io_priority + 5)
+    }
+
+    /// Settings of the IO stage thread of MCU `mcu`.
+    pub fn io_spec(&self, mcu: &str) -> RtSpec {
+        self.spec(&format!("io-{mcu}"), self.io_core, self.io_priority)
+    }
+
+    /// Settings of the planner thread.
+    pub fn planner_spec(&self) -> RtSpec {
+        self.spec("planner", self.planner_core, self.planner_priority)
     }
 
     fn spec(&self, name: &str, core: usize, priority: i32) -> RtSpec {
@@ -83,6 +231,9 @@ pub struct Hists {
     pub handoff: Mutex<LatencyHist>,
     /// Planner thread wake-up lateness after a flow-control sleep (ns).
     pub wake_planner: Mutex<LatencyHist>,
+    /// A step message leaving with less lead than this (MCU ticks) is logged as an error
+    /// (0 until the MCU's clock frequency is known: then only negative margins are).
+    pub min_lead_ticks: AtomicI64,
 }
 
 impl Hists {
@@ -92,18 +243,33 @@ impl Hists {
             lead: Mutex::new(ticks()),
             handoff: Mutex::new(LatencyHist::new()),
             wake_planner: Mutex::new(LatencyHist::new()),
+            min_lead_ticks: AtomicI64::new(0),
         })
     }
 
     /// A link margin hook recording into `lead` (runs in the link's IO thread; a `try_lock`
-    /// so the IO thread never waits on a reader).
-    pub fn lead_hook(self: &Arc<Self>) -> links::serialqueue::MarginHook {
+    /// so the IO thread never waits on a reader) and logging a message that left late.
+    pub fn lead_hook(self: &Arc<Self>, log: LoggerHandle) -> links::serialqueue::MarginHook {
         let h = Arc::clone(self);
-        Box::new(move |_req, margin| {
+        Box::new(move |req, margin| {
             if let Ok(mut hist) = h.lead.try_lock() {
                 hist.record_signed(margin);
             }
+            // Relaxed: a threshold set once before the print starts.
+            if margin < h.min_lead_ticks.load(Ordering::Relaxed) {
+                log.log(
+                    Level::Error,
+                    "step message left with too little lead: req_clock, margin ticks",
+                    [Arg::U(req), Arg::I(margin)],
+                );
+            }
         })
+    }
+
+    /// Sets the lead below which a step message is logged as late.
+    pub fn set_min_lead(&self, clock_freq: f64) {
+        self.min_lead_ticks
+            .store((MIN_LEAD_S * clock_freq) as i64, Ordering::Relaxed);
     }
 
     /// Report lines (margins in ms of print time).
@@ -145,9 +311,14 @@ impl Hists {
     /// Publishes a summary of each histogram on the telemetry service (see the module docs):
     /// kind `HIST_SUMMARY`, values = [count, negative, min, p0.1, p1, p50, p99, p99.9, max,
     /// mean, ns_per_unit], source 0 = lead margin (MCU ticks), 1 = hand-off (ns), 2 = planner
-    /// wake-up lateness (ns). Monitors never stall the printer (safe overflow on).
-    fn publish(&self, publisher: &mut ShmPublisher<Ipc, Telemetry>, t_ns: u64) {
+    /// wake-up lateness (ns). Monitors never stall the printer (safe overflow on). Only the
+    /// sources in `sources` (bit n = source n) are published: with the IO stage in another
+    /// process, each process publishes the histograms it records.
+    pub(crate) fn publish(&self, publisher: &mut ShmPublisher<Ipc, Telemetry>, t_ns: u64, sources: u32) {
         for (source, m) in [(0u32, &self.lead), (1, &self.handoff), (2, &self.wake_planner)] {
+            if sources & (1 << source) == 0 {
+                continue;
+            }
             let Ok(h) = m.try_lock() else { continue };
             let x = h.summary();
             drop(h);
@@ -198,12 +369,17 @@ impl Hists {
     }
 }
 
+/// Telemetry sources of [`Hists::publish`].
+pub(crate) const ALL_SOURCES: u32 = 0b111;
+pub(crate) const LEAD_SOURCE: u32 = 0b001;
+pub(crate) const PLANNER_SOURCES: u32 = 0b110;
+
 fn mono_ns() -> u64 {
     (McuLink::system_now() * 1e9) as u64
 }
 
 /// The planner side of the shared-memory hand-off: packs messages into batches.
-struct ShmSink {
+pub(crate) struct ShmSink {
     publisher: ShmPublisher<Ipc, StepBatch>,
     batch: StepBatch,
 }
@@ -245,16 +421,18 @@ impl Sink for ShmSink {
 
 /// What the IO stage reports.
 #[derive(Debug, Default)]
-struct IoReport {
-    batches: u64,
-    allocations_after_warmup: Option<u64>,
+pub(crate) struct IoReport {
+    pub batches: u64,
+    pub allocations_after_warmup: Option<u64>,
 }
 
 /// Batches after which a stage counts as warmed up (allocation accounting starts).
 const WARMUP_BATCHES: u64 = 64;
 
-/// The IO stage: shared memory → lead check → the MCU link.
-fn io_stage(
+/// The IO stage: shared memory → lead check → the MCU link. Runs until `done` is set and no
+/// batch is pending; `consumed` counts the batches taken.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn io_stage(
     link: &McuLink,
     service: &str,
     ready: mpsc::Sender<Result<(), String>>,
@@ -262,6 +440,7 @@ fn io_stage(
     consumed: &AtomicU64,
     hists: &Hists,
     clock_freq: f64,
+    log: &LoggerHandle,
 ) -> Result<IoReport, String> {
     let setup = || -> Result<_, String> {
         let (node, _) =
@@ -281,6 +460,7 @@ fn io_stage(
             return Err(e);
         }
     };
+    log.log(Level::Info, "io stage subscribed to its step channel", []);
     let lead_ticks = MIN_LEAD_S * clock_freq;
     let idle_wait = Duration::from_millis(5);
     let mut report = IoReport::default();
@@ -302,6 +482,14 @@ fn io_stage(
         let now_clock = link.clock().clock_at(McuLink::system_now());
         for m in batch.messages() {
             if m.req_clock > 0 && (m.req_clock as f64) < now_clock + lead_ticks {
+                log.log(
+                    Level::Error,
+                    "io stage fell behind: req_clock, ms before due",
+                    [
+                        Arg::U(m.req_clock),
+                        Arg::F((m.req_clock as f64 - now_clock) / clock_freq * 1e3),
+                    ],
+                );
                 return Err(format!(
                     "the IO stage fell behind: a step message for clock {} reached it {:.1} ms before it is due \
                      (at least {:.0} ms required); print stopped before sending it",
@@ -326,6 +514,7 @@ fn io_stage(
         }
     }
     report.allocations_after_warmup = warm.map(|w| AllocCounter::snapshot().since(w).allocations());
+    log.log(Level::Info, "io stage done: batches", [Arg::U(report.batches)]);
     Ok(report)
 }
 
@@ -337,6 +526,7 @@ pub struct LiveRun<'a> {
     pub scale: f64,
     pub rt: &'a RtConfig,
     pub hists: &'a Arc<Hists>,
+    pub log: &'a LoggerHandle,
 }
 
 /// Runs the live print of `gcode` on the connected MCUs.
@@ -352,6 +542,7 @@ pub fn print_on(
         scale,
         rt,
         hists,
+        log,
     } = *run;
     let main = mcus.main();
     let link = &main.link;
@@ -371,7 +562,8 @@ pub fn print_on(
             .name(io_spec.name.clone())
             .spawn_scoped(scope, move || {
                 apply_rt(&io_spec);
-                io_stage(link, service, ready_tx, done, consumed, hists, clock_freq)
+                let log = log.with_tag("io");
+                io_stage(link, service, ready_tx, done, consumed, hists, clock_freq, &log)
             })
             .map_err(|e| format!("cannot start the IO stage thread: {e}"))?;
         match ready_rx.recv_timeout(Duration::from_secs(10)) {
@@ -384,23 +576,33 @@ pub fn print_on(
             .name("planner".to_string())
             .spawn_scoped(scope, move || {
                 apply_rt(&planner_spec);
-                let r = planner_stage(
-                    args, machine, mcus, gcode, started, scale, service, consumed, hists,
-                );
+                let log = log.with_tag("planner");
+                let side = McuSide::Local(mcus);
+                let r = planner_stage(args, machine, side, gcode, scale, service, consumed, hists, &log);
                 done.store(true, Ordering::Release);
                 r
             })
             .map_err(|e| format!("cannot start the planner thread: {e}"))?;
+        let telemetry = std::thread::Builder::new()
+            .name("telemetry".to_string())
+            .spawn_scoped(scope, move || {
+                telemetry_thread(&instance, hists, started, ALL_SOURCES, done)
+            })
+            .map_err(|e| format!("cannot start the telemetry thread: {e}"))?;
         let planned = planner
             .join()
             .map_err(|_| "the planner thread panicked".to_string())?;
         done.store(true, Ordering::Release);
+        if let Ok(Err(e)) = telemetry.join() {
+            log.log(Level::Warn, "telemetry failed (see stderr)", []);
+            eprintln!("cadence: telemetry: {e}");
+        }
         let io_report = io
             .join()
             .map_err(|_| "the IO stage thread panicked".to_string())?;
         // A failed IO stage is the root cause of a planner hand-off error: report it first.
         let io_report = io_report?;
-        let (mut summary, pipeline, streamer, planner_allocs) = planned?;
+        let (mut summary, pipeline, streamer, planner_allocs, _) = planned?;
         finish_print(mcus, machine, &pipeline, &streamer, &mut summary, scale)?;
         summary.extra.extend(hists.report(clock_freq));
         summary.extra.push(format!(
@@ -415,25 +617,58 @@ pub fn print_on(
     })
 }
 
-type Planned = (Summary, Pipeline, StepStreamer, Option<u64>);
+/// The telemetry thread: publishes the histogram summaries of `sources` on
+/// `cadence/<instance>/telemetry` about once a second until `stop`, then once more. A thread of
+/// its own (not real-time) because an iceoryx2 0.10 loan allocates (a reference-counted sample
+/// state per loan), which stays out of the planner's loop this way.
+pub(crate) fn telemetry_thread(
+    instance: &str,
+    hists: &Hists,
+    started: Instant,
+    sources: u32,
+    stop: &AtomicBool,
+) -> Result<(), String> {
+    let (node, _) =
+        open_node::<Ipc>(&format!("cadence-telemetry-{}", std::process::id())).map_err(|e| e.to_string())?;
+    let mut publisher = ShmPublisher::<Ipc, Telemetry>::open(
+        &node,
+        &telemetry_service_name(instance),
+        &ChannelConfig::telemetry(),
+    )
+    .map_err(|e| e.to_string())?;
+    let mut last = Instant::now();
+    // Acquire pairs with the Release store of whoever stops the print.
+    while !stop.load(Ordering::Acquire) {
+        std::thread::sleep(Duration::from_millis(50));
+        if last.elapsed() >= Duration::from_secs(1) {
+            last = Instant::now();
+            hists.publish(&mut publisher, started.elapsed().as_nanos() as u64, sources);
+        }
+    }
+    hists.publish(&mut publisher, started.elapsed().as_nanos() as u64, sources);
+    Ok(())
+}
+
+/// What the planner thread hands back: the summary so far, the pipeline and streamer (final
+/// positions, last step clock), its allocations after warm-up and the number of step batches
+/// published.
+pub(crate) type Planned = (Summary, Pipeline, StepStreamer, Option<u64>, u64);
 
 /// The planner thread: G-code → pipeline → step messages into shared memory, paced.
 #[allow(clippy::too_many_arguments)]
-fn planner_stage(
+pub(crate) fn planner_stage(
     args: &PrintArgs,
     machine: &Machine,
-    mcus: &Mcus,
+    side: McuSide<'_>,
     gcode: File,
-    started: Instant,
     scale: f64,
     service: &str,
     consumed: &AtomicU64,
     hists: &Hists,
+    log: &LoggerHandle,
 ) -> Result<Planned, String> {
-    let main = mcus.main();
-    let link = &main.link;
-    let dict = link.dictionary();
-    let clock_freq = main.clock_freq;
+    let dict = side.dictionary();
+    let clock_freq = side.clock_freq();
     let (node, _) =
         open_node::<Ipc>(&format!("cadence-planner-{}", std::process::id())).map_err(|e| e.to_string())?;
     let publisher = ShmPublisher::<Ipc, StepBatch>::open(&node, service, &ChannelConfig::steps())
@@ -445,19 +680,12 @@ fn planner_stage(
         }
         std::thread::sleep(Duration::from_millis(1));
     }
-    let mut telemetry = ShmPublisher::<Ipc, Telemetry>::open(
-        &node,
-        &telemetry_service_name(&format!("p{}", std::process::id())),
-        &ChannelConfig::telemetry(),
-    )
-    .map_err(|e| format!("telemetry: {e}"))?;
-    let mut last_telemetry = Instant::now();
     let sink = RefCell::new(ShmSink {
         publisher,
         batch: StepBatch::default(),
     });
 
-    let print_now = || link.clock().clock_at(McuLink::system_now()) / clock_freq;
+    let print_now = || side.clock().clock_at(McuLink::system_now()) / clock_freq;
     // Start far enough ahead that the first batch is planned long before it is due.
     let start = print_now() + (0.5f64).max(0.25 * scale);
     // Buffering window in print time: 2 s, or 1 s of wall time when the clock runs faster.
@@ -472,8 +700,14 @@ fn planner_stage(
         machine.options,
     )
     .map_err(|e| e.to_string())?;
-    let streamer = RefCell::new(StepStreamer::new(dict, &machine.steppers, main.move_count)?);
+    let streamer = RefCell::new(StepStreamer::new(dict, &machine.steppers, side.move_count())?);
     let mut warm: Option<AllocCounter> = None;
+    let homing_reports = RefCell::new(Vec::new());
+    log.log(
+        Level::Info,
+        "planner started: start print time s, high water s",
+        [Arg::F(start), Arg::F(high_water)],
+    );
     let lines = plan_file(
         args,
         &mut pipeline,
@@ -485,6 +719,14 @@ fn planner_stage(
             for &(idx, cmd) in cmds.iter() {
                 if let StepCmd::QueueStep { first_clock, .. } = cmd {
                     if first_clock < now_clock + lead_ticks {
+                        log.log(
+                            Level::Error,
+                            "planner fell behind: stepper index, ms before due",
+                            [
+                                Arg::U(idx as u64),
+                                Arg::F((first_clock as f64 - now_clock as f64) / clock_freq * 1e3),
+                            ],
+                        );
                         return Err(format!(
                             "the planner fell behind: a step for {} at print time {:.3} s was ready only {:.1} ms \
                              before it is due (at least {:.0} ms required); print stopped before sending it",
@@ -504,13 +746,15 @@ fn planner_stage(
             if p.planned_until() - print_now() > high_water {
                 if warm.is_none() {
                     warm = Some(AllocCounter::snapshot());
+                    crate::allocsites::start_if_requested();
                 }
+                log.log(
+                    Level::Debug,
+                    "flow control: buffered print time s, waiting down to s",
+                    [Arg::F(p.planned_until() - print_now()), Arg::F(low_water)],
+                );
                 while p.planned_until() - print_now() > low_water {
-                    if last_telemetry.elapsed() >= Duration::from_secs(1) {
-                        last_telemetry = Instant::now();
-                        hists.publish(&mut telemetry, started.elapsed().as_nanos() as u64);
-                    }
-                    mcus.check()?;
+                    side.check()?;
                     let t = Instant::now();
                     std::thread::sleep(pace);
                     if let Ok(mut h) = hists.wake_planner.try_lock() {
@@ -518,12 +762,23 @@ fn planner_stage(
                     }
                 }
             }
-            mcus.check()
+            side.check()
         },
-        |pipeline, axes| {
-            if machine.endstops.is_empty() {
+        |pipeline, cmd| {
+            if machine.endstops.is_empty() && machine.probe.is_none() {
                 return Ok(false);
             }
+            let McuSide::Local(mcus) = side else {
+                let what = match cmd {
+                    MotionCmd::Home(_) => "homing needs",
+                    MotionCmd::Probe { .. } => "probing needs",
+                };
+                return Err(format!(
+                    "{what} the in-process IO stage (triggers are relayed through the MCU link): \
+                     print without --io-process/--io-attach"
+                ));
+            };
+            let link = &mcus.main().link;
             // Drain the shared-memory hand-off: everything planned so far must be in the link
             // before homing talks to the MCUs directly.
             let published = {
@@ -550,16 +805,32 @@ fn planner_stage(
                 lead: MIN_LEAD_S,
                 time_scale: scale,
             };
-            let report = home_axes(&mut ctx, axes)?;
-            println!("{report}");
+            if let MotionCmd::Home(axes) = cmd {
+                log.log(
+                    Level::Info,
+                    "homing axes x, y, z",
+                    [
+                        Arg::U(axes[0] as u64),
+                        Arg::U(axes[1] as u64),
+                        Arg::U(axes[2] as u64),
+                    ],
+                );
+            }
+            // Formatted text is printed by the main thread with the summary.
+            let mut out = Vec::new();
+            let result = run_motion(&mut ctx, cmd, &mut out);
+            homing_reports.borrow_mut().extend(out);
+            result?;
+            log.log(Level::Info, "homing done", []);
             Ok(true)
         },
     )?;
-    hists.publish(&mut telemetry, started.elapsed().as_nanos() as u64);
     let mut sink = sink.into_inner();
     let streamer = streamer.into_inner();
     sink.flush()?;
     let allocs = warm.map(|w| AllocCounter::snapshot().since(w).allocations());
+    crate::allocsites::finish_if_requested("planner");
+    let batches = sink.publisher.next_seq();
     let stats = pipeline.stats();
     let summary = Summary {
         file: args.file.clone(),
@@ -570,9 +841,19 @@ fn planner_stage(
         queue_steps: streamer.queue_steps(),
         rows: Vec::new(),
         clock_freq,
-        extra: Vec::new(),
+        extra: homing_reports.into_inner(),
     };
-    Ok((summary, pipeline, streamer, allocs))
+    log.log(
+        Level::Info,
+        "planner done: lines, moves, queue_steps, batches",
+        [
+            Arg::U(lines),
+            Arg::U(stats.moves),
+            Arg::U(summary.queue_steps),
+            Arg::U(batches),
+        ],
+    );
+    Ok((summary, pipeline, streamer, allocs, batches))
 }
 
 /// Waits for the MCU to execute the last step, reads the positions back and checks them.
@@ -585,11 +866,25 @@ fn finish_print(
     scale: f64,
 ) -> Result<(), String> {
     let main = mcus.main();
+    let mcu_positions = read_final_positions(mcus, machine, streamer.last_step_clock, scale)?;
+    check_positions(machine, pipeline, streamer, &mcu_positions, summary)?;
+    check_min_lead(main.link.stats().min_lead_margin_ticks, main.clock_freq)
+}
+
+/// Waits (bounded) until the main MCU executed everything up to `end_clock`, then reads each
+/// stepper's position back, in machine order, in the host's sign convention (dir pin
+/// inversion undone).
+pub(crate) fn read_final_positions(
+    mcus: &Mcus,
+    machine: &Machine,
+    end_clock: u64,
+    scale: f64,
+) -> Result<Vec<i64>, String> {
+    let main = mcus.main();
     let link = &main.link;
     let dict = link.dictionary();
     let clock_freq = main.clock_freq;
     let print_now = || link.clock().clock_at(McuLink::system_now()) / clock_freq;
-    let end_clock = streamer.last_step_clock;
     let wait_s = (end_clock as f64 / clock_freq - print_now()).max(0.0) / scale + 5.0;
     let deadline = Instant::now() + Duration::from_secs_f64(wait_s);
     link.wait_idle(Duration::from_secs_f64(wait_s))
@@ -602,10 +897,8 @@ fn finish_print(
         std::thread::sleep(Duration::from_millis(5));
     }
     mcus.check()?;
-    let host_positions = pipeline.stepper_positions();
-    let commanded = pipeline.position();
-    let steps_sent = streamer.steps_sent();
-    for (i, s) in machine.steppers.iter().enumerate() {
+    let mut out = Vec::with_capacity(machine.steppers.len());
+    for s in &machine.steppers {
         let q = dict
             .encode("stepper_get_position", &[s.oid as i64])
             .map_err(|e| e.to_string())?;
@@ -628,15 +921,35 @@ fn finish_print(
             );
         }
         let reply = reply.map_err(|e| e.to_string())?;
-        let raw = reply.get("pos").unwrap_or(0);
-        let mcu_pos = if s.dir_pin.invert { -raw } else { raw };
+        // Relative to the run's start (non-zero when an already configured MCU was reused).
+        let raw = reply.get("pos").unwrap_or(0) - main.start_position(s.oid);
+        out.push(if s.dir_pin.invert { -raw } else { raw });
+    }
+    Ok(out)
+}
+
+/// Fills the summary's rows and fails if an MCU position differs from the host's.
+pub(crate) fn check_positions(
+    machine: &Machine,
+    pipeline: &Pipeline,
+    streamer: &StepStreamer,
+    mcu_positions: &[i64],
+    summary: &mut Summary,
+) -> Result<(), String> {
+    let host_positions = pipeline.stepper_positions();
+    let commanded = pipeline.position();
+    let steps_sent = streamer.steps_sent();
+    for (i, s) in machine.steppers.iter().enumerate() {
+        let Some(&mcu_pos) = mcu_positions.get(i) else {
+            return Err(format!("{}: no position read back from the MCU", s.name));
+        };
         let host_pos = host_positions.get(i).copied().unwrap_or(0);
         summary.rows.push((
             s.name.clone(),
-            steps_sent[i],
+            steps_sent.get(i).copied().unwrap_or(0),
             mcu_pos,
             host_pos,
-            commanded[s.axis],
+            commanded.get(s.axis).copied().unwrap_or(0.0),
         ));
     }
     if let Some((name, _, m, h, _)) = summary.rows.iter().find(|r| r.2 != r.3) {
@@ -644,7 +957,12 @@ fn finish_print(
             "{name}: the MCU reports position {m} steps but the host sent {h}"
         ));
     }
-    if let Some(margin) = link.stats().min_lead_margin_ticks {
+    Ok(())
+}
+
+/// Fails if a step command reached the MCU with less than the required lead.
+pub(crate) fn check_min_lead(min_margin_ticks: Option<i64>, clock_freq: f64) -> Result<(), String> {
+    if let Some(margin) = min_margin_ticks {
         if (margin as f64) < MIN_LEAD_S * clock_freq {
             return Err(format!(
                 "a step command reached the MCU with only {:.1} ms lead (at least {:.0} ms required)",

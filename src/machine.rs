@@ -3,7 +3,7 @@
 
 use planner::pipeline::{PipelineConfig, PipelineOptions, StepperSpec};
 use planner::toolhead::ToolheadConfig;
-use sysconfig::printer::{PinRef, PrinterConfig};
+use sysconfig::printer::{PinRef, PrinterConfig, ProbeSection, PROBE_PIN_MCU};
 
 /// One stepper as the host addresses it on its MCU.
 #[derive(Debug, Clone)]
@@ -18,8 +18,15 @@ pub struct StepperOut {
     pub axis: usize,
     pub step_pin: PinRef,
     pub dir_pin: PinRef,
+    /// Driver enable pin (configured as a digital output, active while printing).
+    pub enable_pin: Option<PinRef>,
+    /// Minimum step pulse width in seconds (Klipper's default: 2 µs).
+    pub step_pulse_duration: f64,
     pub step_dist: f64,
 }
+
+/// Klipper's default `step_pulse_duration`.
+pub const DEFAULT_STEP_PULSE_DURATION: f64 = 2e-6;
 
 /// One axis endstop as the host addresses it on its MCU, with the axis' homing settings.
 #[derive(Debug, Clone)]
@@ -38,6 +45,21 @@ pub struct EndstopOut {
     pub second_homing_speed: f64,
     pub homing_retract_dist: f64,
     pub homing_positive_dir: bool,
+    /// The pin is the `[probe]`'s (the simulator triggers it at `[simulator] bed_surface_z`).
+    pub probe: bool,
+}
+
+/// The `[probe]`: its endstop (on its MCU) and its settings.
+#[derive(Debug, Clone)]
+pub struct ProbeOut {
+    /// The probe pin as an endstop of Z: `stepper` is `probe`, `position_endstop` the
+    /// `z_offset`, `homing_speed` the probing speed.
+    pub endstop: EndstopOut,
+    /// It is also Z's endstop (`probe:z_virtual_endstop`): one MCU object serves both.
+    pub z_virtual_endstop: bool,
+    /// Z the probing move heads for (`z_position`, default `[stepper_z] position_min`).
+    pub z_position: f64,
+    pub cfg: ProbeSection,
 }
 
 /// Everything derived from a printer.cfg that `print` needs.
@@ -45,6 +67,9 @@ pub struct EndstopOut {
 pub struct Machine {
     pub steppers: Vec<StepperOut>,
     pub endstops: Vec<EndstopOut>,
+    pub probe: Option<ProbeOut>,
+    /// `[simulator] bed_surface_z`: where simulated probe pins trigger.
+    pub sim_bed_surface_z: f64,
     pub toolhead: ToolheadConfig,
     pub home_position: [f64; 3],
     /// Kinematics and pressure advance for the planner.
@@ -62,10 +87,13 @@ impl Machine {
         for (axis, s) in cfg.steppers.iter().enumerate().take(3) {
             let name = s.name.clone();
             if let (Some(pin), Some(position_endstop)) = (&s.endstop_pin, s.position_endstop) {
+                // `probe:z_virtual_endstop`: the probe's own pin.
+                let probe_pin = cfg.probe.as_ref().filter(|_| pin.mcu == PROBE_PIN_MCU);
                 endstops.push(EndstopOut {
                     stepper: name.clone(),
                     axis,
-                    pin: pin.clone(),
+                    pin: probe_pin.map_or_else(|| pin.clone(), |p| p.pin.clone()),
+                    probe: probe_pin.is_some(),
                     oid: 0,
                     position_endstop,
                     position_min: s.position_min,
@@ -83,6 +111,8 @@ impl Machine {
                 axis,
                 step_pin: s.step_pin.clone(),
                 dir_pin: s.dir_pin.clone(),
+                enable_pin: s.enable_pin.clone(),
+                step_pulse_duration: s.step_pulse_duration.unwrap_or(DEFAULT_STEP_PULSE_DURATION),
                 step_dist: s.step_dist(),
             });
         }
@@ -96,6 +126,8 @@ impl Machine {
                 axis: 3,
                 step_pin: e.step_pin.clone(),
                 dir_pin: e.dir_pin.clone(),
+                enable_pin: e.enable_pin.clone(),
+                step_pulse_duration: e.step_pulse_duration.unwrap_or(DEFAULT_STEP_PULSE_DURATION),
                 step_dist: e.step_dist(),
             });
         }
@@ -124,10 +156,16 @@ impl Machine {
             e.oid = *n;
             *n += 1;
         }
+        let probe = match &cfg.probe {
+            Some(p) => Some(probe_out(p, cfg, &endstops, &mut next)?),
+            None => None,
+        };
         let options = sysconfig::planning::pipeline_options(cfg, kinematics);
         Ok(Machine {
             steppers,
             endstops,
+            probe,
+            sim_bed_surface_z: cfg.simulator.bed_surface_z,
             toolhead,
             home_position: home,
             options,
@@ -155,6 +193,31 @@ impl Machine {
 }
 
 impl Machine {
+    /// The endstop objects on MCU `mcu`, in oid order: the axis endstops, then the probe
+    /// unless it is Z's endstop too.
+    pub fn mcu_endstops(&self, mcu: &str) -> Vec<&EndstopOut> {
+        let probe = self
+            .probe
+            .as_ref()
+            .filter(|p| !p.z_virtual_endstop)
+            .map(|p| &p.endstop);
+        self.endstops
+            .iter()
+            .chain(probe)
+            .filter(|e| e.pin.mcu == mcu)
+            .collect()
+    }
+
+    /// The simulated world's axis coordinate at which endstop `e` triggers: the bed surface for
+    /// the probe, else `position_endstop`.
+    fn sim_trigger(&self, e: &EndstopOut) -> f64 {
+        if e.probe {
+            self.sim_bed_surface_z
+        } else {
+            e.position_endstop
+        }
+    }
+
     /// Arguments that put a simulated MCU into the printer's shared simulated world: the axes
     /// its steppers move (starting mid-travel) and the endstops wired to its pins.
     pub fn sim_world_args(&self, mcu: &str, world: &str) -> Vec<String> {
@@ -170,8 +233,8 @@ impl Machine {
             args.push("--axis".to_string());
             // The carriage starts 10% of the travel away from its endstop (homing stays short).
             let start = match self.endstops.iter().find(|e| e.axis == s.axis) {
-                Some(e) if e.homing_positive_dir => e.position_endstop - 0.1 * (max - min),
-                Some(e) => e.position_endstop + 0.1 * (max - min),
+                Some(e) if e.homing_positive_dir => self.sim_trigger(e) - 0.1 * (max - min),
+                Some(e) => self.sim_trigger(e) + 0.1 * (max - min),
                 None => (min + max) / 2.0,
             };
             args.push(format!(
@@ -179,12 +242,14 @@ impl Machine {
                 axis_names[s.axis], s.step_pin.pin, steps_per_mm, start
             ));
         }
-        for e in self.endstops.iter().filter(|e| e.pin.mcu == mcu) {
+        for e in self.mcu_endstops(mcu) {
             let side = if e.homing_positive_dir { "max" } else { "min" };
             args.push("--endstop".to_string());
             args.push(format!(
                 "{}={},{},{side}",
-                e.pin.pin, axis_names[e.axis], e.position_endstop
+                e.pin.pin,
+                axis_names[e.axis],
+                self.sim_trigger(e)
             ));
         }
         if !args.is_empty() {
@@ -192,5 +257,99 @@ impl Machine {
             args.push(world.to_string());
         }
         args
+    }
+}
+
+/// The probe as an endstop of Z: shares the object of Z's endstop with
+/// `probe:z_virtual_endstop`, else takes the next oid on its MCU.
+fn probe_out(
+    p: &ProbeSection,
+    cfg: &PrinterConfig,
+    endstops: &[EndstopOut],
+    next: &mut std::collections::HashMap<String, u8>,
+) -> Result<ProbeOut, String> {
+    let Some(z) = cfg.steppers.get(2).filter(|s| s.name == "stepper_z") else {
+        return Err(format!(
+            "{}: [probe] needs a [stepper_z] (cartesian or corexy kinematics)",
+            cfg.source.display()
+        ));
+    };
+    let shared = endstops.iter().find(|e| e.axis == 2 && e.probe);
+    let oid = match shared {
+        Some(e) => e.oid,
+        None => {
+            let n = next.entry(p.pin.mcu.clone()).or_insert(0);
+            *n += 1;
+            *n - 1
+        }
+    };
+    Ok(ProbeOut {
+        endstop: EndstopOut {
+            stepper: "probe".to_string(),
+            axis: 2,
+            pin: p.pin.clone(),
+            oid,
+            position_endstop: p.z_offset,
+            position_min: z.position_min,
+            position_max: z.position_max,
+            homing_speed: p.speed,
+            second_homing_speed: p.speed,
+            homing_retract_dist: p.sample_retract_dist,
+            homing_positive_dir: false,
+            probe: true,
+        },
+        z_virtual_endstop: shared.is_some(),
+        z_position: p.z_position.unwrap_or(z.position_min),
+        cfg: p.clone(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn machine(text: &str) -> Machine {
+        let cfg = sysconfig::parse_str(text, std::path::Path::new("printer.cfg")).unwrap();
+        Machine::from_config(&cfg).unwrap()
+    }
+
+    #[test]
+    fn probe_virtual_endstop_shares_z_endstop_object() {
+        let m = machine(include_str!("../examples/simulated-probe.cfg"));
+        let z = m.endstops.iter().find(|e| e.axis == 2).unwrap();
+        assert_eq!((z.pin.mcu.as_str(), z.pin.pin.as_str()), ("probe_mcu", "PA4"));
+        assert!(z.probe && z.pin.pullup);
+        assert_eq!((z.position_endstop, z.oid), (1.5, 0));
+        let p = m.probe.as_ref().unwrap();
+        assert!(p.z_virtual_endstop);
+        assert_eq!(
+            (p.endstop.oid, p.z_position, p.endstop.homing_speed),
+            (0, 0.0, 5.0)
+        );
+        assert_eq!(m.mcu_endstops("probe_mcu").len(), 1);
+        // The probe triggers at the simulated bed surface (0); Z starts 20 mm above it.
+        let args = m.sim_world_args("probe_mcu", "w").join(" ");
+        assert_eq!(args, "--endstop PA4=z,0,min --world w");
+        let args = m.sim_world_args("mcu", "w").join(" ");
+        assert!(args.contains("--axis z=PC0,400,20 "), "{args}");
+    }
+
+    #[test]
+    fn separate_probe_takes_the_next_oid() {
+        let text = include_str!("../examples/simulated-multi-mcu.cfg").replace(
+            "time_scale: 1.0",
+            "time_scale: 1.0\nbed_surface_z: 1.25\n[probe]\npin: probe_mcu:PA4\nz_offset: 1\nz_position: -1",
+        );
+        let m = machine(&text);
+        let p = m.probe.as_ref().unwrap();
+        assert!(!p.z_virtual_endstop);
+        assert_eq!(
+            (p.endstop.oid, p.z_position, p.endstop.position_endstop),
+            (1, -1.0, 1.0)
+        );
+        let oids: Vec<u8> = m.mcu_endstops("probe_mcu").iter().map(|e| e.oid).collect();
+        assert_eq!(oids, [0, 1]);
+        let args = m.sim_world_args("probe_mcu", "w").join(" ");
+        assert_eq!(args, "--endstop PA3=z,0,min --endstop PA4=z,1.25,min --world w");
     }
 }

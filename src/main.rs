@@ -5,16 +5,23 @@
 //! - `home [--config printer.cfg] [--axes xyz] [--cycles N]`: G28 with motion on the MCUs,
 //!   reporting overshoot and trigger → stop latencies (see `homing`).
 //! - `decode OUT.bin`: print a wire stream one message a line.
+//! - `doctor [--unit --config printer.cfg]`: host real-time checks, or the systemd unit.
+//! - `serve --role io [--config printer.cfg] [--instance NAME]`: the IO stage in its own
+//!   process (MCU connections), serving one `print --io-process` / `--io-attach NAME`.
 //! - `mcu …` (hidden): the simulated MCU (the firmware's Linux-process target), for when the
 //!   separate `cadence-mcu` executable was not built.
 
+mod allocsites;
 mod benchcmd;
 mod decode;
+mod doctor;
 mod homing;
 mod live;
 mod machine;
 mod mcus;
 mod print;
+mod remote;
+mod serve;
 mod simmcu;
 mod sink;
 
@@ -39,6 +46,12 @@ enum Cmd {
     Print(print::PrintArgs),
     /// Home the printer's axes with real motion (G28), once or in cycles with latency figures.
     Home(homing::HomeArgs),
+    /// Run one stage of the live print in this process (`--role io`: the MCU connections),
+    /// serving a `cadence print --io-process` or `--io-attach NAME`.
+    Serve(serve::ServeArgs),
+    /// Check this host for hard timing (PREEMPT_RT, SCHED_FIFO, limits, CPU isolation, wake-up
+    /// latency), or print the systemd unit for the service with `--unit`.
+    Doctor(doctor::DoctorArgs),
     /// Decode a wire stream written by `print --batch` into one message per line.
     Decode(decode::DecodeArgs),
     /// Benchmarks: `bench plan FILE` measures planning + step compression.
@@ -57,9 +70,16 @@ static ALLOC: rt_core::alloc_count::CountingAlloc = rt_core::alloc_count::Counti
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    allocsites::init();
+    let who = match cli.command {
+        Cmd::Serve(_) => "cadence serve",
+        _ => "cadence",
+    };
     let result = match cli.command {
         Cmd::Print(args) => print::run(&args),
         Cmd::Decode(args) => decode::run(&args),
+        Cmd::Doctor(args) => doctor::run(&args),
+        Cmd::Serve(args) => serve::run(&args),
         Cmd::Bench(args) => benchcmd::run(&args),
         Cmd::Home(args) => homing::run_cli(&args),
         Cmd::Mcu { args } => {
@@ -71,7 +91,7 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("cadence: error: {e}");
+            eprintln!("{who}: error: {e}");
             ExitCode::FAILURE
         }
     }

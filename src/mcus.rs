@@ -1,8 +1,8 @@
 //! The printer's MCUs: spawning simulated ones, connecting links, configuring objects, and
 //! shutting everything down cleanly.
 //!
-//! Object ids per MCU: that MCU's steppers first (in machine order), then its endstops, then
-//! one trsync (homing trigger sync) object.
+//! Object ids per MCU: that MCU's steppers first (in machine order), then its endstops (the
+//! `[probe]` last), then one trsync (homing trigger sync) object.
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -27,6 +27,20 @@ pub struct McuConn {
     pub clock_freq: f64,
     /// Oid of this MCU's trsync object.
     pub trsync_oid: u8,
+    /// Stepper positions (oid, raw steps) when this run took over an MCU that was already
+    /// configured identically by an earlier run (a long-running MCU process or board);
+    /// positions read back at the end are relative to these.
+    pub start_positions: Vec<(u8, i64)>,
+}
+
+impl McuConn {
+    /// Raw position of stepper `oid` when this run started (0 on a freshly configured MCU).
+    pub fn start_position(&self, oid: u8) -> i64 {
+        self.start_positions
+            .iter()
+            .find(|(o, _)| *o == oid)
+            .map_or(0, |&(_, p)| p)
+    }
 }
 
 /// All MCUs of the printer; `list[0]` is the main `[mcu]`.
@@ -141,6 +155,7 @@ impl Mcus {
                 move_count: 0,
                 clock_freq,
                 trsync_oid: 0,
+                start_positions: Vec::new(),
             });
         }
         for i in 0..mcus.list.len() {
@@ -161,17 +176,34 @@ impl Mcus {
             .encode("get_config", &[])
             .map_err(|e| format!("mcu '{name}': {e}"))?;
         let reply = query_config(&conn.link, get_config)?;
-        if reply.get("is_config") == Some(1) {
-            return Err(format!(
-                "mcu '{name}': already configured: restart the MCU before printing"
-            ));
-        }
-        let (cmds, trsync_oid) =
+        let (cmds, trsync_oid, crc) =
             config_commands(dict, machine, &name).map_err(|e| format!("mcu '{name}': {e}"))?;
-        for c in cmds {
-            conn.link.send(c).map_err(|e| e.to_string())?;
-        }
-        let reply = query_config(&conn.link, get_config)?;
+        let mut start_positions = Vec::new();
+        let reply = if reply.get("is_config") == Some(1) {
+            // A long-running MCU (a board, or Klipper's Linux-process MCU) keeps its
+            // configuration between runs: reuse it when it is ours, like Klipper does.
+            let theirs = reply.get("crc").unwrap_or(-1) as u32;
+            if theirs != crc {
+                return Err(format!(
+                    "mcu '{name}': already configured with another configuration (crc {theirs:#010x}, this \
+                     printer.cfg gives {crc:#010x}): restart the MCU (FIRMWARE_RESTART) before printing"
+                ));
+            }
+            if reply.get("is_shutdown") == Some(1) {
+                return Err(format!(
+                    "mcu '{name}': is shut down from an earlier run: restart the MCU before printing"
+                ));
+            }
+            for s in machine.steppers.iter().filter(|s| s.mcu == name) {
+                start_positions.push((s.oid, raw_position(&conn.link, s.oid)?));
+            }
+            reply
+        } else {
+            for c in cmds {
+                conn.link.send(c).map_err(|e| e.to_string())?;
+            }
+            query_config(&conn.link, get_config)?
+        };
         if reply.get("is_config") != Some(1) {
             return Err(format!(
                 "mcu '{name}': did not accept the configuration ({reply})"
@@ -186,6 +218,7 @@ impl Mcus {
         let conn = &mut self.list[i];
         conn.move_count = move_count;
         conn.trsync_oid = trsync_oid;
+        conn.start_positions = start_positions;
         Ok(())
     }
 
@@ -249,12 +282,27 @@ fn sim_env_args(name: &str) -> Vec<String> {
 
 /// Encodes one MCU's configuration: oids, steppers, endstops, trsync, finalize with the
 /// config CRC (CRC-32 of the configuration messages). Returns the commands and the trsync oid.
-pub fn config_commands(dict: &Dictionary, machine: &Machine, mcu: &str) -> Result<(Vec<Cmd>, u8), String> {
+pub fn config_commands(
+    dict: &Dictionary,
+    machine: &Machine,
+    mcu: &str,
+) -> Result<(Vec<Cmd>, u8, u32), String> {
     let steppers: Vec<_> = machine.steppers.iter().filter(|s| s.mcu == mcu).collect();
-    let endstops: Vec<_> = machine.endstops.iter().filter(|e| e.pin.mcu == mcu).collect();
-    let count = steppers.len() + endstops.len() + 1;
+    let endstops = machine.mcu_endstops(mcu);
+    // Driver enable pins, once each (several steppers often share one), after the endstops.
+    let mut enables: Vec<&sysconfig::printer::PinRef> = Vec::new();
+    for s in &steppers {
+        if let Some(p) = &s.enable_pin {
+            if p.mcu == mcu && !enables.iter().any(|e| e.pin == p.pin) {
+                enables.push(p);
+            }
+        }
+    }
+    let enable_oid0 = steppers.len() + endstops.len();
+    let count = enable_oid0 + enables.len() + 1;
     let trsync_oid = u8::try_from(count - 1).map_err(|_| "too many objects".to_string())?;
     let err = |e: links::dict::DictError| e.to_string();
+    let clock_freq = dict.clock_freq().map_err(err)?;
     let mut cmds = vec![dict.encode("allocate_oids", &[count as i64]).map_err(err)?];
     for s in &steppers {
         let step_pin = dict
@@ -263,6 +311,7 @@ pub fn config_commands(dict: &Dictionary, machine: &Machine, mcu: &str) -> Resul
         let dir_pin = dict
             .pin(&s.dir_pin.pin)
             .map_err(|e| format!("[{}] dir_pin: {e}", s.name))?;
+        let pulse_ticks = (s.step_pulse_duration * clock_freq).round().max(0.0) as i64;
         cmds.push(
             dict.encode(
                 "config_stepper",
@@ -271,7 +320,7 @@ pub fn config_commands(dict: &Dictionary, machine: &Machine, mcu: &str) -> Resul
                     step_pin as i64,
                     dir_pin as i64,
                     s.step_pin.invert as i64,
-                    0,
+                    pulse_ticks,
                 ],
             )
             .map_err(err)?,
@@ -282,12 +331,32 @@ pub fn config_commands(dict: &Dictionary, machine: &Machine, mcu: &str) -> Resul
         return Err("the MCU has no endstop/trsync support in its dictionary".to_string());
     }
     for e in &endstops {
-        let pin = dict
-            .pin(&e.pin.pin)
-            .map_err(|x| format!("[{}] endstop_pin: {x}", e.stepper))?;
+        let pin = dict.pin(&e.pin.pin).map_err(|x| {
+            let option = if e.stepper == "probe" {
+                "pin"
+            } else {
+                "endstop_pin"
+            };
+            format!("[{}] {option}: {x}", e.stepper)
+        })?;
         cmds.push(
             dict.encode("config_endstop", &[e.oid as i64, pin as i64, e.pin.pullup as i64])
                 .map_err(err)?,
+        );
+    }
+    for (i, p) in enables.iter().enumerate() {
+        // Drivers on from configuration on (value = active), off when the MCU shuts down
+        // (default_value = inactive); `!` pins are active low.
+        let pin = dict
+            .pin(&p.pin)
+            .map_err(|x| format!("enable_pin {}: {x}", p.pin))?;
+        let on = !p.invert as i64;
+        cmds.push(
+            dict.encode(
+                "config_digital_out",
+                &[(enable_oid0 + i) as i64, pin as i64, on, 1 - on, 0],
+            )
+            .map_err(err)?,
         );
     }
     if has_endstops {
@@ -299,11 +368,36 @@ pub fn config_commands(dict: &Dictionary, machine: &Machine, mcu: &str) -> Resul
     for c in &cmds {
         crc.update(c.as_bytes());
     }
-    cmds.push(
-        dict.encode("finalize_config", &[crc.finalize() as i64])
-            .map_err(err)?,
-    );
-    Ok((cmds, trsync_oid))
+    let crc = crc.finalize();
+    cmds.push(dict.encode("finalize_config", &[crc as i64]).map_err(err)?);
+    Ok((cmds, trsync_oid, crc))
+}
+
+/// Raw `stepper_get_position` of stepper `oid` (retried: answers are not retransmitted).
+fn raw_position(link: &McuLink, oid: u8) -> Result<i64, String> {
+    let q = link
+        .dictionary()
+        .encode("stepper_get_position", &[oid as i64])
+        .map_err(|e| e.to_string())?;
+    let mut last = String::new();
+    for _ in 0..4 {
+        match link.query(
+            q,
+            "stepper_position",
+            Some(("oid", oid as i64)),
+            Duration::from_secs(1),
+        ) {
+            Ok(r) => return Ok(r.get("pos").unwrap_or(0)),
+            Err(e) => last = e.to_string(),
+        }
+        if link.error().is_some() {
+            break;
+        }
+    }
+    Err(format!(
+        "mcu '{}': stepper_get_position oid={oid}: {last}",
+        link.name()
+    ))
 }
 
 /// `get_config` → `config`, retried: MCU → host traffic is not retransmitted, so on a noisy line

@@ -49,6 +49,9 @@ pub struct PrintArgs {
     /// Save the print's latency histograms to this file (HdrHistogram V2 interval log).
     #[arg(long)]
     pub histograms: Option<PathBuf>,
+    /// Logging and where the IO stage runs (see `live::LiveArgs`).
+    #[command(flatten)]
+    pub live: live::LiveArgs,
 }
 
 /// Lead every step command must have at the MCU, in print seconds.
@@ -101,15 +104,36 @@ impl Warnings {
     }
 }
 
+/// A G-code command that moves with the MCUs in the loop: `motion` in [`plan_file`] runs it on a
+/// live print (and says so) or leaves it to the planner.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum MotionCmd<'a> {
+    /// G28 with the axes to home.
+    Home([bool; 3]),
+    /// PROBE, PROBE_ACCURACY or QUERY_PROBE, as written.
+    Probe { name: &'a str, raw: &'a str },
+}
+
+impl MotionCmd<'_> {
+    /// The command's name for errors.
+    fn name(&self) -> &str {
+        match self {
+            MotionCmd::Home(_) => "G28",
+            MotionCmd::Probe { name, .. } => name,
+        }
+    }
+}
+
 /// Feeds the G-code through the planner, handing step commands to `emit` as they become final.
-/// `pace` runs between lines (live flow control; batch passes a no-op).
+/// `pace` runs between lines (live flow control; batch passes a no-op); `motion` runs G28 and the
+/// probe commands when it can (returns true) with the MCUs in the loop.
 pub(crate) fn plan_file(
     args: &PrintArgs,
     pipeline: &mut Pipeline,
     gcode: File,
     mut emit: impl FnMut(&mut Vec<(usize, StepCmd)>) -> Result<(), String>,
     mut pace: impl FnMut(&Pipeline) -> Result<(), String>,
-    mut home: impl FnMut(&mut Pipeline, [bool; 3]) -> Result<bool, String>,
+    mut motion: impl FnMut(&mut Pipeline, &MotionCmd<'_>) -> Result<bool, String>,
 ) -> Result<u64, String> {
     let mut warnings = Warnings::default();
     let mut out = Vec::with_capacity(4096);
@@ -118,10 +142,17 @@ pub(crate) fn plan_file(
         let line = line.map_err(|e| format!("{}: {e}", args.file.display()))?;
         lines += 1;
         // G28 with real motion where the printer can home; otherwise the planner's own G28
-        // (which sets the configured endstop positions).
-        if let Command::Home { x, y, z } = line.cmd {
-            if home(pipeline, [x, y, z])
-                .map_err(|e| format!("{}:{}: G28: {e}", args.file.display(), line.line_no))?
+        // (which sets the configured endstop positions). The probe commands likewise.
+        let cmd = match &line.cmd {
+            Command::Home { x, y, z } => Some(MotionCmd::Home([*x, *y, *z])),
+            Command::Other { name, raw } if crate::homing::probe::is_probe_command(name) => {
+                Some(MotionCmd::Probe { name, raw })
+            }
+            _ => None,
+        };
+        if let Some(cmd) = cmd {
+            if motion(pipeline, &cmd)
+                .map_err(|e| format!("{}:{}: {}: {e}", args.file.display(), line.line_no, cmd.name()))?
             {
                 continue;
             }
@@ -208,6 +239,9 @@ fn run_batch(
 }
 
 fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: File) -> Result<(), String> {
+    if args.live.remote() {
+        return crate::remote::run(args, cfg, machine, gcode);
+    }
     let started = Instant::now();
     let simulated = cfg.mcus.iter().any(|m| m.is_simulated());
     if args.time_scale.is_some() && !simulated {
@@ -215,6 +249,7 @@ fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: Fil
     }
     let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
     let hists = Hists::new();
+    let logging = live::Logging::start(args.live.log_level, args.live.log_file.clone())?;
     let r = &cfg.realtime;
     let rt = RtConfig {
         enabled: r.enabled && !args.no_realtime,
@@ -227,15 +262,18 @@ fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: Fil
     let opts = ConnectOptions {
         time_scale,
         trace: args.trace.clone(),
-        lead_hook: Some(hists.lead_hook()),
+        lead_hook: Some(hists.lead_hook(logging.handle("io-link"))),
         io_rt: Some(rt.link_spec()),
     };
     let mut mcus = Mcus::connect(cfg, machine, opts)?;
+    hists.set_min_lead(mcus.main().clock_freq);
+    let log = logging.handle("main");
     let run = live::LiveRun {
         started,
         scale: time_scale,
         rt: &rt,
         hists: &hists,
+        log: &log,
     };
     let result = live::print_on(args, machine, &mcus, gcode, &run);
     let stats = mcus.close();
@@ -244,6 +282,7 @@ fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: Fil
     if let Some(path) = &args.histograms {
         hists.save(path, summary.wall)?;
     }
+    summary.extra.push(logging.finish());
     summary.print(&stats);
     for line in rt_core::os::rt_report() {
         eprintln!("cadence: {line}");
@@ -268,7 +307,7 @@ pub(crate) struct Summary {
 }
 
 impl Summary {
-    fn print(&self, all_stats: &[(String, links::mcu::LinkStats)]) {
+    pub(crate) fn print(&self, all_stats: &[(String, links::mcu::LinkStats)]) {
         println!("print: {}", self.file.display());
         println!(
             "  lines {}, moves {}, queue_step {}, print time {:.3} s, wall {:.3} s",

@@ -158,6 +158,7 @@ fn push_urgent(shared: &Shared, cmd: Cmd) {
     if shared.urgent.push(item).is_err() {
         shared.urgent_dropped.fetch_add(1, Ordering::Relaxed);
     }
+    shared.wake_io();
 }
 
 /// A trsync registered with one link's IO thread.

@@ -6,8 +6,10 @@
 //! one or two steps earlier moves the anchor of the next command, and is chosen when the two
 //! commands together then cover more steps (benchy: 0.4 % fewer commands, see
 //! [`DEFAULT_LOOKAHEAD_BACKOFF`]). The next command computed by the lookahead is kept and
-//! reused. Greedy choices are not globally optimal; the checker, not the algorithm, is what
-//! guarantees correctness.
+//! reused. An earlier end is only tried when a cheap necessary test (`fit::may_reach`: even
+//! real-valued commands cannot land 4 sampled steps) does not rule the gain out: the same
+//! choices, 15 % less compression time on the benchy. Greedy choices are not globally optimal;
+//! the checker, not the algorithm, is what guarantees correctness.
 //!
 //! Commands never go back in time (every interval ≥ 0); a `reset_step_clock` precedes the first
 //! step and any step more than 2^29 ticks after the previous one; `set_next_step_dir` precedes
@@ -22,7 +24,7 @@ use crate::kinematics::StepperKin;
 use crate::stepgen::StepGen;
 pub use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::Move;
-use fit::{best_fit, fit_prefix, latest_end, longest_fit, Fit, StepWindow};
+use fit::{best_fit, fit_prefix, latest_end, longest_fit, may_reach, Fit, StepWindow};
 
 /// Largest interval sent (and largest gap without a `reset_step_clock`), in ticks.
 pub const MAX_INTERVAL: u64 = 1 << 29;
@@ -240,6 +242,12 @@ impl StepCompressor {
             let Some(f) = fit_prefix(run, last, fit.count - back, fit.add) else {
                 break;
             };
+            // It only wins when the next command reaches `need` steps: skip it when even the
+            // real-valued relaxation on a few of those steps cannot (the same choices, faster).
+            let need = best.0.count + best.1.count + 1 - f.count;
+            if need > run.len() - f.count || !may_reach(&run[f.count..], f.end(last), need) {
+                continue;
+            }
             let next = follow(&f, guess);
             if f.count + next.count > best.0.count + best.1.count {
                 best = (f, next);

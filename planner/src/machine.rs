@@ -53,6 +53,13 @@ pub enum Applied {
     Fan {
         speed: f64,
     },
+    /// SET_PRESSURE_ADVANCE with a new ADVANCE: it applies from the next move on (the
+    /// pipeline hands it to the extruder's step generation; smoothing makes the change
+    /// gradual over `smooth_time`).
+    PressureAdvance {
+        advance: f64,
+        smooth_time: f64,
+    },
     /// M84/M18: steppers off; every axis must be homed again before moving.
     MotorsOff,
     /// M114: the position report, Klipper's text (`X:… Y:… Z:… E:…`).
@@ -482,12 +489,24 @@ impl GcodeState {
                         "{name}: SMOOTH_TIME={smooth} must be ≤ 0.2"
                     )));
                 }
-                if (advance, smooth) != self.pressure_advance {
+                if advance >= 10.0 {
+                    return Err(PlanErrorKind::BadParameter(format!(
+                        "{name}: ADVANCE={advance} must be < 10"
+                    )));
+                }
+                if smooth != self.pressure_advance.1 {
                     return Ok(Applied::Unsupported(
-                        "SET_PRESSURE_ADVANCE (changing pressure advance during a print is not supported yet: \
-                         the printer.cfg values apply)"
+                        "SET_PRESSURE_ADVANCE SMOOTH_TIME (changing the smoothing time during a print is not \
+                         supported yet: the printer.cfg value applies)"
                             .into(),
                     ));
+                }
+                if advance != self.pressure_advance.0 {
+                    self.pressure_advance.0 = advance;
+                    return Ok(Applied::PressureAdvance {
+                        advance,
+                        smooth_time: smooth,
+                    });
                 }
             }
             "SET_RETRACTION" => {

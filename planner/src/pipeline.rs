@@ -32,7 +32,11 @@ use crate::machine::{Applied, GcodeState, PlanError, PlanErrorKind};
 use crate::pressure_advance::{PaGen, PressureAdvance};
 use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::{Move, Toolhead, ToolheadConfig};
-use lanes::{LaneOut, LaneState, Msg, Workers};
+use lanes::{LaneOut, LaneState, Msg, PaChange, Workers};
+
+/// Klipper's default `pressure_advance_smooth_time` (s), for SET_PRESSURE_ADVANCE when the
+/// configuration has no pressure advance.
+pub const DEFAULT_SMOOTH_TIME: f64 = 0.040;
 
 /// Print time of final moves kept back from compression as lookahead (s).
 pub const COMPRESS_LOOKAHEAD_S: f64 = 0.25;
@@ -147,6 +151,11 @@ pub struct Pipeline {
     /// How long after the toolhead stops step positions still change (pressure advance
     /// smoothing: half its window), s.
     settle: f64,
+    /// Pressure advance changes not handed to the lanes yet: (index of the first move they
+    /// apply to, counting every final move since the start; advance).
+    pa_pending: VecDeque<(u64, f64)>,
+    /// Final moves handed to the lanes so far.
+    dispatched: u64,
 }
 
 impl Pipeline {
@@ -219,11 +228,18 @@ impl Pipeline {
             let pa_gen = pa
                 .filter(|_| s.axis == 3)
                 .map(|p| PaGen::new(p, s.step_dist, cfg.clock_freq));
-            lanes.push(LaneState::new(
+            let mut lane = LaneState::new(
                 kin,
                 StepCompressor::new(s.step_dist, cfg.clock_freq, max_err_ticks),
                 pa_gen,
-            ));
+            );
+            if s.axis == 3 {
+                let smooth = opts
+                    .pressure_advance
+                    .map_or(DEFAULT_SMOOTH_TIME, |p| p.smooth_time);
+                lane.extruder = Some((smooth, cfg.clock_freq));
+            }
+            lanes.push(lane);
         }
         let n = lanes.len();
         let settle = pa.map_or(0.0, |p| 0.5 * p.smooth_time);
@@ -258,12 +274,26 @@ impl Pipeline {
             bounds: VecDeque::new(),
             worker_error: None,
             settle,
+            pa_pending: VecDeque::new(),
+            dispatched: 0,
         })
     }
 
-    /// Applies one G-code line to the toolhead.
+    /// Applies one G-code line to the toolhead. A new pressure advance applies from the next
+    /// move on (the moves queued before keep the old one).
     pub fn apply(&mut self, line: &GcodeLine) -> Result<Applied, PlanError> {
-        self.state.apply(line, &mut self.th)
+        let applied = self.state.apply(line, &mut self.th)?;
+        if let Applied::PressureAdvance { advance, smooth_time } = applied {
+            // Every move queued so far comes before the change: those handed out, those taken
+            // from the toolhead and those still in its lookahead.
+            self.th.take_moves(&mut self.moves);
+            let at = self.dispatched + self.moves.len() as u64 + self.th.queued_moves() as u64;
+            self.pa_pending.push_back((at, advance));
+            if advance > 0.0 {
+                self.settle = self.settle.max(0.5 * smooth_time);
+            }
+        }
+        Ok(applied)
     }
 
     /// Ends the lookahead (the toolhead comes to rest after the last queued move), as M400
@@ -420,19 +450,32 @@ impl Pipeline {
         self.next_seq += 1;
         self.bounds.push_back((seq, bound));
         let upto = self.upto;
+        // The pressure advance changes whose first move is in this job (all at the end).
+        let end = self.dispatched + self.moves.len() as u64;
+        let mut pa: Vec<PaChange> = Vec::new();
+        while let Some(&(at, advance)) = self.pa_pending.front() {
+            if at >= end && !all {
+                break;
+            }
+            pa.push((at.saturating_sub(self.dispatched) as usize, advance));
+            self.pa_pending.pop_front();
+        }
+        self.dispatched = end;
         match &mut self.backend {
             Backend::Inline(lanes, outs) => {
                 for (i, (lane, o)) in lanes.iter_mut().zip(outs.iter_mut()).enumerate() {
-                    lane.run(&self.moves, upto, all, rest, o);
+                    lane.run(&self.moves, &pa, upto, all, rest, o);
                     absorb(&mut self.views[i], o);
                 }
                 self.done[0] = seq + 1;
             }
             Backend::Threads(w) => {
                 let moves: Arc<[Move]> = Arc::from(self.moves.as_slice());
+                let pa: Arc<[PaChange]> = Arc::from(pa);
                 if !w.broadcast(|| Msg::Job {
                     seq,
                     moves: moves.clone(),
+                    pa: pa.clone(),
                     upto,
                     all,
                     rest,

@@ -5,10 +5,13 @@
 //! E(t) by `advance` × the extrusion velocity, the velocity being averaged over
 //! `smooth_time` centred on t:
 //!
-//!   e(t) = E(t) + advance · (P(t + T/2) − P(t − T/2)) / T
+//!   e(t) = E(t) + (P(t + T/2) − P(t − T/2)) / T
 //!
-//! where P is the cumulative extrusion of the moves that get pressure advance (extruding moves
-//! with X/Y motion, as Klipper) and T = smooth_time. e is continuous; at rest for T/2 it equals
+//! where P is the cumulative advance × extrusion of the moves that get pressure advance
+//! (extruding moves with X/Y motion, as Klipper), each move with the advance in force when it
+//! was queued, and T = smooth_time. With one advance this is advance · (average extrusion
+//! velocity); a new advance (SET_PRESSURE_ADVANCE, [`PaGen::set_advance`]) takes effect
+//! from the next move, blended in over T by the same average. e is continuous; at rest for T/2 it equals
 //! E, so step counts are exact once the toolhead stops. Positions at t need the moves up to
 //! t + T/2: the generator keeps the recent moves and only generates steps up to the last known
 //! move's end − T/2 until told the toolhead is at rest.
@@ -52,7 +55,8 @@ impl PressureAdvance {
 struct Known {
     mv: Move,
     p_before: f64,
-    advanced: bool,
+    /// The advance applied to this move (0 when it gets none).
+    advance: f64,
 }
 
 /// Step generation for an extruder with pressure advance.
@@ -97,6 +101,18 @@ impl PaGen {
         (x / self.step_dist + 0.5).floor() as i64
     }
 
+    /// The advance for the moves pushed from now on (≥ 0; smooth_time stays).
+    pub fn set_advance(&mut self, advance: f64) {
+        if advance.is_finite() && advance >= 0.0 {
+            self.pa.advance = advance;
+        }
+    }
+
+    /// The advance applied to the next moves.
+    pub fn advance(&self) -> f64 {
+        self.pa.advance
+    }
+
     /// Adds the next final move (in order).
     pub fn push_move(&mut self, mv: &Move) {
         let advanced = mv.axes_r[3] > 0.0 && (mv.axes_r[0] != 0.0 || mv.axes_r[1] != 0.0);
@@ -117,14 +133,13 @@ impl PaGen {
             self.cur_n = self.step_index(now);
         }
         let p_before = self.end_p;
-        if advanced {
-            self.end_p += mv.end_pos[3] - mv.start_pos[3];
-        }
+        let advance = if advanced { self.pa.advance } else { 0.0 };
+        self.end_p += advance * (mv.end_pos[3] - mv.start_pos[3]);
         self.end_e = mv.end_pos[3];
         self.moves.push_back(Known {
             mv: *mv,
             p_before,
-            advanced,
+            advance,
         });
     }
 
@@ -144,12 +159,7 @@ impl PaGen {
         } else {
             k.mv.start_pos[3] + k.mv.axes_r[3] * k.mv.distance_at(rel)
         };
-        let p = if k.advanced {
-            k.p_before + (e - k.mv.start_pos[3])
-        } else {
-            k.p_before
-        };
-        (e, p)
+        (e, k.p_before + k.advance * (e - k.mv.start_pos[3]))
     }
 
     /// The extruder position (mm) at print time t.
@@ -158,7 +168,7 @@ impl PaGen {
         let (e, _) = self.nominal(t);
         let (_, p_hi) = self.nominal(t + h);
         let (_, p_lo) = self.nominal(t - h);
-        e + self.pa.advance * (p_hi - p_lo) / self.pa.smooth_time
+        e + (p_hi - p_lo) / self.pa.smooth_time
     }
 
     /// Generates steps up to the last known move's end − T/2, or through its end + T/2 when

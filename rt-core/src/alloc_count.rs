@@ -13,6 +13,12 @@
 //! Counters are `thread_local` `Cell`s (const-initialised, no destructor, so reading them
 //! inside the allocator cannot itself allocate or recurse); a snapshot therefore sees only the
 //! calling thread's allocations. Frees are counted too (not an error in a loop, but a hint).
+//!
+//! Finding the allocations: [`AllocSites::start`] makes the calling thread capture a backtrace
+//! (unresolved, cheap-ish) at each of its allocations, up to a bound; [`AllocSites::take`] stops
+//! and returns them, [`AllocSites::report`] groups them by call stack (symbolised then, off the
+//! real-time path). A diagnostic only: capturing allocates, guarded against recursion by a
+//! thread-local flag.
 #![allow(unsafe_code)]
 
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -23,6 +29,86 @@ thread_local! {
     static REALLOCS: Cell<u64> = const { Cell::new(0) };
     static FREES: Cell<u64> = const { Cell::new(0) };
     static BYTES: Cell<u64> = const { Cell::new(0) };
+    /// Capture a backtrace at each allocation of this thread (see [`AllocSites`]).
+    static TRACING: Cell<bool> = const { Cell::new(false) };
+    /// Set while a capture runs (its own allocations are not captured).
+    static IN_TRACE: Cell<bool> = const { Cell::new(false) };
+}
+
+/// Captured allocation backtraces (size, stack) of threads that called [`AllocSites::start`].
+static SITES: std::sync::Mutex<Vec<(usize, std::backtrace::Backtrace)>> = std::sync::Mutex::new(Vec::new());
+/// Most backtraces kept.
+const MAX_SITES: usize = 20_000;
+
+fn capture(size: usize) {
+    let tracing = TRACING.try_with(Cell::get).unwrap_or(false);
+    if !tracing || IN_TRACE.try_with(Cell::get).unwrap_or(true) {
+        return;
+    }
+    let _ = IN_TRACE.try_with(|c| c.set(true));
+    let bt = std::backtrace::Backtrace::force_capture();
+    if let Ok(mut sites) = SITES.lock() {
+        if sites.len() < MAX_SITES {
+            sites.push((size, bt));
+        }
+    }
+    let _ = IN_TRACE.try_with(|c| c.set(false));
+}
+
+/// Allocation-site capture for the calling thread (a diagnostic; see the module docs).
+#[derive(Debug)]
+pub struct AllocSites;
+
+impl AllocSites {
+    /// Starts capturing the calling thread's allocations.
+    pub fn start() {
+        let _ = TRACING.try_with(|c| c.set(true));
+    }
+
+    /// Stops capturing on the calling thread and returns everything captured so far (by any
+    /// thread).
+    pub fn take() -> Vec<(usize, std::backtrace::Backtrace)> {
+        let _ = TRACING.try_with(|c| c.set(false));
+        let _ = IN_TRACE.try_with(|c| c.set(true));
+        let out = SITES
+            .lock()
+            .map(|mut s| std::mem::take(&mut *s))
+            .unwrap_or_default();
+        let _ = IN_TRACE.try_with(|c| c.set(false));
+        out
+    }
+
+    /// Groups captured backtraces by their frames (symbolised here), most frequent first:
+    /// (count, bytes, stack text). Frames of the allocator and std's backtrace machinery are
+    /// left out; `max_frames` frames are kept per stack.
+    pub fn report(
+        sites: &[(usize, std::backtrace::Backtrace)],
+        max_frames: usize,
+    ) -> Vec<(u64, u64, String)> {
+        let mut groups: std::collections::HashMap<String, (u64, u64)> = std::collections::HashMap::new();
+        for (size, bt) in sites {
+            let text = bt.to_string();
+            let frames: Vec<&str> = text
+                .lines()
+                .map(str::trim)
+                .filter(|l| !l.starts_with("at "))
+                .filter(|l| {
+                    !(l.contains("alloc_count")
+                        || l.contains("backtrace")
+                        || l.contains("__rust_")
+                        || l.contains("alloc::alloc::"))
+                })
+                .take(max_frames)
+                .collect();
+            let key = frames.join("\n");
+            let e = groups.entry(key).or_insert((0, 0));
+            e.0 += 1;
+            e.1 += *size as u64;
+        }
+        let mut out: Vec<(u64, u64, String)> = groups.into_iter().map(|(k, (n, b))| (n, b, k)).collect();
+        out.sort_by(|a, b| b.0.cmp(&a.0).then(b.1.cmp(&a.1)));
+        out
+    }
 }
 
 fn bump(c: &'static std::thread::LocalKey<Cell<u64>>, n: u64) {
@@ -36,11 +122,14 @@ pub struct CountingAlloc;
 
 // SAFETY: every method forwards to `System` with the caller's arguments unchanged, so the
 // GlobalAlloc contract is exactly System's; the counting touches only const thread-locals
-// (no allocation, no panic).
+// (no allocation, no panic). Only while a thread traces (`AllocSites`) does `capture` allocate,
+// re-entering this allocator with the `IN_TRACE` guard set (so it does not recurse further and
+// takes no lock twice).
 unsafe impl GlobalAlloc for CountingAlloc {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
         bump(&ALLOCS, 1);
         bump(&BYTES, layout.size() as u64);
+        capture(layout.size());
         // SAFETY: forwarded contract (see the impl).
         unsafe { System.alloc(layout) }
     }
@@ -48,6 +137,7 @@ unsafe impl GlobalAlloc for CountingAlloc {
     unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
         bump(&ALLOCS, 1);
         bump(&BYTES, layout.size() as u64);
+        capture(layout.size());
         // SAFETY: forwarded contract (see the impl).
         unsafe { System.alloc_zeroed(layout) }
     }
@@ -61,6 +151,7 @@ unsafe impl GlobalAlloc for CountingAlloc {
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
         bump(&REALLOCS, 1);
         bump(&BYTES, new_size as u64);
+        capture(new_size);
         // SAFETY: forwarded contract (see the impl).
         unsafe { System.realloc(ptr, layout, new_size) }
     }

@@ -11,7 +11,8 @@
 //!   - [`hist`]: fixed-bound latency/margin histograms (hdrhistogram), summaries, interval logs.
 //!   - [`logger`]: the logger thread; other threads push fixed-size records, never block.
 //!   - [`shm`]: iceoryx2 services for step batches and telemetry (fixed-size `#[repr(C)]`
-//!     payloads, no loss, sequence-checked).
+//!     payloads, no loss, sequence-checked), and ([`shm::io`]) the services that let the IO
+//!     stage run in its own process (MCU info, clock snapshots, status, control).
 //!
 //! The crate is `no_std` unless the `std` feature is on (the firmware core uses it bare).
 //! `unsafe` is denied everywhere except the OS layer (`os::sys`, `alloc_count`).

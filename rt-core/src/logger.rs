@@ -47,6 +47,23 @@ impl Level {
     }
 }
 
+/// `error`, `warn`, `info`, `debug` or `trace` (any case).
+impl std::str::FromStr for Level {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Level, String> {
+        match s.to_ascii_lowercase().as_str() {
+            "error" => Ok(Level::Error),
+            "warn" | "warning" => Ok(Level::Warn),
+            "info" => Ok(Level::Info),
+            "debug" => Ok(Level::Debug),
+            "trace" => Ok(Level::Trace),
+            _ => Err(format!(
+                "unknown log level '{s}' (error, warn, info, debug, trace)"
+            )),
+        }
+    }
+}
+
 /// One numeric log argument.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Arg {
@@ -386,6 +403,13 @@ mod tests {
         let written = join.join().unwrap();
         assert_eq!(written, ok);
         assert_eq!(ok + log.dropped(), 10_000);
+    }
+
+    #[test]
+    fn levels_parse() {
+        assert_eq!("WARN".parse::<Level>(), Ok(Level::Warn));
+        assert_eq!("trace".parse::<Level>(), Ok(Level::Trace));
+        assert!("loud".parse::<Level>().is_err());
     }
 
     #[test]

@@ -10,6 +10,9 @@
 //! | `cadence/<instance>/telemetry` | publish-subscribe | [`Telemetry`] | [`ChannelConfig::telemetry`] |
 //! | `cadence/<instance>/telemetry` | event | — | default |
 //!
+//! The services that let the IO stage run in another process (MCU info, clock snapshots, IO
+//! status and control) are described in [`io`].
+//!
 //! Every process must open a service with the same settings (the `ChannelConfig` constructors)
 //! and the same payload type names (`cadence::StepBatch.v2`, `cadence::Telemetry.v1`).
 //!
@@ -273,6 +276,8 @@ pub fn telemetry_service_name(instance: &str) -> String {
 pub struct ChannelConfig {
     /// Samples a subscriber can hold unread.
     pub buffer: usize,
+    /// Samples kept for subscribers that connect later (0 for streams).
+    pub history: usize,
     /// Overwrite the oldest unread sample when full (false = back-pressure).
     pub safe_overflow: bool,
     /// Longest a publisher waits for room before failing.
@@ -289,6 +294,7 @@ impl ChannelConfig {
     pub const fn steps() -> ChannelConfig {
         ChannelConfig {
             buffer: 16,
+            history: 0,
             safe_overflow: false,
             backpressure_timeout: Duration::from_secs(2),
             max_publishers: 1,
@@ -302,6 +308,7 @@ impl ChannelConfig {
     pub const fn telemetry() -> ChannelConfig {
         ChannelConfig {
             buffer: 256,
+            history: 0,
             safe_overflow: true,
             backpressure_timeout: Duration::ZERO,
             max_publishers: 4,
@@ -362,7 +369,7 @@ fn open_pubsub<S: Service, T: Sequenced>(
         .publish_subscribe::<T>()
         .enable_safe_overflow(cfg.safe_overflow)
         .subscriber_max_buffer_size(cfg.buffer)
-        .history_size(0)
+        .history_size(cfg.history)
         .max_publishers(cfg.max_publishers)
         .max_subscribers(cfg.max_subscribers)
         .open_or_create()
@@ -572,6 +579,33 @@ impl<S: Service, T: Sequenced> ShmSubscriber<S, T> {
         Ok(self.try_recv_with(&mut call)?.flatten())
     }
 
+    /// Drains every queued payload and returns a copy of the newest (`Ok(None)` when nothing
+    /// was queued). Sequence gaps are expected here (an overflowing "newest value" channel)
+    /// and not reported.
+    pub fn latest(&mut self) -> Result<Option<T>, ShmError> {
+        let mut last = None;
+        loop {
+            match self.subscriber.receive() {
+                Ok(Some(s)) => {
+                    let v = *s.payload();
+                    self.expected = Some(v.seq().wrapping_add(1));
+                    last = Some(v);
+                }
+                Ok(None) => return Ok(last),
+                Err(e) => return Err(io("receive", &self.name, e)),
+            }
+        }
+    }
+
+    /// Waits on the event service for at most `timeout` (or until a publisher notifies), without
+    /// taking anything.
+    pub fn wait(&self, timeout: Duration) -> Result<(), ShmError> {
+        self.listener
+            .timed_wait(|_| {}, timeout)
+            .map(|_| ())
+            .map_err(|e| io("wait", &self.name, e))
+    }
+
     /// The listener, for attaching to a `WaitSet` next to other sources.
     pub fn listener(&self) -> &Listener<S> {
         &self.listener
@@ -585,6 +619,8 @@ impl<S: Service, T: Sequenced> ShmSubscriber<S, T> {
             .map_err(|e| io("wait", &self.name, e))
     }
 }
+
+pub mod io;
 
 #[cfg(test)]
 mod tests;

@@ -24,6 +24,8 @@ fn machine(z_mcus: &[&str], endstop_mcu: &str) -> Machine {
             axis: 2,
             step_pin: pin(mcu, "PC0"),
             dir_pin: pin(mcu, "PC1"),
+            enable_pin: None,
+            step_pulse_duration: crate::machine::DEFAULT_STEP_PULSE_DURATION,
             step_dist: 0.0025,
         });
     }
@@ -43,6 +45,36 @@ fn axis_steppers_split_over_mcus_need_the_endstop_on_one_of_them() {
         err.contains("[stepper_z]") && err.contains("'probe_mcu'"),
         "{err}"
     );
+}
+
+#[test]
+fn a_probe_on_yet_another_mcu_is_refused_too() {
+    let mut m = machine(&["mcu", "z2"], "z2");
+    let mut endstop = m.endstops[2].clone();
+    endstop.stepper = "probe".into();
+    endstop.pin = pin("probe_mcu", "PA4");
+    endstop.probe = true;
+    let cfg = sysconfig::parse_str(
+        "[mcu]\nserial: x\n[mcu probe_mcu]\nserial: y\n[printer]\nkinematics: none\nmax_velocity: 1\n\
+         max_accel: 1\n[probe]\npin: probe_mcu:PA4\nz_offset: 1\n",
+        std::path::Path::new("printer.cfg"),
+    )
+    .unwrap();
+    m.probe = Some(crate::machine::ProbeOut {
+        endstop,
+        z_virtual_endstop: false,
+        z_position: 0.0,
+        cfg: cfg.probe.unwrap(),
+    });
+    let err = check_config(&m).unwrap_err();
+    assert!(
+        err.starts_with("[probe] pin 'probe_mcu:PA4': the steppers of axis z are on MCUs 'mcu', 'z2'"),
+        "{err}"
+    );
+    if let Some(p) = m.probe.as_mut() {
+        p.endstop.pin = pin("z2", "PA4");
+    }
+    assert!(check_config(&m).is_ok());
 }
 
 #[test]
@@ -104,6 +136,7 @@ fn report_names_axis_overshoot_and_position() {
                 trigger_clock: 1,
                 trigger_print_time: 1.0,
                 overshoot_mm: 0.0125,
+                trigger_position: 0.0,
                 steps: -4000,
                 last_step_after_s: 0.0004,
                 next_step_after_s: 0.00065,

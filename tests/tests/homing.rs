@@ -18,8 +18,9 @@ const TIMEOUT: Duration = Duration::from_secs(180);
 /// 20 mm travel away from the endstops at 0 (src/machine.rs `sim_world_args`).
 const STEPS_PER_MM: [f64; 3] = [80.0, 80.0, 400.0];
 const START_MM: f64 = 2.0;
-/// The main MCU's trsync (after steppers x, y, z, extruder and endstops x, y).
-const TRSYNC_OID: u8 = 6;
+/// The main MCU's trsync (after steppers x, y, z, extruder (0-3), endstops x, y (4, 5) and the
+/// four enable pins (6-9): the trsync is always the last oid).
+const TRSYNC_OID: u8 = 10;
 /// Second-pass speeds (mm/s) and the endstop's sampling: a read every ≤ 1 ms, 4 × 15 µs to
 /// confirm.
 const SECOND_SPEED: [f64; 3] = [5.0, 5.0, 5.0];

@@ -1,5 +1,7 @@
 //! `cadence-bench handoff [--samples N] [--gap-us G] [--fifo P] [--no-process]`: hand-off
 //! latency histograms (see `bench::handoff`). `--child ...` is the consumer process it spawns.
+//! `cadence-bench plan GCODE PRINTER_CFG [--threads N]`: planning + compression figures (see
+//! `bench::plan`; the same as `cadence bench plan` with one-byte message ids).
 
 use std::time::Duration;
 
@@ -23,6 +25,9 @@ fn num<T: std::str::FromStr>(args: &[String], i: usize, what: &str) -> Result<T,
 }
 
 fn run(args: &[String]) -> Result<(), String> {
+    if args.first().map(String::as_str) == Some("plan") {
+        return plan(&args[1..]);
+    }
     if args.first().map(String::as_str) != Some("handoff") {
         return Err(
             "usage: cadence-bench handoff [--samples N] [--gap-us G] [--fifo P] [--no-process]".into(),
@@ -69,5 +74,23 @@ fn run(args: &[String]) -> Result<(), String> {
     for line in rt_core::os::rt_report() {
         println!("  {line}");
     }
+    Ok(())
+}
+
+/// `plan GCODE CFG [--threads N]`.
+fn plan(args: &[String]) -> Result<(), String> {
+    let usage = "usage: cadence-bench plan GCODE PRINTER_CFG [--threads N]";
+    let (Some(gcode), Some(cfg)) = (args.first(), args.get(1)) else {
+        return Err(usage.into());
+    };
+    let mut opts = bench::plan::PlanOptions::default();
+    match args.get(2).map(String::as_str) {
+        None => {}
+        Some("--threads") => opts.threads = num(args, 3, "--threads")?,
+        Some(other) => return Err(format!("unknown option {other}; {usage}")),
+    }
+    let cfg = sysconfig::printer::load(std::path::Path::new(cfg)).map_err(|e| e.to_string())?;
+    let report = bench::plan::plan_file(std::path::Path::new(gcode), &cfg, &opts)?;
+    println!("{report}");
     Ok(())
 }

@@ -102,14 +102,19 @@ impl CmdEncoder {
 }
 
 /// True when `v` fits the wire type read either signed or unsigned.
+///
+/// `%c` is the exception: Klipper sends it as an ordinary VLQ sized for at most 2 bytes, and
+/// its MCUs read a full 32-bit argument, so `%c` parameters such as pins carry values above 255
+/// (a Linux-process MCU's `gpiochip1/gpio0` is pin 256). Accepted: what 2 VLQ bytes hold,
+/// `-4096 ..= 12287`.
 fn fits(ty: ParamType, v: i64) -> bool {
-    let bits = match ty {
-        ParamType::U32 | ParamType::I32 => 32,
-        ParamType::U16 | ParamType::I16 => 16,
-        ParamType::Byte => 8,
+    let (min, max) = match ty {
+        ParamType::U32 | ParamType::I32 => (-(1i64 << 31), (1i64 << 32) - 1),
+        ParamType::U16 | ParamType::I16 => (-(1i64 << 15), (1i64 << 16) - 1),
+        ParamType::Byte => (-(1i64 << 12), (3i64 << 12) - 1),
         ParamType::Str | ParamType::Buffer => return false,
     };
-    v >= -(1i64 << (bits - 1)) && v < (1i64 << bits)
+    (min..=max).contains(&v)
 }
 
 impl Dictionary {
@@ -217,6 +222,24 @@ mod tests {
             d.encode("debug_write", &[1]),
             Err(DictError::ArgType { .. })
         ));
+    }
+
+    /// A Linux-process MCU's pins run past 255 (`gpiochip1/gpio0` = 256) yet its
+    /// `config_stepper` declares `step_pin=%c`: Klipper sends such values as plain 2-byte VLQs.
+    #[test]
+    fn byte_params_carry_pins_above_255() {
+        let d = Dictionary::from_json(
+            r#"{"commands": {"config_stepper oid=%c step_pin=%c dir_pin=%c invert_step=%c step_pulse_ticks=%u": 14}}"#,
+        )
+        .unwrap();
+        let cmd = d.encode("config_stepper", &[0, 256, 2047, -1, 100]).unwrap();
+        assert_eq!(
+            cmd.as_bytes(),
+            &[14, 0x00, 0x82, 0x00, 0x8F, 0x7F, 0x7F, 0x80, 0x64]
+        );
+        assert!(d.encode("config_stepper", &[0, 12287, 0, -4096, 0]).is_ok());
+        assert!(d.encode("config_stepper", &[0, 12288, 0, 0, 0]).is_err());
+        assert!(d.encode("config_stepper", &[0, 0, 0, -4097, 0]).is_err());
     }
 
     #[test]

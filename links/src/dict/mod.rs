@@ -195,9 +195,9 @@ impl Dictionary {
                     .ok_or_else(|| malformed(section, "not an object"))?;
                 for (format, id) in map {
                     let id = id
-                        .as_u64()
-                        .and_then(|v| u32::try_from(v).ok())
-                        .ok_or_else(|| malformed(section, format!("id of '{format}' is not a u32")))?;
+                        .as_i64()
+                        .and_then(wire_id)
+                        .ok_or_else(|| malformed(section, format!("id of '{format}' is not a message id")))?;
                     dict.add(kind, id, format)?;
                 }
             }
@@ -411,6 +411,22 @@ impl Dictionary {
     }
 }
 
+/// A dictionary message id as its raw 32-bit VLQ value. Klipper builds with more than ~94
+/// messages number them in "standard form": ids whose one-byte VLQ has bits 5–6 set are
+/// written negative (encoded 96..127 → -32..-1), others from 128 on take two VLQ bytes. A
+/// negative id is kept as its 32-bit two's complement, which is exactly what [`vlq::encode`]
+/// sends and [`vlq::decode`] returns for it.
+///
+/// [`vlq::encode`]: crate::proto::vlq::encode
+/// [`vlq::decode`]: crate::proto::vlq::decode
+fn wire_id(v: i64) -> Option<u32> {
+    if v < 0 {
+        i32::try_from(v).ok().map(|v| v as u32)
+    } else {
+        u32::try_from(v).ok()
+    }
+}
+
 fn malformed(section: &'static str, detail: impl Into<String>) -> DictError {
     DictError::Malformed {
         section,
@@ -543,6 +559,31 @@ pub(crate) mod tests {
         );
     }
 
+    /// Ids as a Klipper build with many messages numbers them (scripts/buildcommands.py
+    /// "standard form"): negative for the one-byte VLQs 0x60..0x7F, two bytes from 128.
+    #[test]
+    fn negative_and_two_byte_ids() {
+        let d = Dictionary::from_json(
+            r#"{"commands": {"queue_step oid=%c interval=%u count=%hu add=%hi": -5,
+                             "trsync_start oid=%c report_clock=%u report_ticks=%u expire_reason=%c": 130},
+                "responses": {"clock clock=%u": -32, "stepper_position oid=%c pos=%i": 140}}"#,
+        )
+        .unwrap();
+        // Golden bytes: what Klipper's msgproto sends for these messages.
+        let qs = d.encode("queue_step", &[2, 40_000, 20, -3]).unwrap();
+        assert_eq!(qs.as_bytes(), &[0x7B, 0x02, 0x82, 0xB8, 0x40, 0x14, 0x7D]);
+        let ts = d.encode("trsync_start", &[7, 0, 0, 4]).unwrap();
+        assert_eq!(ts.as_bytes(), &[0x81, 0x02, 0x07, 0x00, 0x00, 0x04]);
+        // Responses decode by the raw VLQ value of their id.
+        let (id, _) = crate::proto::vlq::decode(&[0x60]).unwrap();
+        assert_eq!(d.response_by_id(id).unwrap().name, "clock");
+        let (id, _) = crate::proto::vlq::decode(&[0x81, 0x0C]).unwrap();
+        assert_eq!(d.response_by_id(id).unwrap().name, "stepper_position");
+        // Out of range either way.
+        assert!(Dictionary::from_json(r#"{"commands": {"get_clock": -2147483649}}"#).is_err());
+        assert!(Dictionary::from_json(r#"{"commands": {"get_clock": 4294967296}}"#).is_err());
+    }
+
     #[test]
     fn implicit_identify() {
         let d = Dictionary::from_json(r#"{"commands": {"get_clock": 3}}"#).unwrap();
@@ -601,7 +642,10 @@ pub(crate) mod tests {
             Dictionary::from_json(r#"{"commands": {"a": 3}, "responses": {"b": 3}}"#),
             Err(DictError::DuplicateId { id: 3, .. })
         ));
-        assert!(Dictionary::from_json(r#"{"commands": {"a": -1}}"#).is_err());
+        // Negative ids are valid (Klipper's standard form), fractions and strings are not.
+        assert!(Dictionary::from_json(r#"{"commands": {"a": -1}}"#).is_ok());
+        assert!(Dictionary::from_json(r#"{"commands": {"a": 1.5}}"#).is_err());
+        assert!(Dictionary::from_json(r#"{"commands": {"a": "1"}}"#).is_err());
         assert!(Dictionary::from_json(r#"{"enumerations": {"pin": {"PA": [0, 2]}}}"#).is_err());
         assert!(Dictionary::from_json(r#"{"enumerations": {"pin": {"PA0": [0]}}}"#).is_err());
         assert!(Dictionary::from_json(r#"{"output": {"x %q": 9}}"#).is_err());

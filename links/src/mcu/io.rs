@@ -202,11 +202,22 @@ impl IoThread {
                 q.sent_at.get_or_insert(t);
             }
         }
-        let wait = self.read_wait(now);
-        let n = self
-            .transport
-            .read(buf, wait)
-            .map_err(|e| Death::ConnectionLost(format!("read from {}: {e}", self.transport.describe())))?;
+        let n = match &self.shared.wake {
+            Some(wake) if self.transport.supports_wake() => {
+                // Announce the sleep first, then look at the queues: a hand-off after this
+                // point either is seen by `read_wait` or wakes the read below.
+                wake.sleeping();
+                let wait = self.read_wait(now);
+                let n = self.transport.read_wake(buf, wait, wake);
+                wake.awake();
+                n
+            }
+            _ => {
+                let wait = self.read_wait(now);
+                self.transport.read(buf, wait)
+            }
+        }
+        .map_err(|e| Death::ConnectionLost(format!("read from {}: {e}", self.transport.describe())))?;
         if n > 0 {
             let now = system_now();
             let mut payloads = std::mem::take(&mut self.payloads);
@@ -284,13 +295,18 @@ impl IoThread {
         {
             wait = wait.min(self.next_clock_at - now);
         }
-        if self.shared.armed.load(Ordering::Acquire) > 0 {
+        let wakeable = self.shared.wake.is_some() && self.transport.supports_wake();
+        if !wakeable && self.shared.armed.load(Ordering::Acquire) > 0 {
             // A homing group relies on this thread to pick up triggers other IO threads hand
             // it: read in short slices while one is registered.
             wait = wait.min(ARMED_READ_WAIT);
         }
+        // Work waiting to be taken: don't sleep — unless the serial queue is full (then a
+        // zero wait would spin until the MCU frees room).
+        let room = self.sq.len() < self.user_capacity;
         if matches!(self.phase, Phase::Running)
-            && (!self.shared.urgent.is_empty() || (self.held.is_none() && !self.shared.outgoing.is_empty()))
+            && (!self.shared.urgent.is_empty()
+                || (room && self.held.is_none() && !self.shared.outgoing.is_empty()))
         {
             wait = 0.0;
         }

@@ -337,7 +337,12 @@ impl McuLink {
             cmd,
             min_clock: 0,
             req_clock: 0,
-        })
+        })?;
+        // Plain messages are wanted now (homing set-up, queries): end the IO thread's read
+        // wait. Clocked ones (steps, ≥ 100 ms ahead) are picked up within its read slice,
+        // which lets it pack them into full blocks.
+        self.shared.wake_io();
+        Ok(())
     }
 
     /// Queues a message not to be sent before the MCU clock reaches `min_clock`, ordered by
@@ -524,6 +529,7 @@ impl McuLink {
 
     fn stop_and_join(&mut self) {
         self.shared.stop.store(true, Ordering::Release);
+        self.shared.wake_io();
         if let Some(t) = self.thread.take() {
             // A panic in the IO thread has already marked the link dead (or will be seen as
             // closed); there is nothing more to report here.

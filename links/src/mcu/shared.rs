@@ -177,8 +177,12 @@ pub(crate) struct Shared {
     pub urgent_dropped: AtomicU64,
     /// Trsyncs of homing groups on this MCU (written on register/unregister only).
     pub trsyncs: RwLock<Vec<crate::trsync::Registration>>,
-    /// Number of registered trsyncs: while > 0 the IO thread reads with a short timeout.
+    /// Number of registered trsyncs: while > 0 the IO thread reads with a short timeout
+    /// (only when its transport cannot be woken).
     pub armed: AtomicUsize,
+    /// Ends the IO thread's read wait when another thread hands it work (`None` if the
+    /// eventfd could not be made: the IO thread then reads in short slices).
+    pub wake: Option<crate::transport::Wake>,
 }
 
 impl Shared {
@@ -205,6 +209,14 @@ impl Shared {
             urgent_dropped: AtomicU64::new(0),
             trsyncs: RwLock::new(Vec::with_capacity(8)),
             armed: AtomicUsize::new(0),
+            wake: crate::transport::Wake::new().ok(),
+        }
+    }
+
+    /// Wakes the IO thread if it is blocked reading (after pushing work for it).
+    pub(crate) fn wake_io(&self) {
+        if let Some(w) = &self.wake {
+            w.wake();
         }
     }
 

@@ -9,7 +9,7 @@
 use std::io;
 use std::time::Duration;
 
-use super::Transport;
+use super::{Transport, Wake};
 
 /// Marsaglia's xorshift64 generator (shifts 13, 7, 17): tiny, fast, reproducible; not for
 /// anything but test randomness.
@@ -109,6 +109,24 @@ impl<T: Transport> FaultyTransport<T> {
         rate > 0.0 && self.rng.next_f64() < rate
     }
 
+    /// Applies the read-side faults to the `n` bytes just read into `buf`.
+    fn filter_read(&mut self, buf: &mut [u8], n: usize) -> io::Result<usize> {
+        if n == 0 || !self.cfg.on_read {
+            return Ok(n);
+        }
+        if self.hit(self.cfg.drop_rate) {
+            self.stats.dropped += 1;
+            return Ok(0);
+        }
+        if self.hit(self.cfg.corrupt_rate) {
+            self.stats.corrupted += 1;
+            if let Some(chunk) = buf.get_mut(..n) {
+                self.flip_bit(chunk);
+            }
+        }
+        Ok(n)
+    }
+
     fn flip_bit(&mut self, data: &mut [u8]) {
         let i = self.rng.below(data.len());
         let bit = self.rng.below(8);
@@ -121,18 +139,16 @@ impl<T: Transport> FaultyTransport<T> {
 impl<T: Transport> Transport for FaultyTransport<T> {
     fn read(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize> {
         let n = self.inner.read(buf, timeout)?;
-        if n == 0 || !self.cfg.on_read {
-            return Ok(n);
-        }
-        if self.hit(self.cfg.drop_rate) {
-            self.stats.dropped += 1;
-            return Ok(0);
-        }
-        if self.hit(self.cfg.corrupt_rate) {
-            self.stats.corrupted += 1;
-            self.flip_bit(&mut buf[..n]);
-        }
-        Ok(n)
+        self.filter_read(buf, n)
+    }
+
+    fn read_wake(&mut self, buf: &mut [u8], timeout: Duration, wake: &Wake) -> io::Result<usize> {
+        let n = self.inner.read_wake(buf, timeout, wake)?;
+        self.filter_read(buf, n)
+    }
+
+    fn supports_wake(&self) -> bool {
+        self.inner.supports_wake()
     }
 
     fn write_all(&mut self, data: &[u8]) -> io::Result<()> {

@@ -12,11 +12,13 @@ mod faulty;
 mod memory;
 pub(crate) mod pty;
 mod serial;
+mod wake;
 
 pub use faulty::{FaultConfig, FaultStats, FaultyTransport, XorShift64};
 pub use memory::{MemoryEnd, MemoryPair};
 pub use pty::PtyTransport;
 pub use serial::SerialTransport;
+pub use wake::Wake;
 
 use std::io;
 use std::time::Duration;
@@ -30,6 +32,19 @@ pub trait Transport: Send {
     fn write_all(&mut self, data: &[u8]) -> io::Result<()>;
     /// A short description for messages, e.g. `pty /dev/pts/3`.
     fn describe(&self) -> String;
+    /// Like [`read`](Transport::read), but also returns `Ok(0)` as soon as `wake` is woken
+    /// (see [`Wake`]). Transports without a pollable descriptor ignore `wake` (the default):
+    /// callers that need prompt wake-ups then read in short slices ([`supports_wake`]).
+    ///
+    /// [`supports_wake`]: Transport::supports_wake
+    fn read_wake(&mut self, buf: &mut [u8], timeout: Duration, wake: &Wake) -> io::Result<usize> {
+        let _ = wake;
+        self.read(buf, timeout)
+    }
+    /// True when [`read_wake`](Transport::read_wake) really watches the wake descriptor.
+    fn supports_wake(&self) -> bool {
+        false
+    }
 }
 
 impl<T: Transport + ?Sized> Transport for Box<T> {
@@ -41,6 +56,12 @@ impl<T: Transport + ?Sized> Transport for Box<T> {
     }
     fn describe(&self) -> String {
         (**self).describe()
+    }
+    fn read_wake(&mut self, buf: &mut [u8], timeout: Duration, wake: &Wake) -> io::Result<usize> {
+        (**self).read_wake(buf, timeout, wake)
+    }
+    fn supports_wake(&self) -> bool {
+        (**self).supports_wake()
     }
 }
 

@@ -17,7 +17,7 @@ use nix::sys::stat::Mode;
 use nix::sys::termios::{cfmakeraw, tcgetattr, tcsetattr, SetArg};
 use nix::sys::time::TimeSpec;
 
-use super::Transport;
+use super::{Transport, Wake};
 
 /// Longest a `write_all` waits for the peer to drain its input.
 pub const WRITE_TIMEOUT: Duration = Duration::from_secs(1);
@@ -58,21 +58,44 @@ impl PtyTransport {
 
     /// Waits up to `timeout` for `events`; returns the reported events (empty on timeout).
     fn wait(&self, events: PollFlags, timeout: Duration) -> io::Result<PollFlags> {
-        let mut fds = [PollFd::new(self.fd.as_fd(), events)];
-        match ppoll(&mut fds, Some(TimeSpec::from_duration(timeout)), None) {
+        self.wait_or_wake(events, timeout, None)
+    }
+
+    /// Like `wait`, but also returns (with empty events) once `wake` is readable; drains it.
+    fn wait_or_wake(
+        &self,
+        events: PollFlags,
+        timeout: Duration,
+        wake: Option<&Wake>,
+    ) -> io::Result<PollFlags> {
+        let tty = PollFd::new(self.fd.as_fd(), events);
+        let ts = TimeSpec::from_duration(timeout);
+        let (n, tty_ev, woke) = match wake {
+            None => {
+                let mut fds = [tty];
+                let n = ppoll(&mut fds, Some(ts), None);
+                (n, fds[0].revents(), false)
+            }
+            Some(w) => {
+                let mut fds = [tty, PollFd::new(w.fd(), PollFlags::POLLIN)];
+                let n = ppoll(&mut fds, Some(ts), None);
+                let woke = fds[1].revents().is_some_and(|e| !e.is_empty());
+                (n, fds[0].revents(), woke)
+            }
+        };
+        if woke {
+            if let Some(w) = wake {
+                w.drain();
+            }
+        }
+        match n {
             Ok(0) | Err(Errno::EINTR) => Ok(PollFlags::empty()),
-            Ok(_) => Ok(fds[0].revents().unwrap_or(PollFlags::empty())),
+            Ok(_) => Ok(tty_ev.unwrap_or(PollFlags::empty())),
             Err(e) => Err(e.into()),
         }
     }
-}
 
-fn hang_up(what: &str) -> io::Error {
-    io::Error::new(io::ErrorKind::UnexpectedEof, what.to_owned())
-}
-
-impl Transport for PtyTransport {
-    fn read(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize> {
+    fn read_impl(&mut self, buf: &mut [u8], timeout: Duration, wake: Option<&Wake>) -> io::Result<usize> {
         if buf.is_empty() {
             return Ok(0);
         }
@@ -86,7 +109,7 @@ impl Transport for PtyTransport {
                 Err(Errno::EIO) => return Err(hang_up("tty hung up (EIO)")),
                 Err(e) => return Err(e.into()),
             }
-            let ev = self.wait(PollFlags::POLLIN, timeout)?;
+            let ev = self.wait_or_wake(PollFlags::POLLIN, timeout, wake)?;
             if ev.is_empty() {
                 return Ok(0);
             }
@@ -97,6 +120,24 @@ impl Transport for PtyTransport {
             }
             polled = true;
         }
+    }
+}
+
+fn hang_up(what: &str) -> io::Error {
+    io::Error::new(io::ErrorKind::UnexpectedEof, what.to_owned())
+}
+
+impl Transport for PtyTransport {
+    fn read(&mut self, buf: &mut [u8], timeout: Duration) -> io::Result<usize> {
+        self.read_impl(buf, timeout, None)
+    }
+
+    fn read_wake(&mut self, buf: &mut [u8], timeout: Duration, wake: &Wake) -> io::Result<usize> {
+        self.read_impl(buf, timeout, Some(wake))
+    }
+
+    fn supports_wake(&self) -> bool {
+        true
     }
 
     fn write_all(&mut self, data: &[u8]) -> io::Result<()> {

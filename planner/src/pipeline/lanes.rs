@@ -14,7 +14,7 @@ use std::thread::JoinHandle;
 
 use crate::compress::StepCompressor;
 use crate::kinematics::StepperKin;
-use crate::pressure_advance::PaGen;
+use crate::pressure_advance::{PaGen, PressureAdvance};
 use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::Move;
 
@@ -28,8 +28,14 @@ pub(crate) struct LaneState {
     pub comp: StepCompressor,
     /// The extruder's generator when pressure advance is on.
     pub pa: Option<PaGen>,
+    /// For the extruder's lane: (smooth_time, clock_freq) to start pressure advance with when
+    /// SET_PRESSURE_ADVANCE turns it on during the print.
+    pub extruder: Option<(f64, f64)>,
     fresh: Vec<StepCmd>,
 }
+
+/// A new pressure advance for the extruder, from move `at` of a job on.
+pub(crate) type PaChange = (usize, f64);
 
 /// What a lane produced for one job.
 #[derive(Debug, Default)]
@@ -47,26 +53,58 @@ impl LaneState {
             kin,
             comp,
             pa,
+            extruder: None,
             fresh: Vec::with_capacity(1024),
+        }
+    }
+
+    /// Pressure advance `advance` for the moves from now on (extruder lane only). Turning it on
+    /// hands step generation to the iterative generator, which starts at the commanded
+    /// position; advance 0 keeps that generator (it then follows E exactly).
+    fn set_advance(&mut self, advance: f64) {
+        let Some((smooth_time, clock_freq)) = self.extruder else {
+            return;
+        };
+        match &mut self.pa {
+            Some(pa) => pa.set_advance(advance),
+            None if advance > 0.0 => {
+                let pa = PressureAdvance { advance, smooth_time };
+                if pa.validate().is_ok() {
+                    self.pa = Some(PaGen::new(pa, self.comp.step_dist(), clock_freq));
+                }
+            }
+            None => {}
         }
     }
 
     /// Generates and compresses one batch; appends keyed commands to `out.cmds`. `rest`: the
     /// toolhead stops after these moves (steps that depend on later times can be generated).
-    pub fn run(&mut self, moves: &[Move], upto: u64, all: bool, rest: bool, out: &mut LaneOut) {
-        match &mut self.pa {
-            Some(pa) => {
-                for mv in moves {
-                    pa.push_move(mv);
-                }
-                let comp = &mut self.comp;
-                pa.generate(all || rest, |clock, dir| comp.push_step(clock, dir));
+    /// `pa`: pressure advance changes (move index in `moves`, advance), in order.
+    pub fn run(
+        &mut self,
+        moves: &[Move],
+        pa: &[PaChange],
+        upto: u64,
+        all: bool,
+        rest: bool,
+        out: &mut LaneOut,
+    ) {
+        let mut changes = pa.iter().peekable();
+        for (i, mv) in moves.iter().enumerate() {
+            while let Some(&(_, advance)) = changes.next_if(|c| c.0 <= i) {
+                self.set_advance(advance);
             }
-            None => {
-                for mv in moves {
-                    self.comp.push_move(mv, &self.kin);
-                }
+            match &mut self.pa {
+                Some(pa) => pa.push_move(mv),
+                None => self.comp.push_move(mv, &self.kin),
             }
+        }
+        for &(_, advance) in changes {
+            self.set_advance(advance);
+        }
+        if let Some(pa) = &mut self.pa {
+            let comp = &mut self.comp;
+            pa.generate(all || rest, |clock, dir| comp.push_step(clock, dir));
         }
         self.fresh.clear();
         if all {
@@ -96,6 +134,7 @@ pub(crate) enum Msg {
     Job {
         seq: u64,
         moves: Arc<[Move]>,
+        pa: Arc<[PaChange]>,
         upto: u64,
         all: bool,
         rest: bool,
@@ -172,6 +211,7 @@ fn worker(w: usize, mut lanes: Vec<(usize, LaneState)>, rx: Receiver<Msg>, tx: S
             Msg::Job {
                 seq,
                 moves,
+                pa,
                 upto,
                 all,
                 rest,
@@ -179,7 +219,7 @@ fn worker(w: usize, mut lanes: Vec<(usize, LaneState)>, rx: Receiver<Msg>, tx: S
                 let mut out = Vec::with_capacity(lanes.len());
                 for (i, lane) in &mut lanes {
                     let mut o = LaneOut::default();
-                    lane.run(&moves, upto, all, rest, &mut o);
+                    lane.run(&moves, &pa, upto, all, rest, &mut o);
                     out.push((*i, o));
                 }
                 if tx

@@ -206,7 +206,7 @@ fn arb_program() -> impl Strategy<Value = (String, [f64; 4])> {
         0.3f64..20.0,
         -1.0f64..3.0,
         5.0f64..300.0,
-        0u8..12,
+        0u8..13,
     );
     proptest::collection::vec(mv, 1..60).prop_map(|moves| {
         let mut g = String::from("G28\nM83\n");
@@ -225,6 +225,7 @@ fn arb_program() -> impl Strategy<Value = (String, [f64; 4])> {
                 1 => g.push_str("G92 E0\n"),
                 2 => g.push_str("G4 P50\n"),
                 3 => g.push_str(&format!("G1 Z{z} F{}\n", f * 60.0)),
+                12 => g.push_str(&format!("SET_PRESSURE_ADVANCE ADVANCE={:.4}\n", (e + 1.0) * 0.03)),
                 4..=7 => {
                     // Short moves near the current position.
                     let nx = (pos[0] + (x - 100.0) / 50.0).clamp(0.0, 200.0);
@@ -253,6 +254,90 @@ fn arb_program() -> impl Strategy<Value = (String, [f64; 4])> {
         pos[3] = e_total;
         (g, pos)
     })
+}
+
+/// A print with extruding moves on both sides of `mid` (G-code lines inserted between them).
+fn pa_print(mid: &str) -> String {
+    let mut g = String::from("G28\nG1 Z0.3 F600\nM83\nG1 X10 Y10 F6000\n");
+    for i in 0..6 {
+        g.push_str(&format!("G1 X{} Y{} E0.8 F3000\n", 20 + 7 * i, 10 + 3 * (i % 2)));
+    }
+    g.push_str(mid);
+    for i in 0..6 {
+        g.push_str(&format!("G1 X{} Y{} E0.8 F3000\n", 60 - 7 * i, 20 + 3 * (i % 2)));
+    }
+    g.push_str("G1 E-1 F2400\nG1 X100 Y100 F9000\n");
+    g
+}
+
+fn extruder_cmds(mid: &str, threads: usize, pa: Option<PressureAdvance>) -> Vec<StepCmd> {
+    let opts = PipelineOptions {
+        threads,
+        pressure_advance: pa,
+        ..PipelineOptions::default()
+    };
+    let r = run_gcode_with(&pa_print(mid), opts);
+    assert!(r.keys.windows(2).all(|w| w[0] <= w[1]));
+    let e = r.pipeline.stepper_positions()[3];
+    assert_eq!(e, steps_between(0.0, 12.0 * 0.8 - 1.0, 33.5 / 3200.0));
+    r.per_stepper[3].clone()
+}
+
+#[test]
+fn set_pressure_advance_applies_during_the_print() {
+    let pa = |advance| PressureAdvance {
+        advance,
+        smooth_time: 0.04,
+    };
+    for threads in [0, 2] {
+        let plain = extruder_cmds("", threads, None);
+        // Set before the first move: the same as configuring it.
+        let configured = extruder_cmds("", threads, Some(pa(0.08)));
+        let early = pa_print("").replacen("M83\n", "M83\nSET_PRESSURE_ADVANCE ADVANCE=0.08\n", 1);
+        let r = run_gcode_with(
+            &early,
+            PipelineOptions {
+                threads,
+                ..PipelineOptions::default()
+            },
+        );
+        assert_eq!(r.per_stepper[3], configured);
+        assert_ne!(configured, plain);
+        // Set half-way: the first half is extruded as without pressure advance (the change
+        // blends in over smooth_time from the next move on), the rest differs.
+        let mid = extruder_cmds("SET_PRESSURE_ADVANCE ADVANCE=0.08\n", threads, None);
+        let same = mid.iter().zip(&plain).take_while(|(a, b)| a == b).count();
+        assert!(
+            same > 4 && same < plain.len().min(mid.len()),
+            "{same} of {}",
+            plain.len()
+        );
+        // Changing a configured advance, and turning it off, also works (checked by the run).
+        let changed = extruder_cmds(
+            "SET_PRESSURE_ADVANCE ADVANCE=0.02\nSET_PRESSURE_ADVANCE ADVANCE=0\n",
+            threads,
+            Some(pa(0.08)),
+        );
+        assert_ne!(changed, configured);
+    }
+}
+
+#[test]
+fn set_pressure_advance_refuses_a_new_smooth_time() {
+    let mut p = Pipeline::new(benchy_config(), 0.25).unwrap();
+    let line = |g: &str| GcodeLine {
+        line_no: 1,
+        cmd: crate::gcode::parse_line(1, g.as_bytes()).unwrap().unwrap(),
+    };
+    assert!(matches!(
+        p.apply(&line("SET_PRESSURE_ADVANCE SMOOTH_TIME=0.1")),
+        Ok(Applied::Unsupported(_))
+    ));
+    assert!(p.apply(&line("SET_PRESSURE_ADVANCE ADVANCE=12")).is_err());
+    assert!(matches!(
+        p.apply(&line("SET_PRESSURE_ADVANCE ADVANCE=0.05")),
+        Ok(Applied::PressureAdvance { advance, .. }) if advance == 0.05
+    ));
 }
 
 #[test]

@@ -1,6 +1,6 @@
 //! Klipper sections Cadence accepts but does not implement yet: a config containing them loads,
 //! with one warning per kind, instead of failing. Anything that changes motion or homing (extra
-//! steppers, dual carriages, probes as endstops) is deliberately not on this list.
+//! steppers, dual carriages) is deliberately not on this list.
 
 /// Section kinds (the first word of the section name) that are read past with a warning.
 pub const IGNORED_SECTIONS: &[&str] = &[
@@ -40,7 +40,6 @@ pub const IGNORED_SECTIONS: &[&str] = &[
     "output_pin",
     "pause_resume",
     "print_stats",
-    "probe",
     "quad_gantry_level",
     "respond",
     "safe_z_home",

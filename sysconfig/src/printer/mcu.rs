@@ -35,6 +35,10 @@ pub struct SimulatorSection {
     pub clock_freq: u64,
     /// Simulated seconds per real second; default 1.
     pub time_scale: f64,
+    /// Where the simulated `[probe]` triggers: the simulated world's Z coordinate (mm) of the
+    /// bed surface as the probe sees it; default 0. Independent of the probe's settings, so a
+    /// test can check what PROBE measures.
+    pub bed_surface_z: f64,
 }
 
 impl Default for SimulatorSection {
@@ -42,6 +46,7 @@ impl Default for SimulatorSection {
         SimulatorSection {
             clock_freq: 50_000_000,
             time_scale: 1.0,
+            bed_surface_z: 0.0,
         }
     }
 }
@@ -106,6 +111,7 @@ pub(crate) fn read_simulator(s: &SectionReader<'_>) -> Result<SimulatorSection, 
     Ok(SimulatorSection {
         clock_freq: s.int("clock_freq", Some(d.clock_freq), 1..=i64::MAX)?,
         time_scale: s.float_or("time_scale", d.time_scale, Bounds::ANY.above(0.0))?,
+        bed_surface_z: s.float_or("bed_surface_z", d.bed_surface_z, Bounds::ANY)?,
     })
 }
 

@@ -7,7 +7,8 @@
 //! every section nobody read is an error unless it is in [`IGNORED_SECTIONS`] (then a warning).
 //!
 //! Build order (it decides which error is reported first): MCUs (pins are checked against
-//! them), `[printer]`, the steppers its kinematics needs, `[extruder]`, `[heater_bed]`,
+//! them), `[printer]`, `[probe]` (its `z_offset` is Z's endstop position with
+//! `probe:z_virtual_endstop`), the steppers the kinematics needs, `[extruder]`, `[heater_bed]`,
 //! `[simulator]`, then the unused-option/section check.
 
 mod delta;
@@ -17,6 +18,7 @@ mod heater;
 mod ignored;
 mod mcu;
 mod pins;
+mod probe;
 mod reader;
 mod realtime;
 mod stepper;
@@ -33,6 +35,7 @@ pub use heater::{HeaterControl, HeaterSection, ABSOLUTE_ZERO_C};
 pub use ignored::{is_ignored, IGNORED_SECTIONS};
 pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
 pub use pins::{is_simulator_pin, PinKind, PinProblem, PinRef, MAIN_MCU};
+pub use probe::{ProbeSection, SamplesResult, PROBE_PIN_MCU, SAMPLES_RESULTS, Z_VIRTUAL_ENDSTOP};
 pub use realtime::RealtimeSection;
 pub use stepper::StepperSection;
 pub use toolhead::{Kinematics, PrinterSection};
@@ -61,6 +64,8 @@ pub struct PrinterConfig {
     /// `[mcu]` first, then each `[mcu NAME]` in file order.
     pub mcus: Vec<McuSection>,
     pub heater_bed: Option<HeaterSection>,
+    /// `[probe]`.
+    pub probe: Option<ProbeSection>,
     /// `[simulator]`, or its defaults.
     pub simulator: SimulatorSection,
     /// `[realtime]`, or its defaults.
@@ -98,6 +103,15 @@ impl PrinterConfig {
             false => None,
         };
 
+        let probe = match reader.section("probe") {
+            Some(s) => {
+                let p = probe::read_probe(&s, &mut pins)?;
+                pins.set_probe();
+                Some(p)
+            }
+            None => None,
+        };
+
         let mut steppers = Vec::new();
         let mut towers = Vec::new();
         for (i, &name) in printer.kinematics.stepper_sections().iter().enumerate() {
@@ -106,7 +120,7 @@ impl PrinterConfig {
                 section: name.to_string(),
                 needed_by: Some(format!("kinematics: {}", printer.kinematics.name())),
             })?;
-            steppers.push(stepper::read_rail(&s, &mut pins, is_delta)?);
+            steppers.push(stepper::read_rail(&s, &mut pins, is_delta, probe.as_ref())?);
             if let Some((radius, _, _)) = delta_printer {
                 let first_arm = towers.first().map(|&(a, _)| a);
                 towers.push(delta::read_tower(&s, i, first_arm, radius)?);
@@ -159,6 +173,7 @@ impl PrinterConfig {
             extruder,
             mcus,
             heater_bed,
+            probe,
             simulator,
             realtime,
             warnings,

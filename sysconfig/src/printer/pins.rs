@@ -9,6 +9,7 @@
 use std::fmt;
 
 use super::error::ValueProblem;
+use super::probe::{PROBE_PIN_MCU, Z_VIRTUAL_ENDSTOP};
 
 /// The main MCU's name: the `[mcu]` section, and pins without a `name:` prefix.
 pub const MAIN_MCU: &str = "mcu";
@@ -164,6 +165,8 @@ pub(crate) struct PinRegistry {
     mcus: Vec<String>,
     /// MCUs with `serial: simulator`, whose pins must be ones the simulator has.
     simulated: Vec<String>,
+    /// A `[probe]` was read: `probe:z_virtual_endstop` exists.
+    probe: bool,
     claims: Vec<Claim>,
 }
 
@@ -177,6 +180,7 @@ impl PinRegistry {
         PinRegistry {
             mcus,
             simulated: Vec::new(),
+            probe: false,
             claims: Vec::new(),
         }
     }
@@ -187,6 +191,42 @@ impl PinRegistry {
         self
     }
 
+    /// Declares that a `[probe]` exists: its virtual endstop `probe:z_virtual_endstop` may be
+    /// `[stepper_z] endstop_pin`.
+    pub(crate) fn set_probe(&mut self) {
+        self.probe = true;
+    }
+
+    /// `probe:z_virtual_endstop` (Klipper's rules): only with a `[probe]`, only as the endstop
+    /// of Z, without `^`, `~` or `!` (the probe's own pin carries those). Not a claim: the
+    /// probe's pin was claimed by `[probe]`.
+    fn check_probe_pin(&self, pin: &PinRef, section: &str, option: &str) -> Result<(), ValueProblem> {
+        let invalid = |why: String| Err(ValueProblem::Invalid(format!("pin '{pin}': {why}")));
+        if section == "probe" {
+            return Err(ValueProblem::Invalid(format!(
+                "pin '{pin}' is the probe's own virtual endstop (only for [stepper_z] endstop_pin)"
+            )));
+        }
+        if !self.probe {
+            return invalid("there is no [probe] section".into());
+        }
+        if pin.pin != Z_VIRTUAL_ENDSTOP {
+            return invalid(format!(
+                "the probe only provides '{PROBE_PIN_MCU}:{Z_VIRTUAL_ENDSTOP}'"
+            ));
+        }
+        if option != "endstop_pin" || section != "stepper_z" {
+            return invalid("the probe virtual endstop can only be [stepper_z] endstop_pin".into());
+        }
+        if pin.invert || pin.pullup || pin.pulldown {
+            return invalid(
+                "can not pull up, pull down or invert the probe virtual endstop (set them on [probe] pin)"
+                    .into(),
+            );
+        }
+        Ok(())
+    }
+
     /// Records `pin` as used by `[section] option`, or says why it may not be.
     pub(crate) fn claim(
         &mut self,
@@ -195,10 +235,8 @@ impl PinRegistry {
         option: &str,
         share: Share,
     ) -> Result<(), ValueProblem> {
-        if pin.mcu == "probe" {
-            return Err(ValueProblem::Invalid(format!(
-                "pin '{pin}': probe virtual endstops are not supported by Cadence yet"
-            )));
+        if pin.mcu == PROBE_PIN_MCU {
+            return self.check_probe_pin(pin, section, option);
         }
         if !self.mcus.contains(&pin.mcu) {
             return Err(ValueProblem::UnknownMcu {
@@ -336,15 +374,28 @@ mod tests {
                 mcu: "other".into()
             })
         );
-        assert!(matches!(
-            reg.claim(
-                &p("probe:z_virtual_endstop"),
-                "stepper_z",
-                "endstop_pin",
-                Share::Exclusive
-            ),
-            Err(ValueProblem::Invalid(_))
-        ));
+        let z_probe = |reg: &mut PinRegistry, t: &str, section: &str| {
+            reg.claim(&p(t), section, "endstop_pin", Share::Exclusive)
+                .map_err(|e| e.to_string())
+        };
+        assert_eq!(
+            z_probe(&mut reg, "probe:z_virtual_endstop", "stepper_z"),
+            Err("pin 'probe:z_virtual_endstop': there is no [probe] section".into())
+        );
+        reg.set_probe();
+        assert_eq!(z_probe(&mut reg, "probe:z_virtual_endstop", "stepper_z"), Ok(()));
+        assert_eq!(
+            z_probe(&mut reg, "probe:z_virtual_endstop", "stepper_x"),
+            Err("pin 'probe:z_virtual_endstop': the probe virtual endstop can only be [stepper_z] endstop_pin".into())
+        );
+        assert_eq!(
+            z_probe(&mut reg, "probe:x_virtual_endstop", "stepper_z"),
+            Err("pin 'probe:x_virtual_endstop': the probe only provides 'probe:z_virtual_endstop'".into())
+        );
+        assert!(
+            z_probe(&mut reg, "^probe:z_virtual_endstop", "stepper_z").is_err_and(|e| e.contains("pull up"))
+        );
+        assert!(z_probe(&mut reg, "!probe:z_virtual_endstop", "stepper_z").is_err());
         // Shared enable lines.
         assert_eq!(
             reg.claim(&p("!PC3"), "stepper_x", "enable_pin", Share::StepperEnable),

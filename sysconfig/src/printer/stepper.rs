@@ -12,6 +12,7 @@
 
 use super::error::{ConfigError, ValueProblem};
 use super::pins::{PinKind, PinRef, PinRegistry, Share};
+use super::probe::{ProbeSection, PROBE_PIN_MCU};
 use super::reader::{parse_float, Bounds, SectionReader};
 
 /// One linear-axis stepper (`stepper_x` …).
@@ -31,7 +32,8 @@ pub struct StepperSection {
     /// Product of the `a:b` pairs; default 1.
     pub gear_ratio: f64,
     pub endstop_pin: Option<PinRef>,
-    /// Required when `endstop_pin` is set; within [position_min, position_max].
+    /// Required when `endstop_pin` is set; within [position_min, position_max]. With
+    /// `endstop_pin: probe:z_virtual_endstop`: the `[probe] z_offset`.
     pub position_endstop: Option<f64>,
     /// Default 0.
     pub position_min: f64,
@@ -141,14 +143,29 @@ pub(crate) fn read_motor(s: &SectionReader<'_>, pins: &mut PinRegistry) -> Resul
 /// A linear rail: motor, endstop, range and homing.
 /// A rail; `delta`: a delta tower, whose `position_endstop` is required and is the default
 /// `position_max`.
+/// `probe`: the `[probe]`, whose `z_offset` is the endstop position when `endstop_pin` is
+/// `probe:z_virtual_endstop` (`position_endstop` is then not an option).
 pub(crate) fn read_rail(
     s: &SectionReader<'_>,
     pins: &mut PinRegistry,
     delta: bool,
+    probe: Option<&ProbeSection>,
 ) -> Result<StepperSection, ConfigError> {
     let m = read_motor(s, pins)?;
     let endstop_pin = s.opt_pin("endstop_pin", PinKind::Input, pins, Share::Exclusive)?;
+    let probe_z_offset = match (&endstop_pin, probe) {
+        (Some(p), Some(probe)) if p.mcu == PROBE_PIN_MCU => Some(probe.z_offset),
+        _ => None,
+    };
+    // The option errors about the endstop position blame: position_endstop, or endstop_pin
+    // when the probe's z_offset stands in for it.
+    let blame = if probe_z_offset.is_some() {
+        "endstop_pin"
+    } else {
+        "position_endstop"
+    };
     let position_endstop = match endstop_pin {
+        Some(_) if probe_z_offset.is_some() => probe_z_offset,
         Some(_) => Some(s.float("position_endstop", Bounds::ANY)?),
         None if delta => Some(s.float("position_endstop", Bounds::ANY)?),
         None => s.opt_float("position_endstop", Bounds::ANY)?,
@@ -169,8 +186,12 @@ pub(crate) fn read_rail(
         None => positive_dir.unwrap_or(false),
         Some(endstop) => {
             let in_range = |what: String| {
-                let v = s.required("position_endstop")?;
-                Err(s.bad("position_endstop", v, ValueProblem::Invalid(what)))
+                let v = s.required(blame)?;
+                let what = match probe_z_offset {
+                    Some(_) => format!("the endstop position is [probe] z_offset: {what}"),
+                    None => what,
+                };
+                Err(s.bad(blame, v, ValueProblem::Invalid(what)))
             };
             if endstop < position_min || endstop > position_max {
                 return in_range(format!(
@@ -245,7 +266,7 @@ mod tests {
         let reader = Reader::new(&file);
         let s = reader.section("stepper_x").ok_or("no section")?;
         let mut pins = PinRegistry::new(vec!["mcu".into(), "ebb".into()]);
-        let r = read_rail(&s, &mut pins, false).map_err(|e| e.to_string())?;
+        let r = read_rail(&s, &mut pins, false, None).map_err(|e| e.to_string())?;
         reader.finish(|_| false).map_err(|e| e.to_string())?;
         Ok(r)
     }
@@ -363,7 +384,7 @@ mod tests {
             .unwrap_or_else(|| panic!("no section"));
         let mut pins = PinRegistry::new(vec!["mcu".into(), "ebb".into()]);
         assert_eq!(
-            read_rail(&s, &mut pins, false)
+            read_rail(&s, &mut pins, false, None)
                 .map(|_| ())
                 .map_err(|e| e.to_string()),
             Err(
@@ -378,7 +399,7 @@ mod tests {
             .unwrap_or_else(|| panic!("no section"));
         let mut pins = PinRegistry::new(vec!["mcu".into()]);
         assert_eq!(
-            read_rail(&s, &mut pins, false)
+            read_rail(&s, &mut pins, false, None)
                 .map(|_| ())
                 .map_err(|e| e.to_string()),
             Err("printer.cfg:5: [stepper_x] microsteps: expected an integer, got 'abc'".to_string())

@@ -50,7 +50,8 @@ fn builtin_simulated_printer_loads() {
         cfg.simulator,
         SimulatorSection {
             clock_freq: 50_000_000,
-            time_scale: 1.0
+            time_scale: 1.0,
+            bed_surface_z: 0.0,
         }
     );
     // Every pin is one the simulated MCU has.
@@ -373,5 +374,89 @@ fn delta_errors_name_the_option() {
             .as_ref()
             .is_err_and(|e| e.contains("stepper_c") && e.contains("arm_length")),
         "{short:?}"
+    );
+}
+
+/// MINIMAL with `[mcu probe_mcu]`, a `[probe]` on it (from line 26) and Z homing on the probe
+/// (`endstop_pin` at line 24).
+fn with_probe(probe_extra: &str) -> String {
+    MINIMAL.replace(
+        "rotation_distance: 8\nposition_max: 200\n",
+        "rotation_distance: 8\nendstop_pin: probe:z_virtual_endstop\nposition_max: 200\n",
+    ) + "[mcu probe_mcu]\nserial: /dev/ttyACM1\n[probe]\npin: ^probe_mcu:PA4\nz_offset: 1.5\n"
+        + probe_extra
+}
+
+#[test]
+fn probe_virtual_endstop_homes_z_at_z_offset() {
+    let cfg = ok(&with_probe("samples: 3\n"));
+    let z = cfg.stepper("stepper_z").unwrap_or_else(|| panic!("no stepper_z"));
+    let pin = z.endstop_pin.as_ref().map(|p| (p.mcu.as_str(), p.pin.as_str()));
+    assert_eq!(pin, Some((PROBE_PIN_MCU, Z_VIRTUAL_ENDSTOP)));
+    assert_eq!((z.position_endstop, z.homing_positive_dir), (Some(1.5), false));
+    let p = cfg.probe.as_ref().unwrap_or_else(|| panic!("no probe"));
+    assert_eq!(
+        (p.pin.mcu.as_str(), p.pin.pullup, p.samples),
+        ("probe_mcu", true, 3)
+    );
+    assert!(cfg.warnings.is_empty(), "{:?}", cfg.warnings);
+    // A probe beside an ordinary Z endstop.
+    let cfg = ok(&(MINIMAL.replace(
+        "rotation_distance: 8\nposition_max: 200\n",
+        "rotation_distance: 8\nendstop_pin: PD5\nposition_endstop: 0\nposition_max: 200\n",
+    ) + "[probe]\npin: PD6\nz_offset: 2\n"));
+    assert_eq!(
+        cfg.stepper("stepper_z").and_then(|z| z.position_endstop),
+        Some(0.0)
+    );
+    assert_eq!(cfg.probe.map(|p| p.z_offset), Some(2.0));
+}
+
+#[test]
+fn probe_config_errors_name_file_line_section_and_option() {
+    let cases = [
+        (
+            with_probe("").replace("endstop_pin: probe:z_virtual_endstop\n", "endstop_pin: probe:z_virtual_endstop\nposition_endstop: 0\n"),
+            "printer.cfg:25: Option 'position_endstop' is not valid in section 'stepper_z'",
+        ),
+        (
+            with_probe("").split("[mcu probe_mcu]").next().unwrap_or_default().to_string(),
+            "printer.cfg:24: [stepper_z] endstop_pin: pin 'probe:z_virtual_endstop': there is no [probe] section",
+        ),
+        (
+            with_probe("").replace("z_offset: 1.5", "z_offset: -1"),
+            "printer.cfg:24: [stepper_z] endstop_pin: the endstop position is [probe] z_offset: must be between \
+             position_min (0) and position_max (200), got -1",
+        ),
+        (
+            with_probe("").replace("step_pin: PA0\n", "step_pin: PA0\nendstop_pin: probe:z_virtual_endstop\n"),
+            "printer.cfg:9: [stepper_x] endstop_pin: pin 'probe:z_virtual_endstop': the probe virtual endstop can \
+             only be [stepper_z] endstop_pin",
+        ),
+        (
+            with_probe("speed: 0\n"),
+            "printer.cfg:31: [probe] speed: must be above 0, got 0",
+        ),
+        (
+            with_probe("samples_result: mode\n"),
+            "printer.cfg:31: [probe] samples_result: expected one of median, average, got 'mode'",
+        ),
+        (
+            with_probe("").replace("z_offset: 1.5\n", ""),
+            "printer.cfg:28: Option 'z_offset' in section 'probe' must be specified",
+        ),
+    ];
+    for (text, want) in cases {
+        assert_eq!(parse(&text).map(|_| ()), Err(want.to_string()), "{text}");
+    }
+}
+
+#[test]
+fn simulator_bed_surface() {
+    let cfg = ok(&format!("{MINIMAL}[simulator]\nbed_surface_z: 1.25\n"));
+    assert_eq!(cfg.simulator.bed_surface_z, 1.25);
+    assert_eq!(
+        parse(&format!("{MINIMAL}[simulator]\nbed_surface_z: x\n")).map(|_| ()),
+        Err("printer.cfg:26: [simulator] bed_surface_z: expected a number, got 'x'".to_string())
     );
 }

@@ -1,0 +1,543 @@
+//! `cadence print --io-process` / `--io-attach NAME`: the planner in this process, the IO stage
+//! (the MCU connections) in a `cadence serve --role io` process.
+//!
+//! This side starts the IO process (or attaches to a running one), waits for its `READY`,
+//! reads the main MCU's [`McuInfo`] (data dictionary, `CLOCK_FREQ`, move queue size, and the
+//! configuration CRC, which must equal the one this process computes from its own printer.cfg),
+//! then runs the same planner thread as an in-process print against the clock snapshots the IO
+//! process publishes. A relay thread (not real-time) copies the newest snapshot into a seqlock
+//! ([`links::clocksync::ClockShared`]) and watches the IO process's status, so the planner
+//! thread reads its clock lock-free and without touching iceoryx2. At the end it sends
+//! `FINISH`, waits for `DONE` with the MCU's stepper positions and checks them against its own.
+//! The handshake and payloads are documented in `rt_core::shm::io`.
+//!
+//! Homing needs the trigger relay and the step queue of the MCU link in the planner's process:
+//! a G28 on a printer with endstops is refused in this mode with a clear error.
+
+use std::fs::File;
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use links::clocksync::{ClockEstimate, ClockShared};
+use links::dict::Dictionary;
+use links::mcu::McuLink;
+use rt_core::logger::{Arg, Level};
+use rt_core::os::apply_rt;
+use rt_core::shm::io::{
+    clock_service_name, control_kind, control_service_name, info_service_name, io_state, status_service_name,
+    ClockSnapshot, IoControl, IoStatus, McuInfo,
+};
+use rt_core::shm::{open_node, steps_service_name, ChannelConfig, ShmPublisher, ShmSubscriber};
+use sysconfig::printer::PrinterConfig;
+
+use crate::live::{self, Hists, Logging, McuSide, RtConfig};
+use crate::machine::Machine;
+use crate::print::PrintArgs;
+
+type Ipc = iceoryx2::prelude::ipc::Service;
+
+/// Longest wait for the IO process to connect its MCUs and report `READY`.
+const READY_TIMEOUT: Duration = Duration::from_secs(60);
+/// How often the relay thread looks for new clock snapshots and status.
+const RELAY_PERIOD: Duration = Duration::from_millis(5);
+
+/// CRC-32 of the configuration commands for MCU `mcu` (the `finalize_config` value): both
+/// processes compute it, so a planner and an IO process with different printer configs (other
+/// oids or pins) refuse to work together.
+pub(crate) fn config_crc(dict: &Dictionary, machine: &Machine, mcu: &str) -> Result<u32, String> {
+    let (_, _, crc) =
+        crate::mcus::config_commands(dict, machine, mcu).map_err(|e| format!("mcu '{mcu}': {e}"))?;
+    Ok(crc)
+}
+
+/// The main MCU as the planner sees it when the IO stage runs in another process.
+#[derive(Debug)]
+pub(crate) struct RemoteMcu {
+    pub name: String,
+    pub dict: Dictionary,
+    pub clock_freq: f64,
+    pub move_count: usize,
+    clock: ClockShared,
+    failed: AtomicBool,
+    error: Mutex<Option<String>>,
+    /// The newest status of the IO process.
+    status: Mutex<IoStatus>,
+    /// Set once a valid clock snapshot was stored.
+    clock_valid: AtomicBool,
+}
+
+impl RemoteMcu {
+    /// The newest clock fit (lock-free seqlock read).
+    pub fn clock(&self) -> ClockEstimate {
+        self.clock.load()
+    }
+
+    /// The IO process's failure, as an error.
+    pub fn check(&self) -> Result<(), String> {
+        // Acquire pairs with the Release store in `fail`: the message is written before.
+        if !self.failed.load(Ordering::Acquire) {
+            return Ok(());
+        }
+        Err(self
+            .error
+            .lock()
+            .ok()
+            .and_then(|e| e.clone())
+            .unwrap_or_else(|| "the IO process failed".to_string()))
+    }
+
+    fn fail(&self, msg: String) {
+        if let Ok(mut e) = self.error.lock() {
+            if e.is_none() {
+                *e = Some(msg);
+            }
+        }
+        self.failed.store(true, Ordering::Release);
+    }
+
+    fn status(&self) -> IoStatus {
+        self.status.lock().map(|s| *s).unwrap_or_default()
+    }
+}
+
+/// The IO process this print started (killed if still running when dropped).
+#[derive(Debug)]
+struct IoChild(Mutex<Option<Child>>);
+
+impl IoChild {
+    /// `Some(description)` once the child exited.
+    fn exited(&self) -> Option<String> {
+        let mut guard = self.0.lock().ok()?;
+        let child = guard.as_mut()?;
+        match child.try_wait() {
+            Ok(Some(status)) => Some(format!("the IO process exited ({status})")),
+            Ok(None) => None,
+            Err(e) => Some(format!("the IO process cannot be waited for: {e}")),
+        }
+    }
+
+    /// Waits (bounded) for the child to exit; kills it after `timeout`.
+    fn finish(&self, timeout: Duration) -> Option<std::process::ExitStatus> {
+        let mut guard = self.0.lock().ok()?;
+        let mut child = guard.take()?;
+        let deadline = Instant::now() + timeout;
+        loop {
+            match child.try_wait() {
+                Ok(Some(s)) => return Some(s),
+                Ok(None) if Instant::now() < deadline => std::thread::sleep(Duration::from_millis(10)),
+                _ => {
+                    let _ = child.kill();
+                    return child.wait().ok();
+                }
+            }
+        }
+    }
+}
+
+impl Drop for IoChild {
+    fn drop(&mut self) {
+        if let Ok(mut g) = self.0.lock() {
+            if let Some(mut c) = g.take() {
+                if matches!(c.try_wait(), Ok(None)) {
+                    let _ = c.kill();
+                }
+                let _ = c.wait();
+            }
+        }
+    }
+}
+
+/// Starts `cadence serve --role io` for this print, with this print's settings.
+fn spawn_io(args: &PrintArgs, instance: &str, time_scale: f64) -> Result<Child, String> {
+    let exe = std::env::current_exe().map_err(|e| format!("cannot locate the running executable: {e}"))?;
+    let mut cmd = Command::new(exe);
+    cmd.args(["serve", "--role", "io", "--instance", instance]);
+    cmd.arg("--parent-pid").arg(std::process::id().to_string());
+    if let Some(c) = &args.config {
+        cmd.arg("--config").arg(c);
+    }
+    if args.time_scale.is_some() {
+        cmd.arg("--time-scale").arg(time_scale.to_string());
+    }
+    if let Some(t) = &args.trace {
+        cmd.arg("--trace").arg(t);
+    }
+    if args.no_realtime {
+        cmd.arg("--no-realtime");
+    }
+    if let Some(f) = &args.live.log_file {
+        cmd.arg("--log-file").arg(f);
+    }
+    cmd.arg("--log-level").arg(args.live.log_level.name());
+    cmd.stdin(Stdio::null())
+        .stdout(Stdio::inherit())
+        .stderr(Stdio::inherit());
+    cmd.spawn()
+        .map_err(|e| format!("cannot start the IO process (cadence serve --role io): {e}"))
+}
+
+/// Runs a live print with the IO stage in another process; prints the summary.
+pub(crate) fn run(
+    args: &PrintArgs,
+    cfg: &PrinterConfig,
+    machine: &Machine,
+    gcode: File,
+) -> Result<(), String> {
+    let started = Instant::now();
+    let simulated = cfg.mcus.iter().any(|m| m.is_simulated());
+    if args.time_scale.is_some() && !simulated {
+        return Err("--time-scale only applies to a simulated printer".to_string());
+    }
+    let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
+    let logging = Logging::start(args.live.log_level, args.live.log_file.clone())?;
+    let log = logging.handle("main");
+    let hists = Hists::new();
+    let r = &cfg.realtime;
+    let rt = RtConfig {
+        enabled: r.enabled && !args.no_realtime,
+        planner_core: r.planner_cpu,
+        io_core: r.io_cpu,
+        planner_priority: r.planner_priority,
+        io_priority: r.io_priority,
+        lock_memory: r.lock_memory,
+    };
+    let (instance, child) = match &args.live.io_attach {
+        Some(name) => (name.clone(), IoChild(Mutex::new(None))),
+        None => {
+            let instance = format!("p{}", std::process::id());
+            let child = spawn_io(args, &instance, time_scale)?;
+            (instance, IoChild(Mutex::new(Some(child))))
+        }
+    };
+    let main_name = cfg
+        .mcus
+        .first()
+        .map(|m| m.name.clone())
+        .ok_or("the printer config has no [mcu]")?;
+    let (node, _) =
+        open_node::<Ipc>(&format!("cadence-print-{}", std::process::id())).map_err(|e| e.to_string())?;
+    let err = |e: rt_core::shm::ShmError| e.to_string();
+    let mut control = ShmPublisher::<Ipc, IoControl>::open(
+        &node,
+        &control_service_name(&instance),
+        &ChannelConfig::control(),
+    )
+    .map_err(err)?;
+    log.log(Level::Info, "waiting for the IO process", []);
+    wait_ready(&node, &instance, &child)?;
+    let info = wait_info(&node, &instance, &main_name, &child)?;
+    let dict = Dictionary::from_compressed(info.dict())
+        .map_err(|e| format!("mcu '{main_name}': the IO process sent a bad data dictionary: {e}"))?;
+    let ours = config_crc(&dict, machine, &main_name)?;
+    if ours != info.config_crc {
+        return Err(format!(
+            "mcu '{main_name}': the IO process configured the MCU differently (config CRC {:08x}, this \
+             printer config gives {ours:08x}): start both with the same printer.cfg",
+            info.config_crc
+        ));
+    }
+    let remote = RemoteMcu {
+        name: main_name.clone(),
+        dict,
+        clock_freq: info.clock_freq,
+        move_count: info.move_count as usize,
+        clock: ClockShared::new(ClockEstimate::INVALID),
+        failed: AtomicBool::new(false),
+        error: Mutex::new(None),
+        status: Mutex::new(IoStatus::default()),
+        clock_valid: AtomicBool::new(false),
+    };
+    let clock_freq = remote.clock_freq;
+    let service = steps_service_name(&instance, &main_name);
+    let stop_relay = AtomicBool::new(false);
+    let telemetry_stop = AtomicBool::new(false);
+    let consumed = AtomicU64::new(0);
+
+    let result = std::thread::scope(|scope| {
+        let relay = std::thread::Builder::new()
+            .name("io-relay".to_string())
+            .spawn_scoped(scope, || relay(&remote, &instance, &child, &stop_relay))
+            .map_err(|e| format!("cannot start the relay thread: {e}"))?;
+        let stop = || {
+            stop_relay.store(true, Ordering::Release);
+            let _ = relay.join();
+        };
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while !remote.clock_valid.load(Ordering::Acquire) {
+            if let Err(e) = remote.check() {
+                stop();
+                return Err(e);
+            }
+            if Instant::now() > deadline {
+                stop();
+                return Err("the IO process published no valid clock within 10 s".to_string());
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        let planner_spec = rt.planner_spec();
+        let remote = &remote;
+        let (hists, service, consumed) = (&hists, service.as_str(), &consumed);
+        let planner_log = log.with_tag("planner");
+        let planner = std::thread::Builder::new()
+            .name("planner".to_string())
+            .spawn_scoped(scope, move || {
+                apply_rt(&planner_spec);
+                live::planner_stage(
+                    args,
+                    machine,
+                    McuSide::Remote(remote),
+                    gcode,
+                    time_scale,
+                    service,
+                    consumed,
+                    hists,
+                    &planner_log,
+                )
+            })
+            .map_err(|e| format!("cannot start the planner thread: {e}"));
+        let telemetry_stop = &telemetry_stop;
+        let telemetry = std::thread::Builder::new()
+            .name("telemetry".to_string())
+            .spawn_scoped(scope, || {
+                live::telemetry_thread(&instance, hists, started, live::PLANNER_SOURCES, telemetry_stop)
+            });
+        let planned = match planner {
+            Ok(p) => p
+                .join()
+                .map_err(|_| "the planner thread panicked".to_string())
+                .and_then(|r| r),
+            Err(e) => Err(e),
+        };
+        telemetry_stop.store(true, Ordering::Release);
+        if let Ok(t) = telemetry {
+            if let Ok(Err(e)) = t.join() {
+                eprintln!("cadence: telemetry: {e}");
+            }
+        }
+        let (mut summary, pipeline, streamer, allocs, batches) = match planned {
+            Ok(p) => p,
+            Err(e) => {
+                let _ = control.send_with(|c| c.kind = control_kind::ABORT);
+                stop();
+                // The IO process's own failure explains a failed hand-off best.
+                return Err(remote.check().err().unwrap_or(e));
+            }
+        };
+        let end_clock = streamer.last_step_clock;
+        let finish = control.send_with(|c| {
+            c.kind = control_kind::FINISH;
+            c.batches = batches;
+            c.end_clock = end_clock;
+        });
+        if let Err(e) = finish {
+            stop();
+            return Err(format!("io control: {e}"));
+        }
+        log.log(
+            Level::Info,
+            "sent FINISH: batches, end clock",
+            [Arg::U(batches), Arg::U(end_clock)],
+        );
+        // Bounded: the rest of the print at the simulator's speed, plus slack.
+        let now_s = remote.clock().clock_at(McuLink::system_now()) / clock_freq;
+        let wait = (end_clock as f64 / clock_freq - now_s).max(0.0) / time_scale + 30.0;
+        let deadline = Instant::now() + Duration::from_secs_f64(wait);
+        let done = loop {
+            let s = remote.status();
+            if s.state == io_state::DONE {
+                break Ok(s);
+            }
+            if let Err(e) = remote.check() {
+                break Err(e);
+            }
+            if Instant::now() > deadline {
+                break Err(format!(
+                    "the IO process did not finish the print within {wait:.0} s"
+                ));
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        };
+        stop();
+        let done = done?;
+        let _ = control.send_with(|c| c.kind = control_kind::DONE_SEEN);
+        live::check_positions(machine, &pipeline, &streamer, done.positions(), &mut summary)?;
+        let min_lead = (done.min_lead_margin_ticks != i64::MIN).then_some(done.min_lead_margin_ticks);
+        if let Some(m) = min_lead {
+            summary.extra.push(format!(
+                "mcu '{}' (in IO process {}): min lead margin {:.1} ms over {} clocked messages (required {:.0} ms)",
+                remote.name,
+                done.pid,
+                m as f64 / clock_freq * 1e3,
+                done.clocked_msgs,
+                crate::print::MIN_LEAD_S * 1e3
+            ));
+        }
+        live::check_min_lead(min_lead, clock_freq)?;
+        summary.extra.extend(hists.report(clock_freq));
+        summary.extra.push(format!(
+            "allocations after warm-up: planner {}; io stage in process {} ({} batches)",
+            allocs.map_or("n/a".to_string(), |n| n.to_string()),
+            done.pid,
+            done.batches
+        ));
+        Ok(summary)
+    });
+    let exit = child.finish(Duration::from_secs(30));
+    let mut summary = result?;
+    if let Some(status) = exit {
+        if !status.success() {
+            return Err(format!("the IO process exited with {status}"));
+        }
+    }
+    summary.wall = started.elapsed().as_secs_f64();
+    if let Some(path) = &args.histograms {
+        hists.save(path, summary.wall)?;
+    }
+    summary.extra.push(logging.finish());
+    summary.print(&[]);
+    for line in rt_core::os::rt_report() {
+        eprintln!("cadence: {line}");
+    }
+    Ok(())
+}
+
+/// Waits (bounded) for the IO process's `READY`.
+fn wait_ready(node: &iceoryx2::node::Node<Ipc>, instance: &str, child: &IoChild) -> Result<(), String> {
+    let mut status =
+        ShmSubscriber::<Ipc, IoStatus>::open(node, &status_service_name(instance), &ChannelConfig::latest())
+            .map_err(|e| e.to_string())?
+            .accept_any_start();
+    let deadline = Instant::now() + READY_TIMEOUT;
+    loop {
+        if let Some(s) = status.latest().map_err(|e| e.to_string())? {
+            match s.state {
+                io_state::READY => return Ok(()),
+                io_state::FAILED => return Err(format!("the IO process failed: {}", s.msg())),
+                _ => {}
+            }
+        }
+        if let Some(e) = child.exited() {
+            return Err(e);
+        }
+        if Instant::now() > deadline {
+            return Err(format!(
+                "the IO process was not ready within {} s",
+                READY_TIMEOUT.as_secs()
+            ));
+        }
+        let _ = status.wait(Duration::from_millis(20));
+    }
+}
+
+/// Reads (bounded wait) the info the IO process published for MCU `mcu`.
+fn wait_info(
+    node: &iceoryx2::node::Node<Ipc>,
+    instance: &str,
+    mcu: &str,
+    child: &IoChild,
+) -> Result<Box<McuInfo>, String> {
+    let mut sub =
+        ShmSubscriber::<Ipc, McuInfo>::open(node, &info_service_name(instance, mcu), &ChannelConfig::info())
+            .map_err(|e| e.to_string())?
+            .accept_any_start();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        if let Some(info) = sub.latest().map_err(|e| e.to_string())? {
+            return Ok(Box::new(info));
+        }
+        if let Some(e) = child.exited() {
+            return Err(e);
+        }
+        if Instant::now() > deadline {
+            return Err(format!(
+                "mcu '{mcu}': the IO process published no MCU info within 10 s"
+            ));
+        }
+        let _ = sub.wait(Duration::from_millis(20));
+    }
+}
+
+/// The relay thread: newest clock snapshot → seqlock, newest status → `remote`, IO process
+/// failure or exit → `remote.fail`.
+fn relay(remote: &RemoteMcu, instance: &str, child: &IoChild, stop: &AtomicBool) {
+    let setup = || -> Result<_, String> {
+        let (node, _) =
+            open_node::<Ipc>(&format!("cadence-relay-{}", std::process::id())).map_err(|e| e.to_string())?;
+        let clock = ShmSubscriber::<Ipc, ClockSnapshot>::open(
+            &node,
+            &clock_service_name(instance, &remote.name),
+            &ChannelConfig::latest(),
+        )
+        .map_err(|e| e.to_string())?
+        .accept_any_start();
+        let status = ShmSubscriber::<Ipc, IoStatus>::open(
+            &node,
+            &status_service_name(instance),
+            &ChannelConfig::latest(),
+        )
+        .map_err(|e| e.to_string())?
+        .accept_any_start();
+        Ok((node, clock, status))
+    };
+    let (_node, mut clock, mut status) = match setup() {
+        Ok(s) => s,
+        Err(e) => return remote.fail(format!("clock relay: {e}")),
+    };
+    // Acquire pairs with the Release store of the thread that stops the relay.
+    while !stop.load(Ordering::Acquire) {
+        match clock.latest() {
+            Ok(Some(c)) if c.valid != 0 => {
+                remote
+                    .clock
+                    .store(ClockEstimate::new(c.ref_time, c.ref_clock, c.freq));
+                remote.clock_valid.store(true, Ordering::Release);
+            }
+            Ok(_) => {}
+            Err(e) => remote.fail(format!("clock relay: {e}")),
+        }
+        match status.latest() {
+            Ok(Some(s)) => {
+                if s.state == io_state::FAILED {
+                    remote.fail(format!("the IO process failed: {}", s.msg()));
+                }
+                if let Ok(mut g) = remote.status.lock() {
+                    *g = s;
+                }
+            }
+            Ok(None) => {}
+            Err(e) => remote.fail(format!("io status: {e}")),
+        }
+        if let Some(e) = child.exited() {
+            if remote.status().state != io_state::DONE {
+                remote.fail(e);
+            }
+        }
+        std::thread::sleep(RELAY_PERIOD);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn machine(cfg_text: &str) -> Machine {
+        let dir = std::env::temp_dir().join(format!("cadence-remote-{}", std::process::id()));
+        let _ = std::fs::create_dir_all(&dir);
+        let path = dir.join(format!("{:08x}.cfg", crc32fast::hash(cfg_text.as_bytes())));
+        std::fs::write(&path, cfg_text).unwrap();
+        let cfg = sysconfig::printer::load(&path).unwrap();
+        Machine::from_config(&cfg).unwrap()
+    }
+
+    #[test]
+    fn config_crc_tells_printer_configs_apart() {
+        let text = include_str!("../examples/simulated-cartesian.cfg");
+        let dict = crate::decode::load_dictionary(None).unwrap();
+        let a = config_crc(&dict, &machine(text), "mcu").unwrap();
+        assert_eq!(a, config_crc(&dict, &machine(text), "mcu").unwrap());
+        let moved = text.replace("step_pin: PA0", "step_pin: PA4");
+        assert_ne!(a, config_crc(&dict, &machine(&moved), "mcu").unwrap());
+    }
+}

@@ -1,0 +1,479 @@
+//! `cadence serve --role io`: the IO stage in its own process.
+//!
+//! It owns the MCU connections (serial ports, or simulated MCUs it starts), configures the MCUs
+//! from the same printer.cfg the planner loads, and then serves one print: it subscribes to the
+//! step channel `cadence/<instance>/mcu/<mcu>/steps` exactly as the in-process IO stage thread
+//! does and feeds the link. What the planner needs from the MCU side crosses over the services
+//! of `rt_core::shm::io` (MCU info with the data dictionary, clock snapshots, status, control);
+//! see that module for the handshake and the payload layouts.
+//!
+//! Threads: the IO stage (pinned, SCHED_FIFO where allowed, like in-process), the MCU links' IO
+//! threads, the logger, and this process's main thread, which publishes clock snapshots every
+//! [`CLOCK_PERIOD`], watches the MCUs, the planner and the IO stage, and finishes the print.
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{mpsc, Arc};
+use std::time::{Duration, Instant};
+
+use clap::{Args, ValueEnum};
+use links::mcu::McuLink;
+use rt_core::logger::{Arg, Level, LoggerHandle};
+use rt_core::os::{apply_rt, RtSpec};
+use rt_core::shm::io::{
+    clock_service_name, control_kind, control_service_name, info_service_name, io_state, status_service_name,
+    ClockSnapshot, IoControl, IoStatus, McuInfo, STATUS_POSITIONS,
+};
+use rt_core::shm::{
+    open_node, steps_service_name, telemetry_service_name, ChannelConfig, ShmPublisher, ShmSubscriber,
+    Telemetry,
+};
+
+use crate::live::{self, Hists, Logging, RtConfig};
+use crate::machine::Machine;
+use crate::mcus::{ConnectOptions, Mcus};
+
+type Ipc = iceoryx2::prelude::ipc::Service;
+
+/// How often the main thread publishes clock snapshots and checks on everything.
+pub const CLOCK_PERIOD: Duration = Duration::from_millis(20);
+
+/// The stages `serve` can run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Role {
+    /// The IO stage: MCU connections, fed from the step channels.
+    Io,
+}
+
+/// Arguments of `cadence serve`.
+#[derive(Debug, Args)]
+pub struct ServeArgs {
+    /// The stage to run in this process.
+    #[arg(long, value_enum)]
+    pub role: Role,
+    /// Klipper-format printer.cfg (default: the built-in simulated cartesian printer); the
+    /// planner must load the same one (checked through the configuration CRC).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Service instance: services are named `cadence/<instance>/...` (default `p<pid>`).
+    #[arg(long)]
+    pub instance: Option<String>,
+    /// Simulated MCU clock runs this many times faster than the wall clock.
+    #[arg(long)]
+    pub time_scale: Option<f64>,
+    /// Write the simulated MCU's step trace to this file.
+    #[arg(long)]
+    pub trace: Option<PathBuf>,
+    /// Don't pin threads, use SCHED_FIFO or lock memory.
+    #[arg(long)]
+    pub no_realtime: bool,
+    /// Also write the log to this file (appended).
+    #[arg(long, value_name = "PATH")]
+    pub log_file: Option<PathBuf>,
+    /// Most verbose log level recorded: error, warn, info, debug or trace.
+    #[arg(long, default_value = "info", value_name = "LEVEL")]
+    pub log_level: Level,
+    /// Stop (and fail) when the process with this pid (the planner that started us) is gone.
+    #[arg(long)]
+    pub parent_pid: Option<u32>,
+    /// Fail when neither a step batch nor a command arrived for this many seconds (0: wait
+    /// forever).
+    #[arg(long, default_value_t = 120.0)]
+    pub idle_timeout: f64,
+}
+
+pub fn run(args: &ServeArgs) -> Result<(), String> {
+    let Role::Io = args.role;
+    let cfg = match &args.config {
+        Some(path) => sysconfig::printer::load(path).map_err(|e| e.to_string())?,
+        None => sysconfig::printer::builtin_simulated().map_err(|e| format!("built-in printer: {e}"))?,
+    };
+    for w in &cfg.warnings {
+        eprintln!("cadence serve: warning: {w}");
+    }
+    let simulated = cfg.mcus.iter().any(|m| m.is_simulated());
+    if args.time_scale.is_some() && !simulated {
+        return Err("--time-scale only applies to a simulated printer".to_string());
+    }
+    let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
+    if !(time_scale > 0.0 && time_scale <= 50.0) {
+        return Err(format!("--time-scale {time_scale}: must be in (0, 50]"));
+    }
+    let machine = Machine::from_config(&cfg)?;
+    let instance = args
+        .instance
+        .clone()
+        .unwrap_or_else(|| format!("p{}", std::process::id()));
+    let logging = Logging::start(args.log_level, args.log_file.clone())?;
+    let log = logging.handle("serve");
+    let (node, _) =
+        open_node::<Ipc>(&format!("cadence-serve-{}", std::process::id())).map_err(|e| e.to_string())?;
+    let mut status =
+        ShmPublisher::<Ipc, IoStatus>::open(&node, &status_service_name(&instance), &ChannelConfig::latest())
+            .map_err(|e| e.to_string())?;
+    let mut report = StatusReport {
+        base: IoStatus {
+            pid: std::process::id(),
+            ..IoStatus::default()
+        },
+    };
+    report.send(&mut status, io_state::STARTING, "")?;
+
+    let r = &cfg.realtime;
+    let rt = RtConfig {
+        enabled: r.enabled && !args.no_realtime,
+        planner_core: r.planner_cpu,
+        io_core: r.io_cpu,
+        planner_priority: r.planner_priority,
+        io_priority: r.io_priority,
+        lock_memory: r.lock_memory,
+    };
+    let hists = Hists::new();
+    let opts = ConnectOptions {
+        time_scale,
+        trace: args.trace.clone(),
+        lead_hook: Some(hists.lead_hook(logging.handle("io-link"))),
+        io_rt: Some(rt.link_spec()),
+    };
+    let mut mcus = match Mcus::connect(&cfg, &machine, opts) {
+        Ok(m) => m,
+        Err(e) => {
+            let _ = report.send(&mut status, io_state::FAILED, &e);
+            return Err(e);
+        }
+    };
+    hists.set_min_lead(mcus.main().clock_freq);
+    let ctx = ServeCtx {
+        args,
+        machine: &machine,
+        mcus: &mcus,
+        instance: &instance,
+        rt: &rt,
+        hists: &hists,
+        log: &log,
+        scale: time_scale,
+    };
+    let result = serve_print(&ctx, &node, &mut status, &mut report);
+    if let Err(e) = &result {
+        log.log(Level::Error, "serve: the print failed", []);
+        let _ = report.send(&mut status, io_state::FAILED, e);
+    }
+    let stats = mcus.close();
+    // The report: this process's histograms and link statistics.
+    let clock_freq = machine_clock_freq(&result);
+    for line in hists.report(clock_freq) {
+        println!("  io: {line}");
+    }
+    for (name, s) in &stats {
+        println!("  io: mcu '{name}': {s}");
+    }
+    if let Ok(io) = &result {
+        println!(
+            "  io: stage took {} batches; allocations after warm-up: {}",
+            io.batches,
+            io.allocations_after_warmup
+                .map_or("n/a".to_string(), |n| n.to_string())
+        );
+    }
+    println!("  io: {}", logging.finish());
+    for line in rt_core::os::rt_report() {
+        eprintln!("cadence serve: {line}");
+    }
+    result.map(|_| ())
+}
+
+/// The clock frequency the served print used (for the report's ms figures).
+fn machine_clock_freq(result: &Result<ServedReport, String>) -> f64 {
+    match result {
+        Ok(r) => r.clock_freq,
+        Err(_) => 50e6,
+    }
+}
+
+/// What `serve_print` reports.
+#[derive(Debug)]
+struct ServedReport {
+    batches: u64,
+    allocations_after_warmup: Option<u64>,
+    clock_freq: f64,
+}
+
+/// Publishes status changes on top of a base record.
+#[derive(Debug)]
+struct StatusReport {
+    base: IoStatus,
+}
+
+impl StatusReport {
+    fn send(
+        &mut self,
+        publisher: &mut ShmPublisher<Ipc, IoStatus>,
+        state: u32,
+        msg: &str,
+    ) -> Result<(), String> {
+        self.base.state = state;
+        self.base.set_msg(msg);
+        let s = self.base;
+        publisher
+            .send_with(|p| {
+                let seq = p.seq;
+                *p = s;
+                p.seq = seq;
+            })
+            .map(|_| ())
+            .map_err(|e| format!("io status: {e}"))
+    }
+}
+
+struct ServeCtx<'a> {
+    args: &'a ServeArgs,
+    machine: &'a Machine,
+    mcus: &'a Mcus,
+    instance: &'a str,
+    rt: &'a RtConfig,
+    hists: &'a Arc<Hists>,
+    log: &'a LoggerHandle,
+    scale: f64,
+}
+
+/// Publishes the MCU info and clocks, runs the IO stage thread for the main MCU until the
+/// planner's FINISH, then reads the final positions back and publishes DONE.
+fn serve_print(
+    ctx: &ServeCtx<'_>,
+    node: &iceoryx2::node::Node<Ipc>,
+    status: &mut ShmPublisher<Ipc, IoStatus>,
+    report: &mut StatusReport,
+) -> Result<ServedReport, String> {
+    let mcus = ctx.mcus;
+    let main = mcus.main();
+    let clock_freq = main.clock_freq;
+    let err = |e: rt_core::shm::ShmError| e.to_string();
+    // Info (kept as history) and clock publishers, one per MCU.
+    let mut infos = Vec::new();
+    let mut clocks = Vec::new();
+    for (i, m) in mcus.list.iter().enumerate() {
+        let dict = m.link.dictionary();
+        let crc = crate::remote::config_crc(dict, ctx.machine, &m.name)?;
+        let mut p = ShmPublisher::<Ipc, McuInfo>::open(
+            node,
+            &info_service_name(ctx.instance, &m.name),
+            &ChannelConfig::info(),
+        )
+        .map_err(err)?;
+        let compressed = dict.compressed();
+        let mut fits = true;
+        p.send_with(|info| {
+            info.clock_freq = m.clock_freq;
+            info.move_count = m.move_count as u32;
+            info.config_crc = crc;
+            info.mcu_index = i as u32;
+            fits = info.set_dict(compressed);
+        })
+        .map_err(err)?;
+        if !fits {
+            return Err(format!(
+                "mcu '{}': its data dictionary ({} bytes) is larger than an McuInfo carries",
+                m.name,
+                compressed.len()
+            ));
+        }
+        infos.push(p);
+        let c = ShmPublisher::<Ipc, ClockSnapshot>::open(
+            node,
+            &clock_service_name(ctx.instance, &m.name),
+            &ChannelConfig::latest(),
+        )
+        .map_err(err)?;
+        clocks.push(c);
+    }
+    let publish_clocks = |clocks: &mut Vec<ShmPublisher<Ipc, ClockSnapshot>>| -> Result<(), String> {
+        let now = McuLink::system_now();
+        for (m, p) in mcus.list.iter().zip(clocks.iter_mut()) {
+            let est = m.link.clock();
+            p.send_with(|c| {
+                c.ref_time = now;
+                c.ref_clock = est.clock_at(now);
+                c.freq = est.freq();
+                c.residual_us = est.residual_us();
+                c.valid = est.is_valid() as u32;
+            })
+            .map_err(err)?;
+        }
+        Ok(())
+    };
+    publish_clocks(&mut clocks)?;
+    let mut control = ShmSubscriber::<Ipc, IoControl>::open(
+        node,
+        &control_service_name(ctx.instance),
+        &ChannelConfig::control(),
+    )
+    .map_err(err)?;
+    let mut telemetry = ShmPublisher::<Ipc, Telemetry>::open(
+        node,
+        &telemetry_service_name(ctx.instance),
+        &ChannelConfig::telemetry(),
+    )
+    .map_err(err)?;
+    let service = steps_service_name(ctx.instance, &main.name);
+    let service = service.as_str();
+    let done_flag = AtomicBool::new(false);
+    let consumed_count = AtomicU64::new(0);
+    let (done, consumed) = (&done_flag, &consumed_count);
+    let link = &main.link;
+    let hists = ctx.hists;
+    let started = Instant::now();
+
+    std::thread::scope(|scope| {
+        let (ready_tx, ready_rx) = mpsc::channel();
+        let io_spec: RtSpec = ctx.rt.io_spec(&main.name);
+        let io_log = ctx.log.with_tag("io");
+        let io = std::thread::Builder::new()
+            .name(io_spec.name.clone())
+            .spawn_scoped(scope, move || {
+                apply_rt(&io_spec);
+                live::io_stage(
+                    link, service, ready_tx, done, consumed, hists, clock_freq, &io_log,
+                )
+            })
+            .map_err(|e| format!("cannot start the IO stage thread: {e}"))?;
+        let stop_io = |io: std::thread::ScopedJoinHandle<'_, Result<live::IoReport, String>>| {
+            done.store(true, Ordering::Release);
+            io.join()
+                .map_err(|_| "the IO stage thread panicked".to_string())
+                .and_then(|r| r)
+        };
+        match ready_rx.recv_timeout(Duration::from_secs(10)) {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => return Err(format!("io stage: {e}")),
+            Err(_) => return Err("io stage did not start within 10 s".to_string()),
+        }
+        report.send(status, io_state::READY, "")?;
+        ctx.log.log(Level::Info, "serve: ready", []);
+
+        let idle_limit =
+            (ctx.args.idle_timeout > 0.0).then(|| Duration::from_secs_f64(ctx.args.idle_timeout));
+        let mut last_activity = Instant::now();
+        let mut last_consumed = 0;
+        let mut last_telemetry = Instant::now();
+        let mut finish: Option<IoControl> = None;
+        loop {
+            std::thread::sleep(CLOCK_PERIOD);
+            publish_clocks(&mut clocks)?;
+            // New subscribers get the history (info, status) when the publisher connects.
+            for p in &infos {
+                p.connect().map_err(err)?;
+            }
+            status.connect().map_err(err)?;
+            if last_telemetry.elapsed() >= Duration::from_secs(1) {
+                last_telemetry = Instant::now();
+                hists.publish(
+                    &mut telemetry,
+                    started.elapsed().as_nanos() as u64,
+                    live::LEAD_SOURCE,
+                );
+            }
+            if let Err(e) = mcus.check() {
+                let _ = stop_io(io);
+                return Err(e);
+            }
+            if io.is_finished() {
+                // The IO stage only ends on its own with an error (or after `done`).
+                let r = stop_io(io);
+                return Err(match r {
+                    Err(e) => e,
+                    Ok(_) => "the IO stage stopped unexpectedly".to_string(),
+                });
+            }
+            while let Some(c) = control.try_recv_with(|c| *c).map_err(err)? {
+                last_activity = Instant::now();
+                match c.kind {
+                    control_kind::FINISH => finish = Some(c),
+                    control_kind::ABORT => {
+                        let _ = stop_io(io);
+                        return Err("the planner aborted the print".to_string());
+                    }
+                    _ => {}
+                }
+            }
+            let n = consumed.load(Ordering::Acquire);
+            if n != last_consumed {
+                last_consumed = n;
+                last_activity = Instant::now();
+                report.base.batches = n;
+            }
+            if let Some(f) = finish {
+                if n >= f.batches {
+                    let io_report = stop_io(io)?;
+                    ctx.log.log(
+                        Level::Info,
+                        "serve: all batches taken, waiting for the MCU: batches, end clock",
+                        [Arg::U(n), Arg::U(f.end_clock)],
+                    );
+                    let positions = live::read_final_positions(mcus, ctx.machine, f.end_clock, ctx.scale)?;
+                    if positions.len() > STATUS_POSITIONS {
+                        return Err(format!(
+                            "{} steppers: an IoStatus carries at most {STATUS_POSITIONS} positions",
+                            positions.len()
+                        ));
+                    }
+                    let stats = link.stats();
+                    report.base.batches = io_report.batches;
+                    report.base.clocked_msgs = stats.clocked_msgs;
+                    report.base.min_lead_margin_ticks = stats.min_lead_margin_ticks.unwrap_or(i64::MIN);
+                    report.base.npos = positions.len() as u32;
+                    report.base.positions[..positions.len()].copy_from_slice(&positions);
+                    report.send(status, io_state::DONE, "")?;
+                    hists.publish(
+                        &mut telemetry,
+                        started.elapsed().as_nanos() as u64,
+                        live::LEAD_SOURCE,
+                    );
+                    ctx.log.log(Level::Info, "serve: print done", []);
+                    // Keep the DONE sample alive until the planner has read it.
+                    wait_for_ack(&mut control, ctx.log);
+                    return Ok(ServedReport {
+                        batches: io_report.batches,
+                        allocations_after_warmup: io_report.allocations_after_warmup,
+                        clock_freq,
+                    });
+                }
+            }
+            if let Some(pid) = ctx.args.parent_pid {
+                if !std::path::Path::new(&format!("/proc/{pid}")).exists() {
+                    let _ = stop_io(io);
+                    return Err(format!("the planner process {pid} is gone"));
+                }
+            }
+            if let Some(limit) = idle_limit {
+                if last_activity.elapsed() > limit {
+                    let _ = stop_io(io);
+                    return Err(format!(
+                        "no step batch or command from a planner for {:.0} s",
+                        limit.as_secs_f64()
+                    ));
+                }
+            }
+        }
+    })
+}
+
+/// Waits (bounded) for the planner's `DONE_SEEN`, so the final status outlives this process's
+/// publisher long enough to be read.
+fn wait_for_ack(control: &mut ShmSubscriber<Ipc, IoControl>, log: &LoggerHandle) {
+    let deadline = Instant::now() + ACK_TIMEOUT;
+    while Instant::now() < deadline {
+        match control.recv_timeout_with(CLOCK_PERIOD, |c| c.kind) {
+            Ok(Some(control_kind::DONE_SEEN)) => return,
+            Ok(_) => {}
+            Err(_) => break,
+        }
+    }
+    log.log(
+        Level::Warn,
+        "serve: the planner did not acknowledge the final status",
+        [],
+    );
+}
+
+/// Longest wait for the planner's acknowledgement of `DONE`.
+const ACK_TIMEOUT: Duration = Duration::from_secs(10);
