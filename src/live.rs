@@ -921,8 +921,7 @@ pub(crate) fn read_final_positions(
             );
         }
         let reply = reply.map_err(|e| e.to_string())?;
-        // Relative to the run's start (non-zero when an already configured MCU was reused).
-        let raw = reply.get("pos").unwrap_or(0) - main.start_position(s.oid);
+        let raw = reply.get("pos").unwrap_or(0);
         out.push(if s.dir_pin.invert { -raw } else { raw });
     }
     Ok(out)

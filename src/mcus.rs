@@ -27,20 +27,6 @@ pub struct McuConn {
     pub clock_freq: f64,
     /// Oid of this MCU's trsync object.
     pub trsync_oid: u8,
-    /// Stepper positions (oid, raw steps) when this run took over an MCU that was already
-    /// configured identically by an earlier run (a long-running MCU process or board);
-    /// positions read back at the end are relative to these.
-    pub start_positions: Vec<(u8, i64)>,
-}
-
-impl McuConn {
-    /// Raw position of stepper `oid` when this run started (0 on a freshly configured MCU).
-    pub fn start_position(&self, oid: u8) -> i64 {
-        self.start_positions
-            .iter()
-            .find(|(o, _)| *o == oid)
-            .map_or(0, |&(_, p)| p)
-    }
 }
 
 /// All MCUs of the printer; `list[0]` is the main `[mcu]`.
@@ -155,7 +141,6 @@ impl Mcus {
                 move_count: 0,
                 clock_freq,
                 trsync_oid: 0,
-                start_positions: Vec::new(),
             });
         }
         for i in 0..mcus.list.len() {
@@ -178,27 +163,33 @@ impl Mcus {
         let reply = query_config(&conn.link, get_config)?;
         let (cmds, trsync_oid, crc) =
             config_commands(dict, machine, &name).map_err(|e| format!("mcu '{name}': {e}"))?;
-        let mut start_positions = Vec::new();
-        let reply = if reply.get("is_config") == Some(1) {
+        if dict.command("config_digital_out").is_err()
+            && machine
+                .steppers
+                .iter()
+                .any(|s| s.mcu == name && s.enable_pin.is_some())
+        {
+            eprintln!(
+                "cadence: warning: mcu '{name}' has no config_digital_out in its dictionary: \
+                 stepper enable pins are not driven"
+            );
+        }
+        if reply.get("is_config") == Some(1) {
             // A long-running MCU (a board, or Klipper's Linux-process MCU) keeps its
-            // configuration between runs: reuse it when it is ours, like Klipper does.
+            // configuration between runs. Reusing it would need the host's position model
+            // re-based on the MCU's step counters; until then a restart is required.
             let theirs = reply.get("crc").unwrap_or(-1) as u32;
-            if theirs != crc {
-                return Err(format!(
-                    "mcu '{name}': already configured with another configuration (crc {theirs:#010x}, this \
-                     printer.cfg gives {crc:#010x}): restart the MCU (FIRMWARE_RESTART) before printing"
-                ));
-            }
-            if reply.get("is_shutdown") == Some(1) {
-                return Err(format!(
-                    "mcu '{name}': is shut down from an earlier run: restart the MCU before printing"
-                ));
-            }
-            for s in machine.steppers.iter().filter(|s| s.mcu == name) {
-                start_positions.push((s.oid, raw_position(&conn.link, s.oid)?));
-            }
-            reply
-        } else {
+            let same = if theirs == crc {
+                "this printer.cfg's configuration"
+            } else {
+                "another configuration"
+            };
+            return Err(format!(
+                "mcu '{name}': already configured with {same} (crc {theirs:#010x}, this printer.cfg gives \
+                 {crc:#010x}) by an earlier run: restart the MCU before printing"
+            ));
+        }
+        let reply = {
             for c in cmds {
                 conn.link.send(c).map_err(|e| e.to_string())?;
             }
@@ -218,7 +209,6 @@ impl Mcus {
         let conn = &mut self.list[i];
         conn.move_count = move_count;
         conn.trsync_oid = trsync_oid;
-        conn.start_positions = start_positions;
         Ok(())
     }
 
@@ -291,7 +281,10 @@ pub fn config_commands(
     let endstops = machine.mcu_endstops(mcu);
     // Driver enable pins, once each (several steppers often share one), after the endstops.
     let mut enables: Vec<&sysconfig::printer::PinRef> = Vec::new();
-    for s in &steppers {
+    // A firmware built without digital outputs (a stripped test build) cannot drive them;
+    // `configure` warns about that.
+    let has_outputs = dict.command("config_digital_out").is_ok();
+    for s in steppers.iter().filter(|_| has_outputs) {
         if let Some(p) = &s.enable_pin {
             if p.mcu == mcu && !enables.iter().any(|e| e.pin == p.pin) {
                 enables.push(p);
@@ -371,33 +364,6 @@ pub fn config_commands(
     let crc = crc.finalize();
     cmds.push(dict.encode("finalize_config", &[crc as i64]).map_err(err)?);
     Ok((cmds, trsync_oid, crc))
-}
-
-/// Raw `stepper_get_position` of stepper `oid` (retried: answers are not retransmitted).
-fn raw_position(link: &McuLink, oid: u8) -> Result<i64, String> {
-    let q = link
-        .dictionary()
-        .encode("stepper_get_position", &[oid as i64])
-        .map_err(|e| e.to_string())?;
-    let mut last = String::new();
-    for _ in 0..4 {
-        match link.query(
-            q,
-            "stepper_position",
-            Some(("oid", oid as i64)),
-            Duration::from_secs(1),
-        ) {
-            Ok(r) => return Ok(r.get("pos").unwrap_or(0)),
-            Err(e) => last = e.to_string(),
-        }
-        if link.error().is_some() {
-            break;
-        }
-    }
-    Err(format!(
-        "mcu '{}': stepper_get_position oid={oid}: {last}",
-        link.name()
-    ))
 }
 
 /// `get_config` → `config`, retried: MCU → host traffic is not retransmitted, so on a noisy line
