@@ -126,7 +126,20 @@ fn check_success(run: &Run, trace: &Path, axes: &[usize]) {
 #[test]
 fn g28_across_two_mcus_lands_on_the_trigger() {
     let dir = scratch("homing-two-mcus");
-    let (run, trace) = home(&dir, "xyz", None);
+    // A starved VM (CI runs tests in parallel on 2 cores) can legitimately miss the 25 ms
+    // budget: that run ends in exactly the timeout error and is tried again (at most 3 runs).
+    // A wrong position is never retried.
+    let (mut run, mut trace) = home(&dir, "xyz", None);
+    for _ in 0..2 {
+        if !run
+            .stderr
+            .lines()
+            .any(|l| l == "cadence: error: Communication timeout during homing")
+        {
+            break;
+        }
+        (run, trace) = home(&dir, "xyz", None);
+    }
     assert_eq!(
         run.code,
         Some(0),

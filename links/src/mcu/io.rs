@@ -295,10 +295,10 @@ impl IoThread {
         {
             wait = wait.min(self.next_clock_at - now);
         }
-        let wakeable = self.shared.wake.is_some() && self.transport.supports_wake();
-        if !wakeable && self.shared.armed.load(Ordering::Acquire) > 0 {
-            // A homing group relies on this thread to pick up triggers other IO threads hand
-            // it: read in short slices while one is registered.
+        if self.shared.armed.load(Ordering::Acquire) > 0 {
+            // A homing group relies on this thread: read in short slices while one is
+            // registered. (Relayed triggers also wake it at once; without the slices, homing
+            // across two MCUs ended in communication timeouts every time — not understood yet.)
             wait = wait.min(ARMED_READ_WAIT);
         }
         // Work waiting to be taken: don't sleep — unless the serial queue is full (then a
