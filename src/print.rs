@@ -95,7 +95,8 @@ struct Warnings {
 
 impl Warnings {
     fn unsupported(&mut self, file: &Path, line: usize, name: &str) {
-        if self.seen.insert(name.to_string()) {
+        // Look up first: the name is copied (allocated) only the first time it is seen.
+        if !self.seen.contains(name) && self.seen.insert(name.to_string()) {
             eprintln!(
                 "cadence: warning: {}:{line}: {name} is not implemented yet and is ignored (reported once)",
                 file.display()

@@ -13,10 +13,25 @@
 //!
 //! No-panic contract: any byte sequence yields `Ok` or `Err` items, never a panic. An error
 //! concerns one line; iteration goes on with the next line (read errors end it).
+//!
+//! Allocation: the reader reuses its line buffer (and one for lines with `( … )` comments), and
+//! a well-formed line becomes a [`GcodeLine`] without touching the heap as long as a
+//! [`Command::Other`]'s name fits [`CommandName`] (47 bytes) and its text [`CommandText`] (176
+//! bytes) inline (longer ones are boxed). [`OtherParams`] borrows the command text. Errors
+//! allocate (their message).
 
-use std::borrow::Cow;
+mod text;
+
 use std::fmt;
+use std::fmt::Write as _;
 use std::io::BufRead;
+
+pub use text::{InlineText, TextBuilder};
+
+/// A command name (`M104`, `SET_VELOCITY_LIMIT`): inline up to 47 bytes.
+pub type CommandName = InlineText<47>;
+/// A command's text as written: inline up to 176 bytes.
+pub type CommandText = InlineText<176>;
 
 /// Longest line accepted (Klipper's `EXCLUDE_OBJECT_DEFINE` polygons can be a few KB).
 pub const MAX_LINE_LEN: usize = 1 << 20;
@@ -76,7 +91,7 @@ pub enum Command {
     WaitMoves,
     /// Any other well-formed command: `name` upper-cased (`M104`, `SET_VELOCITY_LIMIT`), `raw`
     /// the command text as written (without line number, checksum and comments).
-    Other { name: String, raw: String },
+    Other { name: CommandName, raw: CommandText },
 }
 
 /// What is wrong with a line.
@@ -137,6 +152,8 @@ impl std::error::Error for GcodeError {}
 pub struct GcodeReader<R> {
     inner: R,
     buf: Vec<u8>,
+    /// Reused for lines with `( … )` comments (the text without them).
+    scratch: String,
     line_no: usize,
     done: bool,
 }
@@ -146,6 +163,7 @@ impl<R: BufRead> GcodeReader<R> {
         GcodeReader {
             inner,
             buf: Vec::with_capacity(256),
+            scratch: String::new(),
             line_no: 0,
             done: false,
         }
@@ -214,7 +232,7 @@ impl<R: BufRead> Iterator for GcodeReader<R> {
             if too_long {
                 return Some(Err(error(self.line_no, &self.buf, GcodeErrorKind::LineTooLong)));
             }
-            match parse_line(self.line_no, &self.buf) {
+            match parse_line_with(self.line_no, &self.buf, &mut self.scratch) {
                 Ok(Some(cmd)) => {
                     return Some(Ok(GcodeLine {
                         line_no: self.line_no,
@@ -241,6 +259,11 @@ fn error(line: usize, raw: &[u8], kind: GcodeErrorKind) -> GcodeError {
 
 /// Parses one line (without its `\n`). `Ok(None)` for blank, comment-only or number-only lines.
 pub fn parse_line(line_no: usize, raw: &[u8]) -> Result<Option<Command>, GcodeError> {
+    parse_line_with(line_no, raw, &mut String::new())
+}
+
+/// [`parse_line`] with a reusable buffer for the text of lines with `( … )` comments.
+fn parse_line_with(line_no: usize, raw: &[u8], scratch: &mut String) -> Result<Option<Command>, GcodeError> {
     let err = |kind| error(line_no, raw, kind);
     let text = std::str::from_utf8(raw).map_err(|_| err(GcodeErrorKind::NotUtf8))?;
     let text = text.strip_suffix('\r').unwrap_or(text);
@@ -251,12 +274,16 @@ pub fn parse_line(line_no: usize, raw: &[u8]) -> Result<Option<Command>, GcodeEr
     {
         return Err(err(GcodeErrorKind::Binary(b)));
     }
-    let body = strip_comments_and_checksum(text).map_err(err)?;
+    let body = strip_comments_and_checksum(text, scratch).map_err(err)?;
     parse_body(body.trim()).map_err(err)
 }
 
-/// Removes the `;` comment, verifies and removes the `*NN` checksum, removes `( … )` comments.
-fn strip_comments_and_checksum(text: &str) -> Result<Cow<'_, str>, GcodeErrorKind> {
+/// Removes the `;` comment, verifies and removes the `*NN` checksum, removes `( … )` comments
+/// (then the text is built in `scratch`).
+fn strip_comments_and_checksum<'a>(
+    text: &'a str,
+    scratch: &'a mut String,
+) -> Result<&'a str, GcodeErrorKind> {
     let bytes = text.as_bytes();
     let mut depth_open = false;
     let mut has_paren = false;
@@ -295,9 +322,10 @@ fn strip_comments_and_checksum(text: &str) -> Result<Cow<'_, str>, GcodeErrorKin
     }
     let body = &text[..body_end];
     if !has_paren {
-        return Ok(Cow::Borrowed(body));
+        return Ok(body);
     }
-    let mut out = String::with_capacity(body.len());
+    let out = scratch;
+    out.clear();
     let mut open = false;
     for c in body.chars() {
         match c {
@@ -310,7 +338,7 @@ fn strip_comments_and_checksum(text: &str) -> Result<Cow<'_, str>, GcodeErrorKin
             _ => {}
         }
     }
-    Ok(Cow::Owned(out))
+    Ok(out.as_str())
 }
 
 /// Parses the command part of a line (comments, checksum removed; trimmed).
@@ -427,13 +455,16 @@ fn parse_body(body: &str) -> Result<Option<Command>, GcodeErrorKind> {
         (b'M', 83) if known => Command::RelativeExtrusion,
         (b'M', 400) if known => Command::WaitMoves,
         _ => {
-            let name = match frac {
-                Some(f) => format!("{}{}.{}", letter as char, code, f),
-                None => format!("{}{}", letter as char, code),
-            };
+            let mut name = TextBuilder::new();
+            // Writing to a TextBuilder cannot fail.
+            let _ = write!(name, "{}{}", letter as char, code);
+            if let Some(f) = frac {
+                name.push_str(".");
+                name.push_str(f);
+            }
             Command::Other {
-                name,
-                raw: rest.to_string(),
+                name: name.finish(),
+                raw: CommandText::new(rest),
             }
         }
     };
@@ -446,51 +477,72 @@ fn parse_extended(rest: &str) -> Result<Option<Command>, GcodeErrorKind> {
     if !name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_') {
         return Err(GcodeErrorKind::BadCommand(name.to_string()));
     }
+    let mut upper = CommandName::new(name);
+    upper.make_ascii_uppercase();
     Ok(Some(Command::Other {
-        name: name.to_ascii_uppercase(),
-        raw: rest.to_string(),
+        name: upper,
+        raw: CommandText::new(rest),
     }))
 }
 
 /// The parameters of an [`Command::Other`] command's `raw` text: `S200 T0` words for
-/// traditional commands, `KEY=value` for extended ones (keys upper-cased).
+/// traditional commands, `KEY=value` for extended ones (keys compared upper-cased). Borrows the
+/// text and allocates nothing: [`Self::parse`] checks every word, lookups scan the text again
+/// (commands have a handful of parameters). A key given twice: the first one counts.
 #[derive(Debug, Clone, PartialEq, Default)]
-pub struct OtherParams {
-    pairs: Vec<(String, String)>,
+pub struct OtherParams<'a> {
+    /// A traditional command's words by letter (`S215`).
+    words: [Option<&'a str>; 26],
+    /// An extended command's text after the name (`KEY=value …`, already checked).
+    extended: Option<&'a str>,
 }
 
-impl OtherParams {
+/// The one-letter keys of traditional commands.
+const LETTERS: [&str; 26] = [
+    "A", "B", "C", "D", "E", "F", "G", "H", "I", "J", "K", "L", "M", "N", "O", "P", "Q", "R", "S", "T", "U",
+    "V", "W", "X", "Y", "Z",
+];
+
+impl<'a> OtherParams<'a> {
     /// Parses `raw` (as in [`Command::Other`]); the command word itself is skipped.
-    pub fn parse(raw: &str) -> Result<OtherParams, GcodeErrorKind> {
+    pub fn parse(raw: &'a str) -> Result<OtherParams<'a>, GcodeErrorKind> {
         let raw = raw.trim();
         let name = first_word(raw);
         let rest = &raw[name.len()..];
         let extended = !name.as_bytes().get(1).is_some_and(|b| b.is_ascii_digit());
-        let mut pairs = Vec::new();
+        let mut params = OtherParams {
+            words: [None; 26],
+            extended: None,
+        };
         if extended {
             for tok in rest.split_ascii_whitespace() {
-                let Some((k, v)) = tok.split_once('=') else {
+                let Some((k, _)) = tok.split_once('=') else {
                     return Err(GcodeErrorKind::BadWord(tok.to_string()));
                 };
                 if k.is_empty() || !k.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_') {
                     return Err(GcodeErrorKind::BadWord(tok.to_string()));
                 }
-                pairs.push((k.to_ascii_uppercase(), v.to_string()));
             }
+            params.extended = Some(rest);
         } else {
-            let p = Params::parse(rest)?;
-            for (i, w) in p.words.iter().enumerate() {
-                if let Some(w) = w {
-                    pairs.push((((b'A' + i as u8) as char).to_string(), w[1..].to_string()));
-                }
-            }
+            params.words = Params::parse(rest)?.words;
         }
-        Ok(OtherParams { pairs })
+        Ok(params)
     }
 
-    /// The text of `key`.
-    pub fn get(&self, key: &str) -> Option<&str> {
-        self.pairs.iter().find(|(k, _)| k == key).map(|(_, v)| v.as_str())
+    /// The text of `key` (upper case, as the keys are compared).
+    pub fn get(&self, key: &str) -> Option<&'a str> {
+        match self.extended {
+            None => {
+                let i = LETTERS.iter().position(|&l| l == key)?;
+                self.words[i].map(|w| &w[1..])
+            }
+            Some(rest) => rest
+                .split_ascii_whitespace()
+                .filter_map(|tok| tok.split_once('='))
+                .find(|(k, _)| upper_eq(k, key))
+                .map(|(_, v)| v),
+        }
     }
 
     /// The number of `key` (finite), `None` when absent.
@@ -498,21 +550,43 @@ impl OtherParams {
         let Some(v) = self.get(key) else {
             return Ok(None);
         };
-        let word = format!("{key}={v}");
         let x: f64 = v
             .trim()
             .parse()
-            .map_err(|_| GcodeErrorKind::BadNumber(word.clone()))?;
+            .map_err(|_| GcodeErrorKind::BadNumber(format!("{key}={v}")))?;
         if !x.is_finite() {
-            return Err(GcodeErrorKind::NotFinite(word));
+            return Err(GcodeErrorKind::NotFinite(format!("{key}={v}")));
         }
         Ok(Some(x))
     }
 
-    /// Every key given.
-    pub fn keys(&self) -> impl Iterator<Item = &str> {
-        self.pairs.iter().map(|(k, _)| k.as_str())
+    /// Every key given, upper-cased (extended keys written in lower case are copied, inline).
+    pub fn keys(&self) -> impl Iterator<Item = CommandName> + '_ {
+        let letters = self
+            .words
+            .iter()
+            .zip(LETTERS)
+            .filter(|(w, _)| w.is_some())
+            .map(|(_, l)| CommandName::new(l));
+        let extended = self.extended.into_iter().flat_map(|rest| {
+            rest.split_ascii_whitespace()
+                .filter_map(|tok| tok.split_once('='))
+                .map(|(k, _)| {
+                    let mut k = CommandName::new(k);
+                    k.make_ascii_uppercase();
+                    k
+                })
+        });
+        letters.chain(extended)
     }
+}
+
+/// Whether `k` upper-cased equals `key`.
+fn upper_eq(k: &str, key: &str) -> bool {
+    k.len() == key.len()
+        && k.bytes()
+            .zip(key.bytes())
+            .all(|(a, b)| a.to_ascii_uppercase() == b)
 }
 
 fn first_word(s: &str) -> &str {

@@ -17,8 +17,9 @@
 //! M117 are returned to the caller as [`Applied`] values. Unknown commands are
 //! [`Applied::Unsupported`] (the caller warns), or errors with [`GcodeState::set_unknown_is_error`].
 
-use crate::gcode::{Command, GcodeErrorKind, GcodeLine, OtherParams};
+use crate::gcode::{Command, CommandName, CommandText, GcodeErrorKind, GcodeLine, OtherParams, TextBuilder};
 use crate::toolhead::{MoveError, Toolhead, AXIS_NAMES};
+use std::fmt::Write as _;
 
 /// Speed before any F word (mm/s), as Klipper.
 const DEFAULT_SPEED: f64 = 25.0;
@@ -41,7 +42,8 @@ pub enum HeaterId {
 pub enum Applied {
     Done,
     /// A well-formed command the planner does not implement; the caller warns once per name.
-    Unsupported(String),
+    /// (Inline text: returning it does not allocate for names up to 47 bytes.)
+    Unsupported(CommandName),
     /// M104/M109 (extruder) and M140/M190 (bed): new target in °C (0 = off); `wait` for
     /// M109/M190 (the caller waits for the temperature before going on).
     Heater {
@@ -63,9 +65,9 @@ pub enum Applied {
     /// M84/M18: steppers off; every axis must be homed again before moving.
     MotorsOff,
     /// M114: the position report, Klipper's text (`X:… Y:… Z:… E:…`).
-    Report(String),
+    Report(CommandText),
     /// M117: a display message.
-    Message(String),
+    Message(CommandText),
 }
 
 /// A G-code line the planner refused.
@@ -382,7 +384,7 @@ impl GcodeState {
         let bad = |e: GcodeErrorKind| PlanErrorKind::BadParameter(format!("{name}: {e}"));
         if name == "M117" {
             let text = raw.trim().get(4..).unwrap_or("").trim();
-            return Ok(Applied::Message(text.to_string()));
+            return Ok(Applied::Message(CommandText::new(text)));
         }
         let p = OtherParams::parse(raw).map_err(bad)?;
         let num = |k: &str| p.float(k).map_err(bad);
@@ -439,10 +441,10 @@ impl GcodeState {
             }
             "M114" => {
                 let p = self.gcode_position();
-                return Ok(Applied::Report(format!(
-                    "X:{:.3} Y:{:.3} Z:{:.3} E:{:.3}",
-                    p[0], p[1], p[2], p[3]
-                )));
+                let mut text = TextBuilder::new();
+                // Writing to a TextBuilder cannot fail.
+                let _ = write!(text, "X:{:.3} Y:{:.3} Z:{:.3} E:{:.3}", p[0], p[1], p[2], p[3]);
+                return Ok(Applied::Report(text.finish()));
             }
             "M204" => {
                 let accel = match (positive("S")?, positive("P")?, positive("T")?) {
@@ -536,7 +538,7 @@ impl GcodeState {
                 }
             }
             _ if self.unknown_is_error => return Err(PlanErrorKind::UnknownCommand(name.to_string())),
-            _ => return Ok(Applied::Unsupported(name.to_string())),
+            _ => return Ok(Applied::Unsupported(CommandName::new(name))),
         }
         Ok(Applied::Done)
     }

@@ -32,7 +32,7 @@ use crate::machine::{Applied, GcodeState, PlanError, PlanErrorKind};
 use crate::pressure_advance::{PaGen, PressureAdvance};
 use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::{Move, Toolhead, ToolheadConfig};
-use lanes::{LaneOut, LaneState, Msg, PaChange, Workers};
+use lanes::{LaneOut, LaneState, Msg, PaChange, Workers, CMDS_CAPACITY};
 
 /// Klipper's default `pressure_advance_smooth_time` (s), for SET_PRESSURE_ADVANCE when the
 /// configuration has no pressure advance.
@@ -108,7 +108,7 @@ pub struct PipelineStats {
 }
 
 /// The main thread's view of one lane: commands not released yet, counters.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 struct LaneView {
     /// Commands received and not yet released, with their sort keys.
     held: Vec<(u64, StepCmd)>,
@@ -116,6 +116,19 @@ struct LaneView {
     position: i64,
     steps: u64,
     queue_steps: u64,
+}
+
+impl Default for LaneView {
+    /// Room for [`CMDS_CAPACITY`] held commands up front (no growth in steady state).
+    fn default() -> Self {
+        LaneView {
+            held: Vec::with_capacity(CMDS_CAPACITY),
+            ideal: Vec::new(),
+            position: 0,
+            steps: 0,
+            queue_steps: 0,
+        }
+    }
 }
 
 /// Where the lanes run.
@@ -248,7 +261,7 @@ impl Pipeline {
             state.set_pressure_advance(p.advance, p.smooth_time);
         }
         let (backend, workers) = if opts.threads == 0 || n == 0 {
-            let outs = (0..n).map(|_| LaneOut::default()).collect();
+            let outs = (0..n).map(|_| LaneOut::with_capacity()).collect();
             (Backend::Inline(lanes, outs), 1)
         } else {
             let w = Workers::spawn(lanes, opts.threads)

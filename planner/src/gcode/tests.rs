@@ -267,7 +267,7 @@ proptest! {
     #[test]
     fn other_params_never_panic(s in "[A-Z_0-9]{1,8}( [A-Za-z_=0-9.+\\-é]{0,12}){0,4}") {
         if let Ok(p) = OtherParams::parse(&s) {
-            for k in p.keys().map(str::to_string).collect::<Vec<_>>() {
+            for k in p.keys().map(|k| k.to_string()).collect::<Vec<_>>() {
                 let _ = p.float(&k);
             }
         }
@@ -284,4 +284,133 @@ fn other_params_both_styles() {
     assert!(p.float("ACCEL").is_err());
     assert!(OtherParams::parse("SET_VELOCITY_LIMIT VELOCITY").is_err());
     assert!(OtherParams::parse("M104 S2..5").is_err());
+}
+
+#[test]
+fn long_command_names_and_texts_are_kept_whole() {
+    let long = format!("my_macro_{}", "x".repeat(60));
+    let line = format!("{long} A=1 B=2");
+    let Some(Command::Other { name, raw }) = parse(&line).unwrap() else {
+        panic!("not Other");
+    };
+    assert_eq!(name, long.to_ascii_uppercase());
+    assert!(name.is_heap());
+    assert_eq!(raw, line);
+    // A text longer than the inline capacity.
+    let text = format!("M117 {}", "é".repeat(150));
+    let Some(Command::Other { name, raw }) = parse(&text).unwrap() else {
+        panic!("not Other");
+    };
+    assert_eq!(name, "M117");
+    assert!(!name.is_heap() && raw.is_heap());
+    assert_eq!(raw, text);
+    let frac = format!("G29.{}", "1".repeat(80));
+    assert!(matches!(parse(&frac).unwrap(), Some(Command::Other { ref name, .. }) if *name == frac));
+}
+
+#[test]
+fn usual_commands_are_stored_inline() {
+    for s in [
+        "M106 S255",
+        "SET_VELOCITY_LIMIT VELOCITY=300 ACCEL=3000 ACCEL_TO_DECEL=1500 SQUARE_CORNER_VELOCITY=5",
+        "EXCLUDE_OBJECT_START NAME=3DBenchy.stl_id_0_copy_0",
+        "SET_PRESSURE_ADVANCE EXTRUDER=extruder ADVANCE=0.045 SMOOTH_TIME=0.04",
+    ] {
+        let Some(Command::Other { name, raw }) = parse(s).unwrap() else {
+            panic!("{s}: not Other");
+        };
+        assert!(!name.is_heap() && !raw.is_heap(), "{s}");
+        assert_eq!(raw, s);
+    }
+}
+
+#[test]
+fn many_parameters() {
+    let mut line = String::from("MY_MACRO");
+    for i in 0..100 {
+        line.push_str(&format!(" key_{i}={i}.5"));
+    }
+    let p = OtherParams::parse(&line).unwrap();
+    for i in 0..100 {
+        assert_eq!(p.float(&format!("KEY_{i}")), Ok(Some(i as f64 + 0.5)));
+    }
+    assert_eq!(p.keys().count(), 100);
+    assert_eq!(p.keys().nth(7).unwrap(), "KEY_7");
+    let letters: String = ('A'..='Z')
+        .filter(|c| !"GMN".contains(*c))
+        .map(|c| format!(" {c}1"))
+        .collect();
+    let line = format!("M999{letters}");
+    let p = OtherParams::parse(&line).unwrap();
+    assert_eq!(p.keys().count(), 23);
+    assert_eq!(p.get("Z"), Some("1"));
+    assert_eq!(p.get("z"), None);
+    assert_eq!(p.get("ZZ"), None);
+}
+
+#[test]
+fn other_params_lookup_rules() {
+    let p = OtherParams::parse("SET_X a=1 A=2 long_key=x").unwrap();
+    assert_eq!(p.get("A"), Some("1"), "the first of a repeated key counts");
+    assert_eq!(p.get("a"), None, "lookups are by the upper-case key");
+    assert_eq!(p.get("LONG_KEY"), Some("x"));
+    assert_eq!(
+        p.float("LONG_KEY"),
+        Err(GcodeErrorKind::BadNumber("LONG_KEY=x".into()))
+    );
+    let keys: Vec<String> = p.keys().map(|k| k.to_string()).collect();
+    assert_eq!(keys, ["A", "A", "LONG_KEY"]);
+    let p = OtherParams::parse("M104 S T0").unwrap();
+    assert_eq!(p.get("S"), Some(""));
+    assert_eq!(p.get("T"), Some("0"));
+    assert_eq!(p.get("X"), None);
+}
+
+/// The parameters as the first (allocating) implementation kept them: (upper-cased key, value).
+fn reference_pairs(raw: &str) -> Option<Vec<(String, String)>> {
+    let raw = raw.trim();
+    let name = first_word_ref(raw);
+    let rest = &raw[name.len()..];
+    let extended = !name.as_bytes().get(1).is_some_and(|b| b.is_ascii_digit());
+    if !extended {
+        return None;
+    }
+    let mut pairs = Vec::new();
+    for tok in rest.split_ascii_whitespace() {
+        let (k, v) = tok.split_once('=')?;
+        if k.is_empty() || !k.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_') {
+            return None;
+        }
+        pairs.push((k.to_ascii_uppercase(), v.to_string()));
+    }
+    Some(pairs)
+}
+
+fn first_word_ref(s: &str) -> &str {
+    s.split(|c: char| c.is_ascii_whitespace()).next().unwrap_or(s)
+}
+
+proptest! {
+    #[test]
+    fn other_params_match_the_reference(
+        name in "[A-Za-z_]{2,8}",
+        toks in proptest::collection::vec("[A-Za-z_0-9]{0,4}(=[A-Za-z0-9.=\\-]{0,5})?", 0..8),
+        probe in "[A-Za-z_0-9]{1,4}",
+    ) {
+        let raw = format!("{name} {}", toks.join(" "));
+        let got = OtherParams::parse(&raw);
+        match reference_pairs(&raw) {
+            None => prop_assert!(got.is_err()),
+            Some(pairs) => {
+                let p = got.unwrap();
+                let keys: Vec<String> = p.keys().map(|k| k.to_string()).collect();
+                let want: Vec<String> = pairs.iter().map(|(k, _)| k.clone()).collect();
+                prop_assert_eq!(keys, want);
+                for key in pairs.iter().map(|(k, _)| k.as_str()).chain([probe.as_str()]) {
+                    let want = pairs.iter().find(|(k, _)| k == key).map(|(_, v)| v.as_str());
+                    prop_assert_eq!(p.get(key), want);
+                }
+            }
+        }
+    }
 }

@@ -20,6 +20,10 @@ use crate::toolhead::Move;
 
 /// Jobs queued per worker before the producer waits.
 const JOB_QUEUE: usize = 4;
+/// Commands a lane's output (and the merger's view of it) holds before growing: reserved up
+/// front so the planner thread does not allocate in steady state (a job yields well under this
+/// on the reference printers).
+pub(crate) const CMDS_CAPACITY: usize = 4096;
 
 /// One stepper's step generation and compression.
 #[derive(Debug)]
@@ -45,6 +49,16 @@ pub(crate) struct LaneOut {
     pub position: i64,
     pub steps: u64,
     pub queue_steps: u64,
+}
+
+impl LaneOut {
+    /// An output with room for [`CMDS_CAPACITY`] commands (reused job after job inline).
+    pub fn with_capacity() -> LaneOut {
+        LaneOut {
+            cmds: Vec::with_capacity(CMDS_CAPACITY),
+            ..LaneOut::default()
+        }
+    }
 }
 
 impl LaneState {
