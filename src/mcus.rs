@@ -55,6 +55,10 @@ impl std::fmt::Debug for ConnectOptions {
     }
 }
 
+/// SCHED_FIFO priority of simulated MCUs when the host runs real-time (below the host's
+/// planner and IO threads).
+pub const SIM_FIFO_PRIORITY: i32 = 10;
+
 /// The trace path for MCU `name`.
 pub fn trace_path(base: &Path, name: &str, main: bool) -> PathBuf {
     if main {
@@ -83,6 +87,13 @@ impl Mcus {
                     trace: opts.trace.as_deref().map(|t| trace_path(t, &name, i == 0)),
                     extra: {
                         let mut extra = machine.sim_world_args(&name, &world);
+                        // A simulated MCU stands in for hardware that is never descheduled:
+                        // when the host's threads run SCHED_FIFO, it runs SCHED_FIFO too, below
+                        // them (they preempt it) but above ordinary processes. Refused: it
+                        // says so once and runs anyway.
+                        if opts.io_rt.as_ref().is_some_and(|s| s.fifo_priority.is_some()) {
+                            extra.extend(["--fifo".to_string(), SIM_FIFO_PRIORITY.to_string()]);
+                        }
                         extra.extend(sim_env_args(&name));
                         extra
                     },
