@@ -162,3 +162,35 @@ pub fn check_trace(path: &Path) -> TraceCheck {
     }
     check
 }
+
+/// Asserts that stepper `stepper_oid` took no step after the stop of a trsync on its MCU (the
+/// latest trsync trigger in `trace`, only trsync `trsync_oid` when given); returns the trace.
+pub fn assert_no_step_after_stop(
+    trace: &Path,
+    trsync_oid: Option<u8>,
+    stepper_oid: u8,
+) -> firmware::trace::TraceFile {
+    use firmware::trace::{read_trace, TraceRecord};
+    let t = read_trace(trace).expect("trace");
+    let stop = t
+        .triggers
+        .iter()
+        .filter(|r| !r.endstop && trsync_oid.is_none_or(|o| r.oid == o))
+        .map(|r| r.clock)
+        .max()
+        .expect("the main MCU's trsync never triggered");
+    let last_step = t
+        .records
+        .iter()
+        .filter_map(|r| match *r {
+            TraceRecord::Step { oid, clock, .. } if oid == stepper_oid => Some(clock),
+            _ => None,
+        })
+        .max()
+        .unwrap_or(0);
+    assert!(
+        last_step <= stop,
+        "Z stepped at {last_step} after the stop at {stop}"
+    );
+    t
+}

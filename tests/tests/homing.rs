@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
-use cadence_tests::{bin, run, scratch, workspace, Run};
+use cadence_tests::{assert_no_step_after_stop, bin, run, scratch, workspace, Run};
 use firmware::trace::{read_trace, TraceFile, TraceRecord};
 
 const TIMEOUT: Duration = Duration::from_secs(180);
@@ -158,27 +158,7 @@ fn g28_across_two_mcus_lands_on_the_trigger() {
 
 /// Asserts the Z stepper took no step after its MCU's trsync stopped it.
 fn assert_z_stopped(trace: &Path) {
-    let t = read_trace(trace).expect("trace");
-    let stop = t
-        .triggers
-        .iter()
-        .filter(|r| !r.endstop && r.oid == TRSYNC_OID)
-        .map(|r| r.clock)
-        .max()
-        .expect("the main MCU's trsync never triggered");
-    let last_step = t
-        .records
-        .iter()
-        .filter_map(|r| match *r {
-            TraceRecord::Step { oid: 2, clock, .. } => Some(clock),
-            _ => None,
-        })
-        .max()
-        .unwrap_or(0);
-    assert!(
-        last_step <= stop,
-        "Z stepped at {last_step} after the stop at {stop}"
-    );
+    let t = assert_no_step_after_stop(trace, Some(TRSYNC_OID), 2);
     // Far less than the 1.5 × travel homing move.
     let net = net_steps(&t).get(&2).copied().unwrap_or(0);
     assert!(net.abs() < (20.0 * STEPS_PER_MM[2]) as i64, "Z moved {net} steps");

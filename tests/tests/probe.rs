@@ -13,8 +13,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
-use cadence_tests::{bin, run, scratch, workspace, Run};
-use firmware::trace::{read_trace, TraceRecord};
+use cadence_tests::{assert_no_step_after_stop, bin, run, scratch, workspace, Run};
 
 const TIMEOUT: Duration = Duration::from_secs(180);
 /// Where the simulated probe triggers in the "separate" printer (not a whole step).
@@ -266,27 +265,7 @@ fn delayed_probe_mcu_fails_with_a_communication_timeout() {
         run.stderr
     );
     // The main MCU's trsync stopped Z, and Z took no step after that.
-    let t = read_trace(&trace).expect("trace");
-    let stop = t
-        .triggers
-        .iter()
-        .filter(|r| !r.endstop)
-        .map(|r| r.clock)
-        .max()
-        .expect("the main MCU's trsync never triggered");
-    let last_step = t
-        .records
-        .iter()
-        .filter_map(|r| match *r {
-            TraceRecord::Step { oid: 2, clock, .. } => Some(clock),
-            _ => None,
-        })
-        .max()
-        .unwrap_or(0);
-    assert!(
-        last_step <= stop,
-        "Z stepped at {last_step} after the stop at {stop}"
-    );
+    assert_no_step_after_stop(&trace, None, 2);
 }
 
 #[test]
