@@ -29,6 +29,10 @@ pub enum BenchWhat {
         /// Maximum step time error of the compression, in microseconds.
         #[arg(long, default_value_t = 25.0)]
         max_error_us: f64,
+        /// MCU clock in Hz (default: the Cadence firmware's, 50 MHz); e.g. 16000000 to compare
+        /// with an ATmega2560 board.
+        #[arg(long, value_parser = parse_clock_freq)]
+        clock_freq: Option<f64>,
     },
 }
 
@@ -39,6 +43,7 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
             config,
             threads,
             max_error_us,
+            clock_freq,
         } => {
             let cfg = match config {
                 Some(p) => sysconfig::printer::load(p).map_err(|e| e.to_string())?,
@@ -52,9 +57,23 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
                 ..Default::default()
             }
             .with_dictionary(&dict)?;
+            let opts = bench::plan::PlanOptions {
+                clock_freq: clock_freq.unwrap_or(opts.clock_freq),
+                ..opts
+            };
             let report = bench::plan::plan_file(file, &cfg, &opts)?;
             println!("{report}");
             Ok(())
         }
+    }
+}
+
+/// A clock frequency between 1 MHz and 1 GHz.
+fn parse_clock_freq(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(f) if (1e6..=1e9).contains(&f) => Ok(f),
+        _ => Err(format!(
+            "clock frequency {s:?}: expected Hz between 1000000 and 1000000000"
+        )),
     }
 }

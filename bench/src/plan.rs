@@ -92,12 +92,14 @@ impl std::fmt::Display for PlanReport {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "lines {}, moves {}, steps {}, queue_step {}, wire bytes {}, wall {:.4} s, \
-             {:.0} moves/s, {:.0} steps/s, peak RSS {:.1} MB, print time {:.1} s",
+            "lines {}, moves {}, steps {}, queue_step {} (+ {} set_next_step_dir/reset_step_clock), \
+             wire bytes {}, wall {:.4} s, {:.0} moves/s, {:.0} steps/s, peak RSS {:.1} MB, \
+             print time {:.1} s",
             self.lines,
             self.moves,
             self.steps,
             self.queue_steps,
+            self.commands - self.queue_steps,
             self.wire_bytes,
             self.wall_s,
             self.moves_per_s(),

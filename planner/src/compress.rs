@@ -31,10 +31,11 @@ pub const MAX_INTERVAL: u64 = 1 << 29;
 /// Most steps in one `queue_step` (`count` is a u16).
 pub const MAX_COUNT: usize = 65535;
 /// How many steps earlier than the longest fit the lookahead tries to end a command by default.
-/// Benchy (cartesian reference printer, release build, this VM): 0 → 457,913 commands in
-/// 0.34 s, 1 → 456,393 in 0.49 s, 2 → 456,119 in 0.59 s (Klipper: 456,811). Plain greedy
-/// without the latest-end rule of `compress::fit` gave 459,945.
-pub const DEFAULT_LOOKAHEAD_BACKOFF: usize = 2;
+/// Benchy (cartesian reference printer, 50 MHz, release build, this VM, single thread): 0 →
+/// 457,913 commands, 1 → 456,392 (CPU 0.45 s for the whole plan), 2 → 456,119 (0.59 s); with
+/// the two planning threads 456,157 and 455,840 (Klipper: 456,811). Plain greedy without the
+/// latest-end rule of `compress::fit` gave 459,945.
+pub const DEFAULT_LOOKAHEAD_BACKOFF: usize = 1;
 
 /// The step generator and compressor of one stepper.
 #[derive(Debug)]
@@ -155,8 +156,13 @@ impl StepCompressor {
         let ideal = &mut self.ideal;
         let record = self.record_ideal;
         let mut last = self.last_ideal;
+        pending.reserve(self.gen.steps_in(mv, kin));
         self.gen.gen_move(mv, kin, |clock, dir| {
-            last = clock.max(last);
+            // gen_move's clocks never decrease; `last` only matters across sources
+            // (push_step, homing resync).
+            if clock > last {
+                last = clock;
+            }
             queue_step_time(pending, ideal, record, max_err, last, dir);
         });
         self.last_ideal = last;
@@ -313,12 +319,14 @@ fn queue_step_time(
     clock: f64,
     dir: bool,
 ) {
-    // clock ≥ 0, so truncation is floor; ⌈v⌉ by truncation and a correction (f64::floor and
-    // ceil are library calls on baseline x86-64).
-    let hi = clock as u64;
+    // clock ≥ 0, so truncation is floor; ⌈v⌉ by truncation toward zero and a correction
+    // (f64::floor and ceil are library calls on baseline x86-64, and f64 ↔ i64 conversions are
+    // single instructions where f64 ↔ u64 ones are not); a window starting before clock 0
+    // starts at 0.
+    let hi = clock as i64 as u64;
     let v = clock - max_err;
-    let t = v as u64;
-    let lo = if v > t as f64 { t + 1 } else { t };
+    let t = v as i64;
+    let lo = if v > t as f64 { t + 1 } else { t }.max(0) as u64;
     pending.push(StepWindow { lo, hi, dir });
     if record {
         ideal.push_back(IdealStep { clock, dir });

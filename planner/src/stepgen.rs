@@ -85,6 +85,18 @@ impl StepGen {
         }
     }
 
+    /// Net steps [`Self::gen_move`] will emit for `mv` (exact for linear kinematics; a hint for
+    /// reserving room otherwise).
+    pub fn steps_in(&self, mv: &Move, kin: &StepperKin) -> usize {
+        let x0 = kin.position(&mv.start_pos);
+        let from = if x0 != self.last_pos {
+            self.step_index(x0)
+        } else {
+            self.cur_n
+        };
+        self.step_index(kin.position(&mv.end_pos)).abs_diff(from) as usize
+    }
+
     /// Step index of the commanded position after the last move.
     pub fn commanded_steps(&self) -> i64 {
         self.cur_n
@@ -113,20 +125,23 @@ impl StepGen {
         let scale = d / (x1 - x0);
         let sd = self.step_dist;
         let mut last = self.last_clock;
-        let mut step = |b: f64, dir: bool| {
-            let s = ((b - x0) * scale).clamp(0.0, d);
-            let clock = (base + phases.time_at(s) * freq).max(last);
-            last = clock;
-            emit(clock, dir);
-        };
-        if target > self.cur_n {
-            for k in self.cur_n + 1..=target {
-                step((k as f64 - 0.5) * sd, true);
-            }
+        // Steps in time order: up from cur_n + 1, or down from cur_n; the half-step boundary of
+        // step k is (k − ½)·step_dist either way.
+        let up = target > self.cur_n;
+        let (first, n, dk) = if up {
+            (self.cur_n + 1, target - self.cur_n, 1)
         } else {
-            for k in (target + 1..=self.cur_n).rev() {
-                step((k as f64 - 0.5) * sd, false);
-            }
+            (self.cur_n, self.cur_n - target, -1)
+        };
+        let mut k = first;
+        for _ in 0..n {
+            let b = (k as f64 - 0.5) * sd;
+            let s = ((b - x0) * scale).clamp(0.0, d);
+            let t = base + phases.time_at(s) * freq;
+            let clock = if t > last { t } else { last };
+            last = clock;
+            emit(clock, up);
+            k += dk;
         }
         self.last_clock = last;
         self.cur_n = target;

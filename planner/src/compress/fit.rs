@@ -71,11 +71,24 @@ pub(crate) fn run_with_add(steps: &[StepWindow], last: u64, add: i64) -> (usize,
         let u = st.hi as i64 - last - add_sum;
         let mut nlo = lo_i;
         let mut nhi = hi_i;
+        // The bounds move a little at a time: one step is usually enough, a division otherwise.
+        // lo_i ≥ 0, so a violated lower bound has l > 0 (⌈l/k⌉ by truncation); a violated upper
+        // bound with u < 0 fails whatever its value (every I ≥ 0): −1 stands for ⌊u/k⌋ there.
         if k * nlo < l {
-            nlo = div_ceil(l, k);
+            nlo = if k * (nlo + 1) >= l {
+                nlo + 1
+            } else {
+                (l + k - 1) / k
+            };
         }
         if k * nhi > u {
-            nhi = div_floor(u, k);
+            nhi = if k * (nhi - 1) <= u {
+                nhi - 1
+            } else if u < 0 {
+                -1
+            } else {
+                u / k
+            };
         }
         // This step's interval must stay in [0, MAX_INTERVAL].
         nlo = nlo.max(-ka);
@@ -95,26 +108,6 @@ pub(crate) fn run_with_add(steps: &[StepWindow], last: u64, add: i64) -> (usize,
         ka += add;
     }
     (steps.len(), hi_i, Bend::None)
-}
-
-#[inline]
-fn div_floor(a: i64, b: i64) -> i64 {
-    let q = a / b;
-    if a % b != 0 && a < 0 {
-        q - 1
-    } else {
-        q
-    }
-}
-
-#[inline]
-fn div_ceil(a: i64, b: i64) -> i64 {
-    let q = a / b;
-    if a % b != 0 && a > 0 {
-        q + 1
-    } else {
-        q
-    }
 }
 
 /// Largest |ΔA| between two sequences both valid on `count` steps.
@@ -485,13 +478,45 @@ mod tests {
         }
     }
 
-    #[test]
-    fn division_helpers_round_correctly() {
-        assert_eq!(div_floor(-7, 2), -4);
-        assert_eq!(div_floor(7, 2), 3);
-        assert_eq!(div_ceil(-7, 2), -3);
-        assert_eq!(div_ceil(7, 2), 4);
-        assert_eq!(div_ceil(6, 3), 2);
-        assert_eq!(div_floor(-6, 3), -2);
+    /// Reference for [`run_with_add`]: the longest prefix some integer interval satisfies,
+    /// by trying every interval in the (small) range the test uses.
+    fn brute_run(steps: &[StepWindow], last: u64, add: i64, max_iv: i64) -> (usize, i64) {
+        let ok = |n: usize, iv: i64| {
+            (1..=n as i64).all(|k| {
+                let p = last as i64 + k * iv + add * k * (k - 1) / 2;
+                let step_iv = iv + (k - 1) * add;
+                (0..=MAX_IV).contains(&step_iv)
+                    && (steps[k as usize - 1].lo as i64..=steps[k as usize - 1].hi as i64).contains(&p)
+            })
+        };
+        let mut best = (0, MAX_IV);
+        for n in 1..=steps.len() {
+            match (0..=max_iv).rev().find(|&iv| ok(n, iv)) {
+                Some(iv) => best = (n, iv),
+                None => break,
+            }
+        }
+        best
+    }
+
+    proptest::proptest! {
+        /// The incremental bounds (one step or a division) agree with trying every interval.
+        #[test]
+        fn run_with_add_matches_brute_force(
+            gaps in proptest::collection::vec(0u64..300, 1..12),
+            err in 0u64..40,
+            add in -20i64..20,
+            last in 0u64..50,
+        ) {
+            let mut t = 100u64;
+            let clocks: Vec<u64> = gaps.iter().map(|g| { t += g; t }).collect();
+            let w = windows(&clocks, err.min(100));
+            let (n, iv, _) = run_with_add(&w, last, add);
+            let (bn, biv) = brute_run(&w, last, add, 5_000);
+            proptest::prop_assert_eq!(n, bn);
+            if n > 0 {
+                proptest::prop_assert_eq!(iv, biv);
+            }
+        }
     }
 }

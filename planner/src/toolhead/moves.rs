@@ -116,6 +116,8 @@ pub struct Phases {
     v0_2: f64,
     vc: f64,
     vc_2: f64,
+    /// 1 / cruise velocity (0 when the move has no cruise velocity).
+    inv_vc: f64,
     two_a: f64,
     accel_d: f64,
     cruise_end_d: f64,
@@ -132,6 +134,7 @@ impl Phases {
             v0_2: m.start_v * m.start_v,
             vc: m.cruise_v,
             vc_2: m.cruise_v * m.cruise_v,
+            inv_vc: if m.cruise_v > 0.0 { 1.0 / m.cruise_v } else { 0.0 },
             two_a: 2.0 * m.accel,
             accel_d,
             cruise_end_d: accel_d + m.cruise_d(),
@@ -141,7 +144,9 @@ impl Phases {
         }
     }
 
-    /// Time at which distance `s` is reached (clamped to the move's duration).
+    /// Time at which distance `s` is reached (clamped to the move's duration). Hot: called for
+    /// every step of linear kinematics, so comparisons rather than `f64::min` (no NaN can
+    /// reach here: s is clamped by the caller and the profile's numbers are finite).
     #[inline]
     pub fn time_at(&self, s: f64) -> f64 {
         let t = if s <= 0.0 {
@@ -149,26 +154,32 @@ impl Phases {
         } else if s < self.accel_d {
             let den = self.v0 + (self.v0_2 + self.two_a * s).sqrt();
             if den > 0.0 {
-                (2.0 * s / den).min(self.accel_t)
+                let t = 2.0 * s / den;
+                if t < self.accel_t {
+                    t
+                } else {
+                    self.accel_t
+                }
             } else {
                 0.0
             }
         } else if s < self.cruise_end_d {
-            if self.vc > 0.0 {
-                self.accel_t + (s - self.accel_d) / self.vc
-            } else {
-                self.accel_t
-            }
+            self.accel_t + (s - self.accel_d) * self.inv_vc
         } else {
             let sd = s - self.cruise_end_d;
-            let den = self.vc + (self.vc_2 - self.two_a * sd).max(0.0).sqrt();
+            let r = self.vc_2 - self.two_a * sd;
+            let den = self.vc + if r > 0.0 { r.sqrt() } else { 0.0 };
             if den > 0.0 {
                 self.cruise_end_t + 2.0 * sd / den
             } else {
                 self.total_t
             }
         };
-        t.min(self.total_t)
+        if t < self.total_t {
+            t
+        } else {
+            self.total_t
+        }
     }
 }
 
