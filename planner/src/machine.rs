@@ -55,9 +55,9 @@ pub enum Applied {
     Fan {
         speed: f64,
     },
-    /// SET_PRESSURE_ADVANCE with a new ADVANCE: it applies from the next move on (the
-    /// pipeline hands it to the extruder's step generation; smoothing makes the change
-    /// gradual over `smooth_time`).
+    /// SET_PRESSURE_ADVANCE with a new ADVANCE or SMOOTH_TIME: it applies from the next move
+    /// on (the pipeline hands it to the extruder's step generation; smoothing makes a new
+    /// advance gradual over `smooth_time`; a new smooth_time first brings the toolhead to rest).
     PressureAdvance {
         advance: f64,
         smooth_time: f64,
@@ -496,15 +496,13 @@ impl GcodeState {
                         "{name}: ADVANCE={advance} must be < 10"
                     )));
                 }
-                if smooth != self.pressure_advance.1 {
-                    return Ok(Applied::Unsupported(
-                        "SET_PRESSURE_ADVANCE SMOOTH_TIME (changing the smoothing time during a print is not \
-                         supported yet: the printer.cfg value applies)"
-                            .into(),
-                    ));
+                if smooth <= 0.0 {
+                    return Err(PlanErrorKind::BadParameter(format!(
+                        "{name}: SMOOTH_TIME={smooth} must be > 0"
+                    )));
                 }
-                if advance != self.pressure_advance.0 {
-                    self.pressure_advance.0 = advance;
+                if (advance, smooth) != self.pressure_advance {
+                    self.pressure_advance = (advance, smooth);
                     return Ok(Applied::PressureAdvance {
                         advance,
                         smooth_time: smooth,

@@ -165,8 +165,10 @@ pub struct Pipeline {
     /// smoothing: half its window), s.
     settle: f64,
     /// Pressure advance changes not handed to the lanes yet: (index of the first move they
-    /// apply to, counting every final move since the start; advance).
-    pa_pending: VecDeque<(u64, f64)>,
+    /// apply to, counting every final move since the start; advance; smooth_time).
+    pa_pending: VecDeque<(u64, f64, f64)>,
+    /// The pressure advance smoothing time in force (s).
+    smooth_time: f64,
     /// Final moves handed to the lanes so far.
     dispatched: u64,
 }
@@ -256,6 +258,9 @@ impl Pipeline {
         }
         let n = lanes.len();
         let settle = pa.map_or(0.0, |p| 0.5 * p.smooth_time);
+        let smooth_time = opts
+            .pressure_advance
+            .map_or(DEFAULT_SMOOTH_TIME, |p| p.smooth_time);
         let mut state = GcodeState::new(cfg.home_position);
         if let Some(p) = opts.pressure_advance {
             state.set_pressure_advance(p.advance, p.smooth_time);
@@ -288,6 +293,7 @@ impl Pipeline {
             worker_error: None,
             settle,
             pa_pending: VecDeque::new(),
+            smooth_time,
             dispatched: 0,
         })
     }
@@ -297,11 +303,22 @@ impl Pipeline {
     pub fn apply(&mut self, line: &GcodeLine) -> Result<Applied, PlanError> {
         let applied = self.state.apply(line, &mut self.th)?;
         if let Applied::PressureAdvance { advance, smooth_time } = applied {
+            if smooth_time != self.smooth_time {
+                // The extruder's position at t depends on the moves within half the window
+                // around t: a new window is only exact from rest. Stop the toolhead, and wait
+                // until the old window's tail and the new window's lead cannot overlap.
+                self.th.flush();
+                let gap =
+                    0.5 * (self.smooth_time + smooth_time) + self.max_err_ticks as f64 / self.clock_freq;
+                let _ = self.th.dwell(gap);
+                self.smooth_time = smooth_time;
+                self.settle = self.settle.max(0.5 * smooth_time);
+            }
             // Every move queued so far comes before the change: those handed out, those taken
             // from the toolhead and those still in its lookahead.
             self.th.take_moves(&mut self.moves);
             let at = self.dispatched + self.moves.len() as u64 + self.th.queued_moves() as u64;
-            self.pa_pending.push_back((at, advance));
+            self.pa_pending.push_back((at, advance, smooth_time));
             if advance > 0.0 {
                 self.settle = self.settle.max(0.5 * smooth_time);
             }
@@ -345,11 +362,12 @@ impl Pipeline {
             self.dispatch(false, true, 0);
             self.collect(true, out);
             self.release(u64::MAX, out);
-            // Later steps may be up to max_error early (and pressure advance moves the extruder
-            // up to `settle` before a move): start them that much later.
+            // Later steps may be up to max_error early, and the steps up to `settle` after the
+            // stop are final now while pressure advance moves the extruder up to `settle` before
+            // the next move: start it that much later.
             let _ = self
                 .th
-                .dwell(self.settle + self.max_err_ticks as f64 / self.clock_freq);
+                .dwell(2.0 * self.settle + self.max_err_ticks as f64 / self.clock_freq);
             self.planned_until = end + self.settle;
         } else {
             let bound = self.upto.saturating_sub(self.max_err_ticks as u64);
@@ -466,11 +484,11 @@ impl Pipeline {
         // The pressure advance changes whose first move is in this job (all at the end).
         let end = self.dispatched + self.moves.len() as u64;
         let mut pa: Vec<PaChange> = Vec::new();
-        while let Some(&(at, advance)) = self.pa_pending.front() {
+        while let Some(&(at, advance, smooth)) = self.pa_pending.front() {
             if at >= end && !all {
                 break;
             }
-            pa.push((at.saturating_sub(self.dispatched) as usize, advance));
+            pa.push((at.saturating_sub(self.dispatched) as usize, advance, smooth));
             self.pa_pending.pop_front();
         }
         self.dispatched = end;

@@ -38,8 +38,9 @@ pub(crate) struct LaneState {
     fresh: Vec<StepCmd>,
 }
 
-/// A new pressure advance for the extruder, from move `at` of a job on.
-pub(crate) type PaChange = (usize, f64);
+/// A new pressure advance for the extruder, from move `at` of a job on: (at, advance,
+/// smooth_time).
+pub(crate) type PaChange = (usize, f64, f64);
 
 /// What a lane produced for one job.
 #[derive(Debug, Default)]
@@ -72,20 +73,32 @@ impl LaneState {
         }
     }
 
-    /// Pressure advance `advance` for the moves from now on (extruder lane only). Turning it on
-    /// hands step generation to the iterative generator, which starts at the commanded
-    /// position; advance 0 keeps that generator (it then follows E exactly).
-    fn set_advance(&mut self, advance: f64) {
-        let Some((smooth_time, clock_freq)) = self.extruder else {
+    /// Pressure advance `advance` with `smooth_time` for the moves from now on (extruder lane
+    /// only). Turning it on hands step generation to the iterative generator, which starts at
+    /// the commanded position; advance 0 keeps that generator (it then follows E exactly). A
+    /// new smooth_time comes with the toolhead at rest (the pipeline stops it first): the
+    /// generator finishes the old window's steps and a new one starts at the next move.
+    fn set_advance(&mut self, advance: f64, smooth_time: f64) {
+        let Some((current, clock_freq)) = self.extruder else {
             return;
         };
+        let pa = PressureAdvance { advance, smooth_time };
+        if pa.validate().is_err() {
+            return;
+        }
+        if smooth_time != current {
+            self.extruder = Some((smooth_time, clock_freq));
+            if let Some(mut old) = self.pa.take() {
+                let comp = &mut self.comp;
+                old.generate(true, |clock, dir| comp.push_step(clock, dir));
+                self.pa = Some(PaGen::new(pa, self.comp.step_dist(), clock_freq));
+                return;
+            }
+        }
         match &mut self.pa {
-            Some(pa) => pa.set_advance(advance),
+            Some(g) => g.set_advance(advance),
             None if advance > 0.0 => {
-                let pa = PressureAdvance { advance, smooth_time };
-                if pa.validate().is_ok() {
-                    self.pa = Some(PaGen::new(pa, self.comp.step_dist(), clock_freq));
-                }
+                self.pa = Some(PaGen::new(pa, self.comp.step_dist(), clock_freq));
             }
             None => {}
         }
@@ -105,16 +118,16 @@ impl LaneState {
     ) {
         let mut changes = pa.iter().peekable();
         for (i, mv) in moves.iter().enumerate() {
-            while let Some(&(_, advance)) = changes.next_if(|c| c.0 <= i) {
-                self.set_advance(advance);
+            while let Some(&(_, advance, smooth)) = changes.next_if(|c| c.0 <= i) {
+                self.set_advance(advance, smooth);
             }
             match &mut self.pa {
                 Some(pa) => pa.push_move(mv),
                 None => self.comp.push_move(mv, &self.kin),
             }
         }
-        for &(_, advance) in changes {
-            self.set_advance(advance);
+        for &(_, advance, smooth) in changes {
+            self.set_advance(advance, smooth);
         }
         if let Some(pa) = &mut self.pa {
             let comp = &mut self.comp;

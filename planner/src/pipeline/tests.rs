@@ -323,21 +323,59 @@ fn set_pressure_advance_applies_during_the_print() {
 }
 
 #[test]
-fn set_pressure_advance_refuses_a_new_smooth_time() {
+fn set_pressure_advance_checks_its_numbers() {
     let mut p = Pipeline::new(benchy_config(), 0.25).unwrap();
     let line = |g: &str| GcodeLine {
         line_no: 1,
         cmd: crate::gcode::parse_line(1, g.as_bytes()).unwrap().unwrap(),
     };
-    assert!(matches!(
-        p.apply(&line("SET_PRESSURE_ADVANCE SMOOTH_TIME=0.1")),
-        Ok(Applied::Unsupported(_))
-    ));
     assert!(p.apply(&line("SET_PRESSURE_ADVANCE ADVANCE=12")).is_err());
+    assert!(p.apply(&line("SET_PRESSURE_ADVANCE SMOOTH_TIME=0.3")).is_err());
+    assert!(p.apply(&line("SET_PRESSURE_ADVANCE SMOOTH_TIME=0")).is_err());
     assert!(matches!(
         p.apply(&line("SET_PRESSURE_ADVANCE ADVANCE=0.05")),
         Ok(Applied::PressureAdvance { advance, .. }) if advance == 0.05
     ));
+    assert!(matches!(
+        p.apply(&line("SET_PRESSURE_ADVANCE SMOOTH_TIME=0.1")),
+        Ok(Applied::PressureAdvance { advance, smooth_time }) if advance == 0.05 && smooth_time == 0.1
+    ));
+}
+
+#[test]
+fn set_pressure_advance_changes_the_smooth_time_during_the_print() {
+    let pa = |advance, smooth_time| PressureAdvance { advance, smooth_time };
+    for threads in [0, 2] {
+        // extruder_cmds checks the order, the extruder's final position and (run_gcode_with)
+        // every stepper with the checker.
+        let configured = extruder_cmds("", threads, Some(pa(0.08, 0.04)));
+        let wide = extruder_cmds("", threads, Some(pa(0.08, 0.1)));
+        assert_ne!(configured, wide);
+        // Half-way: the first half as configured, then the new window.
+        let mid = extruder_cmds(
+            "SET_PRESSURE_ADVANCE SMOOTH_TIME=0.1\n",
+            threads,
+            Some(pa(0.08, 0.04)),
+        );
+        let same = mid.iter().zip(&configured).take_while(|(a, b)| a == b).count();
+        assert!(
+            same > 4 && same < configured.len().min(mid.len()),
+            "{same} of {}",
+            configured.len()
+        );
+        assert_ne!(mid, wide);
+        // Both at once, with pressure advance off before; and back to the configured window.
+        extruder_cmds(
+            "SET_PRESSURE_ADVANCE ADVANCE=0.05 SMOOTH_TIME=0.02\n",
+            threads,
+            None,
+        );
+        extruder_cmds(
+            "SET_PRESSURE_ADVANCE SMOOTH_TIME=0.15\nG1 X30 E0.5\nG1 E-0.5\nSET_PRESSURE_ADVANCE SMOOTH_TIME=0.04\n",
+            threads,
+            Some(pa(0.08, 0.04)),
+        );
+    }
 }
 
 #[test]
