@@ -121,6 +121,50 @@ fn add_deviation(count: usize, max_err: i64) -> i64 {
     }
 }
 
+/// The adds with which some command, even with a real-valued interval, lands steps n/2 and n of
+/// `steps` from `last` in their windows (`None`: no add does, so no command covers n steps).
+/// For steps a < b: aI + A·T_a ∈ [la, ua] and bI + A·T_b ∈ [lb, ub] (relative to `last`) have a
+/// common I exactly when A·D ∈ [b·ua − a·lb, b·la − a·ub] turned around, D = b·T_a − a·T_b =
+/// ab(a − b)/2 < 0. Centred where the windows are (the deviation bound of two fits is centred on a
+/// fit found), a few multiplications: it lets the search stop once one more step is out of reach.
+/// n < 2 or beyond the steps given: the whole i16 range.
+pub(crate) fn two_window_adds(steps: &[StepWindow], last: u64, n: usize) -> Option<(i64, i64)> {
+    if n < 2 || n > steps.len() {
+        return Some((i16::MIN as i64, i16::MAX as i64));
+    }
+    let (mut lo, mut hi) = pair_adds(steps, last, n / 2, n)?;
+    // Two more pairs tighten it on longer runs.
+    if n >= 8 {
+        for a in [n / 4, n - n / 4] {
+            let (l, h) = pair_adds(steps, last, a, n)?;
+            lo = lo.max(l);
+            hi = hi.min(h);
+        }
+    }
+    (lo <= hi).then_some((lo, hi))
+}
+
+/// [`two_window_adds`] for steps a < b (1-based). Checked i64 arithmetic: on an overflow
+/// (clocks ~2^45 ticks apart) it rules nothing out.
+fn pair_adds(steps: &[StepWindow], last: u64, a: usize, b: usize) -> Option<(i64, i64)> {
+    const ALL: (i64, i64) = (i16::MIN as i64, i16::MAX as i64);
+    let rel = |v: u64| v as i64 - last as i64;
+    let (sa, sb) = (steps[a - 1], steps[b - 1]);
+    let (la, ua, lb, ub) = (rel(sa.lo), rel(sa.hi), rel(sb.lo), rel(sb.hi));
+    let (a, b) = (a as i64, b as i64);
+    // 2·D = ab(a − b) < 0. A·D ∈ [b·ua − a·lb, b·la − a·ub] turned around: A ≥ 2(b·ua −
+    // a·lb)/(2D) and A ≤ 2(b·la − a·ub)/(2D); negated to divide by −2D > 0.
+    let neg_d2 = a * b * (b - a);
+    let num = |x: i64, y: i64| b.checked_mul(x)?.checked_sub(a.checked_mul(y)?)?.checked_mul(-2);
+    let (Some(nl), Some(nh)) = (num(ua, lb), num(la, ub)) else {
+        return Some(ALL);
+    };
+    let lo = nl.div_euclid(neg_d2) + i64::from(nl.rem_euclid(neg_d2) != 0);
+    let hi = nh.div_euclid(neg_d2);
+    let (lo, hi) = (lo.max(ALL.0), hi.min(ALL.1));
+    (lo <= hi).then_some((lo, hi))
+}
+
 /// A command covering the most of `steps` (one direction, non-empty) from `last`.
 pub(crate) fn longest_fit(steps: &[StepWindow], last: u64, max_err: i64, guess_add: i64) -> Fit {
     let single = || {
@@ -149,6 +193,7 @@ pub(crate) fn longest_fit(steps: &[StepWindow], last: u64, max_err: i64, guess_a
         count: 0,
         add: 0,
     };
+    let mut checked = usize::MAX;
     for _ in 0..MAX_TRIALS {
         let (count, interval, bend) = run_with_add(steps, last, add);
         if count > best.count || (count == best.count && add > best.add) {
@@ -167,6 +212,17 @@ pub(crate) fn longest_fit(steps: &[StepWindow], last: u64, max_err: i64, guess_a
             let dev = add_deviation(best.count, max_err);
             amin = amin.max(best.add - dev);
             amax = amax.min(best.add + dev);
+        }
+        // Only an add that also covers the step after the best run can do better.
+        if best.count != checked {
+            checked = best.count;
+            match two_window_adds(steps, last, best.count + 1) {
+                None => break,
+                Some((lo, hi)) => {
+                    amin = amin.max(lo);
+                    amax = amax.min(hi);
+                }
+            }
         }
         if bend == Bend::Up {
             amin = amin.max(add + 1);
@@ -207,6 +263,9 @@ fn latest_end_plain(steps: &[StepWindow], last: u64, max_err: i64, fit: Fit) -> 
         best.add,
         (best.add + add_deviation(c, max_err)).min(i16::MAX as i64),
     );
+    if let Some((_, top)) = two_window_adds(steps, last, c) {
+        hi = hi.min(top).max(lo);
+    }
     while lo < hi {
         let mid = lo + (hi - lo + 1) / 2;
         let (count, interval, _) = run_with_add(&steps[..c], last, mid);
@@ -516,6 +575,30 @@ mod tests {
             proptest::prop_assert_eq!(n, bn);
             if n > 0 {
                 proptest::prop_assert_eq!(iv, biv);
+            }
+        }
+    }
+
+    proptest::proptest! {
+        /// The two-window bound never rules out an add that covers n steps.
+        #[test]
+        fn two_window_adds_keep_every_valid_add(
+            gaps in proptest::collection::vec(0u64..3_000, 2..40),
+            err in 0u64..400,
+            last in 0u64..500,
+        ) {
+            let mut t = 1_000u64;
+            let clocks: Vec<u64> = gaps.iter().map(|g| { t += g; t }).collect();
+            let w = windows(&clocks, err);
+            for add in -60i64..60 {
+                let (c, _, _) = run_with_add(&w, last, add);
+                for n in 2..=c {
+                    let r = two_window_adds(&w, last, n);
+                    proptest::prop_assert!(
+                        r.is_some_and(|(lo, hi)| (lo..=hi).contains(&add)),
+                        "add {} covers {} steps but the bound is {:?}", add, n, r
+                    );
+                }
             }
         }
     }
