@@ -22,7 +22,7 @@
 //! ([`Logging`]), the only one that formats or writes; nobody prints from a real-time thread.
 //! Telemetry is published by a thread of its own ([`telemetry_thread`]), off the planner's loop.
 
-use std::cell::RefCell;
+use std::cell::{Cell, RefCell};
 use std::fs::File;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
@@ -51,7 +51,9 @@ use crate::mcus::Mcus;
 use crate::print::{plan_file, MotionCmd, PrintArgs, Summary, MIN_LEAD_S};
 use crate::sink::{LinkSink, Sink, StepStreamer};
 
-type Ipc = iceoryx2::prelude::ipc::Service;
+/// `ipc::Service` with pooled per-loan state: a loan allocates nothing after warm-up (see
+/// rt-core's `shm::pooled`); it talks to `ipc::Service` ports of other processes unchanged.
+type Ipc = rt_core::shm::pooled::Ipc;
 
 /// Options of a live print beyond the G-code and the printer (flattened into `print`'s).
 #[derive(Debug, Clone, Args)]
@@ -314,7 +316,12 @@ impl Hists {
     /// wake-up lateness (ns). Monitors never stall the printer (safe overflow on). Only the
     /// sources in `sources` (bit n = source n) are published: with the IO stage in another
     /// process, each process publishes the histograms it records.
-    pub(crate) fn publish(&self, publisher: &mut ShmPublisher<Ipc, Telemetry>, t_ns: u64, sources: u32) {
+    pub(crate) fn publish<S: iceoryx2::service::Service>(
+        &self,
+        publisher: &mut ShmPublisher<S, Telemetry>,
+        t_ns: u64,
+        sources: u32,
+    ) {
         for (source, m) in [(0u32, &self.lead), (1, &self.handoff), (2, &self.wake_planner)] {
             if sources & (1 << source) == 0 {
                 continue;
@@ -424,6 +431,39 @@ impl Sink for ShmSink {
 pub(crate) struct IoReport {
     pub batches: u64,
     pub allocations_after_warmup: Option<u64>,
+    /// Batches taken after warm-up (the loop iterations `allocations_after_warmup` covers).
+    pub batches_after_warmup: u64,
+}
+
+/// A stage's heap allocations after warm-up and the step batches it handled meanwhile (so a
+/// 0 means something only with batches > 0). Homing and probing moves in the middle of a print
+/// leave the streaming loop (the planner drains the hand-off and drives the MCUs directly,
+/// building and parsing their messages): their allocations are counted apart. Displayed as
+/// "`allocations` (`batches` batches)", then "; `n` more in `m` homing/probing commands".
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub(crate) struct AfterWarmup {
+    pub allocations: u64,
+    pub batches: u64,
+    /// Allocations during homing/probing commands after warm-up (not in `allocations`).
+    pub motion_allocations: u64,
+    /// Homing/probing commands after warm-up.
+    pub motions: u64,
+}
+
+impl std::fmt::Display for AfterWarmup {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} ({} batches", self.allocations, self.batches)?;
+        if self.motions > 0 {
+            write!(
+                f,
+                "; {} more in {} homing/probing command{}",
+                self.motion_allocations,
+                self.motions,
+                if self.motions == 1 { "" } else { "s" }
+            )?;
+        }
+        write!(f, ")")
+    }
 }
 
 /// Batches after which a stage counts as warmed up (allocation accounting starts).
@@ -514,6 +554,7 @@ pub(crate) fn io_stage(
         }
     }
     report.allocations_after_warmup = warm.map(|w| AllocCounter::snapshot().since(w).allocations());
+    report.batches_after_warmup = report.batches.saturating_sub(WARMUP_BATCHES);
     log.log(Level::Info, "io stage done: batches", [Arg::U(report.batches)]);
     Ok(report)
 }
@@ -606,11 +647,16 @@ pub fn print_on(
         finish_print(mcus, machine, &pipeline, &streamer, &mut summary, scale)?;
         summary.extra.extend(hists.report(clock_freq));
         summary.extra.push(format!(
-            "allocations after warm-up: planner {}, io stage {} ({} batches)",
+            "allocations after warm-up: planner {}, io stage {}; {} batches in all",
             planner_allocs.map_or("n/a".to_string(), |n| n.to_string()),
-            io_report
-                .allocations_after_warmup
-                .map_or("n/a".to_string(), |n| n.to_string()),
+            io_report.allocations_after_warmup.map_or("n/a".to_string(), |n| {
+                AfterWarmup {
+                    allocations: n,
+                    batches: io_report.batches_after_warmup,
+                    ..AfterWarmup::default()
+                }
+                .to_string()
+            }),
             io_report.batches
         ));
         Ok(summary)
@@ -619,8 +665,7 @@ pub fn print_on(
 
 /// The telemetry thread: publishes the histogram summaries of `sources` on
 /// `cadence/<instance>/telemetry` about once a second until `stop`, then once more. A thread of
-/// its own (not real-time) because an iceoryx2 0.10 loan allocates (a reference-counted sample
-/// state per loan), which stays out of the planner's loop this way.
+/// its own (not real-time): summarising histograms is no work for the planner's loop.
 pub(crate) fn telemetry_thread(
     instance: &str,
     hists: &Hists,
@@ -652,7 +697,7 @@ pub(crate) fn telemetry_thread(
 /// What the planner thread hands back: the summary so far, the pipeline and streamer (final
 /// positions, last step clock), its allocations after warm-up and the number of step batches
 /// published.
-pub(crate) type Planned = (Summary, Pipeline, StepStreamer, Option<u64>, u64);
+pub(crate) type Planned = (Summary, Pipeline, StepStreamer, Option<AfterWarmup>, u64);
 
 /// The planner thread: G-code → pipeline → step messages into shared memory, paced.
 #[allow(clippy::too_many_arguments)]
@@ -701,7 +746,11 @@ pub(crate) fn planner_stage(
     )
     .map_err(|e| e.to_string())?;
     let streamer = RefCell::new(StepStreamer::new(dict, &machine.steppers, side.move_count())?);
-    let mut warm: Option<AllocCounter> = None;
+    // Allocation counter and batches published when the pipeline first reached high water
+    // (warm-up: every buffer has seen a full window), and the allocations of homing/probing
+    // commands after that (not the streaming loop: counted apart).
+    let warm: Cell<Option<(AllocCounter, u64)>> = Cell::new(None);
+    let motions = Cell::new((0u64, 0u64));
     let homing_reports = RefCell::new(Vec::new());
     log.log(
         Level::Info,
@@ -744,8 +793,11 @@ pub(crate) fn planner_stage(
         |p| {
             // Flow control: keep between the low and high water marks of buffered print time.
             if p.planned_until() - print_now() > high_water {
-                if warm.is_none() {
-                    warm = Some(AllocCounter::snapshot());
+                if warm.get().is_none() {
+                    warm.set(Some((
+                        AllocCounter::snapshot(),
+                        sink.borrow().publisher.next_seq(),
+                    )));
                     crate::allocsites::start_if_requested();
                 }
                 log.log(
@@ -778,6 +830,7 @@ pub(crate) fn planner_stage(
                      print without --io-process/--io-attach"
                 ));
             };
+            let motion_start = AllocCounter::snapshot();
             let link = &mcus.main().link;
             // Drain the shared-memory hand-off: everything planned so far must be in the link
             // before homing talks to the MCUs directly.
@@ -822,15 +875,29 @@ pub(crate) fn planner_stage(
             homing_reports.borrow_mut().extend(out);
             result?;
             log.log(Level::Info, "homing done", []);
+            if warm.get().is_some() {
+                let (allocs, n) = motions.get();
+                let more = AllocCounter::snapshot().since(motion_start).allocations();
+                motions.set((allocs + more, n + 1));
+            }
             Ok(true)
         },
     )?;
     let mut sink = sink.into_inner();
     let streamer = streamer.into_inner();
     sink.flush()?;
-    let allocs = warm.map(|w| AllocCounter::snapshot().since(w).allocations());
-    crate::allocsites::finish_if_requested("planner");
     let batches = sink.publisher.next_seq();
+    let (motion_allocations, motion_count) = motions.get();
+    let allocs = warm.get().map(|(w, seq)| AfterWarmup {
+        allocations: AllocCounter::snapshot()
+            .since(w)
+            .allocations()
+            .saturating_sub(motion_allocations),
+        batches: batches - seq,
+        motion_allocations,
+        motions: motion_count,
+    });
+    crate::allocsites::finish_if_requested("planner");
     let stats = pipeline.stats();
     let summary = Summary {
         file: args.file.clone(),

@@ -162,8 +162,9 @@ impl<R: BufRead> GcodeReader<R> {
     pub fn new(inner: R) -> Self {
         GcodeReader {
             inner,
-            buf: Vec::with_capacity(256),
-            scratch: String::new(),
+            // Room for any realistic line up front: growing later would allocate mid-print.
+            buf: Vec::with_capacity(4096),
+            scratch: String::with_capacity(4096),
             line_no: 0,
             done: false,
         }

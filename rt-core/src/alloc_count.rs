@@ -18,7 +18,8 @@
 //! (unresolved, cheap-ish) at each of its allocations, up to a bound; [`AllocSites::take`] stops
 //! and returns them, [`AllocSites::report`] groups them by call stack (symbolised then, off the
 //! real-time path). A diagnostic only: capturing allocates, guarded against recursion by a
-//! thread-local flag.
+//! thread-local flag; those allocations are not counted (with tracing on, the counters still
+//! show the traced code's own allocations).
 #![allow(unsafe_code)]
 
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -112,6 +113,10 @@ impl AllocSites {
 }
 
 fn bump(c: &'static std::thread::LocalKey<Cell<u64>>, n: u64) {
+    // The backtrace capture's own allocations are the diagnostic's, not the traced code's.
+    if IN_TRACE.try_with(Cell::get).unwrap_or(false) {
+        return;
+    }
     // try_with: during thread teardown the slot may be gone; then the event is not counted.
     let _ = c.try_with(|c| c.set(c.get().wrapping_add(n)));
 }

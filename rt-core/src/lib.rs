@@ -15,7 +15,8 @@
 //!     stage run in its own process (MCU info, clock snapshots, status, control).
 //!
 //! The crate is `no_std` unless the `std` feature is on (the firmware core uses it bare).
-//! `unsafe` is denied everywhere except the OS layer (`os::sys`, `alloc_count`).
+//! `unsafe` is denied everywhere except the OS layer (`os::sys`, `alloc_count`, and the
+//! pooled iceoryx2 service variant `shm::pooled`).
 #![cfg_attr(not(feature = "std"), no_std)]
 
 pub mod time;

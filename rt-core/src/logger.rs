@@ -8,7 +8,17 @@
 //! drains (a bounded park, no busy loop) and is unparked early by a handle when the queue passes
 //! half full.
 //!
-//! Output line: `<seconds since start> <LEVEL> <thread tag> <message> <args...>`.
+//! Output line: `<seconds since start> <LEVEL> <thread tag> <message with its args>`. The
+//! arguments go where the message says (see [`Record::format_into`]):
+//! - `{}` placeholders take the arguments in order: `"late by {} ms"` → `late by 3.2 ms`;
+//! - otherwise a message that ends in a list of names, one per argument (after the last `": "`,
+//!   separated by `", "`), gets each value beside its name, before a unit word at the end or
+//!   after one at the start: `"planner started: start time s, lines"` with `[6.5, 12]` →
+//!   `planner started: start time 6.5 s, lines 12`; `"behind: ms before due"` with `[-3]` →
+//!   `behind: -3 ms before due`;
+//! - anything else gets its arguments appended.
+//!
+//! Floats are written with at most 6 decimals (trailing zeros trimmed).
 
 use std::fs::File;
 use std::io::{self, BufWriter, Write};
@@ -116,24 +126,103 @@ pub struct Record {
     pub t_ns: u64,
 }
 
+/// Words that read as a unit when a field name ends (or starts) with them.
+const UNITS: &[&str] = &[
+    "s", "ms", "us", "µs", "ns", "ticks", "mm", "mm/s", "mm/s^2", "Hz", "%", "bytes",
+];
+
+/// Writes one argument; floats with at most 6 decimals, trailing zeros trimmed.
+fn write_arg(out: &mut String, a: Arg) {
+    use std::fmt::Write as _;
+    let _ = match a {
+        Arg::I(v) => write!(out, "{v}"),
+        Arg::U(v) => write!(out, "{v}"),
+        Arg::F(v) if v.is_finite() && v.abs() < 1e15 => {
+            let start = out.len();
+            let _ = write!(out, "{v:.6}");
+            if out[start..].contains('.') {
+                let trimmed = out.trim_end_matches('0').trim_end_matches('.').len();
+                out.truncate(trimmed);
+            }
+            if &out[start..] == "-0" {
+                out.truncate(start);
+                out.push('0');
+            }
+            Ok(())
+        }
+        Arg::F(v) => write!(out, "{v}"),
+    };
+}
+
 impl Record {
-    /// Appends the formatted line (with '\n') to `out`.
+    /// Appends the formatted line (with '\n') to `out`, the arguments placed as the module
+    /// docs describe. Allocates only if `out` must grow.
     pub fn format_into(&self, out: &mut String) {
         use std::fmt::Write as _;
         let _ = write!(
             out,
-            "{:>12.6} {:<5} {} {}",
+            "{:>12.6} {:<5} {} ",
             self.t_ns as f64 * 1e-9,
             self.level.name(),
             self.tag,
-            self.msg
         );
-        for a in self.args.iter().take(self.nargs as usize) {
-            let _ = match a {
-                Arg::I(v) => write!(out, " {v}"),
-                Arg::U(v) => write!(out, " {v}"),
-                Arg::F(v) => write!(out, " {v}"),
+        let args = &self.args[..(self.nargs as usize).min(MAX_ARGS)];
+        let msg = self.msg;
+        if msg.contains("{}") {
+            let mut rest = args.iter();
+            let mut parts = msg.split("{}");
+            if let Some(first) = parts.next() {
+                out.push_str(first);
+            }
+            for part in parts {
+                match rest.next() {
+                    Some(a) => write_arg(out, *a),
+                    None => out.push_str("{}"),
+                }
+                out.push_str(part);
+            }
+            for a in rest {
+                out.push(' ');
+                write_arg(out, *a);
+            }
+        } else {
+            let (head, list) = match msg.rfind(": ") {
+                Some(i) => msg.split_at(i + 2),
+                None => ("", msg),
             };
+            if !args.is_empty() && list.split(", ").count() == args.len() {
+                out.push_str(head);
+                for (i, (field, a)) in list.split(", ").zip(args).enumerate() {
+                    if i > 0 {
+                        out.push_str(", ");
+                    }
+                    match field.rsplit_once(' ') {
+                        Some((name, unit)) if UNITS.contains(&unit) => {
+                            out.push_str(name);
+                            out.push(' ');
+                            write_arg(out, *a);
+                            out.push(' ');
+                            out.push_str(unit);
+                        }
+                        _ if field.split(' ').next().is_some_and(|w| UNITS.contains(&w)) => {
+                            write_arg(out, *a);
+                            out.push(' ');
+                            out.push_str(field);
+                        }
+                        _ => {
+                            out.push_str(field);
+                            out.push(' ');
+                            write_arg(out, *a);
+                        }
+                    }
+                }
+            } else {
+                out.push_str(msg);
+                for a in args {
+                    out.push(' ');
+                    write_arg(out, *a);
+                }
+            }
         }
         out.push('\n');
     }
@@ -378,7 +467,7 @@ mod tests {
         let lines: Vec<&str> = text.lines().collect();
         assert_eq!(lines.len(), 2, "{text}");
         assert!(lines[0].ends_with("INFO  planner moves 3 1.5"), "{}", lines[0]);
-        assert!(lines[1].ends_with("ERROR main late by ns -7"), "{}", lines[1]);
+        assert!(lines[1].ends_with("ERROR main late by -7 ns"), "{}", lines[1]);
         let _ = std::fs::remove_dir_all(&dir);
     }
 
@@ -403,6 +492,62 @@ mod tests {
         let written = join.join().unwrap();
         assert_eq!(written, ok);
         assert_eq!(ok + log.dropped(), 10_000);
+    }
+
+    fn line(msg: &'static str, args: &[Arg]) -> String {
+        let mut rec = Record {
+            level: Level::Info,
+            tag: "t",
+            msg,
+            nargs: args.len() as u8,
+            args: [Arg::U(0); MAX_ARGS],
+            t_ns: 0,
+        };
+        rec.args[..args.len()].copy_from_slice(args);
+        let mut out = String::new();
+        rec.format_into(&mut out);
+        out.trim_start()
+            .trim_start_matches("0.000000 INFO  t ")
+            .trim_end()
+            .to_string()
+    }
+
+    #[test]
+    fn args_read_naturally() {
+        use Arg::*;
+        assert_eq!(
+            line(
+                "planner started: start print time s, high water s",
+                &[F(6.728827975430295), F(10.0)]
+            ),
+            "planner started: start print time 6.728828 s, high water 10 s"
+        );
+        assert_eq!(
+            line(
+                "planner fell behind: stepper index, ms before due",
+                &[U(2), F(-3.25)]
+            ),
+            "planner fell behind: stepper index 2, -3.25 ms before due"
+        );
+        assert_eq!(
+            line("homing axes x, y, z", &[U(1), U(0), U(1)]),
+            "homing axes x 1, y 0, z 1"
+        );
+        assert_eq!(
+            line("a: b, c: batches, end clock", &[U(5), U(123)]),
+            "a: b, c: batches 5, end clock 123"
+        );
+        assert_eq!(
+            line("late by {} ms, {} left", &[F(0.5), I(-2), U(9)]),
+            "late by 0.5 ms, -2 left 9"
+        );
+        assert_eq!(line("missing {} and {}", &[U(1)]), "missing 1 and {}");
+        assert_eq!(line("moves", &[U(3), F(1.5)]), "moves 3 1.5");
+        assert_eq!(line("io stage subscribed", &[]), "io stage subscribed");
+        assert_eq!(
+            line("x", &[F(-0.0000001), F(f64::NAN), F(1e20)]),
+            "x 0 NaN 100000000000000000000"
+        );
     }
 
     #[test]

@@ -38,6 +38,17 @@
 //! printer); its gaps are reported the same way and may be ignored.
 //!
 //! Stale resources of crashed processes are removed when a node is created ([`open_node`]).
+//!
+//! # No heap allocation per sample
+//!
+//! iceoryx2 0.10 allocates a small reference-counted bookkeeping object on the heap for every
+//! loan (`Publisher::loan`, hence every [`ShmPublisher::send_with`]) with its stock service
+//! types; the payload itself is in shared memory. Real-time publishers (the planner's step
+//! channel) therefore use [`pooled::Ipc`]: `ipc::Service` with that bookkeeping taken from a
+//! per-thread pool, so a publisher allocates only for its first loans and never again; it
+//! interoperates with plain `ipc::Service` ports (same shared-memory layout). Receiving
+//! (`Subscriber::receive`) does not allocate with either. rt-core's `tests/alloc_free.rs`
+//! checks both facts.
 
 use std::fmt::Debug;
 use std::time::Duration;
@@ -621,6 +632,7 @@ impl<S: Service, T: Sequenced> ShmSubscriber<S, T> {
 }
 
 pub mod io;
+pub mod pooled;
 
 #[cfg(test)]
 mod tests;

@@ -46,3 +46,52 @@ fn rt_loop_pieces_allocate_nothing() {
     log.shutdown();
     let _ = join.join();
 }
+
+/// Publishes and receives `n` step batches on `name` (publisher of service type `P`, subscriber
+/// of `ipc::Service`, as the IO process uses) after 8 warm-up batches; returns the calling
+/// thread's allocations during the `n`.
+fn shm_round_trips<P: iceoryx2::service::Service>(tag: &str, n: u64) -> u64 {
+    use iceoryx2::prelude::ipc;
+    use rt_core::shm::{open_node, ChannelConfig, ShmPublisher, ShmSubscriber, StepBatch, WireMsg};
+    let name = format!("test-{}-alloc-{tag}/steps", std::process::id());
+    let cfg = ChannelConfig::steps();
+    let (pub_node, _) = open_node::<P>(&format!("alloc-pub-{tag}")).unwrap();
+    let (sub_node, _) = open_node::<ipc::Service>(&format!("alloc-sub-{tag}")).unwrap();
+    let mut sub = ShmSubscriber::<ipc::Service, StepBatch>::open(&sub_node, &name, &cfg).unwrap();
+    let mut p = ShmPublisher::<P, StepBatch>::open(&pub_node, &name, &cfg).unwrap();
+    while p.connect().unwrap() < 1 {
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    let msg = WireMsg::new(1, 2, &[3, 4, 5]).unwrap();
+    let mut round_trip = |i: u64| {
+        p.send_with(|b| {
+            b.count = 0;
+            b.push(msg);
+            b.mcu = i as u32;
+        })
+        .unwrap();
+        let got = sub.try_recv_with(|b| (b.seq, b.mcu)).unwrap();
+        assert_eq!(got, Some((i, i as u32)));
+    };
+    for i in 0..8 {
+        round_trip(i);
+    }
+    let before = AllocCounter::snapshot();
+    for i in 8..8 + n {
+        round_trip(i);
+    }
+    AllocCounter::snapshot().since(before).allocations()
+}
+
+#[test]
+fn shm_loans_allocate_nothing_with_the_pooled_service() {
+    assert_eq!(shm_round_trips::<rt_core::shm::pooled::Ipc>("pooled", 1000), 0);
+}
+
+/// Why `shm::pooled` exists: with plain `ipc::Service`, iceoryx2 0.10 allocates the sample's
+/// reference-counted state on every loan. If this starts failing, iceoryx2 stopped doing that
+/// and the pooled variant can go.
+#[test]
+fn shm_loans_allocate_with_plain_ipc() {
+    assert!(shm_round_trips::<iceoryx2::prelude::ipc::Service>("plain", 100) >= 100);
+}

@@ -32,7 +32,7 @@ fn print_writes_its_log_through_the_logger_thread() {
     let text = std::fs::read_to_string(&log).expect("log file");
     for what in [
         "INFO  planner planner started",
-        "INFO  planner homing axes x, y, z 1 1 1",
+        "INFO  planner homing axes x 1, y 1, z 1",
         "INFO  planner homing done",
         "INFO  io io stage subscribed",
         "INFO  planner planner done",
