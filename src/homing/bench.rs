@@ -7,13 +7,24 @@
 //!   stepper, from the move profile and the MCU's step count, minus the endstop's trigger time;
 //! - trace view (with `--trace`, for an axis whose endstop is on another MCU than its steppers):
 //!   the stepper MCU's trsync trigger record (the moment its steppers stopped) and its last step
-//!   record, minus the endstop MCU's trigger record, each converted to system time with that
-//!   MCU's clock estimate (both simulated MCUs count CLOCK_MONOTONIC). Pairing: each endstop
+//!   record, minus the endstop MCU's trigger record, each converted to system time with the
+//!   clock epoch the simulator wrote next to its trace (both count CLOCK_MONOTONIC: exact), or
+//!   else with the host's clock estimate of that MCU (a fit: off by up to a millisecond over
+//!   long runs). Pairing: each endstop
 //!   trigger with the first unused stop on the stepper MCU at or after it (−5 ms tolerance).
 //!
 //! Figures are µs of system time (MCU time when the simulator's time scale is 1).
+//!
+//! Threads: like a live print, with printer.cfg's `[realtime]` (unless `--no-realtime`): the
+//! links' IO threads (they relay the trigger) pinned to the IO core under SCHED_FIFO, this
+//! thread (planning, waiting) as the planner, the simulated MCUs SCHED_FIFO below them.
+//! `--cpu-load` adds one SCHED_OTHER busy-spinning thread per core for the whole run (started
+//! before any real-time setting, so they inherit none), stopped at the end.
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::thread::JoinHandle;
 use std::time::Instant;
 
 use clap::Args;
@@ -23,6 +34,7 @@ use planner::pipeline::Pipeline;
 use rt_core::hist::LatencyHist;
 
 use super::{plain_move, print_now, HomingCtx, HomingReport, AXIS_NAMES};
+use crate::live::RtConfig;
 use crate::machine::Machine;
 use crate::mcus::{trace_path, ConnectOptions, Mcus};
 use crate::sink::{LinkSink, StepStreamer};
@@ -52,6 +64,52 @@ pub struct HomeArgs {
     /// Maximum step time error of the compression, in microseconds.
     #[arg(long, default_value_t = 25.0)]
     pub max_error_us: f64,
+    /// Don't pin threads, use SCHED_FIFO or lock memory (otherwise printer.cfg's `[realtime]`).
+    #[arg(long)]
+    pub no_realtime: bool,
+    /// Load every core with a SCHED_OTHER busy-spinning thread while homing (stopped at the
+    /// end): the loaded latency measurement.
+    #[arg(long)]
+    pub cpu_load: bool,
+}
+
+/// One SCHED_OTHER busy-spinning thread per core; stopped and joined when dropped.
+struct CpuHogs {
+    stop: Arc<AtomicBool>,
+    threads: Vec<JoinHandle<()>>,
+}
+
+impl CpuHogs {
+    /// Must run before this thread gets any real-time setting: new threads inherit it.
+    fn start(n: usize) -> Result<CpuHogs, String> {
+        let stop = Arc::new(AtomicBool::new(false));
+        let mut hogs = CpuHogs {
+            stop: stop.clone(),
+            threads: Vec::with_capacity(n),
+        };
+        for i in 0..n {
+            let stop = stop.clone();
+            let t = std::thread::Builder::new()
+                .name(format!("cpu-hog-{i}"))
+                .spawn(move || {
+                    while !stop.load(Ordering::Relaxed) {
+                        std::hint::spin_loop();
+                    }
+                })
+                .map_err(|e| format!("--cpu-load: cannot start a hog thread: {e}"))?;
+            hogs.threads.push(t);
+        }
+        Ok(hogs)
+    }
+}
+
+impl Drop for CpuHogs {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        for t in self.threads.drain(..) {
+            let _ = t.join();
+        }
+    }
 }
 
 /// Lead every step command must have at the MCU, in print seconds.
@@ -83,19 +141,51 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
     let machine = Machine::from_config(&cfg)?;
     super::check_config(&machine)?;
     let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let hogs = if args.cpu_load {
+        Some(CpuHogs::start(cores)?)
+    } else {
+        None
+    };
+    let r = &cfg.realtime;
+    let rt = RtConfig {
+        enabled: r.enabled && !args.no_realtime,
+        planner_core: r.planner_cpu,
+        io_core: r.io_cpu,
+        planner_priority: r.planner_priority,
+        io_priority: r.io_priority,
+        lock_memory: r.lock_memory,
+    };
+    // Before this thread is pinned (the core count would then be 1).
+    let link_spec = rt.link_spec();
     let opts = ConnectOptions {
         time_scale,
         trace: args.trace.clone(),
         lead_hook: None,
-        io_rt: None,
+        io_rt: Some(link_spec.clone()),
     };
     let mut mcus = Mcus::connect(&cfg, &machine, opts)?;
+    // After the simulated MCUs were spawned (they would inherit this thread's core).
+    let got = rt_core::os::apply_rt(&rt.planner_spec());
+    println!(
+        "threads: real time {} (this thread pinned={} fifo={}, links' IO threads on core {} at \
+         SCHED_FIFO {}); cpu load: {}",
+        if rt.enabled { "on" } else { "off" },
+        got.pinned,
+        got.fifo,
+        link_spec.core.map_or("any".to_string(), |c| c.to_string()),
+        link_spec.fifo_priority.map_or("-".to_string(), |p| p.to_string()),
+        match &hogs {
+            Some(h) => format!("on ({} SCHED_OTHER spinning threads)", h.threads.len()),
+            None => "off".to_string(),
+        }
+    );
     let clocks: Vec<(String, ClockEstimate)> = mcus
         .list
         .iter()
         .map(|m| (m.name.clone(), m.link.clock()))
         .collect();
-    let result = cycles(args, &machine, &mcus, axes, time_scale);
+    let result = cycles(args, &machine, &mcus, axes, time_scale, rt.enabled);
     // Fresh estimates for the trace conversion (the fit keeps improving).
     let clocks: Vec<(String, ClockEstimate)> = mcus
         .list
@@ -106,6 +196,10 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
     let trsync_oid = mcus.main().trsync_oid;
     let main_name = mcus.main().name.clone();
     mcus.close();
+    drop(hogs);
+    for line in rt_core::os::rt_report() {
+        eprintln!("cadence: {line}");
+    }
     result?;
     if let Some(base) = &args.trace {
         trace_latency(&machine, axes, base, &main_name, trsync_oid, &clocks)?;
@@ -120,6 +214,7 @@ fn cycles(
     mcus: &Mcus,
     axes: [bool; 3],
     scale: f64,
+    realtime: bool,
 ) -> Result<(), String> {
     let main = mcus.main();
     let start = print_now(mcus) + (0.5f64).max(0.25 * scale);
@@ -204,9 +299,12 @@ fn cycles(
     println!("homed position: x={:.6} y={:.6} z={:.6}", pos[0], pos[1], pos[2]);
     let passes = last_step.count();
     println!(
-        "homing: {} cycles, {passes} passes, {timeouts} communication timeouts, wall {:.1} s",
+        "homing: {} cycles, {passes} passes, {timeouts} communication timeouts, wall {:.1} s \
+         (real time {}, cpu load {})",
         args.cycles,
-        started.elapsed().as_secs_f64()
+        started.elapsed().as_secs_f64(),
+        if realtime { "on" } else { "off" },
+        if args.cpu_load { "on" } else { "off" }
     );
     println!(
         "  host view, last executed step after trigger:  {}",
@@ -228,6 +326,24 @@ fn cycles(
     Ok(())
 }
 
+/// MCU clock → system time (CLOCK_MONOTONIC seconds).
+#[derive(Debug, Clone, Copy)]
+enum TimeBase {
+    /// The simulator's own record of when its clock was 0.
+    Epoch { epoch: f64, ticks_per_s: f64 },
+    /// The host's clock sync fit (its error grows with the distance from the last samples).
+    Estimate(ClockEstimate),
+}
+
+impl TimeBase {
+    fn system_time_at(&self, clock: f64) -> f64 {
+        match self {
+            TimeBase::Epoch { epoch, ticks_per_s } => epoch + clock / ticks_per_s,
+            TimeBase::Estimate(e) => e.system_time_at(clock),
+        }
+    }
+}
+
 /// Trigger → stop latencies from the simulated MCUs' traces (see the module doc).
 fn trace_latency(
     machine: &Machine,
@@ -238,19 +354,40 @@ fn trace_latency(
     clocks: &[(String, ClockEstimate)],
 ) -> Result<(), String> {
     let est = |name: &str| clocks.iter().find(|(n, _)| n == name).map(|&(_, e)| e);
-    let main_est = est(main).ok_or("no clock estimate of the main MCU")?;
     let read = |name: &str| {
         let path = trace_path(base, name, name == main);
         firmware::trace::read_trace(&path).map_err(|e| format!("{}: {e}", path.display()))
     };
+    // Exact when both simulators wrote their clock epoch (they count CLOCK_MONOTONIC).
+    let to_sys = |name: &str, trace: &firmware::trace::TraceFile| -> Option<TimeBase> {
+        let epoch = firmware::sim::read_epoch(&trace_path(base, name, name == main));
+        match epoch {
+            Some(epoch) if trace.clock_freq > 0 && trace.time_scale > 0.0 => Some(TimeBase::Epoch {
+                epoch,
+                ticks_per_s: trace.clock_freq as f64 * trace.time_scale,
+            }),
+            _ => est(name).map(TimeBase::Estimate),
+        }
+    };
     let main_trace = read(main)?;
+    let main_est = to_sys(main, &main_trace).ok_or("no clock estimate of the main MCU")?;
     for e in machine
         .endstops
         .iter()
         .filter(|e| axes[e.axis] && e.pin.mcu != main)
     {
-        let Some(e_est) = est(&e.pin.mcu) else { continue };
         let e_trace = read(&e.pin.mcu)?;
+        let Some(e_est) = to_sys(&e.pin.mcu, &e_trace) else {
+            continue;
+        };
+        if matches!(
+            (&e_est, &main_est),
+            (TimeBase::Epoch { .. }, TimeBase::Epoch { .. })
+        ) {
+            println!("trace: MCU clocks converted with the simulators' clock epochs (exact)");
+        } else {
+            println!("trace: MCU clocks converted with the host's clock estimates");
+        }
         let triggers: Vec<f64> = e_trace
             .triggers
             .iter()

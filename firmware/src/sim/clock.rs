@@ -26,6 +26,13 @@ impl SimClock {
         ticks_at(self.start.elapsed(), self.ticks_per_ns)
     }
 
+    /// CLOCK_MONOTONIC (ns) at tick 0 (to within the nanoseconds between two clock reads).
+    pub fn monotonic_start_ns(&self) -> Option<u64> {
+        let now = nix::time::clock_gettime(nix::time::ClockId::CLOCK_MONOTONIC).ok()?;
+        let now_ns = u64::try_from(now.tv_sec()).ok()? * 1_000_000_000 + u64::try_from(now.tv_nsec()).ok()?;
+        now_ns.checked_sub(u64::try_from(self.start.elapsed().as_nanos()).ok()?)
+    }
+
     /// Wall time from MCU clock `now` until `deadline` (zero if it has passed).
     pub fn wall_until(&self, now: u64, deadline: u64) -> Duration {
         wall_for_ticks(deadline.saturating_sub(now), self.ticks_per_ns)

@@ -170,6 +170,9 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
             .unwrap_or(u32::MAX),
     };
     let clock = SimClock::start(cli.clock_freq, cli.time_scale);
+    if let Some(path) = &cli.trace {
+        write_epoch(path, &clock)?;
+    }
     let mut mcu = Box::new(SimMcu::new(
         board,
         dictionary,
@@ -248,6 +251,38 @@ fn report(board: &SimBoard, exit: &Result<Exit, SimError>) {
             "cadence-mcu: dropped {} output bytes (host not reading)",
             board.dropped_output
         );
+    }
+}
+
+/// The file next to trace `path` that says when the MCU clock was 0:
+/// `<path>.epoch`, one line `monotonic_ns <CLOCK_MONOTONIC ns at tick 0>`. With it, trace clocks
+/// of several simulated MCUs convert to one time base exactly (`cadence home --trace`).
+pub fn epoch_path(path: &Path) -> PathBuf {
+    let mut name = path.as_os_str().to_owned();
+    name.push(".epoch");
+    PathBuf::from(name)
+}
+
+/// Reads an epoch file written by the simulator: CLOCK_MONOTONIC seconds at tick 0.
+pub fn read_epoch(trace: &Path) -> Option<f64> {
+    let text = std::fs::read_to_string(epoch_path(trace)).ok()?;
+    let ns: u64 = text.trim().strip_prefix("monotonic_ns ")?.parse().ok()?;
+    Some(ns as f64 * 1e-9)
+}
+
+fn write_epoch(trace: &Path, clock: &SimClock) -> Result<(), SimError> {
+    let path = epoch_path(trace);
+    let err = |source| SimError::Trace {
+        path: path.clone(),
+        source,
+    };
+    match clock.monotonic_start_ns() {
+        Some(ns) => std::fs::write(&path, format!("monotonic_ns {ns}\n")).map_err(err),
+        // No clock reading: leave no stale file behind.
+        None => match std::fs::remove_file(&path) {
+            Err(e) if e.kind() != io::ErrorKind::NotFound => Err(err(e)),
+            _ => Ok(()),
+        },
     }
 }
 

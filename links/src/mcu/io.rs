@@ -302,11 +302,14 @@ impl IoThread {
             wait = wait.min(ARMED_READ_WAIT);
         }
         // Work waiting to be taken: don't sleep — unless the serial queue is full (then a
-        // zero wait would spin until the MCU frees room).
+        // zero wait would spin until the MCU frees room). Only published items count: one whose
+        // producer was interrupted mid-push is published when that producer runs again, which
+        // (SCHED_FIFO, same core, lower priority) needs this thread to block; a waking producer
+        // (`send`, urgent) then ends the wait at once, a clocked one is taken within the slice.
         let room = self.sq.len() < self.user_capacity;
         if matches!(self.phase, Phase::Running)
-            && (!self.shared.urgent.is_empty()
-                || (room && self.held.is_none() && !self.shared.outgoing.is_empty()))
+            && (self.shared.urgent.has_ready()
+                || (room && self.held.is_none() && self.shared.outgoing.has_ready()))
         {
             wait = 0.0;
         }

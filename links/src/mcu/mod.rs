@@ -5,7 +5,8 @@
 //! `get_uptime`, eight `get_clock` 50 ms apart for the first fit), then loops: read with a
 //! short timeout, feed the [`crate::serialqueue::SerialQueue`], write what it releases, query
 //! `get_clock` about every 0.98 s, dispatch responses. Callers hand messages over through a
-//! bounded, preallocated `ArrayQueue`; the clock estimate comes back through a seqlock.
+//! bounded, preallocated queue that never spins on another thread (module `handoff`); the clock
+//! estimate comes back through a seqlock.
 //!
 //! Every wait is bounded: connect by the identify/response timeouts, `send_clocked` on a full
 //! queue by a stall timeout, `query` and `wait_idle` by their argument, and the link itself
@@ -15,6 +16,7 @@
 //! replies; decoding a response into a [`Message`] allocates, which happens only for responses
 //! some `query` waits for, for `shutdown`/`is_shutdown`, and during the handshake.
 
+mod handoff;
 mod io;
 pub(crate) mod shared;
 

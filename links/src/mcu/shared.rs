@@ -1,16 +1,16 @@
 //! State shared between an [`super::McuLink`] handle (any thread) and its IO thread.
 //!
-//! Hot hand-off is lock-free: outgoing messages go through a preallocated
-//! `crossbeam_queue::ArrayQueue`, the clock estimate through a seqlock, counters through
-//! atomics. Mutexes guard only rare things (query waiters, the death/shutdown reason, stats
+//! Hot hand-off never waits: outgoing messages go through a preallocated [`HandoffQueue`]
+//! (neither side ever waits for the other: safe under SCHED_FIFO on one core; its per-slot
+//! locks are never contended), the clock estimate through a seqlock, counters through atomics.
+//! Other mutexes guard only rare things (query waiters, the death/shutdown reason, stats
 //! snapshots); the IO thread never holds one while doing IO.
 
 use std::sync::atomic::{fence, AtomicBool, AtomicU64, AtomicU8, AtomicUsize, Ordering};
 use std::sync::{Condvar, Mutex, MutexGuard, OnceLock, RwLock, RwLockReadGuard, RwLockWriteGuard};
 use std::time::{Duration, Instant};
 
-use crossbeam_queue::ArrayQueue;
-
+use super::handoff::HandoffQueue;
 use super::{LinkError, LinkStats};
 use crate::clocksync::ClockShared;
 use crate::dict::{Cmd, Dictionary, Message};
@@ -152,7 +152,7 @@ pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 #[derive(Debug)]
 pub(crate) struct Shared {
     pub name: String,
-    pub outgoing: ArrayQueue<Outgoing>,
+    pub outgoing: HandoffQueue<Outgoing>,
     pub clock: ClockShared,
     pub dict: OnceLock<Arc<Dictionary>>,
     pub stop: AtomicBool,
@@ -172,7 +172,7 @@ pub(crate) struct Shared {
     pub stats: Mutex<LinkStats>,
     pub notify: Notifier,
     /// Messages that go ahead of everything queued (homing triggers, trsync timeouts).
-    pub urgent: ArrayQueue<Outgoing>,
+    pub urgent: HandoffQueue<Outgoing>,
     /// Urgent messages lost because `urgent` was full.
     pub urgent_dropped: AtomicU64,
     /// Trsyncs of homing groups on this MCU (written on register/unregister only).
@@ -189,7 +189,7 @@ impl Shared {
     pub(crate) fn new(name: &str, capacity: usize) -> Shared {
         Shared {
             name: name.to_owned(),
-            outgoing: ArrayQueue::new(capacity.max(1)),
+            outgoing: HandoffQueue::new(capacity.max(1)),
             clock: ClockShared::default(),
             dict: OnceLock::new(),
             stop: AtomicBool::new(false),
@@ -205,7 +205,7 @@ impl Shared {
             idle_upto: AtomicU64::new(0),
             stats: Mutex::new(LinkStats::default()),
             notify: Notifier::default(),
-            urgent: ArrayQueue::new(URGENT_CAPACITY),
+            urgent: HandoffQueue::new(URGENT_CAPACITY),
             urgent_dropped: AtomicU64::new(0),
             trsyncs: RwLock::new(Vec::with_capacity(8)),
             armed: AtomicUsize::new(0),
