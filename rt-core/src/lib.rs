@@ -8,6 +8,9 @@
 //!     `/dev/cpu_dma_latency`) with a process-wide report of refused guarantees.
 //!   - [`alloc_count`]: a counting global allocator for tests that prove "no allocation in RT
 //!     loops".
+//!   - [`handoff`]: the bounded queue between threads of different real-time priorities that
+//!     never waits on the other side (crossbeam's `ArrayQueue` spins on a half-done push or
+//!     pop: a livelock under SCHED_FIFO on a shared core).
 //!   - [`hist`]: fixed-bound latency/margin histograms (hdrhistogram), summaries, interval logs.
 //!   - [`logger`]: the logger thread; other threads push fixed-size records, never block.
 //!   - [`shm`]: iceoryx2 services for step batches and telemetry (fixed-size `#[repr(C)]`
@@ -23,6 +26,8 @@ pub mod time;
 
 #[cfg(feature = "std")]
 pub mod alloc_count;
+#[cfg(feature = "std")]
+pub mod handoff;
 #[cfg(feature = "std")]
 pub mod hist;
 #[cfg(feature = "std")]

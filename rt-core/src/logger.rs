@@ -2,7 +2,9 @@
 //!
 //! Other threads call [`LoggerHandle::log`], which copies a fixed-size [`Record`] (level,
 //! `&'static str` message, up to [`MAX_ARGS`] numeric arguments, timestamp) into a bounded
-//! lock-free `ArrayQueue`: no allocation, no lock, no syscall, never blocks. When the queue is
+//! [`HandoffQueue`] (never waits on the logger thread, even when it was preempted half-way
+//! through a read: crossbeam's `ArrayQueue` would spin there, forever under SCHED_FIFO on a
+//! shared core): no allocation, no syscall, never blocks. When the queue is
 //! full the record is dropped and counted; the logger thread reports the drop count with the
 //! next record it writes ("N records dropped"). The logger thread sleeps for `poll` between
 //! drains (a bounded park, no busy loop) and is unparked early by a handle when the queue passes
@@ -28,7 +30,7 @@ use std::sync::Arc;
 use std::thread::{JoinHandle, Thread};
 use std::time::{Duration, Instant};
 
-use crossbeam_queue::ArrayQueue;
+use crate::handoff::HandoffQueue;
 
 /// Numeric arguments a record carries.
 pub const MAX_ARGS: usize = 4;
@@ -268,7 +270,7 @@ pub enum LoggerError {
 
 #[derive(Debug)]
 struct Shared {
-    queue: ArrayQueue<Record>,
+    queue: HandoffQueue<Record>,
     level: AtomicU8,
     dropped: AtomicU64,
     written: AtomicU64,
@@ -386,7 +388,7 @@ impl Logger {
             })
             .map_err(LoggerError::Spawn)?;
         let shared = Arc::new(Shared {
-            queue: ArrayQueue::new(capacity),
+            queue: HandoffQueue::new(capacity),
             level: AtomicU8::new(level as u8),
             dropped: AtomicU64::new(0),
             written: AtomicU64::new(0),

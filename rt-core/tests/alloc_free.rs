@@ -1,5 +1,5 @@
 //! Installs the counting allocator and proves the RT-path pieces of rt-core allocate nothing
-//! after warm-up: histogram recording, logger pushes, ArrayQueue hand-off.
+//! after warm-up: histogram recording, logger pushes, HandoffQueue hand-off.
 #![cfg(feature = "std")]
 
 use rt_core::alloc_count::{AllocCounter, CountingAlloc};
@@ -29,7 +29,7 @@ fn rt_loop_pieces_allocate_nothing() {
     })
     .unwrap();
     let log = log.with_tag("test");
-    let q = crossbeam_queue::ArrayQueue::<u64>::new(8);
+    let q = rt_core::handoff::HandoffQueue::<u64>::new(8);
     // Warm-up.
     hist.record(1);
     log.log(Level::Info, "warm", [Arg::U(0)]);

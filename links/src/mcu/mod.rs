@@ -5,7 +5,7 @@
 //! `get_uptime`, eight `get_clock` 50 ms apart for the first fit), then loops: read with a
 //! short timeout, feed the [`crate::serialqueue::SerialQueue`], write what it releases, query
 //! `get_clock` about every 0.98 s, dispatch responses. Callers hand messages over through a
-//! bounded, preallocated queue that never spins on another thread (module `handoff`); the clock
+//! bounded, preallocated queue that never spins on another thread (`rt_core::handoff`); the clock
 //! estimate comes back through a seqlock.
 //!
 //! Every wait is bounded: connect by the identify/response timeouts, `send_clocked` on a full
@@ -16,7 +16,6 @@
 //! replies; decoding a response into a [`Message`] allocates, which happens only for responses
 //! some `query` waits for, for `shutdown`/`is_shutdown`, and during the handshake.
 
-mod handoff;
 mod io;
 pub(crate) mod shared;
 

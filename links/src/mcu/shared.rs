@@ -10,10 +10,10 @@ use std::sync::atomic::{fence, AtomicBool, AtomicU64, AtomicU8, AtomicUsize, Ord
 use std::sync::{Condvar, Mutex, MutexGuard, OnceLock, RwLock, RwLockReadGuard, RwLockWriteGuard};
 use std::time::{Duration, Instant};
 
-use super::handoff::HandoffQueue;
 use super::{LinkError, LinkStats};
 use crate::clocksync::ClockShared;
 use crate::dict::{Cmd, Dictionary, Message};
+use rt_core::handoff::HandoffQueue;
 use std::sync::Arc;
 
 /// A message on its way from a caller to the IO thread.

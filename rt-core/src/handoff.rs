@@ -1,4 +1,6 @@
-//! The bounded, preallocated queue through which callers hand messages to a link's IO thread.
+//! A bounded, preallocated queue that never waits on another thread: the hand-off for threads of
+//! different real-time priorities (a link's outgoing messages to its IO thread, log records to
+//! the logger).
 //!
 //! Why not `crossbeam_queue::ArrayQueue`: its `pop` spins while a `push` is half done (the
 //! producer has claimed a slot but not yet published it), and its `push` spins while a `pop` is
@@ -19,9 +21,12 @@
 //! miss each other (see `transport::wake`).
 
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Mutex;
+use std::sync::{Mutex, MutexGuard};
 
-use super::shared::lock;
+/// The slot's value; a poisoned lock (a panic while holding it) still yields the value.
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
 
 struct Slot<T> {
     /// `pos` when free for the push at position `pos`; `pos + 1` once that push published its
@@ -31,7 +36,7 @@ struct Slot<T> {
 }
 
 /// A bounded multi-producer, multi-consumer queue that never spins on another thread.
-pub(crate) struct HandoffQueue<T> {
+pub struct HandoffQueue<T> {
     slots: Box<[Slot<T>]>,
     /// Next push position.
     tail: AtomicU64,
@@ -50,7 +55,7 @@ impl<T> std::fmt::Debug for HandoffQueue<T> {
 
 impl<T> HandoffQueue<T> {
     /// A queue of `capacity` (at least 1) slots, all allocated now.
-    pub(crate) fn new(capacity: usize) -> HandoffQueue<T> {
+    pub fn new(capacity: usize) -> HandoffQueue<T> {
         let slots = (0..capacity.max(1) as u64)
             .map(|i| Slot {
                 seq: AtomicU64::new(i),
@@ -64,7 +69,7 @@ impl<T> HandoffQueue<T> {
         }
     }
 
-    pub(crate) fn capacity(&self) -> usize {
+    pub fn capacity(&self) -> usize {
         self.slots.len()
     }
 
@@ -74,7 +79,7 @@ impl<T> HandoffQueue<T> {
 
     /// Appends `item`; gives it back when the queue is full (or its next slot is still being
     /// read by a pop that was interrupted).
-    pub(crate) fn push(&self, item: T) -> Result<(), T> {
+    pub fn push(&self, item: T) -> Result<(), T> {
         let mut pos = self.tail.load(Ordering::Relaxed);
         loop {
             let slot = self.slot(pos);
@@ -103,7 +108,7 @@ impl<T> HandoffQueue<T> {
 
     /// Takes the oldest item; `None` when the queue is empty or the oldest item is not
     /// published yet (its producer was interrupted mid-push: it publishes when it runs again).
-    pub(crate) fn pop(&self) -> Option<T> {
+    pub fn pop(&self) -> Option<T> {
         let mut pos = self.head.load(Ordering::Relaxed);
         loop {
             let slot = self.slot(pos);
@@ -129,20 +134,26 @@ impl<T> HandoffQueue<T> {
     }
 
     /// True when [`pop`](Self::pop) would return an item now.
-    pub(crate) fn has_ready(&self) -> bool {
+    pub fn has_ready(&self) -> bool {
         let pos = self.head.load(Ordering::SeqCst);
         self.slot(pos).seq.load(Ordering::SeqCst) == pos + 1
     }
 
     /// Items pushed and not yet popped, including pushes and pops under way (approximate while
     /// other threads use the queue).
-    pub(crate) fn len(&self) -> usize {
+    pub fn len(&self) -> usize {
         let tail = self.tail.load(Ordering::SeqCst);
         let head = self.head.load(Ordering::SeqCst);
         tail.saturating_sub(head) as usize
     }
 
-    pub(crate) fn is_full(&self) -> bool {
+    /// True when no item is pushed and not yet popped (approximate, as [`len`](Self::len)).
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// True when every slot is taken (approximate, as [`len`](Self::len)).
+    pub fn is_full(&self) -> bool {
         self.len() >= self.capacity()
     }
 }
@@ -155,7 +166,7 @@ mod tests {
     #[test]
     fn fifo_order_full_and_wraparound() {
         let q = HandoffQueue::new(3);
-        assert!(q.len() == 0 && !q.has_ready() && q.pop().is_none());
+        assert!(q.is_empty() && !q.has_ready() && q.pop().is_none());
         for lap in 0..5u32 {
             for i in 0..3 {
                 q.push(lap * 10 + i).unwrap();
@@ -167,7 +178,7 @@ mod tests {
                 assert!(q.has_ready());
                 assert_eq!(q.pop(), Some(lap * 10 + i));
             }
-            assert!(q.len() == 0 && q.pop().is_none());
+            assert!(q.is_empty() && q.pop().is_none());
         }
     }
 
