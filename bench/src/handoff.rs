@@ -3,7 +3,9 @@
 //! a fixed-bound ns histogram (`rt_core::hist`). Transports:
 //!
 //! - `queue-poll`: `crossbeam_queue::ArrayQueue`, consumer polls with `spin_loop`.
-//! - `queue-park`: same queue, consumer spins for `spin` then parks; the producer unparks it
+//! - `handoff-poll`: `rt_core::handoff::HandoffQueue` (the link's and the logger's queue: never
+//!   waits on the other thread), consumer polls.
+//! - `queue-park`: same queue as `queue-poll`, consumer spins for `spin` then parks; the producer unparks it
 //!   when it saw the consumer's "parked" flag (the flag is set before parking and re-checked
 //!   after, so no wake-up is lost).
 //! - `ipc-poll` / `ipc-event`: iceoryx2 publish-subscribe of a 5 KiB `StepBatch` (zero-copy
@@ -20,6 +22,7 @@ use std::time::{Duration, Instant};
 
 use crossbeam_queue::ArrayQueue;
 use iceoryx2::prelude::*;
+use rt_core::handoff::HandoffQueue;
 use rt_core::hist::LatencyHist;
 use rt_core::os::{spawn_rt, RtSpec};
 use rt_core::shm::{open_node, ChannelConfig, ShmPublisher, ShmSubscriber, StepBatch};
@@ -84,16 +87,49 @@ fn join<T>(h: std::io::Result<std::thread::JoinHandle<T>>) -> Result<T, String> 
         .map_err(|_| "benchmark thread panicked".to_string())
 }
 
+/// A bounded queue of timestamps between two threads.
+trait BenchQueue: Send + Sync + 'static {
+    fn put(&self, v: u64) -> Result<(), u64>;
+    fn take(&self) -> Option<u64>;
+}
+
+impl BenchQueue for ArrayQueue<u64> {
+    fn put(&self, v: u64) -> Result<(), u64> {
+        self.push(v)
+    }
+    fn take(&self) -> Option<u64> {
+        self.pop()
+    }
+}
+
+impl BenchQueue for HandoffQueue<u64> {
+    fn put(&self, v: u64) -> Result<(), u64> {
+        self.push(v)
+    }
+    fn take(&self) -> Option<u64> {
+        self.pop()
+    }
+}
+
 /// ArrayQueue, polling consumer.
 pub fn queue_poll(o: &HandoffOpts) -> Result<LatencyHist, String> {
-    let q = Arc::new(ArrayQueue::<u64>::new(1024));
+    poll_with(ArrayQueue::<u64>::new(1024), o)
+}
+
+/// rt_core::handoff::HandoffQueue (the link's and the logger's queue), polling consumer.
+pub fn handoff_poll(o: &HandoffOpts) -> Result<LatencyHist, String> {
+    poll_with(HandoffQueue::<u64>::new(1024), o)
+}
+
+fn poll_with<Q: BenchQueue>(q: Q, o: &HandoffOpts) -> Result<LatencyHist, String> {
+    let q = Arc::new(q);
     let n = o.samples;
     let qc = q.clone();
     let consumer = spawn_rt(spec("bench-cons", o.cores.1, o.fifo), move || {
         let mut h = LatencyHist::new();
         let mut got = 0;
         while got < n {
-            match qc.pop() {
+            match qc.take() {
                 Some(t) => {
                     h.record(mono_ns().saturating_sub(t));
                     got += 1;
@@ -107,7 +143,7 @@ pub fn queue_poll(o: &HandoffOpts) -> Result<LatencyHist, String> {
     join(spawn_rt(spec("bench-prod", o.cores.0, o.fifo), move || {
         for _ in 0..n {
             let mut t = mono_ns();
-            while let Err(back) = q.push(t) {
+            while let Err(back) = q.put(t) {
                 t = back;
                 std::hint::spin_loop();
             }
@@ -279,11 +315,12 @@ pub fn run_all(o: &HandoffOpts, exe: Option<&std::path::Path>) -> Vec<String> {
     let mut lines = Vec::new();
     let mut line = |name: &str, r: Result<LatencyHist, String>| {
         lines.push(match r {
-            Ok(h) => format!("{name:<12} {}", h.summary().format_latency()),
-            Err(e) => format!("{name:<12} failed: {e}"),
+            Ok(h) => format!("{name:<13} {}", h.summary().format_latency()),
+            Err(e) => format!("{name:<13} failed: {e}"),
         })
     };
     line("queue-poll", queue_poll(o));
+    line("handoff-poll", handoff_poll(o));
     line("queue-park", queue_park(o));
     line("ipc-poll", ipc_threads(o, true));
     line("ipc-event", ipc_threads(o, false));
@@ -292,7 +329,7 @@ pub fn run_all(o: &HandoffOpts, exe: Option<&std::path::Path>) -> Vec<String> {
             let name = if poll { "proc-poll" } else { "proc-event" };
             lines.push(match ipc_process(o, exe, poll) {
                 Ok(s) => format!("{name:<12} {s}"),
-                Err(e) => format!("{name:<12} failed: {e}"),
+                Err(e) => format!("{name:<13} failed: {e}"),
             });
         }
     }
