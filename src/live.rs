@@ -193,6 +193,18 @@ pub struct RtConfig {
 }
 
 impl RtConfig {
+    /// From printer.cfg's `[realtime]`; `no_realtime` (the `--no-realtime` flag) turns it off.
+    pub fn from_section(r: &sysconfig::printer::RealtimeSection, no_realtime: bool) -> RtConfig {
+        RtConfig {
+            enabled: r.enabled && !no_realtime,
+            planner_core: r.planner_cpu,
+            io_core: r.io_cpu,
+            planner_priority: r.planner_priority,
+            io_priority: r.io_priority,
+            lock_memory: r.lock_memory,
+        }
+    }
+
     /// Settings of the MCU links' own IO threads: on the IO core, above the IO stage (they
     /// write the bytes and relay homing triggers).
     pub fn link_spec(&self) -> RtSpec {

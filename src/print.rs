@@ -251,15 +251,7 @@ fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: Fil
     let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
     let hists = Hists::new();
     let logging = live::Logging::start(args.live.log_level, args.live.log_file.clone())?;
-    let r = &cfg.realtime;
-    let rt = RtConfig {
-        enabled: r.enabled && !args.no_realtime,
-        planner_core: r.planner_cpu,
-        io_core: r.io_cpu,
-        planner_priority: r.planner_priority,
-        io_priority: r.io_priority,
-        lock_memory: r.lock_memory,
-    };
+    let rt = RtConfig::from_section(&cfg.realtime, args.no_realtime);
     let opts = ConnectOptions {
         time_scale,
         trace: args.trace.clone(),

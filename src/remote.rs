@@ -194,15 +194,7 @@ pub(crate) fn run(
     let logging = Logging::start(args.live.log_level, args.live.log_file.clone())?;
     let log = logging.handle("main");
     let hists = Hists::new();
-    let r = &cfg.realtime;
-    let rt = RtConfig {
-        enabled: r.enabled && !args.no_realtime,
-        planner_core: r.planner_cpu,
-        io_core: r.io_cpu,
-        planner_priority: r.planner_priority,
-        io_priority: r.io_priority,
-        lock_memory: r.lock_memory,
-    };
+    let rt = RtConfig::from_section(&cfg.realtime, args.no_realtime);
     let (instance, child) = match &args.live.io_attach {
         Some(name) => (name.clone(), IoChild(Mutex::new(None))),
         None => {

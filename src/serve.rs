@@ -119,15 +119,7 @@ pub fn run(args: &ServeArgs) -> Result<(), String> {
     };
     report.send(&mut status, io_state::STARTING, "")?;
 
-    let r = &cfg.realtime;
-    let rt = RtConfig {
-        enabled: r.enabled && !args.no_realtime,
-        planner_core: r.planner_cpu,
-        io_core: r.io_cpu,
-        planner_priority: r.planner_priority,
-        io_priority: r.io_priority,
-        lock_memory: r.lock_memory,
-    };
+    let rt = RtConfig::from_section(&cfg.realtime, args.no_realtime);
     let hists = Hists::new();
     let opts = ConnectOptions {
         time_scale,

@@ -147,15 +147,7 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
     } else {
         None
     };
-    let r = &cfg.realtime;
-    let rt = RtConfig {
-        enabled: r.enabled && !args.no_realtime,
-        planner_core: r.planner_cpu,
-        io_core: r.io_cpu,
-        planner_priority: r.planner_priority,
-        io_priority: r.io_priority,
-        lock_memory: r.lock_memory,
-    };
+    let rt = RtConfig::from_section(&cfg.realtime, args.no_realtime);
     // Before this thread is pinned (the core count would then be 1).
     let link_spec = rt.link_spec();
     let opts = ConnectOptions {
