@@ -31,7 +31,14 @@ pub(crate) struct Fit {
     pub interval: i64,
     pub count: usize,
     pub add: i64,
+    /// The largest interval with the same add for the first `count − 1` steps (the run that
+    /// found this fit passed through it): the command one step shorter without another pass.
+    /// [`NO_PREFIX`] when not known.
+    pub prefix_interval: i64,
 }
+
+/// [`Fit::prefix_interval`] when the fit did not come from a run.
+pub(crate) const NO_PREFIX: i64 = i64::MIN;
 
 impl Fit {
     /// Clock of the command's last step when it starts from `last`.
@@ -39,6 +46,17 @@ impl Fit {
     pub fn end(&self, last: u64) -> u64 {
         let c = self.count as i64;
         (last as i64 + c * self.interval + c * (c - 1) / 2 * self.add) as u64
+    }
+
+    /// The same command one step shorter, when known without another pass.
+    #[inline]
+    pub fn shortened(&self) -> Option<Fit> {
+        (self.count >= 2 && self.prefix_interval != NO_PREFIX).then_some(Fit {
+            interval: self.prefix_interval,
+            count: self.count - 1,
+            add: self.add,
+            prefix_interval: NO_PREFIX,
+        })
     }
 }
 
@@ -55,13 +73,50 @@ const MAX_IV: i64 = super::MAX_INTERVAL as i64;
 /// Most values of `add` tried per command while looking for the longest run.
 const MAX_TRIALS: usize = 24;
 
+/// One pass of [`run`]: how far `add` got.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Run {
+    pub count: usize,
+    /// The largest interval landing the `count` steps.
+    pub interval: i64,
+    /// The largest interval landing the first `count − 1` steps (count ≥ 1).
+    pub prefix_interval: i64,
+    pub bend: Bend,
+    /// The steps (1-based, 0 = none) whose windows last raised the lower and lowered the upper
+    /// bound of the interval before the run stopped: with the step it stopped at, the pairs
+    /// most likely to rule out adds ([`pair_adds`]).
+    pub binding: (usize, usize),
+}
+
+impl Run {
+    /// The command of this run with `add`.
+    #[inline]
+    fn fit(&self, add: i64) -> Fit {
+        Fit {
+            interval: self.interval,
+            count: self.count,
+            add,
+            prefix_interval: self.prefix_interval,
+        }
+    }
+}
+
 /// The longest run of `steps` from `last` with this `add`: (count, largest interval for that
 /// count, which way add should move to go further).
-#[inline]
+#[cfg(test)]
 pub(crate) fn run_with_add(steps: &[StepWindow], last: u64, add: i64) -> (usize, i64, Bend) {
+    let r = run(steps, last, add);
+    (r.count, r.interval, r.bend)
+}
+
+/// [`run_with_add`], also giving the largest interval one step earlier.
+#[inline]
+pub(crate) fn run(steps: &[StepWindow], last: u64, add: i64) -> Run {
     let last = last as i64;
     let mut lo_i: i64 = 0;
     let mut hi_i: i64 = MAX_IV;
+    let mut prev_hi: i64 = MAX_IV;
+    let (mut j_lo, mut j_hi) = (0usize, 0usize);
     let mut add_sum: i64 = 0; // add · T_k
     let mut ka: i64 = 0; // add · (k − 1): this step's interval is I + ka
     for (k0, st) in steps.iter().enumerate() {
@@ -75,6 +130,7 @@ pub(crate) fn run_with_add(steps: &[StepWindow], last: u64, add: i64) -> (usize,
         // lo_i ≥ 0, so a violated lower bound has l > 0 (⌈l/k⌉ by truncation); a violated upper
         // bound with u < 0 fails whatever its value (every I ≥ 0): −1 stands for ⌊u/k⌋ there.
         if k * nlo < l {
+            j_lo = k0 + 1;
             nlo = if k * (nlo + 1) >= l {
                 nlo + 1
             } else {
@@ -82,6 +138,7 @@ pub(crate) fn run_with_add(steps: &[StepWindow], last: u64, add: i64) -> (usize,
             };
         }
         if k * nhi > u {
+            j_hi = k0 + 1;
             nhi = if k * (nhi - 1) <= u {
                 nhi - 1
             } else if u < 0 {
@@ -101,13 +158,26 @@ pub(crate) fn run_with_add(steps: &[StepWindow], last: u64, add: i64) -> (usize,
             } else {
                 Bend::Up
             };
-            return (k0, hi_i, bend);
+            return Run {
+                count: k0,
+                interval: hi_i,
+                prefix_interval: prev_hi,
+                bend,
+                binding: (j_lo, j_hi),
+            };
         }
         lo_i = nlo;
+        prev_hi = hi_i;
         hi_i = nhi;
         ka += add;
     }
-    (steps.len(), hi_i, Bend::None)
+    Run {
+        count: steps.len(),
+        interval: hi_i,
+        prefix_interval: prev_hi,
+        bend: Bend::None,
+        binding: (j_lo, j_hi),
+    }
 }
 
 /// Largest |ΔA| between two sequences both valid on `count` steps.
@@ -155,6 +225,20 @@ fn pair_adds(steps: &[StepWindow], last: u64, a: usize, b: usize) -> Option<(i64
     // 2·D = ab(a − b) < 0. A·D ∈ [b·ua − a·lb, b·la − a·ub] turned around: A ≥ 2(b·ua −
     // a·lb)/(2D) and A ≤ 2(b·la − a·ub)/(2D); negated to divide by −2D > 0.
     let neg_d2 = a * b * (b - a);
+    // Clocks less than 2^40 ticks apart (hours): no product can overflow, and truncating
+    // division with a remainder fix-up is floor and ceiling (neg_d2 > 0).
+    const SMALL: i64 = 1 << 40;
+    if [la, ua, lb, ub]
+        .iter()
+        .all(|&x| (x + SMALL) as u64 <= 2 * SMALL as u64)
+    {
+        let nl = -2 * (b * ua - a * lb);
+        let nh = -2 * (b * la - a * ub);
+        let lo = nl / neg_d2 + i64::from(nl % neg_d2 > 0);
+        let hi = nh / neg_d2 - i64::from(nh % neg_d2 < 0);
+        let (lo, hi) = (lo.max(ALL.0), hi.min(ALL.1));
+        return (lo <= hi).then_some((lo, hi));
+    }
     let num = |x: i64, y: i64| b.checked_mul(x)?.checked_sub(a.checked_mul(y)?)?.checked_mul(-2);
     let (Some(nl), Some(nh)) = (num(ua, lb), num(la, ub)) else {
         return Some(ALL);
@@ -167,14 +251,7 @@ fn pair_adds(steps: &[StepWindow], last: u64, a: usize, b: usize) -> Option<(i64
 
 /// A command covering the most of `steps` (one direction, non-empty) from `last`.
 pub(crate) fn longest_fit(steps: &[StepWindow], last: u64, max_err: i64, guess_add: i64) -> Fit {
-    let single = || {
-        let (_, interval, _) = run_with_add(&steps[..1], last, 0);
-        Fit {
-            interval,
-            count: 1,
-            add: 0,
-        }
-    };
+    let single = || run(&steps[..1], last, 0).fit(0);
     if steps.len() < 2 {
         return single();
     }
@@ -192,12 +269,14 @@ pub(crate) fn longest_fit(steps: &[StepWindow], last: u64, max_err: i64, guess_a
         interval: 0,
         count: 0,
         add: 0,
+        prefix_interval: NO_PREFIX,
     };
     let mut checked = usize::MAX;
     for _ in 0..MAX_TRIALS {
-        let (count, interval, bend) = run_with_add(steps, last, add);
+        let r = run(steps, last, add);
+        let (count, bend) = (r.count, r.bend);
         if count > best.count || (count == best.count && add > best.add) {
-            best = Fit { interval, count, add };
+            best = r.fit(add);
         }
         if bend == Bend::None {
             break;
@@ -223,6 +302,25 @@ pub(crate) fn longest_fit(steps: &[StepWindow], last: u64, max_err: i64, guess_a
                     amax = amax.min(hi);
                 }
             }
+        }
+        // An add doing better lands step count + 1 together with the steps that bound this
+        // run's interval.
+        let m = count + 1;
+        let mut none = false;
+        for j in [r.binding.0, r.binding.1] {
+            if j == 0 || j >= m {
+                continue;
+            }
+            match pair_adds(steps, last, j, m) {
+                Some((lo, hi)) => {
+                    amin = amin.max(lo);
+                    amax = amax.min(hi);
+                }
+                None => none = true,
+            }
+        }
+        if none && count >= best.count {
+            break;
         }
         if bend == Bend::Up {
             amin = amin.max(add + 1);
@@ -266,16 +364,15 @@ fn latest_end_plain(steps: &[StepWindow], last: u64, max_err: i64, fit: Fit) -> 
     if let Some((_, top)) = two_window_adds(steps, last, c) {
         hi = hi.min(top).max(lo);
     }
+    let mut first = true;
     while lo < hi {
-        let mid = lo + (hi - lo + 1) / 2;
-        let (count, interval, _) = run_with_add(&steps[..c], last, mid);
-        if count == c {
+        // The top of the range first: often it is the answer.
+        let mid = if first { hi } else { lo + (hi - lo + 1) / 2 };
+        first = false;
+        let r = run(&steps[..c], last, mid);
+        if r.count == c {
             lo = mid;
-            best = Fit {
-                interval,
-                count,
-                add: mid,
-            };
+            best = r.fit(mid);
         } else {
             hi = mid - 1;
         }
@@ -380,8 +477,8 @@ pub(crate) fn may_reach(steps: &[StepWindow], last: u64, n: usize) -> bool {
 /// The fit of exactly the first `count` steps with `add` (which must reach them), largest
 /// interval.
 pub(crate) fn fit_prefix(steps: &[StepWindow], last: u64, count: usize, add: i64) -> Option<Fit> {
-    let (c, interval, _) = run_with_add(steps.get(..count)?, last, add);
-    (c == count && count > 0).then_some(Fit { interval, count, add })
+    let r = run(steps.get(..count)?, last, add);
+    (r.count == count && count > 0).then_some(r.fit(add))
 }
 
 #[cfg(test)]
@@ -406,14 +503,7 @@ mod tests {
             .map(|k| 1000 + 300 * k + 7 * k * (k - 1) / 2)
             .collect();
         let f = best_fit(&windows(&clocks, 0), 1000, 0, 0);
-        assert_eq!(
-            f,
-            Fit {
-                interval: 300,
-                count: 200,
-                add: 7
-            }
-        );
+        assert_eq!((f.interval, f.count, f.add), (300, 200, 7));
         assert_eq!(f.end(1000), *clocks.last().unwrap());
     }
 
@@ -576,6 +666,37 @@ mod tests {
             if n > 0 {
                 proptest::prop_assert_eq!(iv, biv);
             }
+        }
+    }
+
+    proptest::proptest! {
+        /// The pair bound's fast path agrees with exact rational arithmetic.
+        #[test]
+        fn pair_adds_is_exact(
+            a in 1usize..200,
+            gap in 1usize..200,
+            los in proptest::collection::vec(-5_000_000i64..5_000_000, 2),
+            widths in proptest::collection::vec(0i64..3_000, 2),
+            last in 0u64..1_000_000,
+        ) {
+            let b = a + gap;
+            let mut w = vec![StepWindow { lo: 0, hi: 0, dir: true }; b];
+            for (i, k) in [a, b].into_iter().enumerate() {
+                let lo = (last as i64 + 10_000_000 + los[i]) as u64;
+                w[k - 1] = StepWindow { lo, hi: lo + widths[i] as u64, dir: true };
+            }
+            let rel = |v: u64| (v as i64 - last as i64) as i128;
+            let (la, ua) = (rel(w[a - 1].lo), rel(w[a - 1].hi));
+            let (lb, ub) = (rel(w[b - 1].lo), rel(w[b - 1].hi));
+            let (ai, bi) = (a as i128, b as i128);
+            let d = ai * bi * (bi - ai);
+            let nl = -2 * (bi * ua - ai * lb);
+            let nh = -2 * (bi * la - ai * ub);
+            let lo = nl.div_euclid(d) + i128::from(nl.rem_euclid(d) != 0);
+            let hi = nh.div_euclid(d);
+            let (lo, hi) = (lo.max(i16::MIN as i128), hi.min(i16::MAX as i128));
+            let want = (lo <= hi).then_some((lo as i64, hi as i64));
+            proptest::prop_assert_eq!(pair_adds(&w, last, a, b), want);
         }
     }
 
