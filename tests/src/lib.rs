@@ -98,6 +98,34 @@ pub fn scratch(test: &str) -> PathBuf {
     dir
 }
 
+/// The first `lines` lines of the reference benchy (`../shared/data/gcode`) and the reference
+/// cartesian printer (`../shared/data/printers`) on the built-in simulator, written into `dir`:
+/// (G-code file, printer.cfg). `None` (the test then skips) when `../shared` is not there.
+pub fn benchy_prefix(dir: &Path, lines: usize) -> Option<(PathBuf, PathBuf)> {
+    use std::io::BufRead;
+    let shared = workspace().join("../shared");
+    let gcode_src = shared.join("data/gcode/benchy-prusaslicer.gcode");
+    let cfg_src = shared.join("data/printers/benchy-cartesian.cfg");
+    if !gcode_src.is_file() || !cfg_src.is_file() {
+        println!("skipped: {} not found", gcode_src.display());
+        return None;
+    }
+    let reader = std::io::BufReader::new(std::fs::File::open(&gcode_src).expect("benchy G-code"));
+    let prefix: Vec<String> = reader
+        .lines()
+        .take(lines)
+        .map(|l| l.expect("benchy line"))
+        .collect();
+    let gcode = dir.join("benchy-prefix.gcode");
+    std::fs::write(&gcode, prefix.join("\n")).expect("write the G-code prefix");
+    let cfg_text = std::fs::read_to_string(&cfg_src)
+        .expect("benchy printer.cfg")
+        .replace("serial: /dev/ttyACM0", "serial: simulator");
+    let cfg = dir.join("printer.cfg");
+    std::fs::write(&cfg, cfg_text).expect("write printer.cfg");
+    Some((gcode, cfg))
+}
+
 /// Fails the test unless `run` exited 0, showing both outputs.
 pub fn assert_success(run: &Run) {
     assert_eq!(

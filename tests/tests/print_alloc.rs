@@ -8,10 +8,9 @@
 //! stage from its 64th batch. Each also reports how many step batches it handled after that
 //! point, and the test requires plenty, so a 0 cannot come from an empty window.
 
-use std::io::BufRead;
 use std::time::Duration;
 
-use cadence_tests::{assert_success, cadence, scratch, workspace};
+use cadence_tests::{assert_success, benchy_prefix, cadence, scratch};
 
 /// "`<allocations>` (`<batches>` batches)" after `label` in the summary line.
 fn figures(line: &str, label: &str) -> (u64, u64) {
@@ -30,26 +29,13 @@ fn figures(line: &str, label: &str) -> (u64, u64) {
 
 #[test]
 fn benchy_prefix_allocates_nothing_after_warm_up() {
-    let shared = workspace().join("../shared");
-    let gcode_src = shared.join("data/gcode/benchy-prusaslicer.gcode");
-    let cfg_src = shared.join("data/printers/benchy-cartesian.cfg");
-    if !gcode_src.is_file() || !cfg_src.is_file() {
-        println!("skipped: {} not found", gcode_src.display());
-        return;
-    }
     let dir = scratch("print-alloc");
     // Homing, the start sequence (temperatures, fan, messages), then the first layers: mixed
     // travel, perimeters and infill; ~270 s of print time, ~690 step batches, ~28 s of wall
     // time at 10×.
-    let reader = std::io::BufReader::new(std::fs::File::open(&gcode_src).unwrap());
-    let prefix: Vec<String> = reader.lines().take(4000).map(|l| l.unwrap()).collect();
-    let gcode = dir.join("benchy-prefix.gcode");
-    std::fs::write(&gcode, prefix.join("\n")).unwrap();
-    let cfg_text = std::fs::read_to_string(&cfg_src)
-        .unwrap()
-        .replace("serial: /dev/ttyACM0", "serial: simulator");
-    let cfg = dir.join("printer.cfg");
-    std::fs::write(&cfg, cfg_text).unwrap();
+    let Some((gcode, cfg)) = benchy_prefix(&dir, 4000) else {
+        return;
+    };
 
     let run = cadence(
         &[

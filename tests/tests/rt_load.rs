@@ -2,11 +2,10 @@
 //! lead arithmetic stays in MCU time), while a CPU hog spins on every core: no step message may
 //! reach the MCU with less than 100 ms of lead. The host's histograms are printed for the record.
 
-use std::io::BufRead;
 use std::process::{Child, Command};
 use std::time::Duration;
 
-use cadence_tests::{cadence, scratch, workspace};
+use cadence_tests::{benchy_prefix, cadence, scratch};
 
 /// CPU hogs that end on their own (bounded) and are killed when dropped.
 struct Hogs(Vec<Child>);
@@ -39,25 +38,12 @@ impl Drop for Hogs {
 
 #[test]
 fn benchy_prefix_under_cpu_load_keeps_the_lead() {
-    let shared = workspace().join("../shared");
-    let gcode_src = shared.join("data/gcode/benchy-prusaslicer.gcode");
-    let cfg_src = shared.join("data/printers/benchy-cartesian.cfg");
-    if !gcode_src.is_file() || !cfg_src.is_file() {
-        println!("skipped: {} not found", gcode_src.display());
-        return;
-    }
     let dir = scratch("rtload");
     // The first 1800 lines (homing, then the first layers): ~55 s of print time, ~12 s of wall
     // time at 5×.
-    let reader = std::io::BufReader::new(std::fs::File::open(&gcode_src).unwrap());
-    let prefix: Vec<String> = reader.lines().take(1800).map(|l| l.unwrap()).collect();
-    let gcode = dir.join("benchy-prefix.gcode");
-    std::fs::write(&gcode, prefix.join("\n")).unwrap();
-    let cfg_text = std::fs::read_to_string(&cfg_src)
-        .unwrap()
-        .replace("serial: /dev/ttyACM0", "serial: simulator");
-    let cfg = dir.join("printer.cfg");
-    std::fs::write(&cfg, cfg_text).unwrap();
+    let Some((gcode, cfg)) = benchy_prefix(&dir, 1800) else {
+        return;
+    };
 
     let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2);
     let _hogs = Hogs::start(cores, 90);
