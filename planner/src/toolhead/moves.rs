@@ -144,6 +144,18 @@ impl Phases {
         }
     }
 
+    /// The cruise phase as a line: (distance where it starts, distance where it ends, time at
+    /// its start, 1 / cruise velocity); `None` without a cruise phase.
+    #[inline]
+    pub fn cruise(&self) -> Option<(f64, f64, f64, f64)> {
+        (self.inv_vc > 0.0 && self.cruise_end_d > self.accel_d).then_some((
+            self.accel_d,
+            self.cruise_end_d,
+            self.accel_t,
+            self.inv_vc,
+        ))
+    }
+
     /// Time at which distance `s` is reached (clamped to the move's duration). Hot: called for
     /// every step of linear kinematics, so comparisons rather than `f64::min` (no NaN can
     /// reach here: s is clamped by the caller and the profile's numbers are finite).
