@@ -62,7 +62,8 @@ use planner::toolhead::Move;
 use crate::machine::{EndstopOut, Machine};
 use crate::mcus::{McuConn, Mcus};
 use crate::print::MotionCmd;
-use crate::sink::{Sink, StepStreamer};
+use crate::sink::{LinkSink, Sink};
+use crate::streams::StepStreams;
 
 /// Endstop confirmation sample spacing (s of MCU time).
 pub const SAMPLE_TIME: f64 = 15e-6;
@@ -94,10 +95,10 @@ pub struct HomingCtx<'a> {
     pub mcus: &'a Mcus,
     pub machine: &'a Machine,
     pub pipeline: &'a mut Pipeline,
-    /// The main MCU's step streamer (every stepper is on the main MCU in this version).
-    pub streamer: &'a mut StepStreamer,
-    /// Where the main MCU's step commands go (the live link).
-    pub sink: &'a mut dyn Sink,
+    /// The step streams of the MCUs with steppers (the main MCU's first).
+    pub streams: &'a mut StepStreams,
+    /// Where each stream's step commands go (its MCU's live link), in stream order.
+    pub sinks: &'a mut [LinkSink<'a>],
     /// Lead every step command must have at the MCU (print seconds, 0.100).
     pub lead: f64,
     /// MCU seconds per wall second (simulator `time_scale`; 1 for real MCUs): bounds waits.
@@ -297,8 +298,28 @@ pub(crate) fn plain_move(ctx: &mut HomingCtx<'_>, pos: [f64; 4], speed: f64) -> 
     ctx.pipeline.raise_print_time(t0).map_err(|e| e.to_string())?;
     ctx.pipeline.home_move(pos, speed).map_err(|e| e.to_string())?;
     let mut out = Vec::new();
-    ctx.pipeline.generate(&mut out);
+    generate(ctx, &mut out)?;
     push_cmds(ctx, &out)
+}
+
+/// Releases the planned step commands, each stepper's in its MCU's clock as the clock fits
+/// stand now.
+fn generate(ctx: &mut HomingCtx<'_>, out: &mut Vec<(usize, StepCmd)>) -> Result<(), String> {
+    let mcus = ctx.mcus;
+    ctx.streams.refresh_clocks(ctx.pipeline, |i| {
+        mcus.list
+            .get(i)
+            .map_or(links::clocksync::ClockEstimate::INVALID, |m| m.link.clock())
+    })?;
+    ctx.pipeline.generate(out);
+    Ok(())
+}
+
+/// MCU `mcu_index`'s clock now (its fit; 0 for an unknown MCU).
+fn mcu_clock_now(mcus: &Mcus, mcu_index: usize) -> f64 {
+    mcus.list
+        .get(mcu_index)
+        .map_or(0.0, |m| m.link.clock().clock_at(McuLink::system_now()))
 }
 
 /// The main MCU's print time now (its estimated clock / nominal CLOCK_FREQ).
@@ -327,48 +348,62 @@ fn print_time_of_clock(mcus: &Mcus, m: &McuConn, clock: u64) -> f64 {
     main.link.clock().clock_at(sys) / main.clock_freq
 }
 
-/// Hands released step commands to the sink, refusing any that would reach the MCU late.
+/// Hands released step commands to their MCUs' sinks, refusing any that would reach its MCU
+/// late.
 fn push_cmds(ctx: &mut HomingCtx<'_>, out: &[(usize, StepCmd)]) -> Result<(), String> {
-    let main = ctx.mcus.main();
-    let now_clock = print_now(ctx.mcus) * main.clock_freq;
-    let lead_ticks = ctx.lead * main.clock_freq;
+    let now: Vec<f64> = ctx
+        .streams
+        .mcus
+        .iter()
+        .map(|m| mcu_clock_now(ctx.mcus, m.mcu_index))
+        .collect();
     for &(idx, cmd) in out {
         if let StepCmd::QueueStep { first_clock, .. } = cmd {
-            if (first_clock as f64) < now_clock + lead_ticks {
+            let k = ctx.streams.stream_of(idx).unwrap_or(0);
+            let m = &ctx.streams.mcus[k];
+            if (first_clock as f64) < now[k] + ctx.lead * m.clock_freq {
                 return Err(format!(
-                    "homing: a step for {} was ready only {:.1} ms before it is due (at least {:.0} ms required)",
+                    "homing: a step for {} on mcu '{}' was ready only {:.1} ms before it is due (at least {:.0} ms \
+                     required)",
                     ctx.machine.steppers.get(idx).map_or("?", |s| s.name.as_str()),
-                    (first_clock as f64 - now_clock) / main.clock_freq * 1e3,
+                    m.name,
+                    (first_clock as f64 - now[k]) / m.clock_freq * 1e3,
                     ctx.lead * 1e3
                 ));
             }
         }
-        ctx.streamer.push(idx, cmd, ctx.sink)?;
+        ctx.streams.push(idx, cmd, ctx.sinks)?;
     }
-    ctx.sink.flush()
+    ctx.sinks.iter_mut().try_for_each(|s| s.flush())
 }
 
-/// Sends everything planned so far and waits (bounded) until the main MCU executed it.
+/// Sends everything planned so far and waits (bounded) until every MCU executed it.
 pub(crate) fn wait_motion_done(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
     ctx.pipeline.flush_lookahead();
     let mut out = Vec::new();
-    ctx.pipeline.generate(&mut out);
+    generate(ctx, &mut out)?;
     push_cmds(ctx, &out)?;
-    let main = ctx.mcus.main();
-    let end = ctx.streamer.last_step_clock as f64 + 0.001 * main.clock_freq;
-    let remaining = (end / main.clock_freq - print_now(ctx.mcus)).max(0.0);
-    let deadline = Instant::now() + Duration::from_secs_f64(remaining / ctx.time_scale.max(1e-3) + 5.0);
-    while print_now(ctx.mcus) * main.clock_freq < end {
-        ctx.mcus.check()?;
-        if let Some(e) = main.link.error() {
-            return Err(e.to_string());
+    for m in &ctx.streams.mcus {
+        let Some(conn) = ctx.mcus.list.get(m.mcu_index) else {
+            continue;
+        };
+        let end = m.streamer.last_step_clock as f64 + 0.001 * m.clock_freq;
+        let now = || mcu_clock_now(ctx.mcus, m.mcu_index);
+        let remaining = ((end - now()) / m.clock_freq).max(0.0);
+        let deadline = Instant::now() + Duration::from_secs_f64(remaining / ctx.time_scale.max(1e-3) + 5.0);
+        while now() < end {
+            ctx.mcus.check()?;
+            if let Some(e) = conn.link.error() {
+                return Err(format!("mcu '{}': {e}", conn.name));
+            }
+            if Instant::now() > deadline {
+                return Err(format!(
+                    "homing: the clock of mcu '{}' did not reach the end of the planned moves in time",
+                    conn.name
+                ));
+            }
+            std::thread::sleep(Duration::from_millis(1));
         }
-        if Instant::now() > deadline {
-            return Err(
-                "homing: the MCU clock did not reach the end of the planned moves in time".to_string(),
-            );
-        }
-        std::thread::sleep(Duration::from_millis(1));
     }
     ctx.mcus.check()
 }
@@ -487,15 +522,6 @@ pub(crate) fn homing_pass(
     let Some(&idx0) = idxs.first() else {
         return Err(format!("homing {axis_name}: the axis has no stepper"));
     };
-    if let Some(i) = idxs
-        .iter()
-        .find(|&&i| ctx.machine.steppers[i].mcu != ctx.mcus.main().name)
-    {
-        return Err(format!(
-            "homing {axis_name}: [{}] is not on the main MCU (not supported by this version)",
-            ctx.machine.steppers[*i].name
-        ));
-    }
     // The group: the endstop's MCU first, then the steppers' MCUs.
     let mut names = vec![e.pin.mcu.clone()];
     for &i in &idxs {
@@ -571,8 +597,9 @@ pub(crate) fn homing_pass(
     let sent = match mv {
         Ok(mv) => {
             let mut out = Vec::new();
-            ctx.pipeline.generate(&mut out);
-            push_cmds(ctx, &out).map(|()| mv)
+            generate(ctx, &mut out)
+                .and_then(|()| push_cmds(ctx, &out))
+                .map(|()| mv)
         }
         Err(err) => Err(err),
     };
@@ -648,15 +675,23 @@ pub(crate) fn homing_pass(
     let halt_pos = n_halt as f64 * sd;
     let resume = print_now(ctx.mcus) + ctx.lead + START_MARGIN * ctx.time_scale.max(1.0);
     let stopped: Vec<(usize, i64)> = idxs.iter().copied().zip(after.iter().copied()).collect();
-    let now_clock = (print_now(ctx.mcus) * ctx.mcus.main().clock_freq) as u64;
+    // Each stopped stepper's MCU clock now (they are idle from here on).
+    let now_clocks: Vec<u64> = idxs
+        .iter()
+        .map(|&i| {
+            let conn = ctx.mcus.get(&ctx.machine.steppers[i].mcu);
+            conn.map_or(0.0, |c| c.link.clock().clock_at(McuLink::system_now()))
+                .max(0.0) as u64
+        })
+        .collect();
     let resync = |ctx: &mut HomingCtx<'_>, axis_pos: f64| -> Result<(), String> {
         let mut p = ctx.pipeline.position();
         p[axis] = axis_pos;
         ctx.pipeline
             .resync_after_stop(resume, p, &stopped)
             .map_err(|e| e.to_string())?;
-        for &(i, _) in &stopped {
-            ctx.streamer.note_stopped(i, now_clock);
+        for (&(i, _), &now_clock) in stopped.iter().zip(&now_clocks) {
+            ctx.streams.note_stopped(i, now_clock);
         }
         Ok(())
     };

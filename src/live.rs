@@ -7,16 +7,19 @@
 //!
 //! The planner thread runs the G-code loop with flow control (buffered print time between a
 //! low and a high water mark) and publishes encoded step messages in batches over iceoryx2
-//! shared memory (no loss: safe overflow off, back-pressure, sequence numbers). The IO stage
-//! subscribes, checks each step message's lead before handing it to the MCU link, and the
-//! link's own IO thread writes it. Histograms recorded on the way: lead margin of every step
+//! shared memory (no loss: safe overflow off, back-pressure, sequence numbers). Each MCU with
+//! steppers has its own channel (`cadence/<instance>/mcu/<mcu>/steps`) and its own IO stage
+//! thread (`io-<mcu>`), whose steps the planner counts in that MCU's clock (see `streams`). An
+//! IO stage subscribes, checks each step message's lead (in its MCU's clock) before handing it
+//! to the MCU link, and the link's own IO thread writes it. Histograms recorded on the way: lead margin of every step
 //! message (in the link IO thread, when its bytes leave), hand-off latency planner → IO stage,
 //! and each stage's wake-up lateness. When the OS refuses pinning or SCHED_FIFO, the threads run
 //! anyway and rt-core reports once which guarantees are off.
 //!
 //! The planner reaches the MCUs through [`McuSide`]: in this process (the IO stage is a thread
 //! here; homing works) or in a `cadence serve --role io` process (`--io-process`, see
-//! `remote`): then the dictionary, move queue size and clock snapshots come over shared memory.
+//! `remote`): then the dictionary, move queue size and clock snapshots come over shared memory
+//! (the main MCU's only: a printer with steppers on other MCUs is refused there).
 //!
 //! Logging during a print: the threads push fixed-size records to rt-core's logger thread
 //! ([`Logging`]), the only one that formats or writes; nobody prints from a real-time thread.
@@ -32,7 +35,7 @@ use std::time::{Duration, Instant};
 
 use clap::Args;
 use links::clocksync::ClockEstimate;
-use links::dict::{Cmd, Dictionary};
+use links::dict::Cmd;
 use links::mcu::McuLink;
 use planner::pipeline::Pipeline;
 use planner::stepgen::StepCmd;
@@ -49,7 +52,8 @@ use crate::homing::{run_motion, HomingCtx};
 use crate::machine::Machine;
 use crate::mcus::Mcus;
 use crate::print::{plan_file, MotionCmd, PrintArgs, Summary, MIN_LEAD_S};
-use crate::sink::{LinkSink, Sink, StepStreamer};
+use crate::sink::{LinkSink, Sink};
+use crate::streams::{McuParams, StepStreams};
 
 /// `ipc::Service` with pooled per-loan state: a loan allocates nothing after warm-up (see
 /// rt-core's `shm::pooled`); it talks to `ipc::Service` ports of other processes unchanged.
@@ -141,32 +145,31 @@ pub(crate) enum McuSide<'a> {
     Remote(&'a crate::remote::RemoteMcu),
 }
 
-impl McuSide<'_> {
-    fn dictionary(&self) -> &Dictionary {
-        match self {
-            McuSide::Local(m) => m.main().link.dictionary(),
-            McuSide::Remote(r) => &r.dict,
+impl<'a> McuSide<'a> {
+    /// What the step streams need of each MCU that gets one (the main MCU first).
+    fn stream_params(&self, machine: &Machine) -> Result<Vec<McuParams<'a>>, String> {
+        match *self {
+            McuSide::Local(m) => Ok(m.stream_params(machine)),
+            McuSide::Remote(r) => {
+                crate::remote::check_single_mcu(machine)?;
+                Ok(vec![McuParams {
+                    name: &r.name,
+                    mcu_index: 0,
+                    dict: &r.dict,
+                    clock_freq: r.clock_freq,
+                    move_count: r.move_count,
+                }])
+            }
         }
     }
 
-    fn clock_freq(&self) -> f64 {
+    /// The clock fit of MCU `mcu_index` (in `[mcu]` order; lock-free).
+    fn clock(&self, mcu_index: usize) -> ClockEstimate {
         match self {
-            McuSide::Local(m) => m.main().clock_freq,
-            McuSide::Remote(r) => r.clock_freq,
-        }
-    }
-
-    fn move_count(&self) -> usize {
-        match self {
-            McuSide::Local(m) => m.main().move_count,
-            McuSide::Remote(r) => r.move_count,
-        }
-    }
-
-    /// The main MCU's clock fit (lock-free).
-    fn clock(&self) -> ClockEstimate {
-        match self {
-            McuSide::Local(m) => m.main().link.clock(),
+            McuSide::Local(m) => m
+                .list
+                .get(mcu_index)
+                .map_or(ClockEstimate::INVALID, |c| c.link.clock()),
             McuSide::Remote(r) => r.clock(),
         }
     }
@@ -236,18 +239,25 @@ fn available_cores() -> usize {
     std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
 }
 
+/// MCUs whose lead margins [`Hists::lead_hook`] records (the first ones in `[mcu]` order;
+/// the link statistics of every MCU keep its minimum anyway).
+pub const LEAD_MCUS: usize = 8;
+
 /// Latency histograms recorded during a live print.
 #[derive(Debug)]
 pub struct Hists {
-    /// Lead margin of each step message when its bytes left (MCU ticks).
+    /// Lead margin of each step message when its bytes left, every MCU's, in ticks of the
+    /// main MCU's clock (print ticks: another MCU's margins are scaled).
     pub lead: Mutex<LatencyHist>,
     /// Planner → IO stage hand-off (ns).
     pub handoff: Mutex<LatencyHist>,
     /// Planner thread wake-up lateness after a flow-control sleep (ns).
     pub wake_planner: Mutex<LatencyHist>,
-    /// A step message leaving with less lead than this (MCU ticks) is logged as an error
-    /// (0 until the MCU's clock frequency is known: then only negative margins are).
-    pub min_lead_ticks: AtomicI64,
+    /// Per MCU: a step message leaving with less lead than this (its ticks) is logged as an
+    /// error (0 until the MCU's clock frequency is known: then only negative margins are).
+    pub min_lead_ticks: [AtomicI64; LEAD_MCUS],
+    /// Per MCU: main ticks per tick of this MCU (f64 bits; 1.0 until known).
+    lead_scale: [AtomicU64; LEAD_MCUS],
 }
 
 impl Hists {
@@ -257,33 +267,57 @@ impl Hists {
             lead: Mutex::new(ticks()),
             handoff: Mutex::new(LatencyHist::new()),
             wake_planner: Mutex::new(LatencyHist::new()),
-            min_lead_ticks: AtomicI64::new(0),
+            min_lead_ticks: std::array::from_fn(|_| AtomicI64::new(0)),
+            lead_scale: std::array::from_fn(|_| AtomicU64::new(1f64.to_bits())),
         })
     }
 
-    /// A link margin hook recording into `lead` (runs in the link's IO thread; a `try_lock`
-    /// so the IO thread never waits on a reader) and logging a message that left late.
-    pub fn lead_hook(self: &Arc<Self>, log: LoggerHandle) -> links::serialqueue::MarginHook {
+    /// A link margin hook for MCU `mcu` (index in `[mcu]` order) recording into `lead` (runs
+    /// in the link's IO thread; a `try_lock` so the IO thread never waits on a reader) and
+    /// logging a message that left late. `None` past [`LEAD_MCUS`].
+    pub fn lead_hook(
+        self: &Arc<Self>,
+        log: LoggerHandle,
+        mcu: usize,
+    ) -> Option<links::serialqueue::MarginHook> {
+        if mcu >= LEAD_MCUS {
+            return None;
+        }
         let h = Arc::clone(self);
-        Box::new(move |req, margin| {
+        let hook: links::serialqueue::MarginHook = Box::new(move |req: u64, margin: i64| {
+            // Relaxed: a scale and threshold set once before the print starts.
+            let scale = f64::from_bits(h.lead_scale[mcu].load(Ordering::Relaxed));
             if let Ok(mut hist) = h.lead.try_lock() {
-                hist.record_signed(margin);
+                hist.record_signed((margin as f64 * scale) as i64);
             }
-            // Relaxed: a threshold set once before the print starts.
-            if margin < h.min_lead_ticks.load(Ordering::Relaxed) {
+            if margin < h.min_lead_ticks[mcu].load(Ordering::Relaxed) {
                 log.log(
                     Level::Error,
-                    "step message left with too little lead: req_clock, margin ticks",
-                    [Arg::U(req), Arg::I(margin)],
+                    "step message left with too little lead: mcu index, req_clock, margin ticks",
+                    [Arg::U(mcu as u64), Arg::U(req), Arg::I(margin)],
                 );
             }
+        });
+        Some(hook)
+    }
+
+    /// Hooks for `ConnectOptions::lead_hooks`.
+    pub fn lead_hooks(self: &Arc<Self>, log: LoggerHandle) -> crate::mcus::LeadHooks {
+        let h = Arc::clone(self);
+        Box::new(move |mcu| {
+            h.lead_hook(log.clone(), mcu)
+                .unwrap_or_else(|| -> links::serialqueue::MarginHook { Box::new(|_, _| {}) })
         })
     }
 
-    /// Sets the lead below which a step message is logged as late.
-    pub fn set_min_lead(&self, clock_freq: f64) {
-        self.min_lead_ticks
-            .store((MIN_LEAD_S * clock_freq) as i64, Ordering::Relaxed);
+    /// Sets, for every connected MCU, the lead below which a step message is logged as late
+    /// and the scale of its margins into the main MCU's ticks.
+    pub fn set_min_lead(&self, mcus: &Mcus) {
+        let main_freq = mcus.main().clock_freq;
+        for (i, m) in mcus.list.iter().enumerate().take(LEAD_MCUS) {
+            self.min_lead_ticks[i].store((MIN_LEAD_S * m.clock_freq) as i64, Ordering::Relaxed);
+            self.lead_scale[i].store((main_freq / m.clock_freq).to_bits(), Ordering::Relaxed);
+        }
     }
 
     /// Report lines (margins in ms of print time).
@@ -582,7 +616,8 @@ pub struct LiveRun<'a> {
     pub log: &'a LoggerHandle,
 }
 
-/// Runs the live print of `gcode` on the connected MCUs.
+/// Runs the live print of `gcode` on the connected MCUs: one IO stage thread per MCU with
+/// steppers (each subscribed to its own step channel), the planner thread feeding them all.
 pub fn print_on(
     args: &PrintArgs,
     machine: &Machine,
@@ -597,32 +632,48 @@ pub fn print_on(
         hists,
         log,
     } = *run;
-    let main = mcus.main();
-    let link = &main.link;
-    let clock_freq = main.clock_freq;
     let instance = format!("p{}", std::process::id());
-    let service = steps_service_name(&instance, &main.name);
+    // (MCU index, step channel) of each MCU with steppers, the main one first.
+    let streams: Vec<(usize, String)> = mcus
+        .stream_params(machine)
+        .iter()
+        .map(|m| (m.mcu_index, steps_service_name(&instance, m.name)))
+        .collect();
     let done_flag = AtomicBool::new(false);
     let done = &done_flag;
-    let consumed_count = AtomicU64::new(0);
-    let consumed = &consumed_count;
-    let service = service.as_str();
+    let consumed_counts: Vec<AtomicU64> = streams.iter().map(|_| AtomicU64::new(0)).collect();
+    let consumed = consumed_counts.as_slice();
+    let instance = instance.as_str();
 
     std::thread::scope(|scope| {
-        let (ready_tx, ready_rx) = mpsc::channel();
-        let io_spec = rt.spec(&format!("io-{}", main.name), rt.io_core, rt.io_priority);
-        let io = std::thread::Builder::new()
-            .name(io_spec.name.clone())
-            .spawn_scoped(scope, move || {
-                apply_rt(&io_spec);
-                let log = log.with_tag("io");
-                io_stage(link, service, ready_tx, done, consumed, hists, clock_freq, &log)
-            })
-            .map_err(|e| format!("cannot start the IO stage thread: {e}"))?;
-        match ready_rx.recv_timeout(Duration::from_secs(10)) {
-            Ok(Ok(())) => {}
-            Ok(Err(e)) => return Err(format!("io stage: {e}")),
-            Err(_) => return Err("io stage did not start within 10 s".to_string()),
+        let mut ios = Vec::with_capacity(streams.len());
+        for (k, (mcu_index, service)) in streams.iter().enumerate() {
+            let conn = &mcus.list[*mcu_index];
+            let (link, clock_freq) = (&conn.link, conn.clock_freq);
+            let (ready_tx, ready_rx) = mpsc::channel();
+            let io_spec = rt.io_spec(&conn.name);
+            let counter = &consumed[k];
+            let io = std::thread::Builder::new()
+                .name(io_spec.name.clone())
+                .spawn_scoped(scope, move || {
+                    apply_rt(&io_spec);
+                    let log = log.with_tag("io");
+                    io_stage(link, service, ready_tx, done, counter, hists, clock_freq, &log)
+                })
+                .map_err(|e| format!("cannot start the IO stage thread of mcu '{}': {e}", conn.name))?;
+            let ready = match ready_rx.recv_timeout(Duration::from_secs(10)) {
+                Ok(Ok(())) => Ok(()),
+                Ok(Err(e)) => Err(format!("io stage of mcu '{}': {e}", conn.name)),
+                Err(_) => Err(format!(
+                    "io stage of mcu '{}' did not start within 10 s",
+                    conn.name
+                )),
+            };
+            ios.push(io);
+            if let Err(e) = ready {
+                done.store(true, Ordering::Release);
+                return Err(e);
+            }
         }
         let planner_spec = rt.spec("planner", rt.planner_core, rt.planner_priority);
         let planner = std::thread::Builder::new()
@@ -631,15 +682,22 @@ pub fn print_on(
                 apply_rt(&planner_spec);
                 let log = log.with_tag("planner");
                 let side = McuSide::Local(mcus);
-                let r = planner_stage(args, machine, side, gcode, scale, service, consumed, hists, &log);
+                let r = planner_stage(args, machine, side, gcode, scale, instance, consumed, hists, &log);
                 done.store(true, Ordering::Release);
                 r
             })
-            .map_err(|e| format!("cannot start the planner thread: {e}"))?;
+            .map_err(|e| format!("cannot start the planner thread: {e}"));
+        let planner = match planner {
+            Ok(p) => p,
+            Err(e) => {
+                done.store(true, Ordering::Release);
+                return Err(e);
+            }
+        };
         let telemetry = std::thread::Builder::new()
             .name("telemetry".to_string())
             .spawn_scoped(scope, move || {
-                telemetry_thread(&instance, hists, started, ALL_SOURCES, done)
+                telemetry_thread(instance, hists, started, ALL_SOURCES, done)
             })
             .map_err(|e| format!("cannot start the telemetry thread: {e}"))?;
         let planned = planner
@@ -650,26 +708,50 @@ pub fn print_on(
             log.log(Level::Warn, "telemetry failed (see stderr)", []);
             eprintln!("cadence: telemetry: {e}");
         }
-        let io_report = io
-            .join()
-            .map_err(|_| "the IO stage thread panicked".to_string())?;
-        // A failed IO stage is the root cause of a planner hand-off error: report it first.
-        let io_report = io_report?;
-        let (mut summary, pipeline, streamer, planner_allocs, _) = planned?;
-        finish_print(mcus, machine, &pipeline, &streamer, &mut summary, scale)?;
-        summary.extra.extend(hists.report(clock_freq));
-        summary.extra.push(format!(
-            "allocations after warm-up: planner {}, io stage {}; {} batches in all",
-            planner_allocs.map_or("n/a".to_string(), |n| n.to_string()),
-            io_report.allocations_after_warmup.map_or("n/a".to_string(), |n| {
-                AfterWarmup {
-                    allocations: n,
-                    batches: io_report.batches_after_warmup,
-                    ..AfterWarmup::default()
+        let mut io_total = IoReport::default();
+        let mut io_allocs = Some(0u64);
+        let mut io_error = None;
+        for io in ios {
+            let r = io
+                .join()
+                .map_err(|_| "an IO stage thread panicked".to_string())
+                .and_then(|r| r);
+            match r {
+                Ok(r) => {
+                    io_total.batches += r.batches;
+                    io_total.batches_after_warmup += r.batches_after_warmup;
+                    io_allocs = match (io_allocs, r.allocations_after_warmup) {
+                        (Some(a), Some(b)) => Some(a + b),
+                        // A stage that never warmed up (few batches) counts nothing.
+                        (a, None) if r.batches < WARMUP_BATCHES => a,
+                        _ => None,
+                    };
                 }
-                .to_string()
-            }),
-            io_report.batches
+                Err(e) => io_error = io_error.or(Some(e)),
+            }
+        }
+        // A failed IO stage is the root cause of a planner hand-off error: report it first.
+        if let Some(e) = io_error {
+            return Err(e);
+        }
+        let (mut summary, pipeline, streams, planner_allocs, _) = planned?;
+        finish_print(mcus, machine, &pipeline, &streams, &mut summary, scale)?;
+        summary.extra.extend(hists.report(summary.clock_freq));
+        summary.extra.push(format!(
+            "allocations after warm-up: planner {}, io stage{} {}; {} batches in all",
+            planner_allocs.map_or("n/a".to_string(), |n| n.to_string()),
+            if streams.mcus.len() > 1 { "s" } else { "" },
+            io_allocs
+                .filter(|_| io_total.batches >= WARMUP_BATCHES)
+                .map_or("n/a".to_string(), |n| {
+                    AfterWarmup {
+                        allocations: n,
+                        batches: io_total.batches_after_warmup,
+                        ..AfterWarmup::default()
+                    }
+                    .to_string()
+                }),
+            io_total.batches
         ));
         Ok(summary)
     })
@@ -706,12 +788,14 @@ pub(crate) fn telemetry_thread(
     Ok(())
 }
 
-/// What the planner thread hands back: the summary so far, the pipeline and streamer (final
-/// positions, last step clock), its allocations after warm-up and the number of step batches
-/// published.
-pub(crate) type Planned = (Summary, Pipeline, StepStreamer, Option<AfterWarmup>, u64);
+/// What the planner thread hands back: the summary so far, the pipeline and step streams
+/// (final positions, last step clocks), its allocations after warm-up and the number of step
+/// batches published per stream.
+pub(crate) type Planned = (Summary, Pipeline, StepStreams, Option<AfterWarmup>, Vec<u64>);
 
-/// The planner thread: G-code → pipeline → step messages into shared memory, paced.
+/// The planner thread: G-code → pipeline → step messages into shared memory (one channel per
+/// MCU with steppers: `cadence/<instance>/mcu/<mcu>/steps`), paced. `consumed[k]` counts the
+/// batches stream k's IO stage took.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn planner_stage(
     args: &PrintArgs,
@@ -719,45 +803,68 @@ pub(crate) fn planner_stage(
     side: McuSide<'_>,
     gcode: File,
     scale: f64,
-    service: &str,
-    consumed: &AtomicU64,
+    instance: &str,
+    consumed: &[AtomicU64],
     hists: &Hists,
     log: &LoggerHandle,
 ) -> Result<Planned, String> {
-    let dict = side.dictionary();
-    let clock_freq = side.clock_freq();
+    let params = side.stream_params(machine)?;
+    let Some(main) = params.first().copied() else {
+        return Err("the printer has no MCU".to_string());
+    };
+    if consumed.len() != params.len() {
+        return Err(format!(
+            "internal error: {} IO stages for {} step streams",
+            consumed.len(),
+            params.len()
+        ));
+    }
+    let clock_freq = main.clock_freq;
     let (node, _) =
         open_node::<Ipc>(&format!("cadence-planner-{}", std::process::id())).map_err(|e| e.to_string())?;
-    let publisher = ShmPublisher::<Ipc, StepBatch>::open(&node, service, &ChannelConfig::steps())
-        .map_err(|e| format!("planner → io hand-off: {e}"))?;
-    let deadline = Instant::now() + Duration::from_secs(5);
-    while publisher.connect().map_err(|e| e.to_string())? < 1 {
-        if Instant::now() > deadline {
-            return Err("planner → io hand-off: the IO stage never subscribed".to_string());
+    let mut sinks = Vec::with_capacity(params.len());
+    for m in &params {
+        let service = steps_service_name(instance, m.name);
+        let publisher = ShmPublisher::<Ipc, StepBatch>::open(&node, &service, &ChannelConfig::steps())
+            .map_err(|e| format!("planner → io hand-off of mcu '{}': {e}", m.name))?;
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while publisher.connect().map_err(|e| e.to_string())? < 1 {
+            if Instant::now() > deadline {
+                return Err(format!(
+                    "planner → io hand-off: the IO stage of mcu '{}' never subscribed",
+                    m.name
+                ));
+            }
+            std::thread::sleep(Duration::from_millis(1));
         }
-        std::thread::sleep(Duration::from_millis(1));
+        sinks.push(ShmSink {
+            publisher,
+            batch: StepBatch::default(),
+        });
     }
-    let sink = RefCell::new(ShmSink {
-        publisher,
-        batch: StepBatch::default(),
-    });
+    let sinks = RefCell::new(sinks);
+    let published = |sinks: &[ShmSink]| -> u64 { sinks.iter().map(|s| s.publisher.next_seq()).sum() };
 
-    let print_now = || side.clock().clock_at(McuLink::system_now()) / clock_freq;
+    let print_now = || side.clock(main.mcu_index).clock_at(McuLink::system_now()) / clock_freq;
     // Start far enough ahead that the first batch is planned long before it is due.
     let start = print_now() + (0.5f64).max(0.25 * scale);
     // Buffering window in print time: 2 s, or 1 s of wall time when the clock runs faster.
     let high_water = (2.0f64).max(1.0 * scale);
     let low_water = high_water / 2.0;
-    let lead_ticks = (MIN_LEAD_S * clock_freq) as u64;
     let pace = Duration::from_millis(5);
 
-    let mut pipeline = Pipeline::with_options(
+    let streams = StepStreams::new(machine, &params)?;
+    let maps = streams.clock_maps(|i| side.clock(i))?;
+    let mut pipeline = Pipeline::with_clocks(
         machine.pipeline_config(clock_freq, args.max_error_us * 1e-6),
         start,
         machine.options,
+        &maps,
     )
     .map_err(|e| e.to_string())?;
-    let streamer = RefCell::new(StepStreamer::new(dict, &machine.steppers, side.move_count())?);
+    let streams = RefCell::new(streams);
+    // Each stream's MCU clock now (reused: no allocation per batch).
+    let mut now_clocks = vec![0.0f64; params.len()];
     // Allocation counter and batches published when the pipeline first reached high water
     // (warm-up: every buffer has seen a full window), and the allocations of homing/probing
     // commands after that (not the streaming loop: counted apart).
@@ -766,50 +873,53 @@ pub(crate) fn planner_stage(
     let homing_reports = RefCell::new(Vec::new());
     log.log(
         Level::Info,
-        "planner started: start print time s, high water s",
-        [Arg::F(start), Arg::F(high_water)],
+        "planner started: start print time s, high water s, step streams",
+        [Arg::F(start), Arg::F(high_water), Arg::U(params.len() as u64)],
     );
     let lines = plan_file(
         args,
         &mut pipeline,
         gcode,
         |cmds| {
-            let mut streamer = streamer.borrow_mut();
-            let mut sink = sink.borrow_mut();
-            let now_clock = (print_now() * clock_freq) as u64;
+            let mut streams = streams.borrow_mut();
+            let mut sinks = sinks.borrow_mut();
+            let now = McuLink::system_now();
+            for (c, m) in now_clocks.iter_mut().zip(&streams.mcus) {
+                *c = side.clock(m.mcu_index).clock_at(now);
+            }
             for &(idx, cmd) in cmds.iter() {
                 if let StepCmd::QueueStep { first_clock, .. } = cmd {
-                    if first_clock < now_clock + lead_ticks {
+                    let k = streams.stream_of(idx).unwrap_or(0);
+                    let freq = streams.mcus[k].clock_freq;
+                    let now_clock = now_clocks[k];
+                    if (first_clock as f64) < now_clock + MIN_LEAD_S * freq {
+                        let ahead_ms = (first_clock as f64 - now_clock) / freq * 1e3;
                         log.log(
                             Level::Error,
                             "planner fell behind: stepper index, ms before due",
-                            [
-                                Arg::U(idx as u64),
-                                Arg::F((first_clock as f64 - now_clock as f64) / clock_freq * 1e3),
-                            ],
+                            [Arg::U(idx as u64), Arg::F(ahead_ms)],
                         );
                         return Err(format!(
-                            "the planner fell behind: a step for {} at print time {:.3} s was ready only {:.1} ms \
-                             before it is due (at least {:.0} ms required); print stopped before sending it",
+                            "the planner fell behind: a step for {} on mcu '{}' at its clock {first_clock} was \
+                             ready only {ahead_ms:.1} ms before it is due (at least {:.0} ms required); print \
+                             stopped before sending it",
                             machine.steppers[idx].name,
-                            first_clock as f64 / clock_freq,
-                            (first_clock as f64 - now_clock as f64) / clock_freq * 1e3,
+                            streams.mcus[k].name,
                             MIN_LEAD_S * 1e3
                         ));
                     }
                 }
-                streamer.push(idx, cmd, &mut *sink)?;
+                streams.push(idx, cmd, &mut sinks[..])?;
             }
-            sink.flush()
+            sinks.iter_mut().try_for_each(ShmSink::flush)
         },
         |p| {
+            // The next batch is planned with the MCUs' latest clock fits.
+            streams.borrow().refresh_clocks(p, |i| side.clock(i))?;
             // Flow control: keep between the low and high water marks of buffered print time.
             if p.planned_until() - print_now() > high_water {
                 if warm.get().is_none() {
-                    warm.set(Some((
-                        AllocCounter::snapshot(),
-                        sink.borrow().publisher.next_seq(),
-                    )));
+                    warm.set(Some((AllocCounter::snapshot(), published(&sinks.borrow()[..]))));
                     crate::allocsites::start_if_requested();
                 }
                 log.log(
@@ -843,30 +953,39 @@ pub(crate) fn planner_stage(
                 ));
             };
             let motion_start = AllocCounter::snapshot();
-            let link = &mcus.main().link;
-            // Drain the shared-memory hand-off: everything planned so far must be in the link
+            // Drain the shared-memory hand-offs: everything planned so far must be in the links
             // before homing talks to the MCUs directly.
-            let published = {
-                let mut sink = sink.borrow_mut();
-                sink.flush()?;
-                sink.publisher.next_seq()
+            let targets: Vec<u64> = {
+                let mut sinks = sinks.borrow_mut();
+                sinks.iter_mut().try_for_each(ShmSink::flush)?;
+                sinks.iter().map(|s| s.publisher.next_seq()).collect()
             };
             let deadline = Instant::now() + Duration::from_secs(10);
-            while consumed.load(Ordering::Acquire) < published {
+            while consumed
+                .iter()
+                .zip(&targets)
+                .any(|(c, &t)| c.load(Ordering::Acquire) < t)
+            {
                 if Instant::now() > deadline {
-                    return Err("the IO stage did not take the planned steps before homing".to_string());
+                    return Err("the IO stages did not take the planned steps before homing".to_string());
                 }
                 mcus.check()?;
                 std::thread::sleep(Duration::from_millis(1));
             }
-            let mut streamer = streamer.borrow_mut();
-            let mut direct = LinkSink { link };
+            let mut streams = streams.borrow_mut();
+            let mut direct: Vec<LinkSink<'_>> = streams
+                .mcus
+                .iter()
+                .map(|m| LinkSink {
+                    link: &mcus.list[m.mcu_index].link,
+                })
+                .collect();
             let mut ctx = HomingCtx {
                 mcus,
                 machine,
                 pipeline,
-                streamer: &mut streamer,
-                sink: &mut direct,
+                streams: &mut streams,
+                sinks: &mut direct,
                 lead: MIN_LEAD_S,
                 time_scale: scale,
             };
@@ -895,21 +1014,23 @@ pub(crate) fn planner_stage(
             Ok(true)
         },
     )?;
-    let mut sink = sink.into_inner();
-    let streamer = streamer.into_inner();
-    sink.flush()?;
-    let batches = sink.publisher.next_seq();
+    let mut sinks = sinks.into_inner();
+    let streams = streams.into_inner();
+    sinks.iter_mut().try_for_each(ShmSink::flush)?;
+    let total = published(&sinks);
+    // Counted before anything below allocates (the report's own vectors).
     let (motion_allocations, motion_count) = motions.get();
     let allocs = warm.get().map(|(w, seq)| AfterWarmup {
         allocations: AllocCounter::snapshot()
             .since(w)
             .allocations()
             .saturating_sub(motion_allocations),
-        batches: batches - seq,
+        batches: total - seq,
         motion_allocations,
         motions: motion_count,
     });
     crate::allocsites::finish_if_requested("planner");
+    let batches: Vec<u64> = sinks.iter().map(|s| s.publisher.next_seq()).collect();
     let stats = pipeline.stats();
     let summary = Summary {
         file: args.file.clone(),
@@ -917,9 +1038,13 @@ pub(crate) fn planner_stage(
         moves: stats.moves,
         print_time: pipeline.planned_until() - start,
         wall: 0.0,
-        queue_steps: streamer.queue_steps(),
+        queue_steps: streams.queue_steps(),
         rows: Vec::new(),
         clock_freq,
+        mcu_freqs: params
+            .iter()
+            .map(|m| (m.name.to_string(), m.clock_freq))
+            .collect(),
         extra: homing_reports.into_inner(),
     };
     log.log(
@@ -929,77 +1054,89 @@ pub(crate) fn planner_stage(
             Arg::U(lines),
             Arg::U(stats.moves),
             Arg::U(summary.queue_steps),
-            Arg::U(batches),
+            Arg::U(total),
         ],
     );
-    Ok((summary, pipeline, streamer, allocs, batches))
+    Ok((summary, pipeline, streams, allocs, batches))
 }
 
-/// Waits for the MCU to execute the last step, reads the positions back and checks them.
+/// Waits for every MCU to execute its last step, reads the positions back and checks them,
+/// and checks every MCU's lead.
 fn finish_print(
     mcus: &Mcus,
     machine: &Machine,
     pipeline: &Pipeline,
-    streamer: &StepStreamer,
+    streams: &StepStreams,
     summary: &mut Summary,
     scale: f64,
 ) -> Result<(), String> {
-    let main = mcus.main();
-    let mcu_positions = read_final_positions(mcus, machine, streamer.last_step_clock, scale)?;
-    check_positions(machine, pipeline, streamer, &mcu_positions, summary)?;
-    check_min_lead(main.link.stats().min_lead_margin_ticks, main.clock_freq)
+    let mcu_positions = read_final_positions(mcus, machine, &streams.end_clocks(), scale)?;
+    check_positions(machine, pipeline, &streams.steps_sent(), &mcu_positions, summary)?;
+    for m in &mcus.list {
+        check_min_lead(&m.name, m.link.stats().min_lead_margin_ticks, m.clock_freq)?;
+    }
+    Ok(())
 }
 
-/// Waits (bounded) until the main MCU executed everything up to `end_clock`, then reads each
-/// stepper's position back, in machine order, in the host's sign convention (dir pin
-/// inversion undone).
+/// Waits (bounded) until each MCU of `ends` (MCU index, last step clock in its own clock)
+/// executed everything, then reads each stepper's position back from its MCU, in machine
+/// order, in the host's sign convention (dir pin inversion undone).
 pub(crate) fn read_final_positions(
     mcus: &Mcus,
     machine: &Machine,
-    end_clock: u64,
+    ends: &[(usize, u64)],
     scale: f64,
 ) -> Result<Vec<i64>, String> {
-    let main = mcus.main();
-    let link = &main.link;
-    let dict = link.dictionary();
-    let clock_freq = main.clock_freq;
-    let print_now = || link.clock().clock_at(McuLink::system_now()) / clock_freq;
-    let wait_s = (end_clock as f64 / clock_freq - print_now()).max(0.0) / scale + 5.0;
-    let deadline = Instant::now() + Duration::from_secs_f64(wait_s);
-    link.wait_idle(Duration::from_secs_f64(wait_s))
-        .map_err(|e| e.to_string())?;
-    while print_now() * clock_freq < end_clock as f64 + 0.01 * clock_freq {
-        mcus.check()?;
-        if Instant::now() > deadline {
-            return Err("the MCU clock did not reach the end of the print in time".to_string());
+    for &(i, end_clock) in ends {
+        let Some(m) = mcus.list.get(i) else {
+            continue;
+        };
+        let link = &m.link;
+        let clock_freq = m.clock_freq;
+        let now_s = || link.clock().clock_at(McuLink::system_now()) / clock_freq;
+        let wait_s = (end_clock as f64 / clock_freq - now_s()).max(0.0) / scale + 5.0;
+        let deadline = Instant::now() + Duration::from_secs_f64(wait_s);
+        link.wait_idle(Duration::from_secs_f64(wait_s))
+            .map_err(|e| format!("mcu '{}': {e}", m.name))?;
+        while now_s() * clock_freq < end_clock as f64 + 0.01 * clock_freq {
+            mcus.check()?;
+            if Instant::now() > deadline {
+                return Err(format!(
+                    "mcu '{}': its clock did not reach the end of the print in time",
+                    m.name
+                ));
+            }
+            std::thread::sleep(Duration::from_millis(5));
         }
-        std::thread::sleep(Duration::from_millis(5));
     }
     mcus.check()?;
     let mut out = Vec::with_capacity(machine.steppers.len());
     for s in &machine.steppers {
-        let q = dict
+        let m = mcus
+            .get(&s.mcu)
+            .ok_or_else(|| format!("[{}]: mcu '{}' is not connected", s.name, s.mcu))?;
+        let link = &m.link;
+        let q = link
+            .dictionary()
             .encode("stepper_get_position", &[s.oid as i64])
-            .map_err(|e| e.to_string())?;
+            .map_err(|e| format!("mcu '{}': {e}", m.name))?;
         // Retried: an answer lost on a noisy line is not retransmitted (the query is idempotent).
-        let mut reply = link.query(
-            q,
-            "stepper_position",
-            Some(("oid", s.oid as i64)),
-            Duration::from_secs(1),
-        );
-        for _ in 0..3 {
-            if reply.is_ok() || link.error().is_some() {
-                break;
-            }
-            reply = link.query(
+        let ask = || {
+            link.query(
                 q,
                 "stepper_position",
                 Some(("oid", s.oid as i64)),
                 Duration::from_secs(1),
-            );
+            )
+        };
+        let mut reply = ask();
+        for _ in 0..3 {
+            if reply.is_ok() || link.error().is_some() {
+                break;
+            }
+            reply = ask();
         }
-        let reply = reply.map_err(|e| e.to_string())?;
+        let reply = reply.map_err(|e| format!("mcu '{}': [{}] position: {e}", m.name, s.name))?;
         let raw = reply.get("pos").unwrap_or(0);
         out.push(if s.dir_pin.invert { -raw } else { raw });
     }
@@ -1007,16 +1144,16 @@ pub(crate) fn read_final_positions(
 }
 
 /// Fills the summary's rows and fails if an MCU position differs from the host's.
+/// `steps_sent` is per stepper in machine order.
 pub(crate) fn check_positions(
     machine: &Machine,
     pipeline: &Pipeline,
-    streamer: &StepStreamer,
+    steps_sent: &[u64],
     mcu_positions: &[i64],
     summary: &mut Summary,
 ) -> Result<(), String> {
     let host_positions = pipeline.stepper_positions();
     let commanded = pipeline.position();
-    let steps_sent = streamer.steps_sent();
     for (i, s) in machine.steppers.iter().enumerate() {
         let Some(&mcu_pos) = mcu_positions.get(i) else {
             return Err(format!("{}: no position read back from the MCU", s.name));
@@ -1031,19 +1168,29 @@ pub(crate) fn check_positions(
         ));
     }
     if let Some((name, _, m, h, _)) = summary.rows.iter().find(|r| r.2 != r.3) {
+        let mcu = machine
+            .steppers
+            .iter()
+            .find(|s| &s.name == name)
+            .map_or("?", |s| s.mcu.as_str());
         return Err(format!(
-            "{name}: the MCU reports position {m} steps but the host sent {h}"
+            "{name}: mcu '{mcu}' reports position {m} steps but the host sent {h}"
         ));
     }
     Ok(())
 }
 
-/// Fails if a step command reached the MCU with less than the required lead.
-pub(crate) fn check_min_lead(min_margin_ticks: Option<i64>, clock_freq: f64) -> Result<(), String> {
+/// Fails if a step command reached MCU `mcu` (clock `clock_freq`) with less than the
+/// required lead.
+pub(crate) fn check_min_lead(
+    mcu: &str,
+    min_margin_ticks: Option<i64>,
+    clock_freq: f64,
+) -> Result<(), String> {
     if let Some(margin) = min_margin_ticks {
         if (margin as f64) < MIN_LEAD_S * clock_freq {
             return Err(format!(
-                "a step command reached the MCU with only {:.1} ms lead (at least {:.0} ms required)",
+                "a step command reached mcu '{mcu}' with only {:.1} ms lead (at least {:.0} ms required)",
                 margin as f64 / clock_freq * 1e3,
                 MIN_LEAD_S * 1e3
             ));

@@ -77,7 +77,7 @@ pub struct Machine {
 }
 
 impl Machine {
-    /// Derives the machine from a validated config. Single-MCU printers only for now.
+    /// Derives the machine from a validated config: steppers and endstops on any of its MCUs.
     pub fn from_config(cfg: &PrinterConfig) -> Result<Machine, String> {
         // Toolhead limits, kinematics and home position come from one shared derivation.
         let (planning, kinematics) = sysconfig::planning::pipeline_config(cfg, 1.0, 25e-6)
@@ -131,19 +131,8 @@ impl Machine {
                 step_dist: e.step_dist(),
             });
         }
-        for s in &steppers {
-            for pin in [&s.step_pin, &s.dir_pin] {
-                if pin.mcu != "mcu" {
-                    return Err(format!(
-                        "{}: [{}] pin '{}:{}': steppers can only be driven by the main [mcu] in this version",
-                        cfg.source.display(),
-                        s.name,
-                        pin.mcu,
-                        pin.pin
-                    ));
-                }
-            }
-        }
+        // A stepper lives on its step pin's MCU, any configured one (sysconfig checked that
+        // the MCU exists and that the dir pin is on the same one).
         // Object ids: per MCU, steppers first, then endstops (the trsync comes last).
         let mut next: std::collections::HashMap<String, u8> = std::collections::HashMap::new();
         for s in steppers.iter_mut() {
@@ -351,5 +340,41 @@ mod tests {
         assert_eq!(oids, [0, 1]);
         let args = m.sim_world_args("probe_mcu", "w").join(" ");
         assert_eq!(args, "--endstop PA3=z,0,min --endstop PA4=z,1.25,min --world w");
+    }
+
+    #[test]
+    fn steppers_on_a_toolboard_get_its_oids_and_move_its_world_axes() {
+        let m = machine(include_str!("../examples/simulated-toolboard.cfg"));
+        let on = |mcu: &str| -> Vec<(&str, u8)> {
+            m.steppers
+                .iter()
+                .filter(|s| s.mcu == mcu)
+                .map(|s| (s.name.as_str(), s.oid))
+                .collect()
+        };
+        assert_eq!(on("mcu"), [("stepper_x", 0), ("stepper_y", 1)]);
+        assert_eq!(on("toolboard"), [("stepper_z", 0), ("extruder", 1)]);
+        let oids: Vec<u8> = m.mcu_endstops("mcu").iter().map(|e| e.oid).collect();
+        assert_eq!(oids, [2, 3, 4]);
+        assert!(m.mcu_endstops("toolboard").is_empty());
+        // The toolboard's process moves Z in the shared world; the main one reads its endstop.
+        let tool = m.sim_world_args("toolboard", "w").join(" ");
+        assert_eq!(tool, "--axis z=PA0,400,20 --world w");
+        let main = m.sim_world_args("mcu", "w").join(" ");
+        assert!(main.contains("--endstop PC3=z,0,min"), "{main}");
+        assert!(!main.contains("--axis z"), "{main}");
+    }
+
+    #[test]
+    fn a_stepper_split_over_two_mcus_is_refused() {
+        let text = include_str!("../examples/simulated-toolboard.cfg")
+            .replace("dir_pin: toolboard:PA1", "dir_pin: PC1");
+        let err = sysconfig::parse_str(&text, std::path::Path::new("printer.cfg"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("stepper_z") && err.contains("dir_pin") && err.contains("toolboard"),
+            "{err}"
+        );
     }
 }

@@ -24,6 +24,7 @@ mod remote;
 mod serve;
 mod simmcu;
 mod sink;
+mod streams;
 
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;

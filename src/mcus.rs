@@ -40,8 +40,9 @@ pub struct ConnectOptions {
     pub time_scale: f64,
     /// Step trace of the main MCU; others get `-<name>` inserted before the extension.
     pub trace: Option<PathBuf>,
-    /// Called by the main MCU's IO thread with the lead margin of each clocked message.
-    pub lead_hook: Option<links::serialqueue::MarginHook>,
+    /// Makes the hook each MCU's IO thread calls with the lead margin of each clocked message
+    /// (argument: the MCU's index in `[mcu]` order).
+    pub lead_hooks: Option<LeadHooks>,
     /// Real-time settings of each link's IO thread (`None`: normal thread).
     pub io_rt: Option<rt_core::os::RtSpec>,
 }
@@ -54,6 +55,9 @@ impl std::fmt::Debug for ConnectOptions {
             .finish_non_exhaustive()
     }
 }
+
+/// Makes the lead-margin hook of the MCU with the given index (see [`ConnectOptions`]).
+pub type LeadHooks = Box<dyn Fn(usize) -> links::serialqueue::MarginHook>;
 
 /// SCHED_FIFO priority of simulated MCUs when the host runs real-time (below the host's
 /// planner and IO threads).
@@ -74,7 +78,7 @@ pub fn trace_path(base: &Path, name: &str, main: bool) -> PathBuf {
 
 impl Mcus {
     /// Starts (for `serial: simulator`) and connects every MCU, then configures its objects.
-    pub fn connect(cfg: &PrinterConfig, machine: &Machine, mut opts: ConnectOptions) -> Result<Mcus, String> {
+    pub fn connect(cfg: &PrinterConfig, machine: &Machine, opts: ConnectOptions) -> Result<Mcus, String> {
         let world = format!("cadence-{}", std::process::id());
         let mut mcus = Mcus { list: Vec::new() };
         for (i, mcu_cfg) in cfg.mcus.iter().enumerate() {
@@ -120,7 +124,7 @@ impl Mcus {
                 spec
             });
             let tuning = LinkTuning {
-                margin_hook: if i == 0 { opts.lead_hook.take() } else { None },
+                margin_hook: opts.lead_hooks.as_ref().map(|make| make(i)),
                 thread_setup: io_rt.map(|spec| -> Box<dyn FnOnce() + Send> {
                     Box::new(move || {
                         rt_core::os::apply_rt(&spec);
@@ -231,6 +235,24 @@ impl Mcus {
     /// The MCU called `name`.
     pub fn get(&self, name: &str) -> Option<&McuConn> {
         self.list.iter().find(|m| m.name == name)
+    }
+
+    /// What a step stream needs of each MCU that gets one (see `streams::stream_mcus`).
+    pub fn stream_params(&self, machine: &Machine) -> Vec<crate::streams::McuParams<'_>> {
+        let names: Vec<&str> = self.list.iter().map(|m| m.name.as_str()).collect();
+        crate::streams::stream_mcus(machine, &names)
+            .into_iter()
+            .map(|i| {
+                let m = &self.list[i];
+                crate::streams::McuParams {
+                    name: &m.name,
+                    mcu_index: i,
+                    dict: m.link.dictionary(),
+                    clock_freq: m.clock_freq,
+                    move_count: m.move_count,
+                }
+            })
+            .collect()
     }
 
     /// The first MCU that reported a shutdown, as an error.

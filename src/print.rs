@@ -16,7 +16,8 @@ use sysconfig::printer::PrinterConfig;
 use crate::live::{self, Hists, RtConfig};
 use crate::machine::Machine;
 use crate::mcus::{ConnectOptions, Mcus};
-use crate::sink::{BatchSink, Sink, StepStreamer};
+use crate::sink::{BatchSink, Sink};
+use crate::streams::{McuParams, StepStreams};
 
 /// Arguments of `cadence print`.
 #[derive(Debug, Args)]
@@ -30,7 +31,8 @@ pub struct PrintArgs {
     /// config's [simulator] time_scale, else 1).
     #[arg(long)]
     pub time_scale: Option<f64>,
-    /// No MCU and no real-time waiting: write the exact wire stream to this file.
+    /// No MCU and no real-time waiting: write the exact wire stream to this file (another MCU
+    /// with steppers gets its own file, `-NAME` inserted before the extension).
     #[arg(long)]
     pub batch: Option<PathBuf>,
     /// Data dictionary (zlib-compressed JSON as served by identify) for --batch; default: the
@@ -133,7 +135,7 @@ pub(crate) fn plan_file(
     pipeline: &mut Pipeline,
     gcode: File,
     mut emit: impl FnMut(&mut Vec<(usize, StepCmd)>) -> Result<(), String>,
-    mut pace: impl FnMut(&Pipeline) -> Result<(), String>,
+    mut pace: impl FnMut(&mut Pipeline) -> Result<(), String>,
     mut motion: impl FnMut(&mut Pipeline, &MotionCmd<'_>) -> Result<bool, String>,
 ) -> Result<u64, String> {
     let mut warnings = Warnings::default();
@@ -176,9 +178,12 @@ pub(crate) fn plan_file(
     Ok(lines)
 }
 
+/// Batch mode: the wire stream of each MCU with steppers (the main one to `out`, another one
+/// to `out` with `-NAME` inserted, as for traces), every MCU encoded with the one dictionary and
+/// its clock counted from print time 0.
 fn run_batch(
     args: &PrintArgs,
-    _cfg: &PrinterConfig,
+    cfg: &PrinterConfig,
     machine: &Machine,
     gcode: File,
     out: &Path,
@@ -186,13 +191,34 @@ fn run_batch(
     let started = Instant::now();
     let dict = crate::decode::load_dictionary(args.dictionary.as_deref())?;
     let clock_freq = dict.clock_freq().map_err(|e| e.to_string())?;
-    let file = File::create(out).map_err(|e| format!("{}: {e}", out.display()))?;
-    let mut sink = BatchSink::new(BufWriter::with_capacity(1 << 16, file));
-    for c in crate::mcus::config_commands(&dict, machine, "mcu")?.0 {
-        sink.send(c)?;
-    }
+    let names: Vec<&str> = cfg.mcus.iter().map(|m| m.name.as_str()).collect();
     let move_count = 16384;
-    let mut streamer = StepStreamer::new(&dict, &machine.steppers, move_count)?;
+    let params: Vec<McuParams<'_>> = crate::streams::stream_mcus(machine, &names)
+        .into_iter()
+        .map(|i| McuParams {
+            name: names[i],
+            mcu_index: i,
+            dict: &dict,
+            clock_freq,
+            move_count,
+        })
+        .collect();
+    let mut sinks = Vec::with_capacity(params.len());
+    let mut paths = Vec::with_capacity(params.len());
+    for (k, m) in params.iter().enumerate() {
+        let path = crate::mcus::trace_path(out, m.name, k == 0);
+        let file = File::create(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let mut sink = BatchSink::new(BufWriter::with_capacity(1 << 16, file));
+        for c in crate::mcus::config_commands(&dict, machine, m.name)
+            .map_err(|e| format!("mcu '{}': {e}", m.name))?
+            .0
+        {
+            sink.send(c)?;
+        }
+        sinks.push(sink);
+        paths.push(path);
+    }
+    let mut streams = StepStreams::new(machine, &params)?;
     // Batch mode runs flat out: step generation and compression on every core.
     let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
     let options = PipelineOptions {
@@ -211,29 +237,32 @@ fn run_batch(
         gcode,
         |cmds| {
             for &(idx, cmd) in cmds.iter() {
-                streamer.push(idx, cmd, &mut sink)?;
+                streams.push(idx, cmd, &mut sinks[..])?;
             }
             Ok(())
         },
         |_| Ok(()),
         |_, _| Ok(false),
     )?;
-    sink.finish()?;
+    for s in &mut sinks {
+        s.finish()?;
+    }
     let stats = pipeline.stats();
-    println!("batch: {} -> {}", args.file.display(), out.display());
+    let files: Vec<String> = paths.iter().map(|p| p.display().to_string()).collect();
+    println!("batch: {} -> {}", args.file.display(), files.join(", "));
     println!(
         "  lines {lines}, moves {}, print time {:.3} s",
         stats.moves,
         pipeline.planned_until()
     );
-    for (s, n) in machine.steppers.iter().zip(streamer.steps_sent()) {
+    for (s, n) in machine.steppers.iter().zip(streams.steps_sent()) {
         println!("  {:<10} {n} steps", s.name);
     }
     println!(
         "  queue_step {}, blocks {}, wire bytes {}, wall {:.3} s",
-        streamer.queue_steps(),
-        sink.blocks,
-        sink.bytes,
+        streams.queue_steps(),
+        sinks.iter().map(|s| s.blocks).sum::<u64>(),
+        sinks.iter().map(|s| s.bytes).sum::<u64>(),
         started.elapsed().as_secs_f64()
     );
     Ok(())
@@ -255,11 +284,11 @@ fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: Fil
     let opts = ConnectOptions {
         time_scale,
         trace: args.trace.clone(),
-        lead_hook: Some(hists.lead_hook(logging.handle("io-link"))),
+        lead_hooks: Some(hists.lead_hooks(logging.handle("io-link"))),
         io_rt: Some(rt.link_spec()),
     };
     let mut mcus = Mcus::connect(cfg, machine, opts)?;
-    hists.set_min_lead(mcus.main().clock_freq);
+    hists.set_min_lead(&mcus);
     let log = logging.handle("main");
     let run = live::LiveRun {
         started,
@@ -295,6 +324,8 @@ pub(crate) struct Summary {
     /// (stepper, steps sent, MCU position, host position, commanded axis position)
     pub rows: Vec<(String, u64, i64, i64, f64)>,
     pub clock_freq: f64,
+    /// Each streamed MCU's CLOCK_FREQ (for its lead figures; others use `clock_freq`).
+    pub mcu_freqs: Vec<(String, f64)>,
     /// Further report lines (histograms, allocation counts).
     pub extra: Vec<String>,
 }
@@ -318,10 +349,15 @@ impl Summary {
             println!("  {line}");
         }
         for (name, stats) in all_stats {
+            let freq = self
+                .mcu_freqs
+                .iter()
+                .find(|(n, _)| n == name)
+                .map_or(self.clock_freq, |&(_, f)| f);
             if let Some(margin) = stats.min_lead_margin_ticks {
                 println!(
                     "  mcu '{name}': min lead margin {:.1} ms over {} clocked messages (required {:.0} ms)",
-                    margin as f64 / self.clock_freq * 1e3,
+                    margin as f64 / freq * 1e3,
                     stats.clocked_msgs,
                     MIN_LEAD_S * 1e3
                 );

@@ -29,7 +29,7 @@ use rt_core::shm::io::{
     clock_service_name, control_kind, control_service_name, info_service_name, io_state, status_service_name,
     ClockSnapshot, IoControl, IoStatus, McuInfo,
 };
-use rt_core::shm::{open_node, steps_service_name, ChannelConfig, ShmPublisher, ShmSubscriber};
+use rt_core::shm::{open_node, ChannelConfig, ShmPublisher, ShmSubscriber};
 use sysconfig::printer::PrinterConfig;
 
 use crate::live::{self, Hists, Logging, McuSide, RtConfig};
@@ -50,6 +50,23 @@ pub(crate) fn config_crc(dict: &Dictionary, machine: &Machine, mcu: &str) -> Res
     let (_, _, crc) =
         crate::mcus::config_commands(dict, machine, mcu).map_err(|e| format!("mcu '{mcu}': {e}"))?;
     Ok(crc)
+}
+
+/// Refuses a printer with steppers on other MCUs than the main one: the IO process serves the
+/// main MCU's step stream only.
+pub(crate) fn check_single_mcu(machine: &Machine) -> Result<(), String> {
+    match machine
+        .steppers
+        .iter()
+        .find(|s| s.mcu != sysconfig::printer::MAIN_MCU)
+    {
+        Some(s) => Err(format!(
+            "[{}] is driven by mcu '{}': the IO stage in another process (serve, --io-process, \
+             --io-attach) streams steps to the main [mcu] only; print without --io-process/--io-attach",
+            s.name, s.mcu
+        )),
+        None => Ok(()),
+    }
 }
 
 /// The main MCU as the planner sees it when the IO stage runs in another process.
@@ -186,6 +203,7 @@ pub(crate) fn run(
     gcode: File,
 ) -> Result<(), String> {
     let started = Instant::now();
+    check_single_mcu(machine)?;
     let simulated = cfg.mcus.iter().any(|m| m.is_simulated());
     if args.time_scale.is_some() && !simulated {
         return Err("--time-scale only applies to a simulated printer".to_string());
@@ -242,10 +260,10 @@ pub(crate) fn run(
         clock_valid: AtomicBool::new(false),
     };
     let clock_freq = remote.clock_freq;
-    let service = steps_service_name(&instance, &main_name);
     let stop_relay = AtomicBool::new(false);
     let telemetry_stop = AtomicBool::new(false);
-    let consumed = AtomicU64::new(0);
+    // The planner watches what the IO process took only before homing, which is refused here.
+    let consumed = [AtomicU64::new(0)];
 
     let result = std::thread::scope(|scope| {
         let relay = std::thread::Builder::new()
@@ -270,7 +288,7 @@ pub(crate) fn run(
         }
         let planner_spec = rt.planner_spec();
         let remote = &remote;
-        let (hists, service, consumed) = (&hists, service.as_str(), &consumed);
+        let (hists, instance_name, consumed) = (&hists, instance.as_str(), &consumed[..]);
         let planner_log = log.with_tag("planner");
         let planner = std::thread::Builder::new()
             .name("planner".to_string())
@@ -282,7 +300,7 @@ pub(crate) fn run(
                     McuSide::Remote(remote),
                     gcode,
                     time_scale,
-                    service,
+                    instance_name,
                     consumed,
                     hists,
                     &planner_log,
@@ -308,7 +326,7 @@ pub(crate) fn run(
                 eprintln!("cadence: telemetry: {e}");
             }
         }
-        let (mut summary, pipeline, streamer, allocs, batches) = match planned {
+        let (mut summary, pipeline, streams, allocs, batches) = match planned {
             Ok(p) => p,
             Err(e) => {
                 let _ = control.send_with(|c| c.kind = control_kind::ABORT);
@@ -317,7 +335,8 @@ pub(crate) fn run(
                 return Err(remote.check().err().unwrap_or(e));
             }
         };
-        let end_clock = streamer.last_step_clock;
+        let end_clock = streams.mcus[0].streamer.last_step_clock;
+        let batches = batches[0];
         let finish = control.send_with(|c| {
             c.kind = control_kind::FINISH;
             c.batches = batches;
@@ -354,7 +373,13 @@ pub(crate) fn run(
         stop();
         let done = done?;
         let _ = control.send_with(|c| c.kind = control_kind::DONE_SEEN);
-        live::check_positions(machine, &pipeline, &streamer, done.positions(), &mut summary)?;
+        live::check_positions(
+            machine,
+            &pipeline,
+            &streams.steps_sent(),
+            done.positions(),
+            &mut summary,
+        )?;
         let min_lead = (done.min_lead_margin_ticks != i64::MIN).then_some(done.min_lead_margin_ticks);
         if let Some(m) = min_lead {
             summary.extra.push(format!(
@@ -366,7 +391,7 @@ pub(crate) fn run(
                 crate::print::MIN_LEAD_S * 1e3
             ));
         }
-        live::check_min_lead(min_lead, clock_freq)?;
+        live::check_min_lead(&remote.name, min_lead, clock_freq)?;
         summary.extra.extend(hists.report(clock_freq));
         summary.extra.push(format!(
             "allocations after warm-up: planner {}; io stage in process {} ({} batches)",
@@ -531,5 +556,14 @@ mod tests {
         assert_eq!(a, config_crc(&dict, &machine(text), "mcu").unwrap());
         let moved = text.replace("step_pin: PA0", "step_pin: PA4");
         assert_ne!(a, config_crc(&dict, &machine(&moved), "mcu").unwrap());
+    }
+
+    #[test]
+    fn steppers_on_another_mcu_are_refused_by_the_io_process() {
+        let m = machine(include_str!("../examples/simulated-toolboard.cfg"));
+        let err = check_single_mcu(&m).unwrap_err();
+        assert!(err.contains("[stepper_z] is driven by mcu 'toolboard'"), "{err}");
+        let m = machine(include_str!("../examples/simulated-multi-mcu.cfg"));
+        assert!(check_single_mcu(&m).is_ok());
     }
 }

@@ -100,6 +100,7 @@ pub fn run(args: &ServeArgs) -> Result<(), String> {
         return Err(format!("--time-scale {time_scale}: must be in (0, 50]"));
     }
     let machine = Machine::from_config(&cfg)?;
+    crate::remote::check_single_mcu(&machine)?;
     let instance = args
         .instance
         .clone()
@@ -124,7 +125,7 @@ pub fn run(args: &ServeArgs) -> Result<(), String> {
     let opts = ConnectOptions {
         time_scale,
         trace: args.trace.clone(),
-        lead_hook: Some(hists.lead_hook(logging.handle("io-link"))),
+        lead_hooks: Some(hists.lead_hooks(logging.handle("io-link"))),
         io_rt: Some(rt.link_spec()),
     };
     let mut mcus = match Mcus::connect(&cfg, &machine, opts) {
@@ -134,7 +135,7 @@ pub fn run(args: &ServeArgs) -> Result<(), String> {
             return Err(e);
         }
     };
-    hists.set_min_lead(mcus.main().clock_freq);
+    hists.set_min_lead(&mcus);
     let ctx = ServeCtx {
         args,
         machine: &machine,
@@ -401,7 +402,8 @@ fn serve_print(
                         "serve: all batches taken, waiting for the MCU: batches, end clock",
                         [Arg::U(n), Arg::U(f.end_clock)],
                     );
-                    let positions = live::read_final_positions(mcus, ctx.machine, f.end_clock, ctx.scale)?;
+                    let positions =
+                        live::read_final_positions(mcus, ctx.machine, &[(0, f.end_clock)], ctx.scale)?;
                     if positions.len() > STATUS_POSITIONS {
                         return Err(format!(
                             "{} steppers: an IoStatus carries at most {STATUS_POSITIONS} positions",

@@ -28,7 +28,8 @@ pub struct SimOptions {
     pub clock_freq: u64,
     pub time_scale: f64,
     pub trace: Option<PathBuf>,
-    /// Further arguments (the simulated world: axes, endstops).
+    /// Further arguments (the simulated world: axes, endstops; `--clock-freq` here replaces
+    /// `clock_freq`).
     pub extra: Vec<String>,
 }
 
@@ -66,7 +67,11 @@ impl SimMcu {
     /// Spawns the simulated MCU and waits (bounded) for it to announce its pty.
     pub fn spawn(name: &str, opts: &SimOptions) -> Result<SimMcu, String> {
         let mut cmd = mcu_command()?;
-        cmd.arg("--clock-freq").arg(opts.clock_freq.to_string());
+        // Extra arguments may give this MCU a clock of its own (e.g. a 16 MHz toolhead board
+        // next to a 50 MHz main board, through `CADENCE_SIM_ARGS_<NAME>`).
+        if !opts.extra.iter().any(|a| a == "--clock-freq") {
+            cmd.arg("--clock-freq").arg(opts.clock_freq.to_string());
+        }
         cmd.arg("--time-scale").arg(opts.time_scale.to_string());
         if let Some(trace) = &opts.trace {
             cmd.arg("--trace").arg(trace);

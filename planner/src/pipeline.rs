@@ -17,6 +17,13 @@
 //! With worker threads the moves go out in batches (jobs); a job's bound may be used only once
 //! every lane has answered it, so the merger releases below the bound of the newest job all
 //! lanes have answered. At rest it waits for every lane, as the inline mode does.
+//!
+//! Clock domains: print time is the main MCU's clock / its `clock_freq`, and the horizon, the
+//! release bounds and the sort keys are in those ticks. A stepper on another MCU counts its
+//! steps in that MCU's clock: its [`ClockMap`] (`clock = offset + freq · print_time`, set at
+//! construction with [`Pipeline::with_clocks`] and refreshed between batches with
+//! [`Pipeline::set_clock_map`]) carries each move into that clock before its steps are
+//! generated, and its commands' keys back into print ticks for the merge (see `lanes`).
 
 mod homing; // homing: stop part-way through a homing move, resync
 mod lanes;
@@ -32,7 +39,7 @@ use crate::machine::{Applied, GcodeState, PlanError, PlanErrorKind};
 use crate::pressure_advance::{PaGen, PressureAdvance};
 use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::{Move, Toolhead, ToolheadConfig};
-use lanes::{LaneOut, LaneState, Msg, PaChange, Workers, CMDS_CAPACITY};
+use lanes::{LaneClock, LaneOut, LaneState, Msg, PaChange, Workers, CMDS_CAPACITY};
 
 /// Klipper's default `pressure_advance_smooth_time` (s), for SET_PRESSURE_ADVANCE when the
 /// configuration has no pressure advance.
@@ -49,6 +56,48 @@ pub struct StepperSpec {
     /// B), 3 = the extruder.
     pub axis: usize,
     pub step_dist: f64,
+}
+
+/// Where one stepper's MCU clock stands against print time: `clock = offset + freq ·
+/// print_time` (ticks). The main MCU's clock defines print time (offset 0, freq its clock
+/// rate: [`ClockMap::identity`]); another MCU's map comes from the two MCUs' clock-sync fits.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ClockMap {
+    /// The MCU's clock at print time 0 (ticks; may be negative).
+    pub offset: f64,
+    /// The MCU's ticks per print second.
+    pub freq: f64,
+}
+
+impl ClockMap {
+    /// The map of the clock that defines print time: `clock = freq · print_time`.
+    pub fn identity(freq: f64) -> ClockMap {
+        ClockMap { offset: 0.0, freq }
+    }
+
+    /// The MCU's clock at `print_time`.
+    pub fn clock(&self, print_time: f64) -> f64 {
+        self.offset + self.freq * print_time
+    }
+
+    /// The print time at which the MCU's clock reads `clock`.
+    pub fn print_time(&self, clock: f64) -> f64 {
+        (clock - self.offset) / self.freq
+    }
+
+    /// A finite offset within ±2^62 ticks and a frequency ≥ 1 Hz.
+    fn validate(&self) -> Result<(), String> {
+        if !(self.freq.is_finite() && self.freq >= 1.0) {
+            return Err(format!("clock map frequency {} must be ≥ 1", self.freq));
+        }
+        if !(self.offset.is_finite() && self.offset.abs() < (1u64 << 62) as f64) {
+            return Err(format!(
+                "clock map offset {} must be within ±2^62 ticks",
+                self.offset
+            ));
+        }
+        Ok(())
+    }
 }
 
 /// Everything the planner needs from the printer configuration.
@@ -186,6 +235,19 @@ impl Pipeline {
         start_print_time: f64,
         opts: PipelineOptions,
     ) -> Result<Pipeline, PlanError> {
+        Self::with_clocks(cfg, start_print_time, opts, &[])
+    }
+
+    /// [`Self::with_options`] with each stepper's MCU clock: `clocks[i]` maps print time to
+    /// stepper i's clock (empty: every stepper counts `cfg.clock_freq` ticks per print second).
+    /// A stepper's commands count ticks at its map's `freq` from here on; later maps
+    /// ([`Self::set_clock_map`]) only follow the drift of that MCU's clock.
+    pub fn with_clocks(
+        cfg: PipelineConfig,
+        start_print_time: f64,
+        opts: PipelineOptions,
+        clocks: &[ClockMap],
+    ) -> Result<Pipeline, PlanError> {
         let bad = |msg: String| PlanError {
             line: 0,
             kind: PlanErrorKind::Config(msg),
@@ -228,8 +290,30 @@ impl Pipeline {
         if let Some(p) = &pa {
             p.validate().map_err(bad)?;
         }
+        if !clocks.is_empty() && clocks.len() != cfg.steppers.len() {
+            return Err(bad(format!(
+                "{} clock maps for {} steppers",
+                clocks.len(),
+                cfg.steppers.len()
+            )));
+        }
         let mut lanes = Vec::with_capacity(cfg.steppers.len());
-        for s in &cfg.steppers {
+        for (i, s) in cfg.steppers.iter().enumerate() {
+            let map = clocks
+                .get(i)
+                .copied()
+                .unwrap_or(ClockMap::identity(cfg.clock_freq));
+            map.validate()
+                .map_err(|e| bad(format!("stepper '{}': {e}", s.name)))?;
+            let lane_freq = map.freq;
+            let lane_err = cfg.max_error_s * lane_freq;
+            if !(lane_err.is_finite() && lane_err >= 1.0 && lane_err < (1u64 << 28) as f64) {
+                return Err(bad(format!(
+                    "stepper '{}': max_error_s {} is {lane_err} ticks of its MCU clock at {lane_freq} Hz: \
+                     must be 1 tick .. 2^28 ticks",
+                    s.name, cfg.max_error_s
+                )));
+            }
             if !(s.step_dist.is_finite() && s.step_dist > 1e-9 && s.step_dist < 1e3) {
                 return Err(bad(format!(
                     "stepper '{}': step_dist {} must be in (1e-9, 1000) mm",
@@ -242,17 +326,18 @@ impl Pipeline {
                 .map_err(|e| bad(format!("stepper '{}': {e}", s.name)))?;
             let pa_gen = pa
                 .filter(|_| s.axis == 3)
-                .map(|p| PaGen::new(p, s.step_dist, cfg.clock_freq));
+                .map(|p| PaGen::new(p, s.step_dist, lane_freq));
             let mut lane = LaneState::new(
                 kin,
-                StepCompressor::new(s.step_dist, cfg.clock_freq, max_err_ticks),
+                StepCompressor::new(s.step_dist, lane_freq, lane_err.round() as u32),
                 pa_gen,
             );
+            lane.clock = LaneClock::new(map, cfg.clock_freq);
             if s.axis == 3 {
                 let smooth = opts
                     .pressure_advance
                     .map_or(DEFAULT_SMOOTH_TIME, |p| p.smooth_time);
-                lane.extruder = Some((smooth, cfg.clock_freq));
+                lane.extruder = Some((smooth, lane_freq));
             }
             lanes.push(lane);
         }
@@ -430,6 +515,35 @@ impl Pipeline {
                 }
             }
         }
+    }
+
+    /// Stepper `idx`'s MCU clock from the next batch of moves on (its clock-sync estimate was
+    /// refreshed): only the map changes, the stepper keeps counting ticks at the rate it was
+    /// made with (the moves are carried into its clock exactly, see `lanes`). Steps already
+    /// generated keep their clocks; a step the new map would put before an earlier one is
+    /// raised to it (time order holds).
+    pub fn set_clock_map(&mut self, idx: usize, map: ClockMap) -> Result<(), PlanError> {
+        let bad = |msg: String| PlanError {
+            line: 0,
+            kind: PlanErrorKind::Config(msg),
+        };
+        map.validate().map_err(|e| bad(format!("stepper {idx}: {e}")))?;
+        if idx >= self.views.len() {
+            return Err(bad(format!("clock map for unknown stepper index {idx}")));
+        }
+        match &mut self.backend {
+            Backend::Inline(lanes, _) => {
+                if let Some(l) = lanes.get_mut(idx) {
+                    l.clock.map = map;
+                }
+            }
+            Backend::Threads(w) => {
+                if !w.broadcast(|| Msg::ClockMap(idx, map)) {
+                    self.worker_error = Some("a planner thread stopped".into());
+                }
+            }
+        }
+        Ok(())
     }
 
     /// Maximum step error in ticks.

@@ -30,14 +30,15 @@ use std::time::Instant;
 use clap::Args;
 use links::clocksync::ClockEstimate;
 use links::trsync::COMM_TIMEOUT_MSG;
-use planner::pipeline::Pipeline;
+use planner::pipeline::{Pipeline, PipelineOptions};
 use rt_core::hist::LatencyHist;
 
 use super::{plain_move, print_now, HomingCtx, HomingReport, AXIS_NAMES};
 use crate::live::RtConfig;
 use crate::machine::Machine;
 use crate::mcus::{trace_path, ConnectOptions, Mcus};
-use crate::sink::{LinkSink, StepStreamer};
+use crate::sink::LinkSink;
+use crate::streams::StepStreams;
 
 /// Arguments of `cadence home`.
 #[derive(Debug, Args)]
@@ -153,7 +154,7 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
     let opts = ConnectOptions {
         time_scale,
         trace: args.trace.clone(),
-        lead_hook: None,
+        lead_hooks: None,
         io_rt: Some(link_spec.clone()),
     };
     let mut mcus = Mcus::connect(&cfg, &machine, opts)?;
@@ -185,7 +186,7 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
         .map(|m| (m.name.clone(), m.link.clock()))
         .chain(clocks)
         .collect();
-    let trsync_oid = mcus.main().trsync_oid;
+    let trsyncs: Vec<(String, u8)> = mcus.list.iter().map(|m| (m.name.clone(), m.trsync_oid)).collect();
     let main_name = mcus.main().name.clone();
     mcus.close();
     drop(hogs);
@@ -194,7 +195,7 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
     }
     result?;
     if let Some(base) = &args.trace {
-        trace_latency(&machine, axes, base, &main_name, trsync_oid, &clocks)?;
+        trace_latency(&machine, axes, base, &main_name, &trsyncs, &clocks)?;
     }
     Ok(())
 }
@@ -210,19 +211,32 @@ fn cycles(
 ) -> Result<(), String> {
     let main = mcus.main();
     let start = print_now(mcus) + (0.5f64).max(0.25 * scale);
-    let mut pipeline = Pipeline::new(
+    let mut streams = StepStreams::new(machine, &mcus.stream_params(machine))?;
+    let maps = streams.clock_maps(|i| {
+        mcus.list
+            .get(i)
+            .map_or(ClockEstimate::INVALID, |m| m.link.clock())
+    })?;
+    let mut pipeline = Pipeline::with_clocks(
         machine.pipeline_config(main.clock_freq, args.max_error_us * 1e-6),
         start,
+        PipelineOptions::default(),
+        &maps,
     )
     .map_err(|e| e.to_string())?;
-    let mut streamer = StepStreamer::new(main.link.dictionary(), &machine.steppers, main.move_count)?;
-    let mut sink = LinkSink { link: &main.link };
+    let mut sinks: Vec<LinkSink<'_>> = streams
+        .mcus
+        .iter()
+        .map(|m| LinkSink {
+            link: &mcus.list[m.mcu_index].link,
+        })
+        .collect();
     let mut ctx = HomingCtx {
         mcus,
         machine,
         pipeline: &mut pipeline,
-        streamer: &mut streamer,
-        sink: &mut sink,
+        streams: &mut streams,
+        sinks: &mut sinks,
         lead: MIN_LEAD_S,
         time_scale: scale,
     };
@@ -336,13 +350,14 @@ impl TimeBase {
     }
 }
 
-/// Trigger → stop latencies from the simulated MCUs' traces (see the module doc).
+/// Trigger → stop latencies from the simulated MCUs' traces (see the module doc), for each
+/// homed axis whose endstop is on another MCU than its steppers (either way round).
 fn trace_latency(
     machine: &Machine,
     axes: [bool; 3],
     base: &Path,
     main: &str,
-    trsync_oid: u8,
+    trsyncs: &[(String, u8)],
     clocks: &[(String, ClockEstimate)],
 ) -> Result<(), String> {
     let est = |name: &str| clocks.iter().find(|(n, _)| n == name).map(|&(_, e)| e);
@@ -361,21 +376,29 @@ fn trace_latency(
             _ => est(name).map(TimeBase::Estimate),
         }
     };
-    let main_trace = read(main)?;
-    let main_est = to_sys(main, &main_trace).ok_or("no clock estimate of the main MCU")?;
-    for e in machine
-        .endstops
-        .iter()
-        .filter(|e| axes[e.axis] && e.pin.mcu != main)
-    {
+    for e in machine.endstops.iter().filter(|e| axes[e.axis]) {
+        // The axis' steppers' MCU (one: `check_config` refuses split axes with a third-MCU endstop).
+        let Some(stepper_mcu) = machine
+            .steppers
+            .iter()
+            .find(|s| s.axis == e.axis)
+            .map(|s| s.mcu.as_str())
+            .filter(|m| *m != e.pin.mcu)
+        else {
+            continue;
+        };
+        let Some(&(_, trsync_oid)) = trsyncs.iter().find(|(n, _)| n == stepper_mcu) else {
+            continue;
+        };
+        let s_trace = read(stepper_mcu)?;
+        let Some(s_est) = to_sys(stepper_mcu, &s_trace) else {
+            continue;
+        };
         let e_trace = read(&e.pin.mcu)?;
         let Some(e_est) = to_sys(&e.pin.mcu, &e_trace) else {
             continue;
         };
-        if matches!(
-            (&e_est, &main_est),
-            (TimeBase::Epoch { .. }, TimeBase::Epoch { .. })
-        ) {
+        if matches!((&e_est, &s_est), (TimeBase::Epoch { .. }, TimeBase::Epoch { .. })) {
             println!("trace: MCU clocks converted with the simulators' clock epochs (exact)");
         } else {
             println!("trace: MCU clocks converted with the host's clock estimates");
@@ -386,19 +409,19 @@ fn trace_latency(
             .filter(|t| t.endstop && t.oid == e.oid)
             .map(|t| e_est.system_time_at(t.clock as f64))
             .collect();
-        let stops: Vec<(u64, f64)> = main_trace
+        let stops: Vec<(u64, f64)> = s_trace
             .triggers
             .iter()
             .filter(|t| !t.endstop && t.oid == trsync_oid)
-            .map(|t| (t.clock, main_est.system_time_at(t.clock as f64)))
+            .map(|t| (t.clock, s_est.system_time_at(t.clock as f64)))
             .collect();
         let oids: Vec<u8> = machine
             .steppers
             .iter()
-            .filter(|s| s.axis == e.axis)
+            .filter(|s| s.axis == e.axis && s.mcu == stepper_mcu)
             .map(|s| s.oid)
             .collect();
-        let mut steps: Vec<u64> = main_trace
+        let mut steps: Vec<u64> = s_trace
             .records
             .iter()
             .filter_map(|r| match *r {
@@ -421,17 +444,17 @@ fn trace_latency(
             stop_h.record_signed(((stop_sys - t) * 1e9) as i64);
             let k = steps.partition_point(|&c| c <= stop_clock);
             if k > 0 {
-                last_h.record_signed(((main_est.system_time_at(steps[k - 1] as f64) - t) * 1e9) as i64);
+                last_h.record_signed(((s_est.system_time_at(steps[k - 1] as f64) - t) * 1e9) as i64);
             }
         }
         let name = AXIS_NAMES[e.axis.min(2)];
         println!(
-            "trace {name} ({} → {main}): trigger → stepper MCU stop:      {}",
+            "trace {name} ({} → {stepper_mcu}): trigger → stepper MCU stop:      {}",
             e.pin.mcu,
             stop_h.summary().format_latency()
         );
         println!(
-            "trace {name} ({} → {main}): trigger → last step before stop: {}",
+            "trace {name} ({} → {stepper_mcu}): trigger → last step before stop: {}",
             e.pin.mcu,
             last_h.summary().format_latency()
         );

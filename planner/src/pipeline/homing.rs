@@ -120,18 +120,18 @@ impl Pipeline {
         }
         self.th.reset_after_stop(print_time, pos);
         self.sync_gcode_position();
-        let clock_freq = self.clock_freq;
         if let Backend::Inline(lanes, _) = &mut self.backend {
             for &(idx, steps) in stopped {
                 let (Some(lane), Some(view)) = (lanes.get_mut(idx), self.views.get_mut(idx)) else {
                     return Err(config_error("homing: unknown stepper index"));
                 };
                 let mm = lane.kin.position(&pos);
-                lane.comp.resync(steps, mm, clock_freq);
+                // The stepper keeps counting at its own clock's rate.
+                lane.comp.resync(steps, mm, lane.clock.freq);
                 view.position = steps;
             }
         }
-        let horizon = (print_time * clock_freq).max(0.0) as u64;
+        let horizon = (print_time * self.clock_freq).max(0.0) as u64;
         self.upto = self.upto.min(horizon);
         self.planned_until = print_time;
         Ok(())

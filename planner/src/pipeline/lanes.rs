@@ -7,11 +7,21 @@
 //! `set_next_step_dir` take the key of the `queue_step` they precede, which the compressor emits
 //! in the same batch). Replies carry the job's sequence number so the merger knows how far every
 //! lane has got. Lanes are independent: the threads share nothing but the moves (read-only).
+//!
+//! A lane on another MCU than the main one ([`LaneClock`]): its compressor counts ticks at
+//! the rate `f₀` its clock map had when the lane was made, and its map `c(t) = a + b·t` may
+//! change between batches (clock drift). Each move is carried into that clock before its steps
+//! are generated: with `k = b / f₀`, the move starting at print time `t₀` becomes the move
+//! starting at `c(t₀) / f₀` with its phase durations × k, speeds ÷ k and acceleration ÷ k²
+//! (the same distances), so a step at `t₀ + τ` on the original lands at clock
+//! `f₀ · (c(t₀)/f₀ + k·τ) = c(t₀ + τ)`: exact for the whole batch. The horizon goes the same
+//! way (print ticks → its clock), command keys the other way (its clock → print ticks).
 
 use std::sync::mpsc::{channel, sync_channel, Receiver, Sender, SyncSender};
 use std::sync::Arc;
 use std::thread::JoinHandle;
 
+use super::ClockMap;
 use crate::compress::StepCompressor;
 use crate::kinematics::StepperKin;
 use crate::pressure_advance::{PaGen, PressureAdvance};
@@ -25,6 +35,73 @@ const JOB_QUEUE: usize = 4;
 /// on the reference printers).
 pub(crate) const CMDS_CAPACITY: usize = 4096;
 
+/// A lane's MCU clock against print time (see the module doc).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct LaneClock {
+    /// Ticks per second the compressor counts in (the map's `freq` when the lane was made).
+    pub freq: f64,
+    /// The print clock's ticks per print second (horizon and keys are in those ticks).
+    pub print_freq: f64,
+    /// Print time → this lane's MCU clock, now.
+    pub map: ClockMap,
+}
+
+impl LaneClock {
+    /// A lane whose clock is `map` now, in a pipeline counting print time at `print_freq`.
+    pub fn new(map: ClockMap, print_freq: f64) -> LaneClock {
+        LaneClock {
+            freq: map.freq,
+            print_freq,
+            map,
+        }
+    }
+
+    /// The lane counts print ticks (the main MCU's): nothing to convert.
+    fn is_print_clock(&self) -> bool {
+        self.map.offset == 0.0 && self.map.freq == self.freq && self.freq == self.print_freq
+    }
+
+    /// `mv` carried into this clock: steps generated at `freq` from it land at `map`'s clocks.
+    fn carry(&self, mv: &Move) -> Move {
+        let k = self.map.freq / self.freq;
+        let mut m = *mv;
+        m.print_time = self.map.clock(mv.print_time) / self.freq;
+        if k != 1.0 {
+            m.accel_t *= k;
+            m.cruise_t *= k;
+            m.decel_t *= k;
+            m.start_v /= k;
+            m.cruise_v /= k;
+            m.end_v /= k;
+            m.accel /= k * k;
+        }
+        m
+    }
+
+    /// A horizon in print ticks as this lane's clock (`u64::MAX` stays).
+    fn lane_clock_of(&self, print_ticks: u64) -> u64 {
+        if print_ticks == u64::MAX {
+            return u64::MAX;
+        }
+        let c = self.map.clock(print_ticks as f64 / self.print_freq);
+        if c > 0.0 {
+            c as u64
+        } else {
+            0
+        }
+    }
+
+    /// A clock of this lane as print ticks (for the merge order).
+    fn print_ticks_of(&self, clock: u64) -> u64 {
+        let t = self.map.print_time(clock as f64) * self.print_freq;
+        if t > 0.0 {
+            t as u64
+        } else {
+            0
+        }
+    }
+}
+
 /// One stepper's step generation and compression.
 #[derive(Debug)]
 pub(crate) struct LaneState {
@@ -35,6 +112,8 @@ pub(crate) struct LaneState {
     /// For the extruder's lane: (smooth_time, clock_freq) to start pressure advance with when
     /// SET_PRESSURE_ADVANCE turns it on during the print.
     pub extruder: Option<(f64, f64)>,
+    /// This stepper's MCU clock (the print clock unless its MCU is another one).
+    pub clock: LaneClock,
     fresh: Vec<StepCmd>,
 }
 
@@ -63,12 +142,14 @@ impl LaneOut {
 }
 
 impl LaneState {
+    /// A lane counting print ticks at 1 Hz until its `clock` is set.
     pub fn new(kin: StepperKin, comp: StepCompressor, pa: Option<PaGen>) -> LaneState {
         LaneState {
             kin,
             comp,
             pa,
             extruder: None,
+            clock: LaneClock::new(ClockMap::identity(1.0), 1.0),
             fresh: Vec::with_capacity(1024),
         }
     }
@@ -117,10 +198,18 @@ impl LaneState {
         out: &mut LaneOut,
     ) {
         let mut changes = pa.iter().peekable();
+        let print_clock = self.clock.is_print_clock();
         for (i, mv) in moves.iter().enumerate() {
             while let Some(&(_, advance, smooth)) = changes.next_if(|c| c.0 <= i) {
                 self.set_advance(advance, smooth);
             }
+            let carried;
+            let mv = if print_clock {
+                mv
+            } else {
+                carried = self.clock.carry(mv);
+                &carried
+            };
             match &mut self.pa {
                 Some(pa) => pa.push_move(mv),
                 None => self.comp.push_move(mv, &self.kin),
@@ -136,15 +225,21 @@ impl LaneState {
         self.fresh.clear();
         if all {
             self.comp.finish(&mut self.fresh);
-        } else {
+        } else if print_clock {
             self.comp.flush(upto, &mut self.fresh);
+        } else {
+            self.comp.flush(self.clock.lane_clock_of(upto), &mut self.fresh);
         }
         let start = out.cmds.len();
         out.cmds.extend(self.fresh.iter().map(|&c| (u64::MAX, c)));
         let mut key = u64::MAX;
         for h in out.cmds[start..].iter_mut().rev() {
             if let StepCmd::QueueStep { first_clock, .. } = h.1 {
-                key = first_clock;
+                key = if print_clock {
+                    first_clock
+                } else {
+                    self.clock.print_ticks_of(first_clock)
+                };
             }
             h.0 = key;
         }
@@ -168,6 +263,8 @@ pub(crate) enum Msg {
     },
     Backoff(usize),
     RecordIdeal(bool),
+    /// A new clock map for the lane of this stepper index.
+    ClockMap(usize, ClockMap),
 }
 
 /// A worker's answer to one job: (lane index, output) for each of its lanes.
@@ -264,6 +361,11 @@ fn worker(w: usize, mut lanes: Vec<(usize, LaneState)>, rx: Receiver<Msg>, tx: S
                 .iter_mut()
                 .for_each(|(_, l)| l.comp.set_lookahead_backoff(n)),
             Msg::RecordIdeal(on) => lanes.iter_mut().for_each(|(_, l)| l.comp.set_record_ideal(on)),
+            Msg::ClockMap(idx, map) => {
+                if let Some((_, l)) = lanes.iter_mut().find(|(i, _)| *i == idx) {
+                    l.clock.map = map;
+                }
+            }
         }
     }
 }

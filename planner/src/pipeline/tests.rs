@@ -520,3 +520,157 @@ proptest! {
         }
     }
 }
+
+/// Every step's clock of one stepper's commands (replaying resets and queue_steps).
+fn step_clocks(cmds: &[StepCmd]) -> Vec<u64> {
+    let mut out = Vec::new();
+    let mut clock = 0u64;
+    for c in cmds {
+        match *c {
+            StepCmd::ResetClock { clock: c } => clock = c,
+            StepCmd::QueueStep {
+                interval, count, add, ..
+            } => {
+                let mut iv = interval as i64;
+                for _ in 0..count {
+                    clock = (clock as i64 + iv) as u64;
+                    out.push(clock);
+                    iv += add as i64;
+                }
+            }
+            StepCmd::SetDir { .. } => {}
+        }
+    }
+    out
+}
+
+/// Runs `g` with the steppers' clock maps `maps` (empty: all on the print clock), changing the
+/// maps of the steppers in `drift` by `+ppm` per line; returns the commands per stepper and
+/// the merged keys.
+fn run_clocks(
+    g: &str,
+    maps: &[ClockMap],
+    drift: Option<(&[usize], f64)>,
+) -> (Vec<Vec<StepCmd>>, Vec<u64>, Pipeline) {
+    let cfg = benchy_config();
+    let n = cfg.steppers.len();
+    let mut p = Pipeline::with_clocks(cfg, 0.25, PipelineOptions::default(), maps).unwrap();
+    let mut per = vec![Vec::new(); n];
+    let mut keys = Vec::new();
+    let mut out = Vec::new();
+    let mut current = maps.to_vec();
+    let mut take = |out: &mut Vec<(usize, StepCmd)>| {
+        for &(i, c) in out.iter() {
+            if let StepCmd::QueueStep { first_clock, .. } = c {
+                // Keys in print ticks: the first step's clock carried back by its map.
+                let key = match maps.get(i) {
+                    Some(m) => (m.print_time(first_clock as f64) * FREQ) as u64,
+                    None => first_clock,
+                };
+                keys.push(key);
+            }
+            per[i].push(c);
+        }
+        out.clear();
+    };
+    for line in GcodeReader::new(g.as_bytes()) {
+        p.apply(&line.unwrap()).unwrap();
+        p.generate(&mut out);
+        take(&mut out);
+        if let Some((steppers, ppm)) = drift {
+            for &i in steppers {
+                current[i].freq *= 1.0 + ppm * 1e-6;
+                p.set_clock_map(i, current[i]).unwrap();
+            }
+        }
+    }
+    p.finish(&mut out);
+    take(&mut out);
+    (per, keys, p)
+}
+
+#[test]
+fn clock_maps_put_each_steppers_steps_in_its_mcus_clock() {
+    let g = "G28\nG1 Z0.3 F600\nM83\nG1 X10 Y10 F6000\nG1 X50 Z2 E2 F1800\nG1 Y50 E2\nG1 X10 Z0.5 E2\n\
+             G1 Y10 E2\nG1 E-1 F2400\nG4 P200\nG1 X100 Y100 Z3 F9000\n";
+    let (base, _, p0) = run_clocks(g, &[], None);
+    // Z on a 16 MHz board whose clock read 7e9 at print time 0 and runs 30 ppm fast; the
+    // extruder on one 5 s ahead of the main clock at 50 MHz.
+    let z = ClockMap {
+        offset: 7e9,
+        freq: 16e6 * (1.0 + 30e-6),
+    };
+    let e = ClockMap {
+        offset: 5.0 * FREQ,
+        freq: FREQ,
+    };
+    let maps = [ClockMap::identity(FREQ), ClockMap::identity(FREQ), z, e];
+    let (per, keys, p) = run_clocks(g, &maps, None);
+    assert_eq!(p.stepper_positions(), p0.stepper_positions());
+    assert!(
+        keys.windows(2).all(|w| w[0] <= w[1]),
+        "merged output in print-time order"
+    );
+    // X, Y: the very same commands; Z and E: every step at its print time through the map,
+    // within the compression's error (25 µs) plus rounding.
+    assert_eq!(per[0], base[0]);
+    assert_eq!(per[1], base[1]);
+    for (i, map) in [(2, z), (3, e)] {
+        let want: Vec<f64> = step_clocks(&base[i])
+            .iter()
+            .map(|&c| map.clock(c as f64 / FREQ))
+            .collect();
+        let got = step_clocks(&per[i]);
+        assert_eq!(got.len(), want.len(), "stepper {i}");
+        let tol = 2.0 * 25e-6 * map.freq + 2.0;
+        for (g, w) in got.iter().zip(&want) {
+            assert!(
+                (*g as f64 - w).abs() <= tol,
+                "stepper {i}: step at {g}, expected {w:.0}"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_drifting_clock_map_keeps_steps_in_order_and_counts_exact() {
+    let g = "G28\nM83\nG1 X10 Y10 F6000\nG1 X50 Z2 E2 F1800\nG1 Y50 E2\nG1 X10 Z0.5 E2\nG1 Y10 E2\n\
+             G1 X100 Y100 Z3 F9000\n";
+    let z = ClockMap {
+        offset: 1e9,
+        freq: 16e6,
+    };
+    let maps = [ClockMap::identity(FREQ), ClockMap::identity(FREQ), z, z];
+    let (_, _, p0) = run_clocks(g, &maps, None);
+    // 50 ppm more per line: far more drift than a crystal shows, to make it visible.
+    let (per, _, p) = run_clocks(g, &maps, Some((&[2, 3], 50.0)));
+    assert_eq!(p.stepper_positions(), p0.stepper_positions());
+    for (i, cmds) in per.iter().enumerate() {
+        let clocks = step_clocks(cmds);
+        assert!(
+            clocks.windows(2).all(|w| w[0] <= w[1]),
+            "stepper {i}: steps out of order"
+        );
+    }
+    let mut p = p;
+    assert!(p
+        .set_clock_map(
+            9,
+            ClockMap {
+                offset: 0.0,
+                freq: 1e6
+            }
+        )
+        .is_err());
+    assert!(p
+        .set_clock_map(
+            2,
+            ClockMap {
+                offset: f64::NAN,
+                freq: 1e6
+            }
+        )
+        .is_err());
+    let bad = [ClockMap::identity(FREQ); 2];
+    assert!(Pipeline::with_clocks(benchy_config(), 0.0, PipelineOptions::default(), &bad).is_err());
+}
