@@ -189,7 +189,8 @@ pub struct RtConfig {
     /// Apply pinning / SCHED_FIFO / mlockall at all.
     pub enabled: bool,
     pub planner_core: usize,
-    pub io_core: usize,
+    /// `None`: IO threads unpinned (`[realtime] io_cpu: any`).
+    pub io_core: Option<usize>,
     pub planner_priority: i32,
     pub io_priority: i32,
     pub lock_memory: bool,
@@ -221,13 +222,13 @@ impl RtConfig {
 
     /// Settings of the planner thread.
     pub fn planner_spec(&self) -> RtSpec {
-        self.spec("planner", self.planner_core, self.planner_priority)
+        self.spec("planner", Some(self.planner_core), self.planner_priority)
     }
 
-    fn spec(&self, name: &str, core: usize, priority: i32) -> RtSpec {
+    fn spec(&self, name: &str, core: Option<usize>, priority: i32) -> RtSpec {
         let mut spec = RtSpec::new(name);
         if self.enabled {
-            spec.core = Some(core % available_cores());
+            spec.core = core.map(|c| c % available_cores());
             spec.fifo_priority = Some(priority);
             spec.lock_memory = self.lock_memory;
         }
@@ -675,7 +676,7 @@ pub fn print_on(
                 return Err(e);
             }
         }
-        let planner_spec = rt.spec("planner", rt.planner_core, rt.planner_priority);
+        let planner_spec = rt.planner_spec();
         let planner = std::thread::Builder::new()
             .name("planner".to_string())
             .spawn_scoped(scope, move || {

@@ -12,8 +12,9 @@ pub struct RealtimeSection {
     pub enabled: bool,
     /// CPU of the planner thread (default 0).
     pub planner_cpu: usize,
-    /// CPU of the IO stage and the MCU links' IO threads (default 1).
-    pub io_cpu: usize,
+    /// CPU of the IO stage and the MCU links' IO threads (default 1); `io_cpu: any` leaves
+    /// them unpinned (still SCHED_FIFO), so a woken IO thread runs on whichever core is free.
+    pub io_cpu: Option<usize>,
     /// SCHED_FIFO priority of the planner, 1..=99 (default 30).
     pub planner_priority: i32,
     /// SCHED_FIFO priority of the IO stage, 1..=94 (default 40; the links' IO threads run 5 above).
@@ -27,7 +28,7 @@ impl Default for RealtimeSection {
         RealtimeSection {
             enabled: true,
             planner_cpu: 0,
-            io_cpu: 1,
+            io_cpu: Some(1),
             planner_priority: 30,
             io_priority: 40,
             lock_memory: true,
@@ -40,7 +41,10 @@ pub(crate) fn read_realtime(s: &SectionReader<'_>) -> Result<RealtimeSection, Co
     Ok(RealtimeSection {
         enabled: s.opt_bool("enabled")?.unwrap_or(d.enabled),
         planner_cpu: s.int("planner_cpu", Some(d.planner_cpu), 0..=1023)?,
-        io_cpu: s.int("io_cpu", Some(d.io_cpu), 0..=1023)?,
+        io_cpu: match s.value("io_cpu") {
+            Some(v) if v.text.trim().eq_ignore_ascii_case("any") => None,
+            _ => Some(s.int("io_cpu", d.io_cpu, 0..=1023)?),
+        },
         planner_priority: s.int("planner_priority", Some(d.planner_priority), 1..=99)?,
         io_priority: s.int("io_priority", Some(d.io_priority), 1..=94)?,
         lock_memory: s.opt_bool("lock_memory")?.unwrap_or(d.lock_memory),
@@ -65,14 +69,18 @@ mod tests {
         let rt = with("[realtime]\nplanner_cpu: 1\nio_cpu: 0\nio_priority: 50\nlock_memory: False").unwrap();
         assert_eq!(
             (rt.planner_cpu, rt.io_cpu, rt.io_priority, rt.lock_memory),
-            (1, 0, 50, false)
+            (1, Some(0), 50, false)
         );
+        assert_eq!(with("[realtime]\nio_cpu: any").unwrap().io_cpu, None);
+        assert_eq!(with("[realtime]\nio_cpu: ANY").unwrap().io_cpu, None);
     }
 
     #[test]
     fn bad_values_name_section_and_option() {
         let e = with("[realtime]\nio_priority: 120").unwrap_err();
         assert!(e.contains("[realtime]") && e.contains("io_priority"), "{e}");
+        let e = with("[realtime]\nio_cpu: anywhere").unwrap_err();
+        assert!(e.contains("[realtime]") && e.contains("io_cpu"), "{e}");
         let e = with("[realtime]\nspin: 1").unwrap_err();
         assert!(e.contains("spin") && e.contains("realtime"), "{e}");
     }
