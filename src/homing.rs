@@ -137,6 +137,11 @@ pub struct PassReport {
     pub last_step_after_s: f64,
     /// First cancelled step − trigger (s): an upper bound of the stop latency.
     pub next_step_after_s: f64,
+    /// System time (`CLOCK_MONOTONIC` s) at which the host read the trigger's report.
+    pub trigger_received_at: f64,
+    /// System time at which the host's first `trsync_trigger` to the axis steppers' MCU was
+    /// written to its link (`None` when the steppers are on the triggering MCU).
+    pub relay_written_at: Option<f64>,
 }
 
 /// One homed axis.
@@ -612,6 +617,7 @@ pub(crate) fn homing_pass(
         }
         Err(_) => Err(TrsyncError::NotTriggered),
     };
+    let received_at = outcome.as_ref().map_or(0.0, |o| o.received_at);
     // Whatever happened: every member stops, the endstop stops sampling.
     let reason = match &outcome {
         Err(TrsyncError::NotTriggered) => REASON_PAST_END_TIME,
@@ -653,6 +659,12 @@ pub(crate) fn homing_pass(
         _ => Ok(None),
     };
     let after: Result<Vec<i64>, String> = idxs.iter().map(|&i| stepper_position(ctx, i)).collect();
+    // The relay to the axis steppers' MCU (written by now: `restop` waited for its link).
+    let stepper_mcu = &ctx.machine.steppers[idx0].mcu;
+    let relay_written_at = names
+        .iter()
+        .position(|n| n == stepper_mcu && *n != e.pin.mcu)
+        .and_then(|i| group.trigger_written_at(i));
     group.close();
     quiet(&conns);
     let primary_error = match outcome {
@@ -736,6 +748,8 @@ pub(crate) fn homing_pass(
             steps: after[0] - before[0],
             last_step_after_s: last_step - t_trig,
             next_step_after_s: next_step - t_trig,
+            trigger_received_at: received_at,
+            relay_written_at,
         },
         names,
     ))

@@ -13,6 +13,12 @@
 //! stops every member with reason 4 itself. Both end in [`TrsyncError::CommTimeout`], whose text
 //! is exactly `Communication timeout during homing`.
 //!
+//! Timestamps (system time, `CLOCK_MONOTONIC` seconds like [`McuLink::system_now`]), for
+//! per-hop latencies: when the host read the first trigger's report
+//! ([`TriggerOutcome::received_at`]) and when the first `trsync_trigger` to each member was
+//! written to that member's transport ([`TriggerGroup::trigger_written_at`]; the link's IO
+//! thread notes it when the write that carried the message returns).
+//!
 //! Memory: everything is allocated by [`TriggerGroup::new`]; the IO-thread path
 //! ([`on_state`]) takes a read lock, encodes into fixed-size [`Cmd`]s and pushes into
 //! preallocated queues. Other IO threads read in ≤ 0.5 ms slices while a group is registered,
@@ -23,7 +29,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use crate::dict::{Cmd, CmdEncoder, DictError};
-use crate::mcu::shared::{read, write, Outgoing, Shared, DEAD};
+use crate::mcu::shared::{read, write, RelayTag, Shared, Urgent, DEAD};
 use crate::mcu::{LinkError, McuLink};
 
 /// Trigger reason: the endstop was hit.
@@ -65,7 +71,7 @@ pub enum TrsyncError {
 }
 
 /// The first trigger of a group.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct TriggerOutcome {
     /// The MCU whose trsync fired first.
     pub mcu: String,
@@ -73,6 +79,11 @@ pub struct TriggerOutcome {
     pub reason: u8,
     /// Its clock at the report (64-bit, that MCU's clock).
     pub trigger_clock: u64,
+    /// System time (`CLOCK_MONOTONIC` seconds, [`McuLink::system_now`]) at which the host
+    /// read the triggering `trsync_state` (taken right after the read that returned it); for
+    /// a trigger the host decided itself (a silent member, [`TriggerGroup::trigger_all`]),
+    /// the time of that decision.
+    pub received_at: f64,
 }
 
 /// One member, as the IO threads see it.
@@ -86,6 +97,9 @@ struct Member {
     timeout_ticks: u32,
     /// System time (f64 bits) of the last report.
     last_report: AtomicU64,
+    /// System time (f64 bits; 0 = not yet) at which the first `trsync_trigger` to this member
+    /// was written to its transport.
+    trigger_written: AtomicU64,
 }
 
 const ARMED: u8 = 0;
@@ -95,17 +109,21 @@ const DONE: u8 = 2;
 /// The state a group shares with the IO threads of its members.
 #[derive(Debug)]
 pub(crate) struct GroupState {
+    /// Unique in the process (tags the relayed triggers, see [`relay_written`]).
+    id: u64,
     members: Vec<Member>,
     /// ARMED → RECORDING (the winner writes the fields) → DONE (Release: fields visible).
     state: AtomicU8,
     first_member: AtomicU64,
     first_reason: AtomicU8,
     first_clock: AtomicU64,
+    /// System time (f64 bits) at which the first trigger's report was read.
+    first_received: AtomicU64,
 }
 
 impl GroupState {
     /// Records the first trigger; returns true for the first caller.
-    fn record(&self, member: usize, reason: u8, clock: u64) -> bool {
+    fn record(&self, member: usize, reason: u8, clock: u64, received_at: f64) -> bool {
         if self
             .state
             .compare_exchange(ARMED, RECORDING, Ordering::AcqRel, Ordering::Acquire)
@@ -116,6 +134,8 @@ impl GroupState {
         self.first_member.store(member as u64, Ordering::Relaxed);
         self.first_reason.store(reason, Ordering::Relaxed);
         self.first_clock.store(clock, Ordering::Relaxed);
+        self.first_received
+            .store(received_at.to_bits(), Ordering::Relaxed);
         // Pairs with the Acquire load in `outcome`.
         self.state.store(DONE, Ordering::Release);
         true
@@ -132,6 +152,7 @@ impl GroupState {
             mcu: m.name.clone(),
             reason: self.first_reason.load(Ordering::Relaxed),
             trigger_clock: self.first_clock.load(Ordering::Relaxed),
+            received_at: f64::from_bits(self.first_received.load(Ordering::Relaxed)),
         })
     }
 
@@ -142,19 +163,20 @@ impl GroupState {
                 continue;
             }
             if let Ok(cmd) = m.trigger.encode(&[m.oid as i64, reason as i64]) {
-                push_urgent(&m.shared, cmd);
+                let tag = RelayTag {
+                    group: self.id,
+                    member: i,
+                };
+                push_urgent(&m.shared, cmd, Some(tag));
             }
         }
     }
 }
 
-/// Hands `cmd` to a link's IO thread ahead of everything queued there.
-fn push_urgent(shared: &Shared, cmd: Cmd) {
-    let item = Outgoing {
-        cmd,
-        min_clock: 0,
-        req_clock: 0,
-    };
+/// Hands `cmd` to a link's IO thread ahead of everything queued there (`relay`: the member a
+/// `trsync_trigger` is for, whose write time the IO thread then reports).
+fn push_urgent(shared: &Shared, cmd: Cmd, relay: Option<RelayTag>) {
+    let item = Urgent { cmd, relay };
     if shared.urgent.push(item).is_err() {
         shared.urgent_dropped.fetch_add(1, Ordering::Relaxed);
     }
@@ -183,17 +205,38 @@ pub(crate) fn on_state(shared: &Shared, now: f64, oid: i64, can_trigger: bool, r
         m.last_report.store(now.to_bits(), Ordering::Release);
         if !can_trigger {
             let reason = u8::try_from(reason).unwrap_or(REASON_COMMS_TIMEOUT);
-            if g.record(r.member, reason, clock) {
+            if g.record(r.member, reason, clock, now) {
                 g.trigger_others(Some(r.member), reason);
             }
         } else if g.state.load(Ordering::Acquire) == ARMED {
             let expire = (clock as u32).wrapping_add(m.timeout_ticks);
             if let Ok(cmd) = m.set_timeout.encode(&[oid, expire as i64]) {
-                push_urgent(shared, cmd);
+                push_urgent(shared, cmd, None);
             }
         }
     }
 }
+
+/// Called by the IO thread of `shared` when the write that carried the relayed trigger
+/// `tag` returned at system time `at`: the member keeps the first such time (allocation-free;
+/// nothing happens if the group was closed meanwhile).
+pub(crate) fn relay_written(shared: &Shared, tag: RelayTag, at: f64) {
+    let regs = read(&shared.trsyncs);
+    for r in regs
+        .iter()
+        .filter(|r| r.group.id == tag.group && r.member == tag.member)
+    {
+        if let Some(m) = r.group.members.get(r.member) {
+            // Only the first write counts (later ones repeat the stop).
+            let _ = m
+                .trigger_written
+                .compare_exchange(0, at.to_bits(), Ordering::AcqRel, Ordering::Acquire);
+        }
+    }
+}
+
+/// Source of [`GroupState::id`].
+static NEXT_GROUP_ID: AtomicU64 = AtomicU64::new(1);
 
 /// A homing group: one trsync per MCU link, relayed by the links' IO threads.
 #[derive(Debug)]
@@ -254,14 +297,17 @@ impl TriggerGroup {
                 set_timeout: dict.encoder("trsync_set_timeout").map_err(de)?,
                 timeout_ticks: (timeout_s * freq).clamp(1.0, (1u64 << 31) as f64) as u32,
                 last_report: AtomicU64::new(now.to_bits()),
+                trigger_written: AtomicU64::new(0),
             });
         }
         let state = Arc::new(GroupState {
+            id: NEXT_GROUP_ID.fetch_add(1, Ordering::Relaxed),
             members: list,
             state: AtomicU8::new(ARMED),
             first_member: AtomicU64::new(0),
             first_reason: AtomicU8::new(0),
             first_clock: AtomicU64::new(0),
+            first_received: AtomicU64::new(0),
         });
         for (i, m) in state.members.iter().enumerate() {
             write(&m.shared.trsyncs).push(Registration {
@@ -281,6 +327,24 @@ impl TriggerGroup {
     /// The first trigger, once there is one.
     pub fn outcome(&self) -> Option<TriggerOutcome> {
         self.state.outcome()
+    }
+
+    /// System time (`CLOCK_MONOTONIC` seconds, [`McuLink::system_now`]) at which the first
+    /// `trsync_trigger` to member `member` (its index in the list given to [`Self::new`]) was
+    /// written to that link's transport: taken by the link's IO thread when the write that
+    /// carried it returned. `None` until then (and for the member that triggered first: it
+    /// is told nothing unless [`Self::trigger_all`] runs).
+    ///
+    /// For the relay of an MCU's trigger, this minus [`TriggerOutcome::received_at`] is the
+    /// host's part: processing, the other IO thread's wake-up, its serial queue and the write.
+    pub fn trigger_written_at(&self, member: usize) -> Option<f64> {
+        let bits = self
+            .state
+            .members
+            .get(member)?
+            .trigger_written
+            .load(Ordering::Acquire);
+        (bits != 0).then(|| f64::from_bits(bits))
     }
 
     /// Waits for the first trigger until `deadline`. A reason-4 trigger, or a member silent for
@@ -306,7 +370,7 @@ impl TriggerGroup {
                 let last = f64::from_bits(m.last_report.load(Ordering::Acquire));
                 if now - last > self.timeout {
                     let clock = m.shared.clock.load().clock_at(now).max(0.0) as u64;
-                    if self.state.record(i, REASON_COMMS_TIMEOUT, clock) {
+                    if self.state.record(i, REASON_COMMS_TIMEOUT, clock, now) {
                         self.state.trigger_others(None, REASON_COMMS_TIMEOUT);
                     }
                 }
@@ -327,8 +391,9 @@ impl TriggerGroup {
         if self.state.state.load(Ordering::Acquire) == ARMED {
             // The host is the trigger source: record it under the first member's name.
             let m = &self.state.members[0];
-            let clock = m.shared.clock.load().clock_at(McuLink::system_now()).max(0.0) as u64;
-            self.state.record(0, reason, clock);
+            let now = McuLink::system_now();
+            let clock = m.shared.clock.load().clock_at(now).max(0.0) as u64;
+            self.state.record(0, reason, clock, now);
         }
         self.state.trigger_others(None, reason);
     }

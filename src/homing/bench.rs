@@ -12,6 +12,12 @@
 //!   else with the host's clock estimate of that MCU (a fit: off by up to a millisecond over
 //!   long runs). Pairing: each endstop
 //!   trigger with the first unused stop on the stepper MCU at or after it (−5 ms tolerance).
+//! - trace view, per hop of the relay (with `--trace`): endstop MCU trigger → the host read its
+//!   `trsync_state` ([`links::trsync::TriggerOutcome::received_at`]) → the host wrote
+//!   `trsync_trigger` to the stepper MCU's link ([`links::trsync::TriggerGroup::trigger_written_at`])
+//!   → the stepper MCU's trsync trigger record. Each pass is paired with the latest endstop
+//!   trigger at or before its read time (+5 ms tolerance); per pass the three hops add up to
+//!   its trigger → stop latency exactly. The 5 slowest passes are listed with their hops.
 //!
 //! Figures are µs of system time (MCU time when the simulator's time scale is 1).
 //!
@@ -113,6 +119,20 @@ impl Drop for CpuHogs {
     }
 }
 
+/// The host's timestamps of one homing pass (system time, `CLOCK_MONOTONIC` seconds).
+#[derive(Debug, Clone, Copy)]
+struct PassTiming {
+    /// 1-based.
+    cycle: u32,
+    /// 1-based, within the axis' homing.
+    pass: usize,
+    axis: usize,
+    /// The host read the trigger's report.
+    received: f64,
+    /// The host wrote `trsync_trigger` to the steppers' MCU (`None`: same MCU as the trigger).
+    written: Option<f64>,
+}
+
 /// Lead every step command must have at the MCU, in print seconds.
 const MIN_LEAD_S: f64 = 0.100;
 
@@ -193,14 +213,15 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
     for line in rt_core::os::rt_report() {
         eprintln!("cadence: {line}");
     }
-    result?;
+    let timings = result?;
     if let Some(base) = &args.trace {
-        trace_latency(&machine, axes, base, &main_name, &trsyncs, &clocks)?;
+        trace_latency(&machine, axes, base, &main_name, &trsyncs, &clocks, &timings)?;
     }
     Ok(())
 }
 
-/// Homes `cycles` times and prints the reports and the host-view histograms.
+/// Homes `cycles` times and prints the reports and the host-view histograms; returns the
+/// host's timestamps of every successful pass.
 fn cycles(
     args: &HomeArgs,
     machine: &Machine,
@@ -208,7 +229,7 @@ fn cycles(
     axes: [bool; 3],
     scale: f64,
     realtime: bool,
-) -> Result<(), String> {
+) -> Result<Vec<PassTiming>, String> {
     let main = mcus.main();
     let start = print_now(mcus) + (0.5f64).max(0.25 * scale);
     let mut streams = StepStreams::new(machine, &mcus.stream_params(machine))?;
@@ -243,6 +264,7 @@ fn cycles(
     let mut last_step = LatencyHist::new();
     let mut next_step = LatencyHist::new();
     let mut overshoot = LatencyHist::new();
+    let mut timings = Vec::new();
     let started = Instant::now();
     let mut last_report = HomingReport::default();
     let mut timeouts = 0u32;
@@ -274,10 +296,19 @@ fn cycles(
             Err(e) => return Err(e),
         };
         failed_last = false;
-        for p in report.axes.iter().flat_map(|a| &a.passes) {
-            last_step.record_signed((p.last_step_after_s * 1e9) as i64);
-            next_step.record_signed((p.next_step_after_s * 1e9) as i64);
-            overshoot.record_signed((p.overshoot_mm * 1e6) as i64); // nm
+        for a in &report.axes {
+            for (i, p) in a.passes.iter().enumerate() {
+                last_step.record_signed((p.last_step_after_s * 1e9) as i64);
+                next_step.record_signed((p.next_step_after_s * 1e9) as i64);
+                overshoot.record_signed((p.overshoot_mm * 1e6) as i64); // nm
+                timings.push(PassTiming {
+                    cycle: cycle + 1,
+                    pass: i + 1,
+                    axis: a.axis,
+                    received: p.trigger_received_at,
+                    written: p.relay_written_at,
+                });
+            }
         }
         if cycle == 0 {
             print!("{report}");
@@ -329,7 +360,7 @@ fn cycles(
         mm(o.p999),
         mm(o.max)
     );
-    Ok(())
+    Ok(timings)
 }
 
 /// MCU clock → system time (CLOCK_MONOTONIC seconds).
@@ -350,8 +381,64 @@ impl TimeBase {
     }
 }
 
+/// Tolerance of the pass ↔ trace trigger pairing (the epochs are exact to nanoseconds).
+const PAIR_SLACK_S: f64 = 0.005;
+/// A pass whose report came more than this after the latest trigger has none in the trace.
+const PAIR_WINDOW_S: f64 = 1.0;
+/// Slowest passes listed.
+const SLOWEST: usize = 5;
+
+/// One pass' relay, hop by hop (seconds).
+#[derive(Debug, Clone, Copy)]
+struct Hops {
+    cycle: u32,
+    pass: usize,
+    /// Endstop MCU trigger → the host read its report.
+    read: f64,
+    /// Host read → `trsync_trigger` written to the stepper MCU's link.
+    relay: f64,
+    /// Written → the stepper MCU's trsync trigger record.
+    stop: f64,
+}
+
+impl Hops {
+    fn total(&self) -> f64 {
+        self.read + self.relay + self.stop
+    }
+}
+
+/// Pairs each pass of `timings` with the latest endstop trigger at or before its read time
+/// (`triggers` chronological, `stops[i]` the stop paired with trigger `i`). Returns the hops
+/// of the paired passes and the number left unpaired.
+fn pair_hops(timings: &[PassTiming], triggers: &[f64], stops: &[Option<f64>]) -> (Vec<Hops>, usize) {
+    let mut used = vec![false; triggers.len()];
+    let mut hops = Vec::with_capacity(timings.len());
+    let mut unpaired = 0;
+    for p in timings {
+        let k = triggers.partition_point(|&t| t <= p.received + PAIR_SLACK_S);
+        let trigger = k
+            .checked_sub(1)
+            .filter(|&i| !used[i] && p.received - triggers[i] <= PAIR_WINDOW_S);
+        let stop = trigger.and_then(|i| stops.get(i).copied().flatten());
+        let (Some(i), Some(written), Some(stop)) = (trigger, p.written, stop) else {
+            unpaired += 1;
+            continue;
+        };
+        used[i] = true;
+        hops.push(Hops {
+            cycle: p.cycle,
+            pass: p.pass,
+            read: p.received - triggers[i],
+            relay: written - p.received,
+            stop: stop - written,
+        });
+    }
+    (hops, unpaired)
+}
+
 /// Trigger → stop latencies from the simulated MCUs' traces (see the module doc), for each
-/// homed axis whose endstop is on another MCU than its steppers (either way round).
+/// homed axis whose endstop is on another MCU than its steppers (either way round), with the
+/// relay's hops from the host's timestamps in `timings`.
 fn trace_latency(
     machine: &Machine,
     axes: [bool; 3],
@@ -359,6 +446,7 @@ fn trace_latency(
     main: &str,
     trsyncs: &[(String, u8)],
     clocks: &[(String, ClockEstimate)],
+    timings: &[PassTiming],
 ) -> Result<(), String> {
     let est = |name: &str| clocks.iter().find(|(n, _)| n == name).map(|&(_, e)| e);
     let read = |name: &str| {
@@ -432,8 +520,9 @@ fn trace_latency(
         steps.sort_unstable();
         let mut stop_h = LatencyHist::new();
         let mut last_h = LatencyHist::new();
+        let mut stop_of = vec![None; triggers.len()];
         let mut j = 0;
-        for &t in &triggers {
+        for (&t, stop_of) in triggers.iter().zip(&mut stop_of) {
             while j < stops.len() && stops[j].1 < t - 0.005 {
                 j += 1;
             }
@@ -441,6 +530,7 @@ fn trace_latency(
                 break;
             };
             j += 1;
+            *stop_of = Some(stop_sys);
             stop_h.record_signed(((stop_sys - t) * 1e9) as i64);
             let k = steps.partition_point(|&c| c <= stop_clock);
             if k > 0 {
@@ -448,20 +538,102 @@ fn trace_latency(
             }
         }
         let name = AXIS_NAMES[e.axis.min(2)];
-        println!(
-            "trace {name} ({} → {stepper_mcu}): trigger → stepper MCU stop:      {}",
-            e.pin.mcu,
-            stop_h.summary().format_latency()
-        );
-        println!(
-            "trace {name} ({} → {stepper_mcu}): trigger → last step before stop: {}",
-            e.pin.mcu,
-            last_h.summary().format_latency()
-        );
+        let line = |label: &str, h: &LatencyHist| {
+            println!(
+                "trace {name} ({} → {stepper_mcu}): {label:<33} {}",
+                e.pin.mcu,
+                h.summary().format_latency()
+            );
+        };
+        line("trigger → stepper MCU stop:", &stop_h);
+        line("trigger → last step before stop:", &last_h);
         let s = last_h.summary();
         if s.negative > 0 {
             println!("  ({} passes had their last step before the trigger)", s.negative);
         }
+        let axis_timings: Vec<PassTiming> = timings.iter().filter(|p| p.axis == e.axis).copied().collect();
+        let (hops, unpaired) = pair_hops(&axis_timings, &triggers, &stop_of);
+        let mut hists = [LatencyHist::new(), LatencyHist::new(), LatencyHist::new()];
+        for h in &hops {
+            for (hist, v) in hists.iter_mut().zip([h.read, h.relay, h.stop]) {
+                hist.record_signed((v * 1e9) as i64);
+            }
+        }
+        line("hop 1, trigger → host read:", &hists[0]);
+        line("hop 2, host read → relay written:", &hists[1]);
+        line("hop 3, relay written → MCU stop:", &hists[2]);
+        let negative: u64 = hists.iter().map(|h| h.summary().negative).sum();
+        println!(
+            "  hops of {} passes (per pass they add up to its trigger → stop exactly){}{}",
+            hops.len(),
+            if unpaired > 0 {
+                format!("; {unpaired} passes without a trace trigger or relay time")
+            } else {
+                String::new()
+            },
+            if negative > 0 {
+                format!("; {negative} negative hops counted as 0")
+            } else {
+                String::new()
+            }
+        );
+        let mut slowest = hops;
+        slowest.sort_by(|a, b| b.total().total_cmp(&a.total()));
+        slowest.truncate(SLOWEST);
+        if !slowest.is_empty() {
+            println!("  slowest passes, µs:  cycle pass  trigger→read  read→written  written→stop     total");
+            for h in &slowest {
+                println!(
+                    "                      {:>5} {:>4}  {:>12.1}  {:>12.1}  {:>12.1}  {:>8.1}",
+                    h.cycle,
+                    h.pass,
+                    h.read * 1e6,
+                    h.relay * 1e6,
+                    h.stop * 1e6,
+                    h.total() * 1e6
+                );
+            }
+        }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn timing(cycle: u32, received: f64, written: Option<f64>) -> PassTiming {
+        PassTiming {
+            cycle,
+            pass: 1,
+            axis: 2,
+            received,
+            written,
+        }
+    }
+
+    #[test]
+    fn passes_pair_with_the_latest_trigger_before_their_report() {
+        // Trigger 1 belongs to a failed pass the host reported nothing for.
+        let triggers = [1.0, 2.0, 3.0, 5.0];
+        let stops = [Some(1.01), Some(2.01), Some(3.004), None];
+        let timings = [
+            timing(1, 1.001, Some(1.002)),
+            timing(2, 3.001, Some(3.003)),
+            // No stop in the trace, no relay time, no trigger within the window.
+            timing(3, 5.001, Some(5.002)),
+            timing(4, 4.0, None),
+            timing(5, 9.0, Some(9.001)),
+        ];
+        let (hops, unpaired) = pair_hops(&timings, &triggers, &stops);
+        assert_eq!(unpaired, 3);
+        assert_eq!(hops.len(), 2);
+        assert_eq!((hops[0].cycle, hops[1].cycle), (1, 2));
+        for (h, (t, stop)) in hops.iter().zip([(1.0, 1.01), (3.0, 3.004)]) {
+            assert!((h.total() - (stop - t)).abs() < 1e-12, "{h:?}");
+        }
+        assert!((hops[1].read - 0.001).abs() < 1e-9);
+        assert!((hops[1].relay - 0.002).abs() < 1e-9);
+        assert!((hops[1].stop - 0.001).abs() < 1e-9);
+    }
 }

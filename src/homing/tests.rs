@@ -140,6 +140,8 @@ fn report_names_axis_overshoot_and_position() {
                 steps: -4000,
                 last_step_after_s: 0.0004,
                 next_step_after_s: 0.00065,
+                trigger_received_at: 2.0,
+                relay_written_at: Some(2.0001),
             }],
             position: 0.0125,
         }],

@@ -14,7 +14,7 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
 
-use super::shared::{lock, Death, Outgoing, Shared, WaitFail, ANSWERED_WHEN_SHUT_DOWN, RUNNING};
+use super::shared::{lock, Death, Outgoing, RelayTag, Shared, WaitFail, ANSWERED_WHEN_SHUT_DOWN, RUNNING};
 use super::{LinkOptions, LinkStats, LinkTuning};
 use crate::clocksync::ClockSync;
 use crate::dict::message::decode_params_into;
@@ -37,12 +37,72 @@ const RESET_ACK_RUN: u32 = 4;
 const ARMED_READ_WAIT: f64 = 0.000_5;
 /// Most parameters decoded on the stack.
 const MAX_STACK_PARAMS: usize = 16;
+/// Relayed triggers tracked at once between the serial queue and the wire (more are sent
+/// untracked: their write time is not reported).
+const RELAY_SLOTS: usize = 16;
 
 /// `CLOCK_MONOTONIC` in seconds.
 pub(crate) fn system_now() -> f64 {
     nix::time::clock_gettime(nix::time::ClockId::CLOCK_MONOTONIC)
         .map(|t| t.tv_sec() as f64 + t.tv_nsec() as f64 * 1e-9)
         .unwrap_or(0.0)
+}
+
+/// The urgent messages this thread moved into the serial queue, and which of them were
+/// relayed homing triggers. Urgent messages leave the serial queue before every other one and
+/// in their order, so the number of messages a `poll` released tells exactly which urgent
+/// ones went out with that write, even when flow control held them back for a while.
+#[derive(Debug)]
+pub(crate) struct UrgentTrack {
+    /// Urgent messages pushed into the serial queue.
+    pushed: u64,
+    /// Of those, written to the transport.
+    written: u64,
+    /// Ring of `(urgent sequence number, tag)` of the relayed triggers not yet written.
+    tags: [(u64, RelayTag); RELAY_SLOTS],
+    head: usize,
+    len: usize,
+}
+
+impl UrgentTrack {
+    pub(crate) fn new() -> UrgentTrack {
+        UrgentTrack {
+            pushed: 0,
+            written: 0,
+            tags: [(0, RelayTag { group: 0, member: 0 }); RELAY_SLOTS],
+            head: 0,
+            len: 0,
+        }
+    }
+
+    /// An urgent message went into the serial queue (`relay`: its tag, if it is a trigger).
+    pub(crate) fn pushed(&mut self, relay: Option<RelayTag>) {
+        if let Some(tag) = relay {
+            if self.len < RELAY_SLOTS {
+                self.tags[(self.head + self.len) % RELAY_SLOTS] = (self.pushed, tag);
+                self.len += 1;
+            }
+        }
+        self.pushed += 1;
+    }
+
+    /// `sent` messages left the serial queue with one write (urgent ones first). Returns true
+    /// when a tracked trigger was among them ([`Self::pop_written`] then yields it).
+    pub(crate) fn sent(&mut self, sent: u64) -> bool {
+        self.written += sent.min(self.pushed - self.written);
+        self.len > 0 && self.tags[self.head].0 < self.written
+    }
+
+    /// The next tracked trigger that has been written, oldest first.
+    pub(crate) fn pop_written(&mut self) -> Option<RelayTag> {
+        let (seq, tag) = self.tags[self.head];
+        if self.len == 0 || seq >= self.written {
+            return None;
+        }
+        self.head = (self.head + 1) % RELAY_SLOTS;
+        self.len -= 1;
+        Some(tag)
+    }
 }
 
 /// Marks the link dead if the IO thread unwinds, so no caller waits for a thread that is gone.
@@ -110,6 +170,7 @@ pub(crate) struct IoThread {
     identify_timeout: f64,
     response_timeout: f64,
     held: Option<Outgoing>,
+    urgent: UrgentTrack,
     user_capacity: usize,
     taken: u64,
     payloads: Vec<u8>,
@@ -156,6 +217,7 @@ impl IoThread {
             identify_timeout: opts.identify_timeout.as_secs_f64(),
             response_timeout: opts.response_timeout.as_secs_f64(),
             held: None,
+            urgent: UrgentTrack::new(),
             user_capacity,
             taken: 0,
             payloads: Vec::with_capacity(READ_BUF * 2),
@@ -191,11 +253,19 @@ impl IoThread {
         let now = system_now();
         self.take_outgoing();
         self.run_timers(now)?;
+        let queued = self.sq.len();
         let out = self.sq.poll(now);
         if !out.is_empty() {
             self.transport
                 .write_all(out)
                 .map_err(|e| Death::ConnectionLost(format!("write to {}: {e}", self.transport.describe())))?;
+        }
+        // Messages only leave the serial queue in `poll`: the difference is what was written.
+        if self.urgent.sent(queued.saturating_sub(self.sq.len()) as u64) {
+            let written_at = system_now();
+            while let Some(tag) = self.urgent.pop_written() {
+                crate::trsync::relay_written(&self.shared, tag, written_at);
+            }
         }
         if let Some(t) = self.sq.take_marked_sent() {
             if let Some(q) = self.clock_query.as_mut() {
@@ -267,6 +337,8 @@ impl IoThread {
         while let Some(item) = self.shared.urgent.pop() {
             if self.sq.push_urgent(item.cmd).is_err() {
                 self.shared.urgent_dropped.fetch_add(1, Ordering::Relaxed);
+            } else {
+                self.urgent.pushed(item.relay);
             }
         }
         while self.sq.len() < self.user_capacity {

@@ -24,6 +24,24 @@ pub(crate) struct Outgoing {
     pub req_clock: u64,
 }
 
+/// A message for the IO thread to send ahead of everything queued (see [`Shared::urgent`]).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Urgent {
+    pub cmd: Cmd,
+    /// Set for a `trsync_trigger` of a homing group: the IO thread reports the moment it
+    /// wrote the message to the transport (`crate::trsync::relay_written`).
+    pub relay: Option<RelayTag>,
+}
+
+/// Names the homing group member a relayed `trsync_trigger` is for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct RelayTag {
+    /// The group's id (unique in the process).
+    pub group: u64,
+    /// The member's index in the group.
+    pub member: usize,
+}
+
 /// Link states.
 pub(crate) const CONNECTING: u8 = 0;
 pub(crate) const RUNNING: u8 = 1;
@@ -172,7 +190,7 @@ pub(crate) struct Shared {
     pub stats: Mutex<LinkStats>,
     pub notify: Notifier,
     /// Messages that go ahead of everything queued (homing triggers, trsync timeouts).
-    pub urgent: HandoffQueue<Outgoing>,
+    pub urgent: HandoffQueue<Urgent>,
     /// Urgent messages lost because `urgent` was full.
     pub urgent_dropped: AtomicU64,
     /// Trsyncs of homing groups on this MCU (written on register/unregister only).

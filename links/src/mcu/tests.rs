@@ -489,3 +489,42 @@ fn stats_line_reads_like_klipper() {
     drop(link);
     fake.join().unwrap();
 }
+
+#[test]
+fn urgent_track_reports_written_relays_in_order() {
+    use super::io::UrgentTrack;
+    use super::shared::RelayTag;
+    let tag = |member| RelayTag { group: 1, member };
+    let mut t = UrgentTrack::new();
+    assert!(!t.sent(3), "nothing urgent queued");
+    t.pushed(None);
+    t.pushed(Some(tag(0)));
+    t.pushed(None);
+    t.pushed(Some(tag(1)));
+    assert!(!t.sent(0));
+    assert!(!t.sent(1), "only the untagged first one went out");
+    assert_eq!(t.pop_written(), None);
+    assert!(t.sent(1));
+    assert_eq!(t.pop_written(), Some(tag(0)));
+    assert_eq!(t.pop_written(), None);
+    // More messages than urgent ones left: the rest were plain messages.
+    assert!(t.sent(10));
+    assert_eq!(t.pop_written(), Some(tag(1)));
+    assert_eq!(t.pop_written(), None);
+    t.pushed(Some(tag(2)));
+    assert!(t.sent(1));
+    assert_eq!(t.pop_written(), Some(tag(2)));
+    // A full ring drops the newest tags, never miscounts the older ones.
+    for i in 0..40 {
+        t.pushed(Some(tag(i)));
+    }
+    assert!(t.sent(40));
+    let mut got = Vec::new();
+    while let Some(x) = t.pop_written() {
+        got.push(x.member);
+    }
+    assert_eq!(got, (0..16).collect::<Vec<_>>());
+    t.pushed(Some(tag(99)));
+    assert!(t.sent(1));
+    assert_eq!(t.pop_written(), Some(tag(99)));
+}

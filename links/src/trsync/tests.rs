@@ -162,3 +162,57 @@ fn host_request_stops_every_member() {
     drop(a);
     fake_a.join().unwrap();
 }
+
+/// Polls (bounded) until member `i` of `group` has a trigger write time.
+fn wait_written(group: &TriggerGroup, i: usize) -> f64 {
+    let deadline = Instant::now() + LONG;
+    loop {
+        if let Some(t) = group.trigger_written_at(i) {
+            return t;
+        }
+        assert!(Instant::now() < deadline, "member {i}: no trigger write time");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+}
+
+#[test]
+fn a_relayed_trigger_is_timestamped() {
+    let (a, ctl_a, fake_a) = start("endstop_mcu");
+    let (b, ctl_b, fake_b) = start("stepper_mcu");
+    let group = TriggerGroup::new(&[(&a, 3), (&b, 5)], 5.0).unwrap();
+    // Reports that only extend the timeout write urgent messages too: never a trigger time.
+    report(&ctl_b, 5, true, 0, 1_000);
+    wait_logged(&ctl_b, |x| x.0 == ID_SET_TIMEOUT);
+    assert_eq!(group.trigger_written_at(1), None);
+    let before = McuLink::system_now();
+    report(&ctl_a, 3, false, REASON_ENDSTOP_HIT as i64, 2_000);
+    let outcome = group.wait(Instant::now() + LONG).unwrap();
+    wait_logged(&ctl_b, |x| x.0 == ID_TRIGGER);
+    let written = wait_written(&group, 1);
+    // Ordering only: report read, then the relay written, all after the report was sent.
+    assert!(
+        before <= outcome.received_at,
+        "{before} > {}",
+        outcome.received_at
+    );
+    assert!(
+        outcome.received_at <= written,
+        "{} > {written}",
+        outcome.received_at
+    );
+    assert!(written <= McuLink::system_now());
+    // The triggering MCU was told nothing; no such member.
+    assert_eq!(group.trigger_written_at(0), None);
+    assert_eq!(group.trigger_written_at(2), None);
+    // A host stop afterwards reaches both; the relayed trigger's time stays the first write.
+    group.trigger_all(REASON_HOST_REQUEST);
+    let written_a = wait_written(&group, 0);
+    assert!(written <= written_a);
+    assert_eq!(group.trigger_written_at(1), Some(written));
+    // The outcome (and its read time) is still the endstop's.
+    assert_eq!(group.outcome(), Some(outcome));
+    group.close();
+    drop((a, b));
+    fake_a.join().unwrap();
+    fake_b.join().unwrap();
+}
