@@ -126,6 +126,30 @@ pub fn benchy_prefix(dir: &Path, lines: usize) -> Option<(PathBuf, PathBuf)> {
     Some((gcode, cfg))
 }
 
+/// `examples/<example>` made quick to home, written to `dir/printer.cfg`: 20 mm axes, homing at
+/// 10 mm/s, and a second pass (retract 2 mm, 5 mm/s) on every stepper.
+pub fn short_homing_config(dir: &Path, example: &str) -> PathBuf {
+    let text = std::fs::read_to_string(workspace().join("examples").join(example)).expect("example");
+    let mut out = String::new();
+    for line in text.lines() {
+        let line = match line.trim() {
+            "position_max: 220" | "position_max: 200" => "position_max: 20",
+            "homing_speed: 50" => "homing_speed: 10",
+            l if l.starts_with("[stepper_") => {
+                out.push_str(line);
+                out.push_str("\nhoming_retract_dist: 2\nsecond_homing_speed: 5\n");
+                continue;
+            }
+            _ => line,
+        };
+        out.push_str(line);
+        out.push('\n');
+    }
+    let path = dir.join("printer.cfg");
+    std::fs::write(&path, out).expect("write config");
+    path
+}
+
 /// Fails the test unless `run` exited 0, showing both outputs.
 pub fn assert_success(run: &Run) {
     assert_eq!(

@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
-use cadence_tests::{assert_no_step_after_stop, bin, run, scratch, workspace, Run};
+use cadence_tests::{assert_no_step_after_stop, bin, run, scratch, short_homing_config, Run};
 use firmware::trace::{read_trace, TraceFile, TraceRecord};
 
 const TIMEOUT: Duration = Duration::from_secs(180);
@@ -28,26 +28,7 @@ const SAMPLING_S: f64 = 1e-3 + 4.0 * 15e-6;
 
 /// The two-MCU example with short axes.
 fn config(dir: &Path) -> PathBuf {
-    let text =
-        std::fs::read_to_string(workspace().join("examples/simulated-multi-mcu.cfg")).expect("example");
-    let mut out = String::new();
-    for line in text.lines() {
-        let line = match line.trim() {
-            "position_max: 220" | "position_max: 200" => "position_max: 20",
-            "homing_speed: 50" => "homing_speed: 10",
-            l if l.starts_with("[stepper_") => {
-                out.push_str(line);
-                out.push_str("\nhoming_retract_dist: 2\nsecond_homing_speed: 5\n");
-                continue;
-            }
-            _ => line,
-        };
-        out.push_str(line);
-        out.push('\n');
-    }
-    let path = dir.join("printer.cfg");
-    std::fs::write(&path, out).expect("write config");
-    path
+    short_homing_config(dir, "simulated-multi-mcu.cfg")
 }
 
 fn home(dir: &Path, axes: &str, probe_args: Option<&str>) -> (Run, PathBuf) {

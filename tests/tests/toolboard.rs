@@ -10,7 +10,8 @@ use std::process::Command;
 use std::time::Duration;
 
 use cadence_tests::{
-    assert_no_step_after_stop, assert_success, bin, check_trace, run, scratch, workspace, Run,
+    assert_no_step_after_stop, assert_success, bin, check_trace, run, scratch, short_homing_config,
+    workspace, Run,
 };
 use firmware::trace::{read_trace, TraceFile, TraceRecord};
 
@@ -34,24 +35,14 @@ fn example() -> String {
 
 /// The toolboard example with 20 mm axes and a second homing pass (homing takes seconds).
 fn short_config(dir: &Path) -> PathBuf {
-    let mut out = String::new();
-    for line in example().lines() {
-        let line = match line.trim() {
-            "position_max: 220" | "position_max: 200" => "position_max: 20",
-            "homing_speed: 50" => "homing_speed: 10",
-            l if l.starts_with("[stepper_") => {
-                out.push_str(line);
-                out.push_str("\nhoming_retract_dist: 2\nsecond_homing_speed: 5\n");
-                continue;
-            }
-            _ => line,
-        };
-        out.push_str(line);
-        out.push('\n');
-    }
-    let path = dir.join("printer.cfg");
-    std::fs::write(&path, out).expect("write config");
-    path
+    short_homing_config(dir, "simulated-toolboard.cfg")
+}
+
+/// The toolboard example as it is, written to `dir/printer.cfg`.
+fn example_config(dir: &Path) -> PathBuf {
+    let cfg = dir.join("printer.cfg");
+    std::fs::write(&cfg, example()).expect("write config");
+    cfg
 }
 
 /// `…/name.trace` → `…/name-toolboard.trace` (the host's naming of other MCUs' traces).
@@ -76,8 +67,7 @@ fn net_steps(trace: &TraceFile) -> HashMap<u8, i64> {
 #[test]
 fn square_prints_on_two_mcus_with_their_own_clocks() {
     let dir = scratch("toolboard-square");
-    let cfg = dir.join("printer.cfg");
-    std::fs::write(&cfg, example()).expect("write config");
+    let cfg = example_config(&dir);
     let trace = dir.join("square.trace");
     let gcode = workspace().join("examples/square.gcode");
     let print = |trace: &Path| {
@@ -269,8 +259,7 @@ fn delayed_toolboard_fails_homing_with_a_communication_timeout() {
 #[test]
 fn the_io_process_refuses_steppers_on_another_mcu() {
     let dir = scratch("toolboard-io-process");
-    let cfg = dir.join("printer.cfg");
-    std::fs::write(&cfg, example()).expect("write config");
+    let cfg = example_config(&dir);
     let gcode = workspace().join("examples/square.gcode");
     let mut cmd = Command::new(bin("cadence"));
     cmd.arg("print")
@@ -297,8 +286,7 @@ fn the_io_process_refuses_steppers_on_another_mcu() {
 #[test]
 fn batch_writes_one_wire_stream_per_mcu() {
     let dir = scratch("toolboard-batch");
-    let cfg = dir.join("printer.cfg");
-    std::fs::write(&cfg, example()).expect("write config");
+    let cfg = example_config(&dir);
     let out = dir.join("square.bin");
     let gcode = workspace().join("examples/square.gcode");
     let mut cmd = Command::new(bin("cadence"));
