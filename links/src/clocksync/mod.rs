@@ -1,8 +1,9 @@
 //! Clock sync: estimating an MCU's clock from the host's system time.
 //!
-//! Each `get_clock` query is paired with the system time it was sent (`t`) and the 64-bit clock
-//! the MCU reported (`c`). An exponentially weighted linear regression with decay `α = 1/30`
-//! tracks the means and the (co)variance of `(t, c)`:
+//! Each `get_clock` query is written at system time `s` and answered at `r`; the MCU read its
+//! clock (`c`) somewhere in between. The sample's time is the midpoint `t = (s + r)/2`, so the
+//! read time is known within ±rtt/2 whichever way the round trip was lopsided. An
+//! exponentially weighted linear regression tracks the means and the (co)variance of `(t, c)`:
 //!
 //! ```text
 //! dt = t − t̄;  t̄ += α·dt;  var_t = (1−α)·(var_t + α·dt²)
@@ -10,9 +11,24 @@
 //! freq = cov / var_t            (ticks per system second)
 //! ```
 //!
-//! The MCU read its clock some time after `t`; the least possible delay is half the fastest
-//! round trip, so the published mapping is `clock(T) = c̄ + (T − (t̄ + ½·rtt_min))·freq`. The
-//! fastest round trip is aged by 10 µs per hour so a one-off lucky sample does not rule forever.
+//! and the published mapping is `clock(T) = c̄ + (T − t̄)·freq`. The decay is `α = 1/30` per
+//! regular query (0.98 s apart), scaled down for samples closer together, but never below
+//! `1/n` for the n-th sample: the first samples form an exact least-squares fit instead of
+//! one biased towards the first point, and a burst of fast queries refines the fit instead of
+//! shortening its memory to 30 samples.
+//!
+//! Slow samples: a round trip much longer than the fastest one (more than
+//! `SLOW_FACTOR`·rtt_min + `SLOW_SLACK_S`) means a stall somewhere between the write and the
+//! read, and the read time is uncertain by that much. Such a sample is skipped, unless no
+//! sample was used for `SLOW_WINDOW_S` (so a link whose round trips grew for good is still
+//! followed). The fastest round trip is aged by 10 µs per hour so a one-off lucky sample does
+//! not rule forever.
+//!
+//! Start-up: `get_uptime` (the link's first exchange after the dictionary download) gives the
+//! 64-bit clock and a first estimate at the nominal frequency; the regression starts with the
+//! first `get_clock` sample. The link keeps querying every 50 ms for a few seconds after the
+//! eight initial queries (see `LinkTuning::fast_clock_duration`): with samples that close, a
+//! 20 µs read-time error is a 400 ppm slope error for a pair, so the slope needs many of them.
 //!
 //! Outliers: the regression predicts `ĉ` at `t`; the squared error is tracked as an EWMA
 //! prediction variance. A sample whose error² exceeds 25× that variance (and 0.5 ms worth of
@@ -31,8 +47,10 @@ pub use seqlock::SeqLock;
 
 use rt_core::{McuClock, WireClock};
 
-/// Regression decay per sample.
+/// Regression decay per regular sample ([`DECAY_PERIOD_S`] apart).
 pub const DECAY: f64 = 1.0 / 30.0;
+/// The regular query period the decay is given for; closer samples decay less.
+pub const DECAY_PERIOD_S: f64 = 0.98;
 /// Ageing of the fastest half round trip, seconds per second.
 pub const RTT_AGE: f64 = 10e-6 / 3600.0;
 /// A sample is an outlier when its error² exceeds this many prediction variances.
@@ -41,6 +59,12 @@ pub const OUTLIER_FACTOR: f64 = 25.0;
 pub const OUTLIER_FLOOR_S: f64 = 500e-6;
 /// Late samples are rejected only while the last good prediction is younger than this.
 pub const OUTLIER_WINDOW_S: f64 = 10.0;
+/// A round trip longer than `SLOW_FACTOR`·fastest + `SLOW_SLACK_S` marks a slow sample.
+pub const SLOW_FACTOR: f64 = 2.0;
+/// See [`SLOW_FACTOR`].
+pub const SLOW_SLACK_S: f64 = 250e-6;
+/// A slow sample is used anyway when no sample was used for this long.
+pub const SLOW_WINDOW_S: f64 = 2.5;
 /// Prediction variance at start-up: 1 ms of MCU time, squared.
 const INITIAL_STDDEV_S: f64 = 1e-3;
 
@@ -171,6 +195,8 @@ pub enum Sample {
     Reset,
     /// Dropped as a delayed reply.
     Outlier,
+    /// Dropped for its long round trip (its read time is uncertain).
+    Slow,
 }
 
 /// The regression state of one MCU's clock.
@@ -178,6 +204,8 @@ pub enum Sample {
 pub struct ClockSync {
     nominal_freq: f64,
     time_avg: f64,
+    /// Midpoint time of the last sample used.
+    time_last: f64,
     clock_avg: f64,
     time_variance: f64,
     clock_covariance: f64,
@@ -186,8 +214,10 @@ pub struct ClockSync {
     min_half_rtt: f64,
     min_rtt_time: f64,
     last_clock: u64,
+    last_used_time: f64,
     samples: u64,
     outliers: u64,
+    slow: u64,
     last_error_us: f64,
     est: ClockEstimate,
 }
@@ -198,6 +228,7 @@ impl ClockSync {
         ClockSync {
             nominal_freq,
             time_avg: 0.0,
+            time_last: 0.0,
             clock_avg: 0.0,
             time_variance: 0.0,
             clock_covariance: 0.0,
@@ -206,19 +237,22 @@ impl ClockSync {
             min_half_rtt: f64::INFINITY,
             min_rtt_time: 0.0,
             last_clock: 0,
+            last_used_time: 0.0,
             samples: 0,
             outliers: 0,
+            slow: 0,
             last_error_us: 0.0,
             est: ClockEstimate::INVALID,
         }
     }
 
-    /// Starts the regression from a `get_uptime` answer: the full 64-bit `clock`, queried at
-    /// `sent_time` and answered at `receive_time` (system seconds). The first estimate uses the
-    /// nominal frequency.
+    /// Starts from a `get_uptime` answer: the full 64-bit `clock`, queried at `sent_time` and
+    /// answered at `receive_time` (system seconds). The first estimate uses the nominal
+    /// frequency; the regression starts with the first `get_clock` sample.
     pub fn start(&mut self, clock: u64, sent_time: f64, receive_time: f64) {
         let half_rtt = (0.5 * (receive_time - sent_time)).max(0.0);
-        self.time_avg = sent_time;
+        let mid = sent_time + half_rtt;
+        self.time_avg = mid;
         self.clock_avg = clock as f64;
         self.time_variance = 0.0;
         self.clock_covariance = 0.0;
@@ -227,15 +261,17 @@ impl ClockSync {
         self.min_half_rtt = half_rtt;
         self.min_rtt_time = sent_time;
         self.last_clock = clock;
+        self.last_used_time = sent_time;
+        self.samples = 0;
         self.est = ClockEstimate {
-            ref_time: sent_time + half_rtt,
+            ref_time: mid,
             ref_clock: clock as f64,
             freq: self.nominal_freq,
             residual_us: INITIAL_STDDEV_S * 1e6,
         };
     }
 
-    /// Feeds one `clock` answer (32-bit `wire` clock) to a query sent at `sent_time` and
+    /// Feeds one `clock` answer (32-bit `wire` clock) to a query written at `sent_time` and
     /// answered at `receive_time`.
     pub fn handle_clock(&mut self, wire: u32, sent_time: f64, receive_time: f64) -> Sample {
         let mid = 0.5 * (sent_time + receive_time);
@@ -253,16 +289,25 @@ impl ClockSync {
             self.min_half_rtt = half_rtt;
             self.min_rtt_time = sent_time;
         }
+        let min_rtt = 2.0 * (self.min_half_rtt + aged);
+        if 2.0 * half_rtt > SLOW_FACTOR * min_rtt + SLOW_SLACK_S
+            && sent_time < self.last_used_time + SLOW_WINDOW_S
+        {
+            self.slow += 1;
+            return Sample::Slow;
+        }
 
         let freq_now = if self.est.is_valid() {
             self.est.freq
         } else {
             self.nominal_freq
         };
+        let gap = (mid - self.time_last).max(0.0);
+        let alpha = (DECAY * (gap / DECAY_PERIOD_S).min(1.0)).max(1.0 / (self.samples + 1) as f64);
         let mut verdict = Sample::Accepted;
         if self.time_variance > 0.0 {
             let predicted =
-                self.clock_avg + (sent_time - self.time_avg) * self.clock_covariance / self.time_variance;
+                self.clock_avg + (mid - self.time_avg) * self.clock_covariance / self.time_variance;
             let err = clock - predicted;
             let err2 = err * err;
             self.last_error_us = err / freq_now * 1e6;
@@ -276,22 +321,34 @@ impl ClockSync {
                 verdict = Sample::Reset;
             } else {
                 self.last_prediction_time = sent_time;
-                self.prediction_variance = (1.0 - DECAY) * (self.prediction_variance + err2 * DECAY);
+                self.prediction_variance = (1.0 - alpha) * (self.prediction_variance + err2 * alpha);
             }
         }
+        self.last_used_time = sent_time;
 
-        let dt = sent_time - self.time_avg;
-        self.time_avg += DECAY * dt;
-        self.time_variance = (1.0 - DECAY) * (self.time_variance + dt * dt * DECAY);
+        if self.samples == 0 {
+            // The regression's first point (the uptime answer only seeded the estimate).
+            self.time_avg = mid;
+            self.clock_avg = clock;
+            self.time_last = mid;
+            self.samples = 1;
+            self.est.ref_time = mid;
+            self.est.ref_clock = clock;
+            return verdict;
+        }
+        let dt = mid - self.time_avg;
+        self.time_avg += alpha * dt;
+        self.time_variance = (1.0 - alpha) * (self.time_variance + dt * dt * alpha);
         let dc = clock - self.clock_avg;
-        self.clock_avg += DECAY * dc;
-        self.clock_covariance = (1.0 - DECAY) * (self.clock_covariance + dt * dc * DECAY);
+        self.clock_avg += alpha * dc;
+        self.clock_covariance = (1.0 - alpha) * (self.clock_covariance + dt * dc * alpha);
+        self.time_last = mid;
         self.samples += 1;
 
         let freq = self.clock_covariance / self.time_variance;
         if freq.is_finite() && freq > 0.0 {
             self.est = ClockEstimate {
-                ref_time: self.time_avg + self.min_half_rtt,
+                ref_time: self.time_avg,
                 ref_clock: self.clock_avg,
                 freq,
                 residual_us: self.prediction_variance.sqrt() / freq * 1e6,
@@ -318,6 +375,11 @@ impl ClockSync {
     /// Samples dropped as outliers.
     pub fn outliers(&self) -> u64 {
         self.outliers
+    }
+
+    /// Samples skipped for a slow round trip.
+    pub fn slow(&self) -> u64 {
+        self.slow
     }
 
     /// Error of the last sample against the prediction, µs of MCU time.
@@ -373,9 +435,15 @@ mod tests {
             let (c, recv) = sample(t, &mut rng, if late { 20e-3 } else { 0.0 });
             let v = sync.handle_clock(c as u64 as u32, t, recv);
             if late {
-                assert_eq!(v, Sample::Outlier, "delayed sample {i} accepted");
+                assert!(
+                    matches!(v, Sample::Outlier | Sample::Slow),
+                    "delayed sample {i} used"
+                );
             } else {
-                assert_ne!(v, Sample::Outlier, "good sample {i} rejected");
+                assert!(
+                    matches!(v, Sample::Accepted | Sample::Reset),
+                    "good sample {i}: {v:?}"
+                );
                 assert_eq!(sync.last_clock(), c as u64, "bad 64-bit extension at sample {i}");
             }
         }
@@ -443,8 +511,64 @@ mod tests {
             drift_per_s: 0.0,
         };
         let (sync, _) = run(&truth, 50e6, 100, 7, 4);
-        assert!(sync.outliers() >= 10);
+        assert!(
+            sync.slow() >= 10,
+            "slow {} outliers {}",
+            sync.slow(),
+            sync.outliers()
+        );
         assert!((sync.estimate().freq() / 50e6 - 1.0).abs() < 5e-6);
+    }
+
+    /// Start-up as the link does it (uptime, 8 queries 50 ms apart, then 50 ms apart for
+    /// `fast_s`), with round trips of 100..300 µs where the MCU reads its clock anywhere
+    /// between 30 % and 70 % of the trip, and a 2 ms stall before the read of the third query.
+    /// Returns the estimate's error 0.5 s after the last sample, µs.
+    fn startup_error_us(truth: &TrueClock, fast_s: f64, seed: u64) -> f64 {
+        let mut rng = XorShift64::new(seed);
+        let mut sync = ClockSync::new(50e6);
+        let t0 = 1000.0;
+        let mut sample = |t: f64, stall: f64| {
+            let rtt = 100e-6 + 200e-6 * rng.next_f64();
+            let read_at = t + stall + rtt * (0.3 + 0.4 * rng.next_f64());
+            (truth.at(read_at - t0), t + stall + rtt)
+        };
+        let (c, recv) = sample(t0, 0.0);
+        sync.start(c as u64, t0, recv);
+        let mut t = t0;
+        let n = 8 + (fast_s / 0.05) as usize;
+        for i in 0..n {
+            t += 0.05;
+            let (c, recv) = sample(t, if i == 2 { 2e-3 } else { 0.0 });
+            sync.handle_clock(c as u64 as u32, t, recv);
+        }
+        let at = t + 0.5;
+        (sync.estimate().clock_at(at) - truth.at(at - t0)) / truth.f0 * 1e6
+    }
+
+    #[test]
+    fn the_estimate_is_good_soon_after_start_despite_a_stall() {
+        let truth = TrueClock {
+            c0: 123_456_789.0,
+            f0: 50_000_122.0,
+            drift_per_s: 0.0,
+        };
+        // Right when the link becomes ready (8 samples), then after 1 s and 3 s of fast
+        // queries. Moves on two MCUs are planned through two such estimates, so errors add.
+        let fast = [0.0, 1.0, 3.0];
+        let mut worst = [0.0f64; 3];
+        for seed in 1..=20 {
+            for (w, fast_s) in worst.iter_mut().zip(fast) {
+                *w = w.max(startup_error_us(&truth, fast_s, seed).abs());
+            }
+        }
+        for (w, limit) in worst.iter().zip([120.0, 50.0, 30.0]) {
+            assert!(
+                *w < limit,
+                "worst errors {worst:?} us after {fast:?} s of fast queries"
+            );
+        }
+        assert!(worst[2] < worst[0] / 2.0, "fast queries did not help: {worst:?}");
     }
 
     #[test]

@@ -16,7 +16,7 @@ use std::time::Duration;
 
 use super::shared::{lock, Death, Outgoing, RelayTag, Shared, WaitFail, ANSWERED_WHEN_SHUT_DOWN, RUNNING};
 use super::{LinkOptions, LinkStats, LinkTuning};
-use crate::clocksync::ClockSync;
+use crate::clocksync::{ClockSync, Sample};
 use crate::dict::message::decode_params_into;
 use crate::dict::{Cmd, Dictionary};
 use crate::proto::format::Value;
@@ -143,7 +143,10 @@ enum Phase {
         get_uptime: Cmd,
     },
     InitialClock {
+        /// Samples used by the clock regression.
         count: u32,
+        /// Answers received (slow or outlying ones included).
+        answers: u32,
         deadline: f64,
     },
     Running,
@@ -166,6 +169,8 @@ pub(crate) struct IoThread {
     phase: Phase,
     clock_query: Option<ClockQuery>,
     next_clock_at: f64,
+    /// Until this system time, `get_clock` keeps the initial spacing.
+    fast_clock_until: f64,
     tuning: LinkTuning,
     identify_timeout: f64,
     response_timeout: f64,
@@ -213,6 +218,7 @@ impl IoThread {
             },
             clock_query: None,
             next_clock_at: 0.0,
+            fast_clock_until: 0.0,
             tuning,
             identify_timeout: opts.identify_timeout.as_secs_f64(),
             response_timeout: opts.response_timeout.as_secs_f64(),
@@ -542,6 +548,7 @@ impl IoThread {
                 self.next_clock_at = sent.unwrap_or(now) + self.tuning.initial_clock_spacing.as_secs_f64();
                 self.phase = Phase::InitialClock {
                     count: 0,
+                    answers: 0,
                     deadline: now + self.response_timeout,
                 };
             }
@@ -642,19 +649,31 @@ impl IoThread {
             return; // an answer to someone else's get_clock
         };
         self.clock_query = None;
-        self.sync.handle_clock(wire, sent, now);
+        let used = matches!(
+            self.sync.handle_clock(wire, sent, now),
+            Sample::Accepted | Sample::Reset
+        );
         self.publish_clock();
+        let spacing = self.tuning.initial_clock_spacing.as_secs_f64();
         match &mut self.phase {
-            Phase::InitialClock { count, deadline } => {
-                *count += 1;
+            Phase::InitialClock {
+                count,
+                answers,
+                deadline,
+            } => {
+                *count += u32::from(used);
+                *answers += 1;
                 *deadline = now + self.response_timeout;
-                self.next_clock_at = sent + self.tuning.initial_clock_spacing.as_secs_f64();
-                if *count >= self.tuning.initial_clock_queries {
+                self.next_clock_at = sent + spacing;
+                let wanted = self.tuning.initial_clock_queries;
+                // Slow answers are asked again, but a link that is always slow still connects.
+                if *count >= wanted || *answers >= 3 * wanted {
                     self.phase = Phase::Running;
-                    self.next_clock_at = sent + self.tuning.clock_interval.as_secs_f64();
+                    self.fast_clock_until = sent + self.tuning.fast_clock_duration.as_secs_f64();
                     self.shared.state.store(RUNNING, Ordering::Release);
                 }
             }
+            _ if sent < self.fast_clock_until => self.next_clock_at = sent + spacing,
             _ => self.next_clock_at = sent + self.tuning.clock_interval.as_secs_f64(),
         }
     }
@@ -723,6 +742,7 @@ impl IoThread {
             clock_freq: est.freq(),
             clock_samples: self.sync.samples(),
             clock_outliers: self.sync.outliers(),
+            clock_slow: self.sync.slow(),
             undecodable_msgs: self.undecodable,
             mcu_awake: self.mcu_awake,
             mcu_task_avg: self.mcu_task_avg,

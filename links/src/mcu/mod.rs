@@ -69,8 +69,13 @@ pub struct LinkTuning {
     pub clock_interval: Duration,
     /// Spacing of the initial `get_clock` queries.
     pub initial_clock_spacing: Duration,
-    /// Number of initial `get_clock` queries before the link is ready.
+    /// Number of initial `get_clock` samples before the link is ready (slow answers are
+    /// asked again, up to three times this many queries).
     pub initial_clock_queries: u32,
+    /// After the link is ready, `get_clock` keeps the initial spacing for this long, so the
+    /// frequency is known to a few ppm before the first moves are planned in this clock (a
+    /// few hundred bytes a second; then every `clock_interval`).
+    pub fast_clock_duration: Duration,
     /// Resend `identify` after this long without an answer (covers a lost first block).
     pub identify_retry: Duration,
     /// Longest read wait of the IO thread (bounds the latency of a new message).
@@ -91,6 +96,7 @@ impl Default for LinkTuning {
             clock_interval: Duration::from_secs_f64(0.9839),
             initial_clock_spacing: Duration::from_millis(50),
             initial_clock_queries: 8,
+            fast_clock_duration: Duration::from_secs(3),
             identify_retry: Duration::from_millis(250),
             max_read_wait: Duration::from_millis(5),
             upcoming_read_wait: Duration::from_millis(1),
@@ -174,6 +180,8 @@ pub struct LinkStats {
     pub clock_samples: u64,
     /// Clock samples dropped as outliers.
     pub clock_outliers: u64,
+    /// Clock samples skipped for a slow round trip.
+    pub clock_slow: u64,
     /// Received messages the dictionary could not decode.
     pub undecodable_msgs: u64,
     /// From the MCU's last `stats` report: seconds of MCU time its main loop was busy in the
@@ -200,7 +208,7 @@ impl std::fmt::Display for LinkStats {
             "mcu_awake={:.3} mcu_task_avg={:.6} mcu_task_stddev={:.6} bytes_write={} bytes_read={} \
              bytes_retransmit={} bytes_invalid={} retransmits={} send_seq={} receive_seq={} \
              srtt={:.3} rttvar={:.3} rto={:.3} ready_bytes={} upcoming_bytes={} freq={:.0} \
-             clock_residual_us={:.1} clock_outliers={}",
+             clock_residual_us={:.1} clock_outliers={} clock_slow={}",
             self.mcu_awake,
             self.mcu_task_avg,
             self.mcu_task_stddev,
@@ -219,6 +227,7 @@ impl std::fmt::Display for LinkStats {
             self.clock_freq,
             self.clock_residual_us,
             self.clock_outliers,
+            self.clock_slow,
         )?;
         match self.min_lead_margin_ticks {
             Some(m) => write!(f, " min_lead_margin_ticks={m}"),
