@@ -194,6 +194,8 @@ pub struct RtConfig {
     pub planner_priority: i32,
     pub io_priority: i32,
     pub lock_memory: bool,
+    /// Hold `/dev/cpu_dma_latency` at 0 while running.
+    pub cpu_dma_latency_zero: bool,
 }
 
 impl RtConfig {
@@ -206,7 +208,25 @@ impl RtConfig {
             planner_priority: r.planner_priority,
             io_priority: r.io_priority,
             lock_memory: r.lock_memory,
+            cpu_dma_latency_zero: r.cpu_dma_latency_zero,
         }
+    }
+
+    /// Holds `/dev/cpu_dma_latency` at 0 while the returned guard lives (when real time is on
+    /// and `[realtime] cpu_dma_latency_zero` is true); a refusal is reported once.
+    pub fn hold_idle_latency(&self) -> Option<rt_core::os::DmaLatencyHold> {
+        if !(self.enabled && self.cpu_dma_latency_zero) {
+            return None;
+        }
+        rt_core::os::hold_cpu_dma_latency_zero()
+            .map_err(|e| {
+                rt_core::os::report_refusal(
+                    rt_core::os::Guarantee::DmaLatency,
+                    &e,
+                    "idle CPUs may sleep deeply (slower wake-ups)",
+                )
+            })
+            .ok()
     }
 
     /// Settings of the MCU links' own IO threads: on the IO core, above the IO stage (they

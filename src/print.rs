@@ -281,6 +281,7 @@ fn run_live(args: &PrintArgs, cfg: &PrinterConfig, machine: &Machine, gcode: Fil
     let hists = Hists::new();
     let logging = live::Logging::start(args.live.log_level, args.live.log_file.clone())?;
     let rt = RtConfig::from_section(&cfg.realtime, args.no_realtime);
+    let _idle_hold = rt.hold_idle_latency();
     let opts = ConnectOptions {
         time_scale,
         trace: args.trace.clone(),

@@ -213,6 +213,7 @@ pub(crate) fn run(
     let log = logging.handle("main");
     let hists = Hists::new();
     let rt = RtConfig::from_section(&cfg.realtime, args.no_realtime);
+    let _idle_hold = rt.hold_idle_latency();
     let (instance, child) = match &args.live.io_attach {
         Some(name) => (name.clone(), IoChild(Mutex::new(None))),
         None => {

@@ -121,6 +121,7 @@ pub fn run(args: &ServeArgs) -> Result<(), String> {
     report.send(&mut status, io_state::STARTING, "")?;
 
     let rt = RtConfig::from_section(&cfg.realtime, args.no_realtime);
+    let _idle_hold = rt.hold_idle_latency();
     let hists = Hists::new();
     let opts = ConnectOptions {
         time_scale,

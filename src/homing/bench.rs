@@ -169,6 +169,7 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
         None
     };
     let rt = RtConfig::from_section(&cfg.realtime, args.no_realtime);
+    let _idle_hold = rt.hold_idle_latency();
     // Before this thread is pinned (the core count would then be 1).
     let link_spec = rt.link_spec();
     let opts = ConnectOptions {

@@ -89,6 +89,15 @@ pub fn unit(spec: &UnitSpec) -> String {
     let _ = writeln!(u, "# SCHED_FIFO and mlockall without root:");
     let _ = writeln!(u, "LimitRTPRIO=99");
     let _ = writeln!(u, "LimitMEMLOCK=infinity");
+    let _ = writeln!(
+        u,
+        "# [realtime] cpu_dma_latency_zero holds /dev/cpu_dma_latency (root-only) at 0 while it runs:"
+    );
+    let _ = writeln!(
+        u,
+        "ExecStartPre=+/bin/chown {} /dev/cpu_dma_latency",
+        quote(&spec.user)
+    );
     if !spec.cpus.is_empty() {
         let cpus: Vec<String> = spec.cpus.iter().map(|c| c.to_string()).collect();
         let _ = writeln!(u, "CPUAffinity={}", cpus.join(" "));
@@ -129,6 +138,7 @@ mod tests {
             "User=pi",
             "LimitRTPRIO=99",
             "LimitMEMLOCK=infinity",
+            "ExecStartPre=+/bin/chown pi /dev/cpu_dma_latency",
             "CPUAffinity=1 2",
             "Restart=always",
         ] {

@@ -21,6 +21,10 @@ pub struct RealtimeSection {
     pub io_priority: i32,
     /// mlockall(MCL_CURRENT | MCL_FUTURE) (default true).
     pub lock_memory: bool,
+    /// Hold `/dev/cpu_dma_latency` at 0 while running (default true), as `cyclictest` does:
+    /// idle CPUs then poll instead of halting, so a woken real-time thread (an endstop trigger
+    /// to relay) does not first wait for its CPU to leave a sleep state.
+    pub cpu_dma_latency_zero: bool,
 }
 
 impl Default for RealtimeSection {
@@ -32,6 +36,7 @@ impl Default for RealtimeSection {
             planner_priority: 30,
             io_priority: 40,
             lock_memory: true,
+            cpu_dma_latency_zero: true,
         }
     }
 }
@@ -48,6 +53,9 @@ pub(crate) fn read_realtime(s: &SectionReader<'_>) -> Result<RealtimeSection, Co
         planner_priority: s.int("planner_priority", Some(d.planner_priority), 1..=99)?,
         io_priority: s.int("io_priority", Some(d.io_priority), 1..=94)?,
         lock_memory: s.opt_bool("lock_memory")?.unwrap_or(d.lock_memory),
+        cpu_dma_latency_zero: s
+            .opt_bool("cpu_dma_latency_zero")?
+            .unwrap_or(d.cpu_dma_latency_zero),
     })
 }
 
@@ -73,6 +81,12 @@ mod tests {
         );
         assert_eq!(with("[realtime]\nio_cpu: any").unwrap().io_cpu, None);
         assert_eq!(with("[realtime]\nio_cpu: ANY").unwrap().io_cpu, None);
+        assert!(with("").unwrap().cpu_dma_latency_zero);
+        assert!(
+            !with("[realtime]\ncpu_dma_latency_zero: False")
+                .unwrap()
+                .cpu_dma_latency_zero
+        );
     }
 
     #[test]
