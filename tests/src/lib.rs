@@ -151,14 +151,22 @@ pub fn short_homing_config(dir: &Path, example: &str) -> PathBuf {
 }
 
 /// Fails the test unless `run` exited 0, showing both outputs.
+#[track_caller]
 pub fn assert_success(run: &Run) {
+    assert_exit(run, 0);
+}
+
+/// Fails the test unless `run` exited with `code` (and did not panic), showing both outputs.
+#[track_caller]
+pub fn assert_exit(run: &Run, code: i32) {
     assert_eq!(
         run.code,
-        Some(0),
+        Some(code),
         "stdout:\n{}\nstderr:\n{}",
         run.stdout,
         run.stderr
     );
+    assert!(!run.stderr.contains("panicked"), "stderr:\n{}", run.stderr);
 }
 
 /// What a simulated MCU's step trace shows, after the checks every print must pass: step

@@ -10,7 +10,9 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
-use cadence_tests::{assert_no_step_after_stop, bin, run, scratch, short_homing_config, Run};
+use cadence_tests::{
+    assert_exit, assert_no_step_after_stop, assert_success, bin, run, scratch, short_homing_config, Run,
+};
 use firmware::trace::{read_trace, TraceFile, TraceRecord};
 
 const TIMEOUT: Duration = Duration::from_secs(180);
@@ -121,13 +123,7 @@ fn g28_across_two_mcus_lands_on_the_trigger() {
         }
         (run, trace) = home(&dir, "xyz", None);
     }
-    assert_eq!(
-        run.code,
-        Some(0),
-        "stdout:\n{}\nstderr:\n{}",
-        run.stdout,
-        run.stderr
-    );
+    assert_success(&run);
     assert!(
         run.stdout.contains("homing z: mcus probe_mcu+mcu"),
         "{}",
@@ -149,13 +145,7 @@ fn assert_z_stopped(trace: &Path) {
 fn delayed_endstop_mcu_fails_with_a_communication_timeout() {
     let dir = scratch("homing-delay");
     let (run, trace) = home(&dir, "z", Some("--tx-delay-ms 30"));
-    assert_eq!(
-        run.code,
-        Some(1),
-        "stdout:\n{}\nstderr:\n{}",
-        run.stdout,
-        run.stderr
-    );
+    assert_exit(&run, 1);
     assert!(
         run.stderr
             .lines()

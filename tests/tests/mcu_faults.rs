@@ -4,7 +4,7 @@ use std::io::Write;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use cadence_tests::{bin, cadence, scratch, workspace};
+use cadence_tests::{assert_exit, bin, cadence, scratch, workspace};
 
 /// The built-in printer's config with its MCU moved to `serial`.
 fn config_with_serial(dir: &std::path::Path, serial: &str) -> std::path::PathBuf {
@@ -40,13 +40,7 @@ fn mcu_that_never_answers_identify() {
         ],
         Duration::from_secs(60),
     );
-    assert_eq!(
-        run.code,
-        Some(1),
-        "stdout:\n{}\nstderr:\n{}",
-        run.stdout,
-        run.stderr
-    );
+    assert_exit(&run, 1);
     assert!(run.stderr.contains("identify"), "{}", run.stderr);
     assert!(!run.stderr.contains("panicked"), "{}", run.stderr);
     assert!(started.elapsed() < Duration::from_secs(60));

@@ -4,7 +4,7 @@
 
 use std::time::Duration;
 
-use cadence_tests::{cadence, scratch, workspace};
+use cadence_tests::{assert_success, cadence, scratch, workspace};
 
 #[test]
 fn print_writes_its_log_through_the_logger_thread() {
@@ -22,13 +22,7 @@ fn print_writes_its_log_through_the_logger_thread() {
         ],
         Duration::from_secs(120),
     );
-    assert_eq!(
-        run.code,
-        Some(0),
-        "stdout:\n{}\nstderr:\n{}",
-        run.stdout,
-        run.stderr
-    );
+    assert_success(&run);
     let text = std::fs::read_to_string(&log).expect("log file");
     for what in [
         "INFO  planner planner started",

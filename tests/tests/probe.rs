@@ -13,7 +13,9 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
-use cadence_tests::{assert_no_step_after_stop, bin, run, scratch, workspace, Run};
+use cadence_tests::{
+    assert_exit, assert_no_step_after_stop, assert_success, bin, run, scratch, workspace, Run,
+};
 
 const TIMEOUT: Duration = Duration::from_secs(180);
 /// Where the simulated probe triggers in the "separate" printer (not a whole step).
@@ -121,13 +123,7 @@ fn probed(stdout: &str) -> Vec<f64> {
 }
 
 fn assert_ok(run: &Run) {
-    assert_eq!(
-        run.code,
-        Some(0),
-        "stdout:\n{}\nstderr:\n{}",
-        run.stdout,
-        run.stderr
-    );
+    assert_success(run);
 }
 
 /// One step plus the sampling resolution at `speed`, plus the same again for the clock
@@ -200,13 +196,7 @@ fn probe_before_homing_is_refused() {
     let dir = scratch("probe-unhomed");
     let cfg = separate(&dir, 5.0);
     let (run, g, _) = print(&dir, &cfg, "G4 P10\nPROBE\n", None);
-    assert_eq!(
-        run.code,
-        Some(1),
-        "stdout:\n{}\nstderr:\n{}",
-        run.stdout,
-        run.stderr
-    );
+    assert_exit(&run, 1);
     let want = format!("cadence: error: {}:2: PROBE: Must home before probe", g.display());
     assert!(
         run.stderr.lines().any(|l| l == want),
@@ -221,13 +211,7 @@ fn probe_already_triggered_is_refused() {
     let dir = scratch("probe-triggered");
     let cfg = separate(&dir, 5.0);
     let (run, g, _) = print(&dir, &cfg, "G28 Z\nPROBE\n", None);
-    assert_eq!(
-        run.code,
-        Some(1),
-        "stdout:\n{}\nstderr:\n{}",
-        run.stdout,
-        run.stderr
-    );
+    assert_exit(&run, 1);
     let want = format!(
         "cadence: error: {}:2: PROBE: Probe triggered prior to movement",
         g.display()
@@ -248,13 +232,7 @@ fn delayed_probe_mcu_fails_with_a_communication_timeout() {
     let dir = scratch("probe-delay");
     let cfg = separate(&dir, 5.0);
     let (run, g, trace) = print(&dir, &cfg, "G28 Z\nG1 Z4 F600\nPROBE\n", Some("--tx-delay-ms 30"));
-    assert_eq!(
-        run.code,
-        Some(1),
-        "stdout:\n{}\nstderr:\n{}",
-        run.stdout,
-        run.stderr
-    );
+    assert_exit(&run, 1);
     let want = format!(
         "cadence: error: {}:3: PROBE: Communication timeout during homing",
         g.display()

@@ -5,7 +5,7 @@
 use std::process::{Child, Command};
 use std::time::Duration;
 
-use cadence_tests::{benchy_prefix, cadence, scratch};
+use cadence_tests::{assert_success, benchy_prefix, cadence, scratch};
 
 /// CPU hogs that end on their own (bounded) and are killed when dropped.
 struct Hogs(Vec<Child>);
@@ -63,13 +63,7 @@ fn benchy_prefix_under_cpu_load_keeps_the_lead() {
     );
     drop(_hogs);
     println!("{}", run.stdout);
-    assert_eq!(
-        run.code,
-        Some(0),
-        "stdout:\n{}\nstderr:\n{}",
-        run.stdout,
-        run.stderr
-    );
+    assert_success(&run);
     assert!(!run.stdout.contains("LATE"), "{}", run.stdout);
     let lead = run
         .stdout

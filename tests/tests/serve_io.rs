@@ -10,7 +10,7 @@
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use cadence_tests::{bin, cadence, check_trace, scratch, workspace, Run};
+use cadence_tests::{assert_exit, assert_success, bin, cadence, check_trace, scratch, workspace, Run};
 
 const TIMEOUT: Duration = Duration::from_secs(180);
 
@@ -50,13 +50,7 @@ fn rows(stdout: &str) -> Vec<(String, i64, i64, f64)> {
 }
 
 fn check_square(run: &Run, trace: &std::path::Path) {
-    assert_eq!(
-        run.code,
-        Some(0),
-        "stdout:\n{}\nstderr:\n{}",
-        run.stdout,
-        run.stderr
-    );
+    assert_success(run);
     assert!(!run.stdout.contains("MISMATCH"), "{}", run.stdout);
     let rows = rows(&run.stdout);
     assert_eq!(rows.len(), 4, "summary rows missing:\n{}", run.stdout);
@@ -123,13 +117,7 @@ fn io_process_prints_the_square_exactly() {
 fn io_process_refuses_homing_clearly() {
     // The built-in printer has endstops: its G28 would home with motion.
     let run = cadence(&["print", square().to_str().unwrap(), "--io-process"], TIMEOUT);
-    assert_eq!(
-        run.code,
-        Some(1),
-        "stdout:\n{}\nstderr:\n{}",
-        run.stdout,
-        run.stderr
-    );
+    assert_exit(&run, 1);
     assert!(
         run.stderr.contains("homing needs the in-process IO stage"),
         "{}",

@@ -10,8 +10,8 @@ use std::process::Command;
 use std::time::Duration;
 
 use cadence_tests::{
-    assert_no_step_after_stop, assert_success, bin, check_trace, run, scratch, short_homing_config,
-    workspace, Run,
+    assert_exit, assert_no_step_after_stop, assert_success, bin, check_trace, run, scratch,
+    short_homing_config, workspace, Run,
 };
 use firmware::trace::{read_trace, TraceFile, TraceRecord};
 
@@ -241,13 +241,7 @@ fn z_on_the_toolboard_homes_on_the_main_mcus_endstop() {
 fn delayed_toolboard_fails_homing_with_a_communication_timeout() {
     let dir = scratch("toolboard-home-delay");
     let (run, trace) = home_z(&dir, "--tx-delay-ms 30");
-    assert_eq!(
-        run.code,
-        Some(1),
-        "stdout:\n{}\nstderr:\n{}",
-        run.stdout,
-        run.stderr
-    );
+    assert_exit(&run, 1);
     assert!(timed_out(&run), "stderr:\n{}", run.stderr);
     // The toolboard stopped Z and never stepped it afterwards; Z moved far less than the
     // 1.5 × travel homing move.
@@ -268,13 +262,7 @@ fn the_io_process_refuses_steppers_on_another_mcu() {
         .arg(&cfg)
         .arg("--io-process");
     let run = run(&mut cmd, TIMEOUT);
-    assert_eq!(
-        run.code,
-        Some(1),
-        "stdout:\n{}\nstderr:\n{}",
-        run.stdout,
-        run.stderr
-    );
+    assert_exit(&run, 1);
     assert!(
         run.stderr.contains("[stepper_z] is driven by mcu 'toolboard'"),
         "stderr:\n{}",
