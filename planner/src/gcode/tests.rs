@@ -414,3 +414,53 @@ proptest! {
         }
     }
 }
+
+proptest! {
+    /// The fast decimal path gives exactly what `str::parse` gives.
+    #[test]
+    fn numbers_parse_like_str_parse(
+        sign in "[+-]?",
+        int in "[0-9]{0,18}",
+        frac in proptest::option::of("[0-9]{0,25}"),
+    ) {
+        let text = match &frac {
+            Some(f) => format!("{sign}{int}.{f}"),
+            None => format!("{sign}{int}"),
+        };
+        let word = format!("X{text}");
+        let digits = int.len() + frac.as_ref().map_or(0, |f| f.len());
+        match super::number(&word) {
+            Ok(v) => {
+                let want: f64 = text.parse().unwrap();
+                prop_assert_eq!(v.to_bits(), want.to_bits(), "{}", word);
+            }
+            Err(_) => prop_assert_eq!(digits, 0, "{} refused", word),
+        }
+    }
+}
+
+#[test]
+fn number_edge_cases_parse_like_str_parse() {
+    for text in [
+        "0",
+        "-0",
+        "+0",
+        ".5",
+        "5.",
+        "-.000",
+        "95.551",
+        "-0.01776",
+        "999999999999999",
+        "9999999999999999",
+        "0.1234567890123456789012",
+        "123456.78901234567",
+        "1e5",
+    ] {
+        let word = format!("X{text}");
+        match (super::number(&word), text.parse::<f64>()) {
+            (Ok(v), Ok(want)) => assert_eq!(v.to_bits(), want.to_bits(), "{word}"),
+            (Err(_), _) if text.contains('e') => {}
+            (got, want) => panic!("{word}: {got:?} vs {want:?}"),
+        }
+    }
+}
