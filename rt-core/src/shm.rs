@@ -343,9 +343,51 @@ pub fn open_node<S: Service>(name: &str) -> Result<(Node<S>, u64), ShmError> {
         .name(&node_name)
         .signal_handling_mode(SignalHandlingMode::Disabled)
         .create::<S>()
-        .map_err(|e| setup("creating node", name, e))?;
+        .map_err(|e| match access_hint(std::path::Path::new(ICEORYX2_ROOT)) {
+            Some(hint) => setup("creating node", name, format_args!("{e:?} ({hint})")),
+            None => setup("creating node", name, e),
+        })?;
     let cleaned = node.try_cleanup_dead_nodes();
     Ok((node, cleaned.cleanups))
+}
+
+/// Where iceoryx2 (default configuration) keeps its nodes and services.
+pub const ICEORYX2_ROOT: &str = "/tmp/iceoryx2";
+
+/// The usual reason iceoryx2 cannot create a node: its directories under `root` exist but this
+/// process may not write to them (another user made them, e.g. an earlier run under sudo).
+/// `None` when they are writable or missing (iceoryx2 then creates them).
+pub fn access_hint(root: &std::path::Path) -> Option<String> {
+    use std::os::unix::fs::MetadataExt;
+    for dir in [root.to_path_buf(), root.join("nodes"), root.join("services")] {
+        let Ok(meta) = std::fs::metadata(&dir) else {
+            continue;
+        };
+        let probe = dir.join(format!(".cadence-access-{}", std::process::id()));
+        match std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&probe)
+        {
+            Ok(_) => {
+                let _ = std::fs::remove_file(&probe);
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::PermissionDenied => {
+                let me = std::fs::metadata("/proc/self").map(|m| m.uid()).ok();
+                return Some(format!(
+                    "{} belongs to uid {} (mode {:o}) and this user{} may not write to it: \
+                     remove {} (it is recreated) or run as that user",
+                    dir.display(),
+                    meta.uid(),
+                    meta.mode() & 0o7777,
+                    me.map_or(String::new(), |u| format!(" (uid {u})")),
+                    root.display()
+                ));
+            }
+            Err(_) => {}
+        }
+    }
+    None
 }
 
 fn setup(op: &'static str, service: &str, e: impl Debug) -> ShmError {

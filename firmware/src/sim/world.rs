@@ -289,9 +289,13 @@ fn open_bus(world: &str) -> Result<Bus, WorldError> {
         .as_str()
         .try_into()
         .map_err(|e| err("service name")(&e))?;
-    let node = NodeBuilder::new()
-        .create::<ipc::Service>()
-        .map_err(|e| err("node")(&e))?;
+    let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| {
+        let root = std::path::Path::new(rt_core::shm::ICEORYX2_ROOT);
+        match rt_core::shm::access_hint(root) {
+            Some(hint) => err("node")(&format_args!("{e:?} ({hint})")),
+            None => err("node")(&e),
+        }
+    })?;
     let service = node
         .service_builder(&name)
         .publish_subscribe::<WorldUpdate>()

@@ -217,3 +217,30 @@ fn two_processes_lose_nothing() {
     let status = child.wait().unwrap();
     assert!(status.success(), "child failed: {status}");
 }
+
+#[test]
+fn access_hint_names_a_directory_this_user_cannot_write() {
+    let root = std::env::temp_dir().join(format!("cadence-iox-hint-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    // Missing, then writable: no hint (iceoryx2 creates or uses them).
+    assert_eq!(access_hint(&root), None);
+    std::fs::create_dir_all(root.join("nodes")).unwrap();
+    assert_eq!(access_hint(&root), None);
+    assert!(
+        std::fs::read_dir(root.join("nodes")).unwrap().next().is_none(),
+        "probe file left behind"
+    );
+    // Read-only: root may write anyway (then no hint); any other user gets one.
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(root.join("nodes"), std::fs::Permissions::from_mode(0o500)).unwrap();
+    let hint = access_hint(&root);
+    let is_root = std::fs::metadata("/proc/self").map(|m| std::os::unix::fs::MetadataExt::uid(&m) == 0);
+    if is_root.unwrap_or(false) {
+        assert_eq!(hint, None);
+    } else {
+        let hint = hint.expect("a hint for a read-only nodes directory");
+        assert!(hint.contains("nodes") && hint.contains("mode 500"), "{hint}");
+    }
+    std::fs::set_permissions(root.join("nodes"), std::fs::Permissions::from_mode(0o700)).unwrap();
+    let _ = std::fs::remove_dir_all(&root);
+}
