@@ -506,6 +506,19 @@ pub(crate) enum PassKind {
     Probe { target: f64 },
 }
 
+/// The kinematics' name when `axis` (0 = X, 1 = Y, 2 = Z) is driven by steppers that also move
+/// another axis (corexy X and Y, corexz X and Z, every delta axis): the homing pass here stops
+/// only the axis's own steppers, which is right only for an axis with steppers of its own.
+pub(crate) fn coupled_kinematics(kin: &planner::kinematics::Kinematics, axis: usize) -> Option<&'static str> {
+    use planner::kinematics::Kinematics;
+    match kin {
+        Kinematics::Cartesian => None,
+        Kinematics::CoreXY => (axis < 2).then_some("corexy"),
+        Kinematics::CoreXZ => (axis != 1).then_some("corexz"),
+        Kinematics::Delta(_) => Some("delta"),
+    }
+}
+
 /// One homing move of endstop `e`'s axis (see [`PassKind`]). Returns the pass report and the
 /// group's MCU names.
 pub(crate) fn homing_pass(
@@ -520,6 +533,13 @@ pub(crate) fn homing_pass(
         PassKind::Home { .. } => axis_name.to_string(),
         PassKind::Probe { .. } => "probe".to_string(),
     };
+    if let Some(kin) = coupled_kinematics(&ctx.machine.options.kinematics, axis) {
+        return Err(format!(
+            "homing {axis_name}: on {kin} kinematics the {axis_name} axis is moved by steppers \
+             that also move another axis; homing or probing it needs all of them stopped on the \
+             trigger, which Cadence does not do yet (axes driven by one stepper each can be homed)"
+        ));
+    }
     wait_motion_done(ctx)?;
     let idxs: Vec<usize> = (0..ctx.machine.steppers.len())
         .filter(|&i| ctx.machine.steppers[i].axis == axis)

@@ -242,7 +242,12 @@ fn cycles(
     let mut pipeline = Pipeline::with_clocks(
         machine.pipeline_config(main.clock_freq, args.max_error_us * 1e-6),
         start,
-        PipelineOptions::default(),
+        // The printer's kinematics; no pressure advance and no worker threads (homing plans
+        // inline, and nothing extrudes here).
+        PipelineOptions {
+            kinematics: machine.options.kinematics,
+            ..PipelineOptions::default()
+        },
         &maps,
     )
     .map_err(|e| e.to_string())?;

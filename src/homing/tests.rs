@@ -158,3 +158,25 @@ fn report_names_axis_overshoot_and_position() {
         "{s}"
     );
 }
+
+#[test]
+fn axes_moved_by_shared_steppers_are_named() {
+    use planner::kinematics::{DeltaGeometry, Kinematics};
+    for axis in 0..3 {
+        assert_eq!(coupled_kinematics(&Kinematics::Cartesian, axis), None);
+    }
+    let xy: Vec<_> = (0..3)
+        .map(|a| coupled_kinematics(&Kinematics::CoreXY, a))
+        .collect();
+    assert_eq!(xy, [Some("corexy"), Some("corexy"), None]);
+    let xz: Vec<_> = (0..3)
+        .map(|a| coupled_kinematics(&Kinematics::CoreXZ, a))
+        .collect();
+    assert_eq!(xz, [Some("corexz"), None, Some("corexz")]);
+    let delta = Kinematics::Delta(DeltaGeometry {
+        radius: 100.0,
+        arm_length: [250.0; 3],
+        angles: [210.0, 330.0, 90.0],
+    });
+    assert_eq!(coupled_kinematics(&delta, 2), Some("delta"));
+}
