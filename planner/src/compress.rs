@@ -6,17 +6,38 @@
 //! one or two steps earlier moves the anchor of the next command, and is chosen when the two
 //! commands together then cover more steps (benchy: 0.4 % fewer commands, see
 //! [`DEFAULT_LOOKAHEAD_BACKOFF`]). The next command computed by the lookahead is kept and
-//! reused. An earlier end is only tried when cheap necessary tests (`fit::two_window_adds`:
-//! no add lands three pairs of steps; `fit::may_reach`: even real-valued commands cannot land 4
-//! sampled steps) do not rule the gain out: the same choices, 15 % less compression time on the
-//! benchy. The same pair bound stops the search for the longest command as soon as one more
-//! step is out of reach, and narrows the adds it tries (benchy: the same commands, 12 % fewer
-//! instructions). Every pass over the steps also yields the interval one step earlier, so
-//! the lookahead's shorter command costs no pass; a failed pass names the steps that bound it,
-//! and their pair with the failing step narrows the adds left to try; the latest end tries the
-//! top of its range first (benchy: the same commands, 9 % fewer instructions in all, see
-//! `compress::fit`). Greedy choices are not globally optimal;
+//! reused. An earlier end is only tried when a cheap necessary test (`fit::two_window_adds`:
+//! some add lands three pairs of the steps the next command would need) does not rule the gain
+//! out, and the search for that next command then only tries the adds this test leaves. Every
+//! pass over the steps also yields the interval one step earlier, so the lookahead's shorter
+//! command costs no pass; a failed pass names the steps that bound it, and their pair with the
+//! failing step narrows the adds left to try, in the search for the longest command and in the
+//! one for the latest end (see `compress::fit`). Greedy choices are not globally optimal;
 //! the checker, not the algorithm, is what guarantees correctness.
+//!
+//! Cost (callgrind instructions of `cadence-bench plan` on the benchy, cartesian printer,
+//! `--threads 0`; each change kept gives the same commands and wire bytes, on the corexy
+//! printer and with two threads too): 4.71 G before issue #3, 3.62 G after (−23 %). In order:
+//! the latest-end search cuts its range with the pair of a failed probe's binding step and
+//! failing step and probes the new top at once, and the byte-saving search skips adds whose
+//! interval would take no fewer bytes or that cannot land the pairs (−0.09 G); passes
+//! specialised on the sign of the add, which leaves one interval-range check per step
+//! (−0.37 G); `pair_adds` without its zero and overflow checks, inlined into
+//! `two_window_adds` (−0.16 G); the lookahead's follow-up command searched only among the adds
+//! of its `two_window_adds` range, that test before `may_reach` (−0.09 G); the largest add the
+//! search for the longest command tried above its answer caps the latest-end search (−0.02 G);
+//! the `fit::may_reach` filter (a real-valued command through 4 sampled steps) dropped: with
+//! the bounded follow-up search it cost more than it saved (−0.09 G); in the search for the
+//! longest command, the `two_window_adds` stop for one more step (−0.22 G) and the deviation
+//! bound around the best add so far (−0.04 G) dropped: with the binding-pair cuts they cost
+//! more than they save. Tried and not kept: aiming each new probe at the centre of the adds
+//! that could land 1.5× (or 2×, 1.25×, +2) the best count (11 % fewer steps scanned, 1 % more
+//! instructions); a first guess clamped into the `two_window_adds` range of the current
+//! command's count (0.7 % more instructions); the longest command's add instead of its
+//! latest-end add as the follow-up's first guess (no change); the middle pair alone as the
+//! stop test (2.5 % more than none); dropping the deviation bound around each probe too (1.6 %
+//! more); requiring the byte-saving add to reach the same end by divisibility (0.3 % fewer, but
+//! other commands: benchy cartesian −1, corexy +5).
 //!
 //! Commands never go back in time (every interval ≥ 0); a `reset_step_clock` precedes the first
 //! step and any step more than 2^29 ticks after the previous one; `set_next_step_dir` precedes
@@ -31,7 +52,9 @@ use crate::kinematics::StepperKin;
 use crate::stepgen::StepGen;
 pub use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::Move;
-use fit::{best_fit, fit_prefix, latest_end, longest_fit, may_reach, two_window_adds, Fit, StepWindow};
+use fit::{
+    best_fit, fit_prefix, latest_end, longest_fit, longest_fit_within, two_window_adds, Fit, StepWindow,
+};
 
 /// Largest interval sent (and largest gap without a `reset_step_clock`), in ticks.
 pub const MAX_INTERVAL: u64 = 1 << 29;
@@ -256,17 +279,17 @@ impl StepCompressor {
             let Some(f) = shorter.or_else(|| fit_prefix(run, last, fit.count - back, fit.add)) else {
                 break;
             };
-            // It only wins when the next command reaches `need` steps: skip it when even the
-            // real-valued relaxation on a few of those steps cannot (the same choices, faster).
+            // It only wins when the next command reaches `need` steps: skip it when no add lands
+            // three pairs of those steps, and search only the adds that do (the same choices).
             let need = best.0.count + best.1.count + 1 - f.count;
             let rest = &run[f.count..];
-            if need > rest.len()
-                || two_window_adds(rest, f.end(last), need).is_none()
-                || !may_reach(rest, f.end(last), need)
-            {
+            if need > rest.len() {
                 continue;
             }
-            let next = follow(&f, guess);
+            let Some(within) = two_window_adds(rest, f.end(last), need) else {
+                continue;
+            };
+            let next = longest_fit_within(rest, f.end(last), max_err, guess, within);
             if f.count + next.count > best.0.count + best.1.count {
                 best = (f, next);
             }
