@@ -16,6 +16,8 @@
 //!   - [`shm`]: iceoryx2 services for step batches and telemetry (fixed-size `#[repr(C)]`
 //!     payloads, no loss, sequence-checked), and ([`shm::io`]) the services that let the IO
 //!     stage run in its own process (MCU info, clock snapshots, status, control).
+//!   - [`wakeup`]: the machine's timing noise floor (a cyclictest-like sleeper), to judge
+//!     measured tails as ratios within one run.
 //!
 //! The crate is `no_std` unless the `std` feature is on (the firmware core uses it bare).
 //! `unsafe` is denied everywhere except the OS layer (`os::sys`, `alloc_count`, and the
@@ -36,5 +38,7 @@ pub mod logger;
 pub mod os;
 #[cfg(feature = "std")]
 pub mod shm;
+#[cfg(feature = "std")]
+pub mod wakeup;
 
 pub use time::{McuClock, PrintTime, SystemTime, WireClock};

@@ -21,6 +21,11 @@
 //!
 //! Figures are µs of system time (MCU time when the simulator's time scale is 1).
 //!
+//! Noise floor: a cyclictest-like sleeper ([`rt_core::wakeup`], 1 ms sleeps at the IO threads'
+//! priority, any core) runs for the whole bench; its wake-up latency is printed with the
+//! p99.9 trigger → stop latencies as multiples of its p99.9, the figure to compare between
+//! runs on a machine whose own timing noise varies (a VM).
+//!
 //! Threads: like a live print, with printer.cfg's `[realtime]` (unless `--no-realtime`): the
 //! links' IO threads (they relay the trigger) pinned to the IO core under SCHED_FIFO, this
 //! thread (planning, waiting) as the planner, the simulated MCUs SCHED_FIFO below them.
@@ -38,6 +43,7 @@ use links::clocksync::ClockEstimate;
 use links::trsync::COMM_TIMEOUT_MSG;
 use planner::pipeline::{Pipeline, PipelineOptions};
 use rt_core::hist::LatencyHist;
+use rt_core::wakeup::{WakeupProbe, WakeupReport};
 
 use super::{plain_move, print_now, HomingCtx, HomingReport, AXIS_NAMES};
 use crate::live::RtConfig;
@@ -135,6 +141,8 @@ struct PassTiming {
 
 /// Lead every step command must have at the MCU, in print seconds.
 const MIN_LEAD_S: f64 = 0.100;
+/// Sleep period of the wake-up probe (the machine's noise floor during the run).
+const WAKEUP_PERIOD: std::time::Duration = std::time::Duration::from_millis(1);
 
 pub fn run(args: &HomeArgs) -> Result<(), String> {
     let mut axes = [false; 3];
@@ -179,6 +187,10 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
         io_rt: Some(link_spec.clone()),
     };
     let mut mcus = Mcus::connect(&cfg, &machine, opts)?;
+    // The machine's noise floor meanwhile, at the IO threads' priority; started before this
+    // thread is pinned, so the sleeper may run on any core.
+    let probe = WakeupProbe::start(WAKEUP_PERIOD, link_spec.fifo_priority)
+        .map_err(|e| format!("cannot start the wake-up probe thread: {e}"))?;
     // After the simulated MCUs were spawned (they would inherit this thread's core).
     let got = rt_core::os::apply_rt(&rt.planner_spec());
     println!(
@@ -200,6 +212,7 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
         .map(|m| (m.name.clone(), m.link.clock()))
         .collect();
     let result = cycles(args, &machine, &mcus, axes, time_scale, rt.enabled);
+    let noise = probe.finish();
     // Fresh estimates for the trace conversion (the fit keeps improving).
     let clocks: Vec<(String, ClockEstimate)> = mcus
         .list
@@ -214,15 +227,30 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
     for line in rt_core::os::rt_report() {
         eprintln!("cadence: {line}");
     }
-    let timings = result?;
+    let (timings, host_p999) = result?;
+    println!(
+        "  machine wake-up latency meanwhile ({} ms sleeps, {}): {}",
+        noise.period.as_secs_f64() * 1e3,
+        if noise.fifo { "SCHED_FIFO" } else { "SCHED_OTHER" },
+        noise.hist.summary().format_latency()
+    );
+    if let Some(r) = noise.ratio_to_p999(host_p999) {
+        println!("  host view, last executed step after trigger p99.9 = {r:.1} x the wake-up p99.9");
+    }
     if let Some(base) = &args.trace {
-        trace_latency(&machine, axes, base, &main_name, &trsyncs, &clocks, &timings)?;
+        let trace_mcus = TraceMcus {
+            main: main_name,
+            trsyncs,
+            clocks,
+        };
+        trace_latency(&machine, axes, base, &trace_mcus, &timings, &noise)?;
     }
     Ok(())
 }
 
 /// Homes `cycles` times and prints the reports and the host-view histograms; returns the
-/// host's timestamps of every successful pass.
+/// host's timestamps of every successful pass and the host view's p99.9 (ns) of the last
+/// executed step after the trigger.
 fn cycles(
     args: &HomeArgs,
     machine: &Machine,
@@ -230,7 +258,7 @@ fn cycles(
     axes: [bool; 3],
     scale: f64,
     realtime: bool,
-) -> Result<Vec<PassTiming>, String> {
+) -> Result<(Vec<PassTiming>, f64), String> {
     let main = mcus.main();
     let start = print_now(mcus) + (0.5f64).max(0.25 * scale);
     let mut streams = StepStreams::new(machine, &mcus.stream_params(machine))?;
@@ -366,7 +394,8 @@ fn cycles(
         mm(o.p999),
         mm(o.max)
     );
-    Ok(timings)
+    let p999 = last_step.summary().p999 as f64 * last_step.ns_per_unit();
+    Ok((timings, p999))
 }
 
 /// MCU clock → system time (CLOCK_MONOTONIC seconds).
@@ -442,6 +471,17 @@ fn pair_hops(timings: &[PassTiming], triggers: &[f64], stops: &[Option<f64>]) ->
     (hops, unpaired)
 }
 
+/// What the trace conversion needs to know of the MCUs once they are closed.
+#[derive(Debug)]
+struct TraceMcus {
+    /// The main MCU's name (its trace file has no `-NAME` inserted).
+    main: String,
+    /// Each MCU's trsync oid.
+    trsyncs: Vec<(String, u8)>,
+    /// Clock estimates, the freshest first.
+    clocks: Vec<(String, ClockEstimate)>,
+}
+
 /// Trigger → stop latencies from the simulated MCUs' traces (see the module doc), for each
 /// homed axis whose endstop is on another MCU than its steppers (either way round), with the
 /// relay's hops from the host's timestamps in `timings`.
@@ -449,11 +489,16 @@ fn trace_latency(
     machine: &Machine,
     axes: [bool; 3],
     base: &Path,
-    main: &str,
-    trsyncs: &[(String, u8)],
-    clocks: &[(String, ClockEstimate)],
+    mcus: &TraceMcus,
     timings: &[PassTiming],
+    noise: &WakeupReport,
 ) -> Result<(), String> {
+    let TraceMcus {
+        main,
+        trsyncs,
+        clocks,
+    } = mcus;
+    let main = main.as_str();
     let est = |name: &str| clocks.iter().find(|(n, _)| n == name).map(|&(_, e)| e);
     let read = |name: &str| {
         let path = trace_path(base, name, name == main);
@@ -552,6 +597,10 @@ fn trace_latency(
             );
         };
         line("trigger → stepper MCU stop:", &stop_h);
+        let p999 = stop_h.summary().p999 as f64 * stop_h.ns_per_unit();
+        if let Some(r) = noise.ratio_to_p999(p999) {
+            println!("  trigger → stepper MCU stop p99.9 = {r:.1} x the machine's wake-up p99.9 meanwhile");
+        }
         line("trigger → last step before stop:", &last_h);
         let s = last_h.summary();
         if s.negative > 0 {

@@ -10,7 +10,7 @@
 //! Nothing here needs privileges: a refused SCHED_FIFO or mlockall is itself the finding.
 
 use std::fmt;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use rt_core::hist::LatencyHist;
 
@@ -297,11 +297,11 @@ pub fn measure_wakeup(samples: usize, period: Duration, fifo_priority: Option<i3
     let handle = std::thread::spawn(move || {
         let fifo = fifo_priority.is_some_and(|p| rt_core::os::set_current_thread_fifo(p).is_ok());
         let mut hist = LatencyHist::new();
-        for _ in 0..samples {
-            let t = Instant::now();
-            std::thread::sleep(period);
-            hist.record_duration(t.elapsed().saturating_sub(period));
-        }
+        let mut n = 0;
+        rt_core::wakeup::sleep_loop(period, &mut hist, || {
+            n += 1;
+            n >= samples
+        });
         (hist, fifo)
     });
     handle.join().unwrap_or_else(|_| (LatencyHist::new(), false))

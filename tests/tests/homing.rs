@@ -130,6 +130,27 @@ fn g28_across_two_mcus_lands_on_the_trigger() {
         run.stdout
     );
     assert!(run.stdout.contains("trigger on 'probe_mcu'"), "{}", run.stdout);
+    // The machine's noise floor is measured beside the homing, and the relay's tail is
+    // given as a multiple of it.
+    let floor = run
+        .stdout
+        .lines()
+        .find_map(|l| {
+            l.trim()
+                .strip_prefix("machine wake-up latency meanwhile (1 ms sleeps, ")
+        })
+        .unwrap_or_else(|| panic!("no wake-up latency in:\n{}", run.stdout));
+    let n: u64 = floor
+        .split("n=")
+        .nth(1)
+        .and_then(|s| s.split_whitespace().next()?.parse().ok())
+        .unwrap_or_else(|| panic!("no sample count in {floor}"));
+    assert!(n > 100, "{floor}");
+    assert!(
+        run.stdout.contains("trigger → stepper MCU stop p99.9 = "),
+        "{}",
+        run.stdout
+    );
     check_success(&run, &trace, &[0, 1, 2]);
 }
 
