@@ -1,6 +1,6 @@
 //! The `cadence-mcu` command line (docs/contract.md).
 
-use super::world::{AxisSpec, EndstopSpec};
+use super::world::{AxisSpec, Coord, EndstopSpec};
 use crate::core::constants::{PINS_PER_PORT, PIN_PORTS};
 use crate::trace::TraceFormat;
 #[cfg(test)]
@@ -63,8 +63,9 @@ pub struct Cli {
     /// A stepper (by its step pin) driving an axis: position = START_MM + steps / STEPS_PER_MM.
     #[arg(long = "axis", value_name = "AXIS=STEP_PIN,STEPS_PER_MM,START_MM", value_parser = parse_axis)]
     pub axes: Vec<AxisSpec>,
-    /// An endstop input reading 1 while AXIS is at or below (min) / at or above (max) TRIGGER_MM.
-    #[arg(long = "endstop", value_name = "PIN=AXIS,TRIGGER_MM,min|max", value_parser = parse_endstop)]
+    /// An endstop input reading 1 while COORD is at or below (min) / at or above (max)
+    /// TRIGGER_MM; COORD is an axis (`x`) or a linear combination of axes (`0.5*a+0.5*b`).
+    #[arg(long = "endstop", value_name = "PIN=COORD,TRIGGER_MM,min|max", value_parser = parse_endstop)]
     pub endstops: Vec<EndstopSpec>,
     /// A heater output and the thermistor ADC input it warms (100K NTC beta 3950, 4.7k pull-up).
     #[arg(long = "heater", value_name = "HEATER_PIN=SENSOR_PIN", value_parser = parse_heater)]
@@ -194,10 +195,10 @@ fn parse_axis(s: &str) -> Result<AxisSpec, String> {
 }
 
 fn parse_endstop(s: &str) -> Result<EndstopSpec, String> {
-    let (pin, rest) = s.split_once('=').ok_or("expected PIN=AXIS,TRIGGER_MM,min|max")?;
+    let (pin, rest) = s.split_once('=').ok_or("expected PIN=COORD,TRIGGER_MM,min|max")?;
     let f: Vec<&str> = rest.split(',').collect();
     let [axis, at, side] = f.as_slice() else {
-        return Err("expected PIN=AXIS,TRIGGER_MM,min|max".into());
+        return Err("expected PIN=COORD,TRIGGER_MM,min|max".into());
     };
     let at_min = match side.trim() {
         "min" => true,
@@ -206,7 +207,7 @@ fn parse_endstop(s: &str) -> Result<EndstopSpec, String> {
     };
     Ok(EndstopSpec {
         pin: parse_pin(pin)?,
-        axis: parse_axis_name(axis)?,
+        axis: Coord::parse(axis).map_err(|e| e.to_string())?,
         trigger_mm: parse_f64(at, "trigger position")?,
         at_min,
     })
@@ -366,7 +367,7 @@ mod tests {
             c.endstops[0],
             EndstopSpec {
                 pin: 25,
-                axis: "z".into(),
+                axis: Coord::axis("z"),
                 trigger_mm: 0.25,
                 at_min: true
             }
@@ -376,6 +377,10 @@ mod tests {
         assert_eq!((c.drop_tx, c.fault_seed, c.tx_delay_ms), (0.01, 42, 30));
         assert_eq!((c.freeze_after_ms, c.freeze_ms), (Some(500), Some(100)));
         assert_eq!(c.late_limit_us, 1000);
+        let c = parse(&["--endstop", "PA3=0.5*a+0.5*b,0,min", "--endstop", "PB3=0.5*a-0.5*b,0,max"])
+            .unwrap();
+        assert_eq!(c.endstops[0].axis.to_string(), "0.5*a+0.5*b");
+        assert_eq!(c.endstops[1].axis.terms[1], (-0.5, "b".to_string()));
     }
 
     #[test]
@@ -387,6 +392,8 @@ mod tests {
             &["--axis", "z=1,2"],
             &["--endstop", "PA1=z,1,middle"],
             &["--endstop", "PA8=z,1,min"],
+            &["--endstop", "PA1=0.5*a+,1,min"],
+            &["--endstop", "PA1=half*a,1,min"],
             &["--heater", "PA1"],
             &["--drop-tx", "1.5"],
             &["--freeze-ms", "10"],
@@ -396,6 +403,11 @@ mod tests {
         }
         assert_eq!(parse_pin("96"), Err("pin 96 is out of range (0..96)".into()));
         assert_eq!(parse_pin("PL7"), Ok(95));
+        assert_eq!(
+            parse_endstop("PA1=a+2b,1,min").unwrap_err(),
+            "coordinate `a+2b`: axis name `2b` must have 1 to 8 bytes, start with a letter or `_` and \
+             hold no `+ - * , =` or whitespace"
+        );
     }
 
     #[test]

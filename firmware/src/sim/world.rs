@@ -3,8 +3,11 @@
 //!
 //! Model: `--axis AXIS=STEP_PIN,STEPS_PER_MM,START_MM` makes the stepper configured with that
 //! step pin drive axis AXIS: `position_mm = START_MM + net_steps / STEPS_PER_MM` (dir = 1 is +).
-//! `--endstop PIN=AXIS,TRIGGER_MM,min|max` makes input PIN read 1 while the axis is at or below
-//! (`min`) / at or above (`max`) TRIGGER_MM. An endstop on an axis nobody drives reads 0.
+//! `--endstop PIN=COORD,TRIGGER_MM,min|max` makes input PIN read 1 while the coordinate is at or
+//! below (`min`) / at or above (`max`) TRIGGER_MM. A coordinate ([`Coord`]) is one axis (`x`) or
+//! a linear combination of axes (`0.5*a+0.5*b`): on a corexy printer the steppers A and B drive
+//! axes `a` and `b` and the X endstop reads x = (a + b) / 2, the Y endstop y = (a − b) / 2. A
+//! coordinate naming an axis nobody drives cannot be read: its endstop reads 0.
 //!
 //! Sharing (with `--world ID`): iceoryx2 publish-subscribe on the service `cadence/world/ID`.
 //! Each process publishes a fixed-size [`WorldUpdate`] (its pid, a sequence number and up to
@@ -67,13 +70,142 @@ pub struct AxisSpec {
     pub start_mm: f64,
 }
 
-/// `--endstop`: an input pin driven by an axis position.
+/// Terms of a [`Coord`] at most.
+pub const MAX_TERMS: usize = 8;
+
+/// A world coordinate: Σ coefficient · axis position over named axes.
+///
+/// Text form (`--endstop`): `TERM (('+' | '-') TERM)*` with `TERM = [COEF '*'] NAME`, an optional
+/// sign before the first term; `COEF` a finite number (`2e-1` is one number), `NAME` 1 to
+/// [`NAME_LEN`] bytes that start with a letter or `_` and hold none of `+ - * , =` or
+/// whitespace. [`Coord::parse`] reads it, `Display` writes it (and `parse` reads that back to
+/// the same value).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Coord {
+    /// (coefficient, axis name); at least one, at most [`MAX_TERMS`].
+    pub terms: Vec<(f64, String)>,
+}
+
+/// Why a coordinate's text was refused.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CoordError {
+    #[error("coordinate `{0}` is empty")]
+    Empty(String),
+    #[error("coordinate `{text}`: term `{term}` is empty")]
+    EmptyTerm { text: String, term: String },
+    #[error("coordinate `{text}`: coefficient `{coef}` is not a finite number")]
+    Coefficient { text: String, coef: String },
+    #[error(
+        "coordinate `{text}`: axis name `{name}` must have 1 to 8 bytes, start with a letter or `_` \
+         and hold no `+ - * , =` or whitespace"
+    )]
+    Name { text: String, name: String },
+    #[error("coordinate `{text}` has more than {max} terms", max = MAX_TERMS)]
+    TooManyTerms { text: String },
+}
+
+impl Coord {
+    /// The coordinate of one axis (coefficient 1).
+    pub fn axis(name: &str) -> Coord {
+        Coord {
+            terms: vec![(1.0, name.to_owned())],
+        }
+    }
+
+    /// Parses the text form (see [`Coord`]). Never panics.
+    pub fn parse(text: &str) -> Result<Coord, CoordError> {
+        let t = text.trim();
+        if t.is_empty() {
+            return Err(CoordError::Empty(text.to_owned()));
+        }
+        // Split before every sign that is not a number's exponent sign (`2e-1*a`).
+        let mut raw: Vec<&str> = Vec::new();
+        let mut start = 0;
+        for (i, c) in t.char_indices() {
+            if i == 0 || !(c == '+' || c == '-') {
+                continue;
+            }
+            let term = t[start..i].trim_start_matches(['+', '-']).trim();
+            let exponent = !term.contains('*')
+                && term.starts_with(|d: char| d.is_ascii_digit() || d == '.')
+                && term.ends_with(['e', 'E']);
+            if !exponent {
+                raw.push(&t[start..i]);
+                start = i;
+            }
+        }
+        raw.push(&t[start..]);
+        if raw.len() > MAX_TERMS {
+            return Err(CoordError::TooManyTerms { text: text.to_owned() });
+        }
+        let mut terms = Vec::with_capacity(raw.len());
+        for term in raw {
+            let term = term.trim();
+            let (sign, body) = match term.as_bytes().first() {
+                Some(b'-') => (-1.0, &term[1..]),
+                Some(b'+') => (1.0, &term[1..]),
+                _ => (1.0, term),
+            };
+            let body = body.trim();
+            if body.is_empty() {
+                return Err(CoordError::EmptyTerm {
+                    text: text.to_owned(),
+                    term: term.to_owned(),
+                });
+            }
+            let (coef, name) = match body.split_once('*') {
+                Some((c, n)) => {
+                    let coef = c.trim().parse::<f64>().ok().filter(|v| v.is_finite()).ok_or_else(|| {
+                        CoordError::Coefficient {
+                            text: text.to_owned(),
+                            coef: c.trim().to_owned(),
+                        }
+                    })?;
+                    (coef, n.trim())
+                }
+                None => (1.0, body),
+            };
+            let valid = (1..=NAME_LEN).contains(&name.len())
+                && name.starts_with(|c: char| c.is_ascii_alphabetic() || c == '_')
+                && !name.contains(|c: char| "+-*,=".contains(c) || c.is_whitespace());
+            if !valid {
+                return Err(CoordError::Name {
+                    text: text.to_owned(),
+                    name: name.to_owned(),
+                });
+            }
+            terms.push((sign * coef, name.to_owned()));
+        }
+        Ok(Coord { terms })
+    }
+}
+
+impl std::fmt::Display for Coord {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        for (i, (coef, name)) in self.terms.iter().enumerate() {
+            if coef.is_sign_negative() {
+                f.write_str("-")?;
+            } else if i > 0 {
+                f.write_str("+")?;
+            }
+            // `{}` of an f64 is its shortest exact decimal, never an exponent.
+            if coef.abs() == 1.0 {
+                f.write_str(name)?;
+            } else {
+                write!(f, "{}*{name}", coef.abs())?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// `--endstop`: an input pin driven by a world coordinate.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EndstopSpec {
     /// Input pin number.
     pub pin: u8,
-    /// Axis name.
-    pub axis: String,
+    /// The coordinate it reads.
+    pub axis: Coord,
     /// Trigger coordinate.
     pub trigger_mm: f64,
     /// true: reads 1 at or below `trigger_mm`; false: at or above.
@@ -257,11 +389,19 @@ impl World {
         }
     }
 
+    /// Value of coordinate `c`: `None` while one of its axes is unknown.
+    pub fn coord(&self, c: &Coord) -> Option<f64> {
+        c.terms
+            .iter()
+            .try_fold(0.0, |sum, (coef, name)| Some(sum + coef * self.position(name)?))
+    }
+
     /// Level of input `pin` if it is a simulated endstop (refreshes remote positions first).
     pub fn read_endstop(&mut self, pin: u8) -> Option<bool> {
-        let e = self.endstops.iter().find(|e| e.pin == pin)?.clone();
+        let i = self.endstops.iter().position(|e| e.pin == pin)?;
         self.refresh();
-        let pos = self.position(&e.axis)?;
+        let e = &self.endstops[i];
+        let pos = self.coord(&e.axis)?;
         Some(if e.at_min {
             pos <= e.trigger_mm
         } else {
@@ -349,19 +489,19 @@ mod tests {
         let endstops = vec![
             EndstopSpec {
                 pin: 5,
-                axis: "x".into(),
+                axis: Coord::axis("x"),
                 trigger_mm: 9.95,
                 at_min: true,
             },
             EndstopSpec {
                 pin: 6,
-                axis: "x".into(),
+                axis: Coord::axis("x"),
                 trigger_mm: 10.02,
                 at_min: false,
             },
             EndstopSpec {
                 pin: 7,
-                axis: "nobody".into(),
+                axis: Coord::axis("nobody"),
                 trigger_mm: 0.0,
                 at_min: true,
             },
@@ -389,7 +529,7 @@ mod tests {
         let id = format!("unit-{}", std::process::id());
         let endstop = EndstopSpec {
             pin: 1,
-            axis: "z".into(),
+            axis: Coord::axis("z"),
             trigger_mm: 10.5,
             at_min: false,
         };
@@ -403,5 +543,90 @@ mod tests {
         stepper.flush();
         assert_eq!(probe.read_endstop(1), Some(true));
         assert_eq!(probe.position("z"), Some(10.5));
+    }
+
+    #[test]
+    fn corexy_endstops_read_combinations_of_the_two_axes() {
+        let x = Coord::parse("0.5*a+0.5*b").unwrap();
+        let y = Coord::parse("0.5*a-0.5*b").unwrap();
+        let endstops = vec![
+            EndstopSpec {
+                pin: 1,
+                axis: x.clone(),
+                trigger_mm: 9.0,
+                at_min: true,
+            },
+            EndstopSpec {
+                pin: 2,
+                axis: y.clone(),
+                trigger_mm: -1.0,
+                at_min: true,
+            },
+        ];
+        // a = x + y = 12, b = x − y = 8: x = 10, y = 2.
+        let spec = |name: &str, pin: u8, start_mm: f64| AxisSpec {
+            name: name.into(),
+            step_pin: pin,
+            steps_per_mm: 100.0,
+            start_mm,
+        };
+        let mut w = World::new(None, vec![spec("a", 3, 12.0), spec("b", 4, 8.0)], endstops).unwrap();
+        w.config_stepper(0, 3);
+        w.config_stepper(1, 4);
+        assert_eq!((w.coord(&x), w.coord(&y)), (Some(10.0), Some(2.0)));
+        // X − 1 mm: both A and B back by 100 steps; Y keeps its place.
+        for _ in 0..100 {
+            w.step(0, false);
+            w.step(1, false);
+        }
+        assert_eq!(w.read_endstop(1), Some(true));
+        assert_eq!(w.read_endstop(2), Some(false));
+        // Y − 3 mm: A back 300 steps, B forward 300.
+        for _ in 0..300 {
+            w.step(0, false);
+            w.step(1, true);
+        }
+        assert!((w.coord(&y).unwrap() + 1.0).abs() < 1e-9);
+        assert_eq!(w.read_endstop(2), Some(true));
+        assert!((w.coord(&x).unwrap() - 9.0).abs() < 1e-9);
+        assert_eq!(w.coord(&Coord::parse("a+c").unwrap()), None, "c is driven by nobody");
+    }
+
+    #[test]
+    fn coordinates_parse_and_print() {
+        let c = |t: &str| Coord::parse(t).map(|c| c.terms);
+        let t = |v: &[(f64, &str)]| Ok(v.iter().map(|&(k, n)| (k, n.to_string())).collect());
+        assert_eq!(c("x"), t(&[(1.0, "x")]));
+        assert_eq!(c(" 0.5*a + 0.5 * b "), t(&[(0.5, "a"), (0.5, "b")]));
+        assert_eq!(c("-a-2e-1*b+_c1"), t(&[(-1.0, "a"), (-0.2, "b"), (1.0, "_c1")]));
+        assert_eq!(c("+1E+1*e"), t(&[(10.0, "e")]));
+        let shown: Vec<String> = ["x", "0.5*a-0.5*b", "-a+2*z", "-0.125*b"]
+            .iter()
+            .map(|s| Coord::parse(s).unwrap().to_string())
+            .collect();
+        assert_eq!(shown, ["x", "0.5*a-0.5*b", "-a+2*z", "-0.125*b"]);
+        let err = |t: &str| Coord::parse(t).unwrap_err().to_string();
+        assert_eq!(err(" "), "coordinate ` ` is empty");
+        assert_eq!(err("a+"), "coordinate `a+`: term `+` is empty");
+        assert_eq!(err("x*a"), "coordinate `x*a`: coefficient `x` is not a finite number");
+        assert_eq!(err("inf*a"), "coordinate `inf*a`: coefficient `inf` is not a finite number");
+        assert!(err("2a").contains("axis name `2a` must"));
+        assert!(err("averylongname").contains("axis name `averylongname`"));
+        assert!(err("a*b*c").contains("coefficient `a`"));
+        assert!(err("a+b+c+d+e+f+g+h+i").contains("more than 8 terms"));
+    }
+
+    proptest::proptest! {
+        /// Whatever `Display` writes, `parse` reads back to the same coordinate; no text makes
+        /// `parse` panic.
+        #[test]
+        fn coordinates_round_trip(
+            terms in proptest::collection::vec((-1e6f64..1e6, "[a-z_][a-z0-9_]{0,7}"), 1..=MAX_TERMS),
+            text in ".{0,40}",
+        ) {
+            let c = Coord { terms };
+            proptest::prop_assert_eq!(Coord::parse(&c.to_string()), Ok(c));
+            let _ = Coord::parse(&text);
+        }
     }
 }
