@@ -1,6 +1,10 @@
 //! G28 with motion, across MCUs (docs/protocol.md "Homing: endstop + trsync",
 //! docs/architecture.md "Homing").
 //!
+//! The axis steppers are every stepper that moves the homed axis ([`axis_steppers`]): X's own
+//! on a cartesian printer, both motors A (x + y) and B (x − y) for corexy X or Y, A (x + z) and
+//! B (x − z) for corexz X or Z. Delta homing is refused (its towers home together).
+//!
 //! Per axis, per pass (the second at `second_homing_speed` after retracting
 //! `homing_retract_dist`, skipped when that is 0):
 //! 1. every step already planned is sent and executed (the MCUs are idle);
@@ -18,13 +22,18 @@
 //!    endstop stops sampling; once the stepper links are idle the axis steppers are stopped a
 //!    second time (a step command the trigger overtook would restart them); then the endstop's trigger clock (`endstop_query_state`) and each
 //!    axis stepper's position (`stepper_get_position`) are read;
-//! 6. the position: with `n(x) = ⌊x / step_dist + ½⌋` the step index of position x, the
-//!    stepper was at index `n_start = n(start)` and the MCU says it took `k` net steps, so it
-//!    halted at `n_halt = n_start + k`; at the trigger print time `t` the commanded position was
-//!    `x(t)` on the move's profile, index `n_trig = n(x(t))`. The trigger defines
-//!    `position_endstop`, so the toolhead is now at `position_endstop + (n_halt − n_trig) ·
-//!    step_dist` (the overshoot is accounted for); the planner and the step streamer are resynced
-//!    to that, the next move starting at now + lead + margin.
+//! 6. the position ([`halt_position`]): with `n(x) = ⌊x / step_dist + ½⌋` the step index of
+//!    stepper position x, each axis stepper was at index `n_start = n(start)` and the MCU says
+//!    it took `k` net steps, so it halted at `n_halt = n_start + k`; at the trigger print time
+//!    `t` its commanded position was `x(t)` on the move's profile, index `n_trig = n(x(t))`.
+//!    Forward kinematics of the rails at `n_halt · step_dist` and at `n_trig · step_dist` give
+//!    the halted and the triggered toolhead positions (cartesian: the rail itself; corexy:
+//!    x = (a + b) / 2, y = (a − b) / 2). The trigger defines `position_endstop`, so the homed
+//!    axis is now at `position_endstop + (halted − triggered)` (the overshoot is accounted
+//!    for; cartesian: `position_endstop + (n_halt − n_trig) · step_dist`), and any other axis
+//!    the steppers move at its halted coordinate (unchanged up to a step's rounding); the
+//!    planner and the step streamer are resynced to that, the next move starting at now + lead
+//!    + margin.
 //!
 //! Errors: a trsync that expired or a member silent past the timeout →
 //! exactly `Communication timeout during homing`; no trigger by the end of the move →
@@ -34,9 +43,9 @@
 //! answer.
 //!
 //! Probing (`PROBE`, module `probe`) runs the same pass in probe mode ([`PassKind::Probe`]):
-//! no pretended start, the move heads for the probe's `z_position`, the trigger's position
-//! `n_trig · step_dist` is the measurement and the toolhead keeps its coordinates (resynced to
-//! `n_halt · step_dist`). With `probe:z_virtual_endstop` the probe's pin is Z's endstop.
+//! no pretended start, the move heads for the probe's `z_position`, the triggered Z is the
+//! measurement and the toolhead keeps its coordinates (resynced to the halted position; on
+//! corexz both motors of Z stop). With `probe:z_virtual_endstop` the probe's pin is Z's endstop.
 //!
 //! Latency figures per pass (host's view, print-time seconds): the executed steps' times are
 //! known from the move profile, so the last executed step and the first cancelled one bound
@@ -55,6 +64,7 @@ use links::trsync::{
     TriggerGroup, TrsyncError, COMM_TIMEOUT_MSG, REASON_ENDSTOP_HIT, REASON_HOST_REQUEST,
     REASON_PAST_END_TIME,
 };
+use planner::kinematics::{Kinematics, StepperKin};
 use planner::pipeline::Pipeline;
 use planner::stepgen::StepCmd;
 use planner::toolhead::Move;
@@ -193,7 +203,10 @@ pub fn check_config(machine: &Machine) -> Result<(), String> {
     let probe = machine.probe.as_ref().map(|p| &p.endstop);
     for e in machine.endstops.iter().chain(probe) {
         let mut mcus: Vec<&str> = Vec::new();
-        for s in machine.steppers.iter().filter(|s| s.axis == e.axis) {
+        for s in axis_steppers(machine, e.axis)
+            .into_iter()
+            .map(|i| &machine.steppers[i])
+        {
             if !mcus.contains(&s.mcu.as_str()) {
                 mcus.push(&s.mcu);
             }
@@ -479,20 +492,17 @@ fn step_index(x: f64, step_dist: f64) -> i64 {
     (x / step_dist + 0.5).floor() as i64
 }
 
-/// Print time at which `mv` reaches axis coordinate `x` (clamped to the move).
-fn time_at_axis_pos(mv: &Move, axis: usize, x: f64) -> f64 {
-    let r = mv.axes_r[axis];
+/// Print time at which stepper `kin` (linear) reaches position `x` (mm) in `mv` (clamped to
+/// the move; its end when the stepper does not move).
+fn time_at_stepper_pos(mv: &Move, kin: &StepperKin, x: f64) -> f64 {
+    let r = kin
+        .linear_coeffs()
+        .map_or(0.0, |c| c.iter().zip(&mv.axes_r).map(|(k, r)| k * r).sum::<f64>());
     if r == 0.0 {
         return mv.end_time();
     }
-    let s = ((x - mv.start_pos[axis]) / r).clamp(0.0, mv.move_d);
+    let s = ((x - kin.position(&mv.start_pos)) / r).clamp(0.0, mv.move_d);
     mv.print_time + mv.time_at_distance(s)
-}
-
-/// The axis coordinate of `mv` at print time `t` (clamped to the move).
-fn axis_pos_at(mv: &Move, axis: usize, t: f64) -> f64 {
-    let rel = (t - mv.print_time).clamp(0.0, mv.duration());
-    mv.start_pos[axis] + mv.axes_r[axis] * mv.distance_at(rel)
 }
 
 /// What a homing move is for.
@@ -506,17 +516,117 @@ pub(crate) enum PassKind {
     Probe { target: f64 },
 }
 
-/// The kinematics' name when `axis` (0 = X, 1 = Y, 2 = Z) is driven by steppers that also move
-/// another axis (corexy X and Y, corexz X and Z, every delta axis): the homing pass here stops
-/// only the axis's own steppers, which is right only for an axis with steppers of its own.
-pub(crate) fn coupled_kinematics(kin: &planner::kinematics::Kinematics, axis: usize) -> Option<&'static str> {
-    use planner::kinematics::Kinematics;
+/// The kinematics' name when homing `axis` (0 = X, 1 = Y, 2 = Z) is not supported: every delta
+/// axis (its towers home together, all three carriages to their endstops, a different
+/// sequence). Corexy and corexz axes are homed with all the steppers that move them.
+pub(crate) fn unsupported_kinematics(kin: &Kinematics, _axis: usize) -> Option<&'static str> {
     match kin {
-        Kinematics::Cartesian => None,
-        Kinematics::CoreXY => (axis < 2).then_some("corexy"),
-        Kinematics::CoreXZ => (axis != 1).then_some("corexz"),
+        Kinematics::Cartesian | Kinematics::CoreXY | Kinematics::CoreXZ => None,
         Kinematics::Delta(_) => Some("delta"),
     }
+}
+
+/// The steppers (indices into `machine.steppers`) that move toolhead axis `axis`: every one
+/// whose kinematics has a non-zero coefficient for it (corexy X: stepper_x = A and stepper_y =
+/// B). A delta tower counts for the axis of its index (delta homing is refused anyway).
+pub(crate) fn axis_steppers(machine: &Machine, axis: usize) -> Vec<usize> {
+    let kin = &machine.options.kinematics;
+    (0..machine.steppers.len())
+        .filter(|&i| {
+            let s = &machine.steppers[i];
+            match kin
+                .stepper(s.axis, s.step_dist)
+                .ok()
+                .as_ref()
+                .and_then(StepperKin::linear_coeffs)
+            {
+                Some(c) => c.get(axis).is_some_and(|&v| v != 0.0),
+                None => s.axis == axis,
+            }
+        })
+        .collect()
+}
+
+/// Where a homing or probing move cut short by the MCUs left the toolhead, from step indices
+/// (module doc, step 6) and forward kinematics: what [`halt_position`] computes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Halt {
+    /// Toolhead X, Y, Z of the rails where the group's steppers halted.
+    pub halted: [f64; 3],
+    /// Toolhead X, Y, Z of the rails at the step indices commanded at the trigger time.
+    pub triggered: [f64; 3],
+    /// The axes the group's steppers move: only these are recomputed, the others keep the
+    /// move's coordinates.
+    pub moved: [bool; 3],
+}
+
+impl Halt {
+    /// The toolhead after a homing pass of `axis` whose trigger defines `position_endstop`:
+    /// that plus the overshoot on `axis` (halted − triggered), the halted coordinates on the
+    /// other moved axes, `pos` elsewhere.
+    pub fn homed(&self, pos: [f64; 4], axis: usize, position_endstop: f64) -> [f64; 4] {
+        let mut p = self.halted_at(pos);
+        p[axis] = position_endstop + (self.halted[axis] - self.triggered[axis]);
+        p
+    }
+
+    /// `pos` with the moved axes at their halted coordinates.
+    pub fn halted_at(&self, pos: [f64; 4]) -> [f64; 4] {
+        let mut p = pos;
+        for a in (0..3).filter(|&a| self.moved[a]) {
+            p[a] = self.halted[a];
+        }
+        p
+    }
+}
+
+/// One stepper of a homing group for [`halt_position`]: its rail (0..=2), its kinematics and
+/// the net steps the MCU says it took during the move.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct GroupStepper {
+    pub rail: usize,
+    pub kin: StepperKin,
+    pub net_steps: i64,
+}
+
+/// The position computation of one pass on linear kinematics. Per rail (its first stepper in
+/// `group`): `n_start = n(stepper position at the move's start)`, `n_halt = n_start +
+/// net_steps`, `n_trig = n(stepper position commanded at print time t_trig)` with `n(x) = ⌊x /
+/// step_dist + ½⌋`; the rails no stepper of the group drives keep their start positions.
+/// Forward kinematics of `n_halt · step_dist` and `n_trig · step_dist` give the halted and the
+/// triggered toolhead positions (corexy: x = (a + b) / 2, y = (a − b) / 2). `None` when a
+/// stepper's kinematics is not linear (delta).
+pub(crate) fn halt_position(
+    kin: &Kinematics,
+    mv: &Move,
+    group: &[GroupStepper],
+    t_trig: f64,
+) -> Option<Halt> {
+    let start = [mv.start_pos[0], mv.start_pos[1], mv.start_pos[2]];
+    let mut halted = kin.inverse(start);
+    let mut triggered = halted;
+    let mut seen = [false; 3];
+    let mut moved = [false; 3];
+    let t_rel = (t_trig - mv.print_time).clamp(0.0, mv.duration());
+    for g in group {
+        let c = g.kin.linear_coeffs()?;
+        for a in 0..3 {
+            moved[a] |= c[a] != 0.0;
+        }
+        let Some(first) = seen.get_mut(g.rail).filter(|s| !**s) else {
+            continue;
+        };
+        *first = true;
+        let sd = g.kin.step_dist;
+        let n_start = step_index(g.kin.position(&mv.start_pos), sd);
+        halted[g.rail] = (n_start + g.net_steps) as f64 * sd;
+        triggered[g.rail] = step_index(g.kin.position_at(mv, t_rel), sd) as f64 * sd;
+    }
+    Some(Halt {
+        halted: kin.forward(halted),
+        triggered: kin.forward(triggered),
+        moved,
+    })
 }
 
 /// One homing move of endstop `e`'s axis (see [`PassKind`]). Returns the pass report and the
@@ -533,20 +643,31 @@ pub(crate) fn homing_pass(
         PassKind::Home { .. } => axis_name.to_string(),
         PassKind::Probe { .. } => "probe".to_string(),
     };
-    if let Some(kin) = coupled_kinematics(&ctx.machine.options.kinematics, axis) {
+    let kinematics = ctx.machine.options.kinematics;
+    if let Some(kin) = unsupported_kinematics(&kinematics, axis) {
         return Err(format!(
-            "homing {axis_name}: on {kin} kinematics the {axis_name} axis is moved by steppers \
-             that also move another axis; homing or probing it needs all of them stopped on the \
-             trigger, which Cadence does not do yet (axes driven by one stepper each can be homed)"
+            "homing {axis_name}: {kin} kinematics is not supported: its towers home together, \
+             which Cadence does not do yet (cartesian, corexy and corexz axes can be homed)"
         ));
     }
     wait_motion_done(ctx)?;
-    let idxs: Vec<usize> = (0..ctx.machine.steppers.len())
-        .filter(|&i| ctx.machine.steppers[i].axis == axis)
-        .collect();
+    // Every stepper that moves the axis stops on the trigger (corexy X: A and B).
+    let idxs = axis_steppers(ctx.machine, axis);
     let Some(&idx0) = idxs.first() else {
         return Err(format!("homing {axis_name}: the axis has no stepper"));
     };
+    let mut kins = Vec::with_capacity(idxs.len());
+    for &i in &idxs {
+        let s = &ctx.machine.steppers[i];
+        kins.push(
+            kinematics
+                .stepper(s.axis, s.step_dist)
+                .map_err(|err| format!("homing {axis_name}: {}: {err}", s.name))?,
+        );
+    }
+    let kin0 = kins[0];
+    // Steps of the first stepper per mm of the axis (1 on cartesian and core* rails).
+    let axis_coeff = kin0.linear_coeffs().map_or(1.0, |c| c[axis].abs()).max(1e-9);
     // The group: the endstop's MCU first, then the steppers' MCUs.
     let mut names = vec![e.pin.mcu.clone()];
     for &i in &idxs {
@@ -599,7 +720,7 @@ pub(crate) fn homing_pass(
                 ctx,
                 e,
                 endstop_conn,
-                ctx.machine.steppers[idx0].step_dist,
+                ctx.machine.steppers[idx0].step_dist / axis_coeff,
                 t0,
                 speed,
             )
@@ -701,10 +822,20 @@ pub(crate) fn homing_pass(
         Ok(a) => a,
         Err(err) => return Err(primary_error.unwrap_or(err)),
     };
-    let sd = ctx.machine.steppers[idx0].step_dist;
-    let n_start = step_index(mv.start_pos[axis], sd);
-    let n_halt = n_start + (after[0] - before[0]);
-    let halt_pos = n_halt as f64 * sd;
+    let group: Vec<GroupStepper> = idxs
+        .iter()
+        .zip(&kins)
+        .zip(after.iter().zip(&before))
+        .map(|((&i, &kin), (a, b))| GroupStepper {
+            rail: ctx.machine.steppers[i].axis,
+            kin,
+            net_steps: a - b,
+        })
+        .collect();
+    let halt_at = |t_trig: f64| {
+        halt_position(&kinematics, &mv, &group, t_trig)
+            .ok_or_else(|| format!("homing {axis_name}: the kinematics is not linear"))
+    };
     let resume = print_now(ctx.mcus) + ctx.lead + START_MARGIN * ctx.time_scale.max(1.0);
     let stopped: Vec<(usize, i64)> = idxs.iter().copied().zip(after.iter().copied()).collect();
     // Each stopped stepper's MCU clock now (they are idle from here on).
@@ -716,9 +847,7 @@ pub(crate) fn homing_pass(
                 .max(0.0) as u64
         })
         .collect();
-    let resync = |ctx: &mut HomingCtx<'_>, axis_pos: f64| -> Result<(), String> {
-        let mut p = ctx.pipeline.position();
-        p[axis] = axis_pos;
+    let resync = |ctx: &mut HomingCtx<'_>, p: [f64; 4]| -> Result<(), String> {
         ctx.pipeline
             .resync_after_stop(resume, p, &stopped)
             .map_err(|e| e.to_string())?;
@@ -735,27 +864,36 @@ pub(crate) fn homing_pass(
     };
     let (Some((trigger_mcu, trigger_clock)), None) = (trig, error.clone()) else {
         // Keep host and MCU in agreement (positions in the pretended frame; axis not homed).
-        let _ = resync(ctx, halt_pos);
+        if let Ok(halt) = halt_at(mv.print_time) {
+            let _ = resync(ctx, halt.halted_at(ctx.pipeline.position()));
+        }
         return Err(error.unwrap_or_else(|| format!("homing {axis_name}: failed")));
     };
     cancel?;
     let trig_conn = mcu(ctx.mcus, &trigger_mcu)?;
     let t_trig = print_time_of_clock(ctx.mcus, trig_conn, trigger_clock);
-    let n_trig = step_index(axis_pos_at(&mv, axis, t_trig), sd);
-    let overshoot_steps = n_halt - n_trig;
+    let halt = halt_at(t_trig)?;
     let dir = if mv.axes_r[axis] >= 0.0 { 1.0 } else { -1.0 };
-    let overshoot_mm = overshoot_steps as f64 * sd * dir + 0.0;
+    let overshoot_mm = (halt.halted[axis] - halt.triggered[axis]) * dir + 0.0;
     let (position, trigger_position) = match kind {
         PassKind::Home { .. } => (
-            e.position_endstop + overshoot_steps as f64 * sd,
+            halt.homed(ctx.pipeline.position(), axis, e.position_endstop),
             e.position_endstop,
         ),
-        PassKind::Probe { .. } => (halt_pos, n_trig as f64 * sd),
+        PassKind::Probe { .. } => (halt.halted_at(ctx.pipeline.position()), halt.triggered[axis]),
     };
-    // The last executed step reached index n_halt at boundary (n_halt − dir·½)·sd.
-    let last_b = (n_halt as f64 - 0.5 * dir) * sd;
-    let last_step = time_at_axis_pos(&mv, axis, last_b);
-    let next_step = time_at_axis_pos(&mv, axis, last_b + dir * sd);
+    // The first stepper's last executed step reached index n_halt at boundary (n_halt −
+    // sdir·½)·sd, sdir its direction in the move.
+    let sd = kin0.step_dist;
+    let n_halt = step_index(kin0.position(&mv.start_pos), sd) + group[0].net_steps;
+    let sdir = if kin0.position_at(&mv, mv.duration()) >= kin0.position(&mv.start_pos) {
+        1.0
+    } else {
+        -1.0
+    };
+    let last_b = (n_halt as f64 - 0.5 * sdir) * sd;
+    let last_step = time_at_stepper_pos(&mv, &kin0, last_b);
+    let next_step = time_at_stepper_pos(&mv, &kin0, last_b + sdir * sd);
     resync(ctx, position)?;
     Ok((
         PassReport {

@@ -25,6 +25,9 @@ pub struct StepperOut {
     pub step_dist: f64,
 }
 
+/// World axis names of the rails that move one toolhead axis alone.
+const AXIS_NAMES: [&str; 3] = ["x", "y", "z"];
+
 /// Klipper's default `step_pulse_duration`.
 pub const DEFAULT_STEP_PULSE_DURATION: f64 = 2e-6;
 
@@ -197,6 +200,62 @@ impl Machine {
             .collect()
     }
 
+    /// The simulated toolhead's start coordinate of axis `axis` (0..=2): 10% of the travel
+    /// away from its endstop (homing stays short), mid-travel without one.
+    fn sim_start(&self, axis: usize) -> f64 {
+        let (min, max) = self.toolhead.axis_limits[axis];
+        match self.endstops.iter().find(|e| e.axis == axis) {
+            Some(e) if e.homing_positive_dir => self.sim_trigger(e) - 0.1 * (max - min),
+            Some(e) => self.sim_trigger(e) + 0.1 * (max - min),
+            None => (min + max) / 2.0,
+        }
+    }
+
+    /// The world axis of each rail 0..=2: its name and its start position (mm).
+    fn sim_rails(&self) -> [(String, f64); 3] {
+        let kin = &self.options.kinematics;
+        let start = [0, 1, 2].map(|a| self.sim_start(a));
+        let pos = [start[0], start[1], start[2], 0.0];
+        let mut coupled = 0u8;
+        [0, 1, 2].map(|rail| {
+            let coeffs = kin
+                .stepper(rail, 1.0)
+                .ok()
+                .and_then(|k| k.linear_coeffs().copied());
+            match coeffs {
+                // A delta tower (not linear): the old one-axis model, the carriage.
+                None => (AXIS_NAMES[rail].to_string(), start[rail]),
+                Some(c) if c[rail] == 1.0 && c.iter().filter(|&&v| v != 0.0).count() == 1 => {
+                    (AXIS_NAMES[rail].to_string(), start[rail])
+                }
+                Some(c) => {
+                    let name = char::from(b'a' + coupled).to_string();
+                    coupled += 1;
+                    (name, c.iter().zip(pos).map(|(k, p)| k * p).sum())
+                }
+            }
+        })
+    }
+
+    /// The world coordinate an endstop of toolhead axis `axis` reads: the forward kinematics
+    /// of the rails (a delta's endstop reads its tower's carriage).
+    fn sim_coord(&self, axis: usize, rails: &[(String, f64); 3]) -> firmware::sim::world::Coord {
+        use planner::kinematics::Kinematics;
+        let kin = &self.options.kinematics;
+        if matches!(kin, Kinematics::Delta(_)) {
+            return firmware::sim::world::Coord::axis(&rails[axis].0);
+        }
+        let terms = (0..3)
+            .filter_map(|rail| {
+                let mut unit = [0.0; 3];
+                unit[rail] = 1.0;
+                let k = kin.forward(unit)[axis];
+                (k != 0.0).then(|| (k, rails[rail].0.clone()))
+            })
+            .collect();
+        firmware::sim::world::Coord { terms }
+    }
+
     /// The simulated world's axis coordinate at which endstop `e` triggers: the bed surface for
     /// the probe, else `position_endstop`.
     fn sim_trigger(&self, e: &EndstopOut) -> f64 {
@@ -207,29 +266,27 @@ impl Machine {
         }
     }
 
-    /// Arguments that put a simulated MCU into the printer's shared simulated world: the axes
-    /// its steppers move (starting mid-travel) and the endstops wired to its pins.
+    /// Arguments that put a simulated MCU into the printer's shared simulated world: the world
+    /// axes its steppers move (the toolhead starting 10% of each axis' travel from its endstop)
+    /// and the endstops wired to its pins, each reading its axis' coordinate.
+    ///
+    /// World axes are the rails: a stepper that moves one toolhead axis alone drives that axis
+    /// (`x`, `y`, `z`); the steppers of a corexy / corexz printer, which move two axes, drive
+    /// `a` and `b` (in rail order), and an endstop reads the forward kinematics of them (corexy
+    /// X: `0.5*a+0.5*b`). A delta's towers drive `x`, `y`, `z` and each endstop reads its tower's
+    /// carriage.
     pub fn sim_world_args(&self, mcu: &str, world: &str) -> Vec<String> {
         let mut args = Vec::new();
-        let axis_names = ["x", "y", "z", "e"];
+        let rails = self.sim_rails();
         for s in self.steppers.iter().filter(|s| s.mcu == mcu && s.axis < 3) {
-            let (min, max) = self.toolhead.axis_limits[s.axis];
             let steps_per_mm = if s.dir_pin.invert {
                 -1.0 / s.step_dist
             } else {
                 1.0 / s.step_dist
             };
+            let (name, start) = &rails[s.axis];
             args.push("--axis".to_string());
-            // The carriage starts 10% of the travel away from its endstop (homing stays short).
-            let start = match self.endstops.iter().find(|e| e.axis == s.axis) {
-                Some(e) if e.homing_positive_dir => self.sim_trigger(e) - 0.1 * (max - min),
-                Some(e) => self.sim_trigger(e) + 0.1 * (max - min),
-                None => (min + max) / 2.0,
-            };
-            args.push(format!(
-                "{}={},{},{}",
-                axis_names[s.axis], s.step_pin.pin, steps_per_mm, start
-            ));
+            args.push(format!("{name}={},{steps_per_mm},{start}", s.step_pin.pin));
         }
         for e in self.mcu_endstops(mcu) {
             let side = if e.homing_positive_dir { "max" } else { "min" };
@@ -237,7 +294,7 @@ impl Machine {
             args.push(format!(
                 "{}={},{},{side}",
                 e.pin.pin,
-                axis_names[e.axis],
+                self.sim_coord(e.axis, &rails),
                 self.sim_trigger(e)
             ));
         }
@@ -363,6 +420,34 @@ mod tests {
         let main = m.sim_world_args("mcu", "w").join(" ");
         assert!(main.contains("--endstop PC3=z,0,min"), "{main}");
         assert!(!main.contains("--axis z"), "{main}");
+    }
+
+    #[test]
+    fn corexy_and_corexz_motors_drive_a_and_b_and_endstops_read_the_forward_kinematics() {
+        // X and Y start at 22 (10% of 220 from the endstops at 0), Z at 20: a = x + y = 44,
+        // b = x − y = 0.
+        let text = include_str!("../examples/simulated-corexy.cfg");
+        let args = machine(text).sim_world_args("mcu", "w").join(" ");
+        assert_eq!(
+            args,
+            "--axis a=PA0,80,44 --axis b=PB0,80,0 --axis z=PC0,400,20 \
+             --endstop PA3=0.5*a+0.5*b,0,min --endstop PB3=0.5*a-0.5*b,0,min \
+             --endstop PC3=z,0,min --world w"
+        );
+        // Corexz: a = x + z = 42, b = x − z = 2; y direct.
+        let args = machine(&text.replace("kinematics: corexy", "kinematics: corexz"))
+            .sim_world_args("mcu", "w")
+            .join(" ");
+        assert_eq!(
+            args,
+            "--axis a=PA0,80,42 --axis y=PB0,80,22 --axis b=PC0,400,2 \
+             --endstop PA3=0.5*a+0.5*b,0,min --endstop PB3=y,0,min \
+             --endstop PC3=0.5*a-0.5*b,0,min --world w"
+        );
+        // The simulator reads every coordinate back.
+        for c in ["0.5*a+0.5*b", "0.5*a-0.5*b", "y"] {
+            assert!(firmware::sim::world::Coord::parse(c).is_ok(), "{c}");
+        }
     }
 
     #[test]

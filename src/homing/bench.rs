@@ -517,11 +517,10 @@ fn trace_latency(
     };
     for e in machine.endstops.iter().filter(|e| axes[e.axis]) {
         // The axis' steppers' MCU (one: `check_config` refuses split axes with a third-MCU endstop).
-        let Some(stepper_mcu) = machine
-            .steppers
-            .iter()
-            .find(|s| s.axis == e.axis)
-            .map(|s| s.mcu.as_str())
+        let group = super::axis_steppers(machine, e.axis);
+        let Some(stepper_mcu) = group
+            .first()
+            .map(|&i| machine.steppers[i].mcu.as_str())
             .filter(|m| *m != e.pin.mcu)
         else {
             continue;
@@ -554,10 +553,10 @@ fn trace_latency(
             .filter(|t| !t.endstop && t.oid == trsync_oid)
             .map(|t| (t.clock, s_est.system_time_at(t.clock as f64)))
             .collect();
-        let oids: Vec<u8> = machine
-            .steppers
+        let oids: Vec<u8> = group
             .iter()
-            .filter(|s| s.axis == e.axis && s.mcu == stepper_mcu)
+            .map(|&i| &machine.steppers[i])
+            .filter(|s| s.mcu == stepper_mcu)
             .map(|s| s.oid)
             .collect();
         let mut steps: Vec<u64> = s_trace

@@ -5,9 +5,10 @@
 //! prior to movement`); then a homing pass in probe mode ([`PassKind::Probe`]): Z moves toward
 //! `z_position` at the probing speed while the probe's MCU samples its pin into a trsync group
 //! with the Z steppers' MCUs, which stop the steppers on the trigger (relayed by the host when
-//! the probe sits on another MCU). The trigger's position is `n_trig · step_dist`, `n_trig` the
-//! step index of the commanded Z at the trigger's print time (from the probe MCU's trigger
-//! clock); the toolhead is resynced to where the steppers halted (`stepper_get_position`), so
+//! the probe sits on another MCU; on corexz both motors A and B move Z and both stop). The
+//! trigger's position is the forward kinematics of the steppers' step indices commanded at the
+//! trigger's print time (from the probe MCU's trigger clock; cartesian: `n_trig · step_dist`);
+//! the toolhead is resynced to where the steppers halted (`stepper_get_position`), so
 //! the overshoot is accounted for. Errors are the homing ones: `Communication timeout during
 //! homing`, `No trigger on probe after full movement`.
 //!

@@ -1,5 +1,6 @@
 use super::*;
 use crate::machine::StepperOut;
+use planner::kinematics::{Kinematics, StepperKin};
 use sysconfig::printer::PinRef;
 
 fn pin(mcu: &str, name: &str) -> PinRef {
@@ -85,9 +86,8 @@ fn step_index_rounds_half_steps_up() {
     assert_eq!(step_index(-0.0049, 0.01), 0);
 }
 
-fn homing_move() -> Move {
-    // 100 mm → 0 at 10 mm/s, instant acceleration is not allowed: 1000 mm/s² ramps.
-    let mut th = planner::toolhead::Toolhead::new(
+fn toolhead() -> planner::toolhead::Toolhead {
+    planner::toolhead::Toolhead::new(
         planner::toolhead::ToolheadConfig {
             max_velocity: 100.0,
             max_accel: 1000.0,
@@ -98,30 +98,167 @@ fn homing_move() -> Move {
             max_extrude_only_velocity: 50.0,
             max_extrude_only_accel: 1000.0,
             max_extrude_only_distance: 50.0,
-            axis_limits: [(0.0, 200.0); 3],
+            axis_limits: [(-500.0, 500.0); 3],
         },
         2.0,
-    );
-    th.set_position([100.0, 0.0, 0.0, 0.0]);
-    th.move_to([0.0, 0.0, 0.0, 0.0], 10.0).unwrap();
+    )
+}
+
+/// The one move from `from` to `to` at `speed` (1000 mm/s² ramps).
+fn one_move(from: [f64; 4], to: [f64; 4], speed: f64) -> Move {
+    let mut th = toolhead();
+    th.set_position(from);
+    th.move_to(to, speed).unwrap();
     th.flush();
     let mut out = Vec::new();
     th.take_moves(&mut out);
     out[0]
 }
 
+fn homing_move() -> Move {
+    // 100 mm → 0 at 10 mm/s, instant acceleration is not allowed: 1000 mm/s² ramps.
+    one_move([100.0, 0.0, 0.0, 0.0], [0.0; 4], 10.0)
+}
+
+/// Stepper `kin`'s position (mm) in `mv` at print time `t`.
+fn stepper_at(kin: &StepperKin, mv: &Move, t: f64) -> f64 {
+    kin.position_at(mv, (t - mv.print_time).clamp(0.0, mv.duration()))
+}
+
 #[test]
 fn move_position_and_time_are_inverse() {
     let mv = homing_move();
-    for x in [99.0, 50.0, 0.5] {
-        let t = time_at_axis_pos(&mv, 0, x);
-        assert!((axis_pos_at(&mv, 0, t) - x).abs() < 1e-9, "{x}");
+    let x = StepperKin::axis(0, 0.0125);
+    for at in [99.0, 50.0, 0.5] {
+        let t = time_at_stepper_pos(&mv, &x, at);
+        assert!((stepper_at(&x, &mv, t) - at).abs() < 1e-9, "{at}");
     }
-    assert_eq!(axis_pos_at(&mv, 0, 0.0), 100.0);
-    assert_eq!(axis_pos_at(&mv, 0, 1e9), 0.0);
+    assert_eq!(stepper_at(&x, &mv, 0.0), 100.0);
+    assert_eq!(stepper_at(&x, &mv, 1e9), 0.0);
     // Cruise at 10 mm/s: 1 mm takes 0.1 s.
-    let dt = time_at_axis_pos(&mv, 0, 40.0) - time_at_axis_pos(&mv, 0, 41.0);
+    let dt = time_at_stepper_pos(&mv, &x, 40.0) - time_at_stepper_pos(&mv, &x, 41.0);
     assert!((dt - 0.1).abs() < 1e-9);
+    // Corexy B = x − y moving with X: the same times; a stepper that does not move: the end.
+    let b = Kinematics::CoreXY.stepper(1, 0.0125).unwrap();
+    let mv = one_move([100.0, 20.0, 0.0, 0.0], [0.0, 20.0, 0.0, 0.0], 10.0);
+    assert!((time_at_stepper_pos(&mv, &b, 60.0) - time_at_stepper_pos(&mv, &x, 80.0)).abs() < 1e-12);
+    let z = StepperKin::axis(2, 0.0025);
+    assert_eq!(time_at_stepper_pos(&mv, &z, 1.0), mv.end_time());
+}
+
+/// A virtual homing pass: the endstop triggers when the commanded `axis` coordinate crosses
+/// `trigger`; each stepper of `rails` halts at the step index it had `latency` s later. Returns
+/// the trigger time, the halt time and the group.
+fn virtual_pass(
+    kin: &Kinematics,
+    mv: &Move,
+    rails: &[usize],
+    axis: usize,
+    trigger: f64,
+    latency: f64,
+) -> (f64, f64, Vec<GroupStepper>) {
+    let x = StepperKin::axis(axis, 1.0);
+    let t_trig = time_at_stepper_pos(mv, &x, trigger);
+    let t_halt = t_trig + latency;
+    let group = rails
+        .iter()
+        .map(|&rail| {
+            let k = kin.stepper(rail, 0.0125).unwrap();
+            let n = |mm: f64| step_index(mm, k.step_dist);
+            GroupStepper {
+                rail,
+                kin: k,
+                net_steps: n(stepper_at(&k, mv, t_halt)) - n(k.position(&mv.start_pos)),
+            }
+        })
+        .collect();
+    (t_trig, t_halt, group)
+}
+
+#[test]
+fn corexy_x_homes_with_both_steppers_and_keeps_y() {
+    // X from a pretended 300 toward the endstop at 0 at 10 mm/s, Y at 37.3 (not homed).
+    let kin = Kinematics::CoreXY;
+    let mv = one_move([300.0, 37.3, 5.0, 0.0], [0.0, 37.3, 5.0, 0.0], 10.0);
+    for (trigger, latency) in [(150.004, 0.0005), (100.0, 0.0), (42.00625, 0.012)] {
+        let (t_trig, t_halt, group) = virtual_pass(&kin, &mv, &[0, 1], 0, trigger, latency);
+        assert!(group.iter().all(|g| g.net_steps < 0), "{group:?}");
+        let halt = halt_position(&kin, &mv, &group, t_trig).unwrap();
+        assert_eq!(halt.moved, [true, true, false]);
+        // Halted and triggered are forward kinematics of step indices: a = x + y, b = x − y.
+        let [a_halt, b_halt] = [0, 1].map(|i| {
+            let n_start = step_index(group[i].kin.position(&mv.start_pos), 0.0125);
+            (n_start + group[i].net_steps) as f64 * 0.0125
+        });
+        assert!((halt.halted[0] - 0.5 * (a_halt + b_halt)).abs() < 1e-9);
+        assert!((halt.halted[1] - 0.5 * (a_halt - b_halt)).abs() < 1e-9);
+        // The overshoot: how far X went on from the trigger, within a step of each stepper.
+        let went_on = stepper_at(&StepperKin::axis(0, 1.0), &mv, t_trig)
+            - stepper_at(&StepperKin::axis(0, 1.0), &mv, t_halt);
+        let overshoot = halt.triggered[0] - halt.halted[0];
+        assert!(
+            (overshoot - went_on).abs() <= 0.0125 + 1e-9,
+            "{overshoot} vs {went_on}"
+        );
+        let p = halt.homed([300.0, 37.3, 5.0, 0.0], 0, 0.0);
+        assert!((p[0] + overshoot).abs() < 1e-9, "{p:?}");
+        // Y comes out unchanged up to a step's rounding; Z and E untouched.
+        assert!((p[1] - 37.3).abs() <= 0.0125 + 1e-9, "{p:?}");
+        assert_eq!((p[2], p[3]), (5.0, 0.0));
+    }
+}
+
+#[test]
+fn corexy_y_and_corexz_z_probe() {
+    // Corexy Y homing toward its max at 200: A up, B down.
+    let kin = Kinematics::CoreXY;
+    let mv = one_move([12.5, -100.0, 0.0, 0.0], [12.5, 200.0, 0.0, 0.0], 10.0);
+    let (t_trig, _, group) = virtual_pass(&kin, &mv, &[0, 1], 1, 199.99, 0.002);
+    assert!(group[0].net_steps > 0 && group[1].net_steps < 0);
+    let halt = halt_position(&kin, &mv, &group, t_trig).unwrap();
+    let p = halt.homed([12.5, -100.0, 0.0, 0.0], 1, 200.0);
+    // 2 ms at 10 mm/s past the trigger: 0.02 mm, within a step.
+    assert!((p[1] - 200.02).abs() <= 0.0125 + 1e-9, "{p:?}");
+    assert!((p[0] - 12.5).abs() <= 0.0125 + 1e-9, "{p:?}");
+    // Corexz probing down to z = −2: A = x + z, B = x − z; the bed at 0.3.
+    let kin = Kinematics::CoreXZ;
+    let mv = one_move([50.0, 20.0, 10.0, 0.0], [50.0, 20.0, -2.0, 0.0], 5.0);
+    let (t_trig, t_halt, group) = virtual_pass(&kin, &mv, &[0, 2], 2, 0.3, 0.001);
+    let halt = halt_position(&kin, &mv, &group, t_trig).unwrap();
+    assert_eq!(halt.moved, [true, false, true]);
+    assert!((halt.triggered[2] - 0.3).abs() <= 0.0125 + 1e-9, "{halt:?}");
+    let z_halt = stepper_at(&StepperKin::axis(2, 1.0), &mv, t_halt);
+    let p = halt.halted_at([50.0, 20.0, 10.0, 0.0]);
+    assert!((p[2] - z_halt).abs() <= 0.0125 + 1e-9, "{p:?}");
+    assert!((p[0] - 50.0).abs() <= 0.0125 + 1e-9 && p[1] == 20.0, "{p:?}");
+}
+
+#[test]
+fn cartesian_halt_is_the_step_index_formula() {
+    // The module doc's formula: position_endstop + (n_halt − n_trig) · step_dist.
+    let kin = Kinematics::Cartesian;
+    let mv = one_move([-30.0, 1.0, 2.0, 0.0], [0.0, 1.0, 2.0, 0.0], 10.0);
+    let (t_trig, _, group) = virtual_pass(&kin, &mv, &[0], 0, -0.00314, 0.0007);
+    let halt = halt_position(&kin, &mv, &group, t_trig).unwrap();
+    assert_eq!(halt.moved, [true, false, false]);
+    let x = StepperKin::axis(0, 0.0125);
+    let n_halt = step_index(-30.0, 0.0125) + group[0].net_steps;
+    let n_trig = step_index(stepper_at(&x, &mv, t_trig), 0.0125);
+    let p = halt.homed([-30.0, 1.0, 2.0, 0.0], 0, 0.0);
+    assert!((p[0] - (n_halt - n_trig) as f64 * 0.0125).abs() < 1e-12, "{p:?}");
+    assert_eq!(&p[1..], &[1.0, 2.0, 0.0]);
+    // A delta's steppers are not linear: no position from this computation.
+    let delta = Kinematics::Delta(planner::kinematics::DeltaGeometry {
+        radius: 100.0,
+        arm_length: [250.0; 3],
+        angles: [210.0, 330.0, 90.0],
+    });
+    let tower = GroupStepper {
+        rail: 0,
+        kin: delta.stepper(0, 0.0125).unwrap(),
+        net_steps: 0,
+    };
+    assert_eq!(halt_position(&delta, &mv, &[tower], t_trig), None);
 }
 
 #[test]
@@ -160,23 +297,38 @@ fn report_names_axis_overshoot_and_position() {
 }
 
 #[test]
-fn axes_moved_by_shared_steppers_are_named() {
-    use planner::kinematics::{DeltaGeometry, Kinematics};
-    for axis in 0..3 {
-        assert_eq!(coupled_kinematics(&Kinematics::Cartesian, axis), None);
+fn only_delta_homing_is_refused() {
+    use planner::kinematics::DeltaGeometry;
+    for kin in [Kinematics::Cartesian, Kinematics::CoreXY, Kinematics::CoreXZ] {
+        for axis in 0..3 {
+            assert_eq!(unsupported_kinematics(&kin, axis), None, "{kin:?} {axis}");
+        }
     }
-    let xy: Vec<_> = (0..3)
-        .map(|a| coupled_kinematics(&Kinematics::CoreXY, a))
-        .collect();
-    assert_eq!(xy, [Some("corexy"), Some("corexy"), None]);
-    let xz: Vec<_> = (0..3)
-        .map(|a| coupled_kinematics(&Kinematics::CoreXZ, a))
-        .collect();
-    assert_eq!(xz, [Some("corexz"), None, Some("corexz")]);
     let delta = Kinematics::Delta(DeltaGeometry {
         radius: 100.0,
         arm_length: [250.0; 3],
         angles: [210.0, 330.0, 90.0],
     });
-    assert_eq!(coupled_kinematics(&delta, 2), Some("delta"));
+    assert_eq!(unsupported_kinematics(&delta, 2), Some("delta"));
+}
+
+#[test]
+fn coupled_axes_group_every_stepper_that_moves_them() {
+    let mut m = machine(&["mcu"], "mcu");
+    let names = |m: &Machine, axis: usize| -> Vec<String> {
+        axis_steppers(m, axis)
+            .iter()
+            .map(|&i| m.steppers[i].name.clone())
+            .collect()
+    };
+    assert_eq!(names(&m, 0), ["stepper_x"]);
+    assert_eq!(names(&m, 2), ["stepper_z0"]);
+    m.options.kinematics = Kinematics::CoreXY;
+    assert_eq!(names(&m, 0), ["stepper_x", "stepper_y"]);
+    assert_eq!(names(&m, 1), ["stepper_x", "stepper_y"]);
+    assert_eq!(names(&m, 2), ["stepper_z0"]);
+    m.options.kinematics = Kinematics::CoreXZ;
+    assert_eq!(names(&m, 0), ["stepper_x", "stepper_z0"]);
+    assert_eq!(names(&m, 1), ["stepper_y"]);
+    assert_eq!(names(&m, 2), ["stepper_x", "stepper_z0"]);
 }

@@ -3,7 +3,9 @@
 //! simulated MCUs say where the axes really are; the host must agree with them.
 //!
 //! The printer is examples/simulated-multi-mcu.cfg with 20 mm of travel per axis (so a cycle
-//! takes seconds), Z homing at 10 mm/s then 5 mm/s after a 2 mm retract.
+//! takes seconds), Z homing at 10 mm/s then 5 mm/s after a 2 mm retract. The corexy tests use
+//! examples/simulated-corexy.cfg the same way: homing X or Y moves and stops both motors, and
+//! the simulated world's X and Y are (a + b) / 2 and (a − b) / 2 of the motors' axes.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -204,5 +206,149 @@ fn dropped_bytes_never_give_a_wrong_position() {
             }
             other => panic!("exit {other:?}\nstdout:\n{}\nstderr:\n{}", run.stdout, run.stderr),
         }
+    }
+}
+
+/// The corexy example with short axes.
+fn corexy_config(dir: &Path) -> PathBuf {
+    short_homing_config(dir, "simulated-corexy.cfg")
+}
+
+/// Motors A (`stepper_x`, oid 0) and B (`stepper_y`, oid 1): 80 steps per mm of belt; the
+/// simulated toolhead starts at x = y = 2 (10% of the 20 mm travel from the endstops at 0), so
+/// a = x + y = 4 and b = x − y = 0.
+const COREXY_START: [f64; 2] = [4.0, 0.0];
+
+/// The simulated toolhead's X and Y from the motors' net steps in `trace`.
+fn corexy_world_xy(trace: &Path) -> [f64; 2] {
+    let net = net_steps(&read_trace(trace).expect("trace"));
+    let [a, b] = [0u8, 1].map(|oid| {
+        COREXY_START[oid as usize] + *net.get(&oid).unwrap_or(&0) as f64 / STEPS_PER_MM[oid as usize]
+    });
+    [0.5 * (a + b), 0.5 * (a - b)]
+}
+
+/// One step of a motor (half a step of X and of Y from each of the two motors) plus the
+/// endstop's sampling at the second-pass speed.
+const COREXY_TOL: f64 = 1.0 / 80.0 + 5.0 * SAMPLING_S + 1e-9;
+
+/// Runs `run` up to 3 times while it ends in exactly the homing timeout (a starved VM).
+fn retry_timeouts(mut attempt: impl FnMut() -> Run) -> Run {
+    let mut run = attempt();
+    for _ in 0..2 {
+        if !run
+            .stderr
+            .lines()
+            .any(|l| l == "cadence: error: Communication timeout during homing")
+        {
+            break;
+        }
+        run = attempt();
+    }
+    run
+}
+
+/// `cadence home --axes xy` on the short corexy printer; with `endstop_mcu`, the X and Y
+/// endstops sit on a second simulated MCU of that name (the trigger is relayed by the host, so
+/// the motors run on for a while past it: a real overshoot to account for).
+fn corexy_home(test: &str, endstop_mcu: Option<&str>) {
+    let dir = scratch(test);
+    let cfg = corexy_config(&dir);
+    let mut mcus = "mcu".to_string();
+    if let Some(m) = endstop_mcu {
+        let text = std::fs::read_to_string(&cfg).expect("config");
+        let text = text
+            .replace("[printer]", &format!("[mcu {m}]\nserial: simulator\n\n[printer]"))
+            .replace("endstop_pin: ^PA3", &format!("endstop_pin: ^{m}:PA3"))
+            .replace("endstop_pin: ^PB3", &format!("endstop_pin: ^{m}:PB3"));
+        std::fs::write(&cfg, text).expect("config");
+        mcus = format!("{m}+mcu");
+    }
+    let trace = dir.join("home.trace");
+    let run = retry_timeouts(|| {
+        let mut cmd = Command::new(bin("cadence"));
+        cmd.args(["home", "--axes", "xy", "--config"])
+            .arg(&cfg)
+            .arg("--trace")
+            .arg(&trace);
+        run(&mut cmd, TIMEOUT)
+    });
+    assert_success(&run);
+    for axis in ["x", "y"] {
+        let want = format!("homing {axis}: mcus {mcus};");
+        assert!(run.stdout.contains(&want), "no '{want}' in:\n{}", run.stdout);
+    }
+    let host = homed_position(&run.stdout);
+    let world = corexy_world_xy(&trace);
+    for a in 0..2 {
+        assert!(
+            (host[a] - world[a]).abs() <= COREXY_TOL,
+            "axis {a}: host says {} mm, the simulated toolhead is at {} mm (tolerance {COREXY_TOL})\n{}",
+            host[a],
+            world[a],
+            run.stdout
+        );
+        // The trigger coordinate is position_endstop = 0: the toolhead halted just past it.
+        assert!(
+            (-0.250 - COREXY_TOL..=COREXY_TOL).contains(&world[a]),
+            "axis {a} halted at {} mm",
+            world[a]
+        );
+    }
+    let o = overshoots(&run.stdout);
+    assert_eq!(o.len(), 4, "{}", run.stdout);
+    assert!(
+        o.iter().all(|&v| (-0.0125 - 1e-9..=0.250).contains(&v)),
+        "overshoots {o:?}"
+    );
+}
+
+#[test]
+fn corexy_homes_x_and_y_with_both_motors() {
+    corexy_home("homing-corexy", None);
+}
+
+#[test]
+fn corexy_homes_with_endstops_on_another_mcu() {
+    corexy_home("homing-corexy-relay", Some("probe_mcu"));
+}
+
+#[test]
+fn corexy_g28_then_a_move_lands_on_the_commanded_xy() {
+    let dir = scratch("homing-corexy-print");
+    let cfg = corexy_config(&dir);
+    let gcode = dir.join("home-move.gcode");
+    std::fs::write(
+        &gcode,
+        "G28 X Y\nG90\nG1 X10 Y5 F600\nG1 X7.5 Y12.25 F1200\nM400\n",
+    )
+    .expect("write G-code");
+    let trace = dir.join("print.trace");
+    let run = retry_timeouts(|| {
+        let mut cmd = Command::new(bin("cadence"));
+        cmd.arg("print")
+            .arg(&gcode)
+            .arg("--config")
+            .arg(&cfg)
+            .arg("--trace")
+            .arg(&trace);
+        run(&mut cmd, TIMEOUT)
+    });
+    // The binary also compares every stepper's MCU position with the host's at the end.
+    assert_success(&run);
+    assert!(
+        run.stdout.contains("homing x: mcus mcu;") && run.stdout.contains("homing y: mcus mcu;"),
+        "{}",
+        run.stdout
+    );
+    // Homed within a motor step plus sampling of the trigger; the moves add no error.
+    let world = corexy_world_xy(&trace);
+    for (a, want) in [(0, 7.5), (1, 12.25)] {
+        assert!(
+            (world[a] - want).abs() <= COREXY_TOL,
+            "axis {a}: the simulated toolhead is at {} mm, commanded {want} mm\n{}",
+            world[a],
+            run.stdout
+        );
     }
 }

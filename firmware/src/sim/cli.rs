@@ -377,8 +377,13 @@ mod tests {
         assert_eq!((c.drop_tx, c.fault_seed, c.tx_delay_ms), (0.01, 42, 30));
         assert_eq!((c.freeze_after_ms, c.freeze_ms), (Some(500), Some(100)));
         assert_eq!(c.late_limit_us, 1000);
-        let c = parse(&["--endstop", "PA3=0.5*a+0.5*b,0,min", "--endstop", "PB3=0.5*a-0.5*b,0,max"])
-            .unwrap();
+        let c = parse(&[
+            "--endstop",
+            "PA3=0.5*a+0.5*b,0,min",
+            "--endstop",
+            "PB3=0.5*a-0.5*b,0,max",
+        ])
+        .unwrap();
         assert_eq!(c.endstops[0].axis.to_string(), "0.5*a+0.5*b");
         assert_eq!(c.endstops[1].axis.terms[1], (-0.5, "b".to_string()));
     }

@@ -136,7 +136,9 @@ impl Coord {
         }
         raw.push(&t[start..]);
         if raw.len() > MAX_TERMS {
-            return Err(CoordError::TooManyTerms { text: text.to_owned() });
+            return Err(CoordError::TooManyTerms {
+                text: text.to_owned(),
+            });
         }
         let mut terms = Vec::with_capacity(raw.len());
         for term in raw {
@@ -155,12 +157,15 @@ impl Coord {
             }
             let (coef, name) = match body.split_once('*') {
                 Some((c, n)) => {
-                    let coef = c.trim().parse::<f64>().ok().filter(|v| v.is_finite()).ok_or_else(|| {
-                        CoordError::Coefficient {
+                    let coef = c
+                        .trim()
+                        .parse::<f64>()
+                        .ok()
+                        .filter(|v| v.is_finite())
+                        .ok_or_else(|| CoordError::Coefficient {
                             text: text.to_owned(),
                             coef: c.trim().to_owned(),
-                        }
-                    })?;
+                        })?;
                     (coef, n.trim())
                 }
                 None => (1.0, body),
@@ -589,7 +594,11 @@ mod tests {
         assert!((w.coord(&y).unwrap() + 1.0).abs() < 1e-9);
         assert_eq!(w.read_endstop(2), Some(true));
         assert!((w.coord(&x).unwrap() - 9.0).abs() < 1e-9);
-        assert_eq!(w.coord(&Coord::parse("a+c").unwrap()), None, "c is driven by nobody");
+        assert_eq!(
+            w.coord(&Coord::parse("a+c").unwrap()),
+            None,
+            "c is driven by nobody"
+        );
     }
 
     #[test]
@@ -608,8 +617,14 @@ mod tests {
         let err = |t: &str| Coord::parse(t).unwrap_err().to_string();
         assert_eq!(err(" "), "coordinate ` ` is empty");
         assert_eq!(err("a+"), "coordinate `a+`: term `+` is empty");
-        assert_eq!(err("x*a"), "coordinate `x*a`: coefficient `x` is not a finite number");
-        assert_eq!(err("inf*a"), "coordinate `inf*a`: coefficient `inf` is not a finite number");
+        assert_eq!(
+            err("x*a"),
+            "coordinate `x*a`: coefficient `x` is not a finite number"
+        );
+        assert_eq!(
+            err("inf*a"),
+            "coordinate `inf*a`: coefficient `inf` is not a finite number"
+        );
         assert!(err("2a").contains("axis name `2a` must"));
         assert!(err("averylongname").contains("axis name `averylongname`"));
         assert!(err("a*b*c").contains("coefficient `a`"));
