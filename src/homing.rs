@@ -516,10 +516,10 @@ pub(crate) enum PassKind {
     Probe { target: f64 },
 }
 
-/// The kinematics' name when homing `axis` (0 = X, 1 = Y, 2 = Z) is not supported: every delta
-/// axis (its towers home together, all three carriages to their endstops, a different
-/// sequence). Corexy and corexz axes are homed with all the steppers that move them.
-pub(crate) fn unsupported_kinematics(kin: &Kinematics, _axis: usize) -> Option<&'static str> {
+/// The kinematics' name when homing is not supported: delta (its towers home together, all
+/// three carriages to their endstops: a different sequence). Corexy and corexz axes are homed
+/// with all the steppers that move them.
+pub(crate) fn unsupported_kinematics(kin: &Kinematics) -> Option<&'static str> {
     match kin {
         Kinematics::Cartesian | Kinematics::CoreXY | Kinematics::CoreXZ => None,
         Kinematics::Delta(_) => Some("delta"),
@@ -644,7 +644,7 @@ pub(crate) fn homing_pass(
         PassKind::Probe { .. } => "probe".to_string(),
     };
     let kinematics = ctx.machine.options.kinematics;
-    if let Some(kin) = unsupported_kinematics(&kinematics, axis) {
+    if let Some(kin) = unsupported_kinematics(&kinematics) {
         return Err(format!(
             "homing {axis_name}: {kin} kinematics is not supported: its towers home together, \
              which Cadence does not do yet (cartesian, corexy and corexz axes can be homed)"
@@ -666,7 +666,8 @@ pub(crate) fn homing_pass(
         );
     }
     let kin0 = kins[0];
-    // Steps of the first stepper per mm of the axis (1 on cartesian and core* rails).
+    // mm the first stepper moves per mm of the axis (1 on cartesian and core* rails): the
+    // endstop samples about once per step of it.
     let axis_coeff = kin0.linear_coeffs().map_or(1.0, |c| c[axis].abs()).max(1e-9);
     // The group: the endstop's MCU first, then the steppers' MCUs.
     let mut names = vec![e.pin.mcu.clone()];

@@ -250,7 +250,7 @@ pub fn assert_no_step_after_stop(
         .unwrap_or(0);
     assert!(
         last_step <= stop,
-        "Z stepped at {last_step} after the stop at {stop}"
+        "stepper oid {stepper_oid} stepped at {last_step} after the stop at {stop}"
     );
     t
 }

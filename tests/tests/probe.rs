@@ -158,6 +158,67 @@ fn probe_measures_the_simulated_bed_surface() {
     }
 }
 
+/// Corexz: Z is moved by motors A (x + z) and B (x − z), both on `mcu`; G28 homes X and Z with
+/// both, and PROBE stops both on the probe's trigger relayed from probe_mcu. The "separate"
+/// printer with corexz kinematics, A and B alike (Z's rotation_distance 40: 80 steps per mm).
+#[test]
+fn corexz_probe_stops_both_motors_and_measures_the_surface() {
+    let dir = scratch("probe-corexz");
+    let speed = 2.0;
+    let cfg = config(
+        &dir,
+        "simulated-multi-mcu.cfg",
+        |l| match l {
+            "endstop_pin: ^probe_mcu:PA3" => Some("endstop_pin: ^PC3".into()),
+            "time_scale: 1.0" => Some(format!("time_scale: 1.0\nbed_surface_z: {SURFACE}")),
+            "kinematics: cartesian" => Some("kinematics: corexz".into()),
+            "rotation_distance: 8" => Some("rotation_distance: 40".into()),
+            _ => None,
+        },
+        &format!("\n[probe]\npin: ^probe_mcu:PA4\nz_offset: 1\nspeed: {speed}\nlift_speed: 10\n"),
+    );
+    let run = print_ok(
+        &dir,
+        &cfg,
+        "G28\nG1 X10 Z4 F600\nPROBE\nG1 Z4 F600\nPROBE SAMPLES=2\n",
+    );
+    assert_ok(&run);
+    for axis in ["x", "z"] {
+        assert!(
+            run.stdout.contains(&format!("homing {axis}: mcus mcu;")),
+            "{}",
+            run.stdout
+        );
+    }
+    let z = probed(&run.stdout);
+    assert_eq!(z.len(), 3, "{}", run.stdout);
+    // A motor step moves Z by half a step of 1/80 mm; one step per motor, twice (homing and
+    // probing each carry a trigger's sampling).
+    let tol = 2.0 * (1.0 / 80.0 + 10.0 * SAMPLING_S) + 1e-9;
+    for v in z.iter().chain(&values(&run.stdout, "Result is z=")) {
+        assert!(
+            (v - SURFACE).abs() <= tol,
+            "probed z={v}, the simulated surface is at {SURFACE} (tolerance {tol})\n{}",
+            run.stdout
+        );
+    }
+    // The host's X, recomputed from the halted motors after each probe, stays where G1 put it
+    // up to half a motor step (A and B may halt a step apart).
+    let xs: Vec<f64> = run
+        .stdout
+        .lines()
+        .filter_map(|l| l.split_once("probe at ")?.1.split(',').next()?.parse().ok())
+        .collect();
+    assert_eq!(xs.len(), 3, "{}", run.stdout);
+    for x in xs {
+        assert!(
+            (x - 10.0).abs() <= 0.5 / 80.0 + 5e-4,
+            "probe at X={x}\n{}",
+            run.stdout
+        );
+    }
+}
+
 #[test]
 fn z_homes_on_the_probe_virtual_endstop_and_probe_agrees() {
     let dir = scratch("probe-virtual");
