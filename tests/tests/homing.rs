@@ -232,10 +232,10 @@ fn corexy_world_xy(trace: &Path) -> [f64; 2] {
 /// endstop's sampling at the second-pass speed.
 const COREXY_TOL: f64 = 1.0 / 80.0 + 5.0 * SAMPLING_S + 1e-9;
 
-/// With the endstops on another simulated MCU: how late that MCU's sampling timer may run
-/// behind the stepper MCU's steps on a loaded machine (both are processes). The endstop
-/// reports the clock its sample was due at, while it read the shared world when it ran, so the
-/// trigger time can be off by that much.
+/// With the endstops on another simulated MCU: how far the stepper MCU's process may run
+/// behind its steps on a loaded machine. The endstop MCU reads the shared world as it was at
+/// its sample's due time, but a step that process has not taken yet is not in the world, so
+/// the trigger can come that much late.
 const SIM_LATE_S: f64 = 0.010;
 
 /// Runs `run` up to 3 times while it ends in exactly the homing timeout (a starved VM).

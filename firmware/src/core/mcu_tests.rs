@@ -35,7 +35,7 @@ impl Board for FakeBoard {
         self.steps.push((oid, dir, clock.0));
         *self.pos.entry(oid).or_default() += if dir { 1 } else { -1 };
     }
-    fn read_pin(&mut self, pin: u8) -> bool {
+    fn read_pin(&mut self, pin: u8, _at: WireClock) -> bool {
         match self.endstop {
             Some((p, oid, at)) if p == pin => self.pos.get(&oid).copied().unwrap_or(0) >= at,
             _ => false,

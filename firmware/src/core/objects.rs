@@ -66,7 +66,7 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                     return self.shutdown(reason::INVALID_OID, now);
                 };
                 let (homing, next, pin) = (e.homing(), e.next_clock(), e.pin);
-                let level = self.board.read_pin(pin);
+                let level = self.board.read_pin(pin, now);
                 let args = [
                     Value::Int(oid),
                     Value::Int(homing as i64),
@@ -174,7 +174,7 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
         };
         match obj {
             Object::Endstop(e) => {
-                let level = self.board.read_pin(e.pin);
+                let level = self.board.read_pin(e.pin, at);
                 match e.event(at, level) {
                     EndstopEvent::Rearm(t) => self.rearm(oid, t, now),
                     EndstopEvent::Trigger { trsync_oid, reason } => {

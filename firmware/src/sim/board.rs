@@ -147,7 +147,7 @@ impl Board for SimBoard {
         let scheduled = self.extend(clock);
         let late_us = self.to_us(self.now.saturating_sub(scheduled));
         self.lateness.saturating_record(late_us as u64);
-        self.world.step(oid, dir);
+        self.world.step(oid, dir, scheduled);
         self.record(TraceRecord::Step {
             oid,
             dir,
@@ -168,8 +168,9 @@ impl Board for SimBoard {
         self.world.config_stepper(oid, config.step_pin);
     }
 
-    fn read_pin(&mut self, pin: u8) -> bool {
-        self.world.read_endstop(pin).unwrap_or(false)
+    fn read_pin(&mut self, pin: u8, at: WireClock) -> bool {
+        let at = self.extend(at);
+        self.world.read_endstop(pin, at).unwrap_or(false)
     }
 
     fn read_adc(&mut self, pin: u8) -> u16 {

@@ -33,6 +33,11 @@ impl SimClock {
         now_ns.checked_sub(u64::try_from(self.start.elapsed().as_nanos()).ok()?)
     }
 
+    /// MCU ticks per CLOCK_MONOTONIC ns.
+    pub fn ticks_per_ns(&self) -> f64 {
+        self.ticks_per_ns
+    }
+
     /// Wall time from MCU clock `now` until `deadline` (zero if it has passed).
     pub fn wall_until(&self, now: u64, deadline: u64) -> Duration {
         wall_for_ticks(deadline.saturating_sub(now), self.ticks_per_ns)

@@ -179,6 +179,13 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
         config,
         WireClock(clock.now() as u32),
     ));
+    // Steps and endstop samples in CLOCK_MONOTONIC time, shared by every process of the world.
+    if let Some(start_ns) = clock.monotonic_start_ns() {
+        mcu.board_mut().world.set_time_base(world::TimeBase {
+            start_ns: start_ns as f64,
+            ticks_per_ns: clock.ticks_per_ns(),
+        });
+    }
 
     if cli.wants_rt() {
         // After every allocation and mapping above (mlockall's MCL_FUTURE could otherwise make

@@ -11,17 +11,29 @@
 //!
 //! Sharing (with `--world ID`): iceoryx2 publish-subscribe on the service `cadence/world/ID`.
 //! Each process publishes a fixed-size [`WorldUpdate`] (its pid, a sequence number and up to
-//! [`MAX_AXES`] `(name, position)` pairs of the axes it drives) after a step, at most every
-//! [`PUBLISH_PERIOD`] of wall time, plus a final flush whenever the event loop goes idle; every
-//! process drains its subscriber before reading an endstop pin and keeps the latest position per
-//! axis name. Safe overflow is on (a slow reader only ever wants the newest sample) and the
-//! history is 1, so a process that joins late sees the current positions. Stale resources of
-//! dead processes are removed at start.
+//! [`MAX_AXES`] `(name, position, stamp)` triples of the axes it drives, the stamp being the due
+//! time of the axis' last step in CLOCK_MONOTONIC ns) after a step due at least
+//! [`PUBLISH_PERIOD`] after the last one published, plus a final flush whenever the event loop
+//! goes idle; every process drains its subscriber before reading an endstop pin and keeps the
+//! last [`HISTORY`] samples per axis name.
+//!
+//! Time: an endstop sample due at clock `c` reads the other processes' axes as they were at
+//! `c` (the latest sample stamped at or before it), not as they are when its timer runs: a
+//! simulator process runs late now and then (by milliseconds on a busy VM), and a real MCU,
+//! which samples on time, would otherwise be modelled as reporting a trigger clock earlier
+//! than the position it read. The processes agree on time because each MCU clock counts
+//! CLOCK_MONOTONIC from its own start ([`TimeBase`]). A process catching up after a stall
+//! publishes every step (their due times are far apart), so the history has no gaps wider
+//! than [`PUBLISH_PERIOD`] of motion.
+//!
+//! Safe overflow is on (a slow reader loses the oldest samples) and the history is 1, so a
+//! process that joins late sees the current positions. Stale resources of dead processes are
+//! removed at start.
 
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 use std::time::{Duration, Instant};
 
 /// Axes per update (per process).
@@ -39,6 +51,9 @@ pub struct AxisSample {
     pub name: [u8; NAME_LEN],
     /// Position in mm.
     pub position_mm: f64,
+    /// When the axis got there: the due time of its last step, CLOCK_MONOTONIC ns (0: unknown,
+    /// the position holds at any time).
+    pub stamp_ns: u64,
 }
 
 /// The payload: the axes one process drives.
@@ -242,6 +257,61 @@ impl std::fmt::Debug for Bus {
 struct LocalAxis {
     spec: AxisSpec,
     net_steps: i64,
+    /// Due time of the last step (CLOCK_MONOTONIC ns; 0 before the first or without a time
+    /// base).
+    stamp_ns: u64,
+}
+
+/// Samples of a remote axis kept for reading it at a past time.
+pub const HISTORY: usize = 512;
+
+/// A remote axis' recent positions, oldest first, stamps non-decreasing.
+#[derive(Debug, Clone, Default)]
+struct AxisHistory {
+    samples: VecDeque<(u64, f64)>,
+}
+
+impl AxisHistory {
+    fn push(&mut self, stamp_ns: u64, position_mm: f64) {
+        if self.samples.back().is_some_and(|&(t, _)| t > stamp_ns) {
+            // Out of order (a restarted publisher): start over.
+            self.samples.clear();
+        }
+        if self.samples.len() == HISTORY {
+            self.samples.pop_front();
+        }
+        self.samples.push_back((stamp_ns, position_mm));
+    }
+
+    /// The position at `at_ns`: the latest sample stamped at or before it (the oldest kept if
+    /// none is that old; the latest if `at_ns` is `None`).
+    fn at(&self, at_ns: Option<u64>) -> Option<f64> {
+        let Some(at) = at_ns else {
+            return self.samples.back().map(|&(_, p)| p);
+        };
+        let k = self.samples.partition_point(|&(t, _)| t <= at);
+        self.samples.get(k.saturating_sub(1)).map(|&(_, p)| p)
+    }
+}
+
+/// MCU clock → CLOCK_MONOTONIC ns, for the stamps every process of a world shares.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TimeBase {
+    /// CLOCK_MONOTONIC ns at tick 0.
+    pub start_ns: f64,
+    /// Ticks per ns (clock_freq × time_scale / 1e9).
+    pub ticks_per_ns: f64,
+}
+
+impl TimeBase {
+    fn ns(&self, clock: u64) -> u64 {
+        let ns = self.start_ns + clock as f64 / self.ticks_per_ns;
+        if ns.is_finite() && ns >= 0.0 {
+            ns as u64
+        } else {
+            0
+        }
+    }
 }
 
 /// Axis positions of this process and of the others in the world.
@@ -251,12 +321,15 @@ pub struct World {
     /// Stepper oid → index in `local`.
     by_oid: HashMap<u8, usize>,
     endstops: Vec<EndstopSpec>,
-    remote: HashMap<[u8; NAME_LEN], f64>,
+    remote: HashMap<[u8; NAME_LEN], AxisHistory>,
     bus: Option<Bus>,
     source: u64,
     seq: u64,
     dirty: bool,
     last_publish: Option<Instant>,
+    /// The latest step stamp published.
+    last_published_stamp: u64,
+    time: Option<TimeBase>,
 }
 
 /// Worlds created in this process so far (tells two worlds of one process apart).
@@ -289,7 +362,11 @@ impl World {
         World {
             local: axes
                 .into_iter()
-                .map(|spec| LocalAxis { spec, net_steps: 0 })
+                .map(|spec| LocalAxis {
+                    spec,
+                    net_steps: 0,
+                    stamp_ns: 0,
+                })
                 .collect(),
             by_oid: HashMap::new(),
             endstops,
@@ -300,6 +377,17 @@ impl World {
             seq: 0,
             dirty: true,
             last_publish: None,
+            last_published_stamp: 0,
+            time: None,
+        }
+    }
+
+    /// Stamps steps and reads endstops in CLOCK_MONOTONIC time through `time` (this process'
+    /// MCU clock): an endstop sample then reads the other processes' axes as they were at its
+    /// due time, however late its timer runs (without it: as they are now).
+    pub fn set_time_base(&mut self, time: TimeBase) {
+        if time.ticks_per_ns.is_finite() && time.ticks_per_ns > 0.0 && time.start_ns.is_finite() {
+            self.time = Some(time);
         }
     }
 
@@ -315,14 +403,26 @@ impl World {
         }
     }
 
-    /// Stepper `oid` stepped; publishes if [`PUBLISH_PERIOD`] has passed since the last time.
-    pub fn step(&mut self, oid: u8, dir: bool) {
+    /// Stepper `oid` stepped, due at MCU clock `clock`; publishes when the step is due
+    /// [`PUBLISH_PERIOD`] after the last one published (a late process catching up publishes
+    /// every step, so readers can look back in time), or, without a time base, when that much
+    /// wall time has passed.
+    pub fn step(&mut self, oid: u8, dir: bool, clock: u64) {
         let Some(&i) = self.by_oid.get(&oid) else {
             return;
         };
-        self.local[i].net_steps += if dir { 1 } else { -1 };
+        let stamp = self.time.map_or(0, |t| t.ns(clock));
+        let a = &mut self.local[i];
+        a.net_steps += if dir { 1 } else { -1 };
+        a.stamp_ns = stamp;
         self.dirty = true;
-        let due = self.last_publish.is_none_or(|t| t.elapsed() >= PUBLISH_PERIOD);
+        let due = match self.time {
+            Some(_) => {
+                self.last_publish.is_none()
+                    || stamp.saturating_sub(self.last_published_stamp) >= PUBLISH_PERIOD.as_nanos() as u64
+            }
+            None => self.last_publish.is_none_or(|t| t.elapsed() >= PUBLISH_PERIOD),
+        };
         if due {
             self.publish();
         }
@@ -357,14 +457,17 @@ impl World {
             axes: [AxisSample {
                 name: [0; NAME_LEN],
                 position_mm: 0.0,
+                stamp_ns: 0,
             }; MAX_AXES],
         };
         for (slot, a) in u.axes.iter_mut().zip(&self.local) {
             *slot = AxisSample {
                 name: name_bytes(&a.spec.name),
                 position_mm: position(a),
+                stamp_ns: a.stamp_ns,
             };
             u.count += 1;
+            self.last_published_stamp = self.last_published_stamp.max(a.stamp_ns);
         }
         // A full or vanished peer must not stop the MCU: the next step publishes again.
         let _ = bus.publisher.send_copy(u);
@@ -381,32 +484,50 @@ impl World {
                 continue;
             }
             for a in u.axes.iter().take((u.count as usize).min(MAX_AXES)) {
-                self.remote.insert(a.name, a.position_mm);
+                self.remote
+                    .entry(a.name)
+                    .or_default()
+                    .push(a.stamp_ns, a.position_mm);
             }
         }
     }
 
     /// Position of axis `name`: driven here, else the latest published by another process.
     pub fn position(&self, name: &str) -> Option<f64> {
+        self.position_at(name, None)
+    }
+
+    /// Position of axis `name` at CLOCK_MONOTONIC `at_ns`: driven here, its position now (this
+    /// process runs its timers in due order, so every local step due by then has been taken
+    /// and none due later); else the latest published by another process with a step due at or
+    /// before `at_ns` (`None`: the latest).
+    fn position_at(&self, name: &str, at_ns: Option<u64>) -> Option<f64> {
         match self.local.iter().find(|a| a.spec.name == name) {
             Some(a) => Some(position(a)),
-            None => self.remote.get(&name_bytes(name)).copied(),
+            None => self.remote.get(&name_bytes(name))?.at(at_ns),
         }
     }
 
     /// Value of coordinate `c`: `None` while one of its axes is unknown.
     pub fn coord(&self, c: &Coord) -> Option<f64> {
-        c.terms
-            .iter()
-            .try_fold(0.0, |sum, (coef, name)| Some(sum + coef * self.position(name)?))
+        self.coord_at(c, None)
     }
 
-    /// Level of input `pin` if it is a simulated endstop (refreshes remote positions first).
-    pub fn read_endstop(&mut self, pin: u8) -> Option<bool> {
+    fn coord_at(&self, c: &Coord, at_ns: Option<u64>) -> Option<f64> {
+        c.terms.iter().try_fold(0.0, |sum, (coef, name)| {
+            Some(sum + coef * self.position_at(name, at_ns)?)
+        })
+    }
+
+    /// Level of input `pin`, sampled at MCU clock `clock`, if it is a simulated endstop
+    /// (refreshes remote positions first). With a time base the other processes' axes are
+    /// read as they were at `clock`, as a real MCU sampling on time would see them.
+    pub fn read_endstop(&mut self, pin: u8, clock: u64) -> Option<bool> {
         let i = self.endstops.iter().position(|e| e.pin == pin)?;
         self.refresh();
+        let at = self.time.map(|t| t.ns(clock));
         let e = &self.endstops[i];
-        let pos = self.coord(&e.axis)?;
+        let pos = self.coord_at(&e.axis, at)?;
         Some(if e.at_min {
             pos <= e.trigger_mm
         } else {
@@ -444,9 +565,9 @@ fn open_bus(world: &str) -> Result<Bus, WorldError> {
     let service = node
         .service_builder(&name)
         .publish_subscribe::<WorldUpdate>()
-        .max_publishers(16)
-        .max_subscribers(16)
-        .subscriber_max_buffer_size(64)
+        .max_publishers(8)
+        .max_subscribers(8)
+        .subscriber_max_buffer_size(HISTORY)
         .history_size(1)
         .enable_safe_overflow(true)
         .open_or_create()
@@ -513,20 +634,20 @@ mod tests {
         ];
         let mut w = World::new(None, vec![axis("x", 3)], endstops).unwrap();
         w.config_stepper(0, 3);
-        w.step(1, true); // not an axis stepper
+        w.step(1, true, 0); // not an axis stepper
         assert_eq!(w.position("x"), Some(10.0));
-        assert_eq!(w.read_endstop(5), Some(false));
+        assert_eq!(w.read_endstop(5, 0), Some(false));
         for _ in 0..5 {
-            w.step(0, false);
+            w.step(0, false, 0);
         }
-        assert_eq!(w.read_endstop(5), Some(true), "9.95 is at the trigger");
+        assert_eq!(w.read_endstop(5, 0), Some(true), "9.95 is at the trigger");
         for _ in 0..7 {
-            w.step(0, true);
+            w.step(0, true, 0);
         }
-        assert_eq!(w.read_endstop(5), Some(false));
-        assert_eq!(w.read_endstop(6), Some(true));
-        assert_eq!(w.read_endstop(7), None);
-        assert_eq!(w.read_endstop(8), None);
+        assert_eq!(w.read_endstop(5, 0), Some(false));
+        assert_eq!(w.read_endstop(6, 0), Some(true));
+        assert_eq!(w.read_endstop(7, 0), None);
+        assert_eq!(w.read_endstop(8, 0), None);
     }
 
     #[test]
@@ -541,13 +662,66 @@ mod tests {
         let mut stepper = World::new(Some(&id), vec![axis("z", 2)], vec![]).unwrap();
         let mut probe = World::new(Some(&id), vec![], vec![endstop]).unwrap();
         stepper.config_stepper(4, 2);
-        assert_eq!(probe.read_endstop(1), None, "nothing published yet");
+        assert_eq!(probe.read_endstop(1, 0), None, "nothing published yet");
         for _ in 0..50 {
-            stepper.step(4, true);
+            stepper.step(4, true, 0);
         }
         stepper.flush();
-        assert_eq!(probe.read_endstop(1), Some(true));
+        assert_eq!(probe.read_endstop(1, 0), Some(true));
         assert_eq!(probe.position("z"), Some(10.5));
+    }
+
+    #[test]
+    fn a_late_sample_reads_remote_axes_as_they_were_at_its_due_time() {
+        let id = format!("unit-time-{}", std::process::id());
+        let endstop = EndstopSpec {
+            pin: 1,
+            axis: Coord::axis("z"),
+            trigger_mm: 10.2,
+            at_min: false,
+        };
+        // Both processes count 1 tick per ns from CLOCK_MONOTONIC 1 s.
+        let time = TimeBase {
+            start_ns: 1e9,
+            ticks_per_ns: 1.0,
+        };
+        let mut stepper = World::new(Some(&id), vec![axis("z", 2)], vec![]).unwrap();
+        let mut probe = World::new(Some(&id), vec![], vec![endstop]).unwrap();
+        stepper.set_time_base(time);
+        probe.set_time_base(time);
+        stepper.config_stepper(4, 2);
+        // A step every 250 µs of due time, all taken at once (a process catching up): each
+        // one is published.
+        for k in 1..=50u64 {
+            stepper.step(4, true, k * 250_000);
+        }
+        stepper.flush();
+        // z = 10 + k / 100 after step k: 10.2 is reached by step 20, due at 5 ms.
+        assert_eq!(
+            probe.read_endstop(1, 4_999_999),
+            Some(false),
+            "step 19: z = 10.19"
+        );
+        assert_eq!(probe.read_endstop(1, 5_000_000), Some(true), "step 20: z = 10.2");
+        assert_eq!(probe.position("z"), Some(10.5), "now: all 50 steps");
+        // Before the oldest sample kept: the oldest is the best guess.
+        assert_eq!(probe.read_endstop(1, 0), Some(false));
+    }
+
+    #[test]
+    fn history_keeps_the_latest_samples_in_order() {
+        let mut h = AxisHistory::default();
+        assert_eq!(h.at(None), None);
+        for k in 0..(HISTORY as u64 + 10) {
+            h.push(100 + k, k as f64);
+        }
+        assert_eq!(h.samples.len(), HISTORY);
+        assert_eq!(h.at(Some(0)), Some(10.0), "older than kept: the oldest");
+        assert_eq!(h.at(Some(150)), Some(50.0));
+        assert_eq!(h.at(None), Some((HISTORY + 9) as f64));
+        h.push(5, -1.0);
+        assert_eq!(h.samples.len(), 1, "out of order: starts over");
+        assert_eq!(h.at(Some(1)), Some(-1.0));
     }
 
     #[test]
@@ -581,18 +755,18 @@ mod tests {
         assert_eq!((w.coord(&x), w.coord(&y)), (Some(10.0), Some(2.0)));
         // X − 1 mm: both A and B back by 100 steps; Y keeps its place.
         for _ in 0..100 {
-            w.step(0, false);
-            w.step(1, false);
+            w.step(0, false, 0);
+            w.step(1, false, 0);
         }
-        assert_eq!(w.read_endstop(1), Some(true));
-        assert_eq!(w.read_endstop(2), Some(false));
+        assert_eq!(w.read_endstop(1, 0), Some(true));
+        assert_eq!(w.read_endstop(2, 0), Some(false));
         // Y − 3 mm: A back 300 steps, B forward 300.
         for _ in 0..300 {
-            w.step(0, false);
-            w.step(1, true);
+            w.step(0, false, 0);
+            w.step(1, true, 0);
         }
         assert!((w.coord(&y).unwrap() + 1.0).abs() < 1e-9);
-        assert_eq!(w.read_endstop(2), Some(true));
+        assert_eq!(w.read_endstop(2, 0), Some(true));
         assert!((w.coord(&x).unwrap() - 9.0).abs() < 1e-9);
         assert_eq!(
             w.coord(&Coord::parse("a+c").unwrap()),
