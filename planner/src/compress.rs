@@ -180,22 +180,43 @@ impl StepCompressor {
     /// stepper's map; its step distance is this compressor's. A step whose computed time falls
     /// before the previous one (floating-point noise) is raised to it; the recorded ideal step is
     /// the raised one.
+    ///
+    /// The windows are written into room made for the step count [`StepGen::steps_in`] gives
+    /// (exact for linear kinematics, a hint otherwise: steps beyond it go to a side buffer
+    /// appended after, unused room is cut off), so the per-step path is one store with no
+    /// capacity check; the generator's own running maximum, started at the last step queued
+    /// from any source, keeps the clocks in order.
     pub fn push_move(&mut self, mv: &Move, kin: &StepperKin) {
         let max_err = self.max_err as f64;
-        let pending = &mut self.pending;
         let ideal = &mut self.ideal;
         let record = self.record_ideal;
-        let mut last = self.last_ideal;
-        pending.reserve(self.gen.steps_in(mv, kin));
+        let start = self.pending.len();
+        let room = self.gen.steps_in(mv, kin);
+        self.pending.resize(
+            start + room,
+            StepWindow {
+                lo: 0,
+                hi: 0,
+                dir: false,
+            },
+        );
+        let mut slots = self.pending[start..].iter_mut();
+        let mut extra = Vec::new();
+        self.gen.raise_last_clock(self.last_ideal);
         self.gen.gen_move(mv, kin, |clock, dir| {
-            // gen_move's clocks never decrease; `last` only matters across sources
-            // (push_step, homing resync).
-            if clock > last {
-                last = clock;
+            let w = step_window(clock, max_err, dir);
+            match slots.next() {
+                Some(slot) => *slot = w,
+                None => extra.push(w),
             }
-            queue_step_time(pending, ideal, record, max_err, last, dir);
+            if record {
+                ideal.push_back(IdealStep { clock, dir });
+            }
         });
-        self.last_ideal = last;
+        let unused = slots.len();
+        self.pending.truncate(start + room - unused);
+        self.pending.append(&mut extra);
+        self.last_ideal = self.last_ideal.max(self.gen.last_clock());
     }
 
     /// Queues one step at `ideal_clock` ticks (raised to the previous step's time if earlier),
@@ -354,6 +375,15 @@ fn queue_step_time(
     clock: f64,
     dir: bool,
 ) {
+    pending.push(step_window(clock, max_err, dir));
+    if record {
+        ideal.push_back(IdealStep { clock, dir });
+    }
+}
+
+/// The window of a step with ideal time `clock` (≥ 0): [⌈clock − max_err⌉, ⌊clock⌋].
+#[inline(always)]
+fn step_window(clock: f64, max_err: f64, dir: bool) -> StepWindow {
     // clock ≥ 0, so truncation is floor; ⌈v⌉ by truncation toward zero and a correction
     // (f64::floor and ceil are library calls on baseline x86-64, and f64 ↔ i64 conversions are
     // single instructions where f64 ↔ u64 ones are not); a window starting before clock 0
@@ -362,10 +392,7 @@ fn queue_step_time(
     let v = clock - max_err;
     let t = v as i64;
     let lo = if v > t as f64 { t + 1 } else { t }.max(0) as u64;
-    pending.push(StepWindow { lo, hi, dir });
-    if record {
-        ideal.push_back(IdealStep { clock, dir });
-    }
+    StepWindow { lo, hi, dir }
 }
 
 #[cfg(test)]

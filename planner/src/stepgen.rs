@@ -98,6 +98,18 @@ impl StepGen {
         self.step_index(kin.position(&mv.end_pos)).abs_diff(from) as usize
     }
 
+    /// Ideal clock of the last step generated (later steps never come before it).
+    pub fn last_clock(&self) -> f64 {
+        self.last_clock
+    }
+
+    /// Makes every later step come no earlier than `clock` (steps queued from another source).
+    pub fn raise_last_clock(&mut self, clock: f64) {
+        if clock > self.last_clock {
+            self.last_clock = clock;
+        }
+    }
+
     /// Step index of the commanded position after the last move.
     pub fn commanded_steps(&self) -> i64 {
         self.cur_n
