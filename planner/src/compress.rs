@@ -187,9 +187,7 @@ impl StepCompressor {
     /// capacity check; the generator's own running maximum, started at the last step queued
     /// from any source, keeps the clocks in order.
     pub fn push_move(&mut self, mv: &Move, kin: &StepperKin) {
-        let max_err = self.max_err as f64;
-        let ideal = &mut self.ideal;
-        let record = self.record_ideal;
+        let max_err = self.max_err as i64;
         let start = self.pending.len();
         let room = self.gen.steps_in(mv, kin);
         self.pending.resize(
@@ -203,16 +201,23 @@ impl StepCompressor {
         let mut slots = self.pending[start..].iter_mut();
         let mut extra = Vec::new();
         self.gen.raise_last_clock(self.last_ideal);
-        self.gen.gen_move(mv, kin, |clock, dir| {
+        let mut put = |clock: f64, dir: bool| {
             let w = step_window(clock, max_err, dir);
             match slots.next() {
                 Some(slot) => *slot = w,
                 None => extra.push(w),
             }
-            if record {
+        };
+        // Two loops rather than a test of the flag per step.
+        if self.record_ideal {
+            let ideal = &mut self.ideal;
+            self.gen.gen_move(mv, kin, |clock, dir| {
+                put(clock, dir);
                 ideal.push_back(IdealStep { clock, dir });
-            }
-        });
+            });
+        } else {
+            self.gen.gen_move(mv, kin, put);
+        }
         let unused = slots.len();
         self.pending.truncate(start + room - unused);
         self.pending.append(&mut extra);
@@ -226,7 +231,7 @@ impl StepCompressor {
             return;
         }
         self.last_ideal = ideal_clock.max(self.last_ideal);
-        let max_err = self.max_err as f64;
+        let max_err = self.max_err as i64;
         queue_step_time(
             &mut self.pending,
             &mut self.ideal,
@@ -371,7 +376,7 @@ fn queue_step_time(
     pending: &mut Vec<StepWindow>,
     ideal: &mut VecDeque<IdealStep>,
     record: bool,
-    max_err: f64,
+    max_err: i64,
     clock: f64,
     dir: bool,
 ) {
@@ -381,18 +386,22 @@ fn queue_step_time(
     }
 }
 
-/// The window of a step with ideal time `clock` (≥ 0): [⌈clock − max_err⌉, ⌊clock⌋].
+/// The window of a step with ideal time `clock` (≥ 0, below 2^53): [⌈clock − max_err⌉, ⌊clock⌋],
+/// the start clamped to 0.
 #[inline(always)]
-fn step_window(clock: f64, max_err: f64, dir: bool) -> StepWindow {
-    // clock ≥ 0, so truncation is floor; ⌈v⌉ by truncation toward zero and a correction
-    // (f64::floor and ceil are library calls on baseline x86-64, and f64 ↔ i64 conversions are
-    // single instructions where f64 ↔ u64 ones are not); a window starting before clock 0
-    // starts at 0.
-    let hi = clock as i64 as u64;
-    let v = clock - max_err;
-    let t = v as i64;
-    let lo = if v > t as f64 { t + 1 } else { t }.max(0) as u64;
-    StepWindow { lo, hi, dir }
+fn step_window(clock: f64, max_err: i64, dir: bool) -> StepWindow {
+    // clock ≥ 0, so truncation is floor (f64::floor and ceil are library calls on baseline
+    // x86-64, and f64 ↔ i64 conversions are single instructions where f64 ↔ u64 ones are not).
+    // max_err is an integer, so ⌈clock − max_err⌉ = ⌈clock⌉ − max_err: one conversion, where
+    // clock − max_err as a float would need a second (the same value: that subtraction is exact
+    // whenever its result is positive, and a start at or below 0 is clamped either way).
+    let hi = clock as i64;
+    let lo = (hi + i64::from(clock > hi as f64) - max_err).max(0) as u64;
+    StepWindow {
+        lo,
+        hi: hi as u64,
+        dir,
+    }
 }
 
 #[cfg(test)]

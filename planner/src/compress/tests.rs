@@ -190,3 +190,28 @@ proptest! {
         prop_assert!(check(&out, &ideal, MAX_ERR).is_ok(), "{:?}", check(&out, &ideal, MAX_ERR));
     }
 }
+
+proptest! {
+    /// The one-conversion window equals ⌈clock − max_err⌉ (clamped to 0) and ⌊clock⌋ taken
+    /// with floating-point subtraction and the library's floor and ceiling.
+    #[test]
+    fn step_window_matches_float_floor_and_ceil(
+        whole in 0u64..(1u64 << 44),
+        frac in prop_oneof![Just(0.0f64), 0.0f64..1.0],
+        max_err in 0i64..100_000,
+    ) {
+        let clock = whole as f64 + frac;
+        let w = step_window(clock, max_err, true);
+        prop_assert_eq!(w.hi, clock.floor() as u64);
+        prop_assert_eq!(w.lo, (clock - max_err as f64).ceil().max(0.0) as u64);
+    }
+}
+
+#[test]
+fn step_window_near_zero_and_small_clocks() {
+    for clock in [0.0, 1e-300, 0.25, 1.0, 1_249.999_999, 1250.0, 1_250.000_001, 1251.5] {
+        let w = step_window(clock, MAX_ERR as i64, false);
+        assert_eq!(w.hi, clock.floor() as u64, "{clock}");
+        assert_eq!(w.lo, (clock - MAX_ERR as f64).ceil().max(0.0) as u64, "{clock}");
+    }
+}
