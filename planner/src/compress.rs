@@ -75,8 +75,10 @@ pub struct StepCompressor {
     max_err: u64,
     pending: Vec<StepWindow>,
     head: usize,
-    /// All of pending[head..dir_run_end] share pending[head].dir.
-    dir_run_end: usize,
+    /// The indices i ≥ 1 of `pending` (ascending, those ≤ head may linger) whose step turns
+    /// the other way from step i − 1: the direction run starting at `head` ends at the first
+    /// one above it, found without a pass over the steps.
+    flips: VecDeque<usize>,
     last_clock: u64,
     started: bool,
     dir: Option<bool>,
@@ -113,7 +115,9 @@ impl StepCompressor {
             max_err: max_error_ticks as u64,
             pending: Vec::with_capacity(1 << 14),
             head: 0,
-            dir_run_end: 0,
+            // Room for 1024 direction changes pending at once (the planner loop allocates
+            // nothing after warm-up: tests/alloc_free.rs).
+            flips: VecDeque::with_capacity(1 << 10),
             last_clock: 0,
             started: false,
             dir: None,
@@ -222,6 +226,19 @@ impl StepCompressor {
         self.pending.truncate(start + room - unused);
         self.pending.append(&mut extra);
         self.last_ideal = self.last_ideal.max(self.gen.last_clock());
+        // Direction changes: on linear kinematics a move's steps all go one way (see
+        // `StepGen::gen_move`), so only its first step can turn; otherwise look at each.
+        let from = start.max(1);
+        let to = if kin.linear_coeffs().is_some() {
+            (from + 1).min(self.pending.len())
+        } else {
+            self.pending.len()
+        };
+        for i in from..to {
+            if self.pending[i].dir != self.pending[i - 1].dir {
+                self.flips.push_back(i);
+            }
+        }
     }
 
     /// Queues one step at `ideal_clock` ticks (raised to the previous step's time if earlier),
@@ -232,6 +249,9 @@ impl StepCompressor {
         }
         self.last_ideal = ideal_clock.max(self.last_ideal);
         let max_err = self.max_err as i64;
+        if self.pending.last().is_some_and(|w| w.dir != dir) {
+            self.flips.push_back(self.pending.len());
+        }
         queue_step_time(
             &mut self.pending,
             &mut self.ideal,
@@ -263,11 +283,15 @@ impl StepCompressor {
         if self.head == self.pending.len() {
             self.pending.clear();
             self.head = 0;
-            self.dir_run_end = 0;
+            self.flips.clear();
             self.next = None;
         } else if self.head > 4096 && self.head * 2 > self.pending.len() {
             self.pending.drain(..self.head);
-            self.dir_run_end -= self.head;
+            let head = self.head;
+            self.flips.retain(|&f| f > head);
+            for f in self.flips.iter_mut() {
+                *f -= head;
+            }
             self.head = 0;
             self.next = None;
         }
@@ -343,13 +367,11 @@ impl StepCompressor {
             out.push(StepCmd::SetDir { dir: first.dir });
             self.dir = Some(first.dir);
         }
-        if self.dir_run_end <= self.head {
-            self.dir_run_end = self.head + 1;
+        while self.flips.front().is_some_and(|&f| f <= self.head) {
+            self.flips.pop_front();
         }
-        while self.dir_run_end < self.pending.len() && self.pending[self.dir_run_end].dir == first.dir {
-            self.dir_run_end += 1;
-        }
-        let run_end = self.dir_run_end.min(self.head + MAX_COUNT);
+        let dir_run_end = self.flips.front().copied().unwrap_or(self.pending.len());
+        let run_end = dir_run_end.min(self.head + MAX_COUNT);
         let fit = self.choose_fit(run_end);
         let count = fit.count as u64;
         let first_clock = self.last_clock + fit.interval as u64;

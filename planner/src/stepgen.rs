@@ -116,6 +116,8 @@ impl StepGen {
     }
 
     /// Generates the steps of `mv`, calling `emit(ideal_clock, dir)` for each in time order.
+    /// On linear kinematics every step of one move goes the same way (the compressor relies on
+    /// it to find direction changes without looking at each step).
     pub fn gen_move(&mut self, mv: &Move, kin: &StepperKin, mut emit: impl FnMut(f64, bool)) {
         let x0 = kin.position(&mv.start_pos);
         let x1 = kin.position(&mv.end_pos);

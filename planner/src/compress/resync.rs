@@ -17,7 +17,7 @@ impl StepCompressor {
     pub fn resync(&mut self, mcu_position: i64, stepper_mm: f64, clock_freq: f64) {
         self.pending.clear();
         self.head = 0;
-        self.dir_run_end = 0;
+        self.flips.clear();
         self.next = None;
         self.started = false;
         self.last_clock = 0;

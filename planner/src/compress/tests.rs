@@ -209,7 +209,16 @@ proptest! {
 
 #[test]
 fn step_window_near_zero_and_small_clocks() {
-    for clock in [0.0, 1e-300, 0.25, 1.0, 1_249.999_999, 1250.0, 1_250.000_001, 1251.5] {
+    for clock in [
+        0.0,
+        1e-300,
+        0.25,
+        1.0,
+        1_249.999_999,
+        1250.0,
+        1_250.000_001,
+        1251.5,
+    ] {
         let w = step_window(clock, MAX_ERR as i64, false);
         assert_eq!(w.hi, clock.floor() as u64, "{clock}");
         assert_eq!(w.lo, (clock - MAX_ERR as f64).ceil().max(0.0) as u64, "{clock}");
