@@ -7,15 +7,15 @@
 //! examples/simulated-corexy.cfg the same way: homing X or Y moves and stops both motors, and
 //! the simulated world's X and Y are (a + b) / 2 and (a − b) / 2 of the motors' axes.
 
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
 use cadence_tests::{
-    assert_exit, assert_no_step_after_stop, assert_success, bin, run, scratch, short_homing_config, Run,
+    assert_exit, assert_no_step_after_stop, assert_success, bin, homing_timed_out, net_steps,
+    retry_homing_timeouts, run, scratch, short_homing_config, Run,
 };
-use firmware::trace::{read_trace, TraceFile, TraceRecord};
+use firmware::trace::read_trace;
 
 const TIMEOUT: Duration = Duration::from_secs(180);
 /// Steps per mm of X, Y (index 0, 1) and Z (index 2), and the simulated start: 10% of the
@@ -47,17 +47,6 @@ fn home(dir: &Path, axes: &str, probe_args: Option<&str>) -> (Run, PathBuf) {
         cmd.env("CADENCE_SIM_ARGS_PROBE_MCU", a);
     }
     (run(&mut cmd, TIMEOUT), trace)
-}
-
-fn net_steps(trace: &TraceFile) -> HashMap<u8, i64> {
-    let mut net = HashMap::new();
-    for r in &trace.records {
-        if let TraceRecord::Step { oid, dir, .. } = *r {
-            *net.entry(oid).or_default() += if dir { 1 } else { -1 };
-        }
-        assert!(!matches!(r, TraceRecord::Shutdown { .. }), "MCU shut down: {r:?}");
-    }
-    net
 }
 
 /// The `homed position: x=… y=… z=…` line.
@@ -111,20 +100,7 @@ fn check_success(run: &Run, trace: &Path, axes: &[usize]) {
 #[test]
 fn g28_across_two_mcus_lands_on_the_trigger() {
     let dir = scratch("homing-two-mcus");
-    // A starved VM (CI runs tests in parallel on 2 cores) can legitimately miss the 25 ms
-    // budget: that run ends in exactly the timeout error and is tried again (at most 3 runs).
-    // A wrong position is never retried.
-    let (mut run, mut trace) = home(&dir, "xyz", None);
-    for _ in 0..2 {
-        if !run
-            .stderr
-            .lines()
-            .any(|l| l == "cadence: error: Communication timeout during homing")
-        {
-            break;
-        }
-        (run, trace) = home(&dir, "xyz", None);
-    }
+    let (run, trace) = retry_homing_timeouts(|| home(&dir, "xyz", None), |(r, _)| r);
     assert_success(&run);
     assert!(
         run.stdout.contains("homing z: mcus probe_mcu+mcu"),
@@ -169,13 +145,7 @@ fn delayed_endstop_mcu_fails_with_a_communication_timeout() {
     let dir = scratch("homing-delay");
     let (run, trace) = home(&dir, "z", Some("--tx-delay-ms 30"));
     assert_exit(&run, 1);
-    assert!(
-        run.stderr
-            .lines()
-            .any(|l| l == "cadence: error: Communication timeout during homing"),
-        "stderr:\n{}",
-        run.stderr
-    );
+    assert!(homing_timed_out(&run), "stderr:\n{}", run.stderr);
     assert_z_stopped(&trace);
 }
 
@@ -195,13 +165,7 @@ fn dropped_bytes_never_give_a_wrong_position() {
         match run.code {
             Some(0) => check_success(&run, &trace, &[2]),
             Some(1) => {
-                assert!(
-                    run.stderr
-                        .lines()
-                        .any(|l| l == "cadence: error: Communication timeout during homing"),
-                    "stderr:\n{}",
-                    run.stderr
-                );
+                assert!(homing_timed_out(&run), "stderr:\n{}", run.stderr);
                 assert_z_stopped(&trace);
             }
             other => panic!("exit {other:?}\nstdout:\n{}\nstderr:\n{}", run.stdout, run.stderr),
@@ -238,22 +202,6 @@ const COREXY_TOL: f64 = 1.0 / 80.0 + 5.0 * SAMPLING_S + 1e-9;
 /// the trigger can come that much late.
 const SIM_LATE_S: f64 = 0.010;
 
-/// Runs `run` up to 3 times while it ends in exactly the homing timeout (a starved VM).
-fn retry_timeouts(mut attempt: impl FnMut() -> Run) -> Run {
-    let mut run = attempt();
-    for _ in 0..2 {
-        if !run
-            .stderr
-            .lines()
-            .any(|l| l == "cadence: error: Communication timeout during homing")
-        {
-            break;
-        }
-        run = attempt();
-    }
-    run
-}
-
 /// `cadence home --axes xy` on the short corexy printer; with `endstop_mcu`, the X and Y
 /// endstops sit on a second simulated MCU of that name (the trigger is relayed by the host, so
 /// the motors run on for a while past it: a real overshoot to account for).
@@ -271,14 +219,17 @@ fn corexy_home(test: &str, endstop_mcu: Option<&str>) {
         mcus = format!("{m}+mcu");
     }
     let trace = dir.join("home.trace");
-    let run = retry_timeouts(|| {
-        let mut cmd = Command::new(bin("cadence"));
-        cmd.args(["home", "--axes", "xy", "--config"])
-            .arg(&cfg)
-            .arg("--trace")
-            .arg(&trace);
-        run(&mut cmd, TIMEOUT)
-    });
+    let run = retry_homing_timeouts(
+        || {
+            let mut cmd = Command::new(bin("cadence"));
+            cmd.args(["home", "--axes", "xy", "--config"])
+                .arg(&cfg)
+                .arg("--trace")
+                .arg(&trace);
+            run(&mut cmd, TIMEOUT)
+        },
+        |r| r,
+    );
     assert_success(&run);
     for axis in ["x", "y"] {
         let want = format!("homing {axis}: mcus {mcus};");
@@ -340,16 +291,19 @@ fn corexy_g28_then_a_move_lands_on_the_commanded_xy() {
     )
     .expect("write G-code");
     let trace = dir.join("print.trace");
-    let run = retry_timeouts(|| {
-        let mut cmd = Command::new(bin("cadence"));
-        cmd.arg("print")
-            .arg(&gcode)
-            .arg("--config")
-            .arg(&cfg)
-            .arg("--trace")
-            .arg(&trace);
-        run(&mut cmd, TIMEOUT)
-    });
+    let run = retry_homing_timeouts(
+        || {
+            let mut cmd = Command::new(bin("cadence"));
+            cmd.arg("print")
+                .arg(&gcode)
+                .arg("--config")
+                .arg(&cfg)
+                .arg("--trace")
+                .arg(&trace);
+            run(&mut cmd, TIMEOUT)
+        },
+        |r| r,
+    );
     // The binary also compares every stepper's MCU position with the host's at the end.
     assert_success(&run);
     assert!(

@@ -4,16 +4,15 @@
 //! one); homing Z relays the main MCU's endstop trigger to the toolboard. The simulated MCUs'
 //! step traces say what really happened; the host must agree with them.
 
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
 use cadence_tests::{
-    assert_exit, assert_no_step_after_stop, assert_success, bin, check_trace, run, scratch,
-    short_homing_config, workspace, Run,
+    assert_exit, assert_no_step_after_stop, assert_success, bin, check_trace, homing_timed_out, net_steps,
+    retry_homing_timeouts, run, scratch, short_homing_config, workspace, Run,
 };
-use firmware::trace::{read_trace, TraceFile, TraceRecord};
+use firmware::trace::{read_trace, TraceRecord};
 
 const TIMEOUT: Duration = Duration::from_secs(180);
 /// The toolboard as a 16 MHz board (its own CLOCK_FREQ, its own clock offset).
@@ -53,17 +52,6 @@ fn toolboard_trace(trace: &Path) -> PathBuf {
     ))
 }
 
-fn net_steps(trace: &TraceFile) -> HashMap<u8, i64> {
-    let mut net = HashMap::new();
-    for r in &trace.records {
-        if let TraceRecord::Step { oid, dir, .. } = *r {
-            *net.entry(oid).or_default() += if dir { 1 } else { -1 };
-        }
-        assert!(!matches!(r, TraceRecord::Shutdown { .. }), "MCU shut down: {r:?}");
-    }
-    net
-}
-
 #[test]
 fn square_prints_on_two_mcus_with_their_own_clocks() {
     let dir = scratch("toolboard-square");
@@ -83,13 +71,7 @@ fn square_prints_on_two_mcus_with_their_own_clocks() {
     };
     // G28 homes Z across the MCUs: a starved VM can miss the 25 ms budget, which ends the run
     // with exactly the timeout error; that run is tried again (at most 3 runs).
-    let mut run = print(&trace);
-    for _ in 0..2 {
-        if !timed_out(&run) {
-            break;
-        }
-        run = print(&trace);
-    }
+    let run = retry_homing_timeouts(|| print(&trace), |r| r);
     assert_success(&run);
     // The binary itself compares every stepper's MCU position with the host's at the end (a
     // mismatch fails the print); the summary shows both MCUs' lead.
@@ -159,12 +141,6 @@ fn median(v: &[f64]) -> f64 {
     s.get(s.len() / 2).copied().unwrap_or(f64::NAN)
 }
 
-fn timed_out(run: &Run) -> bool {
-    run.stderr
-        .lines()
-        .any(|l| l == "cadence: error: Communication timeout during homing")
-}
-
 fn home_z(dir: &Path, toolboard_args: &str) -> (Run, PathBuf) {
     let cfg = short_config(dir);
     let trace = dir.join("home.trace");
@@ -200,13 +176,7 @@ fn overshoots(stdout: &str) -> Vec<f64> {
 #[test]
 fn z_on_the_toolboard_homes_on_the_main_mcus_endstop() {
     let dir = scratch("toolboard-home-z");
-    let (mut run, mut trace) = home_z(&dir, TOOLBOARD_16MHZ);
-    for _ in 0..2 {
-        if !timed_out(&run) {
-            break;
-        }
-        (run, trace) = home_z(&dir, TOOLBOARD_16MHZ);
-    }
+    let (run, trace) = retry_homing_timeouts(|| home_z(&dir, TOOLBOARD_16MHZ), |(r, _)| r);
     assert_success(&run);
     assert!(
         run.stdout.contains("homing z: mcus mcu+toolboard"),
@@ -242,7 +212,7 @@ fn delayed_toolboard_fails_homing_with_a_communication_timeout() {
     let dir = scratch("toolboard-home-delay");
     let (run, trace) = home_z(&dir, "--tx-delay-ms 30");
     assert_exit(&run, 1);
-    assert!(timed_out(&run), "stderr:\n{}", run.stderr);
+    assert!(homing_timed_out(&run), "stderr:\n{}", run.stderr);
     // The toolboard stopped Z and never stepped it afterwards; Z moved far less than the
     // 1.5 × travel homing move.
     let t = assert_no_step_after_stop(&trace, Some(TOOLBOARD_TRSYNC_OID), Z_OID);
