@@ -8,12 +8,11 @@
 //! the simulated world's X and Y are (a + b) / 2 and (a − b) / 2 of the motors' axes.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::Duration;
 
 use cadence_tests::{
-    assert_exit, assert_no_step_after_stop, assert_success, bin, homing_timed_out, net_steps,
-    retry_homing_timeouts, run, scratch, short_homing_config, Run,
+    assert_exit, assert_no_step_after_stop, assert_success, home_traced, homing_timed_out, net_steps,
+    print_traced, retry_homing_timeouts, run, scratch, short_homing_config, Run,
 };
 use firmware::trace::read_trace;
 
@@ -38,11 +37,7 @@ fn config(dir: &Path) -> PathBuf {
 fn home(dir: &Path, axes: &str, probe_args: Option<&str>) -> (Run, PathBuf) {
     let cfg = config(dir);
     let trace = dir.join("home.trace");
-    let mut cmd = Command::new(bin("cadence"));
-    cmd.args(["home", "--axes", axes, "--config"])
-        .arg(&cfg)
-        .arg("--trace")
-        .arg(&trace);
+    let mut cmd = home_traced(axes, &cfg, &trace);
     if let Some(a) = probe_args {
         cmd.env("CADENCE_SIM_ARGS_PROBE_MCU", a);
     }
@@ -219,17 +214,7 @@ fn corexy_home(test: &str, endstop_mcu: Option<&str>) {
         mcus = format!("{m}+mcu");
     }
     let trace = dir.join("home.trace");
-    let run = retry_homing_timeouts(
-        || {
-            let mut cmd = Command::new(bin("cadence"));
-            cmd.args(["home", "--axes", "xy", "--config"])
-                .arg(&cfg)
-                .arg("--trace")
-                .arg(&trace);
-            run(&mut cmd, TIMEOUT)
-        },
-        |r| r,
-    );
+    let run = retry_homing_timeouts(|| run(&mut home_traced("xy", &cfg, &trace), TIMEOUT), |r| r);
     assert_success(&run);
     for axis in ["x", "y"] {
         let want = format!("homing {axis}: mcus {mcus};");
@@ -291,19 +276,7 @@ fn corexy_g28_then_a_move_lands_on_the_commanded_xy() {
     )
     .expect("write G-code");
     let trace = dir.join("print.trace");
-    let run = retry_homing_timeouts(
-        || {
-            let mut cmd = Command::new(bin("cadence"));
-            cmd.arg("print")
-                .arg(&gcode)
-                .arg("--config")
-                .arg(&cfg)
-                .arg("--trace")
-                .arg(&trace);
-            run(&mut cmd, TIMEOUT)
-        },
-        |r| r,
-    );
+    let run = retry_homing_timeouts(|| run(&mut print_traced(&gcode, &cfg, &trace), TIMEOUT), |r| r);
     // The binary also compares every stepper's MCU position with the host's at the end.
     assert_success(&run);
     assert!(

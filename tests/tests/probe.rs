@@ -10,11 +10,11 @@
 //!   (`probe:z_virtual_endstop`), so the probe triggers at Z = z_offset ([`Z_OFFSET`]).
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::Duration;
 
 use cadence_tests::{
-    assert_exit, assert_no_step_after_stop, assert_success, bin, run, scratch, workspace, Run,
+    assert_exit, assert_no_step_after_stop, assert_success, print_traced, retry_homing_timeouts, run,
+    scratch, workspace, Run,
 };
 
 const TIMEOUT: Duration = Duration::from_secs(180);
@@ -73,16 +73,7 @@ fn virtual_endstop(dir: &Path) -> PathBuf {
 /// (up to 3 runs): on a CPU-starved machine the simulated MCUs can miss the 25 ms budget, a
 /// legitimate outcome that is not what these tests are about (a wrong position never is).
 fn print_ok(dir: &Path, cfg: &Path, gcode: &str) -> Run {
-    let mut last = None;
-    for _ in 0..3 {
-        let (run, _, _) = print(dir, cfg, gcode, None);
-        let timeout = run.code == Some(1) && run.stderr.contains(": Communication timeout during homing");
-        if !timeout {
-            return run;
-        }
-        last = Some(run);
-    }
-    last.expect("at least one run")
+    retry_homing_timeouts(|| print(dir, cfg, gcode, None).0, |r| r)
 }
 
 /// `cadence print` of `gcode` on `cfg` (trace of the main MCU in `dir`), with `CADENCE_SIM_ARGS_PROBE_MCU`
@@ -91,13 +82,7 @@ fn print(dir: &Path, cfg: &Path, gcode: &str, probe_args: Option<&str>) -> (Run,
     let g = dir.join("probe.gcode");
     std::fs::write(&g, gcode).expect("write gcode");
     let trace = dir.join("main.trace");
-    let mut cmd = Command::new(bin("cadence"));
-    cmd.arg("print")
-        .arg(&g)
-        .arg("--config")
-        .arg(cfg)
-        .arg("--trace")
-        .arg(&trace);
+    let mut cmd = print_traced(&g, cfg, &trace);
     if let Some(a) = probe_args {
         cmd.env("CADENCE_SIM_ARGS_PROBE_MCU", a);
     }

@@ -9,8 +9,8 @@ use std::process::Command;
 use std::time::Duration;
 
 use cadence_tests::{
-    assert_exit, assert_no_step_after_stop, assert_success, bin, check_trace, homing_timed_out, net_steps,
-    retry_homing_timeouts, run, scratch, short_homing_config, workspace, Run,
+    assert_exit, assert_no_step_after_stop, assert_success, bin, check_trace, home_traced, homing_timed_out,
+    net_steps, print_traced, retry_homing_timeouts, run, scratch, short_homing_config, workspace, Run,
 };
 use firmware::trace::{read_trace, TraceRecord};
 
@@ -59,14 +59,8 @@ fn square_prints_on_two_mcus_with_their_own_clocks() {
     let trace = dir.join("square.trace");
     let gcode = workspace().join("examples/square.gcode");
     let print = |trace: &Path| {
-        let mut cmd = Command::new(bin("cadence"));
-        cmd.arg("print")
-            .arg(&gcode)
-            .arg("--config")
-            .arg(&cfg)
-            .arg("--trace")
-            .arg(trace)
-            .env("CADENCE_SIM_ARGS_TOOLBOARD", TOOLBOARD_16MHZ);
+        let mut cmd = print_traced(&gcode, &cfg, trace);
+        cmd.env("CADENCE_SIM_ARGS_TOOLBOARD", TOOLBOARD_16MHZ);
         run(&mut cmd, TIMEOUT)
     };
     // G28 homes Z across the MCUs: a starved VM can miss the 25 ms budget, which ends the run
@@ -144,12 +138,8 @@ fn median(v: &[f64]) -> f64 {
 fn home_z(dir: &Path, toolboard_args: &str) -> (Run, PathBuf) {
     let cfg = short_config(dir);
     let trace = dir.join("home.trace");
-    let mut cmd = Command::new(bin("cadence"));
-    cmd.args(["home", "--axes", "z", "--config"])
-        .arg(&cfg)
-        .arg("--trace")
-        .arg(&trace)
-        .env("CADENCE_SIM_ARGS_TOOLBOARD", toolboard_args);
+    let mut cmd = home_traced("z", &cfg, &trace);
+    cmd.env("CADENCE_SIM_ARGS_TOOLBOARD", toolboard_args);
     (run(&mut cmd, TIMEOUT), toolboard_trace(&trace))
 }
 
