@@ -19,8 +19,8 @@
 //! Guarantees: no panics on any input (G-code bytes, configuration numbers); no IO besides
 //! reading the `BufRead` handed to [`gcode::GcodeReader`]; after warm-up the step path reuses
 //! its buffers (no allocation per step). Each stepper's step generation and compression is
-//! independent state; [`pipeline::PipelineOptions::threads`] runs them on worker threads (std
-//! threads and channels, pure computation).
+//! independent state; [`pipeline::PipelineOptions::threads`] runs them on worker threads and the
+//! caller's (std threads and channels, pure computation).
 
 pub mod checker;
 pub mod compress;

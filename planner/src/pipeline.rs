@@ -1,8 +1,8 @@
 //! The planner's top level: G-code lines in, per-stepper step commands out, in time order.
 //!
 //! Flow per [`Pipeline::generate`] call: final moves from the toolhead → every stepper generates
-//! its steps (independently: inline, or each lane on a worker thread, see `lanes`) → each
-//! compressor emits the
+//! its steps (independently: inline, or spread over worker threads and the caller's, see
+//! `lanes`) → each compressor emits the
 //! commands whose first step's ideal time is before the horizon (the end of the final moves minus
 //! [`COMPRESS_LOOKAHEAD_S`], so commands near the horizon still see the steps after it) → a k-way
 //! merge by clock.
@@ -39,7 +39,7 @@ use crate::machine::{Applied, GcodeState, PlanError, PlanErrorKind};
 use crate::pressure_advance::{PaGen, PressureAdvance};
 use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::{Move, Toolhead, ToolheadConfig};
-use lanes::{LaneClock, LaneOut, LaneState, Msg, PaChange, Workers, CMDS_CAPACITY};
+use lanes::{place, LaneClock, LaneOut, LaneState, Msg, PaChange, Workers, CMDS_CAPACITY};
 
 /// Klipper's default `pressure_advance_smooth_time` (s), for SET_PRESSURE_ADVANCE when the
 /// configuration has no pressure advance.
@@ -117,7 +117,9 @@ pub struct PipelineConfig {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PipelineOptions {
     pub kinematics: Kinematics,
-    /// Worker threads for step generation and compression; 0 = all on the caller's thread.
+    /// Threads for step generation and compression, the caller's included, with at least one
+    /// worker besides it (so 1 and 2 both start one worker; lanes placed by their expected share
+    /// of the work, see `lanes::place`); 0 = all on the caller's thread.
     /// With threads, final moves are handed over in batches (see `batch_moves`), so output lags
     /// the input by up to one batch until the toolhead comes to rest.
     pub threads: usize,
@@ -184,7 +186,8 @@ impl Default for LaneView {
 #[derive(Debug)]
 enum Backend {
     Inline(Vec<LaneState>, Vec<LaneOut>),
-    Threads(Workers),
+    /// Worker threads, and the (index, lane)s run on the caller's thread with their output.
+    Threads(Workers, Vec<(usize, LaneState)>, LaneOut),
 }
 
 /// G-code → step commands.
@@ -354,10 +357,10 @@ impl Pipeline {
             let outs = (0..n).map(|_| LaneOut::with_capacity()).collect();
             (Backend::Inline(lanes, outs), 1)
         } else {
-            let w = Workers::spawn(lanes, opts.threads)
-                .map_err(|e| bad(format!("cannot start planner threads: {e}")))?;
+            let (groups, local) = place(lanes, opts.threads);
+            let w = Workers::spawn(groups).map_err(|e| bad(format!("cannot start planner threads: {e}")))?;
             let c = w.count();
-            (Backend::Threads(w), c)
+            (Backend::Threads(w, local, LaneOut::with_capacity()), c)
         };
         Ok(Pipeline {
             state,
@@ -422,7 +425,7 @@ impl Pipeline {
         let before = self.moves.len();
         self.th.take_moves(&mut self.moves);
         let idle = self.th.queued_moves() == 0;
-        let threaded = matches!(self.backend, Backend::Threads(_));
+        let threaded = matches!(self.backend, Backend::Threads(..));
         if self.moves.is_empty() || (before == self.moves.len() && !idle) {
             // Nothing new: everything earlier was released already, or waits for more moves.
             self.collect(false, out);
@@ -509,7 +512,10 @@ impl Pipeline {
     pub fn set_lookahead_backoff(&mut self, steps: usize) {
         match &mut self.backend {
             Backend::Inline(lanes, _) => lanes.iter_mut().for_each(|l| l.comp.set_lookahead_backoff(steps)),
-            Backend::Threads(w) => {
+            Backend::Threads(w, local, _) => {
+                local
+                    .iter_mut()
+                    .for_each(|(_, l)| l.comp.set_lookahead_backoff(steps));
                 if !w.broadcast(|| Msg::Backoff(steps)) {
                     self.worker_error = Some("a planner thread stopped".into());
                 }
@@ -537,7 +543,10 @@ impl Pipeline {
                     l.clock.map = map;
                 }
             }
-            Backend::Threads(w) => {
+            Backend::Threads(w, local, _) => {
+                if let Some((_, l)) = local.iter_mut().find(|(i, _)| *i == idx) {
+                    l.clock.map = map;
+                }
                 if !w.broadcast(|| Msg::ClockMap(idx, map)) {
                     self.worker_error = Some("a planner thread stopped".into());
                 }
@@ -571,7 +580,8 @@ impl Pipeline {
     pub fn set_record_ideal(&mut self, on: bool) {
         match &mut self.backend {
             Backend::Inline(lanes, _) => lanes.iter_mut().for_each(|l| l.comp.set_record_ideal(on)),
-            Backend::Threads(w) => {
+            Backend::Threads(w, local, _) => {
+                local.iter_mut().for_each(|(_, l)| l.comp.set_record_ideal(on));
                 if !w.broadcast(|| Msg::RecordIdeal(on)) {
                     self.worker_error = Some("a planner thread stopped".into());
                 }
@@ -614,7 +624,7 @@ impl Pipeline {
                 }
                 self.done[0] = seq + 1;
             }
-            Backend::Threads(w) => {
+            Backend::Threads(w, local, o) => {
                 let moves: Arc<[Move]> = Arc::from(self.moves.as_slice());
                 let pa: Arc<[PaChange]> = Arc::from(pa);
                 if !w.broadcast(|| Msg::Job {
@@ -627,6 +637,11 @@ impl Pipeline {
                 }) {
                     self.worker_error = Some("a planner thread stopped".into());
                 }
+                // The caller's own lanes, while the workers run theirs.
+                for (i, lane) in local.iter_mut() {
+                    lane.run(&moves, &pa, upto, all, rest, o);
+                    absorb(&mut self.views[*i], o);
+                }
             }
         }
         self.moves.clear();
@@ -635,7 +650,7 @@ impl Pipeline {
     /// Takes in the workers' answers (`wait`: until every job sent is answered) and releases
     /// the commands every lane is past.
     fn collect(&mut self, wait: bool, out: &mut Vec<(usize, StepCmd)>) {
-        if let Backend::Threads(w) = &self.backend {
+        if let Backend::Threads(w, ..) = &self.backend {
             loop {
                 let all_done = self.done.iter().all(|&d| d == self.next_seq);
                 let reply = if wait && !all_done && self.worker_error.is_none() {

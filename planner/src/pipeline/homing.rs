@@ -34,7 +34,7 @@ impl Pipeline {
     pub fn supports_homing(&self) -> bool {
         match &self.backend {
             Backend::Inline(lanes, _) => lanes.iter().all(|l| l.pa.is_none()),
-            Backend::Threads(_) => false,
+            Backend::Threads(..) => false,
         }
     }
 

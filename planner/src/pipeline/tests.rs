@@ -674,3 +674,49 @@ fn a_drifting_clock_map_keeps_steps_in_order_and_counts_exact() {
     let bad = [ClockMap::identity(FREQ); 2];
     assert!(Pipeline::with_clocks(benchy_config(), 0.0, PipelineOptions::default(), &bad).is_err());
 }
+
+#[test]
+fn lanes_are_placed_by_weight() {
+    let lanes = |kin: Kinematics, axes: &[usize]| -> Vec<LaneState> {
+        axes.iter()
+            .map(|&a| {
+                LaneState::new(
+                    kin.stepper(a, 0.01).unwrap(),
+                    StepCompressor::new(0.01, FREQ, 1250),
+                    None,
+                )
+            })
+            .collect()
+    };
+    let idx = |g: &[(usize, LaneState)]| g.iter().map(|(i, _)| *i).collect::<Vec<_>>();
+    let placed = |kin: Kinematics, axes: &[usize], threads: usize| {
+        let (groups, local) = place(lanes(kin, axes), threads);
+        (groups.iter().map(|g| idx(g)).collect::<Vec<_>>(), idx(&local))
+    };
+    // Cartesian (or corexy) X, Y, Z, E: with one or two threads, one worker takes X, Z and E
+    // (weight 1.25) and the caller Y (0.5 + 1); with three, X and Y on a worker each and Z and
+    // E on the caller (0.75); with four, Z and E on the third worker.
+    for kin in [Kinematics::Cartesian, Kinematics::CoreXY] {
+        for threads in [1, 2] {
+            assert_eq!(
+                placed(kin, &[0, 1, 2, 3], threads),
+                (vec![vec![0, 2, 3]], vec![1])
+            );
+        }
+        assert_eq!(
+            placed(kin, &[0, 1, 2, 3], 3),
+            (vec![vec![0], vec![1]], vec![2, 3])
+        );
+        assert_eq!(
+            placed(kin, &[0, 1, 2, 3], 4),
+            (vec![vec![0], vec![1], vec![2, 3]], vec![])
+        );
+    }
+    // Light lanes alone: both on the worker (0.25, below the caller's 0.5).
+    assert_eq!(
+        placed(Kinematics::Cartesian, &[2, 3], 2),
+        (vec![vec![0, 1]], vec![])
+    );
+    // A single lane goes to the worker.
+    assert_eq!(placed(Kinematics::Cartesian, &[3], 4), (vec![vec![0]], vec![]));
+}
