@@ -2,9 +2,10 @@
 //! mode (no MCU), with the figures issue 3 asks for: moves/s, steps/s, `queue_step` commands,
 //! wire bytes, wall time and peak RSS.
 //!
-//! Wire bytes are computed exactly as the batch sink would write them: every command is encoded
-//! (VLQ message id and parameters, with the ids of a data dictionary when one is given, else
-//! one-byte ids as in Klipper's firmware) and packed in order into blocks of at most
+//! Wire bytes are computed exactly as the batch sink would write them: every command's encoded
+//! length is counted (`vlq::encoded_len` of the message id and parameters, with the ids of a
+//! data dictionary when one is given, else one-byte ids as in Klipper's firmware) and packed in
+//! order into blocks of at most
 //! `MESSAGE_PAYLOAD_MAX` payload bytes plus `MESSAGE_MIN` bytes of framing.
 //! Peak RSS is the process's `VmHWM` (Linux), so it covers everything the process did so far.
 
@@ -127,11 +128,7 @@ struct WireCounter {
 
 impl WireCounter {
     fn msg(&mut self, fields: &[u32]) {
-        let mut buf = [0u8; 8];
-        let len: usize = fields
-            .iter()
-            .map(|&v| vlq::encode(v, &mut buf).unwrap_or(5))
-            .sum();
+        let len: usize = fields.iter().map(|&v| vlq::encoded_len(v)).sum();
         if self.payload + len > MESSAGE_PAYLOAD_MAX {
             self.flush();
         }

@@ -9,8 +9,9 @@
 /// Longest encoding of a 32-bit value.
 pub const VLQ_MAX: usize = 5;
 
-/// Encodes `v` into `out`, returning the number of bytes written, or `None` if `out` is short.
-pub fn encode(v: u32, out: &mut [u8]) -> Option<usize> {
+/// Bytes [`encode`] writes for `v` (for counting wire bytes without encoding).
+#[inline]
+pub fn encoded_len(v: u32) -> usize {
     let sv = v as i32 as i64;
     let mut n = 1;
     while n < VLQ_MAX {
@@ -20,6 +21,12 @@ pub fn encode(v: u32, out: &mut [u8]) -> Option<usize> {
         }
         n += 1;
     }
+    n
+}
+
+/// Encodes `v` into `out`, returning the number of bytes written, or `None` if `out` is short.
+pub fn encode(v: u32, out: &mut [u8]) -> Option<usize> {
+    let n = encoded_len(v);
     let dst = out.get_mut(..n)?;
     for (i, b) in dst.iter_mut().enumerate() {
         let shift = 7 * (n - 1 - i);
@@ -57,7 +64,9 @@ mod tests {
 
     fn len_of(v: i64) -> usize {
         let mut buf = [0u8; 5];
-        encode(v as u32, &mut buf).unwrap()
+        let n = encode(v as u32, &mut buf).unwrap();
+        assert_eq!(encoded_len(v as u32), n);
+        n
     }
 
     #[test]
@@ -102,6 +111,7 @@ mod tests {
             let mut buf = [0u8; 5];
             let n = encode(v, &mut buf).unwrap();
             prop_assert_eq!(decode(&buf[..n]), Some((v, n)));
+            prop_assert_eq!(encoded_len(v), n);
         }
 
         #[test]
