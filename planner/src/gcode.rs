@@ -595,14 +595,17 @@ fn first_word(s: &str) -> &str {
 }
 
 /// Parameters of a traditional command: at most one per letter; the word text is kept for
-/// error messages.
+/// error messages, its number as parsed when the syntax was checked (not parsed again).
 struct Params<'a> {
     words: [Option<&'a str>; 26],
+    /// The number of each word that has one (0 for none).
+    values: [f64; 26],
 }
 
 impl<'a> Params<'a> {
     fn parse(s: &'a str) -> Result<Params<'a>, GcodeErrorKind> {
         let mut words = [None; 26];
+        let mut values = [0.0; 26];
         let bytes = s.as_bytes();
         let mut i = 0;
         while i < bytes.len() {
@@ -624,14 +627,18 @@ impl<'a> Params<'a> {
                     .map_or(s.len(), |n| start + n);
                 return Err(GcodeErrorKind::BadWord(s[start..end].to_string()));
             }
-            let slot = &mut words[(b.to_ascii_uppercase() - b'A') as usize];
+            let idx = (b.to_ascii_uppercase() - b'A') as usize;
+            let slot = &mut words[idx];
             if slot.is_some() {
                 return Err(GcodeErrorKind::DuplicateParameter(b.to_ascii_uppercase() as char));
             }
-            check_number(word)?;
+            // Empty is allowed here (`G28 X`); `value` refuses it where a number is needed.
+            if word.len() > 1 {
+                values[idx] = number(word)?;
+            }
             *slot = Some(word);
         }
-        Ok(Params { words })
+        Ok(Params { words, values })
     }
 
     fn word(&self, letter: char) -> Option<&'a str> {
@@ -650,7 +657,10 @@ impl<'a> Params<'a> {
         match self.word(letter) {
             None => Ok(None),
             Some(w) if w.len() == 1 => Err(GcodeErrorKind::MissingValue(w.to_string())),
-            Some(w) => number(w).map(Some),
+            Some(_) => Ok(self
+                .values
+                .get((letter as u8).wrapping_sub(b'A') as usize)
+                .copied()),
         }
     }
 
@@ -662,14 +672,6 @@ impl<'a> Params<'a> {
         }
         Ok(v)
     }
-}
-
-/// Checks the syntax of a parameter word's number (empty is allowed here: `G28 X`).
-fn check_number(word: &str) -> Result<(), GcodeErrorKind> {
-    if word.len() > 1 {
-        number(word)?;
-    }
-    Ok(())
 }
 
 /// The number of a word `L<number>`: `[+-]digits[.digits]`, at least one digit, finite.
