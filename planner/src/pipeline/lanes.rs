@@ -302,7 +302,9 @@ fn weight(l: &LaneState) -> f64 {
 /// caller, three busy threads on two cores, the scheduler runs two of them on one core: benchy
 /// wall 0.19–0.21 s by which two, for 0.33 s of CPU.) The heaviest lane first goes to the
 /// least loaded thread, the caller starting at [`CALLER_WEIGHT`]: benchy cartesian with two
-/// threads, X, Z and the extruder on the worker and Y on the caller.
+/// threads, X, Z and the extruder on the worker and Y on the caller (perf: 0.18 s and 0.19 s of
+/// CPU, wall 0.17–0.19 s). Tried and not kept: a worker each for X and Y, Z and the extruder on
+/// the caller (0.125, 0.125 and 0.09 s: three busy threads again, wall 0.21 s).
 #[allow(clippy::type_complexity)]
 pub(crate) fn place(
     lanes: Vec<LaneState>,
