@@ -113,6 +113,12 @@ pub struct HomingCtx<'a> {
     pub lead: f64,
     /// MCU seconds per wall second (simulator `time_scale`; 1 for real MCUs): bounds waits.
     pub time_scale: f64,
+    /// The real-time settings: each homing or probing pass keeps the idle CPUs polling when
+    /// they ask for it ([`crate::live::RtConfig::start_idle_poll`]).
+    pub rt: &'a crate::live::RtConfig,
+    /// What the last communication timeout was, beyond its exact message (which MCU, MCU
+    /// expiry or host-side silence): for logs and `cadence home`.
+    pub comm_timeout_detail: Option<String>,
 }
 
 impl fmt::Debug for HomingCtx<'_> {
@@ -650,6 +656,8 @@ pub(crate) fn homing_pass(
              which Cadence does not do yet (cartesian, corexy and corexz axes can be homed)"
         ));
     }
+    // From before the move is queued until the stop is read back: no CPU halts meanwhile.
+    let _idle_poll = ctx.rt.start_idle_poll();
     wait_motion_done(ctx)?;
     // Every stepper that moves the axis stops on the trigger (corexy X: A and B).
     let idxs = axis_steppers(ctx.machine, axis);
@@ -815,7 +823,10 @@ pub(crate) fn homing_pass(
             "homing {axis_name}: the move stopped with trigger reason {}",
             o.reason
         )),
-        Err(TrsyncError::CommTimeout { .. }) => Some(COMM_TIMEOUT_MSG.to_string()),
+        Err(TrsyncError::CommTimeout { detail, .. }) => {
+            ctx.comm_timeout_detail = Some(detail);
+            Some(COMM_TIMEOUT_MSG.to_string())
+        }
         Err(TrsyncError::NotTriggered) => Some(format!("No trigger on {trigger_name} after full movement")),
         Err(other) => Some(other.to_string()),
     };

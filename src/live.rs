@@ -196,6 +196,8 @@ pub struct RtConfig {
     pub lock_memory: bool,
     /// Hold `/dev/cpu_dma_latency` at 0 while running.
     pub cpu_dma_latency_zero: bool,
+    /// Keep idle CPUs polling while a homing or probing move runs.
+    pub idle_poll_homing: bool,
 }
 
 impl RtConfig {
@@ -209,6 +211,7 @@ impl RtConfig {
             io_priority: r.io_priority,
             lock_memory: r.lock_memory,
             cpu_dma_latency_zero: r.cpu_dma_latency_zero,
+            idle_poll_homing: r.idle_poll_homing,
         }
     }
 
@@ -224,6 +227,29 @@ impl RtConfig {
                     rt_core::os::Guarantee::DmaLatency,
                     &e,
                     "idle CPUs may sleep deeply (slower wake-ups)",
+                )
+            })
+            .ok()
+    }
+
+    /// Whether homing and probing moves keep the idle CPUs polling (real time on and
+    /// `[realtime] idle_poll_homing` true).
+    pub fn idle_poll_homing(&self) -> bool {
+        self.enabled && self.idle_poll_homing
+    }
+
+    /// Starts idle polling (see [`rt_core::os::IdlePoll`]) when [`Self::idle_poll_homing`];
+    /// a refusal is reported once and homing goes on without it.
+    pub fn start_idle_poll(&self) -> Option<rt_core::os::IdlePoll> {
+        if !self.idle_poll_homing() {
+            return None;
+        }
+        rt_core::os::IdlePoll::start()
+            .map_err(|e| {
+                rt_core::os::report_refusal(
+                    rt_core::os::Guarantee::IdlePoll,
+                    &e,
+                    "idle CPUs may halt during homing (slower trigger relay wake-ups)",
                 )
             })
             .ok()
@@ -703,7 +729,9 @@ pub fn print_on(
                 apply_rt(&planner_spec);
                 let log = log.with_tag("planner");
                 let side = McuSide::Local(mcus);
-                let r = planner_stage(args, machine, side, gcode, scale, instance, consumed, hists, &log);
+                let r = planner_stage(
+                    args, machine, side, gcode, scale, instance, consumed, hists, &log, rt,
+                );
                 done.store(true, Ordering::Release);
                 r
             })
@@ -828,6 +856,7 @@ pub(crate) fn planner_stage(
     consumed: &[AtomicU64],
     hists: &Hists,
     log: &LoggerHandle,
+    rt: &RtConfig,
 ) -> Result<Planned, String> {
     let params = side.stream_params(machine)?;
     let Some(main) = params.first().copied() else {
@@ -1009,6 +1038,8 @@ pub(crate) fn planner_stage(
                 sinks: &mut direct,
                 lead: MIN_LEAD_S,
                 time_scale: scale,
+                rt,
+                comm_timeout_detail: None,
             };
             if let MotionCmd::Home(axes) = cmd {
                 log.log(
@@ -1024,6 +1055,9 @@ pub(crate) fn planner_stage(
             // Formatted text is printed by the main thread with the summary.
             let mut out = Vec::new();
             let result = run_motion(&mut ctx, cmd, &mut out);
+            if let (Err(_), Some(detail)) = (&result, ctx.comm_timeout_detail.take()) {
+                out.push(format!("homing: communication timeout: {detail}"));
+            }
             homing_reports.borrow_mut().extend(out);
             result?;
             log.log(Level::Info, "homing done", []);

@@ -288,7 +288,7 @@ pub(crate) fn run(
             std::thread::sleep(Duration::from_millis(5));
         }
         let planner_spec = rt.planner_spec();
-        let remote = &remote;
+        let (remote, rt) = (&remote, &rt);
         let (hists, instance_name, consumed) = (&hists, instance.as_str(), &consumed[..]);
         let planner_log = log.with_tag("planner");
         let planner = std::thread::Builder::new()
@@ -305,6 +305,7 @@ pub(crate) fn run(
                     consumed,
                     hists,
                     &planner_log,
+                    rt,
                 )
             })
             .map_err(|e| format!("cannot start the planner thread: {e}"));

@@ -53,9 +53,10 @@ const WAIT_SLICE: Duration = Duration::from_millis(1);
 /// Errors of a homing group.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum TrsyncError {
-    /// A member reported reason 4, or sent no report for a whole timeout (`mcu` names it).
+    /// A member reported reason 4, or sent no report for a whole timeout (`mcu` names it;
+    /// `detail` says which, for logs: the message itself stays exact).
     #[error("Communication timeout during homing")]
-    CommTimeout { mcu: String },
+    CommTimeout { mcu: String, detail: String },
     /// `wait`'s deadline passed with no trigger.
     #[error("no trigger before the deadline")]
     NotTriggered,
@@ -352,10 +353,17 @@ impl TriggerGroup {
     /// no trigger by the deadline is [`TrsyncError::NotTriggered`]; a dead link is
     /// [`TrsyncError::Link`].
     pub fn wait(&self, deadline: Instant) -> Result<TriggerOutcome, TrsyncError> {
+        let mut silence: Option<String> = None;
         loop {
             if let Some(o) = self.state.outcome() {
                 if o.reason == REASON_COMMS_TIMEOUT {
-                    return Err(TrsyncError::CommTimeout { mcu: o.mcu });
+                    let detail = silence.take().unwrap_or_else(|| {
+                        format!(
+                            "'{}' stopped with reason 4: its trsync expiry passed first",
+                            o.mcu
+                        )
+                    });
+                    return Err(TrsyncError::CommTimeout { mcu: o.mcu, detail });
                 }
                 return Ok(o);
             }
@@ -371,6 +379,18 @@ impl TriggerGroup {
                 if now - last > self.timeout {
                     let clock = m.shared.clock.load().clock_at(now).max(0.0) as u64;
                     if self.state.record(i, REASON_COMMS_TIMEOUT, clock, now) {
+                        // Every member silent at once points at the host (or its VM) stalling.
+                        let silent = (self.state.members.iter())
+                            .filter(|m| {
+                                now - f64::from_bits(m.last_report.load(Ordering::Acquire)) > self.timeout
+                            })
+                            .count();
+                        silence = Some(format!(
+                            "no report from '{}' for {:.1} ms ({silent} of {} members silent)",
+                            m.shared.name,
+                            (now - last) * 1e3,
+                            self.state.members.len()
+                        ));
                         self.state.trigger_others(None, REASON_COMMS_TIMEOUT);
                     }
                 }

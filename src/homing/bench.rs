@@ -26,6 +26,10 @@
 //! p99.9 trigger → stop latencies as multiples of its p99.9, the figure to compare between
 //! runs on a machine whose own timing noise varies (a VM).
 //!
+//! Idle polling: with `[realtime] idle_poll_homing: True` every homing pass runs with the idle
+//! CPUs polling ([`rt_core::os::IdlePoll`]), as in a print; the summary line says whether it
+//! was on. The sleeper's figure covers the whole run, passes and the moves between them.
+//!
 //! Threads: like a live print, with printer.cfg's `[realtime]` (unless `--no-realtime`): the
 //! links' IO threads (they relay the trigger) pinned to the IO core under SCHED_FIFO, this
 //! thread (planning, waiting) as the planner, the simulated MCUs SCHED_FIFO below them.
@@ -211,7 +215,7 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
         .iter()
         .map(|m| (m.name.clone(), m.link.clock()))
         .collect();
-    let result = cycles(args, &machine, &mcus, axes, time_scale, rt.enabled);
+    let result = cycles(args, &machine, &mcus, axes, time_scale, &rt);
     let noise = probe.finish();
     // Fresh estimates for the trace conversion (the fit keeps improving).
     let clocks: Vec<(String, ClockEstimate)> = mcus
@@ -257,7 +261,7 @@ fn cycles(
     mcus: &Mcus,
     axes: [bool; 3],
     scale: f64,
-    realtime: bool,
+    rt: &RtConfig,
 ) -> Result<(Vec<PassTiming>, f64), String> {
     let main = mcus.main();
     let start = print_now(mcus) + (0.5f64).max(0.25 * scale);
@@ -294,6 +298,8 @@ fn cycles(
         sinks: &mut sinks,
         lead: MIN_LEAD_S,
         time_scale: scale,
+        rt,
+        comm_timeout_detail: None,
     };
     let mut last_step = LatencyHist::new();
     let mut next_step = LatencyHist::new();
@@ -324,7 +330,8 @@ fn cycles(
             Err(e) if e == COMM_TIMEOUT_MSG && args.cycles > 1 => {
                 timeouts += 1;
                 failed_last = true;
-                eprintln!("cadence: cycle {}: {e}", cycle + 1);
+                let detail = ctx.comm_timeout_detail.take().unwrap_or_default();
+                eprintln!("cadence: cycle {}: {e} ({detail})", cycle + 1);
                 continue;
             }
             Err(e) => return Err(e),
@@ -371,10 +378,11 @@ fn cycles(
     let passes = last_step.count();
     println!(
         "homing: {} cycles, {passes} passes, {timeouts} communication timeouts, wall {:.1} s \
-         (real time {}, cpu load {})",
+         (real time {}, idle poll {}, cpu load {})",
         args.cycles,
         started.elapsed().as_secs_f64(),
-        if realtime { "on" } else { "off" },
+        if rt.enabled { "on" } else { "off" },
+        if rt.idle_poll_homing() { "on" } else { "off" },
         if args.cpu_load { "on" } else { "off" }
     );
     println!(

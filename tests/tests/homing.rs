@@ -124,7 +124,28 @@ fn g28_across_two_mcus_lands_on_the_trigger() {
         "{}",
         run.stdout
     );
+    assert!(
+        run.stdout.contains("idle poll off"),
+        "off by default\n{}",
+        run.stdout
+    );
     check_success(&run, &trace, &[0, 1, 2]);
+}
+
+/// `[realtime] idle_poll_homing: True`: the passes run with a SCHED_IDLE spinner per CPU and
+/// home exactly as without.
+#[test]
+fn g28_with_idle_polling_lands_on_the_trigger() {
+    let dir = scratch("homing-idle-poll");
+    let cfg = config(&dir);
+    let mut text = std::fs::read_to_string(&cfg).expect("config");
+    text.push_str("\n[realtime]\nidle_poll_homing: True\n");
+    std::fs::write(&cfg, text).expect("write config");
+    let trace = dir.join("home.trace");
+    let run = retry_homing_timeouts(|| run(&mut home_traced("z", &cfg, &trace), TIMEOUT), |r| r);
+    assert_success(&run);
+    assert!(run.stdout.contains("idle poll on"), "{}", run.stdout);
+    check_success(&run, &trace, &[2]);
 }
 
 /// Asserts the Z stepper took no step after its MCU's trsync stopped it.

@@ -1,5 +1,6 @@
 //! The thread runtime's OS layer (std only): pin a thread to a core, raise it to SCHED_FIFO,
-//! lock memory, prefault the stack and hold `/dev/cpu_dma_latency` at 0.
+//! lock memory, prefault the stack, hold `/dev/cpu_dma_latency` at 0 and keep idle CPUs polling
+//! ([`IdlePoll`]).
 //!
 //! Every call returns a [`RtError`] naming what was refused and why (EPERM without privilege,
 //! EINVAL for a core that does not exist ...). [`spawn_rt`] applies an [`RtSpec`] inside the new
@@ -9,6 +10,7 @@
 //!
 //! `unsafe` lives only in the private `sys` module (libc calls) and in [`crate::alloc_count`].
 
+mod idle_poll;
 mod report;
 mod sys;
 
@@ -18,6 +20,7 @@ use std::io::{self, Write};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::thread::JoinHandle;
 
+pub use idle_poll::IdlePoll;
 pub use report::{clear_rt_report_for_tests, report_refusal, rt_report, Guarantee};
 
 /// An OS error number with its symbolic name in `Display` ("EPERM: Operation not permitted").

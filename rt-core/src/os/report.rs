@@ -17,6 +17,8 @@ pub enum Guarantee {
     Stack,
     /// `/dev/cpu_dma_latency` held at 0.
     DmaLatency,
+    /// Idle CPUs kept polling ([`super::IdlePoll`]).
+    IdlePoll,
 }
 
 static REPORT: Mutex<Vec<(Guarantee, String)>> = Mutex::new(Vec::new());

@@ -54,6 +54,33 @@ pub(crate) fn set_fifo(priority: i32) -> Result<(), Errno> {
     }
 }
 
+/// `pthread_setschedparam(self, SCHED_IDLE, 0)`: the thread runs only when nothing else of
+/// any other policy wants the CPU (lowering a policy needs no privilege).
+pub(crate) fn set_idle_policy() -> Result<(), Errno> {
+    let param = libc::sched_param { sched_priority: 0 };
+    // SAFETY: pthread_self() is always valid for the calling thread; `param` lives for the call.
+    let rc = unsafe { libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_IDLE, &param) };
+    if rc == 0 {
+        Ok(())
+    } else {
+        Err(Errno(rc))
+    }
+}
+
+/// CPUs online (`sysconf(_SC_NPROCESSORS_ONLN)`, at least 1): unlike the affinity mask it
+/// does not shrink when the calling thread is pinned.
+pub(crate) fn online_cpus() -> usize {
+    // SAFETY: a pure query without pointers.
+    let n = unsafe { libc::sysconf(libc::_SC_NPROCESSORS_ONLN) };
+    usize::try_from(n).unwrap_or(1).max(1)
+}
+
+/// The calling thread's kernel thread id.
+pub(crate) fn gettid() -> i32 {
+    // SAFETY: no arguments; always succeeds.
+    unsafe { libc::gettid() }
+}
+
 /// The calling thread's scheduling policy (SCHED_OTHER = 0, SCHED_FIFO = 1, ...).
 pub(crate) fn current_policy() -> Result<i32, Errno> {
     let mut policy = 0;
