@@ -8,19 +8,15 @@
 //! (inline lanes, no worker threads). This file holds one test so that nothing else runs while
 //! allocation sites are captured. Skipped when the G-code file is absent.
 
+mod common;
+use common::{benchy_cartesian, BENCHY};
 use planner::gcode::GcodeReader;
-use planner::pipeline::{Pipeline, PipelineConfig, PipelineOptions, StepperSpec};
+use planner::pipeline::{Pipeline, PipelineOptions};
 use planner::stepgen::StepCmd;
-use planner::toolhead::ToolheadConfig;
 use rt_core::alloc_count::{AllocCounter, AllocSites, CountingAlloc};
 
 #[global_allocator]
 static ALLOC: CountingAlloc = CountingAlloc;
-
-const BENCHY: &str = concat!(
-    env!("CARGO_MANIFEST_DIR"),
-    "/../../shared/data/gcode/benchy-prusaslicer.gcode"
-);
 
 /// Lines of the file planned.
 const LINES: usize = 2000;
@@ -47,40 +43,6 @@ const INSERTED: [&str; 15] = [
     "M114",
 ];
 const INSERT_EVERY: usize = 7;
-
-/// The reference cartesian printer (as `tests/benchy.rs`).
-fn config() -> PipelineConfig {
-    let area = std::f64::consts::PI * 1.75 * 1.75;
-    let ratio = 4.0 * 0.5 * 0.5 / area;
-    let stepper = |name: &str, axis, step_dist| StepperSpec {
-        name: name.into(),
-        axis,
-        step_dist,
-    };
-    PipelineConfig {
-        toolhead: ToolheadConfig {
-            max_velocity: 500.0,
-            max_accel: 3000.0,
-            minimum_cruise_ratio: 0.5,
-            square_corner_velocity: 5.0,
-            max_z_velocity: 25.0,
-            max_z_accel: 30.0,
-            max_extrude_only_velocity: 500.0 * ratio,
-            max_extrude_only_accel: 3000.0 * ratio,
-            max_extrude_only_distance: 500.0,
-            axis_limits: [(0.0, 200.0), (0.0, 200.0), (0.0, 200.0)],
-        },
-        steppers: vec![
-            stepper("stepper_x", 0, 40.0 / 3200.0),
-            stepper("stepper_y", 1, 40.0 / 3200.0),
-            stepper("stepper_z", 2, 8.0 / 3200.0),
-            stepper("extruder", 3, 33.5 / 3200.0),
-        ],
-        clock_freq: 50e6,
-        max_error_s: 25e-6,
-        home_position: [0.0, 0.0, 0.5],
-    }
-}
 
 /// The first `LINES` lines with [`INSERTED`] mixed in.
 fn gcode() -> Option<Vec<u8>> {
@@ -110,7 +72,7 @@ fn planner_loop_allocates_nothing_after_warm_up() {
         .take(WARM_UP)
         .map(<[u8]>::len)
         .sum::<usize>();
-    let mut p = Pipeline::with_options(config(), 0.25, PipelineOptions::default()).expect("config");
+    let mut p = Pipeline::with_options(benchy_cartesian(), 0.25, PipelineOptions::default()).expect("config");
     let mut out: Vec<(usize, StepCmd)> = Vec::with_capacity(1 << 16);
     let mut reader = GcodeReader::new(&text[..]);
     let step = |reader: &mut GcodeReader<&[u8]>, p: &mut Pipeline, out: &mut Vec<(usize, StepCmd)>| {

@@ -5,66 +5,16 @@
 //! prints the figures and the wall time, meant for release builds:
 //! `CARGO_TARGET_DIR=/tmp/tgt-planner cargo test -p planner --release -- --ignored --nocapture`.
 
+mod common;
+use common::{benchy_cartesian, BENCHY};
 use std::fs::File;
 use std::io::BufReader;
 use std::time::Instant;
 
 use planner::checker::Checker;
 use planner::gcode::GcodeReader;
-use planner::pipeline::{Pipeline, PipelineConfig, PipelineOptions, StepperSpec};
+use planner::pipeline::{Pipeline, PipelineOptions};
 use planner::stepgen::StepCmd;
-use planner::toolhead::ToolheadConfig;
-
-const BENCHY: &str = concat!(
-    env!("CARGO_MANIFEST_DIR"),
-    "/../../shared/data/gcode/benchy-prusaslicer.gcode"
-);
-
-/// benchy-cartesian.cfg: 80 steps/mm X/Y, 400 Z, 3200/33.5 E; Klipper's extruder defaults for a
-/// 0.5 mm nozzle and 3.5 mm filament (extrude-only limits = max × 4·nozzle² / filament area).
-fn config() -> PipelineConfig {
-    let area = std::f64::consts::PI * 1.75 * 1.75;
-    let ratio = 4.0 * 0.5 * 0.5 / area;
-    PipelineConfig {
-        toolhead: ToolheadConfig {
-            max_velocity: 500.0,
-            max_accel: 3000.0,
-            minimum_cruise_ratio: 0.5,
-            square_corner_velocity: 5.0,
-            max_z_velocity: 25.0,
-            max_z_accel: 30.0,
-            max_extrude_only_velocity: 500.0 * ratio,
-            max_extrude_only_accel: 3000.0 * ratio,
-            max_extrude_only_distance: 500.0,
-            axis_limits: [(0.0, 200.0), (0.0, 200.0), (0.0, 200.0)],
-        },
-        steppers: vec![
-            StepperSpec {
-                name: "stepper_x".into(),
-                axis: 0,
-                step_dist: 40.0 / 3200.0,
-            },
-            StepperSpec {
-                name: "stepper_y".into(),
-                axis: 1,
-                step_dist: 40.0 / 3200.0,
-            },
-            StepperSpec {
-                name: "stepper_z".into(),
-                axis: 2,
-                step_dist: 8.0 / 3200.0,
-            },
-            StepperSpec {
-                name: "extruder".into(),
-                axis: 3,
-                step_dist: 33.5 / 3200.0,
-            },
-        ],
-        clock_freq: 50e6,
-        max_error_s: 25e-6,
-        home_position: [0.0, 0.0, 0.5],
-    }
-}
 
 #[derive(Debug, Default)]
 struct Report {
@@ -83,7 +33,7 @@ fn run(max_lines: Option<usize>, check: bool, threads: usize) -> Option<Report> 
         eprintln!("note: {BENCHY} is absent; benchy test skipped");
         return None;
     };
-    let cfg = config();
+    let cfg = benchy_cartesian();
     let n = cfg.steppers.len();
     let opts = PipelineOptions {
         threads,
