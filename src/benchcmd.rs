@@ -23,7 +23,8 @@ pub enum BenchWhat {
         /// Klipper-format printer.cfg (default: the built-in simulated printer).
         #[arg(long)]
         config: Option<PathBuf>,
-        /// Step generation threads (default: one per core).
+        /// Threads generating and compressing steps, this one included (default: one per core;
+        /// 1 and 2 both start one worker beside this thread; 0 = all on this thread).
         #[arg(long)]
         threads: Option<usize>,
         /// Maximum step time error of the compression, in microseconds.
