@@ -221,15 +221,11 @@ impl RtConfig {
         if !(self.enabled && self.cpu_dma_latency_zero) {
             return None;
         }
-        rt_core::os::hold_cpu_dma_latency_zero()
-            .map_err(|e| {
-                rt_core::os::report_refusal(
-                    rt_core::os::Guarantee::DmaLatency,
-                    &e,
-                    "idle CPUs may sleep deeply (slower wake-ups)",
-                )
-            })
-            .ok()
+        rt_core::os::ok_or_report(
+            rt_core::os::hold_cpu_dma_latency_zero(),
+            rt_core::os::Guarantee::DmaLatency,
+            "idle CPUs may sleep deeply (slower wake-ups)",
+        )
     }
 
     /// Whether homing and probing moves keep the idle CPUs polling (real time on and
@@ -244,15 +240,11 @@ impl RtConfig {
         if !self.idle_poll_homing() {
             return None;
         }
-        rt_core::os::IdlePoll::start()
-            .map_err(|e| {
-                rt_core::os::report_refusal(
-                    rt_core::os::Guarantee::IdlePoll,
-                    &e,
-                    "idle CPUs may halt during homing (slower trigger relay wake-ups)",
-                )
-            })
-            .ok()
+        rt_core::os::ok_or_report(
+            rt_core::os::IdlePoll::start(),
+            rt_core::os::Guarantee::IdlePoll,
+            "idle CPUs may halt during homing (slower trigger relay wake-ups)",
+        )
     }
 
     /// Settings of the MCU links' own IO threads: on the IO core, above the IO stage (they

@@ -21,7 +21,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::thread::JoinHandle;
 
 pub use idle_poll::IdlePoll;
-pub use report::{clear_rt_report_for_tests, report_refusal, rt_report, Guarantee};
+pub use report::{clear_rt_report_for_tests, ok_or_report, report_refusal, rt_report, Guarantee};
 
 /// An OS error number with its symbolic name in `Display` ("EPERM: Operation not permitted").
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

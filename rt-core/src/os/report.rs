@@ -40,6 +40,16 @@ pub fn report_refusal(what: Guarantee, error: &dyn std::fmt::Display, consequenc
     refused(what, "process", error, consequence);
 }
 
+/// `result`'s value, or `None` after reporting its error as a refusal of `what` (once per
+/// kind, like [`report_refusal`]): for a guarantee the caller goes on without.
+pub fn ok_or_report<T, E: std::fmt::Display>(
+    result: Result<T, E>,
+    what: Guarantee,
+    consequence: &str,
+) -> Option<T> {
+    result.map_err(|e| report_refusal(what, &e, consequence)).ok()
+}
+
 /// The refusals so far, one line each, in the order they happened. Empty = every requested
 /// guarantee holds.
 pub fn rt_report() -> Vec<String> {
