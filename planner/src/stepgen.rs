@@ -44,6 +44,32 @@ pub struct IdealStep {
     pub dir: bool,
 }
 
+/// Receives a move's steps in time order (a closure `FnMut(clock, dir)` is one).
+pub trait StepSink {
+    /// One step at `clock` ticks going `dir` (true = +1).
+    fn step(&mut self, clock: f64, dir: bool);
+
+    /// The steps of a cruise: at max(t0 + i·dt, floor) ticks for i in `from..to`, all going
+    /// `dir`, with dt > 0 (so they are in time order and only the first few can be raised to
+    /// `floor`). The default calls [`Self::step`] for each; a sink that stores steps can write
+    /// them in one tight loop instead, but must compute each clock with this same expression
+    /// (bit-identical step times).
+    #[inline]
+    fn line(&mut self, t0: f64, dt: f64, from: i64, to: i64, floor: f64, dir: bool) {
+        for i in from..to {
+            let t = t0 + i as f64 * dt;
+            self.step(if t > floor { t } else { floor }, dir);
+        }
+    }
+}
+
+impl<F: FnMut(f64, bool)> StepSink for F {
+    #[inline(always)]
+    fn step(&mut self, clock: f64, dir: bool) {
+        self(clock, dir)
+    }
+}
+
 /// Step-generation state of one stepper.
 #[derive(Debug, Clone)]
 pub struct StepGen {
@@ -115,10 +141,11 @@ impl StepGen {
         self.cur_n
     }
 
-    /// Generates the steps of `mv`, calling `emit(ideal_clock, dir)` for each in time order.
-    /// On linear kinematics every step of one move goes the same way (the compressor relies on
-    /// it to find direction changes without looking at each step).
-    pub fn gen_move(&mut self, mv: &Move, kin: &StepperKin, mut emit: impl FnMut(f64, bool)) {
+    /// Generates the steps of `mv` into `sink` in time order (`emit(ideal_clock, dir)` for
+    /// each, the cruise phase as one [`StepSink::line`]). On linear kinematics every step of one
+    /// move goes the same way (the compressor relies on it to find direction changes without
+    /// looking at each step).
+    pub fn gen_move(&mut self, mv: &Move, kin: &StepperKin, mut sink: impl StepSink) {
         let x0 = kin.position(&mv.start_pos);
         let x1 = kin.position(&mv.end_pos);
         if x0 != self.last_pos {
@@ -130,7 +157,7 @@ impl StepGen {
             return;
         }
         if kin.linear_coeffs().is_none() {
-            self.gen_iterative(mv, kin, target, emit);
+            self.gen_iterative(mv, kin, target, |c, d| sink.step(c, d));
             return;
         }
         let base = mv.print_time * self.clock_freq;
@@ -178,11 +205,11 @@ impl StepGen {
                     // t(i) = base + freq·(start_t + (s0 + i·ds − start_d)·inv_vc)
                     let t0 = base + freq * (start_t + (s0 - start_d) * inv_vc);
                     let dt = freq * ds * inv_vc;
-                    for i in i_from..i_to {
-                        let t = t0 + i as f64 * dt;
-                        let clock = if t > last { t } else { last };
-                        last = clock;
-                        emit(clock, up);
+                    if i_to > i_from {
+                        sink.line(t0, dt, i_from, i_to, last, up);
+                        // The steps rise with i (dt > 0): the last one is the latest.
+                        let t = t0 + (i_to - 1) as f64 * dt;
+                        last = if t > last { t } else { last };
                     }
                     k += (i_to - i_from) * dk;
                 }
@@ -193,7 +220,7 @@ impl StepGen {
                         let t = base + phases.time_at(s) * freq;
                         let clock = if t > last { t } else { last };
                         last = clock;
-                        emit(clock, up);
+                        sink.step(clock, up);
                         k += dk;
                     }
                 }

@@ -443,6 +443,43 @@ proptest! {
     }
 }
 
+/// Each stepper's commands for `text` with the ideal steps not recorded (the print's and the
+/// benchmark's path, where a cruise is written as one line of windows: see `StepSink::line`).
+fn unrecorded_cmds(text: &str, opts: PipelineOptions) -> Vec<Vec<StepCmd>> {
+    let cfg = benchy_config();
+    let mut per_stepper = vec![Vec::new(); cfg.steppers.len()];
+    let mut p = Pipeline::with_options(cfg, 0.25, opts).unwrap();
+    let mut out = Vec::new();
+    for line in GcodeReader::new(text.as_bytes()) {
+        p.apply(&line.unwrap()).unwrap();
+        p.generate(&mut out);
+    }
+    p.finish(&mut out);
+    for (i, cmd) in out {
+        per_stepper[i].push(cmd);
+    }
+    per_stepper
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 24, ..ProptestConfig::default() })]
+
+    /// Recording the ideal steps (tests, `--check`) takes every step one at a time; a print
+    /// writes cruises in one loop. Both give the same windows, so the same commands, which the
+    /// recorded run's checker has proven.
+    #[test]
+    fn commands_do_not_depend_on_recording_the_ideal_steps(
+        (program, _end) in arb_program(),
+        kin in prop_oneof![Just(Kinematics::Cartesian), Just(Kinematics::CoreXY)],
+        pa in proptest::option::of((0.0f64..0.2, 0.005f64..0.1)),
+    ) {
+        let pressure_advance = pa.map(|(advance, smooth_time)| PressureAdvance { advance, smooth_time });
+        let opts = PipelineOptions { kinematics: kin, threads: 0, pressure_advance, ..PipelineOptions::default() };
+        let recorded = run_gcode_with(&program, opts);
+        prop_assert_eq!(recorded.per_stepper, unrecorded_cmds(&program, opts));
+    }
+}
+
 fn delta_geometry() -> crate::kinematics::DeltaGeometry {
     crate::kinematics::DeltaGeometry {
         radius: 140.0,
