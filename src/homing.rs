@@ -121,6 +121,43 @@ pub struct HomingCtx<'a> {
     pub comm_timeout_detail: Option<String>,
 }
 
+impl<'a> HomingCtx<'a> {
+    /// Homing on the live links: step commands go to `sinks` (see [`direct_sinks`]) with the
+    /// print's lead ([`crate::print::MIN_LEAD_S`]).
+    pub fn new(
+        mcus: &'a Mcus,
+        machine: &'a Machine,
+        pipeline: &'a mut Pipeline,
+        streams: &'a mut StepStreams,
+        sinks: &'a mut [LinkSink<'a>],
+        time_scale: f64,
+        rt: &'a crate::live::RtConfig,
+    ) -> HomingCtx<'a> {
+        HomingCtx {
+            mcus,
+            machine,
+            pipeline,
+            streams,
+            sinks,
+            lead: crate::print::MIN_LEAD_S,
+            time_scale,
+            rt,
+            comm_timeout_detail: None,
+        }
+    }
+}
+
+/// One sink per step stream, straight to that stream's MCU link (stream order).
+pub fn direct_sinks<'a>(streams: &StepStreams, mcus: &'a Mcus) -> Vec<LinkSink<'a>> {
+    streams
+        .mcus
+        .iter()
+        .map(|m| LinkSink {
+            link: &mcus.list[m.mcu_index].link,
+        })
+        .collect()
+}
+
 impl fmt::Debug for HomingCtx<'_> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.debug_struct("HomingCtx")

@@ -52,7 +52,7 @@ use crate::homing::{run_motion, HomingCtx};
 use crate::machine::Machine;
 use crate::mcus::Mcus;
 use crate::print::{plan_file, MotionCmd, PrintArgs, Summary, MIN_LEAD_S};
-use crate::sink::{LinkSink, Sink};
+use crate::sink::Sink;
 use crate::streams::{McuParams, StepStreams};
 
 /// `ipc::Service` with pooled per-loan state: a loan allocates nothing after warm-up (see
@@ -1015,24 +1015,8 @@ pub(crate) fn planner_stage(
                 std::thread::sleep(Duration::from_millis(1));
             }
             let mut streams = streams.borrow_mut();
-            let mut direct: Vec<LinkSink<'_>> = streams
-                .mcus
-                .iter()
-                .map(|m| LinkSink {
-                    link: &mcus.list[m.mcu_index].link,
-                })
-                .collect();
-            let mut ctx = HomingCtx {
-                mcus,
-                machine,
-                pipeline,
-                streams: &mut streams,
-                sinks: &mut direct,
-                lead: MIN_LEAD_S,
-                time_scale: scale,
-                rt,
-                comm_timeout_detail: None,
-            };
+            let mut direct = crate::homing::direct_sinks(&streams, mcus);
+            let mut ctx = HomingCtx::new(mcus, machine, pipeline, &mut streams, &mut direct, scale, rt);
             if let MotionCmd::Home(axes) = cmd {
                 log.log(
                     Level::Info,

@@ -53,7 +53,6 @@ use super::{plain_move, print_now, HomingCtx, HomingReport, AXIS_NAMES};
 use crate::live::RtConfig;
 use crate::machine::Machine;
 use crate::mcus::{trace_path, ConnectOptions, Mcus};
-use crate::sink::LinkSink;
 use crate::streams::StepStreams;
 
 /// Arguments of `cadence home`.
@@ -143,8 +142,6 @@ struct PassTiming {
     written: Option<f64>,
 }
 
-/// Lead every step command must have at the MCU, in print seconds.
-const MIN_LEAD_S: f64 = 0.100;
 /// Sleep period of the wake-up probe (the machine's noise floor during the run).
 const WAKEUP_PERIOD: std::time::Duration = std::time::Duration::from_millis(1);
 
@@ -283,24 +280,8 @@ fn cycles(
         &maps,
     )
     .map_err(|e| e.to_string())?;
-    let mut sinks: Vec<LinkSink<'_>> = streams
-        .mcus
-        .iter()
-        .map(|m| LinkSink {
-            link: &mcus.list[m.mcu_index].link,
-        })
-        .collect();
-    let mut ctx = HomingCtx {
-        mcus,
-        machine,
-        pipeline: &mut pipeline,
-        streams: &mut streams,
-        sinks: &mut sinks,
-        lead: MIN_LEAD_S,
-        time_scale: scale,
-        rt,
-        comm_timeout_detail: None,
-    };
+    let mut sinks = super::direct_sinks(&streams, mcus);
+    let mut ctx = HomingCtx::new(mcus, machine, &mut pipeline, &mut streams, &mut sinks, scale, rt);
     let mut last_step = LatencyHist::new();
     let mut next_step = LatencyHist::new();
     let mut overshoot = LatencyHist::new();
