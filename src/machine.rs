@@ -3,7 +3,7 @@
 
 use planner::pipeline::{PipelineConfig, PipelineOptions, StepperSpec};
 use planner::toolhead::ToolheadConfig;
-use sysconfig::printer::{PinRef, PrinterConfig, ProbeSection, PROBE_PIN_MCU};
+use sysconfig::printer::{MotorSection, PinRef, PrinterConfig, ProbeSection, PROBE_PIN_MCU};
 
 /// One stepper as the host addresses it on its MCU.
 #[derive(Debug, Clone)]
@@ -23,6 +23,24 @@ pub struct StepperOut {
     /// Minimum step pulse width in seconds (Klipper's default: 2 µs).
     pub step_pulse_duration: f64,
     pub step_dist: f64,
+}
+
+impl StepperOut {
+    /// The stepper of section `name` moving `axis`, on its step pin's MCU (object id assigned
+    /// later).
+    fn new(name: String, axis: usize, motor: &MotorSection) -> StepperOut {
+        StepperOut {
+            name,
+            mcu: motor.step_pin.mcu.clone(),
+            oid: 0,
+            axis,
+            step_pin: motor.step_pin.clone(),
+            dir_pin: motor.dir_pin.clone(),
+            enable_pin: motor.enable_pin.clone(),
+            step_pulse_duration: motor.step_pulse_duration.unwrap_or(DEFAULT_STEP_PULSE_DURATION),
+            step_dist: motor.step_dist(),
+        }
+    }
 }
 
 /// World axis names of the rails that move one toolhead axis alone.
@@ -107,32 +125,12 @@ impl Machine {
                     homing_positive_dir: s.homing_positive_dir,
                 });
             }
-            steppers.push(StepperOut {
-                name,
-                mcu: s.step_pin.mcu.clone(),
-                oid: 0,
-                axis,
-                step_pin: s.step_pin.clone(),
-                dir_pin: s.dir_pin.clone(),
-                enable_pin: s.enable_pin.clone(),
-                step_pulse_duration: s.step_pulse_duration.unwrap_or(DEFAULT_STEP_PULSE_DURATION),
-                step_dist: s.step_dist(),
-            });
+            steppers.push(StepperOut::new(name, axis, &s.motor));
         }
         let toolhead = planning.toolhead;
         let home = planning.home_position;
         if let Some(e) = &cfg.extruder {
-            steppers.push(StepperOut {
-                name: "extruder".to_string(),
-                mcu: e.step_pin.mcu.clone(),
-                oid: 0,
-                axis: 3,
-                step_pin: e.step_pin.clone(),
-                dir_pin: e.dir_pin.clone(),
-                enable_pin: e.enable_pin.clone(),
-                step_pulse_duration: e.step_pulse_duration.unwrap_or(DEFAULT_STEP_PULSE_DURATION),
-                step_dist: e.step_dist(),
-            });
+            steppers.push(StepperOut::new("extruder".to_string(), 3, &e.motor));
         }
         // A stepper lives on its step pin's MCU, any configured one (sysconfig checked that
         // the MCU exists and that the dir pin is on the same one).

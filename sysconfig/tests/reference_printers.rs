@@ -45,10 +45,17 @@ fn check(name: &str, kinematics: Kinematics, max_velocity: f64) {
     assert_eq!(names, ["stepper_x", "stepper_y", "stepper_z"]);
     let x = &cfg.steppers[0];
     assert_eq!(x.step_dist(), 1.0 / 80.0);
-    assert_eq!((x.step_pin.pin.as_str(), x.dir_pin.invert), ("PF0", false));
-    assert!(x.enable_pin.as_ref().is_some_and(|p| p.pin == "PD7" && p.invert));
+    assert_eq!(
+        (x.motor.step_pin.pin.as_str(), x.motor.dir_pin.invert),
+        ("PF0", false)
+    );
+    assert!(x
+        .motor
+        .enable_pin
+        .as_ref()
+        .is_some_and(|p| p.pin == "PD7" && p.invert));
     assert!(x.endstop_pin.as_ref().is_some_and(|p| p.pin == "PE5" && p.pullup));
-    assert!(cfg.steppers[1].dir_pin.invert);
+    assert!(cfg.steppers[1].motor.dir_pin.invert);
     let z = &cfg.steppers[2];
     assert_eq!(z.step_dist(), 1.0 / 400.0);
     assert_eq!(

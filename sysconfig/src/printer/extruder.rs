@@ -11,27 +11,16 @@ use std::f64::consts::PI;
 
 use super::error::ConfigError;
 use super::heater::{read_heater, HeaterSection};
-use super::pins::{PinRef, PinRegistry};
+use super::pins::PinRegistry;
 use super::reader::{Bounds, SectionReader};
-use super::stepper::{read_motor, step_dist};
+use super::stepper::{read_motor, MotorSection};
 use super::toolhead::PrinterSection;
 
 /// `[extruder]`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ExtruderSection {
-    pub step_pin: PinRef,
-    pub dir_pin: PinRef,
-    pub enable_pin: Option<PinRef>,
-    /// ≥ 1.
-    pub microsteps: u32,
-    /// mm of filament per full rotation, > 0.
-    pub rotation_distance: f64,
-    /// Multiple of 4; default 200.
-    pub full_steps_per_rotation: u32,
-    /// Default 1.
-    pub gear_ratio: f64,
-    /// Seconds, in [0, 0.001]; `None`: the MCU's default.
-    pub step_pulse_duration: Option<f64>,
+    /// Pins, microstepping and gearing (`rotation_distance` in mm of filament).
+    pub motor: MotorSection,
     /// mm, > 0.
     pub nozzle_diameter: f64,
     /// mm, ≥ nozzle_diameter.
@@ -56,12 +45,7 @@ pub struct ExtruderSection {
 impl ExtruderSection {
     /// mm of filament per step.
     pub fn step_dist(&self) -> f64 {
-        step_dist(
-            self.rotation_distance,
-            self.full_steps_per_rotation,
-            self.microsteps,
-            self.gear_ratio,
-        )
+        self.motor.step_dist()
     }
 
     /// Filament cross-section area in mm².
@@ -105,14 +89,7 @@ pub(crate) fn read_extruder(
     )?;
     let heater = read_heater(s, pins)?;
     Ok(ExtruderSection {
-        step_pin: m.step_pin,
-        dir_pin: m.dir_pin,
-        enable_pin: m.enable_pin,
-        microsteps: m.microsteps,
-        rotation_distance: m.rotation_distance,
-        full_steps_per_rotation: m.full_steps_per_rotation,
-        gear_ratio: m.gear_ratio,
-        step_pulse_duration: m.step_pulse_duration,
+        motor: m,
         nozzle_diameter,
         filament_diameter,
         max_extrude_cross_section,

@@ -37,7 +37,7 @@ pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
 pub use pins::{is_simulator_pin, PinKind, PinProblem, PinRef, MAIN_MCU};
 pub use probe::{ProbeSection, SamplesResult, PROBE_PIN_MCU, SAMPLES_RESULTS, Z_VIRTUAL_ENDSTOP};
 pub use realtime::RealtimeSection;
-pub use stepper::StepperSection;
+pub use stepper::{MotorSection, StepperSection};
 pub use toolhead::{Kinematics, PrinterSection};
 
 use pins::PinRegistry;

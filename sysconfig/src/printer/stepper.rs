@@ -20,17 +20,8 @@ use super::reader::{parse_float, Bounds, SectionReader};
 pub struct StepperSection {
     /// Section name: `stepper_x`.
     pub name: String,
-    pub step_pin: PinRef,
-    pub dir_pin: PinRef,
-    pub enable_pin: Option<PinRef>,
-    /// ≥ 1.
-    pub microsteps: u32,
-    /// mm per full rotation, > 0.
-    pub rotation_distance: f64,
-    /// Multiple of 4; default 200.
-    pub full_steps_per_rotation: u32,
-    /// Product of the `a:b` pairs; default 1.
-    pub gear_ratio: f64,
+    /// Pins, microstepping and gearing.
+    pub motor: MotorSection,
     pub endstop_pin: Option<PinRef>,
     /// Required when `endstop_pin` is set; within [position_min, position_max]. With
     /// `endstop_pin: probe:z_virtual_endstop`: the `[probe] z_offset`.
@@ -49,38 +40,40 @@ pub struct StepperSection {
     pub second_homing_speed: f64,
     /// Given, or inferred from where position_endstop lies (see the module docs).
     pub homing_positive_dir: bool,
-    /// Seconds, in [0, 0.001]; `None`: the MCU's default.
-    pub step_pulse_duration: Option<f64>,
 }
 
 impl StepperSection {
     /// mm per step (see the module docs).
     pub fn step_dist(&self) -> f64 {
-        step_dist(
-            self.rotation_distance,
-            self.full_steps_per_rotation,
-            self.microsteps,
-            self.gear_ratio,
-        )
+        self.motor.step_dist()
     }
 }
 
-/// `rotation_distance / (full_steps · microsteps · gear_ratio)`.
-pub(crate) fn step_dist(rotation_distance: f64, full_steps: u32, microsteps: u32, gear_ratio: f64) -> f64 {
-    rotation_distance / (f64::from(full_steps) * f64::from(microsteps) * gear_ratio)
-}
-
-/// The motor options shared by rails and extruders.
+/// The motor options of a rail (`[stepper_*]`) or of the `[extruder]`.
 #[derive(Debug, Clone, PartialEq)]
-pub(crate) struct Motor {
+pub struct MotorSection {
     pub step_pin: PinRef,
+    /// On the same MCU as `step_pin`.
     pub dir_pin: PinRef,
     pub enable_pin: Option<PinRef>,
+    /// ≥ 1.
     pub microsteps: u32,
+    /// mm of travel (or of filament) per full rotation, > 0.
     pub rotation_distance: f64,
+    /// Multiple of 4; default 200.
     pub full_steps_per_rotation: u32,
+    /// Product of the `a:b` pairs; default 1.
     pub gear_ratio: f64,
+    /// Seconds, in [0, 0.001]; `None`: the MCU's default.
     pub step_pulse_duration: Option<f64>,
+}
+
+impl MotorSection {
+    /// mm per step: `rotation_distance / (full_steps · microsteps · gear_ratio)`.
+    pub fn step_dist(&self) -> f64 {
+        self.rotation_distance
+            / (f64::from(self.full_steps_per_rotation) * f64::from(self.microsteps) * self.gear_ratio)
+    }
 }
 
 /// Parses `"a:b, c:d"` into the product of `a/b`; empty means 1.
@@ -105,7 +98,7 @@ pub(crate) fn parse_gear_ratio(text: &str) -> Result<f64, ValueProblem> {
     }
 }
 
-pub(crate) fn read_motor(s: &SectionReader<'_>, pins: &mut PinRegistry) -> Result<Motor, ConfigError> {
+pub(crate) fn read_motor(s: &SectionReader<'_>, pins: &mut PinRegistry) -> Result<MotorSection, ConfigError> {
     let step_pin = s.pin("step_pin", PinKind::Output, pins, Share::Exclusive)?;
     let dir_pin = s.pin("dir_pin", PinKind::Output, pins, Share::Exclusive)?;
     if dir_pin.mcu != step_pin.mcu {
@@ -128,7 +121,7 @@ pub(crate) fn read_motor(s: &SectionReader<'_>, pins: &mut PinRegistry) -> Resul
     };
     let enable_pin = s.opt_pin("enable_pin", PinKind::Output, pins, Share::StepperEnable)?;
     let step_pulse_duration = s.opt_float("step_pulse_duration", Bounds::ANY.min(0.0).max(0.001))?;
-    Ok(Motor {
+    Ok(MotorSection {
         step_pin,
         dir_pin,
         enable_pin,
@@ -229,13 +222,7 @@ pub(crate) fn read_rail(
 
     Ok(StepperSection {
         name: s.name().to_string(),
-        step_pin: m.step_pin,
-        dir_pin: m.dir_pin,
-        enable_pin: m.enable_pin,
-        microsteps: m.microsteps,
-        rotation_distance: m.rotation_distance,
-        full_steps_per_rotation: m.full_steps_per_rotation,
-        gear_ratio: m.gear_ratio,
+        motor: m,
         endstop_pin,
         position_endstop,
         position_min,
@@ -245,7 +232,6 @@ pub(crate) fn read_rail(
         homing_retract_dist,
         second_homing_speed,
         homing_positive_dir,
-        step_pulse_duration: m.step_pulse_duration,
     })
 }
 
@@ -277,7 +263,11 @@ mod tests {
             .unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(r.step_dist(), 1.0 / 80.0);
         assert_eq!(
-            (r.full_steps_per_rotation, r.gear_ratio, r.position_min),
+            (
+                r.motor.full_steps_per_rotation,
+                r.motor.gear_ratio,
+                r.position_min
+            ),
             (200, 1.0, 0.0)
         );
         assert_eq!(
@@ -288,7 +278,7 @@ mod tests {
             (
                 r.homing_retract_dist,
                 r.homing_positive_dir,
-                r.step_pulse_duration
+                r.motor.step_pulse_duration
             ),
             (5.0, false, None)
         );
@@ -299,7 +289,7 @@ mod tests {
     fn gear_ratio_and_full_steps() {
         let r = rail("gear_ratio: 80:16, 3:1\nfull_steps_per_rotation: 400\nposition_max: 10\n");
         let r = r.unwrap_or_else(|e| panic!("{e}"));
-        assert_eq!(r.gear_ratio, 15.0);
+        assert_eq!(r.motor.gear_ratio, 15.0);
         assert_eq!(r.step_dist(), 40.0 / (400.0 * 16.0 * 15.0));
         assert_eq!(parse_gear_ratio(""), Ok(1.0));
         assert_eq!(parse_gear_ratio("57:11,"), Ok(57.0 / 11.0));

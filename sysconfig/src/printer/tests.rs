@@ -57,16 +57,16 @@ fn builtin_simulated_printer_loads() {
     // Every pin is one the simulated MCU has.
     let mut all: Vec<&PinRef> = Vec::new();
     for s in &cfg.steppers {
-        all.extend([&s.step_pin, &s.dir_pin]);
-        all.extend(s.enable_pin.iter().chain(s.endstop_pin.iter()));
+        all.extend([&s.motor.step_pin, &s.motor.dir_pin]);
+        all.extend(s.motor.enable_pin.iter().chain(s.endstop_pin.iter()));
     }
     all.extend([
-        &e.step_pin,
-        &e.dir_pin,
+        &e.motor.step_pin,
+        &e.motor.dir_pin,
         &e.heater.heater_pin,
         &e.heater.sensor_pin,
     ]);
-    all.extend(e.enable_pin.iter());
+    all.extend(e.motor.enable_pin.iter());
     assert_eq!(all.len(), 17);
     assert!(
         all.iter().all(|p| p.on_main_mcu() && is_simulator_pin(&p.pin)),
@@ -173,7 +173,7 @@ fn pins_across_sections_and_mcus() {
         ["mcu", "ebb"]
     );
     assert_eq!(
-        cfg.stepper("stepper_z").map(|s| s.step_pin.mcu.as_str()),
+        cfg.stepper("stepper_z").map(|s| s.motor.step_pin.mcu.as_str()),
         Some("ebb")
     );
     assert_eq!(cfg.mcu("ebb").map(|m| m.serial.as_str()), Some("/dev/ttyACM1"));
@@ -193,7 +193,7 @@ fn pins_across_sections_and_mcus() {
     assert!(ok(&shared)
         .steppers
         .iter()
-        .all(|s| s.enable_pin.as_ref().is_some_and(|p| p.invert)));
+        .all(|s| s.motor.enable_pin.as_ref().is_some_and(|p| p.invert)));
     let mixed = shared.replacen("enable_pin: !PD7", "enable_pin: PD7", 1);
     assert_eq!(
         parse(&mixed).map(|_| ()),
