@@ -34,6 +34,11 @@ pub enum BenchWhat {
         /// with an ATmega2560 board.
         #[arg(long, value_parser = parse_clock_freq)]
         clock_freq: Option<f64>,
+        /// Plan the file this many times in this process and also print the wall time's
+        /// minimum, median and maximum (this VM's speed varies by tens of percent from one
+        /// minute to the next; every run must give the same commands).
+        #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=1000))]
+        runs: u32,
     },
 }
 
@@ -45,6 +50,7 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
             threads,
             max_error_us,
             clock_freq,
+            runs,
         } => {
             let cfg = match config {
                 Some(p) => sysconfig::printer::load(p).map_err(|e| e.to_string())?,
@@ -64,9 +70,40 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
             };
             let report = bench::plan::plan_file(file, &cfg, &opts)?;
             println!("{report}");
+            if *runs > 1 {
+                let mut walls = vec![report.wall_s];
+                for run in 2..=*runs {
+                    let again = bench::plan::plan_file(file, &cfg, &opts)?;
+                    if (again.queue_steps, again.wire_bytes) != (report.queue_steps, report.wire_bytes) {
+                        return Err(format!(
+                            "run {run} gave {} queue_step in {} wire bytes, the first {} in {}: \
+                             planning is not deterministic",
+                            again.queue_steps, again.wire_bytes, report.queue_steps, report.wire_bytes
+                        ));
+                    }
+                    walls.push(again.wall_s);
+                }
+                println!("{}", wall_spread(&mut walls));
+            }
             Ok(())
         }
     }
+}
+
+/// `wall over N runs: min …, median …, max … s` (sorts `walls`, which holds at least one).
+fn wall_spread(walls: &mut [f64]) -> String {
+    walls.sort_by(f64::total_cmp);
+    let n = walls.len();
+    let median = if n % 2 == 1 {
+        walls[n / 2]
+    } else {
+        (walls[n / 2 - 1] + walls[n / 2]) / 2.0
+    };
+    format!(
+        "wall over {n} runs: min {:.4} s, median {median:.4} s, max {:.4} s",
+        walls[0],
+        walls[n - 1]
+    )
 }
 
 /// A clock frequency between 1 MHz and 1 GHz.
@@ -76,5 +113,29 @@ fn parse_clock_freq(s: &str) -> Result<f64, String> {
         _ => Err(format!(
             "clock frequency {s:?}: expected Hz between 1000000 and 1000000000"
         )),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn wall_spread_gives_min_median_max() {
+        assert_eq!(
+            wall_spread(&mut [0.3, 0.1, 0.2]),
+            "wall over 3 runs: min 0.1000 s, median 0.2000 s, max 0.3000 s"
+        );
+        assert_eq!(
+            wall_spread(&mut [0.4, 0.1, 0.2, 0.3]),
+            "wall over 4 runs: min 0.1000 s, median 0.2500 s, max 0.4000 s"
+        );
+    }
+
+    #[test]
+    fn clock_freq_is_checked() {
+        assert_eq!(parse_clock_freq("16000000"), Ok(16e6));
+        assert!(parse_clock_freq("10").unwrap_err().contains("expected Hz"));
+        assert!(parse_clock_freq("fast").is_err());
     }
 }
