@@ -71,7 +71,7 @@ use planner::toolhead::Move;
 
 use crate::machine::{EndstopOut, Machine};
 use crate::mcus::{McuConn, Mcus};
-use crate::print::MotionCmd;
+use crate::print::{MotionCmd, MIN_LEAD_S};
 use crate::sink::{LinkSink, Sink};
 use crate::streams::StepStreams;
 
@@ -109,8 +109,6 @@ pub struct HomingCtx<'a> {
     pub streams: &'a mut StepStreams,
     /// Where each stream's step commands go (its MCU's live link), in stream order.
     pub sinks: &'a mut [LinkSink<'a>],
-    /// Lead every step command must have at the MCU (print seconds, 0.100).
-    pub lead: f64,
     /// MCU seconds per wall second (simulator `time_scale`; 1 for real MCUs): bounds waits.
     pub time_scale: f64,
     /// The real-time settings: each homing or probing pass keeps the idle CPUs polling when
@@ -123,7 +121,7 @@ pub struct HomingCtx<'a> {
 
 impl<'a> HomingCtx<'a> {
     /// Homing on the live links: step commands go to `sinks` (see [`direct_sinks`]) with the
-    /// print's lead ([`crate::print::MIN_LEAD_S`]).
+    /// print's lead ([`MIN_LEAD_S`]).
     pub fn new(
         mcus: &'a Mcus,
         machine: &'a Machine,
@@ -139,11 +137,18 @@ impl<'a> HomingCtx<'a> {
             pipeline,
             streams,
             sinks,
-            lead: crate::print::MIN_LEAD_S,
             time_scale,
             rt,
             comm_timeout_detail: None,
         }
+    }
+}
+
+impl HomingCtx<'_> {
+    /// The earliest print time a command sent now may act at: the lead every step command must
+    /// have at the MCU, plus [`START_MARGIN`] (scaled with a fast simulated clock).
+    fn earliest_start(&self) -> f64 {
+        print_now(self.mcus) + MIN_LEAD_S + START_MARGIN * self.time_scale.max(1.0)
     }
 }
 
@@ -161,7 +166,6 @@ pub fn direct_sinks<'a>(streams: &StepStreams, mcus: &'a Mcus) -> Vec<LinkSink<'
 impl fmt::Debug for HomingCtx<'_> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.debug_struct("HomingCtx")
-            .field("lead", &self.lead)
             .field("time_scale", &self.time_scale)
             .finish_non_exhaustive()
     }
@@ -355,7 +359,7 @@ fn home_axis(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisReport, Stri
 
 /// A plain move of the toolhead to `pos` (retract, bench moves), sent at once.
 pub(crate) fn plain_move(ctx: &mut HomingCtx<'_>, pos: [f64; 4], speed: f64) -> Result<(), String> {
-    let t0 = print_now(ctx.mcus) + ctx.lead + START_MARGIN * ctx.time_scale.max(1.0);
+    let t0 = ctx.earliest_start();
     ctx.pipeline.raise_print_time(t0).map_err(|e| e.to_string())?;
     ctx.pipeline.home_move(pos, speed).map_err(|e| e.to_string())?;
     let mut out = Vec::new();
@@ -422,14 +426,14 @@ fn push_cmds(ctx: &mut HomingCtx<'_>, out: &[(usize, StepCmd)]) -> Result<(), St
         if let StepCmd::QueueStep { first_clock, .. } = cmd {
             let k = ctx.streams.stream_of(idx).unwrap_or(0);
             let m = &ctx.streams.mcus[k];
-            if (first_clock as f64) < now[k] + ctx.lead * m.clock_freq {
+            if (first_clock as f64) < now[k] + MIN_LEAD_S * m.clock_freq {
                 return Err(format!(
                     "homing: a step for {} on mcu '{}' was ready only {:.1} ms before it is due (at least {:.0} ms \
                      required)",
                     ctx.machine.steppers.get(idx).map_or("?", |s| s.name.as_str()),
                     m.name,
                     (first_clock as f64 - now[k]) / m.clock_freq * 1e3,
-                    ctx.lead * 1e3
+                    MIN_LEAD_S * 1e3
                 ));
             }
         }
@@ -749,14 +753,13 @@ pub(crate) fn homing_pass(
     // Arm the trsyncs, then a round trip per member: every `trsync_state` still in flight from
     // the previous pass (a triggered trsync keeps reporting) has arrived before the group
     // listens. The endstop is armed only after that, so no trigger can be missed meanwhile.
-    let t_arm = print_now(ctx.mcus) + ctx.lead + START_MARGIN * ctx.time_scale.max(1.0);
+    let t_arm = ctx.earliest_start();
     if let Err(err) = arm(ctx, &conns, &idxs, t_arm, timeout).and_then(|()| barrier(&conns)) {
         quiet(&conns);
         return Err(err);
     }
     let group = TriggerGroup::new(&members, timeout).map_err(|e| e.to_string())?;
-    let t0 = (print_now(ctx.mcus) + ctx.lead + START_MARGIN * ctx.time_scale.max(1.0))
-        .max(ctx.pipeline.toolhead_print_time());
+    let t0 = ctx.earliest_start().max(ctx.pipeline.toolhead_print_time());
     let setup = ctx
         .pipeline
         .raise_print_time(t0)
@@ -885,7 +888,7 @@ pub(crate) fn homing_pass(
         halt_position(&kinematics, &mv, &group, t_trig)
             .ok_or_else(|| format!("homing {axis_name}: the kinematics is not linear"))
     };
-    let resume = print_now(ctx.mcus) + ctx.lead + START_MARGIN * ctx.time_scale.max(1.0);
+    let resume = ctx.earliest_start();
     let stopped: Vec<(usize, i64)> = idxs.iter().copied().zip(after.iter().copied()).collect();
     // Each stopped stepper's MCU clock now (they are idle from here on).
     let now_clocks: Vec<u64> = idxs
