@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use clap::Args;
 use planner::gcode::{Command, GcodeReader};
-use planner::machine::Applied;
+use planner::machine::{Applied, PlanErrorKind};
 use planner::pipeline::{Pipeline, PipelineOptions};
 use planner::stepgen::StepCmd;
 use sysconfig::printer::PrinterConfig;
@@ -160,9 +160,15 @@ pub(crate) fn plan_file(
                 continue;
             }
         }
-        let applied = pipeline
-            .apply(&line)
-            .map_err(|e| format!("{}: {e}", args.file.display()))?;
+        let applied = pipeline.apply(&line).map_err(|e| {
+            let hint = match e.kind {
+                PlanErrorKind::UnknownCommand(_) => {
+                    " (to skip unknown commands with a warning: `unknown_commands: warn` in [gcode] of printer.cfg)"
+                }
+                _ => "",
+            };
+            format!("{}: {e}{hint}", args.file.display())
+        })?;
         if let Applied::Unsupported(name) = applied {
             warnings.unsupported(&args.file, line.line_no, &name);
         }

@@ -78,6 +78,8 @@ pub struct PlanReport {
     pub peak_rss_bytes: u64,
     /// Print time covered (s).
     pub print_time_s: f64,
+    /// Unknown G-code commands skipped (`[gcode] unknown_commands: warn`; else they are errors).
+    pub skipped_unknown: u64,
 }
 
 impl PlanReport {
@@ -107,7 +109,11 @@ impl std::fmt::Display for PlanReport {
             self.steps_per_s(),
             self.peak_rss_bytes as f64 / 1e6,
             self.print_time_s
-        )
+        )?;
+        if self.skipped_unknown > 0 {
+            write!(f, ", {} unknown commands skipped", self.skipped_unknown)?;
+        }
+        Ok(())
     }
 }
 
@@ -186,8 +192,11 @@ pub fn plan_reader(src: impl BufRead, cfg: &PrinterConfig, opts: &PlanOptions) -
         }
         let line = line.map_err(|e| e.to_string())?;
         rep.lines += 1;
-        // Heaters, fans and unsupported commands do not affect planning.
-        let _: Applied = p.apply(&line).map_err(|e| e.to_string())?;
+        // Heaters and fans do not affect planning; unknown commands are errors, or skipped and
+        // counted under `unknown_commands: warn`.
+        if let Applied::Unsupported(_) = p.apply(&line).map_err(|e| e.to_string())? {
+            rep.skipped_unknown += 1;
+        }
         p.generate(&mut out);
         if !out.is_empty() {
             count(&mut out, &mut rep);
@@ -245,6 +254,19 @@ mod tests {
         assert!(r.queue_steps > 0 && r.wire_bytes > r.queue_steps * 5);
         assert_eq!(reports[1].queue_steps, r.queue_steps);
         assert_eq!(reports[1].wire_bytes, r.wire_bytes);
+    }
+
+    #[test]
+    fn unknown_commands_are_errors_or_counted_skips() {
+        let g = "G28\nM73 P5\nG1 X10 F6000\nM73 P50\n";
+        let cfg = sysconfig::parse_str(CFG, Path::new("t.cfg")).unwrap();
+        let e = plan_reader(g.as_bytes(), &cfg, &PlanOptions::default()).unwrap_err();
+        assert!(e.contains("line 2") && e.contains("M73"), "{e}");
+        let warn = format!("{CFG}[gcode]\nunknown_commands: warn\n");
+        let cfg = sysconfig::parse_str(&warn, Path::new("t.cfg")).unwrap();
+        let r = plan_reader(g.as_bytes(), &cfg, &PlanOptions::default()).unwrap();
+        assert_eq!((r.moves, r.skipped_unknown), (1, 2));
+        assert!(r.to_string().ends_with(", 2 unknown commands skipped"), "{r}");
     }
 
     #[test]

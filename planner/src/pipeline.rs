@@ -129,6 +129,9 @@ pub struct PipelineOptions {
     pub batch_print_time: f64,
     /// Pressure advance of the extruder (stepper axis 3); `None` or advance 0: off.
     pub pressure_advance: Option<PressureAdvance>,
+    /// A G-code command the planner does not know is an error naming its line (default), or
+    /// (`false`) [`Applied::Unsupported`] for the caller to warn about and skip.
+    pub unknown_commands_are_errors: bool,
 }
 
 impl Default for PipelineOptions {
@@ -139,6 +142,7 @@ impl Default for PipelineOptions {
             batch_moves: 512,
             batch_print_time: 4.0,
             pressure_advance: None,
+            unknown_commands_are_errors: true,
         }
     }
 }
@@ -350,6 +354,7 @@ impl Pipeline {
             .pressure_advance
             .map_or(DEFAULT_SMOOTH_TIME, |p| p.smooth_time);
         let mut state = GcodeState::new(cfg.home_position);
+        state.set_unknown_is_error(opts.unknown_commands_are_errors);
         if let Some(p) = opts.pressure_advance {
             state.set_pressure_advance(p.advance, p.smooth_time);
         }
@@ -565,8 +570,8 @@ impl Pipeline {
         &self.state
     }
 
-    /// Unknown G-code commands become errors naming the line (`true`) instead of
-    /// [`Applied::Unsupported`] (the default, for callers that warn).
+    /// Unknown G-code commands become errors naming the line (`true`, the default of
+    /// [`PipelineOptions`]) instead of [`Applied::Unsupported`] (for callers that warn).
     pub fn set_unknown_commands_are_errors(&mut self, on: bool) {
         self.state.set_unknown_is_error(on);
     }

@@ -6,7 +6,7 @@ use planner::pipeline::{PipelineConfig, PipelineOptions, StepperSpec};
 use planner::pressure_advance::PressureAdvance;
 use planner::toolhead::ToolheadConfig;
 
-use crate::printer::PrinterConfig;
+use crate::printer::{PrinterConfig, UnknownCommands};
 
 /// The planner configuration of a validated printer config: kinematics, steppers in the
 /// kinematics' order (then the extruder), limits, home position; for MCU clocks at `clock_freq`
@@ -96,8 +96,9 @@ pub fn pipeline_config(
     Ok((pc, kin))
 }
 
-/// Pipeline options derived from the config: kinematics and the extruder's pressure advance
-/// (planning on the caller's thread; set `threads` for worker threads).
+/// Pipeline options derived from the config: kinematics, the extruder's pressure advance and
+/// what an unknown G-code command does (planning on the caller's thread; set `threads` for
+/// worker threads).
 pub fn pipeline_options(cfg: &PrinterConfig, kinematics: Kinematics) -> PipelineOptions {
     // Pressure advance 0 is no pressure advance (the plain extruder path).
     let pressure_advance = cfg
@@ -111,6 +112,7 @@ pub fn pipeline_options(cfg: &PrinterConfig, kinematics: Kinematics) -> Pipeline
     PipelineOptions {
         kinematics,
         pressure_advance,
+        unknown_commands_are_errors: cfg.gcode.unknown_commands == UnknownCommands::Error,
         ..PipelineOptions::default()
     }
 }

@@ -9,11 +9,12 @@
 //! Build order (it decides which error is reported first): MCUs (pins are checked against
 //! them), `[printer]`, `[probe]` (its `z_offset` is Z's endstop position with
 //! `probe:z_virtual_endstop`), the steppers the kinematics needs, `[extruder]`, `[heater_bed]`,
-//! `[simulator]`, then the unused-option/section check.
+//! `[simulator]`, `[realtime]`, `[gcode]`, then the unused-option/section check.
 
 mod delta;
 mod error;
 mod extruder;
+mod gcode;
 mod heater;
 mod ignored;
 mod mcu;
@@ -31,6 +32,7 @@ use crate::ini::{self, ConfigFile};
 pub use delta::{DeltaSection, DEFAULT_ANGLES};
 pub use error::{ConfigError, ValueProblem};
 pub use extruder::ExtruderSection;
+pub use gcode::{GcodeSection, UnknownCommands};
 pub use heater::{HeaterControl, HeaterSection, ABSOLUTE_ZERO_C};
 pub use ignored::{is_ignored, IGNORED_SECTIONS};
 pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
@@ -70,6 +72,8 @@ pub struct PrinterConfig {
     pub simulator: SimulatorSection,
     /// `[realtime]`, or its defaults.
     pub realtime: RealtimeSection,
+    /// `[gcode]`, or its defaults.
+    pub gcode: GcodeSection,
     /// Accepted-but-ignored sections and other things worth telling the user.
     pub warnings: Vec<String>,
 }
@@ -155,6 +159,10 @@ impl PrinterConfig {
             Some(s) => realtime::read_realtime(&s)?,
             None => RealtimeSection::default(),
         };
+        let gcode = match reader.section("gcode") {
+            Some(s) => gcode::read_gcode(&s)?,
+            None => GcodeSection::default(),
+        };
 
         let mut warnings = reader.finish(is_ignored)?;
         if let Some(s) = simulator_section {
@@ -176,6 +184,7 @@ impl PrinterConfig {
             probe,
             simulator,
             realtime,
+            gcode,
             warnings,
         })
     }
