@@ -270,6 +270,29 @@ mod tests {
     }
 
     #[test]
+    fn arc_resolution_and_retraction_come_from_the_config() {
+        let plan = |extra: &str, g: &str| {
+            let text = format!("{}\n{extra}\n", sysconfig::printer::SIMULATED_PRINTER_CFG);
+            let cfg = sysconfig::parse_str(&text, Path::new("t.cfg")).unwrap();
+            plan_reader(g.as_bytes(), &cfg, &PlanOptions::default()).unwrap()
+        };
+        // A full circle of radius 10 (62.8 mm): 62 chords of the default 1 mm, 125 of 0.5 mm.
+        let arc = "G28\nG1 X50 Y50 F6000\nG2 X50 Y50 I10 J0\n";
+        assert_eq!(plan("", arc).moves, 1 + 62);
+        assert_eq!(plan("[gcode_arcs]\nresolution: 0.5", arc).moves, 1 + 125);
+        // G10/G11: no retraction by default (length 0); 2 mm each way with the section.
+        let retract = "G28\nG1 X10 F6000\nG10\nG11\n";
+        let plain = plan("", retract);
+        let with = plan("[firmware_retraction]\nretract_length: 2", retract);
+        assert_eq!((plain.moves, with.moves), (1, 3));
+        let e_steps_per_mm: f64 = 3200.0 / 33.5;
+        assert_eq!(
+            with.steps - plain.steps,
+            (2.0 * 2.0 * e_steps_per_mm).round() as u64
+        );
+    }
+
+    #[test]
     fn wire_counter_packs_blocks() {
         let mut w = WireCounter::default();
         for _ in 0..20 {

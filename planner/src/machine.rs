@@ -10,8 +10,8 @@
 //! yet: it declares the named axes (all if none) homed at the configured `home_position`.
 //!
 //! Arcs (G2/G3, XY plane, centre offset I/J): split into chords like Klipper's `[gcode_arcs]`
-//! with `resolution` 1 mm: n = max(1, ⌊hypot(angle·r, Δz) / 1 mm⌋) segments, Z and E spread
-//! evenly. Firmware retraction (G10/G11) moves E by `retract_length` (+ the unretract extra) at
+//! with its `resolution` (default 1 mm): n = max(1, ⌊hypot(angle·r, Δz) / resolution⌋)
+//! segments, Z and E spread evenly. Firmware retraction (G10/G11) moves E by `retract_length` (+ the unretract extra) at
 //! the retract/unretract speeds, like Klipper's `[firmware_retraction]` (defaults: length 0,
 //! speeds 20 and 10 mm/s; SET_RETRACTION changes them). Heaters, fans, motors off, M114 and
 //! M117 are returned to the caller as [`Applied`] values. Unknown commands are
@@ -120,6 +120,8 @@ pub struct GcodeState {
     retract: Retraction,
     retracted: bool,
     pressure_advance: (f64, f64),
+    /// Arc chord length (mm).
+    arc_resolution: f64,
 }
 
 /// Firmware retraction settings (Klipper's `[firmware_retraction]`).
@@ -159,6 +161,7 @@ impl GcodeState {
             retract: Retraction::default(),
             retracted: false,
             pressure_advance: (0.0, 0.04),
+            arc_resolution: ARC_RESOLUTION,
         }
     }
 
@@ -170,6 +173,16 @@ impl GcodeState {
     /// Firmware retraction settings (e.g. from a `[firmware_retraction]` section).
     pub fn set_retraction(&mut self, r: Retraction) {
         self.retract = r;
+    }
+
+    /// Arc chord length in mm (`[gcode_arcs] resolution`; default [`ARC_RESOLUTION`]). Not
+    /// finite or not above 0: the default.
+    pub fn set_arc_resolution(&mut self, mm: f64) {
+        self.arc_resolution = if mm.is_finite() && mm > 0.0 {
+            mm
+        } else {
+            ARC_RESOLUTION
+        };
     }
 
     /// The pressure advance the steps are generated with (from the configuration).
@@ -353,7 +366,7 @@ impl GcodeState {
         }
         let dz = end[2] - start[2];
         let length = (travel * r).hypot(dz);
-        let n = (length / ARC_RESOLUTION).floor().max(1.0);
+        let n = (length / self.arc_resolution).floor().max(1.0);
         if !n.is_finite() || n > MAX_ARC_SEGMENTS {
             return Err(PlanErrorKind::BadArc(format!(
                 "{length:.1} mm long: too many segments"

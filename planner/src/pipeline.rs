@@ -35,7 +35,7 @@ use std::sync::Arc;
 use crate::compress::StepCompressor;
 use crate::gcode::GcodeLine;
 use crate::kinematics::Kinematics;
-use crate::machine::{Applied, GcodeState, PlanError, PlanErrorKind};
+use crate::machine::{Applied, GcodeState, PlanError, PlanErrorKind, Retraction, ARC_RESOLUTION};
 use crate::pressure_advance::{PaGen, PressureAdvance};
 use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::{Move, Toolhead, ToolheadConfig};
@@ -132,6 +132,10 @@ pub struct PipelineOptions {
     /// A G-code command the planner does not know is an error naming its line (default), or
     /// (`false`) [`Applied::Unsupported`] for the caller to warn about and skip.
     pub unknown_commands_are_errors: bool,
+    /// G10/G11 settings (`[firmware_retraction]`; SET_RETRACTION changes them while printing).
+    pub retraction: Retraction,
+    /// Arc chord length in mm (`[gcode_arcs] resolution`).
+    pub arc_resolution: f64,
 }
 
 impl Default for PipelineOptions {
@@ -143,6 +147,8 @@ impl Default for PipelineOptions {
             batch_print_time: 4.0,
             pressure_advance: None,
             unknown_commands_are_errors: true,
+            retraction: Retraction::default(),
+            arc_resolution: ARC_RESOLUTION,
         }
     }
 }
@@ -355,6 +361,8 @@ impl Pipeline {
             .map_or(DEFAULT_SMOOTH_TIME, |p| p.smooth_time);
         let mut state = GcodeState::new(cfg.home_position);
         state.set_unknown_is_error(opts.unknown_commands_are_errors);
+        state.set_retraction(opts.retraction);
+        state.set_arc_resolution(opts.arc_resolution);
         if let Some(p) = opts.pressure_advance {
             state.set_pressure_advance(p.advance, p.smooth_time);
         }

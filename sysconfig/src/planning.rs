@@ -2,6 +2,7 @@
 //! advance). One place, used by the host and the benchmarks.
 
 use planner::kinematics::{DeltaGeometry, Kinematics};
+use planner::machine::Retraction;
 use planner::pipeline::{PipelineConfig, PipelineOptions, StepperSpec};
 use planner::pressure_advance::PressureAdvance;
 use planner::toolhead::ToolheadConfig;
@@ -96,9 +97,9 @@ pub fn pipeline_config(
     Ok((pc, kin))
 }
 
-/// Pipeline options derived from the config: kinematics, the extruder's pressure advance and
-/// what an unknown G-code command does (planning on the caller's thread; set `threads` for
-/// worker threads).
+/// Pipeline options derived from the config: kinematics, the extruder's pressure advance, what
+/// an unknown G-code command does, firmware retraction and the arc resolution (planning on the
+/// caller's thread; set `threads` for worker threads).
 pub fn pipeline_options(cfg: &PrinterConfig, kinematics: Kinematics) -> PipelineOptions {
     // Pressure advance 0 is no pressure advance (the plain extruder path).
     let pressure_advance = cfg
@@ -109,10 +110,18 @@ pub fn pipeline_options(cfg: &PrinterConfig, kinematics: Kinematics) -> Pipeline
             advance: e.pressure_advance,
             smooth_time: e.pressure_advance_smooth_time,
         });
+    let r = &cfg.firmware_retraction;
     PipelineOptions {
         kinematics,
         pressure_advance,
         unknown_commands_are_errors: cfg.gcode.unknown_commands == UnknownCommands::Error,
+        retraction: Retraction {
+            retract_length: r.retract_length,
+            retract_speed: r.retract_speed,
+            unretract_extra_length: r.unretract_extra_length,
+            unretract_speed: r.unretract_speed,
+        },
+        arc_resolution: cfg.gcode_arcs.resolution,
         ..PipelineOptions::default()
     }
 }

@@ -1,11 +1,14 @@
-//! `[gcode]` (Cadence-specific, optional): how G-code files are taken. A command the planner
-//! does not know stops the print with an error naming its line (`unknown_commands: error`, the
-//! default); `unknown_commands: warn` skips each such command with one warning per name (for
-//! files full of slicer or macro commands this host does not implement, such as `START_PRINT`
-//! from an ignored `[gcode_macro]`).
+//! The sections that shape how G-code is taken, all optional:
+//! - `[gcode]` (Cadence-specific): a command the planner does not know stops the print with an
+//!   error naming its line (`unknown_commands: error`, the default); `unknown_commands: warn`
+//!   skips each such command with one warning per name (for files full of slicer or macro
+//!   commands this host does not implement, such as `START_PRINT` from an ignored
+//!   `[gcode_macro]`).
+//! - `[gcode_arcs]` (Klipper's): `resolution`, the chord length G2/G3 arcs are split into.
+//! - `[firmware_retraction]` (Klipper's): what G10/G11 do, until SET_RETRACTION changes it.
 
 use super::error::ConfigError;
-use super::reader::SectionReader;
+use super::reader::{Bounds, SectionReader};
 
 /// What an unknown G-code command does.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -40,17 +43,113 @@ pub(crate) fn read_gcode(s: &SectionReader<'_>) -> Result<GcodeSection, ConfigEr
     })
 }
 
+/// `[gcode_arcs]`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GcodeArcsSection {
+    /// Chord length of G2/G3 arcs (mm, default 1).
+    pub resolution: f64,
+}
+
+impl Default for GcodeArcsSection {
+    fn default() -> Self {
+        GcodeArcsSection { resolution: 1.0 }
+    }
+}
+
+pub(crate) fn read_gcode_arcs(s: &SectionReader<'_>) -> Result<GcodeArcsSection, ConfigError> {
+    Ok(GcodeArcsSection {
+        resolution: s.float_or("resolution", 1.0, Bounds::ANY.above(0.0))?,
+    })
+}
+
+/// `[firmware_retraction]` (Klipper's defaults and bounds).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FirmwareRetractionSection {
+    /// Filament G10 pulls back (mm, default 0).
+    pub retract_length: f64,
+    /// mm/s (default 20).
+    pub retract_speed: f64,
+    /// Extra filament G11 pushes on top of `retract_length` (mm, default 0).
+    pub unretract_extra_length: f64,
+    /// mm/s (default 10).
+    pub unretract_speed: f64,
+}
+
+impl Default for FirmwareRetractionSection {
+    fn default() -> Self {
+        FirmwareRetractionSection {
+            retract_length: 0.0,
+            retract_speed: 20.0,
+            unretract_extra_length: 0.0,
+            unretract_speed: 10.0,
+        }
+    }
+}
+
+pub(crate) fn read_firmware_retraction(
+    s: &SectionReader<'_>,
+) -> Result<FirmwareRetractionSection, ConfigError> {
+    let d = FirmwareRetractionSection::default();
+    Ok(FirmwareRetractionSection {
+        retract_length: s.float_or("retract_length", d.retract_length, Bounds::ANY.min(0.0))?,
+        retract_speed: s.float_or("retract_speed", d.retract_speed, Bounds::ANY.min(1.0))?,
+        unretract_extra_length: s.float_or(
+            "unretract_extra_length",
+            d.unretract_extra_length,
+            Bounds::ANY.min(0.0),
+        )?,
+        unretract_speed: s.float_or("unretract_speed", d.unretract_speed, Bounds::ANY.min(1.0))?,
+    })
+}
+
 #[cfg(test)]
 mod tests {
-    use super::{GcodeSection, UnknownCommands};
+    use super::{FirmwareRetractionSection, GcodeArcsSection, GcodeSection, UnknownCommands};
     use crate::printer::parse_str;
     use std::path::Path;
 
-    fn with(section: &str) -> Result<GcodeSection, String> {
+    fn config(section: &str) -> Result<crate::printer::PrinterConfig, String> {
         let text = format!("{}\n{section}\n", crate::printer::SIMULATED_PRINTER_CFG);
-        parse_str(&text, Path::new("printer.cfg"))
-            .map(|c| c.gcode)
-            .map_err(|e| e.to_string())
+        parse_str(&text, Path::new("printer.cfg")).map_err(|e| e.to_string())
+    }
+
+    fn with(section: &str) -> Result<GcodeSection, String> {
+        config(section).map(|c| c.gcode)
+    }
+
+    #[test]
+    fn arcs_and_retraction_read_with_klipper_defaults() {
+        let c = config("").unwrap();
+        assert_eq!(c.gcode_arcs, GcodeArcsSection::default());
+        assert_eq!(c.firmware_retraction, FirmwareRetractionSection::default());
+        let c = config(
+            "[gcode_arcs]\nresolution: 0.1\n[firmware_retraction]\nretract_length: 0.8\n\
+             retract_speed: 35\nunretract_extra_length: 0.05\nunretract_speed: 25",
+        )
+        .unwrap();
+        assert_eq!(c.gcode_arcs.resolution, 0.1);
+        assert_eq!(
+            c.firmware_retraction,
+            FirmwareRetractionSection {
+                retract_length: 0.8,
+                retract_speed: 35.0,
+                unretract_extra_length: 0.05,
+                unretract_speed: 25.0,
+            }
+        );
+        assert!(c
+            .warnings
+            .iter()
+            .all(|w| !w.contains("gcode_arcs") && !w.contains("firmware_retraction")));
+        for (text, option) in [
+            ("[gcode_arcs]\nresolution: 0", "resolution"),
+            ("[firmware_retraction]\nretract_length: -1", "retract_length"),
+            ("[firmware_retraction]\nretract_speed: 0.5", "retract_speed"),
+            ("[firmware_retraction]\nunretract_speed: fast", "unretract_speed"),
+        ] {
+            let e = config(text).unwrap_err();
+            assert!(e.contains(option), "{text}: {e}");
+        }
     }
 
     #[test]

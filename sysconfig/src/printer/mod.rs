@@ -9,7 +9,8 @@
 //! Build order (it decides which error is reported first): MCUs (pins are checked against
 //! them), `[printer]`, `[probe]` (its `z_offset` is Z's endstop position with
 //! `probe:z_virtual_endstop`), the steppers the kinematics needs, `[extruder]`, `[heater_bed]`,
-//! `[simulator]`, `[realtime]`, `[gcode]`, then the unused-option/section check.
+//! `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`, then the
+//! unused-option/section check.
 
 mod delta;
 mod error;
@@ -32,7 +33,7 @@ use crate::ini::{self, ConfigFile};
 pub use delta::{DeltaSection, DEFAULT_ANGLES};
 pub use error::{ConfigError, ValueProblem};
 pub use extruder::ExtruderSection;
-pub use gcode::{GcodeSection, UnknownCommands};
+pub use gcode::{FirmwareRetractionSection, GcodeArcsSection, GcodeSection, UnknownCommands};
 pub use heater::{HeaterControl, HeaterSection, ABSOLUTE_ZERO_C};
 pub use ignored::{is_ignored, IGNORED_SECTIONS};
 pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
@@ -74,6 +75,10 @@ pub struct PrinterConfig {
     pub realtime: RealtimeSection,
     /// `[gcode]`, or its defaults.
     pub gcode: GcodeSection,
+    /// `[gcode_arcs]`, or its defaults.
+    pub gcode_arcs: GcodeArcsSection,
+    /// `[firmware_retraction]`, or its defaults.
+    pub firmware_retraction: FirmwareRetractionSection,
     /// Accepted-but-ignored sections and other things worth telling the user.
     pub warnings: Vec<String>,
 }
@@ -163,6 +168,14 @@ impl PrinterConfig {
             Some(s) => gcode::read_gcode(&s)?,
             None => GcodeSection::default(),
         };
+        let gcode_arcs = match reader.section("gcode_arcs") {
+            Some(s) => gcode::read_gcode_arcs(&s)?,
+            None => GcodeArcsSection::default(),
+        };
+        let firmware_retraction = match reader.section("firmware_retraction") {
+            Some(s) => gcode::read_firmware_retraction(&s)?,
+            None => FirmwareRetractionSection::default(),
+        };
 
         let mut warnings = reader.finish(is_ignored)?;
         if let Some(s) = simulator_section {
@@ -185,6 +198,8 @@ impl PrinterConfig {
             simulator,
             realtime,
             gcode,
+            gcode_arcs,
+            firmware_retraction,
             warnings,
         })
     }
