@@ -1,5 +1,8 @@
 //! `cadence decode`: prints a host→MCU wire stream (as written by `print --batch`) one message
-//! a line, with names and fields from the data dictionary.
+//! a line, with names and fields from the data dictionary; with `--check FILE.gcode`, proves
+//! its step commands against the G-code's motion instead ([`check`]).
+
+mod check;
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -16,6 +19,20 @@ pub struct DecodeArgs {
     /// Data dictionary (zlib-compressed JSON); default: the Cadence firmware's own.
     #[arg(long)]
     pub dictionary: Option<PathBuf>,
+    /// Instead of printing the messages, prove every step of the stream against this G-code's
+    /// motion: within the bound before its ideal time, in order, in its direction, none missing.
+    #[arg(long, value_name = "FILE.gcode")]
+    pub check: Option<PathBuf>,
+    /// With --check: the printer config the stream was written with (default: the built-in
+    /// simulated printer).
+    #[arg(long, requires = "check")]
+    pub config: Option<PathBuf>,
+    /// With --check: the MCU the stream is for (`print --batch` writes one file per MCU).
+    #[arg(long, default_value = "mcu", requires = "check")]
+    pub mcu: String,
+    /// With --check: the step time bound the stream was compressed with.
+    #[arg(long, default_value_t = 25.0, requires = "check")]
+    pub max_error_us: f64,
 }
 
 /// The data dictionary in `path` (zlib-compressed JSON as served by identify), or the Cadence
@@ -34,6 +51,15 @@ pub fn load_dictionary(path: Option<&std::path::Path>) -> Result<Dictionary, Str
 pub fn run(args: &DecodeArgs) -> Result<(), String> {
     let dict = crate::decode::load_dictionary(args.dictionary.as_deref())?;
     let data = std::fs::read(&args.file).map_err(|e| format!("{}: {e}", args.file.display()))?;
+    if let Some(gcode) = &args.check {
+        let spec = check::CheckSpec {
+            gcode,
+            config: args.config.as_deref(),
+            mcu: &args.mcu,
+            max_error_us: args.max_error_us,
+        };
+        return check::run(&args.file, &data, &dict, &spec);
+    }
     let stdout = std::io::stdout();
     let mut out = std::io::BufWriter::new(stdout.lock());
     let mut pos = 0usize;

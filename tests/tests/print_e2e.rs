@@ -130,6 +130,85 @@ fn unknown_command_stops_the_print_unless_the_config_says_warn() {
 }
 
 #[test]
+fn decode_check_proves_a_batch_stream_and_refuses_other_motion() {
+    let dir = scratch("check");
+    let g = workspace().join("examples/square.gcode");
+    let cfg = workspace().join("examples/simulated-toolboard.cfg");
+    let out = dir.join("square.bin");
+    let (g_s, cfg_s, out_s) = (g.to_str().unwrap(), cfg.to_str().unwrap(), out.to_str().unwrap());
+    // Steppers on two MCUs: one stream each (X, Y on `mcu`; Z, E on `toolboard`).
+    let run = cadence(&["print", g_s, "--config", cfg_s, "--batch", out_s], TIMEOUT);
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    let board = dir.join("square-toolboard.bin");
+    for (stream, mcu, names) in [
+        (&out, "mcu", ["stepper_x", "stepper_y"]),
+        (&board, "toolboard", ["stepper_z", "extruder"]),
+    ] {
+        let run = cadence(
+            &[
+                "decode",
+                stream.to_str().unwrap(),
+                "--check",
+                g_s,
+                "--config",
+                cfg_s,
+                "--mcu",
+                mcu,
+            ],
+            TIMEOUT,
+        );
+        assert_eq!(run.code, Some(0), "{}", run.stderr);
+        for name in names {
+            assert!(
+                run.stdout
+                    .lines()
+                    .any(|l| l.contains(name) && l.ends_with(": ok")),
+                "{name}:\n{}",
+                run.stdout
+            );
+        }
+    }
+    // Other motion: Y's steps no longer match.
+    let moved = dir.join("moved.gcode");
+    let text = std::fs::read_to_string(&g).unwrap();
+    assert!(
+        text.contains("G1 X10 Y10 Z5"),
+        "examples/square.gcode changed shape"
+    );
+    std::fs::write(&moved, text.replace("G1 X10 Y10 Z5", "G1 X10 Y11 Z5")).unwrap();
+    let run = cadence(
+        &[
+            "decode",
+            out_s,
+            "--check",
+            moved.to_str().unwrap(),
+            "--config",
+            cfg_s,
+        ],
+        TIMEOUT,
+    );
+    assert_eq!(run.code, Some(1), "{}", run.stdout);
+    assert!(run.stderr.contains("stepper_y: step "), "{}", run.stderr);
+    // A tighter bound than the stream was compressed with.
+    let run = cadence(
+        &[
+            "decode",
+            out_s,
+            "--check",
+            g_s,
+            "--config",
+            cfg_s,
+            "--max-error-us",
+            "10",
+        ],
+        TIMEOUT,
+    );
+    assert_eq!(run.code, Some(1), "{}", run.stdout);
+    assert!(run.stderr.contains("(max 500)"), "{}", run.stderr);
+    assert!(!run.stderr.contains("panicked"), "{}", run.stderr);
+}
+
+#[test]
 fn config_error_names_section_and_option() {
     let dir = scratch("badcfg");
     let cfg = dir.join("printer.cfg");

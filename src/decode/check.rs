@@ -1,0 +1,300 @@
+//! `cadence decode STREAM --check FILE.gcode`: proves a wire stream written by `print --batch`
+//! against the motion of the G-code it came from.
+//!
+//! The G-code is planned again with the same printer.cfg, MCU clock and step-time bound,
+//! recording every step's ideal time; the stream's `queue_step`, `set_next_step_dir` and
+//! `reset_step_clock` are replayed as the MCU runs them, and every step must land within the
+//! bound before its ideal time, never before the previous step, in its ideal direction, and
+//! every planned step must be in the stream ([`planner::checker`]). Planning is pulled as the
+//! stream needs steps, so memory stays bounded by the steps between the stream's order and the
+//! planner's, whatever the file size.
+//!
+//! Steppers are matched by step pin: each `config_stepper` of the stream names a step pin,
+//! which must be the step pin of a stepper on that MCU in printer.cfg (so the stream's object
+//! ids need not be Cadence's). `reset_step_clock` carries the low 32 bits of the clock: the
+//! full clock is the one with those bits nearest the stepper's next planned step.
+
+use std::fs::File;
+use std::io::BufReader;
+use std::path::Path;
+
+use links::dict::{Dictionary, Message};
+use links::proto::{block::block_payload, find_block, Frame};
+use planner::checker::{CheckStats, Checker, StepCmd};
+use planner::gcode::GcodeReader;
+use planner::pipeline::{Pipeline, PipelineOptions};
+
+use crate::machine::Machine;
+
+/// What `--check` needs besides the stream.
+#[derive(Debug)]
+pub struct CheckSpec<'a> {
+    pub gcode: &'a Path,
+    pub config: Option<&'a Path>,
+    /// The MCU the stream was written for (`mcu`, or the NAME of `[mcu NAME]`).
+    pub mcu: &'a str,
+    pub max_error_us: f64,
+}
+
+/// One stepper of the checked MCU.
+struct Checked {
+    name: String,
+    /// Index in the planner's steppers.
+    idx: usize,
+    /// The step pin's value in the dictionary's `pin` enumeration.
+    step_pin: u32,
+    dir_invert: bool,
+    checker: Checker,
+    /// Seen in a `config_stepper` of the stream.
+    configured: bool,
+}
+
+/// The G-code side: plans on demand and hands each stepper its ideal steps.
+struct Planner {
+    pipeline: Pipeline,
+    lines: GcodeReader<BufReader<File>>,
+    done: bool,
+    out: Vec<(usize, StepCmd)>,
+    /// Planner stepper count (steppers of other MCUs are planned and their steps dropped).
+    steppers: usize,
+}
+
+impl Planner {
+    /// Plans one more G-code line (or finishes at the end); false once everything is planned.
+    fn more(&mut self, checked: &mut [Checked], file: &Path) -> Result<bool, String> {
+        if self.done {
+            return Ok(false);
+        }
+        match self.lines.next() {
+            Some(line) => {
+                let line = line.map_err(|e| format!("{}: {e}", file.display()))?;
+                self.pipeline
+                    .apply(&line)
+                    .map_err(|e| format!("{}: {e}", file.display()))?;
+                self.pipeline.generate(&mut self.out);
+            }
+            None => {
+                self.pipeline.finish(&mut self.out);
+                self.done = true;
+            }
+        }
+        self.out.clear();
+        for idx in 0..self.steppers {
+            let ideal = self.pipeline.take_ideal(idx);
+            if let Some(c) = checked.iter_mut().find(|c| c.idx == idx) {
+                c.checker.push_ideal(ideal);
+            }
+        }
+        Ok(true)
+    }
+}
+
+/// Runs the check of `data` (the stream) and prints one line per stepper.
+pub fn run(stream: &Path, data: &[u8], dict: &Dictionary, spec: &CheckSpec<'_>) -> Result<(), String> {
+    if !(spec.max_error_us > 0.0 && spec.max_error_us <= 1000.0) {
+        return Err(format!(
+            "--max-error-us {}: must be in (0, 1000]",
+            spec.max_error_us
+        ));
+    }
+    let gcode = File::open(spec.gcode).map_err(|e| format!("{}: {e}", spec.gcode.display()))?;
+    let cfg = match spec.config {
+        Some(path) => sysconfig::printer::load(path).map_err(|e| e.to_string())?,
+        None => sysconfig::printer::builtin_simulated().map_err(|e| format!("built-in printer: {e}"))?,
+    };
+    let machine = Machine::from_config(&cfg)?;
+    if !machine.steppers.iter().any(|s| s.mcu == spec.mcu) {
+        return Err(format!(
+            "--mcu {}: no stepper of the printer config is on that MCU",
+            spec.mcu
+        ));
+    }
+    let clock_freq = dict.clock_freq().map_err(|e| e.to_string())?;
+    let options = PipelineOptions {
+        threads: 0,
+        ..machine.options
+    };
+    let mut pipeline = Pipeline::with_options(
+        machine.pipeline_config(clock_freq, spec.max_error_us * 1e-6),
+        0.25,
+        options,
+    )
+    .map_err(|e| e.to_string())?;
+    pipeline.set_record_ideal(true);
+    let max_ticks = pipeline.max_error_ticks();
+    let mut checked = Vec::new();
+    for (idx, s) in machine.steppers.iter().enumerate() {
+        if s.mcu != spec.mcu {
+            continue;
+        }
+        let step_pin = dict
+            .pin(&s.step_pin.pin)
+            .map_err(|e| format!("[{}] step_pin: {e}", s.name))?;
+        checked.push(Checked {
+            name: s.name.clone(),
+            idx,
+            step_pin,
+            dir_invert: s.dir_pin.invert,
+            checker: Checker::for_wire(max_ticks),
+            configured: false,
+        });
+    }
+    let mut planner = Planner {
+        pipeline,
+        lines: GcodeReader::new(BufReader::with_capacity(1 << 16, gcode)),
+        done: false,
+        out: Vec::with_capacity(4096),
+        steppers: machine.steppers.len(),
+    };
+    // Object id → index in `checked`.
+    let mut by_oid: [Option<usize>; 256] = [None; 256];
+    let at = |pos: usize| format!("{}: block at byte {pos}", stream.display());
+    let mut pos = 0usize;
+    while pos < data.len() {
+        match find_block(&data[pos..]) {
+            Frame::Block { len, .. } => {
+                let msgs = dict
+                    .decode(block_payload(&data[pos..pos + len]))
+                    .map_err(|e| format!("{}: {e}", at(pos)))?;
+                for m in &msgs {
+                    replay(m, &mut checked, &mut by_oid, &mut planner, spec.gcode)
+                        .map_err(|e| format!("{}: {e}", at(pos)))?;
+                }
+                pos += len;
+            }
+            Frame::Skip(n) => pos += n,
+            Frame::Bad(_) => return Err(format!("{}: not a valid block", at(pos))),
+            Frame::Incomplete => return Err(format!("{}: truncated block", at(pos))),
+        }
+    }
+    while planner.more(&mut checked, spec.gcode)? {}
+    println!(
+        "check: {} against {} (MCU '{}', max error {} µs)",
+        stream.display(),
+        spec.gcode.display(),
+        spec.mcu,
+        spec.max_error_us
+    );
+    for c in &checked {
+        let stats: CheckStats = c.checker.finish().map_err(|e| {
+            let note = if c.configured {
+                ""
+            } else {
+                " (the stream never configures this stepper)"
+            };
+            format!("{}: {e}{note}", c.name)
+        })?;
+        println!(
+            "  {:<10} {} steps in {} queue_step, {} direction changes, position {}, max early {:.2} µs: ok",
+            c.name,
+            stats.steps,
+            stats.queue_steps,
+            stats.dir_changes,
+            stats.position,
+            stats.max_early_ticks / clock_freq * 1e6
+        );
+    }
+    Ok(())
+}
+
+/// Replays one message of the stream.
+fn replay(
+    m: &Message,
+    checked: &mut [Checked],
+    by_oid: &mut [Option<usize>; 256],
+    planner: &mut Planner,
+    gcode: &Path,
+) -> Result<(), String> {
+    let field = |name: &str| {
+        m.get(name)
+            .ok_or_else(|| format!("{}: no field '{name}'", m.name))
+    };
+    let target = |by_oid: &[Option<usize>; 256]| -> Result<usize, String> {
+        let oid = field("oid")?;
+        usize::try_from(oid)
+            .ok()
+            .and_then(|o| by_oid.get(o).copied().flatten())
+            .ok_or_else(|| format!("{m}: oid {oid} is not a configured stepper"))
+    };
+    match m.name.as_str() {
+        "config_stepper" => {
+            let (oid, pin) = (field("oid")?, field("step_pin")?);
+            let i = checked
+                .iter()
+                .position(|c| i64::from(c.step_pin) == pin)
+                .ok_or_else(|| format!("{m}: no stepper on this MCU in printer.cfg has that step pin"))?;
+            checked[i].configured = true;
+            let slot = usize::try_from(oid)
+                .ok()
+                .and_then(|o| by_oid.get_mut(o))
+                .ok_or_else(|| format!("{m}: bad oid"))?;
+            *slot = Some(i);
+        }
+        "set_next_step_dir" => {
+            let i = target(by_oid)?;
+            let c = &mut checked[i];
+            let dir = (field("dir")? != 0) != c.dir_invert;
+            let cmd = StepCmd::SetDir { dir };
+            c.checker
+                .check_cmd(&cmd)
+                .map_err(|e| format!("{}: {e}", c.name))?;
+        }
+        "reset_step_clock" => {
+            let i = target(by_oid)?;
+            // The full clock from its low 32 bits: nearest the next planned step.
+            while checked[i].checker.outstanding() == 0 && planner.more(checked, gcode)? {}
+            let c = &mut checked[i];
+            let low = field("clock")? as u64 & 0xffff_ffff;
+            let near = c.checker.next_ideal_clock().unwrap_or(0.0).max(0.0) as u64;
+            let clock = unwrap_clock(low, near);
+            c.checker
+                .check_cmd(&StepCmd::ResetClock { clock })
+                .map_err(|e| format!("{}: {e}", c.name))?;
+        }
+        "queue_step" => {
+            let i = target(by_oid)?;
+            let count = field("count")?;
+            let count = u16::try_from(count).map_err(|_| format!("{m}: bad count"))?;
+            while checked[i].checker.outstanding() < usize::from(count) && planner.more(checked, gcode)? {}
+            let c = &mut checked[i];
+            let cmd = StepCmd::QueueStep {
+                interval: u32::try_from(field("interval")?).map_err(|_| format!("{m}: bad interval"))?,
+                count,
+                add: i16::try_from(field("add")?).map_err(|_| format!("{m}: bad add"))?,
+                first_clock: 0,
+                last_clock: 0,
+            };
+            c.checker
+                .check_cmd(&cmd)
+                .map_err(|e| format!("{}: {e}", c.name))?;
+        }
+        _ => {}
+    }
+    Ok(())
+}
+
+/// The clock whose low 32 bits are `low`, nearest `near`.
+fn unwrap_clock(low: u64, near: u64) -> u64 {
+    const SPAN: u64 = 1 << 32;
+    let base = (near & !(SPAN - 1)) | low;
+    [base.checked_sub(SPAN), Some(base), base.checked_add(SPAN)]
+        .into_iter()
+        .flatten()
+        .min_by_key(|&c| c.abs_diff(near))
+        .unwrap_or(base)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::unwrap_clock;
+
+    #[test]
+    fn clocks_unwrap_to_the_nearest() {
+        let span = 1u64 << 32;
+        assert_eq!(unwrap_clock(100, 50), 100);
+        assert_eq!(unwrap_clock(100, 3 * span + 200), 3 * span + 100);
+        // Just before a wrap, the step just after it.
+        assert_eq!(unwrap_clock(5, 3 * span - 10), 3 * span + 5);
+        assert_eq!(unwrap_clock(span - 5, 3 * span + 10), 3 * span - 5);
+    }
+}
