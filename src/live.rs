@@ -48,6 +48,7 @@ use rt_core::shm::{
     ShmSubscriber, StepBatch, Telemetry, WireMsg,
 };
 
+use crate::accessories::Accessories;
 use crate::homing::{run_motion, HomingCtx};
 use crate::machine::Machine;
 use crate::mcus::Mcus;
@@ -918,10 +919,12 @@ pub(crate) fn planner_stage(
         "planner started: start print time s, high water s, step streams",
         [Arg::F(start), Arg::F(high_water), Arg::U(params.len() as u64)],
     );
+    let mut accessories = Accessories::new(machine.real_board);
     let lines = plan_file(
         args,
         &mut pipeline,
         gcode,
+        &mut accessories,
         |cmds| {
             let mut streams = streams.borrow_mut();
             let mut sinks = sinks.borrow_mut();
@@ -1076,7 +1079,11 @@ pub(crate) fn planner_stage(
             .iter()
             .map(|m| (m.name.to_string(), m.clock_freq))
             .collect(),
-        extra: homing_reports.into_inner(),
+        extra: accessories
+            .lines()
+            .into_iter()
+            .chain(homing_reports.into_inner())
+            .collect(),
     };
     log.log(
         Level::Info,

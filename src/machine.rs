@@ -95,6 +95,8 @@ pub struct Machine {
     pub home_position: [f64; 3],
     /// Kinematics and pressure advance for the planner.
     pub options: PipelineOptions,
+    /// Some MCU is a real board (not `serial: simulator`): heat asked of it is warned about.
+    pub real_board: bool,
 }
 
 impl Machine {
@@ -159,6 +161,7 @@ impl Machine {
             toolhead,
             home_position: home,
             options,
+            real_board: cfg.mcus.iter().any(|m| !m.is_simulated()),
         })
     }
 

@@ -11,6 +11,7 @@
 //! - `mcu …` (hidden): the simulated MCU (the firmware's Linux-process target), for when the
 //!   separate `cadence-mcu` executable was not built.
 
+mod accessories;
 mod allocsites;
 mod benchcmd;
 mod decode;

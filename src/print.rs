@@ -13,6 +13,7 @@ use planner::pipeline::{Pipeline, PipelineOptions};
 use planner::stepgen::StepCmd;
 use sysconfig::printer::PrinterConfig;
 
+use crate::accessories::Accessories;
 use crate::live::{self, Hists, RtConfig};
 use crate::machine::Machine;
 use crate::mcus::{ConnectOptions, Mcus};
@@ -129,11 +130,13 @@ impl MotionCmd<'_> {
 
 /// Feeds the G-code through the planner, handing step commands to `emit` as they become final.
 /// `pace` runs between lines (live flow control; batch passes a no-op); `motion` runs G28 and the
-/// probe commands when it can (returns true) with the MCUs in the loop.
+/// probe commands when it can (returns true) with the MCUs in the loop. Heater, fan, display and
+/// M114 commands go to `accessories`.
 pub(crate) fn plan_file(
     args: &PrintArgs,
     pipeline: &mut Pipeline,
     gcode: File,
+    accessories: &mut Accessories,
     mut emit: impl FnMut(&mut Vec<(usize, StepCmd)>) -> Result<(), String>,
     mut pace: impl FnMut(&mut Pipeline) -> Result<(), String>,
     mut motion: impl FnMut(&mut Pipeline, &MotionCmd<'_>) -> Result<bool, String>,
@@ -169,8 +172,11 @@ pub(crate) fn plan_file(
             };
             format!("{}: {e}{hint}", args.file.display())
         })?;
-        if let Applied::Unsupported(name) = applied {
-            warnings.unsupported(&args.file, line.line_no, &name);
+        if let Applied::Unsupported(name) = &applied {
+            warnings.unsupported(&args.file, line.line_no, name);
+        }
+        if let Some(w) = accessories.record(line.line_no, &applied) {
+            eprintln!("cadence: warning: {}: {w}", args.file.display());
         }
         pipeline.generate(&mut out);
         if !out.is_empty() {
@@ -237,10 +243,12 @@ fn run_batch(
         options,
     )
     .map_err(|e| e.to_string())?;
+    let mut accessories = Accessories::new(false);
     let lines = plan_file(
         args,
         &mut pipeline,
         gcode,
+        &mut accessories,
         |cmds| {
             for &(idx, cmd) in cmds.iter() {
                 streams.push(idx, cmd, &mut sinks[..])?;
@@ -271,6 +279,9 @@ fn run_batch(
         sinks.iter().map(|s| s.bytes).sum::<u64>(),
         started.elapsed().as_secs_f64()
     );
+    for line in accessories.lines() {
+        println!("  {line}");
+    }
     Ok(())
 }
 

@@ -209,6 +209,32 @@ fn decode_check_proves_a_batch_stream_and_refuses_other_motion() {
 }
 
 #[test]
+fn heaters_fan_and_display_are_recorded_in_the_summary() {
+    let dir = scratch("accessories");
+    let g = dir.join("acc.gcode");
+    std::fs::write(
+        &g,
+        "M140 S60\nM109 S215\nG28\nM106 S255\nG1 X10 Y10 F3000\nM117 Layer 1\nM114\nM107\n",
+    )
+    .unwrap();
+    let out = dir.join("out.bin");
+    let run = cadence(
+        &["print", g.to_str().unwrap(), "--batch", out.to_str().unwrap()],
+        TIMEOUT,
+    );
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    for want in [
+        "heaters (simulated: each target reached at once): extruder last target 215 °C (1 commands, 1 waits), \
+         heater_bed last target 60 °C (1 commands, 0 waits)",
+        "part fan (recorded, not driven): 2 changes, last 0 %",
+        "M117 (line 6): Layer 1",
+        "M114 (line 7): X:10.000 Y:10.000 Z:0.000 E:0.000",
+    ] {
+        assert!(run.stdout.contains(want), "{want}:\n{}", run.stdout);
+    }
+}
+
+#[test]
 fn config_error_names_section_and_option() {
     let dir = scratch("badcfg");
     let cfg = dir.join("printer.cfg");
