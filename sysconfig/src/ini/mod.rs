@@ -179,9 +179,13 @@ pub enum IniError {
     /// A file includes itself, directly or through others.
     #[error("{at}: Recursive include of config file '{}'", .path.display())]
     IncludeCycle { at: Location, path: PathBuf },
-    /// `[include *.cfg]`: Klipper expands globs, Cadence does not (yet).
-    #[error("{at}: include '{spec}': glob patterns are not supported")]
-    IncludeGlob { at: Location, spec: String },
+    /// `[include *.cfg]` whose pattern is malformed or whose directory cannot be listed.
+    #[error("{at}: include '{spec}': {problem}")]
+    IncludeGlob {
+        at: Location,
+        spec: String,
+        problem: String,
+    },
     /// Includes nested deeper than [`MAX_INCLUDE_DEPTH`] (e.g. a symlink loop).
     #[error("{at}: includes nested deeper than {MAX_INCLUDE_DEPTH} files")]
     IncludeTooDeep { at: Location },
@@ -220,11 +224,34 @@ pub fn parse_str(text: &str, name: &Path) -> Result<ConfigFile, IniError> {
 }
 
 /// Parses `text` as the file `name`, reading included files through `read` (tests use an
-/// in-memory map).
+/// in-memory map); glob includes are listed from the filesystem ([`glob_files`]).
 pub fn parse_with(
     text: &str,
     name: &Path,
     read: &mut dyn FnMut(&Path) -> io::Result<String>,
 ) -> Result<ConfigFile, IniError> {
-    parse::Parser::new(read).run(text, name)
+    parse_with_listing(text, name, read, &mut glob_files)
+}
+
+/// [`parse_with`], listing the files a glob include matches through `list` (given the pattern
+/// joined to the including file's directory; it returns them in any order).
+pub fn parse_with_listing(
+    text: &str,
+    name: &Path,
+    read: &mut dyn FnMut(&Path) -> io::Result<String>,
+    list: &mut dyn FnMut(&Path) -> Result<Vec<PathBuf>, String>,
+) -> Result<ConfigFile, IniError> {
+    parse::Parser::new(read, list).run(text, name)
+}
+
+/// The files on disk matching the glob `pattern` (`*`, `?`, `[...]`, in any path component).
+pub fn glob_files(pattern: &Path) -> Result<Vec<PathBuf>, String> {
+    let text = pattern
+        .to_str()
+        .ok_or_else(|| "the path is not valid UTF-8".to_string())?;
+    let paths = glob::glob(text).map_err(|e| format!("bad glob pattern: {}", e.msg))?;
+    paths
+        .map(|p| p.map_err(|e| e.to_string()))
+        .filter(|p| p.as_ref().map_or(true, |p| p.is_file()))
+        .collect()
 }

@@ -32,15 +32,20 @@ enum AutosaveLine<'a> {
 
 pub(super) struct Parser<'r> {
     read: &'r mut dyn FnMut(&Path) -> io::Result<String>,
+    list: &'r mut dyn FnMut(&Path) -> Result<Vec<PathBuf>, String>,
     out: ConfigFile,
     /// Identities of the files being read, outermost first.
     open: Vec<PathBuf>,
 }
 
 impl<'r> Parser<'r> {
-    pub(super) fn new(read: &'r mut dyn FnMut(&Path) -> io::Result<String>) -> Self {
+    pub(super) fn new(
+        read: &'r mut dyn FnMut(&Path) -> io::Result<String>,
+        list: &'r mut dyn FnMut(&Path) -> Result<Vec<PathBuf>, String>,
+    ) -> Self {
         Parser {
             read,
+            list,
             out: ConfigFile::default(),
             open: Vec::new(),
         }
@@ -182,14 +187,26 @@ impl<'r> Parser<'r> {
     }
 
     /// Reads `spec` relative to `from`'s directory, in place of the `[include]` line at `at`.
+    /// A glob (`*`, `?`, `[`) includes every file it matches in name order, and none is fine
+    /// (as in Klipper); a plain name must exist.
     fn include(&mut self, spec: &str, from: &Path, at: Location) -> Result<(), IniError> {
-        if spec.contains(['*', '?', '[']) {
-            return Err(IniError::IncludeGlob {
-                at,
-                spec: spec.to_string(),
-            });
+        let dir = from.parent().unwrap_or(Path::new(""));
+        if !spec.contains(['*', '?', '[']) {
+            return self.include_path(dir.join(spec), at);
         }
-        let path = from.parent().unwrap_or(Path::new("")).join(spec);
+        let mut paths = (self.list)(&dir.join(spec)).map_err(|problem| IniError::IncludeGlob {
+            at: at.clone(),
+            spec: spec.to_string(),
+            problem,
+        })?;
+        paths.sort();
+        for path in paths {
+            self.include_path(path, at.clone())?;
+        }
+        Ok(())
+    }
+
+    fn include_path(&mut self, path: PathBuf, at: Location) -> Result<(), IniError> {
         let id = identity(&path);
         if self.open.contains(&id) {
             return Err(IniError::IncludeCycle { at, path });
@@ -494,8 +511,8 @@ mod tests {
             "/cfg/printer.cfg:3: Include file '/cfg/missing.cfg' cannot be read: no such file"
         );
         assert_eq!(
-            err("[include conf.d/*.cfg]\n"),
-            "/cfg/printer.cfg:1: include 'conf.d/*.cfg': glob patterns are not supported"
+            err("[include conf.d/[*.cfg]\n"),
+            "/cfg/printer.cfg:1: include 'conf.d/[*.cfg': bad glob pattern: invalid range pattern"
         );
         assert_eq!(
             err("[include]\n"),
@@ -509,6 +526,59 @@ mod tests {
             e,
             Err("/cfg/printer.cfg:3: option 'y' comes before any [section] header".to_string())
         );
+    }
+
+    /// [`parse_in`] with glob includes listed from `fs` too.
+    fn parse_globbing(main: &str, fs: &HashMap<PathBuf, String>) -> Result<ConfigFile, IniError> {
+        let mut read = |p: &Path| {
+            fs.get(&normalize(p))
+                .cloned()
+                .ok_or_else(|| io::Error::new(io::ErrorKind::NotFound, "no such file"))
+        };
+        let mut list = |pattern: &Path| {
+            let pattern =
+                glob::Pattern::new(&normalize(pattern).to_string_lossy()).map_err(|e| e.to_string())?;
+            // Reverse name order: the parser must sort.
+            let mut hits: Vec<PathBuf> = fs.keys().filter(|p| pattern.matches_path(p)).cloned().collect();
+            hits.sort_by(|a, b| b.cmp(a));
+            Ok(hits)
+        };
+        super::super::parse_with_listing(main, Path::new("/cfg/printer.cfg"), &mut read, &mut list)
+    }
+
+    #[test]
+    fn glob_includes_take_every_match_in_name_order() {
+        let fs = files(&[
+            ("/cfg/conf.d/b.cfg", "[printer]\nmax_accel: 2\n"),
+            ("/cfg/conf.d/a.cfg", "[printer]\nmax_accel: 1\nmax_velocity: 5\n"),
+            ("/cfg/conf.d/notes.txt", "not a config"),
+        ]);
+        let cfg = parse_globbing("[include conf.d/*.cfg]\n", &fs).unwrap_or_else(|e| panic!("{e}"));
+        // b.cfg comes after a.cfg, so its value wins.
+        assert_eq!(text(&cfg, "printer", "max_accel"), "2");
+        assert_eq!(text(&cfg, "printer", "max_velocity"), "5");
+        // No match is no include (Klipper), a plain missing name is an error.
+        let cfg = parse_globbing("[a]\n[include macros/*.cfg]\n", &fs).unwrap_or_else(|e| panic!("{e}"));
+        assert!(cfg.section("a").is_some());
+        // A glob that matches the including file is a cycle.
+        let fs = files(&[("/cfg/conf.d/a.cfg", "[include *.cfg]\n")]);
+        let e = parse_globbing("[include conf.d/a.cfg]\n", &fs).map(|_| ());
+        assert!(matches!(e, Err(IniError::IncludeCycle { .. })), "{e:?}");
+    }
+
+    #[test]
+    fn glob_includes_read_the_disk() {
+        let dir = std::env::temp_dir().join(format!("cadence-glob-{}", std::process::id()));
+        std::fs::create_dir_all(dir.join("parts")).unwrap();
+        std::fs::write(dir.join("parts/2.cfg"), "[b]\ny: 2\n").unwrap();
+        std::fs::write(dir.join("parts/1.cfg"), "[a]\nx: 1\n").unwrap();
+        std::fs::create_dir_all(dir.join("parts/sub.cfg")).unwrap(); // a directory: skipped
+        std::fs::write(dir.join("printer.cfg"), "[include parts/*.cfg]\n").unwrap();
+        let cfg = super::super::load(&dir.join("printer.cfg")).unwrap_or_else(|e| panic!("{e}"));
+        let _ = std::fs::remove_dir_all(&dir);
+        assert_eq!((text(&cfg, "a", "x"), text(&cfg, "b", "y")), ("1", "2"));
+        let names: Vec<_> = cfg.files.iter().filter_map(|f| f.file_name()).collect();
+        assert_eq!(names, ["printer.cfg", "1.cfg", "2.cfg"]);
     }
 
     #[test]
