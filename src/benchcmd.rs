@@ -52,10 +52,7 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
             clock_freq,
             runs,
         } => {
-            let cfg = match config {
-                Some(p) => sysconfig::printer::load(p).map_err(|e| e.to_string())?,
-                None => sysconfig::printer::builtin_simulated().map_err(|e| e.to_string())?,
-            };
+            let cfg = crate::machine::load_config(config.as_deref())?;
             let dict = crate::decode::load_dictionary(None)?;
             let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
             let opts = bench::plan::PlanOptions {

@@ -1,7 +1,7 @@
 //! The printer as the host drives it: which steppers exist, on which MCU and oid, with which
 //! pins, and the planner configuration derived from printer.cfg.
 
-use planner::pipeline::{PipelineConfig, PipelineOptions, StepperSpec};
+use planner::pipeline::{Pipeline, PipelineConfig, PipelineOptions, StepperSpec};
 use planner::toolhead::ToolheadConfig;
 use sysconfig::printer::{MotorSection, PinRef, PrinterConfig, ProbeSection, PROBE_PIN_MCU};
 
@@ -185,7 +185,39 @@ impl Machine {
     }
 }
 
+/// The printer config at `path`, or the built-in simulated printer without one.
+pub fn load_config(path: Option<&std::path::Path>) -> Result<PrinterConfig, String> {
+    match path {
+        Some(path) => sysconfig::printer::load(path).map_err(|e| e.to_string()),
+        None => sysconfig::printer::builtin_simulated().map_err(|e| format!("built-in printer: {e}")),
+    }
+}
+
+/// Print time (s) of batch mode's first move: `print --batch` writes its streams from it, and
+/// `decode --check` plans again from it.
+pub const BATCH_START_S: f64 = 0.25;
+
 impl Machine {
+    /// The planner of batch mode (every MCU clock counted from print time 0 at `clock_freq`),
+    /// generating and compressing steps on `threads` threads.
+    pub fn batch_pipeline(
+        &self,
+        clock_freq: f64,
+        max_error_s: f64,
+        threads: usize,
+    ) -> Result<Pipeline, String> {
+        let options = PipelineOptions {
+            threads,
+            ..self.options
+        };
+        Pipeline::with_options(
+            self.pipeline_config(clock_freq, max_error_s),
+            BATCH_START_S,
+            options,
+        )
+        .map_err(|e| e.to_string())
+    }
+
     /// The endstop objects on MCU `mcu`, in oid order: the axis endstops, then the probe
     /// unless it is Z's endstop too.
     pub fn mcu_endstops(&self, mcu: &str) -> Vec<&EndstopOut> {

@@ -9,7 +9,7 @@ use std::time::Instant;
 use clap::Args;
 use planner::gcode::{Command, GcodeReader};
 use planner::machine::{Applied, PlanErrorKind};
-use planner::pipeline::{Pipeline, PipelineOptions};
+use planner::pipeline::Pipeline;
 use planner::stepgen::StepCmd;
 use sysconfig::printer::PrinterConfig;
 
@@ -76,10 +76,7 @@ pub fn run(args: &PrintArgs) -> Result<(), String> {
     }
     // Open the G-code first: a missing file must not start any MCU.
     let gcode = File::open(&args.file).map_err(|e| format!("{}: {e}", args.file.display()))?;
-    let cfg = match &args.config {
-        Some(path) => sysconfig::printer::load(path).map_err(|e| e.to_string())?,
-        None => sysconfig::printer::builtin_simulated().map_err(|e| format!("built-in printer: {e}"))?,
-    };
+    let cfg = crate::machine::load_config(args.config.as_deref())?;
     for w in &cfg.warnings {
         eprintln!("cadence: warning: {w}");
     }
@@ -233,16 +230,7 @@ fn run_batch(
     let mut streams = StepStreams::new(machine, &params)?;
     // Batch mode runs flat out: step generation and compression on every core.
     let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-    let options = PipelineOptions {
-        threads,
-        ..machine.options
-    };
-    let mut pipeline = Pipeline::with_options(
-        machine.pipeline_config(clock_freq, args.max_error_us * 1e-6),
-        0.25,
-        options,
-    )
-    .map_err(|e| e.to_string())?;
+    let mut pipeline = machine.batch_pipeline(clock_freq, args.max_error_us * 1e-6, threads)?;
     let mut accessories = Accessories::new(false);
     let lines = plan_file(
         args,

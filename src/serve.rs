@@ -84,10 +84,7 @@ pub struct ServeArgs {
 
 pub fn run(args: &ServeArgs) -> Result<(), String> {
     let Role::Io = args.role;
-    let cfg = match &args.config {
-        Some(path) => sysconfig::printer::load(path).map_err(|e| e.to_string())?,
-        None => sysconfig::printer::builtin_simulated().map_err(|e| format!("built-in printer: {e}"))?,
-    };
+    let cfg = crate::machine::load_config(args.config.as_deref())?;
     for w in &cfg.warnings {
         eprintln!("cadence serve: warning: {w}");
     }

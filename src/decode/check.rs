@@ -22,7 +22,7 @@ use links::dict::{Dictionary, Message};
 use links::proto::{block::block_payload, find_block, Frame};
 use planner::checker::{CheckStats, Checker, StepCmd};
 use planner::gcode::GcodeReader;
-use planner::pipeline::{Pipeline, PipelineOptions};
+use planner::pipeline::Pipeline;
 
 use crate::machine::Machine;
 
@@ -98,10 +98,7 @@ pub fn run(stream: &Path, data: &[u8], dict: &Dictionary, spec: &CheckSpec<'_>) 
         ));
     }
     let gcode = File::open(spec.gcode).map_err(|e| format!("{}: {e}", spec.gcode.display()))?;
-    let cfg = match spec.config {
-        Some(path) => sysconfig::printer::load(path).map_err(|e| e.to_string())?,
-        None => sysconfig::printer::builtin_simulated().map_err(|e| format!("built-in printer: {e}"))?,
-    };
+    let cfg = crate::machine::load_config(spec.config)?;
     let machine = Machine::from_config(&cfg)?;
     if !machine.steppers.iter().any(|s| s.mcu == spec.mcu) {
         return Err(format!(
@@ -110,16 +107,7 @@ pub fn run(stream: &Path, data: &[u8], dict: &Dictionary, spec: &CheckSpec<'_>) 
         ));
     }
     let clock_freq = dict.clock_freq().map_err(|e| e.to_string())?;
-    let options = PipelineOptions {
-        threads: 0,
-        ..machine.options
-    };
-    let mut pipeline = Pipeline::with_options(
-        machine.pipeline_config(clock_freq, spec.max_error_us * 1e-6),
-        0.25,
-        options,
-    )
-    .map_err(|e| e.to_string())?;
+    let mut pipeline = machine.batch_pipeline(clock_freq, spec.max_error_us * 1e-6, 0)?;
     pipeline.set_record_ideal(true);
     let max_ticks = pipeline.max_error_ticks();
     let mut checked = Vec::new();

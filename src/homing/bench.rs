@@ -161,10 +161,7 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
             return Err(format!("--time-scale {scale}: must be in (0, 50]"));
         }
     }
-    let cfg = match &args.config {
-        Some(path) => sysconfig::printer::load(path).map_err(|e| e.to_string())?,
-        None => sysconfig::printer::builtin_simulated().map_err(|e| format!("built-in printer: {e}"))?,
-    };
+    let cfg = crate::machine::load_config(args.config.as_deref())?;
     for w in &cfg.warnings {
         eprintln!("cadence: warning: {w}");
     }
