@@ -422,6 +422,16 @@ impl GcodeState {
             "G21" => {}
             "G20" => return Err(PlanErrorKind::Inches),
             "M104" | "M109" | "M140" | "M190" => {
+                // The one extruder is T0 (Klipper refuses a T naming no extruder).
+                if matches!(name, "M104" | "M109") {
+                    if let Some(t) = num("T")? {
+                        if t != 0.0 {
+                            return Err(PlanErrorKind::BadParameter(format!(
+                                "{name}: T{t}: this printer has one extruder (T0)"
+                            )));
+                        }
+                    }
+                }
                 let target = non_neg("S")?.unwrap_or(0.0);
                 if target > 1000.0 {
                     return Err(PlanErrorKind::BadParameter(format!(
@@ -497,6 +507,13 @@ impl GcodeState {
                 .map_err(limits)?;
             }
             "SET_PRESSURE_ADVANCE" => {
+                if let Some(e) = p.get("EXTRUDER") {
+                    if e != "extruder" {
+                        return Err(PlanErrorKind::BadParameter(format!(
+                            "{name}: EXTRUDER={e}: this printer has one extruder, 'extruder'"
+                        )));
+                    }
+                }
                 let advance = non_neg("ADVANCE")?.unwrap_or(self.pressure_advance.0);
                 let smooth = non_neg("SMOOTH_TIME")?.unwrap_or(self.pressure_advance.1);
                 if smooth > 0.2 {
@@ -806,6 +823,25 @@ mod tests {
             })
         ));
         assert_eq!(res[11], Ok(Applied::Unsupported("FOO_BAR".into())));
+    }
+
+    #[test]
+    fn other_extruders_are_refused() {
+        let (_, _, res) = run(&[
+            "G28",
+            "SET_PRESSURE_ADVANCE EXTRUDER=extruder ADVANCE=0.05",
+            "SET_PRESSURE_ADVANCE EXTRUDER=extruder1 ADVANCE=0.05",
+            "M104 S200 T0",
+            "M109 S200 T1",
+            "M140 S60",
+        ]);
+        assert!(res[1].is_ok() && res[3].is_ok() && res[5].is_ok(), "{res:?}");
+        let err = |i: usize| res[i].as_ref().map(|_| ()).unwrap_err().to_string();
+        assert_eq!(
+            err(2),
+            "line 3: SET_PRESSURE_ADVANCE: EXTRUDER=extruder1: this printer has one extruder, 'extruder'"
+        );
+        assert_eq!(err(4), "line 5: M109: T1: this printer has one extruder (T0)");
     }
 
     #[test]
