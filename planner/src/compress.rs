@@ -63,7 +63,7 @@ use std::collections::VecDeque;
 
 use crate::kinematics::StepperKin;
 use crate::stepgen::StepGen;
-use crate::stepgen::StepSink;
+use crate::stepgen::{line_by_steps, line_clock, StepSink};
 pub use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::Move;
 use fit::{
@@ -442,17 +442,11 @@ impl StepSink for &mut WindowSink<'_> {
         match self.slots.get_mut(self.used..self.used + n) {
             Some(room) => {
                 for (slot, i) in room.iter_mut().zip(from..to) {
-                    let t = t0 + i as f64 * dt;
-                    *slot = step_window(if t > floor { t } else { floor }, max_err, dir);
+                    *slot = step_window(line_clock(t0, dt, i, floor), max_err, dir);
                 }
                 self.used += n;
             }
-            None => {
-                for i in from..to {
-                    let t = t0 + i as f64 * dt;
-                    self.step(if t > floor { t } else { floor }, dir);
-                }
-            }
+            None => line_by_steps(self, t0, dt, from, to, floor, dir),
         }
     }
 }

@@ -56,10 +56,36 @@ pub trait StepSink {
     /// (bit-identical step times).
     #[inline]
     fn line(&mut self, t0: f64, dt: f64, from: i64, to: i64, floor: f64, dir: bool) {
-        for i in from..to {
-            let t = t0 + i as f64 * dt;
-            self.step(if t > floor { t } else { floor }, dir);
-        }
+        line_by_steps(self, t0, dt, from, to, floor, dir);
+    }
+}
+
+/// Clock of step `i` of a cruise line: max(t0 + i·dt, floor). Every writer of a line uses this
+/// one expression, so step times are bit-identical however the line is written.
+#[inline(always)]
+pub fn line_clock(t0: f64, dt: f64, i: i64, floor: f64) -> f64 {
+    let t = t0 + i as f64 * dt;
+    if t > floor {
+        t
+    } else {
+        floor
+    }
+}
+
+/// [`StepSink::line`] as one [`StepSink::step`] per step (the default, and the fallback of
+/// sinks that write lines their own way).
+#[inline]
+pub fn line_by_steps<S: StepSink + ?Sized>(
+    sink: &mut S,
+    t0: f64,
+    dt: f64,
+    from: i64,
+    to: i64,
+    floor: f64,
+    dir: bool,
+) {
+    for i in from..to {
+        sink.step(line_clock(t0, dt, i, floor), dir);
     }
 }
 
@@ -208,8 +234,7 @@ impl StepGen {
                     if i_to > i_from {
                         sink.line(t0, dt, i_from, i_to, last, up);
                         // The steps rise with i (dt > 0): the last one is the latest.
-                        let t = t0 + (i_to - 1) as f64 * dt;
-                        last = if t > last { t } else { last };
+                        last = line_clock(t0, dt, i_to - 1, last);
                     }
                     k += (i_to - i_from) * dk;
                 }
