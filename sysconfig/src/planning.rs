@@ -2,7 +2,6 @@
 //! advance). One place, used by the host and the benchmarks.
 
 use planner::kinematics::{DeltaGeometry, Kinematics};
-use planner::machine::Retraction;
 use planner::pipeline::{PipelineConfig, PipelineOptions, StepperSpec};
 use planner::pressure_advance::PressureAdvance;
 use planner::toolhead::ToolheadConfig;
@@ -110,17 +109,11 @@ pub fn pipeline_options(cfg: &PrinterConfig, kinematics: Kinematics) -> Pipeline
             advance: e.pressure_advance,
             smooth_time: e.pressure_advance_smooth_time,
         });
-    let r = &cfg.firmware_retraction;
     PipelineOptions {
         kinematics,
         pressure_advance,
         unknown_commands_are_errors: cfg.gcode.unknown_commands == UnknownCommands::Error,
-        retraction: Retraction {
-            retract_length: r.retract_length,
-            retract_speed: r.retract_speed,
-            unretract_extra_length: r.unretract_extra_length,
-            unretract_speed: r.unretract_speed,
-        },
+        retraction: cfg.firmware_retraction,
         arc_resolution: cfg.gcode_arcs.resolution,
         ..PipelineOptions::default()
     }

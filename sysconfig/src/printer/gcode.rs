@@ -7,6 +7,8 @@
 //! - `[gcode_arcs]` (Klipper's): `resolution`, the chord length G2/G3 arcs are split into.
 //! - `[firmware_retraction]` (Klipper's): what G10/G11 do, until SET_RETRACTION changes it.
 
+use planner::machine::{Retraction, ARC_RESOLUTION};
+
 use super::error::ConfigError;
 use super::reader::{Bounds, SectionReader};
 
@@ -46,45 +48,28 @@ pub(crate) fn read_gcode(s: &SectionReader<'_>) -> Result<GcodeSection, ConfigEr
 /// `[gcode_arcs]`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct GcodeArcsSection {
-    /// Chord length of G2/G3 arcs (mm, default 1).
+    /// Chord length of G2/G3 arcs (mm, default the planner's [`ARC_RESOLUTION`], Klipper's 1).
     pub resolution: f64,
 }
 
 impl Default for GcodeArcsSection {
     fn default() -> Self {
-        GcodeArcsSection { resolution: 1.0 }
+        GcodeArcsSection {
+            resolution: ARC_RESOLUTION,
+        }
     }
 }
 
 pub(crate) fn read_gcode_arcs(s: &SectionReader<'_>) -> Result<GcodeArcsSection, ConfigError> {
+    let d = GcodeArcsSection::default();
     Ok(GcodeArcsSection {
-        resolution: s.float_or("resolution", 1.0, Bounds::ANY.above(0.0))?,
+        resolution: s.float_or("resolution", d.resolution, Bounds::ANY.above(0.0))?,
     })
 }
 
-/// `[firmware_retraction]` (Klipper's defaults and bounds).
-#[derive(Debug, Clone, PartialEq)]
-pub struct FirmwareRetractionSection {
-    /// Filament G10 pulls back (mm, default 0).
-    pub retract_length: f64,
-    /// mm/s (default 20).
-    pub retract_speed: f64,
-    /// Extra filament G11 pushes on top of `retract_length` (mm, default 0).
-    pub unretract_extra_length: f64,
-    /// mm/s (default 10).
-    pub unretract_speed: f64,
-}
-
-impl Default for FirmwareRetractionSection {
-    fn default() -> Self {
-        FirmwareRetractionSection {
-            retract_length: 0.0,
-            retract_speed: 20.0,
-            unretract_extra_length: 0.0,
-            unretract_speed: 10.0,
-        }
-    }
-}
+/// `[firmware_retraction]`: the planner's G10/G11 settings, whose defaults are Klipper's
+/// (length 0 and 0 extra, speeds 20 and 10 mm/s).
+pub type FirmwareRetractionSection = Retraction;
 
 pub(crate) fn read_firmware_retraction(
     s: &SectionReader<'_>,
