@@ -160,22 +160,11 @@ impl PrinterConfig {
             None => SimulatorSection::default(),
         };
 
-        let realtime = match reader.section("realtime") {
-            Some(s) => realtime::read_realtime(&s)?,
-            None => RealtimeSection::default(),
-        };
-        let gcode = match reader.section("gcode") {
-            Some(s) => gcode::read_gcode(&s)?,
-            None => GcodeSection::default(),
-        };
-        let gcode_arcs = match reader.section("gcode_arcs") {
-            Some(s) => gcode::read_gcode_arcs(&s)?,
-            None => GcodeArcsSection::default(),
-        };
-        let firmware_retraction = match reader.section("firmware_retraction") {
-            Some(s) => gcode::read_firmware_retraction(&s)?,
-            None => FirmwareRetractionSection::default(),
-        };
+        let realtime = reader.section_or_default("realtime", realtime::read_realtime)?;
+        let gcode = reader.section_or_default("gcode", gcode::read_gcode)?;
+        let gcode_arcs = reader.section_or_default("gcode_arcs", gcode::read_gcode_arcs)?;
+        let firmware_retraction =
+            reader.section_or_default("firmware_retraction", gcode::read_firmware_retraction)?;
 
         let mut warnings = reader.finish(is_ignored)?;
         if let Some(s) = simulator_section {

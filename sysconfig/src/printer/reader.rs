@@ -130,6 +130,15 @@ impl<'a> Reader<'a> {
         self.view(index)
     }
 
+    /// The optional section `name` built by `read`, or `T`'s defaults when it is absent.
+    pub(crate) fn section_or_default<T: Default>(
+        &self,
+        name: &str,
+        read: impl FnOnce(&SectionReader<'_>) -> Result<T, ConfigError>,
+    ) -> Result<T, ConfigError> {
+        self.section(name).map_or_else(|| Ok(T::default()), |s| read(&s))
+    }
+
     /// Every `[kind NAME]` section (with an argument), in file order, marked as read.
     pub(crate) fn sections_with_arg(&self, kind: &str) -> Vec<SectionReader<'_>> {
         let indices = self.file.sections().iter().enumerate();
