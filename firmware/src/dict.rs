@@ -1,19 +1,24 @@
 //! The data dictionary: the Klipper JSON built from the core's tables, zlib-compressed.
 //!
 //! `commands` and `responses` map each format string of [`MESSAGES`] to its id (its position);
-//! `enumerations` holds `pin` (ports A..L as ranges `"PA0": [0, 8]`, `"PB0": [8, 8]`, …) and
-//! `static_string_id` (every shutdown reason → its id); `config` holds `CLOCK_FREQ` plus
-//! [`CONSTANTS`]. The host reads everything from here and never hard-codes ids beyond 0 and 1.
+//! `enumerations` holds `pin` (the [`Chip`]'s ports as ranges: the simulator's `"PA0": [0, 8]`,
+//! `"PB0": [8, 8]`, …, an STM32's `"PA0": [0, 16]`, …) and `static_string_id` (every shutdown
+//! reason → its id); `config` holds `CLOCK_FREQ`, `MCU` plus [`CONSTANTS`]. The host reads everything from here and never hard-codes ids beyond 0 and 1.
 
 use crate::core::commands::{Kind, MESSAGES};
-use crate::core::constants::{ConstValue, CONSTANTS, PINS_PER_PORT, PIN_PORTS, SHUTDOWN_REASONS};
+use crate::core::constants::{Chip, ConstValue, CONSTANTS, SHUTDOWN_REASONS, SIM_CHIP};
 use flate2::write::ZlibEncoder;
 use flate2::Compression;
 use serde_json::{json, Map, Value};
 use std::io::Write;
 
-/// The dictionary as JSON, for an MCU clocked at `clock_freq` Hz.
+/// The simulator's dictionary as JSON, for an MCU clocked at `clock_freq` Hz.
 pub fn dictionary_json(clock_freq: u32) -> Value {
+    dictionary_json_for(&SIM_CHIP, clock_freq)
+}
+
+/// The dictionary of a target on `chip`, clocked at `clock_freq` Hz, as JSON.
+pub fn dictionary_json_for(chip: &Chip, clock_freq: u32) -> Value {
     let mut commands = Map::new();
     let mut responses = Map::new();
     for (id, m) in MESSAGES.iter().enumerate() {
@@ -24,9 +29,9 @@ pub fn dictionary_json(clock_freq: u32) -> Value {
         map.insert(m.format.to_owned(), json!(id));
     }
     let mut pins = Map::new();
-    for (i, port) in PIN_PORTS.iter().enumerate() {
-        let first = i as u32 * PINS_PER_PORT as u32;
-        pins.insert(format!("P{}0", *port as char), json!([first, PINS_PER_PORT]));
+    for (i, port) in chip.ports.iter().enumerate() {
+        let first = i as u32 * chip.pins_per_port as u32;
+        pins.insert(format!("P{}0", *port as char), json!([first, chip.pins_per_port]));
     }
     let reasons: Map<String, Value> = SHUTDOWN_REASONS
         .iter()
@@ -35,6 +40,7 @@ pub fn dictionary_json(clock_freq: u32) -> Value {
         .collect();
     let mut config = Map::new();
     config.insert("CLOCK_FREQ".into(), json!(clock_freq));
+    config.insert("MCU".into(), json!(chip.mcu));
     for (name, value) in CONSTANTS {
         let v = match *value {
             ConstValue::Int(i) => json!(i),
@@ -55,9 +61,14 @@ pub fn dictionary_json(clock_freq: u32) -> Value {
     })
 }
 
-/// The zlib-compressed dictionary JSON, as served through `identify`.
+/// The simulator's zlib-compressed dictionary JSON, as served through `identify`.
 pub fn dictionary_bytes(clock_freq: u32) -> Vec<u8> {
-    let json = dictionary_json(clock_freq).to_string();
+    dictionary_bytes_for(&SIM_CHIP, clock_freq)
+}
+
+/// The zlib-compressed dictionary JSON of a target on `chip` clocked at `clock_freq` Hz.
+pub fn dictionary_bytes_for(chip: &Chip, clock_freq: u32) -> Vec<u8> {
+    let json = dictionary_json_for(chip, clock_freq).to_string();
     let mut enc = ZlibEncoder::new(Vec::new(), Compression::best());
     // Writing into a Vec cannot fail; an empty dictionary would make the host's identify fail
     // loudly rather than this process panic.
@@ -97,5 +108,25 @@ mod tests {
         assert_eq!(v["enumerations"]["static_string_id"]["Timer too close"], 1);
         let n = v["commands"].as_object().unwrap().len() + v["responses"].as_object().unwrap().len();
         assert_eq!(n, MESSAGES.len());
+    }
+
+    #[test]
+    fn a_chip_names_its_own_pins_and_mcu() {
+        let chip = Chip {
+            mcu: "stm32f405",
+            ports: b"ABCDEFGHI",
+            pins_per_port: 16,
+        };
+        let v = dictionary_json_for(&chip, 4_000_000);
+        assert_eq!(v["config"]["MCU"], "stm32f405");
+        assert_eq!(v["config"]["CLOCK_FREQ"], 4_000_000);
+        let pins = v["enumerations"]["pin"].as_object().unwrap();
+        assert_eq!(pins.len(), 9);
+        assert_eq!(pins["PB0"], json!([16, 16]));
+        assert_eq!(pins["PI0"], json!([128, 16]));
+        // Same commands and responses as the simulator: one table.
+        let sim = dictionary_json(4_000_000);
+        assert_eq!(v["commands"], sim["commands"]);
+        assert_eq!(v["responses"], sim["responses"]);
     }
 }

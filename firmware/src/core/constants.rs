@@ -2,8 +2,10 @@
 //! the pin enumeration and the `config` constants.
 //!
 //! A shutdown reason travels as its index in [`SHUTDOWN_REASONS`]; the host maps it back to
-//! the text through the `static_string_id` enumeration. Pins are ports A..L of 8 pins each,
-//! numbered `8·port + bit`, published as Klipper range enumerations `"PA0": [0, 8]`.
+//! the text through the `static_string_id` enumeration. Pins are named by [`Chip`]: the
+//! simulator's ports A..L of 8 pins each (numbered `8·port + bit`), a Cortex-M board's as its
+//! chip names them (STM32: ports of 16), published as Klipper range enumerations
+//! `"PA0": [0, 8]`.
 
 /// Shutdown reasons. Every `&'static str` passed to `shutdown` must be one of these.
 pub mod reason {
@@ -69,10 +71,37 @@ pub fn static_string_id(reason: &str) -> u16 {
     SHUTDOWN_REASONS.iter().position(|&r| r == reason).unwrap_or(0) as u16
 }
 
-/// Port letters of the pin enumeration.
+/// Port letters of the simulator's pin enumeration.
 pub const PIN_PORTS: &[u8] = b"ABCDEFGHIJKL";
-/// Pins per port.
+/// Pins per port of the simulator.
 pub const PINS_PER_PORT: u8 = 8;
+
+/// What the dictionary says about the chip a target runs on: its `MCU` name and its pins.
+/// Pin `n` is bit `n % pins_per_port` of port `ports[n / pins_per_port]`, named `P<port><bit>`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Chip {
+    /// The dictionary's `MCU` constant.
+    pub mcu: &'static str,
+    /// Port letters, in pin-number order.
+    pub ports: &'static [u8],
+    /// Pins per port.
+    pub pins_per_port: u8,
+}
+
+impl Chip {
+    /// Port index and bit of pin `pin`, if the chip has it.
+    pub fn port_bit(&self, pin: u8) -> Option<(usize, u8)> {
+        let port = (pin / self.pins_per_port.max(1)) as usize;
+        (port < self.ports.len()).then_some((port, pin % self.pins_per_port.max(1)))
+    }
+}
+
+/// The Linux-process target (the simulator).
+pub const SIM_CHIP: Chip = Chip {
+    mcu: "linux-sim",
+    ports: PIN_PORTS,
+    pins_per_port: PINS_PER_PORT,
+};
 
 /// A `config` constant's value.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -83,9 +112,9 @@ pub enum ConstValue {
     Str(&'static str),
 }
 
-/// The `config` constants other than `CLOCK_FREQ` (which is set at start-up).
+/// The `config` constants other than `CLOCK_FREQ` (set at start-up) and `MCU` (the target's
+/// [`Chip::mcu`]).
 pub const CONSTANTS: &[(&str, ConstValue)] = &[
-    ("MCU", ConstValue::Str("linux-sim")),
     ("STATS_SUMSQ_BASE", ConstValue::Int(STATS_SUMSQ_BASE as i64)),
     ("RECEIVE_WINDOW", ConstValue::Int(RECEIVE_WINDOW as i64)),
     ("SERIAL_BAUD", ConstValue::Int(250_000)),
@@ -112,5 +141,20 @@ mod tests {
             SHUTDOWN_REASONS[static_string_id(reason::TIMER_TOO_CLOSE) as usize],
             "Timer too close"
         );
+    }
+
+    #[test]
+    fn chip_pins_split_into_port_and_bit() {
+        let stm32 = Chip {
+            mcu: "stm32f405",
+            ports: b"ABCDEFGHI",
+            pins_per_port: 16,
+        };
+        assert_eq!(stm32.port_bit(0), Some((0, 0)));
+        assert_eq!(stm32.port_bit(24), Some((1, 8)));
+        assert_eq!(stm32.port_bit(143), Some((8, 15)));
+        assert_eq!(stm32.port_bit(144), None);
+        assert_eq!(SIM_CHIP.port_bit(95), Some((11, 7)));
+        assert_eq!(SIM_CHIP.port_bit(96), None);
     }
 }
