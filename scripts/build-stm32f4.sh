@@ -27,7 +27,7 @@ for arg in "$@"; do
     esac
 done
 packages=(rustc-web cargo-web rust-web-src lld-22 qemu-system-arm)
-if [ "$install" = 1 ]; then
+if [ "$install" = 1 ] && ! dpkg -s "${packages[@]}" >/dev/null 2>&1; then
     apt-get update -qq
     DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${packages[@]}" >/dev/null
 fi
@@ -48,6 +48,7 @@ start=$(date +%s)
 env -u RUSTUP_TOOLCHAIN -u CARGO_BUILD_TARGET -u RUSTFLAGS \
     PATH=/usr/sbin:/usr/bin:/sbin:/bin RUSTC=/usr/bin/rustc RUSTDOC=/usr/bin/rustdoc \
     RUSTC_BOOTSTRAP=1 CARGO_HOME="${CARGO_HOME:-$HOME/.cargo}" \
+    CARGO_TARGET_THUMBV7EM_NONE_EABIHF_RUSTFLAGS="-D warnings" \
     /usr/bin/cargo build --release "${features[@]}"
 elapsed=$(( $(date +%s) - start ))
 out="$board/target/thumbv7em-none-eabihf/release"

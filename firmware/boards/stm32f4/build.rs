@@ -1,5 +1,6 @@
 //! Writes the data dictionary (zlib JSON from the core's one message table, this chip's pins
-//! and `CLOCK_FREQ`) and the linker's memory map into `OUT_DIR`.
+//! and `CLOCK_FREQ`) and the linker's memory map into `OUT_DIR`; links the image with
+//! cortex-m-rt's script `link.x`.
 
 use std::path::PathBuf;
 use std::{env, fs};
@@ -28,6 +29,8 @@ fn main() {
         }
     }
     println!("cargo:rustc-link-search={}", out.display());
+    // cortex-m-rt's linker script (it includes memory.x).
+    println!("cargo:rustc-link-arg-bins=-Tlink.x");
     println!("cargo:rerun-if-changed=memory.x");
     println!("cargo:rerun-if-changed=src/chip.rs");
 }
