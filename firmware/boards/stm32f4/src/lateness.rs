@@ -1,10 +1,34 @@
-//! Step lateness histogram (µs of MCU time): 1 µs buckets up to [`BUCKETS`]` - 1` µs, one
-//! bucket for everything later, and the exact maximum. Fixed size, no allocation.
+//! Step lateness histogram (µs of MCU time), fixed size, no allocation: 1 µs buckets below
+//! [`LINEAR`] µs, above that each power of two split into 32 buckets (values reported at their
+//! bucket's lower bound, at most 1/32 = 3% low), plus the exact maximum.
 
 use firmware::core::Lateness;
 
-/// Buckets of 1 µs; the last one holds every lateness ≥ `BUCKETS - 1` µs.
-pub const BUCKETS: usize = 1024;
+/// Values below this have a bucket each.
+const LINEAR: u32 = 256;
+/// Sub-buckets per power of two above [`LINEAR`] (5 bits).
+const SUB_BITS: u32 = 5;
+/// 256 linear buckets, then 24 powers of two (2^8 ..= 2^31) of 32 buckets.
+const BUCKETS: usize = LINEAR as usize + (32 - 8) * (1 << SUB_BITS);
+
+fn bucket(us: u32) -> usize {
+    if us < LINEAR {
+        return us as usize;
+    }
+    let e = 31 - us.leading_zeros(); // 8..=31
+    let sub = (us >> (e - SUB_BITS)) & ((1 << SUB_BITS) - 1);
+    LINEAR as usize + ((e - 8) << SUB_BITS) as usize + sub as usize
+}
+
+fn lower_bound(i: usize) -> u32 {
+    if i < LINEAR as usize {
+        return i as u32;
+    }
+    let k = i - LINEAR as usize;
+    let e = (k >> SUB_BITS) as u32 + 8;
+    let sub = (k & ((1 << SUB_BITS) - 1)) as u32;
+    ((1 << SUB_BITS) | sub) << (e - SUB_BITS)
+}
 
 /// The histogram.
 #[derive(Debug)]
@@ -26,21 +50,20 @@ impl LatenessHistogram {
 
     /// Records one step `us` µs late.
     pub fn record(&mut self, us: u32) {
-        let i = (us as usize).min(BUCKETS - 1);
+        let i = bucket(us);
         self.buckets[i] = self.buckets[i].saturating_add(1);
         self.count = self.count.saturating_add(1);
         self.max = self.max.max(us);
     }
 
-    /// The value below which `per_mille`‰ of the steps fall (the maximum if that is in the
-    /// overflow bucket).
+    /// The value below which `per_mille`‰ of the steps fall.
     fn quantile(&self, per_mille: u64) -> u32 {
         let want = (self.count as u64 * per_mille).div_ceil(1000).max(1);
         let mut seen = 0u64;
-        for (us, &n) in self.buckets.iter().enumerate() {
+        for (i, &n) in self.buckets.iter().enumerate() {
             seen += n as u64;
             if seen >= want {
-                return if us == BUCKETS - 1 { self.max } else { us as u32 };
+                return lower_bound(i).min(self.max);
             }
         }
         self.max
