@@ -248,25 +248,25 @@ impl Host {
         msgs
     }
 
-    /// Sends `payload` and returns every message up to the block that acknowledges it
-    /// (sequence advanced). A NAK (an empty block repeating our sequence) is answered by
-    /// resending, as a host must; the MCU's sequence is adopted the first time.
+    /// Sends `payload` and returns every message up to the MCU's ack. After each block it
+    /// receives the MCU flushes its responses, then always sends an empty block carrying the
+    /// next expected sequence: that block is the ack when the sequence moved past ours, a NAK
+    /// when it repeats ours (then the block is sent again, as a host must).
     fn exchange_payload(&mut self, payload: &[u8]) -> Vec<Msg> {
         self.send_payload(payload);
         let mut msgs = Vec::new();
         loop {
             let block = self.next_block();
-            let acked = block.seq == (self.seq + 1) & 0x0F;
-            msgs.extend(block.msgs.iter().cloned());
-            if acked {
+            if !block.msgs.is_empty() {
+                msgs.extend(block.msgs);
+                continue;
+            }
+            if block.seq == (self.seq + 1) & 0x0F {
                 self.seq = block.seq;
                 return msgs;
             }
-            if block.msgs.is_empty() {
-                // NAK: the MCU expects `block.seq`.
-                self.seq = block.seq;
-                self.send_payload(payload);
-            }
+            self.seq = block.seq;
+            self.send_payload(payload);
         }
     }
 
@@ -289,26 +289,21 @@ impl Host {
         }
     }
 
-    /// Reads the dictionary through `identify`. The first request also finds the MCU's
-    /// sequence number (it may have served another host before): every empty block is a NAK
-    /// naming it, since an acknowledged `identify` always carries its response.
+    /// Reads the dictionary through `identify`. The MCU may have served another host before:
+    /// its NAK then names the sequence it expects, and a NAK that happens to look like the ack
+    /// of our sequence just means asking again.
     fn identify(&mut self) {
         let mut data = Vec::new();
+        let mut unanswered = 0;
         loop {
             let mut payload = [0u8; 16];
             let args = [Value::Int(data.len() as i64), Value::Int(40)];
             let n = encode_message(1, links::proto::FMT_IDENTIFY, &args, &mut payload).expect("encode");
-            self.send_payload(&payload[..n]);
-            let chunk = loop {
-                let block = self.next_block();
-                if let Some(m) = block.msgs.iter().find(|m| m.name == "identify_response") {
-                    self.seq = block.seq;
-                    break m.clone();
-                }
-                if block.msgs.is_empty() {
-                    self.seq = block.seq;
-                    self.send_payload(&payload[..n]);
-                }
+            let msgs = self.exchange_payload(&payload[..n]);
+            let Some(chunk) = msgs.iter().find(|m| m.name == "identify_response") else {
+                unanswered += 1;
+                assert!(unanswered < 3, "identify is not answered");
+                continue;
             };
             assert_eq!(chunk.ints[0], data.len() as i64);
             if chunk.bytes.is_empty() {
