@@ -576,3 +576,64 @@ fn stm32f4_in_qemu_move_queue_overflow_shuts_down_with_its_reason() {
     assert_eq!(reason, "Move queue overflow");
     assert!(sent > move_count, "shut down before the queue was full");
 }
+
+#[test]
+fn stm32f4_in_qemu_samples_analog_in_through_adc1() {
+    let Some(image) = prerequisites() else {
+        return;
+    };
+    let qemu = Qemu::start(&image);
+    let mut host = Host::open(&qemu.pty);
+    host.identify();
+    // PC0 is ADC123_IN10 (a thermistor pin on many boards).
+    let pin = host.dict().pin("PC0").unwrap() as i64;
+    host.exchange("allocate_oids", &[1]);
+    host.exchange("config_analog_in", &[0, pin]);
+    host.exchange("finalize_config", &[1]);
+    let freq = host.dict().clock_freq().unwrap() as i64;
+    let now = host.ask("get_clock", &[], "clock").ints[0];
+    let (samples, rest) = (8, freq / 20);
+    host.exchange(
+        "query_analog_in",
+        &[
+            0,
+            (now + freq / 10) & 0xFFFF_FFFF,
+            freq / 10_000,
+            samples,
+            rest,
+            0,
+            65535,
+            0,
+        ],
+    );
+    let mut reports = Vec::new();
+    while reports.len() < 4 {
+        let block = host.next_block();
+        for m in block.msgs {
+            assert_ne!(m.name, "shutdown", "the MCU shut down: {}", host.reason(&m));
+            if m.name == "analog_in_state" {
+                reports.push((m.ints[1], m.ints[2]));
+            }
+        }
+    }
+    println!("stm32f4 (QEMU) ADC1 PC0, sums of {samples} samples (next_clock, value): {reports:?}");
+    for w in reports.windows(2) {
+        assert_eq!((w[1].0 - w[0].0) & 0xFFFF_FFFF, rest, "rounds {rest} ticks apart");
+    }
+    let max = samples * host.dict().config_f64("ADC_MAX").unwrap() as i64;
+    assert!(
+        reports.iter().all(|&(_, v)| v <= max),
+        "sums within {samples}·ADC_MAX"
+    );
+    // QEMU's ADC model returns a synthetic value that steps by 7 per conversion: each round of
+    // `samples` conversions then sums 7·samples² more than the one before, which proves every
+    // sample was one real conversion through ADC1 (a zero sum: none finished).
+    assert!(reports[0].1 > 0, "the ADC never converted");
+    for w in reports.windows(2) {
+        assert_eq!(
+            w[1].1 - w[0].1,
+            7 * samples * samples,
+            "one conversion per sample"
+        );
+    }
+}
