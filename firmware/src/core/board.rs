@@ -46,6 +46,9 @@ pub trait Board {
     /// A `queue_step` arrived at `now`; its first step is due at `first_clock`.
     fn queue_step_received(&mut self, _oid: u8, _first_clock: WireClock, _now: WireClock) {}
 
+    /// `config_endstop` made `pin` an input, its pull-up resistor on when `pull_up`.
+    fn config_input(&mut self, _pin: u8, _pull_up: bool) {}
+
     /// Level of input `pin` (endstops), sampled for clock `at`: the due time of the timer
     /// reading it, or now for a query. Hardware reads the pin when called, within its timer's
     /// latency of `at`; a simulation reads its world as it was at `at`.

@@ -27,6 +27,8 @@ struct FakeBoard {
     endstop: Option<(u8, u8, i32)>,
     adc: HashMap<u8, u16>,
     pin_sets: Vec<(u8, bool, u32)>,
+    /// `config_input` calls: (pin, pull_up).
+    inputs: Vec<(u8, bool)>,
     triggers: Vec<(TriggerSource, u8, u8, u32)>,
 }
 
@@ -46,6 +48,9 @@ impl Board for FakeBoard {
     }
     fn set_pin(&mut self, pin: u8, value: bool, clock: WireClock) {
         self.pin_sets.push((pin, value, clock.0));
+    }
+    fn config_input(&mut self, pin: u8, pull_up: bool) {
+        self.inputs.push((pin, pull_up));
     }
     fn triggered(&mut self, source: TriggerSource, oid: u8, reason: u8, clock: WireClock) {
         self.triggers.push((source, oid, reason, clock.0));

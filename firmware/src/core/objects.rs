@@ -39,7 +39,9 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                 }
             }
             Cmd::ConfigEndstop => {
-                self.config_object(oid, Object::Endstop(Endstop::new(arg(1) as u8, arg(2) != 0)), now);
+                let (pin, pull_up) = (arg(1) as u8, arg(2) != 0);
+                self.board.config_input(pin, pull_up);
+                self.config_object(oid, Object::Endstop(Endstop::new(pin, pull_up)), now);
             }
             Cmd::EndstopHome => {
                 let p = HomeParams {

@@ -21,6 +21,14 @@ fn named<'a>(msgs: &'a [Resp], name: &str) -> Vec<&'a [i64]> {
 }
 
 #[test]
+fn config_endstop_sets_up_its_input_pin_with_the_pull_up_asked() {
+    let mut host = Host::new(64, 0);
+    host.exchange(&[("allocate_oids", &[2])]);
+    host.exchange(&[("config_endstop", &[0, 10, 0]), ("config_endstop", &[1, 27, 1])]);
+    assert_eq!(host.mcu.board().inputs, [(10, false), (27, true)]);
+}
+
+#[test]
 fn endstop_trigger_stops_the_attached_stepper_at_the_right_step() {
     let mut host = homing_host(20);
     host.exchange(&[

@@ -16,7 +16,7 @@ use rt_core::WireClock;
 /// Oid slots of the image.
 pub const OIDS: usize = 64;
 
-/// Status polls an ADC conversion may take before it reads as 0 (a conversion takes ~15 µs).
+/// Status polls an ADC conversion may take before it reads as 0 (a conversion takes ~20 µs).
 const ADC_MAX_POLLS: u32 = 10_000;
 
 /// The pins of one configured stepper.
@@ -105,6 +105,12 @@ impl Board for Stm32Board {
             pulse_ticks: config.step_pulse_ticks.min(10 * self.ticks_per_us),
             dir_level: false,
         });
+    }
+
+    fn config_input(&mut self, pin: u8, pull_up: bool) {
+        if let Some((port, bit)) = CHIP.port_bit(pin) {
+            hw::gpio_input(port, bit, pull_up);
+        }
     }
 
     fn read_pin(&mut self, pin: u8, _at: WireClock) -> bool {

@@ -19,6 +19,7 @@ const RCC_APB2ENR: usize = RCC + 0x44;
 const GPIO_BASE: usize = 0x4002_0000;
 const GPIO_STRIDE: usize = 0x400;
 const GPIO_MODER: usize = 0x00;
+const GPIO_PUPDR: usize = 0x0C;
 const GPIO_IDR: usize = 0x10;
 const GPIO_BSRR: usize = 0x18;
 
@@ -51,7 +52,11 @@ const TIM_ARR: usize = 0x2C;
 const ADC1: usize = 0x4001_2000;
 const ADC_SR: usize = ADC1;
 const ADC_CR2: usize = ADC1 + 0x08;
+const ADC_SMPR1: usize = ADC1 + 0x0C;
 const ADC_SMPR2: usize = ADC1 + 0x10;
+/// 144-cycle sampling (0b110) for every channel field: ~20 µs per conversion at 8 MHz.
+const SMPR2_144: u32 = 0o6666666666;
+const SMPR1_144: u32 = 0o666666666;
 const ADC_SQR1: usize = ADC1 + 0x2C;
 const ADC_SQR3: usize = ADC1 + 0x34;
 const ADC_DR: usize = ADC1 + 0x4C;
@@ -138,6 +143,15 @@ pub fn gpio_output(port: usize, bit: u8) {
     modify(gpio(port, GPIO_MODER), |v| (v & !(3 << shift)) | (1 << shift));
 }
 
+/// Makes `bit` of `port` an input, pulled up or floating.
+pub fn gpio_input(port: usize, bit: u8, pull_up: bool) {
+    let shift = 2 * bit as u32;
+    modify(gpio(port, GPIO_MODER), |v| v & !(3 << shift));
+    modify(gpio(port, GPIO_PUPDR), |v| {
+        (v & !(3 << shift)) | ((pull_up as u32) << shift)
+    });
+}
+
 /// Drives `bit` of `port` high or low (atomic through BSRR).
 pub fn gpio_set(port: usize, bit: u8, high: bool) {
     let b = if high { 1u32 << bit } else { 1u32 << (bit + 16) };
@@ -155,9 +169,10 @@ pub fn gpio_analog(port: usize, bit: u8) {
     modify(gpio(port, GPIO_MODER), |v| v | (3 << shift));
 }
 
-/// ADC1 on, 12 bits, one conversion per start, longest sampling time on every channel.
+/// ADC1 on, 12 bits, one conversion per start, 144-cycle sampling on every channel.
 pub fn start_adc() {
-    write(ADC_SMPR2, 0x3FFF_FFFF);
+    write(ADC_SMPR1, SMPR1_144);
+    write(ADC_SMPR2, SMPR2_144);
     write(ADC_SQR1, 0);
     write(ADC_CR2, 1);
 }
