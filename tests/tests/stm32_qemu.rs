@@ -637,3 +637,46 @@ fn stm32f4_in_qemu_samples_analog_in_through_adc1() {
         );
     }
 }
+
+/// QEMU does not model the STM32F4 GPIO: every input reads low, so an endstop can never change
+/// level and a real homing (a trigger after some travel) is impossible on the emulated board.
+/// What can be checked is that the image runs the endstop and trsync machinery and that the
+/// host reaches Klipper's verdicts for a pin stuck at its level: `!PA3` (active low) reads
+/// triggered all along, `^PA3` (active high) never triggers.
+#[test]
+fn stm32f4_in_qemu_homing_ends_with_the_verdict_for_a_pin_stuck_low() {
+    let Some(image) = prerequisites() else {
+        return;
+    };
+    let dir = scratch("stm32-qemu-home");
+    let cfg = dir.join("printer.cfg");
+    for (endstop, verdict) in [
+        ("!PA3", "Endstop x still triggered after retract"),
+        ("^PA3", "No trigger on x after full movement"),
+    ] {
+        let qemu = Qemu::start(&image);
+        let text = printer_cfg(&qemu.pty).replace(
+            "rotation_distance: 40\nposition_endstop: 0\nposition_max: 100\n\n[stepper_y]",
+            &format!(
+                "rotation_distance: 40\nposition_endstop: 0\nposition_max: 10\nendstop_pin: {endstop}\n\
+                 homing_speed: 20\n\n[stepper_y]"
+            ),
+        );
+        assert!(text.contains(endstop));
+        std::fs::write(&cfg, text).unwrap();
+        let run = cadence(
+            &[
+                "home",
+                "--config",
+                cfg.to_str().unwrap(),
+                "--axes",
+                "x",
+                "--no-realtime",
+            ],
+            PRINT_TIMEOUT,
+        );
+        println!("endstop_pin {endstop}: {}", run.stderr.trim());
+        assert_eq!(run.code, Some(1), "{}\n{}", run.stdout, run.stderr);
+        assert!(run.stderr.contains(verdict), "{endstop}: {}", run.stderr);
+    }
+}
