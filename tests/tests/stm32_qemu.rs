@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use cadence_tests::{cadence, scratch, workspace, Run};
+use cadence_tests::{cadence, retry_homing_timeouts, scratch, workspace, Run};
 use links::dict::Dictionary;
 use links::proto::block::{block_payload, encode_block, find_block, Frame};
 use links::proto::format::{decode_params, encode_message, Value};
@@ -654,26 +654,33 @@ fn stm32f4_in_qemu_homing_ends_with_the_verdict_for_a_pin_stuck_low() {
         ("!PA3", "Endstop x still triggered after retract"),
         ("^PA3", "No trigger on x after full movement"),
     ] {
-        let qemu = Qemu::start(&image);
-        let text = printer_cfg(&qemu.pty).replace(
-            "rotation_distance: 40\nposition_endstop: 0\nposition_max: 100\n\n[stepper_y]",
-            &format!(
-                "rotation_distance: 40\nposition_endstop: 0\nposition_max: 10\nendstop_pin: {endstop}\n\
-                 homing_speed: 20\n\n[stepper_y]"
-            ),
-        );
-        assert!(text.contains(endstop));
-        std::fs::write(&cfg, text).unwrap();
-        let run = cadence(
-            &[
-                "home",
-                "--config",
-                cfg.to_str().unwrap(),
-                "--axes",
-                "x",
-                "--no-realtime",
-            ],
-            PRINT_TIMEOUT,
+        // A starved VM can miss the homing timeout budget: retried on a fresh emulator.
+        let (_qemu, run) = retry_homing_timeouts(
+            || {
+                let qemu = Qemu::start(&image);
+                let text = printer_cfg(&qemu.pty).replace(
+                    "rotation_distance: 40\nposition_endstop: 0\nposition_max: 100\n\n[stepper_y]",
+                    &format!(
+                        "rotation_distance: 40\nposition_endstop: 0\nposition_max: 10\n\
+                         endstop_pin: {endstop}\nhoming_speed: 20\n\n[stepper_y]"
+                    ),
+                );
+                assert!(text.contains(endstop));
+                std::fs::write(&cfg, text).unwrap();
+                let run = cadence(
+                    &[
+                        "home",
+                        "--config",
+                        cfg.to_str().unwrap(),
+                        "--axes",
+                        "x",
+                        "--no-realtime",
+                    ],
+                    PRINT_TIMEOUT,
+                );
+                (qemu, run)
+            },
+            |(_, run)| run,
         );
         println!("endstop_pin {endstop}: {}", run.stderr.trim());
         assert_eq!(run.code, Some(1), "{}\n{}", run.stdout, run.stderr);
