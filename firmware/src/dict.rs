@@ -1,12 +1,13 @@
 //! The data dictionary: the Klipper JSON built from the core's tables, zlib-compressed.
 //!
 //! `commands` and `responses` map each format string of [`MESSAGES`] to its id (its position);
-//! `enumerations` holds `pin` (ports A..L as ranges `"PA0": [0, 8]`, `"PB0": [8, 8]`, …) and
+//! `enumerations` holds `pin` (every board family's names as ranges `"PA0": [0, 8]`,
+//! `"P1.0": [32, 32]`, …, from [`links::pinmap`]) and
 //! `static_string_id` (every shutdown reason → its id); `config` holds `CLOCK_FREQ` plus
 //! [`CONSTANTS`]. The host reads everything from here and never hard-codes ids beyond 0 and 1.
 
 use crate::core::commands::{Kind, MESSAGES};
-use crate::core::constants::{ConstValue, CONSTANTS, PINS_PER_PORT, PIN_PORTS, SHUTDOWN_REASONS};
+use crate::core::constants::{ConstValue, CONSTANTS, SHUTDOWN_REASONS};
 use flate2::write::ZlibEncoder;
 use flate2::Compression;
 use serde_json::{json, Map, Value};
@@ -24,9 +25,8 @@ pub fn dictionary_json(clock_freq: u32) -> Value {
         map.insert(m.format.to_owned(), json!(id));
     }
     let mut pins = Map::new();
-    for (i, port) in PIN_PORTS.iter().enumerate() {
-        let first = i as u32 * PINS_PER_PORT as u32;
-        pins.insert(format!("P{}0", *port as char), json!([first, PINS_PER_PORT]));
+    for run in links::pinmap::pin_runs() {
+        pins.insert(run.first.to_string(), json!([run.value, run.count]));
     }
     let reasons: Map<String, Value> = SHUTDOWN_REASONS
         .iter()
@@ -90,8 +90,11 @@ mod tests {
         assert_eq!(v["config"]["ADC_MAX"], 4095);
         assert_eq!(v["config"]["PWM_MAX"], 255);
         let pins = v["enumerations"]["pin"].as_object().unwrap();
-        assert_eq!(pins.len(), 12);
+        assert_eq!(pins.len(), links::pinmap::pin_runs().count());
         assert_eq!(pins["PA0"], json!([0, 8]));
+        assert_eq!(pins["PC8"], json!([112, 8]));
+        assert_eq!(pins["P1.0"], json!([32, 32]));
+        assert_eq!(pins["gpio0"], json!([0, 64]));
         assert_eq!(pins["PB0"], json!([8, 8]));
         assert_eq!(pins["PL0"], json!([88, 8]));
         assert_eq!(v["enumerations"]["static_string_id"]["Timer too close"], 1);

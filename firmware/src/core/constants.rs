@@ -69,11 +69,6 @@ pub fn static_string_id(reason: &str) -> u16 {
     SHUTDOWN_REASONS.iter().position(|&r| r == reason).unwrap_or(0) as u16
 }
 
-/// Port letters of the pin enumeration.
-pub const PIN_PORTS: &[u8] = b"ABCDEFGHIJKL";
-/// Pins per port.
-pub const PINS_PER_PORT: u8 = 8;
-
 /// A `config` constant's value.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ConstValue {

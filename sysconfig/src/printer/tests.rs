@@ -118,6 +118,30 @@ fn missing_sections() {
 }
 
 #[test]
+fn pins_of_unsupported_providers_name_the_feature() {
+    let tmc = MINIMAL.replace("rotation_distance: 40\nposition_max: 200\n[stepper_y]", "rotation_distance: 40\nposition_max: 200\nendstop_pin: tmc2209_stepper_x:virtual_endstop\nposition_endstop: 0\n[stepper_y]");
+    let err = parse(&format!(
+        "{tmc}[tmc2209 stepper_x]\nuart_pin: PD1\nrun_current: 0.5\n"
+    ))
+    .unwrap_err();
+    assert_eq!(
+        err,
+        "printer.cfg:13: [stepper_x] endstop_pin: pin 'tmc2209_stepper_x:virtual_endstop': sensorless homing \
+         through a TMC driver's virtual endstop is not supported by Cadence yet"
+    );
+    let scaled = MINIMAL.replace("step_pin: PC0", "step_pin: vref_scaled:PC0");
+    let err = parse(&format!(
+        "{scaled}[adc_scaled vref_scaled]\nvref_pin: PA5\nvssa_pin: PA6\n"
+    ))
+    .unwrap_err();
+    assert_eq!(
+        err,
+        "printer.cfg:20: [stepper_z] step_pin: pin 'vref_scaled:PC0' is on [adc_scaled vref_scaled], whose pins \
+         Cadence does not support yet"
+    );
+}
+
+#[test]
 fn unknown_sections_and_options_are_errors_ignored_ones_warnings() {
     assert_eq!(
         parse(&format!("{MINIMAL}[frobnicator]\n")).map(|_| ()),
@@ -125,7 +149,22 @@ fn unknown_sections_and_options_are_errors_ignored_ones_warnings() {
     );
     assert_eq!(
         parse(&format!("{MINIMAL}[stepper_z1]\nstep_pin: PD0\n")).map(|_| ()),
-        Err("printer.cfg:25: Section 'stepper_z1' is not a valid config section".to_string())
+        Err(
+            "printer.cfg:25: [stepper_z1] is not supported by Cadence yet (several motors on one axis)"
+                .to_string()
+        )
+    );
+    // A refused section is the first error, before the pins that depend on it.
+    assert_eq!(
+        parse(&format!(
+            "{}[bltouch]\nsensor_pin: PD0\n",
+            MINIMAL.replace(
+                "rotation_distance: 8\n",
+                "rotation_distance: 8\nendstop_pin: probe:z_virtual_endstop\n"
+            )
+        ))
+        .map(|_| ()),
+        Err("printer.cfg:26: [bltouch] is not supported by Cadence yet (BLTouch probe)".to_string())
     );
     assert_eq!(
         parse(&MINIMAL.replace(
@@ -201,14 +240,14 @@ fn pins_across_sections_and_mcus() {
              enable_pin"
             .to_string())
     );
-    // The simulated MCU only has PA0..PL7.
+    // The simulated MCU has every board family's pin names, but no port M.
     let sim = MINIMAL.replace("/dev/ttyACM0", "simulator").replace("PC1", "PM1");
-    assert_eq!(
-        parse(&sim).map(|_| ()),
-        Err(
-            "printer.cfg:21: [stepper_z] dir_pin: pin 'PM1': the simulated mcu 'mcu' only has pins PA0..PL7"
-                .to_string()
-        )
+    let err = parse(&sim).map(|_| ()).unwrap_err();
+    assert!(
+        err.starts_with(
+            "printer.cfg:21: [stepper_z] dir_pin: pin 'PM1': the simulated mcu 'mcu' has no such pin"
+        ),
+        "{err}"
     );
 }
 
@@ -356,6 +395,13 @@ fn delta_geometry() {
     assert_eq!(cfg.steppers[1].position_max, 251.0);
     assert!(cfg.steppers[0].homing_positive_dir);
     assert!(ok(MINIMAL).delta.is_none());
+    // Towers B and C take A's position_endstop when they give none, as Klipper.
+    let inherited = ok(&DELTA
+        .replace("position_endstop: 251\n", "")
+        .replace("position_endstop: 249\n", ""));
+    let endstops: Vec<_> = inherited.steppers.iter().map(|s| s.position_endstop).collect();
+    assert_eq!(endstops, [Some(250.0); 3]);
+    assert_eq!(inherited.steppers[2].position_max, 250.0);
 }
 
 #[test]
@@ -367,6 +413,10 @@ fn delta_errors_name_the_option() {
     assert_eq!(
         parse(&DELTA.replace("arm_length: 270\n", "")).map(|_| ()),
         Err("printer.cfg:8: Option 'arm_length' in section 'stepper_a' must be specified".to_string())
+    );
+    assert_eq!(
+        parse(&DELTA.replace("position_endstop: 250\n", "")).map(|_| ()),
+        Err("printer.cfg:8: Option 'position_endstop' in section 'stepper_a' must be specified".to_string())
     );
     let short = parse(&DELTA.replace("arm_length: 271", "arm_length: 100")).map(|_| ());
     assert!(
