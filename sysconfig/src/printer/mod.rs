@@ -10,7 +10,8 @@
 //! Build order (it decides which error is reported first): MCUs (pins are checked against
 //! them), `[printer]`, `[probe]` (its `z_offset` is Z's endstop position with
 //! `probe:z_virtual_endstop`), the steppers the kinematics needs, `[extruder]`, `[heater_bed]`,
-//! `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`, then the
+//! `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`,
+//! `[gcode_macro]`s, then the
 //! unused-option/section check.
 
 mod delta;
@@ -18,6 +19,7 @@ mod error;
 mod extruder;
 mod gcode;
 mod heater;
+mod macros;
 mod mcu;
 mod pins;
 mod probe;
@@ -80,6 +82,8 @@ pub struct PrinterConfig {
     pub gcode_arcs: GcodeArcsSection,
     /// `[firmware_retraction]`, or its defaults.
     pub firmware_retraction: FirmwareRetractionSection,
+    /// `[gcode_macro NAME]` sections, in file order.
+    pub macros: Vec<planner::gcode::macros::MacroDef>,
     /// Accepted-but-ignored sections and other things worth telling the user.
     pub warnings: Vec<String>,
 }
@@ -181,7 +185,21 @@ impl PrinterConfig {
         let firmware_retraction =
             reader.section_or_default("firmware_retraction", gcode::read_firmware_retraction)?;
 
+        let macros = macros::read_gcode_macros(&reader)?;
+
         let mut warnings = reader.finish(is_ignored)?;
+        if let Some(first) = macros.first() {
+            // Their templates are compiled (a broken one fails the load) but not run yet.
+            planner::gcode::macros::Macros::new(macros.clone()).map_err(ConfigError::Macro)?;
+            let what = match macros.len() {
+                1 => "section".to_string(),
+                n => format!("{n} sections"),
+            };
+            warnings.push(format!(
+                "{}: [gcode_macro] is not run by Cadence yet (templates checked); {what} ignored",
+                first.at
+            ));
+        }
         if let Some(s) = simulator_section {
             if !mcus.iter().any(McuSection::is_simulated) {
                 warnings.push(format!(
@@ -204,6 +222,7 @@ impl PrinterConfig {
             gcode,
             gcode_arcs,
             firmware_retraction,
+            macros,
             warnings,
         })
     }

@@ -180,9 +180,53 @@ fn unknown_sections_and_options_are_errors_ignored_ones_warnings() {
     assert_eq!(
         cfg.warnings,
         [
-            "printer.cfg:25: [gcode_macro] is not implemented by Cadence yet; 2 sections ignored",
             "printer.cfg:28: [fan] is not implemented by Cadence yet; section ignored",
+            "printer.cfg:25: [gcode_macro] is not run by Cadence yet (templates checked); 2 sections ignored",
         ]
+    );
+    let names: Vec<&str> = cfg.macros.iter().map(|m| m.name.as_str()).collect();
+    assert_eq!(names, ["START", "END"]);
+}
+
+#[test]
+fn gcode_macros_are_read_and_their_templates_checked() {
+    let cfg = ok(&format!(
+        "{MINIMAL}[gcode_macro start_print]\ndescription: Start\nvariable_bed: 60\nvariable_Name: 'x'\n\
+         rename_existing: sp_old\ngcode:\n  M190 S{{params.BED|default(bed)}}\n  G28\n"
+    ));
+    let m = &cfg.macros[0];
+    assert_eq!(
+        (
+            m.name.as_str(),
+            m.description.as_deref(),
+            m.rename_existing.as_deref()
+        ),
+        ("START_PRINT", Some("Start"), Some("SP_OLD"))
+    );
+    assert_eq!(
+        m.variables,
+        [
+            ("bed".to_string(), "60".to_string()),
+            ("name".to_string(), "'x'".to_string())
+        ]
+    );
+    assert_eq!(m.gcode, "\nM190 S{params.BED|default(bed)}\nG28");
+    let bad = parse(&format!("{MINIMAL}[gcode_macro X]\ngcode: {{% if %}}\n")).unwrap_err();
+    assert!(
+        bad.starts_with("printer.cfg:25: [gcode_macro X] gcode: "),
+        "{bad}"
+    );
+    let bad = parse(&format!(
+        "{MINIMAL}[gcode_macro X]\nvariable_v: oops\ngcode: G28\n"
+    ))
+    .unwrap_err();
+    assert!(
+        bad.starts_with("printer.cfg:25: [gcode_macro X] variable_v: 'oops' is not a literal"),
+        "{bad}"
+    );
+    assert_eq!(
+        parse(&format!("{MINIMAL}[gcode_macro X]\ndescription: no gcode\n")).map(|_| ()),
+        Err("printer.cfg:25: Option 'gcode' in section 'gcode_macro X' must be specified".to_string())
     );
 }
 
