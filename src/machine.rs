@@ -323,9 +323,11 @@ impl Machine {
         }
         for e in self.mcu_endstops(mcu) {
             let side = if e.homing_positive_dir { "max" } else { "min" };
+            // `!`: the pin reads 0 when triggered, as the config's inverted endstop expects.
+            let active_low = if e.pin.invert { "!" } else { "" };
             args.push("--endstop".to_string());
             args.push(format!(
-                "{}={},{},{side}",
+                "{active_low}{}={},{},{side}",
                 e.pin.pin,
                 self.sim_coord(e.axis, &rails),
                 self.sim_trigger(e)

@@ -1,9 +1,11 @@
 //! The data dictionary: the Klipper JSON built from the core's tables, zlib-compressed.
 //!
 //! `commands` and `responses` map each format string of [`MESSAGES`] to its id (its position);
-//! `enumerations` holds `pin` (the [`Chip`]'s ports as ranges: the simulator's `"PA0": [0, 8]`,
-//! `"PB0": [8, 8]`, …, an STM32's `"PA0": [0, 16]`, …) and `static_string_id` (every shutdown
-//! reason → its id); `config` holds `CLOCK_FREQ`, `MCU` plus [`CONSTANTS`]. The host reads everything from here and never hard-codes ids beyond 0 and 1.
+//! `enumerations` holds `pin` (the [`Chip`]'s ports as ranges, an STM32's `"PA0": [0, 16]`, …;
+//! the simulator's every board family's names from [`links::pinmap`], `"PA0": [0, 8]`,
+//! `"P1.0": [32, 32]`, …) and `static_string_id` (every shutdown reason → its id); `config`
+//! holds `CLOCK_FREQ`, `MCU` plus [`CONSTANTS`]. The host reads everything from here and never
+//! hard-codes ids beyond 0 and 1.
 
 use crate::core::commands::{Kind, MESSAGES};
 use crate::core::constants::{Chip, ConstValue, CONSTANTS, SHUTDOWN_REASONS, SIM_CHIP};
@@ -29,6 +31,11 @@ pub fn dictionary_json_for(chip: &Chip, clock_freq: u32) -> Value {
         map.insert(m.format.to_owned(), json!(id));
     }
     let mut pins = Map::new();
+    if chip.ports.is_empty() {
+        for run in links::pinmap::pin_runs() {
+            pins.insert(run.first.to_string(), json!([run.value, run.count]));
+        }
+    }
     for (i, port) in chip.ports.iter().enumerate() {
         let first = i as u32 * chip.pins_per_port as u32;
         pins.insert(format!("P{}0", *port as char), json!([first, chip.pins_per_port]));
@@ -101,8 +108,11 @@ mod tests {
         assert_eq!(v["config"]["ADC_MAX"], 4095);
         assert_eq!(v["config"]["PWM_MAX"], 255);
         let pins = v["enumerations"]["pin"].as_object().unwrap();
-        assert_eq!(pins.len(), 12);
+        assert_eq!(pins.len(), links::pinmap::pin_runs().count());
         assert_eq!(pins["PA0"], json!([0, 8]));
+        assert_eq!(pins["PC8"], json!([112, 8]));
+        assert_eq!(pins["P1.0"], json!([32, 32]));
+        assert_eq!(pins["gpio0"], json!([0, 64]));
         assert_eq!(pins["PB0"], json!([8, 8]));
         assert_eq!(pins["PL0"], json!([88, 8]));
         assert_eq!(v["enumerations"]["static_string_id"]["Timer too close"], 1);

@@ -1,6 +1,7 @@
 //! The host side of Cadence's MCU connection, byte-compatible with Klipper's protocol.
 //!
 //! Layers (bottom up):
+//! - [`pinmap`] (`no_std`): the simulated MCU's pin names of every board family and their numbers.
 //! - [`proto`] (`no_std`, no allocation, shared with the firmware): CRC-16, VLQ integers,
 //!   message blocks, message format strings and parameter encode/decode.
 //! - with `std`:
@@ -17,6 +18,7 @@
 //! bounded; the IO thread's steady-state loop allocates only to decode rare responses.
 #![cfg_attr(not(feature = "std"), no_std)]
 
+pub mod pinmap;
 pub mod proto;
 
 #[cfg(feature = "std")]

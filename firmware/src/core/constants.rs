@@ -71,36 +71,34 @@ pub fn static_string_id(reason: &str) -> u16 {
     SHUTDOWN_REASONS.iter().position(|&r| r == reason).unwrap_or(0) as u16
 }
 
-/// Port letters of the simulator's pin enumeration.
-pub const PIN_PORTS: &[u8] = b"ABCDEFGHIJKL";
-/// Pins per port of the simulator.
-pub const PINS_PER_PORT: u8 = 8;
-
 /// What the dictionary says about the chip a target runs on: its `MCU` name and its pins.
 /// Pin `n` is bit `n % pins_per_port` of port `ports[n / pins_per_port]`, named `P<port><bit>`.
+/// No ports: the simulator, whose pins answer to every board family's names
+/// ([`links::pinmap`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Chip {
     /// The dictionary's `MCU` constant.
     pub mcu: &'static str,
-    /// Port letters, in pin-number order.
+    /// Port letters, in pin-number order; empty for the simulator's [`links::pinmap`] names.
     pub ports: &'static [u8],
     /// Pins per port.
     pub pins_per_port: u8,
 }
 
 impl Chip {
-    /// Port index and bit of pin `pin`, if the chip has it.
+    /// Port index and bit of pin `pin`, if the chip has it (never for the simulator, whose
+    /// pins are only numbers).
     pub fn port_bit(&self, pin: u8) -> Option<(usize, u8)> {
         let port = (pin / self.pins_per_port.max(1)) as usize;
         (port < self.ports.len()).then_some((port, pin % self.pins_per_port.max(1)))
     }
 }
 
-/// The Linux-process target (the simulator).
+/// The Linux-process target (the simulator): every board family's pin names.
 pub const SIM_CHIP: Chip = Chip {
     mcu: "linux-sim",
-    ports: PIN_PORTS,
-    pins_per_port: PINS_PER_PORT,
+    ports: &[],
+    pins_per_port: 0,
 };
 
 /// A `config` constant's value.
@@ -154,7 +152,6 @@ mod tests {
         assert_eq!(stm32.port_bit(24), Some((1, 8)));
         assert_eq!(stm32.port_bit(143), Some((8, 15)));
         assert_eq!(stm32.port_bit(144), None);
-        assert_eq!(SIM_CHIP.port_bit(95), Some((11, 7)));
-        assert_eq!(SIM_CHIP.port_bit(96), None);
+        assert_eq!(SIM_CHIP.port_bit(95), None);
     }
 }

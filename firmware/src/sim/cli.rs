@@ -1,11 +1,11 @@
 //! The `cadence-mcu` command line (docs/contract.md).
 
 use super::world::{AxisSpec, Coord, EndstopSpec};
-use crate::core::constants::{PINS_PER_PORT, PIN_PORTS};
 use crate::trace::TraceFormat;
 #[cfg(test)]
 use clap::CommandFactory;
 use clap::{Parser, ValueEnum};
+use links::pinmap;
 use std::path::PathBuf;
 
 /// Largest `--move-count` (the core's move pool capacity).
@@ -134,29 +134,18 @@ impl Cli {
 /// Stack prefaulted by `--lock-memory` (the loop thread's stack is far larger).
 pub const PREFAULT_STACK: usize = 1 << 20;
 
-/// A pin by name (`PA0`..`PL7`, the dictionary's `pin` enumeration) or number.
+/// A pin by name (any family of [`links::pinmap`]: `PA0`, `PC13`, `P1.22`, `gpio17`,
+/// `gpio1_23`) or by number (0..=255).
 pub fn parse_pin(s: &str) -> Result<u8, String> {
     let s = s.trim();
-    let max = PIN_PORTS.len() * PINS_PER_PORT as usize;
-    if let Ok(n) = s.parse::<u8>() {
-        return if (n as usize) < max {
-            Ok(n)
-        } else {
-            Err(format!("pin {n} is out of range (0..{max})"))
-        };
+    if s.bytes().all(|c| c.is_ascii_digit()) && !s.is_empty() {
+        return s
+            .parse::<u8>()
+            .map_err(|_| format!("pin {s} is out of range (0..256)"));
     }
-    let b = s.as_bytes();
-    let port = (b.len() == 3 && (b[0] == b'P' || b[0] == b'p'))
-        .then(|| PIN_PORTS.iter().position(|&p| p == b[1].to_ascii_uppercase()))
-        .flatten();
-    let bit = b
-        .get(2)
-        .map(|c| c.wrapping_sub(b'0'))
-        .filter(|&d| d < PINS_PER_PORT);
-    match (port, bit) {
-        (Some(p), Some(d)) => Ok(p as u8 * PINS_PER_PORT + d),
-        _ => Err(format!("`{s}` is not a pin (PA0..PL7 or a number)")),
-    }
+    pinmap::pin_number(s).ok_or_else(|| {
+        format!("`{s}` is not a pin (PA0..PL15, PA16..PD31, P0.0..P4.31, gpio0..gpio63, gpio0_0..gpio3_31, gpiochip0/gpio0..gpiochip6/gpio31, analog0..analog31 or a number)")
+    })
 }
 
 fn parse_f64(s: &str, what: &str) -> Result<f64, String> {
@@ -195,10 +184,16 @@ fn parse_axis(s: &str) -> Result<AxisSpec, String> {
 }
 
 fn parse_endstop(s: &str) -> Result<EndstopSpec, String> {
-    let (pin, rest) = s.split_once('=').ok_or("expected PIN=COORD,TRIGGER_MM,min|max")?;
+    let (pin, rest) = s
+        .split_once('=')
+        .ok_or("expected [!]PIN=COORD,TRIGGER_MM,min|max")?;
     let f: Vec<&str> = rest.split(',').collect();
     let [axis, at, side] = f.as_slice() else {
-        return Err("expected PIN=COORD,TRIGGER_MM,min|max".into());
+        return Err("expected [!]PIN=COORD,TRIGGER_MM,min|max".into());
+    };
+    let (active_low, pin) = match pin.trim().strip_prefix('!') {
+        Some(p) => (true, p),
+        None => (false, pin),
     };
     let at_min = match side.trim() {
         "min" => true,
@@ -210,6 +205,7 @@ fn parse_endstop(s: &str) -> Result<EndstopSpec, String> {
         axis: Coord::parse(axis).map_err(|e| e.to_string())?,
         trigger_mm: parse_f64(at, "trigger position")?,
         at_min,
+        active_low,
     })
 }
 
@@ -241,7 +237,7 @@ mod tests {
         /// Pin names round-trip; no input makes a parser panic.
         #[test]
         fn parsers_never_panic(s in ".{0,40}", pin in 0u8..96) {
-            let name = format!("P{}{}", PIN_PORTS[(pin / 8) as usize] as char, pin % 8);
+            let name = format!("P{}{}", pinmap::PORT_LETTERS[(pin / 8) as usize] as char, pin % 8);
             prop_assert_eq!(parse_pin(&name), Ok(pin));
             prop_assert_eq!(parse_pin(&pin.to_string()), Ok(pin));
             let _ = parse_pin(&s);
@@ -369,10 +365,16 @@ mod tests {
                 pin: 25,
                 axis: Coord::axis("z"),
                 trigger_mm: 0.25,
-                at_min: true
+                at_min: true,
+                active_low: false
             }
         );
         assert!(!c.endstops[1].at_min);
+        let inverted = parse(&["--endstop", "!PA15=x,0,min"]).unwrap();
+        assert_eq!(
+            (inverted.endstops[0].pin, inverted.endstops[0].active_low),
+            (103, true)
+        );
         assert_eq!(c.heaters, [(32, 41)]);
         assert_eq!((c.drop_tx, c.fault_seed, c.tx_delay_ms), (0.01, 42, 30));
         assert_eq!((c.freeze_after_ms, c.freeze_ms), (Some(500), Some(100)));
@@ -396,7 +398,7 @@ mod tests {
             &["--axis", "averylongname=1,1,1"],
             &["--axis", "z=1,2"],
             &["--endstop", "PA1=z,1,middle"],
-            &["--endstop", "PA8=z,1,min"],
+            &["--endstop", "PM8=z,1,min"],
             &["--endstop", "PA1=0.5*a+,1,min"],
             &["--endstop", "PA1=half*a,1,min"],
             &["--heater", "PA1"],
@@ -406,8 +408,11 @@ mod tests {
         ] {
             assert!(parse(bad).is_err(), "{bad:?}");
         }
-        assert_eq!(parse_pin("96"), Err("pin 96 is out of range (0..96)".into()));
+        assert_eq!(parse_pin("256"), Err("pin 256 is out of range (0..256)".into()));
         assert_eq!(parse_pin("PL7"), Ok(95));
+        assert_eq!(parse_pin("PA15"), Ok(103));
+        assert_eq!(parse_pin("P1.22"), Ok(54));
+        assert!(parse_pin("PM0").unwrap_err().contains("is not a pin"));
         assert_eq!(
             parse_endstop("PA1=a+2b,1,min").unwrap_err(),
             "coordinate `a+2b`: axis name `2b` must have 1 to 8 bytes, start with a letter or `_` and \

@@ -228,8 +228,11 @@ pub struct EndstopSpec {
     pub axis: Coord,
     /// Trigger coordinate.
     pub trigger_mm: f64,
-    /// true: reads 1 at or below `trigger_mm`; false: at or above.
+    /// true: triggered at or below `trigger_mm`; false: at or above.
     pub at_min: bool,
+    /// The pin reads 0 when triggered (a printer.cfg `!` endstop, wired normally closed);
+    /// otherwise 1.
+    pub active_low: bool,
 }
 
 /// Why the world could not be joined.
@@ -528,11 +531,12 @@ impl World {
         let at = self.time.map(|t| t.ns(clock));
         let e = &self.endstops[i];
         let pos = self.coord_at(&e.axis, at)?;
-        Some(if e.at_min {
+        let triggered = if e.at_min {
             pos <= e.trigger_mm
         } else {
             pos >= e.trigger_mm
-        })
+        };
+        Some(triggered != e.active_low)
     }
 }
 
@@ -618,18 +622,21 @@ mod tests {
                 axis: Coord::axis("x"),
                 trigger_mm: 9.95,
                 at_min: true,
+                active_low: false,
             },
             EndstopSpec {
                 pin: 6,
                 axis: Coord::axis("x"),
                 trigger_mm: 10.02,
                 at_min: false,
+                active_low: false,
             },
             EndstopSpec {
                 pin: 7,
                 axis: Coord::axis("nobody"),
                 trigger_mm: 0.0,
                 at_min: true,
+                active_low: false,
             },
         ];
         let mut w = World::new(None, vec![axis("x", 3)], endstops).unwrap();
@@ -658,6 +665,7 @@ mod tests {
             axis: Coord::axis("z"),
             trigger_mm: 10.5,
             at_min: false,
+            active_low: false,
         };
         let mut stepper = World::new(Some(&id), vec![axis("z", 2)], vec![]).unwrap();
         let mut probe = World::new(Some(&id), vec![], vec![endstop]).unwrap();
@@ -679,6 +687,7 @@ mod tests {
             axis: Coord::axis("z"),
             trigger_mm: 10.2,
             at_min: false,
+            active_low: false,
         };
         // Both processes count 1 tick per ns from CLOCK_MONOTONIC 1 s.
         let time = TimeBase {
@@ -734,12 +743,22 @@ mod tests {
                 axis: x.clone(),
                 trigger_mm: 9.0,
                 at_min: true,
+                active_low: false,
             },
             EndstopSpec {
                 pin: 2,
                 axis: y.clone(),
                 trigger_mm: -1.0,
                 at_min: true,
+                active_low: false,
+            },
+            // X's endstop again, wired normally closed: reads 0 when triggered.
+            EndstopSpec {
+                pin: 5,
+                axis: x.clone(),
+                trigger_mm: 9.0,
+                at_min: true,
+                active_low: true,
             },
         ];
         // a = x + y = 12, b = x − y = 8: x = 10, y = 2.
@@ -753,12 +772,17 @@ mod tests {
         w.config_stepper(0, 3);
         w.config_stepper(1, 4);
         assert_eq!((w.coord(&x), w.coord(&y)), (Some(10.0), Some(2.0)));
+        assert_eq!(
+            (w.read_endstop(1, 0), w.read_endstop(5, 0)),
+            (Some(false), Some(true))
+        );
         // X − 1 mm: both A and B back by 100 steps; Y keeps its place.
         for _ in 0..100 {
             w.step(0, false, 0);
             w.step(1, false, 0);
         }
         assert_eq!(w.read_endstop(1, 0), Some(true));
+        assert_eq!(w.read_endstop(5, 0), Some(false), "active low: 0 when triggered");
         assert_eq!(w.read_endstop(2, 0), Some(false));
         // Y − 3 mm: A back 300 steps, B forward 300.
         for _ in 0..300 {

@@ -1,8 +1,8 @@
 //! Delta geometry: `[printer] delta_radius` (required), `print_radius` (default delta_radius),
 //! `minimum_z_position` (default 0), and per tower `[stepper_a|b|c] arm_length` (required on
 //! stepper_a, b and c default to a's) and `angle` (defaults 210°, 330°, 90°), as Klipper.
-//! Each tower's `position_endstop` is required and is where the carriage homes; its
-//! `position_max` defaults to it.
+//! Each tower's `position_endstop` is where the carriage homes (required on stepper_a; b and c
+//! default to a's, as Klipper); its `position_max` defaults to it.
 
 use super::error::{ConfigError, ValueProblem};
 use super::reader::{Bounds, SectionReader};

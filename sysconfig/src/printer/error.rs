@@ -65,6 +65,10 @@ pub enum ConfigError {
         section: String,
         needed_by: Option<String>,
     },
+    /// A `[gcode_macro]` whose template does not compile or whose variable is not a literal
+    /// (the message names file, line and section).
+    #[error(transparent)]
+    Macro(planner::gcode::macros::MacroError),
     /// A section nothing reads and that is not on the list of accepted-and-ignored sections.
     #[error("{at}: Section '{section}' is not a valid config section")]
     UnknownSection { at: Location, section: String },
@@ -109,7 +113,7 @@ impl ConfigError {
     pub fn location(&self) -> Option<&Location> {
         match self {
             ConfigError::Ini(e) => e.location(),
-            ConfigError::MissingSection { .. } => None,
+            ConfigError::MissingSection { .. } | ConfigError::Macro(_) => None,
             ConfigError::UnknownSection { at, .. }
             | ConfigError::BadSection { at, .. }
             | ConfigError::MissingOption { at, .. }
@@ -121,7 +125,7 @@ impl ConfigError {
     /// The section the error is about, when there is one.
     pub fn section(&self) -> Option<&str> {
         match self {
-            ConfigError::Ini(_) => None,
+            ConfigError::Ini(_) | ConfigError::Macro(_) => None,
             ConfigError::MissingSection { section, .. }
             | ConfigError::UnknownSection { section, .. }
             | ConfigError::BadSection { section, .. }

@@ -4,12 +4,14 @@
 //! reader (`reader`) hands them out through typed getters with Klipper's bounds; one module per
 //! section family builds its typed section (`mcu`, `toolhead`, `stepper`, `extruder`, `heater`);
 //! finally every option nobody read is an error ("Option 'foo' is not valid in section …"), and
-//! every section nobody read is an error unless it is in [`IGNORED_SECTIONS`] (then a warning).
+//! every section nobody read is an error unless [`SECTIONS`] accepts and ignores it (then a
+//! warning). Sections [`SECTIONS`] refuses fail the load first, naming the missing feature.
 //!
 //! Build order (it decides which error is reported first): MCUs (pins are checked against
 //! them), `[printer]`, `[probe]` (its `z_offset` is Z's endstop position with
 //! `probe:z_virtual_endstop`), the steppers the kinematics needs, `[extruder]`, `[heater_bed]`,
-//! `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`, then the
+//! `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`,
+//! `[gcode_macro]`s, then the
 //! unused-option/section check.
 
 mod delta;
@@ -17,12 +19,13 @@ mod error;
 mod extruder;
 mod gcode;
 mod heater;
-mod ignored;
+mod macros;
 mod mcu;
 mod pins;
 mod probe;
 mod reader;
 mod realtime;
+mod sections;
 mod stepper;
 mod toolhead;
 
@@ -35,11 +38,11 @@ pub use error::{ConfigError, ValueProblem};
 pub use extruder::ExtruderSection;
 pub use gcode::{FirmwareRetractionSection, GcodeArcsSection, GcodeSection, UnknownCommands};
 pub use heater::{HeaterControl, HeaterSection, ABSOLUTE_ZERO_C};
-pub use ignored::{is_ignored, IGNORED_SECTIONS};
 pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
 pub use pins::{is_simulator_pin, PinKind, PinProblem, PinRef, MAIN_MCU};
 pub use probe::{ProbeSection, SamplesResult, PROBE_PIN_MCU, SAMPLES_RESULTS, Z_VIRTUAL_ENDSTOP};
 pub use realtime::RealtimeSection;
+pub use sections::{is_ignored, support as section_support, Support as SectionSupport, SECTIONS};
 pub use stepper::{MotorSection, StepperSection};
 pub use toolhead::{Kinematics, PrinterSection};
 
@@ -79,6 +82,8 @@ pub struct PrinterConfig {
     pub gcode_arcs: GcodeArcsSection,
     /// `[firmware_retraction]`, or its defaults.
     pub firmware_retraction: FirmwareRetractionSection,
+    /// `[gcode_macro NAME]` sections, in file order.
+    pub macros: Vec<planner::gcode::macros::MacroDef>,
     /// Accepted-but-ignored sections and other things worth telling the user.
     pub warnings: Vec<String>,
 }
@@ -88,6 +93,7 @@ impl PrinterConfig {
     pub fn from_ini(file: &ConfigFile) -> Result<PrinterConfig, ConfigError> {
         let reader = Reader::new(file);
         let source = file.main_file().to_path_buf();
+        refuse_unsupported(file)?;
 
         let mcus = mcu::read_mcus(&reader)?;
         let names = mcus.iter().map(|m| m.name.clone()).collect();
@@ -96,7 +102,9 @@ impl PrinterConfig {
             .filter(|m| m.is_simulated())
             .map(|m| m.name.clone())
             .collect();
-        let mut pins = PinRegistry::new(names).with_simulated(simulated);
+        let mut pins = PinRegistry::new(names)
+            .with_simulated(simulated)
+            .with_unsupported_chips(unsupported_chips(file));
 
         let printer_section = reader
             .section("printer")
@@ -129,7 +137,18 @@ impl PrinterConfig {
                 section: name.to_string(),
                 needed_by: Some(format!("kinematics: {}", printer.kinematics.name())),
             })?;
-            steppers.push(stepper::read_rail(&s, &mut pins, is_delta, probe.as_ref())?);
+            // A delta's towers B and C default their endstop position to tower A's.
+            let default_endstop = match is_delta {
+                true => steppers.first().and_then(|a: &StepperSection| a.position_endstop),
+                false => None,
+            };
+            steppers.push(stepper::read_rail(
+                &s,
+                &mut pins,
+                is_delta,
+                probe.as_ref(),
+                default_endstop,
+            )?);
             if let Some((radius, _, _)) = delta_printer {
                 let first_arm = towers.first().map(|&(a, _)| a);
                 towers.push(delta::read_tower(&s, i, first_arm, radius)?);
@@ -166,7 +185,21 @@ impl PrinterConfig {
         let firmware_retraction =
             reader.section_or_default("firmware_retraction", gcode::read_firmware_retraction)?;
 
+        let macros = macros::read_gcode_macros(&reader)?;
+
         let mut warnings = reader.finish(is_ignored)?;
+        if let Some(first) = macros.first() {
+            // Their templates are compiled (a broken one fails the load) but not run yet.
+            planner::gcode::macros::Macros::new(macros.clone()).map_err(ConfigError::Macro)?;
+            let what = match macros.len() {
+                1 => "section".to_string(),
+                n => format!("{n} sections"),
+            };
+            warnings.push(format!(
+                "{}: [gcode_macro] is not run by Cadence yet (templates checked); {what} ignored",
+                first.at
+            ));
+        }
         if let Some(s) = simulator_section {
             if !mcus.iter().any(McuSection::is_simulated) {
                 warnings.push(format!(
@@ -189,6 +222,7 @@ impl PrinterConfig {
             gcode,
             gcode_arcs,
             firmware_retraction,
+            macros,
             warnings,
         })
     }
@@ -202,6 +236,34 @@ impl PrinterConfig {
     pub fn mcu(&self, name: &str) -> Option<&McuSection> {
         self.mcus.iter().find(|m| m.name == name)
     }
+}
+
+/// Pin providers among the ignored sections: `[adc_scaled NAME]` and `[sx1509 NAME]` provide
+/// chip `NAME`, `[replicape]` chip `replicape` (Klipper's names), as (chip, section name).
+fn unsupported_chips(file: &ConfigFile) -> Vec<(String, String)> {
+    let chip = |s: &ini::Section| match (s.kind(), s.name().split_whitespace().nth(1)) {
+        ("adc_scaled" | "sx1509", Some(name)) => Some(name.to_string()),
+        ("replicape", _) => Some("replicape".to_string()),
+        _ => None,
+    };
+    file.sections()
+        .iter()
+        .filter_map(|s| chip(s).map(|c| (c, s.name().to_string())))
+        .collect()
+}
+
+/// The first section of a kind [`SECTIONS`] refuses, as an error naming the missing feature.
+fn refuse_unsupported(file: &ConfigFile) -> Result<(), ConfigError> {
+    for section in file.sections() {
+        if let Some(SectionSupport::Refused(feature)) = section_support(section.kind()) {
+            return Err(ConfigError::BadSection {
+                at: section.at().clone(),
+                section: section.name().to_string(),
+                reason: format!("is not supported by Cadence yet ({feature})"),
+            });
+        }
+    }
+    Ok(())
 }
 
 /// Reads, parses and validates the printer config at `path` (includes relative to it).

@@ -8,6 +8,8 @@
 
 use std::fmt;
 
+use links::pinmap::{PinFamily, PinName};
+
 use super::error::ValueProblem;
 use super::probe::{PROBE_PIN_MCU, Z_VIRTUAL_ENDSTOP};
 
@@ -168,12 +170,23 @@ pub(crate) struct PinRegistry {
     /// A `[probe]` was read: `probe:z_virtual_endstop` exists.
     probe: bool,
     claims: Vec<Claim>,
+    /// Per simulated MCU: the pin family its first pin chose, and that pin's use.
+    families: Vec<(String, PinFamily, String)>,
+    /// Pin providers of ignored sections (`[adc_scaled NAME]`, `[sx1509 NAME]`, `[replicape]`):
+    /// chip name and section name.
+    unsupported_chips: Vec<(String, String)>,
 }
 
-/// The simulated MCU's pins: ports A..L with 8 pins each, `PA0`..`PL7`.
+/// True when the simulated MCU has `pin` (any family of [`links::pinmap`]: `PA0`, `PF13`,
+/// `P1.22`, `gpio17`, `gpio1_23`).
 pub fn is_simulator_pin(pin: &str) -> bool {
-    matches!(pin.as_bytes(), [b'P', b'A'..=b'L', b'0'..=b'7'])
+    PinName::parse(pin).is_some()
 }
+
+/// The families the simulated MCU's pins may be named in, for errors.
+const SIMULATOR_FAMILIES: &str = "AVR/STM32/SAM style PA0..PL15 and PA16..PD31, LPC176x style \
+    P0.0..P4.31, RP2040 style gpio0..gpio63, BeagleBone style gpio0_0..gpio3_31 or Linux MCU style \
+    gpiochip0/gpio0..gpiochip6/gpio31 and analog0..analog31";
 
 impl PinRegistry {
     pub(crate) fn new(mcus: Vec<String>) -> Self {
@@ -182,12 +195,20 @@ impl PinRegistry {
             simulated: Vec::new(),
             probe: false,
             claims: Vec::new(),
+            families: Vec::new(),
+            unsupported_chips: Vec::new(),
         }
     }
 
     /// Marks `names` as simulated MCUs.
     pub(crate) fn with_simulated(mut self, names: Vec<String>) -> Self {
         self.simulated = names;
+        self
+    }
+
+    /// Declares the pin providers (chip name, section) whose pins Cadence does not drive.
+    pub(crate) fn with_unsupported_chips(mut self, chips: Vec<(String, String)>) -> Self {
+        self.unsupported_chips = chips;
         self
     }
 
@@ -227,6 +248,33 @@ impl PinRegistry {
         Ok(())
     }
 
+    /// A simulated MCU's pin must be one of its names, in the one family its first pin chose
+    /// (the families' numbers overlap, see [`links::pinmap`]).
+    fn check_simulator_pin(&mut self, pin: &PinRef, section: &str, option: &str) -> Result<(), ValueProblem> {
+        let Some(name) = PinName::parse(&pin.pin) else {
+            return Err(ValueProblem::Invalid(format!(
+                "pin '{pin}': the simulated mcu '{}' has no such pin (its pins are named {SIMULATOR_FAMILIES}); \
+                 for a real board's pins, batch mode takes that board's data dictionary with --dictionary",
+                pin.mcu
+            )));
+        };
+        match self.families.iter().find(|(mcu, _, _)| *mcu == pin.mcu) {
+            Some((_, family, first)) if *family != name.family => Err(ValueProblem::Invalid(format!(
+                "pin '{pin}' is named {} but the simulated mcu '{}' already uses {} names ({first}); \
+                 one MCU's pins are named one way",
+                name.family.describe(),
+                pin.mcu,
+                family.describe()
+            ))),
+            Some(_) => Ok(()),
+            None => {
+                let first = format!("[{section}] {option}: {}", pin.pin);
+                self.families.push((pin.mcu.clone(), name.family, first));
+                Ok(())
+            }
+        }
+    }
+
     /// Records `pin` as used by `[section] option`, or says why it may not be.
     pub(crate) fn claim(
         &mut self,
@@ -239,16 +287,24 @@ impl PinRegistry {
             return self.check_probe_pin(pin, section, option);
         }
         if !self.mcus.contains(&pin.mcu) {
+            if pin.pin == "virtual_endstop" && pin.mcu.starts_with("tmc") {
+                return Err(ValueProblem::Invalid(format!(
+                    "pin '{pin}': sensorless homing through a TMC driver's virtual endstop is not supported \
+                     by Cadence yet"
+                )));
+            }
+            if let Some((_, section)) = self.unsupported_chips.iter().find(|(chip, _)| *chip == pin.mcu) {
+                return Err(ValueProblem::Invalid(format!(
+                    "pin '{pin}' is on [{section}], whose pins Cadence does not support yet"
+                )));
+            }
             return Err(ValueProblem::UnknownMcu {
                 pin: pin.to_string(),
                 mcu: pin.mcu.clone(),
             });
         }
-        if self.simulated.contains(&pin.mcu) && !is_simulator_pin(&pin.pin) {
-            return Err(ValueProblem::Invalid(format!(
-                "pin '{pin}': the simulated mcu '{}' only has pins PA0..PL7",
-                pin.mcu
-            )));
+        if self.simulated.contains(&pin.mcu) {
+            self.check_simulator_pin(pin, section, option)?;
         }
         let earlier = self
             .claims
@@ -416,19 +472,40 @@ mod tests {
     }
 
     #[test]
-    fn simulated_mcus_only_have_pa0_to_pl7() {
-        assert!(is_simulator_pin("PA0") && is_simulator_pin("PL7") && is_simulator_pin("PE5"));
-        assert!(!is_simulator_pin("PM0") && !is_simulator_pin("PA8") && !is_simulator_pin("PA10"));
-        assert!(!is_simulator_pin("pa0") && !is_simulator_pin("P1.22"));
-        let mut reg = PinRegistry::new(vec!["mcu".into()]).with_simulated(vec!["mcu".into()]);
+    fn simulated_mcus_take_every_family_one_at_a_time() {
+        for ok in [
+            "PA0", "PL7", "PE5", "PA8", "PF13", "PD31", "P1.22", "gpio29", "gpio1_23",
+        ] {
+            assert!(is_simulator_pin(ok), "{ok}");
+        }
+        assert!(!is_simulator_pin("PM0") && !is_simulator_pin("pa0") && !is_simulator_pin("PE16"));
+        let mut reg = PinRegistry::new(vec!["mcu".into(), "other".into()])
+            .with_simulated(vec!["mcu".into(), "other".into()]);
         let p = |t: &str| PinRef::parse(t, PinKind::Output).unwrap_or_else(|e| panic!("{t}: {e}"));
         assert_eq!(reg.claim(&p("PL7"), "s", "a", Share::Exclusive), Ok(()));
+        assert_eq!(reg.claim(&p("!PA9"), "s", "b", Share::Exclusive), Ok(()));
+        let Err(ValueProblem::Invalid(why)) = reg.claim(&p("!PM9"), "s", "c", Share::Exclusive) else {
+            panic!("PM9 accepted")
+        };
+        assert!(
+            why.starts_with("pin '!PM9': the simulated mcu 'mcu' has no such pin"),
+            "{why}"
+        );
+        assert!(
+            why.contains("P0.0..P4.31") && why.contains("--dictionary"),
+            "{why}"
+        );
         assert_eq!(
-            reg.claim(&p("!PA9"), "s", "b", Share::Exclusive),
+            reg.claim(&p("P1.2"), "s", "d", Share::Exclusive),
             Err(ValueProblem::Invalid(
-                "pin '!PA9': the simulated mcu 'mcu' only has pins PA0..PL7".into()
+                "pin 'P1.2' is named LPC176x style (P0.0..P4.31) but the simulated mcu 'mcu' already \
+                 uses AVR/STM32/SAM style (PA0..PL15, PA16..PD31) names ([s] a: PL7); one MCU's pins \
+                 are named one way"
+                    .into()
             ))
         );
+        // Another MCU chooses its own family.
+        assert_eq!(reg.claim(&p("other:gpio3"), "s", "e", Share::Exclusive), Ok(()));
     }
 
     proptest! {

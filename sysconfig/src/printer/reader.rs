@@ -225,6 +225,21 @@ impl<'r> SectionReader<'r> {
         self.section.get(option)
     }
 
+    /// Every option named `prefix…` with the rest of its name, marking them used
+    /// (`variable_count` → `("count", value)`).
+    pub(crate) fn options_with_prefix(&self, prefix: &str) -> Vec<(&'r str, &'r Value)> {
+        let mut out = Vec::new();
+        for (i, (key, value)) in self.section.options().enumerate() {
+            if let Some(rest) = key.strip_prefix(prefix) {
+                if let Some(used) = self.used.get(i) {
+                    used.set(true);
+                }
+                out.push((rest, value));
+            }
+        }
+        out
+    }
+
     /// The raw value of a required option.
     pub(crate) fn required(&self, option: &str) -> Result<&'r Value, ConfigError> {
         self.value(option).ok_or_else(|| ConfigError::MissingOption {

@@ -134,7 +134,9 @@ pub(crate) fn read_motor(s: &SectionReader<'_>, pins: &mut PinRegistry) -> Resul
 }
 
 /// A linear rail: motor, endstop, range and homing.
-/// A rail; `delta`: a delta tower, whose `position_endstop` is required and is the default
+/// A rail; `default_endstop`: the `position_endstop` taken when the section has none (a delta's
+/// `stepper_b` and `stepper_c` take `stepper_a`'s, as Klipper does).
+/// `delta`: a delta tower, whose `position_endstop` is required and is the default
 /// `position_max`.
 /// `probe`: the `[probe]`, whose `z_offset` is the endstop position when `endstop_pin` is
 /// `probe:z_virtual_endstop` (`position_endstop` is then not an option).
@@ -143,6 +145,7 @@ pub(crate) fn read_rail(
     pins: &mut PinRegistry,
     delta: bool,
     probe: Option<&ProbeSection>,
+    default_endstop: Option<f64>,
 ) -> Result<StepperSection, ConfigError> {
     let m = read_motor(s, pins)?;
     let endstop_pin = s.opt_pin("endstop_pin", PinKind::Input, pins, Share::Exclusive)?;
@@ -157,10 +160,14 @@ pub(crate) fn read_rail(
     } else {
         "position_endstop"
     };
+    let given_endstop = || match default_endstop {
+        Some(d) => s.float_or("position_endstop", d, Bounds::ANY),
+        None => s.float("position_endstop", Bounds::ANY),
+    };
     let position_endstop = match endstop_pin {
         Some(_) if probe_z_offset.is_some() => probe_z_offset,
-        Some(_) => Some(s.float("position_endstop", Bounds::ANY)?),
-        None if delta => Some(s.float("position_endstop", Bounds::ANY)?),
+        Some(_) => Some(given_endstop()?),
+        None if delta => Some(given_endstop()?),
         None => s.opt_float("position_endstop", Bounds::ANY)?,
     };
     let position_min = s.float_or("position_min", 0.0, Bounds::ANY)?;
@@ -252,7 +259,7 @@ mod tests {
         let reader = Reader::new(&file);
         let s = reader.section("stepper_x").ok_or("no section")?;
         let mut pins = PinRegistry::new(vec!["mcu".into(), "ebb".into()]);
-        let r = read_rail(&s, &mut pins, false, None).map_err(|e| e.to_string())?;
+        let r = read_rail(&s, &mut pins, false, None, None).map_err(|e| e.to_string())?;
         reader.finish(|_| false).map_err(|e| e.to_string())?;
         Ok(r)
     }
@@ -374,7 +381,7 @@ mod tests {
             .unwrap_or_else(|| panic!("no section"));
         let mut pins = PinRegistry::new(vec!["mcu".into(), "ebb".into()]);
         assert_eq!(
-            read_rail(&s, &mut pins, false, None)
+            read_rail(&s, &mut pins, false, None, None)
                 .map(|_| ())
                 .map_err(|e| e.to_string()),
             Err(
@@ -389,7 +396,7 @@ mod tests {
             .unwrap_or_else(|| panic!("no section"));
         let mut pins = PinRegistry::new(vec!["mcu".into()]);
         assert_eq!(
-            read_rail(&s, &mut pins, false, None)
+            read_rail(&s, &mut pins, false, None, None)
                 .map(|_| ())
                 .map_err(|e| e.to_string()),
             Err("printer.cfg:5: [stepper_x] microsteps: expected an integer, got 'abc'".to_string())

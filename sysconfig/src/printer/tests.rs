@@ -118,6 +118,30 @@ fn missing_sections() {
 }
 
 #[test]
+fn pins_of_unsupported_providers_name_the_feature() {
+    let tmc = MINIMAL.replace("rotation_distance: 40\nposition_max: 200\n[stepper_y]", "rotation_distance: 40\nposition_max: 200\nendstop_pin: tmc2209_stepper_x:virtual_endstop\nposition_endstop: 0\n[stepper_y]");
+    let err = parse(&format!(
+        "{tmc}[tmc2209 stepper_x]\nuart_pin: PD1\nrun_current: 0.5\n"
+    ))
+    .unwrap_err();
+    assert_eq!(
+        err,
+        "printer.cfg:13: [stepper_x] endstop_pin: pin 'tmc2209_stepper_x:virtual_endstop': sensorless homing \
+         through a TMC driver's virtual endstop is not supported by Cadence yet"
+    );
+    let scaled = MINIMAL.replace("step_pin: PC0", "step_pin: vref_scaled:PC0");
+    let err = parse(&format!(
+        "{scaled}[adc_scaled vref_scaled]\nvref_pin: PA5\nvssa_pin: PA6\n"
+    ))
+    .unwrap_err();
+    assert_eq!(
+        err,
+        "printer.cfg:20: [stepper_z] step_pin: pin 'vref_scaled:PC0' is on [adc_scaled vref_scaled], whose pins \
+         Cadence does not support yet"
+    );
+}
+
+#[test]
 fn unknown_sections_and_options_are_errors_ignored_ones_warnings() {
     assert_eq!(
         parse(&format!("{MINIMAL}[frobnicator]\n")).map(|_| ()),
@@ -125,7 +149,22 @@ fn unknown_sections_and_options_are_errors_ignored_ones_warnings() {
     );
     assert_eq!(
         parse(&format!("{MINIMAL}[stepper_z1]\nstep_pin: PD0\n")).map(|_| ()),
-        Err("printer.cfg:25: Section 'stepper_z1' is not a valid config section".to_string())
+        Err(
+            "printer.cfg:25: [stepper_z1] is not supported by Cadence yet (several motors on one axis)"
+                .to_string()
+        )
+    );
+    // A refused section is the first error, before the pins that depend on it.
+    assert_eq!(
+        parse(&format!(
+            "{}[bltouch]\nsensor_pin: PD0\n",
+            MINIMAL.replace(
+                "rotation_distance: 8\n",
+                "rotation_distance: 8\nendstop_pin: probe:z_virtual_endstop\n"
+            )
+        ))
+        .map(|_| ()),
+        Err("printer.cfg:26: [bltouch] is not supported by Cadence yet (BLTouch probe)".to_string())
     );
     assert_eq!(
         parse(&MINIMAL.replace(
@@ -141,9 +180,53 @@ fn unknown_sections_and_options_are_errors_ignored_ones_warnings() {
     assert_eq!(
         cfg.warnings,
         [
-            "printer.cfg:25: [gcode_macro] is not implemented by Cadence yet; 2 sections ignored",
             "printer.cfg:28: [fan] is not implemented by Cadence yet; section ignored",
+            "printer.cfg:25: [gcode_macro] is not run by Cadence yet (templates checked); 2 sections ignored",
         ]
+    );
+    let names: Vec<&str> = cfg.macros.iter().map(|m| m.name.as_str()).collect();
+    assert_eq!(names, ["START", "END"]);
+}
+
+#[test]
+fn gcode_macros_are_read_and_their_templates_checked() {
+    let cfg = ok(&format!(
+        "{MINIMAL}[gcode_macro start_print]\ndescription: Start\nvariable_bed: 60\nvariable_Name: 'x'\n\
+         rename_existing: sp_old\ngcode:\n  M190 S{{params.BED|default(bed)}}\n  G28\n"
+    ));
+    let m = &cfg.macros[0];
+    assert_eq!(
+        (
+            m.name.as_str(),
+            m.description.as_deref(),
+            m.rename_existing.as_deref()
+        ),
+        ("START_PRINT", Some("Start"), Some("SP_OLD"))
+    );
+    assert_eq!(
+        m.variables,
+        [
+            ("bed".to_string(), "60".to_string()),
+            ("name".to_string(), "'x'".to_string())
+        ]
+    );
+    assert_eq!(m.gcode, "\nM190 S{params.BED|default(bed)}\nG28");
+    let bad = parse(&format!("{MINIMAL}[gcode_macro X]\ngcode: {{% if %}}\n")).unwrap_err();
+    assert!(
+        bad.starts_with("printer.cfg:25: [gcode_macro X] gcode: "),
+        "{bad}"
+    );
+    let bad = parse(&format!(
+        "{MINIMAL}[gcode_macro X]\nvariable_v: oops\ngcode: G28\n"
+    ))
+    .unwrap_err();
+    assert!(
+        bad.starts_with("printer.cfg:25: [gcode_macro X] variable_v: 'oops' is not a literal"),
+        "{bad}"
+    );
+    assert_eq!(
+        parse(&format!("{MINIMAL}[gcode_macro X]\ndescription: no gcode\n")).map(|_| ()),
+        Err("printer.cfg:25: Option 'gcode' in section 'gcode_macro X' must be specified".to_string())
     );
 }
 
@@ -201,14 +284,14 @@ fn pins_across_sections_and_mcus() {
              enable_pin"
             .to_string())
     );
-    // The simulated MCU only has PA0..PL7.
+    // The simulated MCU has every board family's pin names, but no port M.
     let sim = MINIMAL.replace("/dev/ttyACM0", "simulator").replace("PC1", "PM1");
-    assert_eq!(
-        parse(&sim).map(|_| ()),
-        Err(
-            "printer.cfg:21: [stepper_z] dir_pin: pin 'PM1': the simulated mcu 'mcu' only has pins PA0..PL7"
-                .to_string()
-        )
+    let err = parse(&sim).map(|_| ()).unwrap_err();
+    assert!(
+        err.starts_with(
+            "printer.cfg:21: [stepper_z] dir_pin: pin 'PM1': the simulated mcu 'mcu' has no such pin"
+        ),
+        "{err}"
     );
 }
 
@@ -356,6 +439,13 @@ fn delta_geometry() {
     assert_eq!(cfg.steppers[1].position_max, 251.0);
     assert!(cfg.steppers[0].homing_positive_dir);
     assert!(ok(MINIMAL).delta.is_none());
+    // Towers B and C take A's position_endstop when they give none, as Klipper.
+    let inherited = ok(&DELTA
+        .replace("position_endstop: 251\n", "")
+        .replace("position_endstop: 249\n", ""));
+    let endstops: Vec<_> = inherited.steppers.iter().map(|s| s.position_endstop).collect();
+    assert_eq!(endstops, [Some(250.0); 3]);
+    assert_eq!(inherited.steppers[2].position_max, 250.0);
 }
 
 #[test]
@@ -367,6 +457,10 @@ fn delta_errors_name_the_option() {
     assert_eq!(
         parse(&DELTA.replace("arm_length: 270\n", "")).map(|_| ()),
         Err("printer.cfg:8: Option 'arm_length' in section 'stepper_a' must be specified".to_string())
+    );
+    assert_eq!(
+        parse(&DELTA.replace("position_endstop: 250\n", "")).map(|_| ()),
+        Err("printer.cfg:8: Option 'position_endstop' in section 'stepper_a' must be specified".to_string())
     );
     let short = parse(&DELTA.replace("arm_length: 271", "arm_length: 100")).map(|_| ());
     assert!(
