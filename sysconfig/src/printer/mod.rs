@@ -14,6 +14,7 @@
 //! `[gcode_macro]`s, then the
 //! unused-option/section check.
 
+mod board_pins;
 mod delta;
 mod error;
 mod extruder;
@@ -104,7 +105,8 @@ impl PrinterConfig {
             .collect();
         let mut pins = PinRegistry::new(names)
             .with_simulated(simulated)
-            .with_unsupported_chips(unsupported_chips(file));
+            .with_unsupported_chips(unsupported_chips(file))
+            .with_aliases(board_pins::read_board_pins(&reader)?);
 
         let printer_section = reader
             .section("printer")

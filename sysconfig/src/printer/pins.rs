@@ -10,6 +10,7 @@ use std::fmt;
 
 use links::pinmap::{PinFamily, PinName};
 
+use super::board_pins::{Alias, Aliases};
 use super::error::ValueProblem;
 use super::probe::{PROBE_PIN_MCU, Z_VIRTUAL_ENDSTOP};
 
@@ -175,6 +176,8 @@ pub(crate) struct PinRegistry {
     /// Pin providers of ignored sections (`[adc_scaled NAME]`, `[sx1509 NAME]`, `[replicape]`):
     /// chip name and section name.
     unsupported_chips: Vec<(String, String)>,
+    /// `[board_pins]` aliases.
+    aliases: Aliases,
 }
 
 /// True when the simulated MCU has `pin` (any family of [`links::pinmap`]: `PA0`, `PF13`,
@@ -197,6 +200,7 @@ impl PinRegistry {
             claims: Vec::new(),
             families: Vec::new(),
             unsupported_chips: Vec::new(),
+            aliases: Aliases::new(),
         }
     }
 
@@ -204,6 +208,27 @@ impl PinRegistry {
     pub(crate) fn with_simulated(mut self, names: Vec<String>) -> Self {
         self.simulated = names;
         self
+    }
+
+    /// Declares the `[board_pins]` aliases pins are resolved through.
+    pub(crate) fn with_aliases(mut self, aliases: Aliases) -> Self {
+        self.aliases = aliases;
+        self
+    }
+
+    /// `pin` with a `[board_pins]` alias replaced by the MCU's pin name; a reserved alias
+    /// (`<GND>`) is an error.
+    pub(crate) fn resolve(&self, mut pin: PinRef) -> Result<PinRef, ValueProblem> {
+        match self.aliases.get(&(pin.mcu.clone(), pin.pin.clone())) {
+            None => Ok(pin),
+            Some(Alias::Pin(real)) => {
+                pin.pin = real.clone();
+                Ok(pin)
+            }
+            Some(Alias::Reserved(what)) => Err(ValueProblem::Invalid(format!(
+                "pin '{pin}' is the board's reserved <{what}>, not a pin"
+            ))),
+        }
     }
 
     /// Declares the pin providers (chip name, section) whose pins Cadence does not drive.

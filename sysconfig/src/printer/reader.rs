@@ -139,6 +139,17 @@ impl<'a> Reader<'a> {
         self.section(name).map_or_else(|| Ok(T::default()), |s| read(&s))
     }
 
+    /// Every `[kind]` and `[kind NAME]` section, in file order, marked as read.
+    pub(crate) fn sections_of_kind(&self, kind: &str) -> Vec<SectionReader<'_>> {
+        let indices = self.file.sections().iter().enumerate();
+        let wanted = indices.filter(|(_, s)| s.kind() == kind).map(|(i, _)| i);
+        wanted
+            .collect::<Vec<_>>()
+            .into_iter()
+            .filter_map(|i| self.view(i))
+            .collect()
+    }
+
     /// Every `[kind NAME]` section (with an argument), in file order, marked as read.
     pub(crate) fn sections_with_arg(&self, kind: &str) -> Vec<SectionReader<'_>> {
         let indices = self.file.sections().iter().enumerate();
@@ -379,6 +390,7 @@ impl<'r> SectionReader<'r> {
                 },
             )
         })?;
+        let pin = pins.resolve(pin).map_err(|p| self.bad(option, v, p))?;
         pins.claim(&pin, self.name(), option, share)
             .map_err(|p| self.bad(option, v, p))?;
         Ok(Some(pin))

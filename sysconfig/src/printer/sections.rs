@@ -40,7 +40,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("bed_tilt", Ignored),
     ("bltouch", Refused("BLTouch probe")),
     ("bmi160", Ignored),
-    ("board_pins", Ignored),
+    ("board_pins", Read),
     ("controller_fan", Ignored),
     ("dac084S085", Ignored),
     ("delayed_gcode", Ignored),

@@ -118,6 +118,42 @@ fn missing_sections() {
 }
 
 #[test]
+fn board_pins_aliases_resolve_before_pins_are_checked() {
+    let aliased = MINIMAL
+        .replace("step_pin: PC0", "step_pin: EXP1_1")
+        .replace("dir_pin: PC1", "dir_pin: !EXP1_2");
+    let cfg = ok(&format!(
+        "{aliased}[board_pins]\naliases:\n  # EXP1\n  EXP1_1=PB5, EXP1_2=PA8,\n  EXP1_9=<GND>\n"
+    ));
+    let z = cfg.stepper("stepper_z").unwrap();
+    assert_eq!(
+        (
+            z.motor.step_pin.pin.as_str(),
+            z.motor.dir_pin.pin.as_str(),
+            z.motor.dir_pin.invert
+        ),
+        ("PB5", "PA8", true)
+    );
+    let reserved = MINIMAL.replace("step_pin: PC0", "step_pin: EXP1_9");
+    assert_eq!(
+        parse(&format!("{reserved}[board_pins]\naliases: EXP1_9=<GND>\n")).map(|_| ()),
+        Err(
+            "printer.cfg:20: [stepper_z] step_pin: pin 'EXP1_9' is the board's reserved <GND>, not a pin"
+                .to_string()
+        )
+    );
+    // An alias and the pin it names are one pin.
+    let twice = MINIMAL
+        .replace("step_pin: PC0", "step_pin: EXP1_1")
+        .replace("dir_pin: PC1", "dir_pin: PB5");
+    let err = parse(&format!("{twice}[board_pins]\naliases: EXP1_1=PB5\n")).unwrap_err();
+    assert!(err.contains("dir_pin") && err.contains("PB5"), "{err}");
+    assert!(parse(&format!("{MINIMAL}[board_pins]\naliases: EXP1_1\n"))
+        .unwrap_err()
+        .contains("is not NAME=PIN"));
+}
+
+#[test]
 fn pins_of_unsupported_providers_name_the_feature() {
     let tmc = MINIMAL.replace("rotation_distance: 40\nposition_max: 200\n[stepper_y]", "rotation_distance: 40\nposition_max: 200\nendstop_pin: tmc2209_stepper_x:virtual_endstop\nposition_endstop: 0\n[stepper_y]");
     let err = parse(&format!(
