@@ -13,8 +13,9 @@
 //! - the compression horizon and `planned_until` go back to that print time, so the global
 //!   clock order of released commands still holds.
 //!
-//! Only the inline backend without pressure advance supports this (worker lanes and the
-//! pressure-advance generator keep time state this module cannot rewind):
+//! Only the inline backend without pressure advance or input shaping supports this (worker
+//! lanes and the pressure-advance and shaped generators keep time state this module cannot
+//! rewind):
 //! [`Pipeline::supports_homing`].
 
 use super::{Backend, Pipeline};
@@ -30,10 +31,11 @@ fn config_error(msg: &str) -> PlanError {
 }
 
 impl Pipeline {
-    /// True when [`Self::resync_after_stop`] can work (inline lanes, no pressure advance).
+    /// True when [`Self::resync_after_stop`] can work (inline lanes, no pressure advance, no
+    /// input shaping).
     pub fn supports_homing(&self) -> bool {
         match &self.backend {
-            Backend::Inline(lanes, _) => lanes.iter().all(|l| l.pa.is_none()),
+            Backend::Inline(lanes, _) => lanes.iter().all(|l| l.pa.is_none() && l.shaped.is_none()),
             Backend::Threads(..) => false,
         }
     }

@@ -1,7 +1,7 @@
 //! Klipper sections Cadence accepts but does not implement yet: a config containing them loads,
 //! with one warning per kind ("[bed_mesh] is not implemented by Cadence yet; section ignored"),
 //! instead of failing. Some of them would shape motion or homing on Klipper (`bed_mesh`,
-//! `input_shaper`, `skew_correction`, `safe_z_home`, `homing_override`): the warning is the
+//! `skew_correction`, `safe_z_home`, `homing_override`): the warning is the
 //! user's notice that they are not applied; their G-code commands are unknown commands (errors
 //! by default, see `[gcode]`). Extra steppers and dual carriages are deliberately not on this
 //! list: a config with them does not load.
@@ -35,7 +35,6 @@ pub const IGNORED_SECTIONS: &[&str] = &[
     "homing_heaters",
     "homing_override",
     "idle_timeout",
-    "input_shaper",
     "led",
     "menu",
     "neopixel",

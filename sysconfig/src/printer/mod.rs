@@ -9,8 +9,8 @@
 //! Build order (it decides which error is reported first): MCUs (pins are checked against
 //! them), `[printer]`, `[probe]` (its `z_offset` is Z's endstop position with
 //! `probe:z_virtual_endstop`), the steppers the kinematics needs, `[extruder]`, `[heater_bed]`,
-//! `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`, then the
-//! unused-option/section check.
+//! `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`,
+//! `[input_shaper]`, then the unused-option/section check.
 
 mod delta;
 mod error;
@@ -18,6 +18,7 @@ mod extruder;
 mod gcode;
 mod heater;
 mod ignored;
+mod input_shaper;
 mod mcu;
 mod pins;
 mod probe;
@@ -36,6 +37,7 @@ pub use extruder::ExtruderSection;
 pub use gcode::{FirmwareRetractionSection, GcodeArcsSection, GcodeSection, UnknownCommands};
 pub use heater::{HeaterControl, HeaterSection, ABSOLUTE_ZERO_C};
 pub use ignored::{is_ignored, IGNORED_SECTIONS};
+pub use input_shaper::InputShaperSection;
 pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
 pub use pins::{is_simulator_pin, PinKind, PinProblem, PinRef, MAIN_MCU};
 pub use probe::{ProbeSection, SamplesResult, PROBE_PIN_MCU, SAMPLES_RESULTS, Z_VIRTUAL_ENDSTOP};
@@ -79,6 +81,8 @@ pub struct PrinterConfig {
     pub gcode_arcs: GcodeArcsSection,
     /// `[firmware_retraction]`, or its defaults.
     pub firmware_retraction: FirmwareRetractionSection,
+    /// `[input_shaper]`, when there is one.
+    pub input_shaper: Option<InputShaperSection>,
     /// Accepted-but-ignored sections and other things worth telling the user.
     pub warnings: Vec<String>,
 }
@@ -166,6 +170,11 @@ impl PrinterConfig {
         let firmware_retraction =
             reader.section_or_default("firmware_retraction", gcode::read_firmware_retraction)?;
 
+        let input_shaper = match reader.section("input_shaper") {
+            Some(s) => Some(input_shaper::read_input_shaper(&s, is_delta)?),
+            None => None,
+        };
+
         let mut warnings = reader.finish(is_ignored)?;
         if let Some(s) = simulator_section {
             if !mcus.iter().any(McuSection::is_simulated) {
@@ -189,6 +198,7 @@ impl PrinterConfig {
             gcode,
             gcode_arcs,
             firmware_retraction,
+            input_shaper,
             warnings,
         })
     }
