@@ -23,7 +23,7 @@ use std::sync::Arc;
 use std::thread::JoinHandle;
 
 use super::ClockMap;
-use crate::compress::StepCompressor;
+use crate::compress::{CompressorSink, StepCompressor};
 use crate::kinematics::StepperKin;
 use crate::pressure_advance::{PaGen, PressureAdvance};
 use crate::shaped::{shapes, ShapedGen};
@@ -203,7 +203,7 @@ impl LaneState {
         let comp = &mut self.comp;
         match &mut self.shaped {
             Some(g) => {
-                g.generate(true, |clock, dir| comp.push_step(clock, dir));
+                g.generate(true, CompressorSink(comp));
                 g.set_shaper(shaper);
             }
             None => {
@@ -265,8 +265,7 @@ impl LaneState {
             pa.generate(all || rest, |clock, dir| comp.push_step(clock, dir));
         }
         if let Some(g) = &mut self.shaped {
-            let comp = &mut self.comp;
-            g.generate(all || rest, |clock, dir| comp.push_step(clock, dir));
+            g.generate(all || rest, CompressorSink(&mut self.comp));
         }
         self.fresh.clear();
         if all {

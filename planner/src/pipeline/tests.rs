@@ -465,16 +465,24 @@ proptest! {
     #![proptest_config(ProptestConfig { cases: 24, ..ProptestConfig::default() })]
 
     /// Recording the ideal steps (tests, `--check`) takes every step one at a time; a print
-    /// writes cruises in one loop. Both give the same windows, so the same commands, which the
-    /// recorded run's checker has proven.
+    /// writes cruises in one loop (shaped or not). Both give the same windows, so the same
+    /// commands, which the recorded run's checker has proven.
     #[test]
     fn commands_do_not_depend_on_recording_the_ideal_steps(
         (program, _end) in arb_program(),
         kin in prop_oneof![Just(Kinematics::Cartesian), Just(Kinematics::CoreXY)],
         pa in proptest::option::of((0.0f64..0.2, 0.005f64..0.1)),
+        shaper in proptest::option::of((0usize..6, 20.0f64..90.0, 20.0f64..90.0)),
     ) {
         let pressure_advance = pa.map(|(advance, smooth_time)| PressureAdvance { advance, smooth_time });
-        let opts = PipelineOptions { kinematics: kin, threads: 0, pressure_advance, ..PipelineOptions::default() };
+        let input_shaper = shaper.map(|(kind, fx, fy)| shaper_of(kind, fx, fy));
+        let opts = PipelineOptions {
+            kinematics: kin,
+            threads: 0,
+            pressure_advance,
+            input_shaper,
+            ..PipelineOptions::default()
+        };
         let recorded = run_gcode_with(&program, opts);
         prop_assert_eq!(recorded.per_stepper, unrecorded_cmds(&program, opts));
     }
