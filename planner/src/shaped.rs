@@ -158,6 +158,18 @@ impl ShapedGen {
         }
     }
 
+    /// Forgets the known trajectory (a homing move was stopped part-way: its steps not generated
+    /// are dropped, and print time may go back): the next move starts the generator again at
+    /// its own start position, as a new one.
+    pub fn restart(&mut self) {
+        self.started = false;
+        self.pieces.clear();
+        self.popped = 0;
+        self.cursor = [0; MAX_TERMS];
+        self.known_until = f64::NEG_INFINITY;
+        self.last_clock = 0.0;
+    }
+
     /// The stepper's shaped position (mm) at print time `t` (from the known trajectory).
     pub fn position(&self, t: f64) -> f64 {
         self.terms[..self.n_terms]
