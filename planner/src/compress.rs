@@ -275,6 +275,43 @@ impl StepCompressor {
         );
     }
 
+    /// Queues the steps of a line: at [`line_clock`]`(t0, dt, i, floor)` ticks for i in
+    /// `from..to`, all going `dir`, dt > 0 ([`StepSink::line`]'s contract; `floor` is raised to
+    /// the previous step's time). One store per step; the same windows and recorded ideal steps
+    /// as [`Self::push_step`] for each of those clocks.
+    pub fn push_line(&mut self, t0: f64, dt: f64, from: i64, to: i64, floor: f64, dir: bool) {
+        if to <= from {
+            return;
+        }
+        let last = line_clock(t0, dt, to - 1, floor);
+        if !(t0.is_finite() && dt.is_finite() && dt > 0.0 && last.is_finite()) {
+            for i in from..to {
+                self.push_step(line_clock(t0, dt, i, floor), dir);
+            }
+            return;
+        }
+        let floor = floor.max(self.last_ideal);
+        if self.pending.last().is_some_and(|w| w.dir != dir) {
+            self.flips.push_back(self.pending.len());
+        }
+        let max_err = self.max_err as i64;
+        let n = (to - from) as usize;
+        let start = self.pending.len();
+        self.pending.resize(start + n, StepWindow { lo: 0, hi: 0, dir });
+        for (slot, i) in self.pending[start..].iter_mut().zip(from..to) {
+            *slot = step_window(line_clock(t0, dt, i, floor), max_err, dir);
+        }
+        if self.record_ideal {
+            for i in from..to {
+                self.ideal.push_back(IdealStep {
+                    clock: line_clock(t0, dt, i, floor),
+                    dir,
+                });
+            }
+        }
+        self.last_ideal = line_clock(t0, dt, to - 1, floor);
+    }
+
     /// Compresses every pending step whose ideal time is before `upto_clock` (commands may also
     /// take in later pending steps).
     pub fn flush(&mut self, upto_clock: u64, out: &mut Vec<StepCmd>) {
@@ -407,6 +444,23 @@ impl StepCompressor {
         self.step_count += count;
         self.queue_steps += 1;
         self.position_steps += if first.dir { count as i64 } else { -(count as i64) };
+    }
+}
+
+/// A [`StepSink`] queueing into a compressor: [`StepCompressor::push_step`] per step and
+/// [`StepCompressor::push_line`] per line (generators that compute step times themselves).
+#[derive(Debug)]
+pub struct CompressorSink<'a>(pub &'a mut StepCompressor);
+
+impl StepSink for CompressorSink<'_> {
+    #[inline]
+    fn step(&mut self, clock: f64, dir: bool) {
+        self.0.push_step(clock, dir);
+    }
+
+    #[inline]
+    fn line(&mut self, t0: f64, dt: f64, from: i64, to: i64, floor: f64, dir: bool) {
+        self.0.push_line(t0, dt, from, to, floor, dir);
     }
 }
 

@@ -10,6 +10,9 @@
 //! - [`kinematics`]: which stepper moves how when the toolhead moves (cartesian, corexy, corexz,
 //!   delta).
 //! - [`pressure_advance`]: the extruder with pressure advance (iterative step solver).
+//! - [`shaper`]: input shapers (`[input_shaper]`): the pulse trains X and Y are convolved with.
+//! - [`shaped`]: step generation for steppers that follow a shaped axis (piecewise quadratic,
+//!   closed-form crossings).
 //! - [`stepgen`]: each stepper's ideal step times, in closed form for linear kinematics.
 //! - [`compress`]: greedy packing of step times into `queue_step` (interval, count, add)
 //!   commands within the maximum step error.
@@ -29,5 +32,7 @@ pub mod kinematics;
 pub mod machine;
 pub mod pipeline;
 pub mod pressure_advance;
+pub mod shaped;
+pub mod shaper;
 pub mod stepgen;
 pub mod toolhead;

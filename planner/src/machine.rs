@@ -13,11 +13,15 @@
 //! with its `resolution` (default 1 mm): n = max(1, ⌊hypot(angle·r, Δz) / resolution⌋)
 //! segments, Z and E spread evenly. Firmware retraction (G10/G11) moves E by `retract_length` (+ the unretract extra) at
 //! the retract/unretract speeds, like Klipper's `[firmware_retraction]` (defaults: length 0,
-//! speeds 20 and 10 mm/s; SET_RETRACTION changes them). Heaters, fans, motors off, M114 and
+//! speeds 20 and 10 mm/s; SET_RETRACTION changes them). SET_INPUT_SHAPER (only with an
+//! `[input_shaper]` section, as on Klipper) takes SHAPER_TYPE, SHAPER_TYPE_X/Y,
+//! SHAPER_FREQ_X/Y and DAMPING_RATIO_X/Y, and answers with the settings (Klipper's report);
+//! the pipeline applies them from the next move. Heaters, fans, motors off, M114 and
 //! M117 are returned to the caller as [`Applied`] values. Unknown commands are
 //! [`Applied::Unsupported`] (the caller warns), or errors with [`GcodeState::set_unknown_is_error`].
 
 use crate::gcode::{Command, CommandName, CommandText, GcodeErrorKind, GcodeLine, OtherParams, TextBuilder};
+use crate::shaper::{InputShaper, ShaperType};
 use crate::toolhead::{MoveError, Toolhead, AXIS_NAMES};
 use std::fmt::Write as _;
 
@@ -122,6 +126,8 @@ pub struct GcodeState {
     pressure_advance: (f64, f64),
     /// Arc chord length (mm).
     arc_resolution: f64,
+    /// `[input_shaper]` settings (`None`: no such section, SET_INPUT_SHAPER is unknown).
+    input_shaper: Option<InputShaper>,
 }
 
 /// Firmware retraction settings (Klipper's `[firmware_retraction]`).
@@ -162,7 +168,18 @@ impl GcodeState {
             retracted: false,
             pressure_advance: (0.0, 0.04),
             arc_resolution: ARC_RESOLUTION,
+            input_shaper: None,
         }
+    }
+
+    /// The input shaper settings (`None`: the printer has no `[input_shaper]`).
+    pub fn set_input_shaper(&mut self, shaper: Option<InputShaper>) {
+        self.input_shaper = shaper;
+    }
+
+    /// The input shaper settings as last set (SET_INPUT_SHAPER).
+    pub fn input_shaper(&self) -> Option<InputShaper> {
+        self.input_shaper
     }
 
     /// Unknown commands become errors (`true`) or [`Applied::Unsupported`] (default).
@@ -538,6 +555,28 @@ impl GcodeState {
                         smooth_time: smooth,
                     });
                 }
+            }
+            "SET_INPUT_SHAPER" if self.input_shaper.is_some() => {
+                let mut s = self.input_shaper.unwrap_or_default();
+                let common = p.get("SHAPER_TYPE");
+                for (axis, sh) in [('X', &mut s.x), ('Y', &mut s.y)] {
+                    let key = |k: &str| format!("{k}_{axis}");
+                    if let Some(t) = common.or(p.get(&key("SHAPER_TYPE"))) {
+                        sh.shaper_type = ShaperType::from_name(&t.to_ascii_lowercase()).ok_or_else(|| {
+                            PlanErrorKind::BadParameter(format!("{name}: Unsupported shaper type: {t}"))
+                        })?;
+                    }
+                    if let Some(z) = non_neg(&key("DAMPING_RATIO"))? {
+                        sh.damping_ratio = z;
+                    }
+                    if let Some(f) = non_neg(&key("SHAPER_FREQ"))? {
+                        sh.freq = f;
+                    }
+                    sh.validate()
+                        .map_err(|e| PlanErrorKind::BadParameter(format!("{name}: axis {axis}: {e}")))?;
+                }
+                self.input_shaper = Some(s);
+                return Ok(Applied::Report(CommandText::new(&s.report())));
             }
             "SET_RETRACTION" => {
                 let r = &mut self.retract;

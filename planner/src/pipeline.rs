@@ -37,9 +37,11 @@ use crate::gcode::GcodeLine;
 use crate::kinematics::Kinematics;
 use crate::machine::{Applied, GcodeState, PlanError, PlanErrorKind, Retraction, ARC_RESOLUTION};
 use crate::pressure_advance::{PaGen, PressureAdvance};
+use crate::shaped::{shapes, ShapedGen};
+use crate::shaper::InputShaper;
 use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::{Move, Toolhead, ToolheadConfig};
-use lanes::{place, LaneClock, LaneOut, LaneState, Msg, PaChange, Workers, CMDS_CAPACITY};
+use lanes::{place, LaneClock, LaneOut, LaneState, Msg, PaChange, ShaperChange, Workers, CMDS_CAPACITY};
 
 /// Klipper's default `pressure_advance_smooth_time` (s), for SET_PRESSURE_ADVANCE when the
 /// configuration has no pressure advance.
@@ -136,6 +138,10 @@ pub struct PipelineOptions {
     pub retraction: Retraction,
     /// Arc chord length in mm (`[gcode_arcs] resolution`).
     pub arc_resolution: f64,
+    /// `[input_shaper]`: the X/Y shapers (SET_INPUT_SHAPER changes them while printing);
+    /// `None`: the printer has no such section (SET_INPUT_SHAPER is an unknown command, as on
+    /// Klipper). Cartesian, corexy and corexz only.
+    pub input_shaper: Option<InputShaper>,
 }
 
 impl Default for PipelineOptions {
@@ -149,6 +155,7 @@ impl Default for PipelineOptions {
             unknown_commands_are_errors: true,
             retraction: Retraction::default(),
             arc_resolution: ARC_RESOLUTION,
+            input_shaper: None,
         }
     }
 }
@@ -233,6 +240,9 @@ pub struct Pipeline {
     smooth_time: f64,
     /// Final moves handed to the lanes so far.
     dispatched: u64,
+    /// Input shaper changes not handed to the lanes yet: (index of the first move they apply
+    /// to, counting every final move since the start; settings).
+    shaper_pending: VecDeque<(u64, InputShaper)>,
 }
 
 impl Pipeline {
@@ -303,6 +313,13 @@ impl Pipeline {
         if let Some(p) = &pa {
             p.validate().map_err(bad)?;
         }
+        let shaper = opts.input_shaper.unwrap_or_default();
+        shaper.validate().map_err(|e| bad(format!("input shaper: {e}")))?;
+        if shaper.enabled() && matches!(opts.kinematics, Kinematics::Delta(_)) {
+            return Err(bad(
+                "input shaping is not supported on delta kinematics (cartesian, corexy, corexz)".into(),
+            ));
+        }
         if !clocks.is_empty() && clocks.len() != cfg.steppers.len() {
             return Err(bad(format!(
                 "{} clock maps for {} steppers",
@@ -346,6 +363,11 @@ impl Pipeline {
                 pa_gen,
             );
             lane.clock = LaneClock::new(map, cfg.clock_freq);
+            if let Some(c) = kin.linear_coeffs().filter(|c| shapes(c, &shaper)) {
+                if lane.pa.is_none() {
+                    lane.shaped = Some(ShapedGen::new(c, &shaper, s.step_dist, lane_freq));
+                }
+            }
             if s.axis == 3 {
                 let smooth = opts
                     .pressure_advance
@@ -355,7 +377,8 @@ impl Pipeline {
             lanes.push(lane);
         }
         let n = lanes.len();
-        let settle = pa.map_or(0.0, |p| 0.5 * p.smooth_time);
+        // Shaped steps start `span` before a motion and settle `span` after it.
+        let settle = pa.map_or(0.0, |p| 0.5 * p.smooth_time).max(shaper.span());
         let smooth_time = opts
             .pressure_advance
             .map_or(DEFAULT_SMOOTH_TIME, |p| p.smooth_time);
@@ -363,6 +386,7 @@ impl Pipeline {
         state.set_unknown_is_error(opts.unknown_commands_are_errors);
         state.set_retraction(opts.retraction);
         state.set_arc_resolution(opts.arc_resolution);
+        state.set_input_shaper(opts.input_shaper);
         if let Some(p) = opts.pressure_advance {
             state.set_pressure_advance(p.advance, p.smooth_time);
         }
@@ -396,13 +420,18 @@ impl Pipeline {
             pa_pending: VecDeque::new(),
             smooth_time,
             dispatched: 0,
+            shaper_pending: VecDeque::new(),
         })
     }
 
     /// Applies one G-code line to the toolhead. A new pressure advance applies from the next
     /// move on (the moves queued before keep the old one).
     pub fn apply(&mut self, line: &GcodeLine) -> Result<Applied, PlanError> {
+        let shaper_before = self.state.input_shaper();
         let applied = self.state.apply(line, &mut self.th)?;
+        if self.state.input_shaper() != shaper_before {
+            self.change_shaper(line.line_no, shaper_before)?;
+        }
         if let Applied::PressureAdvance { advance, smooth_time } = applied {
             if smooth_time != self.smooth_time {
                 // The extruder's position at t depends on the moves within half the window
@@ -425,6 +454,33 @@ impl Pipeline {
             }
         }
         Ok(applied)
+    }
+
+    /// SET_INPUT_SHAPER changed the settings (they were `before`): the toolhead comes to rest
+    /// and waits until the old shaping's tail and the new shaping's lead cannot overlap (as
+    /// Klipper flushes step generation first); the lanes switch at the next move.
+    fn change_shaper(&mut self, line: usize, before: Option<InputShaper>) -> Result<(), PlanError> {
+        let Some(new) = self.state.input_shaper() else {
+            return Ok(());
+        };
+        if new.enabled() && matches!(self.opts.kinematics, Kinematics::Delta(_)) {
+            self.state.set_input_shaper(before);
+            return Err(PlanError {
+                line,
+                kind: PlanErrorKind::BadParameter(
+                    "SET_INPUT_SHAPER: input shaping is not supported on delta kinematics".into(),
+                ),
+            });
+        }
+        let old_span = before.map_or(0.0, |s| s.span());
+        self.th.flush();
+        let gap = old_span + new.span() + self.max_err_ticks as f64 / self.clock_freq;
+        let _ = self.th.dwell(gap);
+        self.settle = self.settle.max(new.span());
+        self.th.take_moves(&mut self.moves);
+        let at = self.dispatched + self.moves.len() as u64 + self.th.queued_moves() as u64;
+        self.shaper_pending.push_back((at, new));
+        Ok(())
     }
 
     /// Ends the lookahead (the toolhead comes to rest after the last queued move), as M400
@@ -628,11 +684,19 @@ impl Pipeline {
             pa.push((at.saturating_sub(self.dispatched) as usize, advance, smooth));
             self.pa_pending.pop_front();
         }
+        let mut shaper: Vec<ShaperChange> = Vec::new();
+        while let Some(&(at, settings)) = self.shaper_pending.front() {
+            if at >= end && !all {
+                break;
+            }
+            shaper.push((at.saturating_sub(self.dispatched) as usize, settings));
+            self.shaper_pending.pop_front();
+        }
         self.dispatched = end;
         match &mut self.backend {
             Backend::Inline(lanes, outs) => {
                 for (i, (lane, o)) in lanes.iter_mut().zip(outs.iter_mut()).enumerate() {
-                    lane.run(&self.moves, &pa, upto, all, rest, o);
+                    lane.run(&self.moves, &pa, &shaper, upto, all, rest, o);
                     absorb(&mut self.views[i], o);
                 }
                 self.done[0] = seq + 1;
@@ -640,10 +704,12 @@ impl Pipeline {
             Backend::Threads(w, local, o) => {
                 let moves: Arc<[Move]> = Arc::from(self.moves.as_slice());
                 let pa: Arc<[PaChange]> = Arc::from(pa);
+                let shaper: Arc<[ShaperChange]> = Arc::from(shaper);
                 if !w.broadcast(|| Msg::Job {
                     seq,
                     moves: moves.clone(),
                     pa: pa.clone(),
+                    shaper: shaper.clone(),
                     upto,
                     all,
                     rest,
@@ -652,7 +718,7 @@ impl Pipeline {
                 }
                 // The caller's own lanes, while the workers run theirs.
                 for (i, lane) in local.iter_mut() {
-                    lane.run(&moves, &pa, upto, all, rest, o);
+                    lane.run(&moves, &pa, &shaper, upto, all, rest, o);
                     absorb(&mut self.views[*i], o);
                 }
             }

@@ -97,8 +97,8 @@ pub fn pipeline_config(
 }
 
 /// Pipeline options derived from the config: kinematics, the extruder's pressure advance, what
-/// an unknown G-code command does, firmware retraction and the arc resolution (planning on the
-/// caller's thread; set `threads` for worker threads).
+/// an unknown G-code command does, firmware retraction, the arc resolution and the input shaper
+/// (planning on the caller's thread; set `threads` for worker threads).
 pub fn pipeline_options(cfg: &PrinterConfig, kinematics: Kinematics) -> PipelineOptions {
     // Pressure advance 0 is no pressure advance (the plain extruder path).
     let pressure_advance = cfg
@@ -115,6 +115,7 @@ pub fn pipeline_options(cfg: &PrinterConfig, kinematics: Kinematics) -> Pipeline
         unknown_commands_are_errors: cfg.gcode.unknown_commands == UnknownCommands::Error,
         retraction: cfg.firmware_retraction,
         arc_resolution: cfg.gcode_arcs.resolution,
+        input_shaper: cfg.input_shaper,
         ..PipelineOptions::default()
     }
 }

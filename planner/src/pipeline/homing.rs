@@ -13,8 +13,11 @@
 //! - the compression horizon and `planned_until` go back to that print time, so the global
 //!   clock order of released commands still holds.
 //!
-//! Only the inline backend without pressure advance supports this (worker lanes and the
-//! pressure-advance generator keep time state this module cannot rewind):
+//! With input shaping the homing move is shaped too (as on Klipper); after a stop every shaped
+//! generator starts afresh at the next move, which starts the shaper's span after the given
+//! print time so that its shaped steps do not come before it. Only the inline backend without
+//! pressure advance supports this (worker lanes and the pressure-advance generator keep time
+//! state this module cannot rewind):
 //! [`Pipeline::supports_homing`].
 
 use super::{Backend, Pipeline};
@@ -118,9 +121,15 @@ impl Pipeline {
         if !(print_time.is_finite() && print_time >= 0.0) || pos.iter().any(|v| !v.is_finite()) {
             return Err(config_error("homing: non-finite resync time or position"));
         }
-        self.th.reset_after_stop(print_time, pos);
+        // Shaped steps start `settle` before a motion (0 without shaping).
+        self.th.reset_after_stop(print_time + self.settle, pos);
         self.sync_gcode_position();
         if let Backend::Inline(lanes, _) = &mut self.backend {
+            for lane in lanes.iter_mut() {
+                if let Some(g) = &mut lane.shaped {
+                    g.restart();
+                }
+            }
             for &(idx, steps) in stopped {
                 let (Some(lane), Some(view)) = (lanes.get_mut(idx), self.views.get_mut(idx)) else {
                     return Err(config_error("homing: unknown stepper index"));
@@ -145,6 +154,10 @@ mod tests {
     use crate::toolhead::ToolheadConfig;
 
     fn pipeline() -> Pipeline {
+        pipeline_with(crate::pipeline::PipelineOptions::default())
+    }
+
+    fn pipeline_with(opts: crate::pipeline::PipelineOptions) -> Pipeline {
         let cfg = PipelineConfig {
             toolhead: ToolheadConfig {
                 max_velocity: 300.0,
@@ -169,7 +182,7 @@ mod tests {
             max_error_s: 25e-6,
             home_position: [0.0; 3],
         };
-        Pipeline::new(cfg, 1.0).unwrap()
+        Pipeline::with_options(cfg, 1.0, opts).unwrap()
     }
 
     fn net_steps(cmds: &[(usize, StepCmd)], idx: usize) -> i64 {
@@ -219,6 +232,54 @@ mod tests {
         assert_eq!(p.gcode_state().gcode_position()[0], 5.05);
         // Every released command is in clock order.
         let mut last = 0;
+        for &(_, c) in &out {
+            if let StepCmd::QueueStep { first_clock, .. } = c {
+                assert!(first_clock >= last);
+                last = first_clock;
+            }
+        }
+    }
+
+    #[test]
+    fn shaped_homing_move_stop_and_resync() {
+        use crate::shaper::{AxisShaper, InputShaper};
+        let shaper = InputShaper {
+            x: AxisShaper {
+                freq: 50.0,
+                ..AxisShaper::default()
+            },
+            y: AxisShaper {
+                freq: 40.0,
+                ..AxisShaper::default()
+            },
+        };
+        let mut p = pipeline_with(crate::pipeline::PipelineOptions {
+            input_shaper: Some(shaper),
+            ..Default::default()
+        });
+        assert!(p.supports_homing());
+        p.set_toolhead_position([300.0, 10.0, 10.0, 0.0]);
+        p.raise_print_time(2.0).unwrap();
+        p.home_move([0.0, 10.0, 10.0, 0.0], 10.0).unwrap().unwrap();
+        let mut out = Vec::new();
+        p.generate(&mut out);
+        assert_eq!(net_steps(&out, 0), -24000);
+        p.resync_after_stop(3.5, [0.05, 10.0, 10.0, 0.0], &[(0, -800)])
+            .unwrap();
+        assert_eq!(p.stepper_positions()[0], -800);
+        let lead = shaper.span();
+        assert!((p.toolhead_print_time() - (3.5 + lead)).abs() < 1e-12);
+        // Retract 5 mm, then move Y: every shaped step after 3.5 s, counts exact.
+        out.clear();
+        p.home_move([5.05, 10.0, 10.0, 0.0], 10.0).unwrap().unwrap();
+        p.home_move([5.05, 20.0, 10.0, 0.0], 10.0).unwrap().unwrap();
+        p.generate(&mut out);
+        let x: Vec<_> = out.iter().filter(|(i, _)| *i == 0).map(|&(_, c)| c).collect();
+        assert!(matches!(x[0], StepCmd::ResetClock { clock } if (3_500_000..3_600_000).contains(&clock)));
+        assert_eq!(net_steps(&out, 0), 400);
+        assert_eq!(net_steps(&out, 1), 800);
+        assert_eq!(p.stepper_positions()[..2], [-400, 800]);
+        let mut last = 3_500_000;
         for &(_, c) in &out {
             if let StepCmd::QueueStep { first_clock, .. } = c {
                 assert!(first_clock >= last);

@@ -23,9 +23,11 @@ use std::sync::Arc;
 use std::thread::JoinHandle;
 
 use super::ClockMap;
-use crate::compress::StepCompressor;
+use crate::compress::{CompressorSink, StepCompressor};
 use crate::kinematics::StepperKin;
 use crate::pressure_advance::{PaGen, PressureAdvance};
+use crate::shaped::{shapes, ShapedGen};
+use crate::shaper::InputShaper;
 use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::Move;
 
@@ -110,6 +112,8 @@ pub(crate) struct LaneState {
     pub comp: StepCompressor,
     /// The extruder's generator when pressure advance is on.
     pub pa: Option<PaGen>,
+    /// The generator of a stepper that follows a shaped axis (X or Y with `[input_shaper]`).
+    pub shaped: Option<ShapedGen>,
     /// For the extruder's lane: (smooth_time, clock_freq) to start pressure advance with when
     /// SET_PRESSURE_ADVANCE turns it on during the print.
     pub extruder: Option<(f64, f64)>,
@@ -121,6 +125,10 @@ pub(crate) struct LaneState {
 /// A new pressure advance for the extruder, from move `at` of a job on: (at, advance,
 /// smooth_time).
 pub(crate) type PaChange = (usize, f64, f64);
+
+/// New input shaper settings from move `at` of a job on, the toolhead at rest before it:
+/// (at, settings).
+pub(crate) type ShaperChange = (usize, InputShaper);
 
 /// What a lane produced for one job.
 #[derive(Debug, Default)]
@@ -149,6 +157,7 @@ impl LaneState {
             kin,
             comp,
             pa,
+            shaped: None,
             extruder: None,
             clock: LaneClock::new(ClockMap::identity(1.0), 1.0),
             fresh: Vec::with_capacity(1024),
@@ -186,23 +195,51 @@ impl LaneState {
         }
     }
 
+    /// Input shaper settings for the moves from now on (the toolhead is at rest): the shaped
+    /// generator finishes the old shaping's steps and goes on with the new one; a stepper not
+    /// shaped so far gets one when the new settings shape its axes (it starts at the commanded
+    /// position, like the plain generator re-anchoring).
+    pub fn set_shaper(&mut self, shaper: &InputShaper) {
+        let comp = &mut self.comp;
+        match &mut self.shaped {
+            Some(g) => {
+                g.generate(true, CompressorSink(comp));
+                g.set_shaper(shaper);
+            }
+            None => {
+                if let Some(c) = self.kin.linear_coeffs().filter(|c| shapes(c, shaper)) {
+                    if self.pa.is_none() {
+                        self.shaped = Some(ShapedGen::new(c, shaper, comp.step_dist(), self.clock.freq));
+                    }
+                }
+            }
+        }
+    }
+
     /// Generates and compresses one batch; appends keyed commands to `out.cmds`. `rest`: the
     /// toolhead stops after these moves (steps that depend on later times can be generated).
-    /// `pa`: pressure advance changes (move index in `moves`, advance), in order.
+    /// `pa`: pressure advance changes (move index in `moves`, advance), in order; `shaper`:
+    /// input shaper changes, in order.
+    #[allow(clippy::too_many_arguments)]
     pub fn run(
         &mut self,
         moves: &[Move],
         pa: &[PaChange],
+        shaper: &[ShaperChange],
         upto: u64,
         all: bool,
         rest: bool,
         out: &mut LaneOut,
     ) {
         let mut changes = pa.iter().peekable();
+        let mut shaper_changes = shaper.iter().peekable();
         let print_clock = self.clock.is_print_clock();
         for (i, mv) in moves.iter().enumerate() {
             while let Some(&(_, advance, smooth)) = changes.next_if(|c| c.0 <= i) {
                 self.set_advance(advance, smooth);
+            }
+            while let Some((_, s)) = shaper_changes.next_if(|c| c.0 <= i) {
+                self.set_shaper(s);
             }
             let carried;
             let mv = if print_clock {
@@ -211,17 +248,24 @@ impl LaneState {
                 carried = self.clock.carry(mv);
                 &carried
             };
-            match &mut self.pa {
-                Some(pa) => pa.push_move(mv),
-                None => self.comp.push_move(mv, &self.kin),
+            match (&mut self.pa, &mut self.shaped) {
+                (Some(pa), _) => pa.push_move(mv),
+                (None, Some(g)) => g.push_move(mv),
+                (None, None) => self.comp.push_move(mv, &self.kin),
             }
         }
         for &(_, advance, smooth) in changes {
             self.set_advance(advance, smooth);
         }
+        for (_, s) in shaper_changes {
+            self.set_shaper(s);
+        }
         if let Some(pa) = &mut self.pa {
             let comp = &mut self.comp;
             pa.generate(all || rest, |clock, dir| comp.push_step(clock, dir));
+        }
+        if let Some(g) = &mut self.shaped {
+            g.generate(all || rest, CompressorSink(&mut self.comp));
         }
         self.fresh.clear();
         if all {
@@ -258,6 +302,7 @@ pub(crate) enum Msg {
         seq: u64,
         moves: Arc<[Move]>,
         pa: Arc<[PaChange]>,
+        shaper: Arc<[ShaperChange]>,
         upto: u64,
         all: bool,
         rest: bool,
@@ -399,6 +444,7 @@ fn worker(w: usize, mut lanes: Vec<(usize, LaneState)>, rx: Receiver<Msg>, tx: S
                 seq,
                 moves,
                 pa,
+                shaper,
                 upto,
                 all,
                 rest,
@@ -406,7 +452,7 @@ fn worker(w: usize, mut lanes: Vec<(usize, LaneState)>, rx: Receiver<Msg>, tx: S
                 let mut out = Vec::with_capacity(lanes.len());
                 for (i, lane) in &mut lanes {
                     let mut o = LaneOut::default();
-                    lane.run(&moves, &pa, upto, all, rest, &mut o);
+                    lane.run(&moves, &pa, &shaper, upto, all, rest, &mut o);
                     out.push((*i, o));
                 }
                 if tx

@@ -465,16 +465,24 @@ proptest! {
     #![proptest_config(ProptestConfig { cases: 24, ..ProptestConfig::default() })]
 
     /// Recording the ideal steps (tests, `--check`) takes every step one at a time; a print
-    /// writes cruises in one loop. Both give the same windows, so the same commands, which the
-    /// recorded run's checker has proven.
+    /// writes cruises in one loop (shaped or not). Both give the same windows, so the same
+    /// commands, which the recorded run's checker has proven.
     #[test]
     fn commands_do_not_depend_on_recording_the_ideal_steps(
         (program, _end) in arb_program(),
         kin in prop_oneof![Just(Kinematics::Cartesian), Just(Kinematics::CoreXY)],
         pa in proptest::option::of((0.0f64..0.2, 0.005f64..0.1)),
+        shaper in proptest::option::of((0usize..6, 20.0f64..90.0, 20.0f64..90.0)),
     ) {
         let pressure_advance = pa.map(|(advance, smooth_time)| PressureAdvance { advance, smooth_time });
-        let opts = PipelineOptions { kinematics: kin, threads: 0, pressure_advance, ..PipelineOptions::default() };
+        let input_shaper = shaper.map(|(kind, fx, fy)| shaper_of(kind, fx, fy));
+        let opts = PipelineOptions {
+            kinematics: kin,
+            threads: 0,
+            pressure_advance,
+            input_shaper,
+            ..PipelineOptions::default()
+        };
         let recorded = run_gcode_with(&program, opts);
         prop_assert_eq!(recorded.per_stepper, unrecorded_cmds(&program, opts));
     }
@@ -756,4 +764,170 @@ fn lanes_are_placed_by_weight() {
     );
     // A single lane goes to the worker.
     assert_eq!(placed(Kinematics::Cartesian, &[3], 4), (vec![vec![0]], vec![]));
+}
+
+/// `[input_shaper]` with `kind` on both axes at `fx` / `fy` Hz.
+fn shaper_of(kind: usize, fx: f64, fy: f64) -> crate::shaper::InputShaper {
+    use crate::shaper::{AxisShaper, InputShaper, ShaperType};
+    let shaper_type = ShaperType::ALL[kind % ShaperType::ALL.len()].1;
+    let axis = |freq| AxisShaper {
+        shaper_type,
+        freq,
+        damping_ratio: 0.1,
+    };
+    InputShaper {
+        x: axis(fx),
+        y: axis(fy),
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
+
+    /// Shaped random programs on every linear kinematics, with a SET_INPUT_SHAPER somewhere:
+    /// the checker passes on every stepper, commands are time-ordered, and every stepper ends
+    /// exactly at the commanded position.
+    #[test]
+    fn shaped_programs_step_exactly_and_check(
+        (program, end) in arb_program(),
+        kin in prop_oneof![
+            Just(Kinematics::Cartesian),
+            Just(Kinematics::CoreXY),
+            Just(Kinematics::CoreXZ)
+        ],
+        threads in 0usize..3,
+        batch_moves in 1usize..20,
+        kind in 0usize..6,
+        fx in prop_oneof![Just(0.0), 20.0f64..90.0],
+        fy in 20.0f64..90.0,
+        change in proptest::option::of((0usize..60, 0usize..6, prop_oneof![Just(0.0), 30.0f64..90.0])),
+        pa in proptest::option::of((0.0f64..0.2, 0.005f64..0.1)),
+    ) {
+        let pressure_advance = pa.map(|(advance, smooth_time)| PressureAdvance { advance, smooth_time });
+        let opts = PipelineOptions {
+            kinematics: kin,
+            threads,
+            batch_moves,
+            pressure_advance,
+            input_shaper: Some(shaper_of(kind, fx, fy)),
+            ..PipelineOptions::default()
+        };
+        let mut lines: Vec<String> = program.lines().map(str::to_string).collect();
+        if let Some((at, kind, freq)) = change {
+            let name = crate::shaper::ShaperType::ALL[kind].0;
+            let at = at.min(lines.len());
+            lines.insert(at, format!("SET_INPUT_SHAPER SHAPER_TYPE={name} SHAPER_FREQ_X={freq:.2} SHAPER_FREQ_Y=45"));
+        }
+        let program = lines.join("\n") + "\n";
+        let r = run_gcode_with(&program, opts);
+        prop_assert!(r.keys.windows(2).all(|w| w[0] <= w[1]));
+        let cfg = benchy_config();
+        let start = rails(kin, [0.0, 0.0, 0.5, 0.0]);
+        let th = r.pipeline.position();
+        for i in 0..4 {
+            prop_assert!((th[i] - end[i]).abs() < 1e-6, "axis {i} at {}, expected {}", th[i], end[i]);
+        }
+        let rail = rails(kin, th);
+        let pos = r.pipeline.stepper_positions();
+        for (i, s) in cfg.steppers.iter().enumerate() {
+            prop_assert_eq!(pos[i], steps_between(start[s.axis], rail[s.axis], s.step_dist), "{}", s.name);
+        }
+    }
+}
+
+#[test]
+fn shaping_moves_steps_and_keeps_the_square() {
+    let g = "G28\nG1 Z0.3 F600\nM83\nG1 X10 Y10 F6000\nG1 X50 E2 F1800\nG1 Y50 E2\nG1 X10 E2\nG1 Y10 E2\n\
+             G1 E-1 F2400\nG4 P200\nG1 X100 Y100 F9000\n";
+    let plain = run_gcode(g);
+    let opts = PipelineOptions {
+        input_shaper: Some(shaper_of(1, 50.0, 40.0)),
+        ..PipelineOptions::default()
+    };
+    let shaped = run_gcode_with(g, opts);
+    assert!(shaped.keys.windows(2).all(|w| w[0] <= w[1]));
+    assert_eq!(
+        shaped.pipeline.stepper_positions(),
+        plain.pipeline.stepper_positions()
+    );
+    // X and Y step at other times; Z and the extruder are not shaped.
+    for i in 0..2 {
+        assert_ne!(
+            step_clocks(&shaped.per_stepper[i]),
+            step_clocks(&plain.per_stepper[i]),
+            "{i}"
+        );
+    }
+    for i in 2..4 {
+        let (a, b) = (
+            step_clocks(&shaped.per_stepper[i]),
+            step_clocks(&plain.per_stepper[i]),
+        );
+        assert_eq!(a.len(), b.len());
+    }
+    // Frequency 0 on both axes is no shaping: the plain commands exactly.
+    let off = run_gcode_with(
+        g,
+        PipelineOptions {
+            input_shaper: Some(shaper_of(1, 0.0, 0.0)),
+            ..PipelineOptions::default()
+        },
+    );
+    assert_eq!(off.per_stepper, plain.per_stepper);
+}
+
+#[test]
+fn set_input_shaper_needs_the_section_and_checks_its_numbers() {
+    let line = |text: &str| {
+        let cmd = crate::gcode::parse_line(3, text.as_bytes()).unwrap().unwrap();
+        GcodeLine { line_no: 3, cmd }
+    };
+    let mut p = Pipeline::new(benchy_config(), 0.25).unwrap();
+    let e = p.apply(&line("SET_INPUT_SHAPER SHAPER_FREQ_X=40")).unwrap_err();
+    assert_eq!(e.to_string(), "line 3: Unknown command: \"SET_INPUT_SHAPER\"");
+    let opts = PipelineOptions {
+        input_shaper: Some(shaper_of(1, 0.0, 0.0)),
+        ..PipelineOptions::default()
+    };
+    let mut p = Pipeline::with_options(benchy_config(), 0.25, opts).unwrap();
+    for (text, want) in [
+        ("SET_INPUT_SHAPER SHAPER_TYPE=foo", "Unsupported shaper type: foo"),
+        (
+            "SET_INPUT_SHAPER SHAPER_FREQ_Y=-3",
+            "SHAPER_FREQ_Y=-3 must be ≥ 0",
+        ),
+        (
+            "SET_INPUT_SHAPER SHAPER_TYPE_X=EI DAMPING_RATIO_X=0.5",
+            "axis X: damping ratio 0.5",
+        ),
+        ("SET_INPUT_SHAPER SHAPER_FREQ_X=1", "raise the frequency"),
+    ] {
+        let e = p.apply(&line(text)).unwrap_err().to_string();
+        assert!(e.contains(want), "{text}: {e}");
+    }
+    assert_eq!(p.gcode_state().input_shaper(), Some(shaper_of(1, 0.0, 0.0)));
+    let r = p
+        .apply(&line(
+            "SET_INPUT_SHAPER SHAPER_TYPE_X=2HUMP_EI SHAPER_FREQ_X=55.5",
+        ))
+        .unwrap();
+    assert_eq!(
+        r,
+        Applied::Report(
+            "shaper_type_x:2hump_ei shaper_freq_x:55.500 damping_ratio_x:0.100000\n\
+             shaper_type_y:mzv shaper_freq_y:0.000 damping_ratio_y:0.100000"
+                .into()
+        )
+    );
+    // Delta: refused in the configuration and at run time.
+    let delta = |s| PipelineOptions {
+        kinematics: Kinematics::Delta(delta_geometry()),
+        input_shaper: Some(s),
+        ..PipelineOptions::default()
+    };
+    assert!(Pipeline::with_options(delta_config(), 0.25, delta(shaper_of(1, 50.0, 50.0))).is_err());
+    let mut p = Pipeline::with_options(delta_config(), 0.25, delta(shaper_of(1, 0.0, 0.0))).unwrap();
+    let e = p.apply(&line("SET_INPUT_SHAPER SHAPER_FREQ_X=50")).unwrap_err();
+    assert!(e.to_string().contains("delta"), "{e}");
+    assert_eq!(p.gcode_state().input_shaper(), Some(shaper_of(1, 0.0, 0.0)));
 }

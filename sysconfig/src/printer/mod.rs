@@ -11,8 +11,7 @@
 //! them), `[printer]`, `[probe]` (its `z_offset` is Z's endstop position with
 //! `probe:z_virtual_endstop`), the steppers the kinematics needs, `[extruder]`, `[heater_bed]`,
 //! `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`,
-//! `[gcode_macro]`s, then the
-//! unused-option/section check.
+//! `[input_shaper]`, `[gcode_macro]`s, then the unused-option/section check.
 
 mod board_pins;
 mod delta;
@@ -20,6 +19,7 @@ mod error;
 mod extruder;
 mod gcode;
 mod heater;
+mod input_shaper;
 mod macros;
 mod mcu;
 mod pins;
@@ -39,6 +39,7 @@ pub use error::{ConfigError, ValueProblem};
 pub use extruder::ExtruderSection;
 pub use gcode::{FirmwareRetractionSection, GcodeArcsSection, GcodeSection, UnknownCommands};
 pub use heater::{HeaterControl, HeaterSection, ABSOLUTE_ZERO_C};
+pub use input_shaper::InputShaperSection;
 pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
 pub use pins::{is_simulator_pin, PinKind, PinProblem, PinRef, MAIN_MCU};
 pub use probe::{ProbeSection, SamplesResult, PROBE_PIN_MCU, SAMPLES_RESULTS, Z_VIRTUAL_ENDSTOP};
@@ -83,6 +84,8 @@ pub struct PrinterConfig {
     pub gcode_arcs: GcodeArcsSection,
     /// `[firmware_retraction]`, or its defaults.
     pub firmware_retraction: FirmwareRetractionSection,
+    /// `[input_shaper]`, when there is one.
+    pub input_shaper: Option<InputShaperSection>,
     /// `[gcode_macro NAME]` sections, in file order.
     pub macros: Vec<planner::gcode::macros::MacroDef>,
     /// Accepted-but-ignored sections and other things worth telling the user.
@@ -187,6 +190,10 @@ impl PrinterConfig {
         let firmware_retraction =
             reader.section_or_default("firmware_retraction", gcode::read_firmware_retraction)?;
 
+        let input_shaper = match reader.section("input_shaper") {
+            Some(s) => Some(input_shaper::read_input_shaper(&s, is_delta)?),
+            None => None,
+        };
         let macros = macros::read_gcode_macros(&reader)?;
 
         let mut warnings = reader.finish(is_ignored)?;
@@ -224,6 +231,7 @@ impl PrinterConfig {
             gcode,
             gcode_arcs,
             firmware_retraction,
+            input_shaper,
             macros,
             warnings,
         })

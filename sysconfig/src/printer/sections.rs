@@ -76,7 +76,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("homing_override", Ignored),
     ("icm20948", Ignored),
     ("idle_timeout", Ignored),
-    ("input_shaper", Ignored),
+    ("input_shaper", Read),
     ("led", Ignored),
     ("lis2dw", Ignored),
     ("lis3dh", Ignored),
