@@ -99,7 +99,14 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                 if !matches!(self.object(oid), Some(Object::Trsync(_))) {
                     return self.shutdown(reason::INVALID_OID, now);
                 }
-                if !self.trsync_trigger(oid as u8, arg(1) as u8, now) {
+                // One report answers the command (from the trigger, or of the earlier
+                // trigger), then the trsync is silent until the next trsync_start.
+                let triggered = self.trsync_trigger(oid as u8, arg(1) as u8, now);
+                if let Some(Object::Trsync(t)) = self.object(oid) {
+                    t.stop();
+                }
+                self.arm_or_disarm(oid as u8, None);
+                if !triggered {
                     self.report_trsync(oid as u8, now);
                 }
             }
