@@ -642,6 +642,38 @@ fn one_response_per_block() {
     assert!(blocks.iter().all(|b| b.msgs.len() <= 1), "{:?}", blocks.len());
 }
 
+/// Klipper's host does FIRMWARE_RESTART on an MCU without `reset` by `emergency_stop` then
+/// `config_reset`, reconnects and configures it again: the MCU must forget its configuration
+/// (it had no `config_reset`: "Unable to issue reset command", klippy stuck in startup).
+#[test]
+fn config_reset_forgets_the_configuration_only_while_shut_down() {
+    let mut host = Host::new(64, 0);
+    host.configure(2);
+    host.exchange(&[("reset_step_clock", &[0, 1000]), ("queue_step", &[0, 100, 3, 0])]);
+    host.advance(2000);
+    assert_eq!(host.mcu.stepper_position(0), Some(-3));
+    let msgs = all_msgs(&host.exchange(&[("config_reset", &[])]));
+    let id = host.reason_id(reason::CONFIG_RESET_NOT_SHUTDOWN);
+    assert_eq!(
+        find(&msgs, "shutdown").unwrap().ints[1],
+        id,
+        "not shut down: refused"
+    );
+    assert!(
+        host.mcu.is_config(),
+        "a refused config_reset keeps the configuration"
+    );
+    let msgs = all_msgs(&host.exchange(&[("config_reset", &[]), ("get_config", &[])]));
+    assert_eq!(find(&msgs, "config").unwrap().ints, [0, 0, 0, 64]);
+    assert_eq!(host.mcu.shutdown_reason(), None);
+    assert_eq!(host.mcu.stepper_position(0), None);
+    // Configured again from scratch, as after a power cycle.
+    host.configure(3);
+    let msgs = all_msgs(&host.exchange(&[("get_config", &[]), ("stepper_get_position", &[2])]));
+    assert_eq!(find(&msgs, "config").unwrap().ints, [1, 0xC0FFEE, 0, 64]);
+    assert_eq!(find(&msgs, "stepper_position").unwrap().ints, [2, 0]);
+}
+
 #[test]
 fn stats_every_five_seconds() {
     let mut host = Host::new(64, 0);
