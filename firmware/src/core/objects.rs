@@ -196,7 +196,11 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                 if let Some(r) = ev.expired {
                     self.trsync_trigger(oid, r, at);
                 } else if ev.report {
-                    self.report_trsync(oid, at);
+                    // The clock of the report is when it is made, as on Klipper's MCU: it
+                    // tells the host the MCU was alive then, and the host extends the other
+                    // MCUs' timeouts from it (a late timer reporting its due time would
+                    // shorten them by its lateness).
+                    self.report_trsync(oid, now);
                 }
                 if let Some(Object::Trsync(t)) = self.objects.get(oid as usize) {
                     if let Some(w) = t.next_wake() {

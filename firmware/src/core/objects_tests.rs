@@ -210,6 +210,23 @@ fn host_trsync_trigger_silences_periodic_reports_until_the_next_start() {
     assert_eq!(named(&msgs, "trsync_state"), [&[1, 1, 0, 110_000][..]]);
 }
 
+/// A periodic report made late carries the clock it was made at, as Klipper's MCU's
+/// (`timer_read_time()` in its task): Klipper's host extends the other MCUs' trsync timeouts
+/// from that clock, so reporting the due time instead shortened them by the lateness (multi-MCU
+/// homing under klippy ended in "Communication timeout during homing" on a loaded machine).
+#[test]
+fn late_periodic_report_carries_the_clock_it_was_made_at() {
+    let mut host = homing_host(1_000_000);
+    host.exchange(&[("trsync_start", &[1, 5000, 3000, 4])]);
+    host.now = 5_400; // the timer due at 5000 runs 400 ticks late
+    host.mcu.run_timers(WireClock(5_400));
+    let msgs = all_msgs(&host.take());
+    assert_eq!(named(&msgs, "trsync_state"), [&[1, 1, 0, 5_400][..]]);
+    // The schedule stays on its period: the next is due at 8000.
+    let msgs = all_msgs(&host.advance(8_000));
+    assert_eq!(named(&msgs, "trsync_state"), [&[1, 1, 0, 8_000][..]]);
+}
+
 #[test]
 fn bad_homing_oids_shut_down() {
     let mut host = homing_host(0);
