@@ -1,0 +1,153 @@
+//! Interoperability with Klipper that the normal suite can prove without Klipper: stream and
+//! dictionary forms Klipper's host and build produce (the live exchanges with klippy are in
+//! scripts/klipper-interop; the MCU-side regressions are the firmware's scripted exchanges).
+
+use std::time::Duration;
+
+use cadence_tests::{cadence, scratch, workspace};
+use links::dict::{Dictionary, FieldValue, Message};
+use links::proto::block::encode_block;
+
+const TIMEOUT: Duration = Duration::from_secs(120);
+
+/// Rewrites a Cadence batch stream the way Klipper's host writes one: each stepper's first
+/// `queue_step` comes before any `reset_step_clock`, its interval counted from clock 0 (the
+/// MCU's step clock after `config_stepper`). Returns the stream and how many steppers changed.
+fn klipper_style(dict: &Dictionary, stream: &[u8]) -> (Vec<u8>, usize) {
+    let mut pending_reset: std::collections::HashMap<i64, i64> = Default::default();
+    let mut seen: std::collections::HashSet<i64> = Default::default();
+    let mut changed = 0;
+    let mut out = Vec::new();
+    let mut seq = 0u8;
+    for item in dict.decode_stream(stream, true) {
+        let links::dict::StreamItem::Block { messages, .. } = item else {
+            continue;
+        };
+        let mut payload = Vec::new();
+        for m in messages {
+            let oid = m.get("oid").unwrap_or(-1);
+            let mut m: Message = m;
+            match m.name.as_str() {
+                "reset_step_clock" if !seen.contains(&oid) => {
+                    pending_reset.insert(oid, m.get("clock").unwrap());
+                    continue;
+                }
+                "queue_step" if !seen.contains(&oid) => {
+                    seen.insert(oid);
+                    if let Some(clock) = pending_reset.remove(&oid) {
+                        for (name, v) in &mut m.fields {
+                            if name == "interval" {
+                                if let FieldValue::Int(i) = v {
+                                    *i += clock;
+                                }
+                            }
+                        }
+                        changed += 1;
+                    }
+                }
+                _ => {}
+            }
+            let args: Vec<i64> = m
+                .fields
+                .iter()
+                .map(|(_, v)| match v {
+                    FieldValue::Int(i) => *i,
+                    FieldValue::Bytes(_) => panic!("no byte fields in a batch stream"),
+                })
+                .collect();
+            let cmd = dict.encode(&m.name, &args).unwrap();
+            if payload.len() + cmd.len() > links::proto::MESSAGE_PAYLOAD_MAX {
+                push_block(&mut out, &mut seq, &payload);
+                payload.clear();
+            }
+            payload.extend_from_slice(cmd.as_bytes());
+        }
+        if !payload.is_empty() {
+            push_block(&mut out, &mut seq, &payload);
+        }
+    }
+    (out, changed)
+}
+
+fn push_block(out: &mut Vec<u8>, seq: &mut u8, payload: &[u8]) {
+    let mut block = [0u8; 64];
+    let n = encode_block(*seq, payload, &mut block).unwrap();
+    out.extend_from_slice(&block[..n]);
+    *seq = (*seq + 1) & 0x0F;
+}
+
+/// `decode --check` refused a Klipper stream ("queue_step before any reset_step_clock"):
+/// Klipper's host sends each stepper's first interval counted from 0. The same steps written
+/// that way must prove as the Cadence form does; and `--dictionary` takes the plain JSON
+/// Klipper's build writes (`out/klipper.dict`) as well as zlib.
+#[test]
+fn decode_check_proves_a_klipper_style_stream_with_a_plain_json_dictionary() {
+    let dir = scratch("klipper-style");
+    let g = workspace().join("examples/square.gcode");
+    let out = dir.join("square.bin");
+    let (g_s, out_s) = (g.to_str().unwrap(), out.to_str().unwrap());
+    let run = cadence(&["print", g_s, "--batch", out_s], TIMEOUT);
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+
+    let dict = Dictionary::from_compressed(&firmware::dictionary_bytes(50_000_000)).unwrap();
+    let (stream, changed) = klipper_style(&dict, &std::fs::read(&out).unwrap());
+    assert_eq!(
+        changed, 4,
+        "every stepper's first reset folded into its first interval"
+    );
+    let kstream = dir.join("square-klipper-style.bin");
+    std::fs::write(&kstream, &stream).unwrap();
+    let json = dir.join("cadence.dict");
+    std::fs::write(&json, firmware::dict::dictionary_json(50_000_000).to_string()).unwrap();
+
+    let run = cadence(
+        &[
+            "decode",
+            kstream.to_str().unwrap(),
+            "--check",
+            g_s,
+            "--dictionary",
+            json.to_str().unwrap(),
+        ],
+        TIMEOUT,
+    );
+    assert_eq!(run.code, Some(0), "{}\n{}", run.stdout, run.stderr);
+    for name in ["stepper_x", "stepper_y", "stepper_z", "extruder"] {
+        assert!(
+            run.stdout
+                .lines()
+                .any(|l| l.contains(name) && l.ends_with(": ok")),
+            "{name}:\n{}",
+            run.stdout
+        );
+    }
+    // The plain decode with the JSON dictionary: the absolute first intervals are there.
+    let run = cadence(
+        &[
+            "decode",
+            kstream.to_str().unwrap(),
+            "--dictionary",
+            json.to_str().unwrap(),
+        ],
+        TIMEOUT,
+    );
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    let first_qs = run.stdout.lines().find(|l| l.starts_with("queue_step")).unwrap();
+    let interval: i64 = first_qs
+        .split_whitespace()
+        .find_map(|f| f.strip_prefix("interval="))
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(interval > 1_000_000, "an absolute first interval: {first_qs}");
+    // A dictionary file that is neither form is refused by name.
+    let bad = dir.join("bad.dict");
+    std::fs::write(&bad, "not a dictionary").unwrap();
+    let run = cadence(&["decode", out_s, "--dictionary", bad.to_str().unwrap()], TIMEOUT);
+    assert_eq!(run.code, Some(1), "{}", run.stdout);
+    assert!(
+        run.stderr.contains("bad.dict") && run.stderr.contains("neither JSON"),
+        "{}",
+        run.stderr
+    );
+}
