@@ -151,3 +151,102 @@ fn decode_check_proves_a_klipper_style_stream_with_a_plain_json_dictionary() {
         run.stderr
     );
 }
+
+/// The configuration Cadence sends names endstops before steppers, as Klipper's host does:
+/// Klipper's Linux-process MCU without GPIO crashed (SIGSEGV) on a first `config_stepper` it
+/// could not set up, where a first `config_endstop` gives a clean shutdown with its reason.
+#[test]
+fn configuration_sends_endstops_before_steppers() {
+    let dir = scratch("config-order");
+    let out = dir.join("square.bin");
+    let g = workspace().join("examples/square.gcode");
+    let run = cadence(
+        &["print", g.to_str().unwrap(), "--batch", out.to_str().unwrap()],
+        TIMEOUT,
+    );
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    let run = cadence(&["decode", out.to_str().unwrap()], TIMEOUT);
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    let names: Vec<&str> = run
+        .stdout
+        .lines()
+        .map(|l| l.split_whitespace().next().unwrap_or(""))
+        .take_while(|n| *n != "finalize_config")
+        .collect();
+    let first = |n: &str| {
+        names
+            .iter()
+            .position(|x| *x == n)
+            .unwrap_or_else(|| panic!("no {n}: {names:?}"))
+    };
+    assert_eq!(names[0], "allocate_oids");
+    assert!(first("config_endstop") < first("config_stepper"), "{names:?}");
+    assert!(first("config_trsync") < first("config_stepper"), "{names:?}");
+    let last_endstop = names.iter().rposition(|x| *x == "config_endstop").unwrap();
+    assert!(last_endstop < first("config_stepper"), "{names:?}");
+}
+
+/// An MCU already shut down when Cadence configures it answers with `is_shutdown` and its
+/// reason: Cadence says that reason as the MCU gave it (it said only "did not accept the
+/// configuration"). A `cadence-mcu --keep-open` is shut down by a first host's
+/// `emergency_stop`, then `cadence home` connects to it as to a board.
+#[test]
+fn a_shut_down_mcu_is_reported_with_its_own_reason() {
+    use std::io::{BufRead, BufReader, Write};
+    use std::os::unix::fs::OpenOptionsExt;
+    let dir = scratch("shut-down-mcu");
+    let pty = dir.join("mcu.pty");
+    let mut mcu = std::process::Command::new(cadence_tests::bin("cadence-mcu"))
+        .args(["--keep-open", "--pty-link", pty.to_str().unwrap()])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(mcu.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    {
+        let mut slave = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .custom_flags(libc_o_noctty())
+            .open(&pty)
+            .unwrap();
+        let dict = Dictionary::from_compressed(&firmware::dictionary_bytes(50_000_000)).unwrap();
+        let stop = dict.encode("emergency_stop", &[]).unwrap();
+        let mut block = [0u8; 64];
+        let n = encode_block(0, stop.as_bytes(), &mut block).unwrap();
+        slave.write_all(&block[..n]).unwrap();
+        // Let the MCU read it before the hang-up.
+        std::thread::sleep(Duration::from_millis(300));
+    }
+    let cfg = dir.join("printer.cfg");
+    let text = std::fs::read_to_string(workspace().join("examples/simulated-cartesian.cfg"))
+        .unwrap()
+        .replace("serial: simulator", &format!("serial: {}", pty.display()));
+    std::fs::write(&cfg, text).unwrap();
+    let run = cadence(
+        &[
+            "home",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--cycles",
+            "1",
+            "--no-realtime",
+        ],
+        TIMEOUT,
+    );
+    let _ = mcu.kill();
+    let _ = mcu.wait();
+    assert_eq!(run.code, Some(1), "{}\n{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains("mcu 'mcu': shut down: Command request"),
+        "{}",
+        run.stderr
+    );
+}
+
+fn libc_o_noctty() -> i32 {
+    nix::fcntl::OFlag::O_NOCTTY.bits()
+}
