@@ -380,6 +380,9 @@ def oid_map(rig, mcu):
     with open(rig.cfg) as src, open(batch_cfg, "w") as dst:
         dst.write(src.read())
     args = ["-i", empty, "-o", out, "-d", dict_path, "-l", os.path.join(d, "klippy.log")]
+    if rig.z_mcu:
+        # Every MCU needs a dictionary in batch mode (`-d NAME=FILE`); they are all the same.
+        args += ["-d", "%s=%s" % (rig.z_mcu, dict_path)]
     run(rig.klipper.klippy(batch_cfg, *args), cwd=d, timeout=300)
     dump = run([rig.klipper.python, os.path.join(rig.klipper.dir, "klippy", "parsedump.py"),
                 dict_path, out], timeout=120).stdout
@@ -535,12 +538,22 @@ def scenario_k2c_multi(results, args, klipper, bins):
     t0 = time.monotonic()
     try:
         rig.start()
-        detail = g28_cycles(rig, args.cycles)
+        # Each cycle on its own: a failed cycle (klippy stays ready) is counted, not fatal.
+        failures = []
+        for i in range(args.cycles):
+            try:
+                rig.api.gcode("G28")
+            except Fail as e:
+                failures.append("cycle %d: %s" % (i + 1, e))
+        rig.api.gcode("G28")  # homed for the moves whatever happened above
         rig.api.gcode(GCODE_MOVES)
         rig.check_no_shutdown()
         pos = compare_positions(rig)
-        results.append((name, "PASS", "Z endstop on cadence-mcu 'zmcu': %s; %s (%.1f s)" % (
-            detail, pos, time.monotonic() - t0)))
+        detail = "Z endstop on cadence-mcu 'zmcu': %d of %d G28 cycles ok%s; %s (%.1f s)" % (
+            args.cycles - len(failures), args.cycles,
+            (" (" + "; ".join(failures) + ")") if failures else "", pos,
+            time.monotonic() - t0)
+        results.append((name, "FAIL" if failures else "PASS", detail))
     except (Fail, OSError, subprocess.SubprocessError, ValueError) as e:
         results.append((name, "FAIL", str(e)))
     finally:
