@@ -518,8 +518,10 @@ def print_file(rig, gcode, timeout):
         state = st["print_stats"]["state"]
         if state == "complete":
             break
-        if state in ("error", "cancelled"):
-            raise Fail("print %s: %s" % (state, st["print_stats"].get("message")))
+        if state in ("error", "cancelled", "paused") or rig.api.state() != "ready":
+            rig.check_no_shutdown()
+            raise Fail("print %s at %.1f %%: %s" % (
+                state, 100 * st["virtual_sdcard"]["progress"], st["print_stats"].get("message")))
         if time.monotonic() - t0 > timeout:
             raise Fail("print not done after %d s (progress %.1f %%)" % (
                 timeout, 100 * st["virtual_sdcard"]["progress"]))
