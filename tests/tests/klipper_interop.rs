@@ -250,3 +250,35 @@ fn a_shut_down_mcu_is_reported_with_its_own_reason() {
 fn libc_o_noctty() -> i32 {
     nix::fcntl::OFlag::O_NOCTTY.bits()
 }
+
+/// Opt-in: the conformance harness against a real Klipper tree named by
+/// `CADENCE_KLIPPER_SRC` (`CADENCE_KLIPPER_ONLY` picks scenarios, as its `--only`). Skipped,
+/// saying so, when the variable is unset: the normal suite never needs Klipper. Every row of
+/// the harness's table must be PASS or BLOCKED.
+#[test]
+fn harness_against_real_klipper() {
+    let Ok(src) = std::env::var("CADENCE_KLIPPER_SRC") else {
+        eprintln!("skipped: set CADENCE_KLIPPER_SRC to a Klipper source tree to run the harness");
+        return;
+    };
+    let bins = cadence_tests::bin("cadence-mcu").parent().unwrap().to_path_buf();
+    let mut cmd = std::process::Command::new("python3");
+    cmd.arg(workspace().join("scripts/klipper-interop/interop.py"))
+        .args(["--klipper", &src, "--bin-dir", bins.to_str().unwrap()])
+        .args(["--work", scratch("klipper-harness").to_str().unwrap()]);
+    if let Ok(only) = std::env::var("CADENCE_KLIPPER_ONLY") {
+        cmd.args(["--only", &only]);
+    }
+    let run = cadence_tests::run(&mut cmd, Duration::from_secs(3 * 3600));
+    println!("{}", run.stdout);
+    let rows: Vec<&str> = run
+        .stdout
+        .lines()
+        .filter(|l| l.starts_with("| "))
+        .skip(1)
+        .collect();
+    assert!(!rows.is_empty(), "no table:\n{}\n{}", run.stdout, run.stderr);
+    let failed: Vec<&&str> = rows.iter().filter(|r| r.contains("| FAIL ")).collect();
+    assert!(failed.is_empty(), "{failed:#?}\n{}", run.stderr);
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+}
