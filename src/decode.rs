@@ -16,7 +16,8 @@ use links::proto::{block::block_payload, find_block, Frame};
 pub struct DecodeArgs {
     /// The wire stream to decode.
     pub file: PathBuf,
-    /// Data dictionary (zlib-compressed JSON); default: the Cadence firmware's own.
+    /// Data dictionary (zlib-compressed or plain JSON, e.g. Klipper's out/klipper.dict);
+    /// default: the Cadence firmware's own.
     #[arg(long)]
     pub dictionary: Option<PathBuf>,
     /// Instead of printing the messages, prove every step of the stream against this G-code's
@@ -35,13 +36,14 @@ pub struct DecodeArgs {
     pub max_error_us: f64,
 }
 
-/// The data dictionary in `path` (zlib-compressed JSON as served by identify), or the Cadence
+/// The data dictionary in `path` (zlib-compressed JSON as served by identify, or plain JSON as
+/// Klipper's build writes `out/klipper.dict`), or the Cadence
 /// firmware's own when none is given.
 pub fn load_dictionary(path: Option<&std::path::Path>) -> Result<Dictionary, String> {
     match path {
         Some(p) => {
             let bytes = std::fs::read(p).map_err(|e| format!("{}: {e}", p.display()))?;
-            Dictionary::from_compressed(&bytes).map_err(|e| format!("{}: {e}", p.display()))
+            Dictionary::from_file_bytes(&bytes).map_err(|e| format!("{}: {e}", p.display()))
         }
         None => Dictionary::from_compressed(&firmware::dictionary_bytes(50_000_000))
             .map_err(|e| format!("firmware dictionary: {e}")),

@@ -211,6 +211,14 @@ impl Mcus {
             query_config(&conn.link, get_config)?
         };
         if reply.get("is_config") != Some(1) {
+            // A shut-down MCU answers every configuration command with `is_shutdown` and its
+            // reason (Klipper's Linux MCU without GPIO: "GPIO chip device not found"): say it
+            // as the MCU did.
+            if let Some(reason) = conn.link.shutdown_reason() {
+                return Err(format!(
+                    "mcu '{name}': shut down: {reason} (the configuration was not accepted; restart the MCU)"
+                ));
+            }
             return Err(format!(
                 "mcu '{name}': did not accept the configuration ({reply})"
             ));
@@ -303,8 +311,11 @@ fn sim_env_args(name: &str) -> Vec<String> {
         .unwrap_or_default()
 }
 
-/// Encodes one MCU's configuration: oids, steppers, endstops, trsync, finalize with the
-/// config CRC (CRC-32 of the configuration messages). Returns the commands and the trsync oid.
+/// Encodes one MCU's configuration: oids, endstops, trsync, steppers, enable pins, finalize
+/// with the config CRC (CRC-32 of the configuration messages). Returns the commands and the
+/// trsync oid. Endstops come before steppers as Klipper's host sends them: Klipper's
+/// Linux-process MCU without GPIO crashes (SIGSEGV) on a `config_stepper` it cannot set up,
+/// where a `config_endstop` first gives a clean shutdown with its reason.
 pub fn config_commands(
     dict: &Dictionary,
     machine: &Machine,
@@ -330,6 +341,29 @@ pub fn config_commands(
     let err = |e: links::dict::DictError| e.to_string();
     let clock_freq = dict.clock_freq().map_err(err)?;
     let mut cmds = vec![dict.encode("allocate_oids", &[count as i64]).map_err(err)?];
+    let has_endstops = dict.command("config_endstop").is_ok() && dict.command("config_trsync").is_ok();
+    if !endstops.is_empty() && !has_endstops {
+        return Err("the MCU has no endstop/trsync support in its dictionary".to_string());
+    }
+    for e in &endstops {
+        let pin = dict.pin(&e.pin.pin).map_err(|x| {
+            let option = if e.stepper == "probe" {
+                "pin"
+            } else {
+                "endstop_pin"
+            };
+            format!("[{}] {option}: {x}", e.stepper)
+        })?;
+        cmds.push(
+            dict.encode("config_endstop", &[e.oid as i64, pin as i64, e.pin.pullup as i64])
+                .map_err(err)?,
+        );
+    }
+    if has_endstops {
+        cmds.push(dict.encode("config_trsync", &[trsync_oid as i64]).map_err(err)?);
+    } else {
+        // Without trsync support the last oid is simply unused.
+    }
     for s in &steppers {
         let step_pin = dict
             .pin(&s.step_pin.pin)
@@ -352,24 +386,6 @@ pub fn config_commands(
             .map_err(err)?,
         );
     }
-    let has_endstops = dict.command("config_endstop").is_ok() && dict.command("config_trsync").is_ok();
-    if !endstops.is_empty() && !has_endstops {
-        return Err("the MCU has no endstop/trsync support in its dictionary".to_string());
-    }
-    for e in &endstops {
-        let pin = dict.pin(&e.pin.pin).map_err(|x| {
-            let option = if e.stepper == "probe" {
-                "pin"
-            } else {
-                "endstop_pin"
-            };
-            format!("[{}] {option}: {x}", e.stepper)
-        })?;
-        cmds.push(
-            dict.encode("config_endstop", &[e.oid as i64, pin as i64, e.pin.pullup as i64])
-                .map_err(err)?,
-        );
-    }
     for (i, p) in enables.iter().enumerate() {
         // Drivers on from configuration on (value = active), off when the MCU shuts down
         // (default_value = inactive); `!` pins are active low.
@@ -384,11 +400,6 @@ pub fn config_commands(
             )
             .map_err(err)?,
         );
-    }
-    if has_endstops {
-        cmds.push(dict.encode("config_trsync", &[trsync_oid as i64]).map_err(err)?);
-    } else {
-        // Without trsync support the last oid is simply unused.
     }
     let mut crc = crc32fast::Hasher::new();
     for c in &cmds {

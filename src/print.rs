@@ -36,8 +36,8 @@ pub struct PrintArgs {
     /// with steppers gets its own file, `-NAME` inserted before the extension).
     #[arg(long)]
     pub batch: Option<PathBuf>,
-    /// Data dictionary (zlib-compressed JSON as served by identify) for --batch; default: the
-    /// Cadence firmware's own.
+    /// Data dictionary (zlib-compressed JSON as served by identify, or plain JSON as Klipper's
+    /// out/klipper.dict) for --batch; default: the Cadence firmware's own.
     #[arg(long)]
     pub dictionary: Option<PathBuf>,
     /// Write the simulated MCU's step trace to this file.

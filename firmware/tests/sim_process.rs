@@ -131,3 +131,51 @@ fn refused_real_time_falls_back_and_says_so_once() {
     assert!(refusals[0].ends_with("running unpinned"), "{stderr}");
     assert!(stderr.contains("host closed the pty"), "{stderr}");
 }
+
+/// `--keep-open`: the host closing the pty does not end the MCU, whose state is kept for the
+/// next host (Klipper's host reopens the port for RESTART and FIRMWARE_RESTART); the next host
+/// can `config_reset` it after a shutdown and configure it again.
+#[test]
+fn keep_open_serves_the_next_host() {
+    let mut host = spawn_with(&["--keep-open".as_ref(), "--move-count".as_ref(), "100".as_ref()]);
+    host.identify();
+    host.send(&[("allocate_oids", &[1])]);
+    host.send(&[("config_stepper", &[0, 0, 1, 0, 2])]);
+    host.send(&[("finalize_config", &[77]), ("get_config", &[])]);
+    assert_eq!(host.wait_for("config").0, [1, 77, 0, 100]);
+    // Hang up, wait a little (the MCU must notice), open the pty again.
+    let reopen = |host: &mut Host| {
+        use std::os::unix::fs::OpenOptionsExt;
+        let slave = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .custom_flags(libc::O_NOCTTY)
+            .open(&host.path)
+            .unwrap();
+        host.slave = slave;
+        host.rx.clear();
+    };
+    let dummy = std::fs::File::open("/dev/null").unwrap();
+    drop(std::mem::replace(&mut host.slave, dummy));
+    std::thread::sleep(Duration::from_millis(300));
+    assert!(
+        host.child.try_wait().unwrap().is_none(),
+        "the MCU exited on the hang-up"
+    );
+    reopen(&mut host);
+    host.send(&[("get_config", &[])]);
+    assert_eq!(
+        host.wait_for("config").0,
+        [1, 77, 0, 100],
+        "state kept across hosts"
+    );
+    host.shutdown_ok = true;
+    host.send(&[
+        ("emergency_stop", &[]),
+        ("config_reset", &[]),
+        ("get_config", &[]),
+    ]);
+    assert_eq!(host.wait_for("config").0, [0, 0, 0, 100]);
+    let _ = host.child.kill();
+    let _ = host.child.wait();
+}

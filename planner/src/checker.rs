@@ -75,6 +75,8 @@ pub struct Checker {
     stats: CheckStats,
     /// Compare each `queue_step`'s `first_clock`/`last_clock` with the replay.
     clock_fields: bool,
+    /// Ticks a step may lie outside [ideal − max_error, ideal] (0, or ½ for the wire).
+    tick_slack: f64,
 }
 
 impl Checker {
@@ -88,14 +90,19 @@ impl Checker {
             cmd: 0,
             stats: CheckStats::default(),
             clock_fields: true,
+            tick_slack: 0.0,
         }
     }
 
     /// A checker for commands decoded from the wire, which carries no first and last clock:
-    /// those fields of `queue_step` are not compared (everything else is).
+    /// those fields of `queue_step` are not compared (everything else is). A step on the wire
+    /// is a whole tick: within half a tick of [ideal − max_error, ideal] counts as inside, as
+    /// Klipper's host rounds each step time to the nearest tick (its stream's first step of
+    /// examples/square.gcode lies 0.5 tick after the ideal time).
     pub fn for_wire(max_error_ticks: u32) -> Checker {
         Checker {
             clock_fields: false,
+            tick_slack: 0.5,
             ..Checker::new(max_error_ticks)
         }
     }
@@ -202,7 +209,7 @@ impl Checker {
             });
         }
         let c = clock as f64;
-        if c > ideal.clock {
+        if c > ideal.clock + self.tick_slack {
             return Err(CheckError::TooLate {
                 step,
                 clock,
@@ -210,7 +217,7 @@ impl Checker {
             });
         }
         let early = ideal.clock - c;
-        if c < ideal.clock - self.max_err as f64 {
+        if c < ideal.clock - self.max_err as f64 - self.tick_slack {
             return Err(CheckError::TooEarly {
                 step,
                 clock,
@@ -335,6 +342,23 @@ mod tests {
             w.check_cmd(&q(94, 1, 0, 0, 0)),
             Err(CheckError::TooEarly { .. })
         ));
+        // On the wire a step time is the nearest tick (Klipper rounds): half a tick of slack.
+        let mut w = Checker::for_wire(5);
+        w.push_ideal(ideal(&[99.5, 110.4, 120.0]).iter().copied());
+        for c in [r, d, q(100, 1, 0, 0, 0), q(10, 1, 0, 0, 0)] {
+            w.check_cmd(&c).unwrap();
+        }
+        assert!(matches!(
+            w.check_cmd(&q(11, 1, 0, 0, 0)),
+            Err(CheckError::TooLate { .. })
+        ));
+        assert!(
+            matches!(
+                check(&[r, d, q(100, 1, 0, 100, 100)], &ideal(&[99.5]), 5),
+                Err(CheckError::TooLate { .. })
+            ),
+            "Cadence's own commands stay within the exact bound"
+        );
         assert!(matches!(
             check(&[r, d, q(100, 2, 0, 100, 200)], &one, 5),
             Err(CheckError::ExtraStep { .. })

@@ -12,7 +12,9 @@
 //! Steppers are matched by step pin: each `config_stepper` of the stream names a step pin,
 //! which must be the step pin of a stepper on that MCU in printer.cfg (so the stream's object
 //! ids need not be Cadence's). `reset_step_clock` carries the low 32 bits of the clock: the
-//! full clock is the one with those bits nearest the stepper's next planned step.
+//! full clock is the one with those bits nearest the stepper's next planned step. A stepper's
+//! clock is 0 from its `config_stepper` on, as on the MCU: Klipper's first `queue_step` of a
+//! stepper comes before any `reset_step_clock`, its interval counted from 0.
 
 use std::fs::File;
 use std::io::BufReader;
@@ -212,6 +214,13 @@ fn replay(
                 .position(|c| i64::from(c.step_pin) == pin)
                 .ok_or_else(|| format!("{m}: no stepper on this MCU in printer.cfg has that step pin"))?;
             checked[i].configured = true;
+            // config_stepper starts the stepper's step clock at 0 on the MCU (Klipper's and
+            // Cadence's), so a first queue_step before any reset_step_clock counts from 0:
+            // Klipper's host sends its first interval that way.
+            checked[i]
+                .checker
+                .check_cmd(&StepCmd::ResetClock { clock: 0 })
+                .map_err(|e| format!("{}: {e}", checked[i].name))?;
             let slot = usize::try_from(oid)
                 .ok()
                 .and_then(|o| by_oid.get_mut(o))

@@ -27,6 +27,8 @@ pub enum Cmd {
     EmergencyStop,
     /// `clear_shutdown`.
     ClearShutdown,
+    /// `config_reset`.
+    ConfigReset,
     /// `config_stepper`.
     ConfigStepper,
     /// `queue_step`.
@@ -212,6 +214,7 @@ pub const MESSAGES: &[MessageDef] = &[
     resp(FMT_TRSYNC_STATE),
     resp(FMT_ANALOG_IN_STATE),
     resp(FMT_CADENCE_LATENESS),
+    cmd("config_reset", Cmd::ConfigReset, true),
 ];
 
 /// Most parameters of any message in the table (checked by a test).

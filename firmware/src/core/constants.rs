@@ -41,6 +41,8 @@ pub mod reason {
     pub const MISSED_DIGITAL_OUT: &str = "Missed scheduling of next digital out event";
     /// An analog input out of its range for `range_check_count` rounds.
     pub const ADC_OUT_OF_RANGE: &str = "ADC out of range";
+    /// `config_reset` while the MCU is not shut down.
+    pub const CONFIG_RESET_NOT_SHUTDOWN: &str = "config_reset only available when shutdown";
     /// A reason not in the table (never sent by this firmware; kept so lookups cannot fail).
     pub const UNKNOWN: &str = "Unknown shutdown reason";
 }
@@ -64,6 +66,7 @@ pub const SHUTDOWN_REASONS: &[&str] = &[
     reason::STEPPER_TOO_FAR_IN_PAST,
     reason::MISSED_DIGITAL_OUT,
     reason::ADC_OUT_OF_RANGE,
+    reason::CONFIG_RESET_NOT_SHUTDOWN,
 ];
 
 /// The `static_string_id` of `reason` (0, "Unknown shutdown reason", if it is not listed).

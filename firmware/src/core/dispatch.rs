@@ -79,6 +79,7 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
             }
             Cmd::EmergencyStop => self.shutdown(reason::COMMAND_REQUEST, now),
             Cmd::ClearShutdown => self.shutdown_reason = None,
+            Cmd::ConfigReset => self.config_reset(now),
             Cmd::ConfigStepper => {
                 let config = StepperConfig {
                     step_pin: arg(1) as u8,

@@ -7,9 +7,12 @@
 //! As in Klipper, after a NAK no further NAK is sent until a block with a valid CRC arrives, so
 //! a burst of line noise costs one NAK.
 //!
-//! Transmit: responses are packed into one pending block payload; a block is written when the
-//! next message does not fit or on [`Link::flush`]. Every block carries the next expected
-//! receive sequence, so every response also acks. After each received block the caller calls
+//! Transmit: one response per block, as Klipper's MCU sends them: a response waits in the
+//! pending payload until the next response (which writes it first) or [`Link::flush`].
+//! Klipper's host parses exactly one response per MCU block and drops the rest of the block
+//! ("Extra data at end of message"), so packing `config` and `clock` into one block left it in
+//! `startup`. Every block carries the next expected receive sequence, so every response also
+//! acks. After each received block the caller calls
 //! [`Link::ack`], which flushes the responses and then always sends an empty ack block, as
 //! Klipper's MCU does: the host tracks acks from empty blocks only, so that an empty block that
 //! repeats the last ack is recognised as a NAK.
@@ -127,15 +130,14 @@ impl Link {
         }
     }
 
-    /// Queues one encoded message for the host (dropped if longer than a block payload).
+    /// Queues one encoded message for the host in a block of its own (dropped if longer than a
+    /// block payload); a response still pending is written first.
     pub fn send<B: Board>(&mut self, msg: &[u8], board: &mut B) {
         if msg.len() > MESSAGE_PAYLOAD_MAX {
             debug_assert!(false, "message longer than a block");
             return;
         }
-        if self.tx_len + msg.len() > MESSAGE_PAYLOAD_MAX {
-            self.flush(board);
-        }
+        self.flush(board);
         self.tx[self.tx_len..self.tx_len + msg.len()].copy_from_slice(msg);
         self.tx_len += msg.len();
     }

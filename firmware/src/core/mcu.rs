@@ -10,7 +10,9 @@
 //! Every fault goes through [`Mcu::shutdown`]: it stops all steppers (timers disarmed, queued
 //! moves dropped), reports `shutdown clock static_string_id` once, and from then on commands
 //! not marked `in_shutdown` in the table are answered with `is_shutdown` until
-//! `clear_shutdown`.
+//! `clear_shutdown`. `config_reset` (only while shut down, as on Klipper's MCU) forgets the
+//! whole configuration and clears the shutdown: the next host configures it from scratch, which
+//! is how Klipper's host does `FIRMWARE_RESTART` on an MCU without a `reset` command.
 
 use super::board::Board;
 use super::commands::{FMT_SHUTDOWN, FMT_STATS, ID_SHUTDOWN, ID_STATS};
@@ -273,6 +275,22 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
             Ok(n) => self.link.send(&msg[..n], &mut self.board),
             Err(_) => debug_assert!(false, "response {format} does not encode"),
         }
+    }
+
+    /// `config_reset`: while shut down, back to the unconfigured state (no oids, no objects,
+    /// no moves, `is_config` 0, crc 0, not shut down); the link and clock go on. Not shut
+    /// down: shutdown "config_reset only available when shutdown".
+    pub(super) fn config_reset(&mut self, now: WireClock) {
+        if self.shutdown_reason.is_none() {
+            return self.shutdown(super::constants::reason::CONFIG_RESET_NOT_SHUTDOWN, now);
+        }
+        self.sched.clear();
+        self.pool.clear();
+        self.objects = [const { Object::Free }; OIDS];
+        self.oid_count = None;
+        self.is_config = false;
+        self.config_crc = 0;
+        self.shutdown_reason = None;
     }
 
     /// The one shutdown path: stops every stepper and reports `reason` (the first reason wins;

@@ -597,6 +597,88 @@ fn blocks_split_across_receive_calls() {
     assert_eq!(names, ["clock", "config"]);
 }
 
+/// Klipper's host parses exactly one response per MCU block ("Extra data at end of message"
+/// otherwise, and klippy stayed in `startup`): a host block asking `get_config` and `get_clock`
+/// is answered with two blocks of one response each, then the empty ack.
+#[test]
+fn one_response_per_block() {
+    let mut host = Host::new(64, 0);
+    let payload = host.encode(&[("get_config", &[]), ("get_clock", &[]), ("get_uptime", &[])]);
+    let bytes = host.block(&payload);
+    let blocks = host.raw(&bytes);
+    let shape: Vec<(usize, Option<&str>)> = blocks
+        .iter()
+        .map(|b| (b.msgs.len(), b.msgs.first().map(|r| r.name.as_str())))
+        .collect();
+    assert_eq!(
+        shape,
+        [
+            (1, Some("config")),
+            (1, Some("clock")),
+            (1, Some("uptime")),
+            (0, None)
+        ]
+    );
+    // Golden bytes of the first block: `config is_config=0 crc=0 is_shutdown=0 move_count=64`
+    // with sequence 1 (it acks the host's block 0): length 10, 0x11, id, 0 0 0 64, CRC, sync.
+    let mut first = Vec::new();
+    let mut h2 = Host::new(64, 0);
+    let get_config = h2.encode(&[("get_config", &[])]);
+    let b = h2.block(&get_config);
+    h2.mcu.receive(h2.wire_now(), &b);
+    first.extend(std::mem::take(&mut h2.mcu.board_mut().out));
+    let id = h2.dict["responses"]
+        .as_object()
+        .unwrap()
+        .iter()
+        .find(|(f, _)| f.starts_with("config "))
+        .map(|(_, id)| id.as_u64().unwrap() as u8)
+        .unwrap();
+    assert!(id < 96, "a one-byte VLQ id");
+    let body = [10u8, 0x10 | h2.seq, id, 0, 0, 0, 64];
+    let crc = links::proto::crc::crc16_ccitt(&body);
+    let mut golden = body.to_vec();
+    golden.extend_from_slice(&[(crc >> 8) as u8, crc as u8, 0x7E]);
+    assert_eq!(&first[..golden.len()], &golden[..]);
+    // Every block the MCU wrote in a startup exchange holds at most one response.
+    let mut host = Host::new(64, 0);
+    host.configure(3);
+    let blocks = host.exchange(&[("get_config", &[]), ("get_clock", &[])]);
+    assert!(blocks.iter().all(|b| b.msgs.len() <= 1), "{:?}", blocks.len());
+}
+
+/// Klipper's host does FIRMWARE_RESTART on an MCU without `reset` by `emergency_stop` then
+/// `config_reset`, reconnects and configures it again: the MCU must forget its configuration
+/// (it had no `config_reset`: "Unable to issue reset command", klippy stuck in startup).
+#[test]
+fn config_reset_forgets_the_configuration_only_while_shut_down() {
+    let mut host = Host::new(64, 0);
+    host.configure(2);
+    host.exchange(&[("reset_step_clock", &[0, 1000]), ("queue_step", &[0, 100, 3, 0])]);
+    host.advance(2000);
+    assert_eq!(host.mcu.stepper_position(0), Some(-3));
+    let msgs = all_msgs(&host.exchange(&[("config_reset", &[])]));
+    let id = host.reason_id(reason::CONFIG_RESET_NOT_SHUTDOWN);
+    assert_eq!(
+        find(&msgs, "shutdown").unwrap().ints[1],
+        id,
+        "not shut down: refused"
+    );
+    assert!(
+        host.mcu.is_config(),
+        "a refused config_reset keeps the configuration"
+    );
+    let msgs = all_msgs(&host.exchange(&[("config_reset", &[]), ("get_config", &[])]));
+    assert_eq!(find(&msgs, "config").unwrap().ints, [0, 0, 0, 64]);
+    assert_eq!(host.mcu.shutdown_reason(), None);
+    assert_eq!(host.mcu.stepper_position(0), None);
+    // Configured again from scratch, as after a power cycle.
+    host.configure(3);
+    let msgs = all_msgs(&host.exchange(&[("get_config", &[]), ("stepper_get_position", &[2])]));
+    assert_eq!(find(&msgs, "config").unwrap().ints, [1, 0xC0FFEE, 0, 64]);
+    assert_eq!(find(&msgs, "stepper_position").unwrap().ints, [2, 0]);
+}
+
 #[test]
 fn stats_every_five_seconds() {
     let mut host = Host::new(64, 0);

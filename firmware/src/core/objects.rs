@@ -101,7 +101,14 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                 if !matches!(self.object(oid), Some(Object::Trsync(_))) {
                     return self.shutdown(reason::INVALID_OID, now);
                 }
-                if !self.trsync_trigger(oid as u8, arg(1) as u8, now) {
+                // One report answers the command (from the trigger, or of the earlier
+                // trigger), then the trsync is silent until the next trsync_start.
+                let triggered = self.trsync_trigger(oid as u8, arg(1) as u8, now);
+                if let Some(Object::Trsync(t)) = self.object(oid) {
+                    t.stop();
+                }
+                self.arm_or_disarm(oid as u8, None);
+                if !triggered {
                     self.report_trsync(oid as u8, now);
                 }
             }
@@ -191,7 +198,11 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                 if let Some(r) = ev.expired {
                     self.trsync_trigger(oid, r, at);
                 } else if ev.report {
-                    self.report_trsync(oid, at);
+                    // The clock of the report is when it is made, as on Klipper's MCU: it
+                    // tells the host the MCU was alive then, and the host extends the other
+                    // MCUs' timeouts from it (a late timer reporting its due time would
+                    // shorten them by its lateness).
+                    self.report_trsync(oid, now);
                 }
                 if let Some(Object::Trsync(t)) = self.objects.get(oid as usize) {
                     if let Some(w) = t.next_wake() {

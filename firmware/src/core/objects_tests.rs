@@ -161,6 +161,80 @@ fn renewed_timeout_does_not_expire_and_host_trigger_reports() {
     assert_eq!(named(&msgs, "trsync_state"), [&[1, 0, 4, 40_000][..]]);
 }
 
+/// Klipper's host takes any `trsync_state can_trigger=0` as the trigger of the pass it waits
+/// for: after its `trsync_trigger` (end of a homing pass) the MCU must stay silent until the
+/// next `trsync_start`, or a stale report ends the next pass early ("No trigger on stepper_z
+/// after full movement" when Z's retract was cut short). Before that command, reports go on
+/// after an endstop trigger, as on Klipper's MCU.
+#[test]
+fn host_trsync_trigger_silences_periodic_reports_until_the_next_start() {
+    let mut host = homing_host(20);
+    host.exchange(&[
+        ("trsync_start", &[1, 1000, 500, 4]),
+        ("stepper_stop_on_trigger", &[0, 1]),
+        ("trsync_set_timeout", &[1, 1_000_000]),
+    ]);
+    host.exchange(&[("endstop_home", &[2, 1000, 15, 4, 110, 1, 1, 1])]);
+    host.exchange(&[
+        ("reset_step_clock", &[0, 1000]),
+        ("set_next_step_dir", &[0, 1]),
+        ("queue_step", &[0, 50, 1000, 0]),
+    ]);
+    // Reports at 1000, 1500 and 2000 (armed), trigger at 2145, then 2500 and 3000 (triggered).
+    let msgs = all_msgs(&host.advance(3_000));
+    assert_eq!(
+        named(&msgs, "trsync_state"),
+        [
+            &[1, 1, 0, 1000][..],
+            &[1, 1, 0, 1500][..],
+            &[1, 1, 0, 2000][..],
+            &[1, 0, 1, 2145][..],
+            &[1, 0, 1, 2145][..],
+            &[1, 0, 1, 2145][..]
+        ]
+    );
+    let msgs = all_msgs(&host.exchange(&[("trsync_trigger", &[1, 2])]));
+    assert_eq!(named(&msgs, "trsync_state"), [&[1, 0, 1, 2145][..]]);
+    let msgs = all_msgs(&host.advance(50_000));
+    assert!(
+        named(&msgs, "trsync_state").is_empty(),
+        "no report after the host's trsync_trigger: {msgs:?}"
+    );
+    // Also when the host ends a pass that never triggered (the retract move): one report of
+    // the host's reason, then silence.
+    host.exchange(&[("trsync_start", &[1, 60_000, 500, 4])]);
+    let msgs = all_msgs(&host.advance(60_600));
+    assert_eq!(
+        named(&msgs, "trsync_state"),
+        [&[1, 1, 0, 60_000][..], &[1, 1, 0, 60_500][..]]
+    );
+    let msgs = all_msgs(&host.exchange(&[("trsync_trigger", &[1, 2])]));
+    assert_eq!(named(&msgs, "trsync_state"), [&[1, 0, 2, 60_600][..]]);
+    let msgs = all_msgs(&host.advance(100_000));
+    assert!(named(&msgs, "trsync_state").is_empty());
+    // The next trsync_start reports again.
+    host.exchange(&[("trsync_start", &[1, 110_000, 500, 4])]);
+    let msgs = all_msgs(&host.advance(110_000));
+    assert_eq!(named(&msgs, "trsync_state"), [&[1, 1, 0, 110_000][..]]);
+}
+
+/// A periodic report made late carries the clock it was made at, as Klipper's MCU's
+/// (`timer_read_time()` in its task): Klipper's host extends the other MCUs' trsync timeouts
+/// from that clock, so reporting the due time instead shortened them by the lateness (multi-MCU
+/// homing under klippy ended in "Communication timeout during homing" on a loaded machine).
+#[test]
+fn late_periodic_report_carries_the_clock_it_was_made_at() {
+    let mut host = homing_host(1_000_000);
+    host.exchange(&[("trsync_start", &[1, 5000, 3000, 4])]);
+    host.now = 5_400; // the timer due at 5000 runs 400 ticks late
+    host.mcu.run_timers(WireClock(5_400));
+    let msgs = all_msgs(&host.take());
+    assert_eq!(named(&msgs, "trsync_state"), [&[1, 1, 0, 5_400][..]]);
+    // The schedule stays on its period: the next is due at 8000.
+    let msgs = all_msgs(&host.advance(8_000));
+    assert_eq!(named(&msgs, "trsync_state"), [&[1, 1, 0, 8_000][..]]);
+}
+
 #[test]
 fn bad_homing_oids_shut_down() {
     let mut host = homing_host(0);

@@ -5,7 +5,11 @@
 //! Whichever comes first of an endstop, a `trsync_trigger` from the host, or the expiry clock
 //! passing without renewal (reason = `expire_reason`, 4 = communication timeout) triggers it:
 //! `can_trigger` drops to 0, the reason and clock are kept, the expiry is cancelled. The caller
-//! stops the attached steppers and reports at once.
+//! stops the attached steppers and reports at once. Periodic reports go on after an endstop or
+//! expiry trigger, as on Klipper's MCU, until the host's `trsync_trigger` ends the homing:
+//! [`Trsync::stop`] then silences it until the next `trsync_start`. Klipper's host takes any
+//! `can_trigger=0` report as the trigger of the pass it is waiting for, so a report left over
+//! from the previous pass would end the next one at once.
 //!
 //! Both periodic events share the oid's one timer: its wake time is the earlier of the next
 //! report and the expiry ([`Trsync::next_wake`]); [`Trsync::event`] says which of them were due.
@@ -127,6 +131,15 @@ impl Trsync {
             _ => false,
         };
         TrsyncEvent { expired, report }
+    }
+
+    /// The host's `trsync_trigger` (after [`Trsync::trigger`]): no more reports or expiry
+    /// until the next `trsync_start`; the trigger reason and clock stay for the one report
+    /// that answers the command.
+    pub fn stop(&mut self) {
+        self.report_at = None;
+        self.expire_at = None;
+        self.can_trigger = false;
     }
 
     /// Shutdown: no more reports or expiry.

@@ -92,6 +92,11 @@ pub struct Cli {
     #[arg(long, value_name = "US", default_value_t = 50,
           value_parser = clap::value_parser!(u64).range(0..=100_000))]
     pub spin_us: u64,
+    /// Keep running when the host closes the pty, as a powered board does: the next host to
+    /// open it reconnects (Klipper's host closes and reopens the port for RESTART and
+    /// FIRMWARE_RESTART). Default: exit when the host hangs up.
+    #[arg(long)]
+    pub keep_open: bool,
     /// Real time (off by default): pin the simulator's loop thread to CPU core N.
     #[arg(
         long,

@@ -22,7 +22,9 @@
 //! the host has sent at least one byte; before that the loop stops polling the master (POLLHUP
 //! would make poll return at once), sleeps at most [`HANGUP_RETRY`], and checks again. Output
 //! produced before the host's first byte (periodic stats) is discarded rather than left in the
-//! pty buffer for the host to read as stale blocks.
+//! pty buffer for the host to read as stale blocks. With `--keep-open` a hang-up after the
+//! host spoke does not end the loop: it goes back to waiting for a host, as at start-up (the
+//! MCU state is kept, as on a board whose host restarted).
 
 use super::board::SimBoard;
 use super::clock::SimClock;
@@ -71,6 +73,8 @@ pub struct EventLoop<'a> {
     host_seen: bool,
     /// The master shows a hang-up although the host never spoke: do not poll it.
     hangup_wait: bool,
+    /// A hang-up after the host spoke waits for the next host instead of ending the loop.
+    keep_open: bool,
     faults: TxFaults,
     /// Output released by the fault stage, not yet written.
     staged: Vec<u8>,
@@ -92,6 +96,7 @@ impl<'a> EventLoop<'a> {
             parent,
             host_seen: false,
             hangup_wait: false,
+            keep_open: false,
             faults: TxFaults::new(0.0, Duration::ZERO, 1),
             staged: Vec::new(),
             freeze: None,
@@ -114,6 +119,24 @@ impl<'a> EventLoop<'a> {
         self
     }
 
+    /// On a hang-up after the host spoke, wait for the next host (`--keep-open`).
+    pub fn with_keep_open(mut self, keep_open: bool) -> Self {
+        self.keep_open = keep_open;
+        self
+    }
+
+    /// The host hung up after speaking: true if the loop ends; with `keep_open`, forget the
+    /// host and its pending output and wait for the next one.
+    fn host_closed(&mut self) -> bool {
+        if !self.keep_open {
+            return true;
+        }
+        self.host_seen = false;
+        self.hangup_wait = true;
+        self.staged.clear();
+        false
+    }
+
     /// Freezes for `length`, `after` from now (`--freeze-after-ms`, `--freeze-ms`).
     pub fn with_freeze(mut self, after: Duration, length: Duration) -> Self {
         self.freeze = Some((Instant::now() + after, length));
@@ -134,7 +157,7 @@ impl<'a> EventLoop<'a> {
             let now = self.clock.now();
             mcu.board_mut().now = now;
             mcu.run_timers(WireClock(now as u32));
-            if self.pump_output(mcu.board_mut())? && self.host_seen {
+            if self.pump_output(mcu.board_mut())? && self.host_seen && self.host_closed() {
                 return Ok(Exit::HostClosed);
             }
             if self.last_parent_check.elapsed() >= PARENT_POLL {
@@ -190,7 +213,7 @@ impl<'a> EventLoop<'a> {
                 hung_up |= self.read_input(mcu, &mut buf)?;
             }
             if hung_up {
-                if self.host_seen {
+                if self.host_seen && self.host_closed() {
                     return Ok(Exit::HostClosed);
                 }
                 self.hangup_wait = true;

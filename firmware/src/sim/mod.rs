@@ -213,7 +213,8 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
     );
     let mut event_loop = EventLoop::new(&pty, &sigfd, clock, parent)
         .with_faults(faults)
-        .with_spin(Duration::from_micros(cli.spin_us));
+        .with_spin(Duration::from_micros(cli.spin_us))
+        .with_keep_open(cli.keep_open);
     if let (Some(after), Some(length)) = (cli.freeze_after_ms, cli.freeze_ms) {
         event_loop = event_loop.with_freeze(Duration::from_millis(after), Duration::from_millis(length));
     }

@@ -1,7 +1,9 @@
 //! The MCU's data dictionary: which id each message has, the format of its parameters, the
 //! enumerations (pins, shutdown reasons) and the build's constants (`CLOCK_FREQ`, …).
 //!
-//! The dictionary is a zlib-compressed JSON object the MCU serves through `identify`. Nothing
+//! The dictionary is a zlib-compressed JSON object the MCU serves through `identify`; a file may
+//! also hold it as plain JSON, as Klipper's build writes `out/klipper.dict`
+//! ([`Dictionary::from_file_bytes`] takes both). Nothing
 //! here hard-codes a message id except the two fixed ones (0 `identify_response`, 1 `identify`),
 //! which are added when the JSON leaves them out. Commands and responses are looked up by their
 //! name (the format string's first word); ids share one space across commands, responses and
@@ -39,6 +41,9 @@ pub enum DictError {
     /// The identify data did not inflate.
     #[error("MCU dictionary is not valid zlib data: {0}")]
     Decompress(std::io::Error),
+    /// A dictionary file is neither JSON text nor zlib data.
+    #[error("MCU dictionary is neither JSON text (as Klipper's out/klipper.dict) nor zlib data (as served by identify): {0}")]
+    NotJsonOrZlib(std::io::Error),
     /// The inflated data is larger than [`MAX_DICT_JSON`].
     #[error("MCU dictionary is larger than {MAX_DICT_JSON} bytes")]
     TooLarge,
@@ -175,6 +180,28 @@ impl Dictionary {
         let mut dict = Dictionary::from_json(&json)?;
         dict.compressed = zlib_bytes.to_vec();
         Ok(dict)
+    }
+
+    /// A dictionary file's bytes: plain JSON text (Klipper's `out/klipper.dict`; leading
+    /// whitespace allowed) or zlib data (as served by `identify`). A JSON file is compressed
+    /// here so that [`Dictionary::compressed`] holds what an MCU would serve.
+    pub fn from_file_bytes(bytes: &[u8]) -> Result<Dictionary, DictError> {
+        let start = bytes.iter().position(|b| !b.is_ascii_whitespace());
+        if start.is_some_and(|i| bytes[i] == b'{') {
+            if bytes.len() > MAX_DICT_JSON {
+                return Err(DictError::TooLarge);
+            }
+            let json = std::str::from_utf8(bytes).map_err(|e| DictError::Json(e.to_string()))?;
+            let mut dict = Dictionary::from_json(json)?;
+            let mut enc = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::default());
+            std::io::Write::write_all(&mut enc, bytes).map_err(DictError::Decompress)?;
+            dict.compressed = enc.finish().map_err(DictError::Decompress)?;
+            return Ok(dict);
+        }
+        Dictionary::from_compressed(bytes).map_err(|e| match e {
+            DictError::Decompress(io) => DictError::NotJsonOrZlib(io),
+            e => e,
+        })
     }
 
     /// Parses a dictionary's JSON text.
@@ -651,7 +678,33 @@ pub(crate) mod tests {
         assert!(Dictionary::from_json(r#"{"output": {"x %q": 9}}"#).is_err());
     }
 
+    /// Klipper's build writes `out/klipper.dict` as plain JSON, `identify` serves zlib: a
+    /// dictionary file may be either (`--dictionary` took only zlib).
+    #[test]
+    fn dictionary_files_are_json_or_zlib() {
+        let plain = Dictionary::from_file_bytes(format!("\n {TEST_DICT}\n").as_bytes()).unwrap();
+        let zlib = Dictionary::from_file_bytes(&compress(TEST_DICT)).unwrap();
+        for d in [&plain, &zlib] {
+            assert_eq!(d.command("queue_step").unwrap().id, 20);
+            assert_eq!(d.response("clock").unwrap().id, 81);
+        }
+        let again = Dictionary::from_compressed(plain.compressed()).unwrap();
+        assert_eq!(again.command("queue_step").unwrap().id, 20);
+        let err = Dictionary::from_file_bytes(b"not a dictionary").unwrap_err();
+        assert!(matches!(err, DictError::NotJsonOrZlib(_)), "{err}");
+        assert!(err.to_string().contains("neither JSON"), "{err}");
+        assert!(matches!(
+            Dictionary::from_file_bytes(b"{\"commands\": 3}"),
+            Err(DictError::Malformed { .. })
+        ));
+    }
+
     proptest::proptest! {
+        #[test]
+        fn from_file_bytes_never_panics(b in proptest::collection::vec(proptest::prelude::any::<u8>(), 0..200)) {
+            let _ = Dictionary::from_file_bytes(&b);
+        }
+
         #[test]
         fn from_json_never_panics(s in ".{0,200}") {
             let _ = Dictionary::from_json(&s);
