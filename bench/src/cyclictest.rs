@@ -186,7 +186,9 @@ mod tests {
         assert_eq!(t0.hist.min(), 6000);
         assert!(t0.hist.max() >= 250_000_000);
         assert_eq!((threads[1].hist.len(), threads[1].overflows), (4, 0));
-        assert_eq!(crate::stats::Percentiles::of(&threads[1].hist).p50_ns, 5000);
+        // 5 µs, within the histogram's 0.1 % resolution.
+        let p50 = crate::stats::Percentiles::of(&threads[1].hist).p50_ns;
+        assert!((5000..=5005).contains(&p50), "{p50}");
     }
 
     #[test]

@@ -26,8 +26,9 @@ pub fn merge(into: &mut Histogram<u64>, from: &Histogram<u64>) -> Result<(), Ben
         .map_err(|e| BenchError::Histogram(format!("{e:?}")))
 }
 
-/// The reported figures of one histogram, in nanoseconds. Percentiles are the low end of their
-/// 0.1 % bucket, max its high end.
+/// The reported figures of one histogram, in nanoseconds. Percentiles and max are the high end
+/// of their 0.1 % bucket (HdrHistogram's convention: 76 µs reads 76.00, not 75.97), min the low
+/// end.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Percentiles {
@@ -50,8 +51,7 @@ impl Percentiles {
         if h.is_empty() {
             return Percentiles::default();
         }
-        // The low end of the value's 0.1 % bucket: a whole-µs value (cyclictest's) stays whole.
-        let q = |x: f64| h.lowest_equivalent(h.value_at_quantile(x));
+        let q = |x: f64| h.value_at_quantile(x);
         Percentiles {
             count: h.len(),
             min_ns: h.min(),
