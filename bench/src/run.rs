@@ -68,10 +68,13 @@ pub struct Session {
 
 impl Session {
     /// Starts a run of `mode` expected to take about `expected`: reads the host, opens the
-    /// interval log, starts the load and the progress bar, and writes the header to `out`
-    /// (text mode). `default_budget_ns` is the mode's budget when the options give none.
+    /// interval log, writes the header and `describe` (the run's settings in words) to `out`
+    /// (text mode), then starts the load and the progress bar (nothing is written to `out`
+    /// while the bar shows). `default_budget_ns` is the mode's budget when the options give
+    /// none.
     pub fn start(
         mode: &str,
+        describe: &str,
         common: &Common,
         default_budget_ns: Option<u64>,
         expected: Duration,
@@ -99,6 +102,8 @@ impl Session {
             for line in report.host.header() {
                 writeln!(out, "{line}").map_err(stdout_err)?;
             }
+            writeln!(out, "{describe}").map_err(stdout_err)?;
+            out.flush().map_err(stdout_err)?;
         }
         let load = match common.load {
             Some(kind) => {
@@ -107,6 +112,7 @@ impl Session {
                 if !common.json {
                     let info = load.info();
                     writeln!(out, "load: {} ({})", info.kind, info.tool).map_err(stdout_err)?;
+                    out.flush().map_err(stdout_err)?;
                 }
                 Some(load)
             }

@@ -26,25 +26,21 @@ pub fn run(
         .collect();
     // About gap per sample per transport, plus set-up.
     let expected = o.gap.saturating_mul(u32::try_from(o.samples).unwrap_or(u32::MAX)) * names.len() as u32;
-    let mut s = Session::start("handoff", common, None, expected, out)?;
+    let describe = format!(
+        "handoff: {} samples per transport, gap {} µs, producer CPU {}, consumer CPU {}, {}",
+        o.samples,
+        o.gap.as_micros(),
+        o.cores.0,
+        o.cores.1,
+        o.fifo
+            .map_or("SCHED_OTHER".to_string(), |p| format!("SCHED_FIFO {p}"))
+    );
+    let mut s = Session::start("handoff", &describe, common, None, expected, out)?;
     s.report.set("samples", o.samples);
     s.report.set("gap_us", o.gap.as_micros() as u64);
     s.report.set("cores", vec![o.cores.0, o.cores.1]);
     s.report.set("fifo", o.fifo);
     s.report.set("process", child.is_some());
-    if !common.json {
-        writeln!(
-            out,
-            "handoff: {} samples per transport, gap {} µs, producer CPU {}, consumer CPU {}, {}",
-            o.samples,
-            o.gap.as_micros(),
-            o.cores.0,
-            o.cores.1,
-            o.fifo
-                .map_or("SCHED_OTHER".to_string(), |p| format!("SCHED_FIFO {p}"))
-        )
-        .map_err(|e| BenchError::file("(standard output)", e))?;
-    }
     let started = Instant::now();
     let mut done: Vec<(&str, Histogram<u64>)> = Vec::new();
     for name in names {

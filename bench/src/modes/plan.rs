@@ -29,7 +29,20 @@ pub fn run(
                 .into(),
         ));
     }
-    let mut s = Session::start("plan", common, None, Duration::from_secs(u64::from(runs)), out)?;
+    let describe = format!(
+        "plan: {}, {} threads, {} run(s)",
+        file.display(),
+        opts.threads,
+        runs
+    );
+    let mut s = Session::start(
+        "plan",
+        &describe,
+        common,
+        None,
+        Duration::from_secs(u64::from(runs)),
+        out,
+    )?;
     s.report.set("file", file.display().to_string());
     s.report.set("threads", opts.threads as u64);
     s.report.set("max_error_us", opts.max_error_s * 1e6);

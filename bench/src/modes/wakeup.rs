@@ -62,15 +62,13 @@ pub fn run(mode: &WakeupMode, common: &Common, out: &mut dyn Write) -> Result<Re
     };
     let mut s = Session::start(
         "wakeup",
+        &describe(mode),
         common,
         Some(super::HOMING_BUDGET_NS),
         total_expected,
         out,
     )?;
     settings(&mut s.report, mode);
-    if !common.json {
-        writeln!(out, "{}", describe(mode)).map_err(|e| BenchError::file("(standard output)", e))?;
-    }
     let n = m.cpus.len();
     let mut ours: Vec<Histogram<u64>> = (0..n).map(|_| new_hist()).collect::<Result<_, _>>()?;
     let mut theirs: Vec<Histogram<u64>> = (0..n).map(|_| new_hist()).collect::<Result<_, _>>()?;
