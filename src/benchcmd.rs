@@ -266,6 +266,9 @@ fn wakeup_mode(what: &BenchWhat) -> Result<WakeupMode, String> {
     } else {
         cpus.clone()
     };
+    if let Some((_, c)) = cpus.iter().enumerate().find(|(i, c)| cpus[..*i].contains(c)) {
+        return Err(format!("--cpus: CPU {c} is given twice (one thread per CPU)"));
+    }
     if let Some(c) = cpus.iter().find(|&&c| c >= online) {
         return Err(format!(
             "--cpus: CPU {c} does not exist (this machine has CPUs 0..={})",
@@ -426,6 +429,8 @@ mod tests {
         }
         let w = parse(&["wakeup", "--cpus", "4096"]).unwrap();
         assert!(wakeup_mode(&w).unwrap_err().contains("CPU 4096 does not exist"));
+        let w = parse(&["wakeup", "--cpus", "0,0"]).unwrap();
+        assert!(wakeup_mode(&w).unwrap_err().contains("CPU 0 is given twice"));
     }
 
     #[test]
