@@ -1,9 +1,16 @@
-//! `cadence bench plan FILE [--config printer.cfg]`: planning + step compression throughput in
-//! batch mode (moves/s, steps/s, queue_step commands, wire bytes, wall time, peak RSS), using
-//! the `bench` crate (also available as a criterion bench: `cargo bench -p bench`).
+//! `cadence bench wakeup|handoff|plan`: the command line of the benchmarks in the `bench`
+//! crate (which runs them and prints their reports); this module only turns arguments into
+//! their options. Every mode takes the common options (`--json`, `--hlog`, `--plot`, `--load`,
+//! `--budget-us`, `--no-progress`).
 
 use std::path::PathBuf;
+use std::time::Duration;
 
+use bench::handoff::{ChildCommand, HandoffOpts};
+use bench::load::{LoadKind, LoadTool};
+use bench::modes::wakeup::WakeupMode;
+use bench::run::Common;
+use bench::wakeup::{Stop, Wait, WakeupOptions};
 use clap::{Args, Subcommand};
 
 /// Arguments of `cadence bench`.
@@ -13,9 +20,109 @@ pub struct BenchArgs {
     pub what: BenchWhat,
 }
 
+/// Options every mode takes.
+#[derive(Debug, Clone, Args)]
+pub struct CommonArgs {
+    /// Print the results as one JSON document (schema `cadence-bench/1`, see README) instead of
+    /// text.
+    #[arg(long)]
+    pub json: bool,
+    /// Write the latencies as an HdrHistogram V2 interval log (one tagged interval per thread
+    /// and second) that HdrHistogram's tools read.
+    #[arg(long, value_name = "FILE")]
+    pub hlog: Option<PathBuf>,
+    /// Draw the latency histogram and percentile distribution (log-scaled, with the budget
+    /// line) to FILE.svg or FILE.png.
+    #[arg(long, value_name = "FILE")]
+    pub plot: Option<PathBuf>,
+    /// Stress the machine during the run: cpu, io or mem (stress-ng when installed, else
+    /// built-in threads).
+    #[arg(long, value_name = "cpu|io|mem")]
+    pub load: Option<LoadKind>,
+    /// Which stressor `--load` uses: auto, stress-ng or builtin.
+    #[arg(long, default_value = "auto", value_name = "TOOL")]
+    pub load_tool: LoadTool,
+    /// The budget drawn in plots and judged in the verdict, in µs (wakeup: 25000, the homing
+    /// budget; 0 = none).
+    #[arg(long, value_name = "US", value_parser = parse_budget)]
+    pub budget_us: Option<f64>,
+    /// No progress bar (it only shows on a terminal, on runs of 3 s or more).
+    #[arg(long)]
+    pub no_progress: bool,
+}
+
 /// What to measure.
 #[derive(Debug, Subcommand)]
 pub enum BenchWhat {
+    /// Wake-up latency like cyclictest: a pinned SCHED_FIFO thread per CPU sleeping to absolute
+    /// deadlines (or busy-waiting); with --compare-cyclictest, cyclictest in alternating slices.
+    Wakeup {
+        /// CPUs to measure on, one pinned thread each (default: every CPU).
+        #[arg(long, value_delimiter = ',', value_name = "LIST")]
+        cpus: Vec<usize>,
+        /// SCHED_FIFO priority of the threads (0 = normal scheduling); refused → normal, noted.
+        #[arg(long, default_value_t = 80, value_parser = clap::value_parser!(i32).range(0..=99))]
+        priority: i32,
+        /// Wake-up period in µs.
+        #[arg(long, default_value_t = 1000, value_parser = clap::value_parser!(u64).range(50..=10_000_000))]
+        interval_us: u64,
+        /// How long to run: 10, 10s, 500ms, 2m, 1h.
+        #[arg(long, default_value = "10s", value_parser = parse_duration, conflicts_with = "loops")]
+        duration: Duration,
+        /// Stop after this many wake-ups per thread instead of a duration.
+        #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+        loops: Option<u64>,
+        /// Spin on the clock until each deadline instead of sleeping.
+        #[arg(long)]
+        busy_wait: bool,
+        /// Do not lock memory (mlockall).
+        #[arg(long)]
+        no_mlock: bool,
+        /// Also run cyclictest (Debian: rt-tests) with the same settings in alternating slices
+        /// and print each percentile's ratio.
+        #[arg(long)]
+        compare_cyclictest: bool,
+        /// Seconds each tool runs per slice with --compare-cyclictest.
+        #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=3600))]
+        slice_s: u64,
+        #[command(flatten)]
+        common: CommonArgs,
+    },
+    /// Hand-off latency between two pinned threads or processes: ArrayQueue and the project's
+    /// HandoffQueue polled, a parking consumer, iceoryx2 polled and event-woken.
+    Handoff {
+        /// Messages per transport.
+        #[arg(long, default_value_t = 50_000, value_parser = clap::value_parser!(u64).range(1..))]
+        samples: u64,
+        /// Time between messages in µs.
+        #[arg(long, default_value_t = 20)]
+        gap_us: u64,
+        /// SCHED_FIFO priority of producer and consumer (default: normal scheduling).
+        #[arg(long, value_parser = clap::value_parser!(i32).range(1..=99))]
+        fifo: Option<i32>,
+        /// Producer and consumer CPUs.
+        #[arg(
+            long,
+            value_delimiter = ',',
+            num_args = 1,
+            default_value = "0,1",
+            value_name = "P,C"
+        )]
+        cores: Vec<usize>,
+        /// Skip the transports whose consumer is another process.
+        #[arg(long)]
+        no_process: bool,
+        #[command(flatten)]
+        common: CommonArgs,
+    },
+    /// The consumer process of `bench handoff` (started by it).
+    #[command(hide = true)]
+    HandoffChild {
+        service: String,
+        samples: u64,
+        mode: String,
+        core: usize,
+    },
     /// Plan and compress a G-code file flat out and print the figures.
     Plan {
         /// The G-code file.
@@ -39,11 +146,61 @@ pub enum BenchWhat {
         /// minute to the next; every run must give the same commands).
         #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=1000))]
         runs: u32,
+        #[command(flatten)]
+        common: CommonArgs,
     },
 }
 
 pub fn run(args: &BenchArgs) -> Result<(), String> {
+    let mut out = std::io::stdout().lock();
     match &args.what {
+        BenchWhat::Wakeup { common, .. } => {
+            let mode = wakeup_mode(&args.what)?;
+            bench::modes::wakeup::run(&mode, &common_options(common), &mut out).map_err(|e| e.to_string())?;
+        }
+        BenchWhat::Handoff {
+            samples,
+            gap_us,
+            fifo,
+            cores,
+            no_process,
+            common,
+        } => {
+            let &[producer, consumer] = cores.as_slice() else {
+                return Err(format!(
+                    "--cores takes two CPUs, producer,consumer (got {cores:?})"
+                ));
+            };
+            let o = HandoffOpts {
+                samples: *samples,
+                gap: Duration::from_micros(*gap_us),
+                fifo: *fifo,
+                cores: (producer, consumer),
+                ..HandoffOpts::default()
+            };
+            let exe =
+                std::env::current_exe().map_err(|e| format!("cannot find the cadence executable: {e}"))?;
+            let child = ChildCommand {
+                exe,
+                args: vec!["bench".into(), "handoff-child".into()],
+            };
+            let child = (!no_process).then_some(&child);
+            bench::modes::handoff::run(&o, child, &common_options(common), &mut out)
+                .map_err(|e| e.to_string())?;
+        }
+        BenchWhat::HandoffChild {
+            service,
+            samples,
+            mode,
+            core,
+        } => {
+            let poll = match mode.as_str() {
+                "poll" => true,
+                "event" => false,
+                other => return Err(format!("handoff-child mode {other:?}: expected poll or event")),
+            };
+            println!("{}", bench::handoff::child_main(service, *samples, poll, *core)?);
+        }
         BenchWhat::Plan {
             file,
             config,
@@ -51,6 +208,7 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
             max_error_us,
             clock_freq,
             runs,
+            common,
         } => {
             let cfg = crate::machine::load_config(config.as_deref())?;
             let dict = crate::decode::load_dictionary(None)?;
@@ -65,42 +223,100 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
                 clock_freq: clock_freq.unwrap_or(opts.clock_freq),
                 ..opts
             };
-            let report = bench::plan::plan_file(file, &cfg, &opts)?;
-            println!("{report}");
-            if *runs > 1 {
-                let mut walls = vec![report.wall_s];
-                for run in 2..=*runs {
-                    let again = bench::plan::plan_file(file, &cfg, &opts)?;
-                    if (again.queue_steps, again.wire_bytes) != (report.queue_steps, report.wire_bytes) {
-                        return Err(format!(
-                            "run {run} gave {} queue_step in {} wire bytes, the first {} in {}: \
-                             planning is not deterministic",
-                            again.queue_steps, again.wire_bytes, report.queue_steps, report.wire_bytes
-                        ));
-                    }
-                    walls.push(again.wall_s);
-                }
-                println!("{}", wall_spread(&mut walls));
-            }
-            Ok(())
+            bench::modes::plan::run(file, &cfg, &opts, *runs, &common_options(common), &mut out)
+                .map_err(|e| e.to_string())?;
         }
+    }
+    Ok(())
+}
+
+/// The library's common options.
+fn common_options(a: &CommonArgs) -> Common {
+    Common {
+        json: a.json,
+        hlog: a.hlog.clone(),
+        plot: a.plot.clone(),
+        load: a.load,
+        load_tool: a.load_tool,
+        budget_ns: a.budget_us.map(|us| (us * 1e3).round() as u64),
+        progress: !a.no_progress,
     }
 }
 
-/// `wall over N runs: min …, median …, max … s` (sorts `walls`, which holds at least one).
-fn wall_spread(walls: &mut [f64]) -> String {
-    walls.sort_by(f64::total_cmp);
-    let n = walls.len();
-    let median = if n % 2 == 1 {
-        walls[n / 2]
-    } else {
-        (walls[n / 2 - 1] + walls[n / 2]) / 2.0
+/// The wakeup mode of `bench wakeup` arguments.
+fn wakeup_mode(what: &BenchWhat) -> Result<WakeupMode, String> {
+    let BenchWhat::Wakeup {
+        cpus,
+        priority,
+        interval_us,
+        duration,
+        loops,
+        busy_wait,
+        no_mlock,
+        compare_cyclictest,
+        slice_s,
+        ..
+    } = what
+    else {
+        return Err("not a wakeup command".into());
     };
-    format!(
-        "wall over {n} runs: min {:.4} s, median {median:.4} s, max {:.4} s",
-        walls[0],
-        walls[n - 1]
-    )
+    let online = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    let cpus = if cpus.is_empty() {
+        (0..online).collect()
+    } else {
+        cpus.clone()
+    };
+    if let Some((_, c)) = cpus.iter().enumerate().find(|(i, c)| cpus[..*i].contains(c)) {
+        return Err(format!("--cpus: CPU {c} is given twice (one thread per CPU)"));
+    }
+    if let Some(c) = cpus.iter().find(|&&c| c >= online) {
+        return Err(format!(
+            "--cpus: CPU {c} does not exist (this machine has CPUs 0..={})",
+            online - 1
+        ));
+    }
+    Ok(WakeupMode {
+        measure: WakeupOptions {
+            cpus,
+            priority: (*priority > 0).then_some(*priority),
+            interval: Duration::from_micros(*interval_us),
+            stop: loops.map_or(Stop::Duration(*duration), Stop::Loops),
+            wait: if *busy_wait { Wait::Busy } else { Wait::Sleep },
+            log_interval: Duration::from_secs(1),
+        },
+        lock_memory: !no_mlock,
+        compare_cyclictest: *compare_cyclictest,
+        slice: Duration::from_secs(*slice_s),
+    })
+}
+
+/// `10`, `10s`, `500ms`, `2m`, `1h`: a positive duration.
+fn parse_duration(s: &str) -> Result<Duration, String> {
+    let bad = || format!("duration {s:?}: expected e.g. 10, 10s, 500ms, 2m or 1h");
+    let (num, unit) = match s.find(|c: char| !c.is_ascii_digit() && c != '.') {
+        Some(i) => s.split_at(i),
+        None => (s, "s"),
+    };
+    let v: f64 = num.parse().map_err(|_| bad())?;
+    let secs = match unit {
+        "ms" => v / 1e3,
+        "s" => v,
+        "m" => v * 60.0,
+        "h" => v * 3600.0,
+        _ => return Err(bad()),
+    };
+    if !(secs.is_finite() && secs > 0.0 && secs <= 7.0 * 86400.0) {
+        return Err(format!("duration {s:?}: must be more than 0 and at most a week"));
+    }
+    Ok(Duration::from_secs_f64(secs))
+}
+
+/// A budget in µs, 0 or more.
+fn parse_budget(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!("budget {s:?}: expected microseconds, 0 or more")),
+    }
 }
 
 /// A clock frequency between 1 MHz and 1 GHz.
@@ -116,17 +332,115 @@ fn parse_clock_freq(s: &str) -> Result<f64, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use clap::Parser;
+
+    #[derive(Debug, Parser)]
+    struct Cli {
+        #[command(subcommand)]
+        what: BenchWhat,
+    }
+
+    fn parse(args: &[&str]) -> Result<BenchWhat, String> {
+        Cli::try_parse_from(std::iter::once("bench").chain(args.iter().copied()))
+            .map(|c| c.what)
+            .map_err(|e| e.to_string())
+    }
 
     #[test]
-    fn wall_spread_gives_min_median_max() {
+    fn wakeup_options_parse_into_the_mode() {
+        let w = parse(&[
+            "wakeup",
+            "--cpus",
+            "0",
+            "--priority",
+            "90",
+            "--interval-us",
+            "250",
+            "--duration",
+            "3s",
+            "--compare-cyclictest",
+            "--slice-s",
+            "1",
+            "--json",
+            "--hlog",
+            "x.hlog",
+            "--plot",
+            "x.svg",
+            "--load",
+            "cpu",
+            "--budget-us",
+            "1000",
+        ])
+        .unwrap();
+        let mode = wakeup_mode(&w).unwrap();
+        assert_eq!(mode.measure.cpus, vec![0]);
+        assert_eq!(mode.measure.priority, Some(90));
+        assert_eq!(mode.measure.interval, Duration::from_micros(250));
+        assert_eq!(mode.measure.stop, Stop::Duration(Duration::from_secs(3)));
+        assert!(mode.compare_cyclictest && mode.lock_memory);
+        let BenchWhat::Wakeup { common, .. } = &w else {
+            unreachable!()
+        };
+        let c = common_options(common);
+        assert!(c.json && c.progress);
+        assert_eq!(c.load, Some(LoadKind::Cpu));
+        assert_eq!(c.budget_ns, Some(1_000_000));
+        assert_eq!(c.plot, Some(PathBuf::from("x.svg")));
+
+        let w = parse(&[
+            "wakeup",
+            "--loops",
+            "100",
+            "--busy-wait",
+            "--priority",
+            "0",
+            "--no-mlock",
+        ])
+        .unwrap();
+        let mode = wakeup_mode(&w).unwrap();
         assert_eq!(
-            wall_spread(&mut [0.3, 0.1, 0.2]),
-            "wall over 3 runs: min 0.1000 s, median 0.2000 s, max 0.3000 s"
+            (mode.measure.stop, mode.measure.wait),
+            (Stop::Loops(100), Wait::Busy)
         );
-        assert_eq!(
-            wall_spread(&mut [0.4, 0.1, 0.2, 0.3]),
-            "wall over 4 runs: min 0.1000 s, median 0.2500 s, max 0.4000 s"
-        );
+        assert_eq!(mode.measure.priority, None);
+        assert!(!mode.lock_memory);
+        assert!(!mode.measure.cpus.is_empty());
+    }
+
+    #[test]
+    fn bad_options_are_clear_errors() {
+        for (args, want) in [
+            (&["wakeup", "--priority", "100"][..], "100"),
+            (&["wakeup", "--interval-us", "10"], "10"),
+            (&["wakeup", "--duration", "0"], "more than 0"),
+            (&["wakeup", "--duration", "5parsecs"], "expected e.g."),
+            (
+                &["wakeup", "--loops", "5", "--duration", "1s"],
+                "cannot be used with",
+            ),
+            (&["wakeup", "--load", "gpu"], "expected cpu, io or mem"),
+            (&["wakeup", "--load-tool", "x"], "auto, stress-ng or builtin"),
+            (&["wakeup", "--budget-us=-1"], "0 or more"),
+            (&["handoff", "--fifo", "0"], "0"),
+            (&["plan"], "FILE"),
+        ] {
+            let e = parse(args).unwrap_err();
+            assert!(e.contains(want), "{args:?}: {e}");
+        }
+        let w = parse(&["wakeup", "--cpus", "4096"]).unwrap();
+        assert!(wakeup_mode(&w).unwrap_err().contains("CPU 4096 does not exist"));
+        let w = parse(&["wakeup", "--cpus", "0,0"]).unwrap();
+        assert!(wakeup_mode(&w).unwrap_err().contains("CPU 0 is given twice"));
+    }
+
+    #[test]
+    fn durations_parse() {
+        assert_eq!(parse_duration("10"), Ok(Duration::from_secs(10)));
+        assert_eq!(parse_duration("500ms"), Ok(Duration::from_millis(500)));
+        assert_eq!(parse_duration("2m"), Ok(Duration::from_secs(120)));
+        assert_eq!(parse_duration("1.5s"), Ok(Duration::from_millis(1500)));
+        assert!(parse_duration("").is_err());
+        assert!(parse_duration("-1s").is_err());
     }
 
     #[test]

@@ -56,7 +56,8 @@ enum Cmd {
     Doctor(doctor::DoctorArgs),
     /// Decode a wire stream written by `print --batch` into one message per line.
     Decode(decode::DecodeArgs),
-    /// Benchmarks: `bench plan FILE` measures planning + step compression.
+    /// Benchmarks: `bench wakeup` (wake-up latency, cyclictest-class), `bench handoff`,
+    /// `bench plan FILE` (planning + step compression), with --json, --hlog, --plot, --load.
     Bench(benchcmd::BenchArgs),
     /// Run the simulated MCU (same code as the `cadence-mcu` executable).
     #[command(hide = true, disable_help_flag = true)]

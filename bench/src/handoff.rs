@@ -11,7 +11,7 @@
 //! - `ipc-poll` / `ipc-event`: iceoryx2 publish-subscribe of a 5 KiB `StepBatch` (zero-copy
 //!   loan), consumer polls `receive()` or sleeps on the event service.
 //! - `proc-poll` / `proc-event`: the same with the consumer in a child process
-//!   (`cadence-bench handoff --child ...`), which prints its summary line on stdout.
+//!   (`cadence bench handoff-child ...`), which prints its histogram on stdout.
 //!
 //! The producer paces messages `gap` apart (spinning for short gaps, so the consumer sees a
 //! steady stream rather than a burst). Timestamps are CLOCK_MONOTONIC ns (shared by processes).
@@ -21,6 +21,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use crossbeam_queue::ArrayQueue;
+use hdrhistogram::serialization::{Deserializer, Serializer, V2DeflateSerializer};
+use hdrhistogram::Histogram;
 use iceoryx2::prelude::*;
 use rt_core::handoff::HandoffQueue;
 use rt_core::hist::LatencyHist;
@@ -283,22 +285,28 @@ pub fn ipc_threads(o: &HandoffOpts, poll: bool) -> Result<LatencyHist, String> {
     join(consumer)?
 }
 
-/// iceoryx2 with the consumer in a child process `exe handoff --child <service> <n> <poll>`;
-/// the child prints `rt_core::hist` summary fields on stdout, returned here as text.
-pub fn ipc_process(o: &HandoffOpts, exe: &std::path::Path, poll: bool) -> Result<String, String> {
+/// How to start the consumer process: `exe args... SERVICE SAMPLES poll|event CORE` (the CLI's
+/// hidden `cadence bench handoff-child`), which prints [`encode_hist`] of its histogram.
+#[derive(Debug, Clone)]
+pub struct ChildCommand {
+    pub exe: std::path::PathBuf,
+    pub args: Vec<String>,
+}
+
+/// iceoryx2 with the consumer in a child process (see [`ChildCommand`]).
+pub fn ipc_process(o: &HandoffOpts, child_cmd: &ChildCommand, poll: bool) -> Result<Histogram<u64>, String> {
     let service = rt_core::shm::steps_service_name(&instance(), "xproc");
-    let child = std::process::Command::new(exe)
+    let child = std::process::Command::new(&child_cmd.exe)
+        .args(&child_cmd.args)
         .args([
-            "handoff",
-            "--child",
-            &service,
+            service.as_str(),
             &o.samples.to_string(),
             if poll { "poll" } else { "event" },
             &o.cores.1.to_string(),
         ])
         .stdout(std::process::Stdio::piped())
         .spawn()
-        .map_err(|e| format!("{}: {e}", exe.display()))?;
+        .map_err(|e| format!("{}: {e}", child_cmd.exe.display()))?;
     let (n, gap) = (o.samples, o.gap);
     join(spawn_rt(spec("bench-prod", o.cores.0, o.fifo), move || {
         ipc_produce(&service, n, gap, 1)
@@ -307,33 +315,65 @@ pub fn ipc_process(o: &HandoffOpts, exe: &std::path::Path, poll: bool) -> Result
     if !out.status.success() {
         return Err(format!("child failed: {}", out.status));
     }
-    Ok(String::from_utf8_lossy(&out.stdout).trim().to_string())
+    decode_hist(String::from_utf8_lossy(&out.stdout).trim())
 }
 
-/// Runs every transport and returns one line per transport.
-pub fn run_all(o: &HandoffOpts, exe: Option<&std::path::Path>) -> Vec<String> {
-    let mut lines = Vec::new();
-    let mut line = |name: &str, r: Result<LatencyHist, String>| {
-        lines.push(match r {
-            Ok(h) => format!("{name:<13} {}", h.summary().format_latency()),
-            Err(e) => format!("{name:<13} failed: {e}"),
-        })
-    };
-    line("queue-poll", queue_poll(o));
-    line("handoff-poll", handoff_poll(o));
-    line("queue-park", queue_park(o));
-    line("ipc-poll", ipc_threads(o, true));
-    line("ipc-event", ipc_threads(o, false));
-    if let Some(exe) = exe {
-        for poll in [true, false] {
-            let name = if poll { "proc-poll" } else { "proc-event" };
-            lines.push(match ipc_process(o, exe, poll) {
-                Ok(s) => format!("{name:<12} {s}"),
-                Err(e) => format!("{name:<13} failed: {e}"),
-            });
-        }
+/// The consumer process's work: pinned to `core`, receives `n` samples on `service` and
+/// returns the line to print (its histogram, [`encode_hist`]).
+pub fn child_main(service: &str, n: u64, poll: bool, core: usize) -> Result<String, String> {
+    rt_core::os::apply_rt(&RtSpec {
+        core: Some(core),
+        ..RtSpec::new("bench-child")
+    });
+    let h = ipc_consume(service, n, poll)?;
+    encode_hist(h.histogram())
+}
+
+/// A histogram as one line: base64 of its V2 deflate serialization (as in interval logs).
+pub fn encode_hist(h: &Histogram<u64>) -> Result<String, String> {
+    use base64::Engine as _;
+    let mut buf = Vec::new();
+    V2DeflateSerializer::new()
+        .serialize(h, &mut buf)
+        .map_err(|e| format!("serializing the histogram: {e:?}"))?;
+    Ok(base64::engine::general_purpose::STANDARD.encode(buf))
+}
+
+/// The inverse of [`encode_hist`].
+pub fn decode_hist(line: &str) -> Result<Histogram<u64>, String> {
+    use base64::Engine as _;
+    let raw = base64::engine::general_purpose::STANDARD
+        .decode(line)
+        .map_err(|e| format!("the child's histogram line: {e}"))?;
+    Deserializer::new()
+        .deserialize(&mut raw.as_slice())
+        .map_err(|e| format!("the child's histogram: {e:?}"))
+}
+
+/// The transports [`run_one`] measures, in order (the `proc-` ones need a child command).
+pub const TRANSPORTS: [&str; 7] = [
+    "queue-poll",
+    "handoff-poll",
+    "queue-park",
+    "ipc-poll",
+    "ipc-event",
+    "proc-poll",
+    "proc-event",
+];
+
+/// Measures one transport of [`TRANSPORTS`].
+pub fn run_one(name: &str, o: &HandoffOpts, child: Option<&ChildCommand>) -> Result<Histogram<u64>, String> {
+    let hist = |r: Result<LatencyHist, String>| r.map(|h| h.histogram().clone());
+    match (name, child) {
+        ("queue-poll", _) => hist(queue_poll(o)),
+        ("handoff-poll", _) => hist(handoff_poll(o)),
+        ("queue-park", _) => hist(queue_park(o)),
+        ("ipc-poll", _) => hist(ipc_threads(o, true)),
+        ("ipc-event", _) => hist(ipc_threads(o, false)),
+        ("proc-poll", Some(c)) => ipc_process(o, c, true),
+        ("proc-event", Some(c)) => ipc_process(o, c, false),
+        (other, _) => Err(format!("transport {other} is not available here")),
     }
-    lines
 }
 
 #[cfg(test)]
@@ -358,5 +398,17 @@ mod tests {
             ..HandoffOpts::default()
         };
         assert_eq!(ipc_threads(&o, false).unwrap().count(), 100);
+    }
+
+    #[test]
+    fn histograms_cross_the_process_boundary_as_one_line() {
+        let mut h = crate::stats::new_hist().unwrap();
+        h.record(1234).unwrap();
+        h.record(5_000_000).unwrap();
+        let line = encode_hist(&h).unwrap();
+        assert!(!line.contains('\n'));
+        let back = decode_hist(&line).unwrap();
+        assert_eq!((back.len(), back.max()), (2, h.max()));
+        assert!(decode_hist("not base64!").is_err());
     }
 }

@@ -1,0 +1,122 @@
+//! `cadence bench plan`: planner + step compression throughput ([`crate::plan`]) with the
+//! common options. It measures throughput, not latency: its figures go to `figures` and it has
+//! no histogram, so `--hlog` and `--plot` are refused.
+
+use std::io::Write;
+use std::path::Path;
+use std::time::Duration;
+
+use sysconfig::printer::PrinterConfig;
+
+use crate::error::BenchError;
+use crate::plan::{plan_file, PlanOptions, PlanReport};
+use crate::report::Report;
+use crate::run::{Common, Session};
+
+/// Plans `file` `runs` times (every run must give the same commands) and reports the figures.
+pub fn run(
+    file: &Path,
+    cfg: &PrinterConfig,
+    opts: &PlanOptions,
+    runs: u32,
+    common: &Common,
+    out: &mut dyn Write,
+) -> Result<Report, BenchError> {
+    if common.hlog.is_some() || common.plot.is_some() {
+        return Err(BenchError::Options(
+            "bench plan measures throughput and records no latency histogram: --hlog and --plot \
+             apply to wakeup and handoff"
+                .into(),
+        ));
+    }
+    let describe = format!(
+        "plan: {}, {} threads, {} run(s)",
+        file.display(),
+        opts.threads,
+        runs
+    );
+    let mut s = Session::start(
+        "plan",
+        &describe,
+        common,
+        None,
+        Duration::from_secs(u64::from(runs)),
+        out,
+    )?;
+    s.report.set("file", file.display().to_string());
+    s.report.set("threads", opts.threads as u64);
+    s.report.set("max_error_us", opts.max_error_s * 1e6);
+    s.report.set("clock_freq", opts.clock_freq);
+    s.report.set("runs", runs);
+    let first = plan_file(file, cfg, opts).map_err(BenchError::Options)?;
+    let mut walls = vec![first.wall_s];
+    for run in 2..=runs.max(1) {
+        let again = plan_file(file, cfg, opts).map_err(BenchError::Options)?;
+        if (again.queue_steps, again.wire_bytes) != (first.queue_steps, first.wire_bytes) {
+            return Err(BenchError::Options(format!(
+                "run {run} gave {} queue_step in {} wire bytes, the first {} in {}: planning is \
+                 not deterministic",
+                again.queue_steps, again.wire_bytes, first.queue_steps, first.wire_bytes
+            )));
+        }
+        walls.push(again.wall_s);
+        s.progress(Duration::from_secs(u64::from(run)));
+    }
+    figures(&mut s.report, &first);
+    if !common.json {
+        writeln!(out, "{first}").map_err(|e| BenchError::file("(standard output)", e))?;
+    }
+    if runs > 1 {
+        let (min, median, max) = spread(&mut walls);
+        s.report.figures.insert("wall_min_s".into(), min);
+        s.report.figures.insert("wall_median_s".into(), median);
+        s.report.figures.insert("wall_max_s".into(), max);
+        s.report.verdict = Some(format!(
+            "wall over {runs} runs: min {min:.4} s, median {median:.4} s, max {max:.4} s"
+        ));
+    }
+    // The text line above already says every figure; keep the table for JSON only.
+    if !common.json {
+        s.report.figures.clear();
+    }
+    s.finish("", &[], out)
+}
+
+fn figures(r: &mut Report, p: &PlanReport) {
+    let f = &mut r.figures;
+    f.insert("lines".into(), p.lines as f64);
+    f.insert("moves".into(), p.moves as f64);
+    f.insert("steps".into(), p.steps as f64);
+    f.insert("queue_steps".into(), p.queue_steps as f64);
+    f.insert("commands".into(), p.commands as f64);
+    f.insert("wire_bytes".into(), p.wire_bytes as f64);
+    f.insert("wall_s".into(), p.wall_s);
+    f.insert("moves_per_s".into(), p.moves_per_s());
+    f.insert("steps_per_s".into(), p.steps_per_s());
+    f.insert("peak_rss_bytes".into(), p.peak_rss_bytes as f64);
+    f.insert("print_time_s".into(), p.print_time_s);
+    f.insert("skipped_unknown".into(), p.skipped_unknown as f64);
+}
+
+/// Min, median and max of `walls` (at least one).
+pub fn spread(walls: &mut [f64]) -> (f64, f64, f64) {
+    walls.sort_by(f64::total_cmp);
+    let n = walls.len();
+    let median = if n % 2 == 1 {
+        walls[n / 2]
+    } else {
+        (walls[n / 2 - 1] + walls[n / 2]) / 2.0
+    };
+    (walls[0], median, walls[n - 1])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn spread_gives_min_median_max() {
+        assert_eq!(spread(&mut [0.3, 0.1, 0.2]), (0.1, 0.2, 0.3));
+        assert_eq!(spread(&mut [0.4, 0.1, 0.2, 0.3]), (0.1, 0.25, 0.4));
+    }
+}
