@@ -12,8 +12,8 @@ use links::mcu::{LinkOptions, LinkStats, LinkTuning, McuLink};
 use links::transport::{PtyTransport, SerialTransport, Transport};
 use sysconfig::printer::PrinterConfig;
 
-use crate::machine::Machine;
-use crate::simmcu::{SimMcu, SimOptions};
+use crate::hardware::Machine;
+use crate::sim_mcu::{SimMcu, SimOptions};
 
 /// One connected MCU.
 #[derive(Debug)]
@@ -238,13 +238,13 @@ impl Mcus {
     }
 
     /// What a step stream needs of each MCU that gets one (see `streams::stream_mcus`).
-    pub fn stream_params(&self, machine: &Machine) -> Vec<crate::streams::McuParams<'_>> {
+    pub fn stream_params(&self, machine: &Machine) -> Vec<crate::step_stream::McuParams<'_>> {
         let names: Vec<&str> = self.list.iter().map(|m| m.name.as_str()).collect();
-        crate::streams::stream_mcus(machine, &names)
+        crate::step_stream::stream_mcus(machine, &names)
             .into_iter()
             .map(|i| {
                 let m = &self.list[i];
-                crate::streams::McuParams {
+                crate::step_stream::McuParams {
                     name: &m.name,
                     mcu_index: i,
                     dict: m.link.dictionary(),

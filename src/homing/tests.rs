@@ -1,5 +1,5 @@
 use super::*;
-use crate::machine::StepperOut;
+use crate::hardware::StepperOut;
 use planner::kinematics::{Kinematics, StepperKin};
 use sysconfig::printer::PinRef;
 
@@ -26,7 +26,7 @@ fn machine(z_mcus: &[&str], endstop_mcu: &str) -> Machine {
             step_pin: pin(mcu, "PC0"),
             dir_pin: pin(mcu, "PC1"),
             enable_pin: None,
-            step_pulse_duration: crate::machine::DEFAULT_STEP_PULSE_DURATION,
+            step_pulse_duration: crate::hardware::DEFAULT_STEP_PULSE_DURATION,
             step_dist: 0.0025,
         });
     }
@@ -61,7 +61,7 @@ fn a_probe_on_yet_another_mcu_is_refused_too() {
         std::path::Path::new("printer.cfg"),
     )
     .unwrap();
-    m.probe = Some(crate::machine::ProbeOut {
+    m.probe = Some(crate::hardware::ProbeOut {
         endstop,
         z_virtual_endstop: false,
         z_position: 0.0,

@@ -49,11 +49,11 @@ use planner::pipeline::{Pipeline, PipelineOptions};
 use rt_core::hist::LatencyHist;
 use rt_core::wakeup::{WakeupProbe, WakeupReport};
 
-use super::{plain_move, print_now, HomingCtx, HomingReport, AXIS_NAMES};
-use crate::live::RtConfig;
-use crate::machine::Machine;
-use crate::mcus::{trace_path, ConnectOptions, Mcus};
-use crate::streams::StepStreams;
+use cadence::hardware::Machine;
+use cadence::homing::{plain_move, print_now, HomingCtx, HomingReport, AXIS_NAMES};
+use cadence::mcus::{trace_path, ConnectOptions, Mcus};
+use cadence::realtime::RtConfig;
+use cadence::step_stream::StepStreams;
 
 /// Arguments of `cadence home`.
 #[derive(Debug, Args)]
@@ -161,12 +161,12 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
             return Err(format!("--time-scale {scale}: must be in (0, 50]"));
         }
     }
-    let cfg = crate::machine::load_config(args.config.as_deref())?;
+    let cfg = cadence::hardware::load_config(args.config.as_deref())?;
     for w in &cfg.warnings {
         eprintln!("cadence: warning: {w}");
     }
     let machine = Machine::from_config(&cfg)?;
-    super::check_config(&machine)?;
+    cadence::homing::check_config(&machine)?;
     let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let hogs = if args.cpu_load {
@@ -277,7 +277,7 @@ fn cycles(
         &maps,
     )
     .map_err(|e| e.to_string())?;
-    let mut sinks = super::direct_sinks(&streams, mcus);
+    let mut sinks = cadence::homing::direct_sinks(&streams, mcus);
     let mut ctx = HomingCtx::new(mcus, machine, &mut pipeline, &mut streams, &mut sinks, scale, rt);
     let mut last_step = LatencyHist::new();
     let mut next_step = LatencyHist::new();
@@ -303,7 +303,7 @@ fn cycles(
         }
         // A communication timeout is an outcome to count here, not the end of the bench (the
         // planner was resynced to where the steppers stopped; the next cycle homes again).
-        let report = match super::home_axes(&mut ctx, axes) {
+        let report = match cadence::homing::home_axes(&mut ctx, axes) {
             Ok(r) => r,
             Err(e) if e == COMM_TIMEOUT_MSG && args.cycles > 1 => {
                 timeouts += 1;
@@ -339,10 +339,10 @@ fn cycles(
         print!("{last_report}");
     }
     // Everything executed, host and MCU agree on every stepper position.
-    super::wait_motion_done(&mut ctx)?;
+    cadence::homing::wait_motion_done(&mut ctx)?;
     let host = ctx.pipeline.stepper_positions();
     for (i, s) in machine.steppers.iter().enumerate() {
-        let mcu_pos = super::stepper_position(&ctx, i)?;
+        let mcu_pos = cadence::homing::stepper_position(&ctx, i)?;
         if host.get(i) != Some(&mcu_pos) {
             return Err(format!(
                 "{}: the MCU reports position {mcu_pos} steps but the host counts {:?}",
@@ -503,7 +503,7 @@ fn trace_latency(
     };
     for e in machine.endstops.iter().filter(|e| axes[e.axis]) {
         // The axis' steppers' MCU (one: `check_config` refuses split axes with a third-MCU endstop).
-        let group = super::axis_steppers(machine, e.axis);
+        let group = cadence::homing::axis_steppers(machine, e.axis);
         let Some(stepper_mcu) = group
             .first()
             .map(|&i| machine.steppers[i].mcu.as_str())

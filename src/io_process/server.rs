@@ -16,7 +16,6 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
 
-use clap::{Args, ValueEnum};
 use links::mcu::McuLink;
 use rt_core::logger::{Arg, Level, LoggerHandle};
 use rt_core::os::{apply_rt, RtSpec};
@@ -29,64 +28,59 @@ use rt_core::shm::{
     Telemetry,
 };
 
-use crate::live::{self, Hists, Logging, RtConfig};
-use crate::machine::Machine;
+use crate::hardware::Machine;
+use crate::io_stage;
+use crate::latency::{self, Hists};
+use crate::logging::Logging;
 use crate::mcus::{ConnectOptions, Mcus};
+use crate::realtime::RtConfig;
 
 type Ipc = iceoryx2::prelude::ipc::Service;
 
 /// How often the main thread publishes clock snapshots and checks on everything.
 pub const CLOCK_PERIOD: Duration = Duration::from_millis(20);
 
-/// The stages `serve` can run.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum Role {
-    /// The IO stage: MCU connections, fed from the step channels.
-    Io,
-}
-
-/// Arguments of `cadence serve`.
-#[derive(Debug, Args)]
-pub struct ServeArgs {
-    /// The stage to run in this process.
-    #[arg(long, value_enum)]
-    pub role: Role,
+/// How `serve` runs the IO stage.
+#[derive(Debug, Clone)]
+pub struct ServeOptions {
     /// Klipper-format printer.cfg (default: the built-in simulated cartesian printer); the
     /// planner must load the same one (checked through the configuration CRC).
-    #[arg(long)]
     pub config: Option<PathBuf>,
     /// Service instance: services are named `cadence/<instance>/...` (default `p<pid>`).
-    #[arg(long)]
     pub instance: Option<String>,
     /// Simulated MCU clock runs this many times faster than the wall clock.
-    #[arg(long)]
     pub time_scale: Option<f64>,
     /// Write the simulated MCU's step trace to this file.
-    #[arg(long)]
     pub trace: Option<PathBuf>,
     /// Don't pin threads, use SCHED_FIFO or lock memory.
-    #[arg(long)]
     pub no_realtime: bool,
     /// Also write the log to this file (appended).
-    #[arg(long, value_name = "PATH")]
     pub log_file: Option<PathBuf>,
     /// Most verbose log level recorded: error, warn, info, debug or trace.
-    #[arg(long, default_value = "info", value_name = "LEVEL")]
     pub log_level: Level,
     /// Stop (and fail) when the process with this pid (the planner that started us) is gone.
-    #[arg(long)]
     pub parent_pid: Option<u32>,
     /// Fail when neither a step batch nor a command arrived for this many seconds (0: wait
-    /// forever).
-    #[arg(long, default_value_t = 120.0)]
+    /// forever; the CLI's default is 120).
     pub idle_timeout: f64,
 }
 
-pub fn run(args: &ServeArgs) -> Result<(), String> {
-    let Role::Io = args.role;
-    let cfg = crate::machine::load_config(args.config.as_deref())?;
+/// What `serve` reports: its lines (histograms, link statistics, allocations, log), which
+/// real-time guarantees were off, and how the served print ended.
+#[derive(Debug)]
+pub struct ServeOutcome {
+    pub report: Vec<String>,
+    pub rt_report: Vec<String>,
+    pub result: Result<(), String>,
+}
+
+/// Serves one print: connects and configures the MCUs, runs the IO stage until the planner's
+/// FINISH, publishes DONE. `warn` gets the printer.cfg's warnings. Errors before the MCUs are
+/// connected come back as `Err`; later ones in [`ServeOutcome::result`] after the report.
+pub fn run(args: &ServeOptions, warn: &mut dyn FnMut(&str)) -> Result<ServeOutcome, String> {
+    let cfg = crate::hardware::load_config(args.config.as_deref())?;
     for w in &cfg.warnings {
-        eprintln!("cadence serve: warning: {w}");
+        warn(w);
     }
     let simulated = cfg.mcus.iter().any(|m| m.is_simulated());
     if args.time_scale.is_some() && !simulated {
@@ -97,7 +91,7 @@ pub fn run(args: &ServeArgs) -> Result<(), String> {
         return Err(format!("--time-scale {time_scale}: must be in (0, 50]"));
     }
     let machine = Machine::from_config(&cfg)?;
-    crate::remote::check_single_mcu(&machine)?;
+    super::planner_side::check_single_mcu(&machine)?;
     let instance = args
         .instance
         .clone()
@@ -152,25 +146,28 @@ pub fn run(args: &ServeArgs) -> Result<(), String> {
     let stats = mcus.close();
     // The report: this process's histograms and link statistics.
     let clock_freq = machine_clock_freq(&result);
-    for line in hists.report(clock_freq) {
-        println!("  io: {line}");
-    }
+    let mut lines: Vec<String> = hists
+        .report(clock_freq)
+        .into_iter()
+        .map(|l| format!("  io: {l}"))
+        .collect();
     for (name, s) in &stats {
-        println!("  io: mcu '{name}': {s}");
+        lines.push(format!("  io: mcu '{name}': {s}"));
     }
     if let Ok(io) = &result {
-        println!(
+        lines.push(format!(
             "  io: stage took {} batches; allocations after warm-up: {}",
             io.batches,
             io.allocations_after_warmup
                 .map_or("n/a".to_string(), |n| n.to_string())
-        );
+        ));
     }
-    println!("  io: {}", logging.finish());
-    for line in rt_core::os::rt_report() {
-        eprintln!("cadence serve: {line}");
-    }
-    result.map(|_| ())
+    lines.push(format!("  io: {}", logging.finish()));
+    Ok(ServeOutcome {
+        report: lines,
+        rt_report: rt_core::os::rt_report(),
+        result: result.map(|_| ()),
+    })
 }
 
 /// The clock frequency the served print used (for the report's ms figures).
@@ -217,7 +214,7 @@ impl StatusReport {
 }
 
 struct ServeCtx<'a> {
-    args: &'a ServeArgs,
+    args: &'a ServeOptions,
     machine: &'a Machine,
     mcus: &'a Mcus,
     instance: &'a str,
@@ -244,7 +241,7 @@ fn serve_print(
     let mut clocks = Vec::new();
     for (i, m) in mcus.list.iter().enumerate() {
         let dict = m.link.dictionary();
-        let crc = crate::remote::config_crc(dict, ctx.machine, &m.name)?;
+        let crc = super::planner_side::config_crc(dict, ctx.machine, &m.name)?;
         let mut p = ShmPublisher::<Ipc, McuInfo>::open(
             node,
             &info_service_name(ctx.instance, &m.name),
@@ -322,12 +319,12 @@ fn serve_print(
             .name(io_spec.name.clone())
             .spawn_scoped(scope, move || {
                 apply_rt(&io_spec);
-                live::io_stage(
+                io_stage::io_stage(
                     link, service, ready_tx, done, consumed, hists, clock_freq, &io_log,
                 )
             })
             .map_err(|e| format!("cannot start the IO stage thread: {e}"))?;
-        let stop_io = |io: std::thread::ScopedJoinHandle<'_, Result<live::IoReport, String>>| {
+        let stop_io = |io: std::thread::ScopedJoinHandle<'_, Result<io_stage::IoReport, String>>| {
             done.store(true, Ordering::Release);
             io.join()
                 .map_err(|_| "the IO stage thread panicked".to_string())
@@ -360,7 +357,7 @@ fn serve_print(
                 hists.publish(
                     &mut telemetry,
                     started.elapsed().as_nanos() as u64,
-                    live::LEAD_SOURCE,
+                    latency::LEAD_SOURCE,
                 );
             }
             if let Err(e) = mcus.check() {
@@ -401,7 +398,7 @@ fn serve_print(
                         [Arg::U(n), Arg::U(f.end_clock)],
                     );
                     let positions =
-                        live::read_final_positions(mcus, ctx.machine, &[(0, f.end_clock)], ctx.scale)?;
+                        crate::live::read_final_positions(mcus, ctx.machine, &[(0, f.end_clock)], ctx.scale)?;
                     if positions.len() > STATUS_POSITIONS {
                         return Err(format!(
                             "{} steppers: an IoStatus carries at most {STATUS_POSITIONS} positions",
@@ -418,7 +415,7 @@ fn serve_print(
                     hists.publish(
                         &mut telemetry,
                         started.elapsed().as_nanos() as u64,
-                        live::LEAD_SOURCE,
+                        latency::LEAD_SOURCE,
                     );
                     ctx.log.log(Level::Info, "serve: print done", []);
                     // Keep the DONE sample alive until the planner has read it.

@@ -14,7 +14,6 @@
 //! Homing needs the trigger relay and the step queue of the MCU link in the planner's process:
 //! a G28 on a printer with endstops is refused in this mode with a clear error.
 
-use std::fs::File;
 use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Mutex;
@@ -32,9 +31,14 @@ use rt_core::shm::io::{
 use rt_core::shm::{open_node, ChannelConfig, ShmPublisher, ShmSubscriber};
 use sysconfig::printer::PrinterConfig;
 
-use crate::live::{self, Hists, Logging, McuSide, RtConfig};
-use crate::machine::Machine;
-use crate::print::PrintArgs;
+use crate::gcode_feed::GcodeInput;
+use crate::hardware::Machine;
+use crate::job::{LiveOutcome, PrintJob};
+use crate::latency::{Hists, PLANNER_SOURCES};
+use crate::live;
+use crate::logging::Logging;
+use crate::planner_thread::{McuSide, PlannerStage};
+use crate::realtime::RtConfig;
 
 type Ipc = iceoryx2::prelude::ipc::Service;
 
@@ -167,7 +171,7 @@ impl Drop for IoChild {
 }
 
 /// Starts `cadence serve --role io` for this print, with this print's settings.
-fn spawn_io(args: &PrintArgs, instance: &str, time_scale: f64) -> Result<Child, String> {
+fn spawn_io(args: &PrintJob, instance: &str, time_scale: f64) -> Result<Child, String> {
     let exe = std::env::current_exe().map_err(|e| format!("cannot locate the running executable: {e}"))?;
     let mut cmd = Command::new(exe);
     cmd.args(["serve", "--role", "io", "--instance", instance]);
@@ -197,11 +201,11 @@ fn spawn_io(args: &PrintArgs, instance: &str, time_scale: f64) -> Result<Child, 
 
 /// Runs a live print with the IO stage in another process; prints the summary.
 pub(crate) fn run(
-    args: &PrintArgs,
+    args: &PrintJob,
     cfg: &PrinterConfig,
     machine: &Machine,
-    gcode: File,
-) -> Result<(), String> {
+    gcode: GcodeInput,
+) -> Result<LiveOutcome, String> {
     let started = Instant::now();
     check_single_mcu(machine)?;
     let simulated = cfg.mcus.iter().any(|m| m.is_simulated());
@@ -295,25 +299,26 @@ pub(crate) fn run(
             .name("planner".to_string())
             .spawn_scoped(scope, move || {
                 apply_rt(&planner_spec);
-                live::planner_stage(
-                    args,
+                let stage = PlannerStage {
                     machine,
-                    McuSide::Remote(remote),
-                    gcode,
-                    time_scale,
-                    instance_name,
+                    side: McuSide::Remote(remote),
+                    scale: time_scale,
+                    max_error_s: args.max_error_us * 1e-6,
+                    instance: instance_name,
                     consumed,
                     hists,
-                    &planner_log,
+                    log: &planner_log,
                     rt,
-                )
+                    session: None,
+                };
+                crate::planner_thread::planner_stage(gcode, &stage)
             })
             .map_err(|e| format!("cannot start the planner thread: {e}"));
         let telemetry_stop = &telemetry_stop;
         let telemetry = std::thread::Builder::new()
             .name("telemetry".to_string())
             .spawn_scoped(scope, || {
-                live::telemetry_thread(&instance, hists, started, live::PLANNER_SOURCES, telemetry_stop)
+                crate::telemetry::telemetry_thread(&instance, hists, started, PLANNER_SOURCES, telemetry_stop)
             });
         let planned = match planner {
             Ok(p) => p
@@ -390,7 +395,7 @@ pub(crate) fn run(
                 done.pid,
                 m as f64 / clock_freq * 1e3,
                 done.clocked_msgs,
-                crate::print::MIN_LEAD_S * 1e3
+                crate::MIN_LEAD_S * 1e3
             ));
         }
         live::check_min_lead(&remote.name, min_lead, clock_freq)?;
@@ -415,11 +420,11 @@ pub(crate) fn run(
         hists.save(path, summary.wall)?;
     }
     summary.extra.push(logging.finish());
-    summary.print(&[]);
-    for line in rt_core::os::rt_report() {
-        eprintln!("cadence: {line}");
-    }
-    Ok(())
+    Ok(LiveOutcome {
+        summary,
+        link_stats: Vec::new(),
+        rt_report: rt_core::os::rt_report(),
+    })
 }
 
 /// Waits (bounded) for the IO process's `READY`.
@@ -552,8 +557,8 @@ mod tests {
 
     #[test]
     fn config_crc_tells_printer_configs_apart() {
-        let text = include_str!("../examples/simulated-cartesian.cfg");
-        let dict = crate::decode::load_dictionary(None).unwrap();
+        let text = include_str!("../../examples/simulated-cartesian.cfg");
+        let dict = crate::wire_check::load_dictionary(None).unwrap();
         let a = config_crc(&dict, &machine(text), "mcu").unwrap();
         assert_eq!(a, config_crc(&dict, &machine(text), "mcu").unwrap());
         let moved = text.replace("step_pin: PA0", "step_pin: PA4");
@@ -562,10 +567,10 @@ mod tests {
 
     #[test]
     fn steppers_on_another_mcu_are_refused_by_the_io_process() {
-        let m = machine(include_str!("../examples/simulated-toolboard.cfg"));
+        let m = machine(include_str!("../../examples/simulated-toolboard.cfg"));
         let err = check_single_mcu(&m).unwrap_err();
         assert!(err.contains("[stepper_z] is driven by mcu 'toolboard'"), "{err}");
-        let m = machine(include_str!("../examples/simulated-multi-mcu.cfg"));
+        let m = machine(include_str!("../../examples/simulated-multi-mcu.cfg"));
         assert!(check_single_mcu(&m).is_ok());
     }
 }

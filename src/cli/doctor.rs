@@ -1,4 +1,4 @@
-//! `cadence doctor`: checks this host for hard timing (sysconfig::doctor) and, with `--unit`,
+//! `cadence doctor`: checks this host for hard timing (`sysconfig::doctor`) and, with `--unit`,
 //! prints the systemd unit that runs the IO stage as a service (sysconfig::systemd).
 
 use std::path::PathBuf;

@@ -1,5 +1,5 @@
-//! G28 with motion, across MCUs (docs/protocol.md "Homing: endstop + trsync",
-//! docs/architecture.md "Homing").
+//! G28 with motion, across MCUs: Klipper's endstop + trsync protocol (`links::trsync`: trigger
+//! relay, 25 ms status timeout), the halt position computed on the host.
 //!
 //! The axis steppers are every stepper that moves the homed axis ([`axis_steppers`]): X's own
 //! on a cartesian printer, both motors A (x + y) and B (x − y) for corexy X or Y, A (x + z) and
@@ -51,10 +51,7 @@
 //! known from the move profile, so the last executed step and the first cancelled one bound
 //! the moment the stepper MCU stopped, relative to the endstop's trigger.
 
-mod bench;
-pub(crate) mod probe;
-
-pub use bench::{run as run_cli, HomeArgs};
+pub mod probe;
 
 use std::fmt;
 use std::time::{Duration, Instant};
@@ -69,11 +66,12 @@ use planner::pipeline::Pipeline;
 use planner::stepgen::StepCmd;
 use planner::toolhead::Move;
 
-use crate::machine::{EndstopOut, Machine};
+use crate::gcode_feed::MotionCmd;
+use crate::hardware::{EndstopOut, Machine};
 use crate::mcus::{McuConn, Mcus};
-use crate::print::{MotionCmd, MIN_LEAD_S};
-use crate::sink::{LinkSink, Sink};
-use crate::streams::StepStreams;
+use crate::step_stream::sink::{LinkSink, Sink};
+use crate::step_stream::StepStreams;
+use crate::MIN_LEAD_S;
 
 /// Endstop confirmation sample spacing (s of MCU time).
 pub const SAMPLE_TIME: f64 = 15e-6;
@@ -98,7 +96,7 @@ const FIRST_REPORT_DELAY: f64 = 0.010;
 /// Extra wall time after the homing move's end before "no trigger" is concluded.
 const END_GRACE: Duration = Duration::from_millis(50);
 
-const AXIS_NAMES: [char; 3] = ['x', 'y', 'z'];
+pub const AXIS_NAMES: [char; 3] = ['x', 'y', 'z'];
 
 /// What homing borrows from the live print.
 pub struct HomingCtx<'a> {
@@ -112,8 +110,8 @@ pub struct HomingCtx<'a> {
     /// MCU seconds per wall second (simulator `time_scale`; 1 for real MCUs): bounds waits.
     pub time_scale: f64,
     /// The real-time settings: each homing or probing pass keeps the idle CPUs polling when
-    /// they ask for it ([`crate::live::RtConfig::start_idle_poll`]).
-    pub rt: &'a crate::live::RtConfig,
+    /// they ask for it ([`crate::realtime::RtConfig::start_idle_poll`]).
+    pub rt: &'a crate::realtime::RtConfig,
     /// What the last communication timeout was, beyond its exact message (which MCU, MCU
     /// expiry or host-side silence): for logs and `cadence home`.
     pub comm_timeout_detail: Option<String>,
@@ -129,7 +127,7 @@ impl<'a> HomingCtx<'a> {
         streams: &'a mut StepStreams,
         sinks: &'a mut [LinkSink<'a>],
         time_scale: f64,
-        rt: &'a crate::live::RtConfig,
+        rt: &'a crate::realtime::RtConfig,
     ) -> HomingCtx<'a> {
         HomingCtx {
             mcus,
@@ -280,19 +278,20 @@ pub fn check_config(machine: &Machine) -> Result<(), String> {
 }
 
 /// Runs a G-code command that needs the MCUs in the loop (G28 with motion, the probe
-/// commands) on a live print; its report lines go to `out` (also those before an error).
+/// commands) on a live print; its report lines go to `out` (also those before an error), and
+/// a G28's report comes back.
 pub(crate) fn run_motion(
     ctx: &mut HomingCtx<'_>,
     cmd: &MotionCmd<'_>,
     out: &mut Vec<String>,
-) -> Result<(), String> {
+) -> Result<Option<HomingReport>, String> {
     match cmd {
         MotionCmd::Home(axes) => {
             let report = home_axes(ctx, *axes)?;
             out.extend(report.to_string().lines().map(str::to_string));
-            Ok(())
+            Ok(Some(report))
         }
-        MotionCmd::Probe { name, raw } => probe::run(ctx, name, raw, out),
+        MotionCmd::Probe { name, raw } => probe::run(ctx, name, raw, out).map(|()| None),
     }
 }
 
@@ -358,7 +357,7 @@ fn home_axis(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisReport, Stri
 }
 
 /// A plain move of the toolhead to `pos` (retract, bench moves), sent at once.
-pub(crate) fn plain_move(ctx: &mut HomingCtx<'_>, pos: [f64; 4], speed: f64) -> Result<(), String> {
+pub fn plain_move(ctx: &mut HomingCtx<'_>, pos: [f64; 4], speed: f64) -> Result<(), String> {
     let t0 = ctx.earliest_start();
     ctx.pipeline.raise_print_time(t0).map_err(|e| e.to_string())?;
     ctx.pipeline.home_move(pos, speed).map_err(|e| e.to_string())?;
@@ -443,7 +442,7 @@ fn push_cmds(ctx: &mut HomingCtx<'_>, out: &[(usize, StepCmd)]) -> Result<(), St
 }
 
 /// Sends everything planned so far and waits (bounded) until every MCU executed it.
-pub(crate) fn wait_motion_done(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
+pub fn wait_motion_done(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
     ctx.pipeline.flush_lookahead();
     let mut out = Vec::new();
     generate(ctx, &mut out)?;
@@ -503,7 +502,7 @@ fn mcu<'m>(mcus: &'m Mcus, name: &str) -> Result<&'m McuConn, String> {
 
 /// Net steps of stepper `idx` as the host counts them (the MCU's count, sign-corrected for an
 /// inverted dir pin).
-fn stepper_position(ctx: &HomingCtx<'_>, idx: usize) -> Result<i64, String> {
+pub fn stepper_position(ctx: &HomingCtx<'_>, idx: usize) -> Result<i64, String> {
     let s = &ctx.machine.steppers[idx];
     let conn = mcu(ctx.mcus, &s.mcu)?;
     let reply = query(
@@ -576,7 +575,7 @@ pub(crate) fn unsupported_kinematics(kin: &Kinematics) -> Option<&'static str> {
 /// The steppers (indices into `machine.steppers`) that move toolhead axis `axis`: every one
 /// whose kinematics has a non-zero coefficient for it (corexy X: stepper_x = A and stepper_y =
 /// B). A delta tower counts for the axis of its index (delta homing is refused anyway).
-pub(crate) fn axis_steppers(machine: &Machine, axis: usize) -> Vec<usize> {
+pub fn axis_steppers(machine: &Machine, axis: usize) -> Vec<usize> {
     let kin = &machine.options.kinematics;
     (0..machine.steppers.len())
         .filter(|&i| {

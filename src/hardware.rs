@@ -1,5 +1,6 @@
-//! The printer as the host drives it: which steppers exist, on which MCU and oid, with which
-//! pins, and the planner configuration derived from printer.cfg.
+//! The printer's hardware as the host drives it (not the planner's `planner::machine`, the
+//! G-code state machine): which steppers exist, on which MCU and oid, with which pins, and the
+//! planner configuration derived from printer.cfg.
 
 use planner::pipeline::{Pipeline, PipelineConfig, PipelineOptions, StepperSpec};
 use planner::toolhead::ToolheadConfig;
