@@ -13,6 +13,8 @@
 //! - whole prints: [`live`] (threads in this process), [`io_process`] (the IO stage in
 //!   another process), [`batch`] (wire files), [`job`] (what `cadence print` runs);
 //! - the API: [`printer`] ([`printer::Printer`], its handle, events and status in [`events`]);
+//! - [`host_check`]: is this host fit for hard timing (PREEMPT_RT, SCHED_FIFO, limits,
+//!   isolated CPUs, wake-up latency)?
 //! - [`wire_check`]: a batch wire stream proved against its G-code.
 //!
 //! Guarantees kept here: every step command reaches its MCU at least [`MIN_LEAD_S`] before
@@ -27,6 +29,7 @@ pub mod events;
 pub mod gcode_feed;
 pub mod hardware;
 pub mod homing;
+pub mod host_check;
 pub mod io_process;
 pub mod io_stage;
 pub mod job;

@@ -170,28 +170,7 @@ pub(crate) fn print_on(
             log.log(Level::Warn, "telemetry failed (see stderr)", []);
             eprintln!("cadence: telemetry: {e}");
         }
-        let mut io_total = IoReport::default();
-        let mut io_allocs = Some(0u64);
-        let mut io_error = None;
-        for io in ios {
-            let r = io
-                .join()
-                .map_err(|_| "an IO stage thread panicked".to_string())
-                .and_then(|r| r);
-            match r {
-                Ok(r) => {
-                    io_total.batches += r.batches;
-                    io_total.batches_after_warmup += r.batches_after_warmup;
-                    io_allocs = match (io_allocs, r.allocations_after_warmup) {
-                        (Some(a), Some(b)) => Some(a + b),
-                        // A stage that never warmed up (few batches) counts nothing.
-                        (a, None) if r.batches < WARMUP_BATCHES => a,
-                        _ => None,
-                    };
-                }
-                Err(e) => io_error = io_error.or(Some(e)),
-            }
-        }
+        let (io_total, io_allocs, io_error) = join_io_stages(ios);
         // A failed IO stage is the root cause of a planner hand-off error: report it first.
         if let Some(e) = io_error {
             return Err(e);
@@ -199,24 +178,69 @@ pub(crate) fn print_on(
         let (mut summary, pipeline, streams, planner_allocs, _) = planned?;
         finish_print(mcus, machine, &pipeline, &streams, &mut summary, scale)?;
         summary.extra.extend(hists.report(summary.clock_freq));
-        summary.extra.push(format!(
-            "allocations after warm-up: planner {}, io stage{} {}; {} batches in all",
-            planner_allocs.map_or("n/a".to_string(), |n| n.to_string()),
-            if streams.mcus.len() > 1 { "s" } else { "" },
-            io_allocs
-                .filter(|_| io_total.batches >= WARMUP_BATCHES)
-                .map_or("n/a".to_string(), |n| {
-                    AfterWarmup {
-                        allocations: n,
-                        batches: io_total.batches_after_warmup,
-                        ..AfterWarmup::default()
-                    }
-                    .to_string()
-                }),
-            io_total.batches
+        summary.extra.push(allocation_line(
+            planner_allocs,
+            streams.mcus.len(),
+            &io_total,
+            io_allocs,
         ));
         Ok(summary)
     })
+}
+
+/// Joins the IO stage threads: their batches in all, their allocations after warm-up (`None`
+/// when one of them could not count) and the first error.
+fn join_io_stages(
+    ios: Vec<std::thread::ScopedJoinHandle<'_, Result<IoReport, String>>>,
+) -> (IoReport, Option<u64>, Option<String>) {
+    let mut io_total = IoReport::default();
+    let mut io_allocs = Some(0u64);
+    let mut io_error = None;
+    for io in ios {
+        let r = io
+            .join()
+            .map_err(|_| "an IO stage thread panicked".to_string())
+            .and_then(|r| r);
+        match r {
+            Ok(r) => {
+                io_total.batches += r.batches;
+                io_total.batches_after_warmup += r.batches_after_warmup;
+                io_allocs = match (io_allocs, r.allocations_after_warmup) {
+                    (Some(a), Some(b)) => Some(a + b),
+                    // A stage that never warmed up (few batches) counts nothing.
+                    (a, None) if r.batches < WARMUP_BATCHES => a,
+                    _ => None,
+                };
+            }
+            Err(e) => io_error = io_error.or(Some(e)),
+        }
+    }
+    (io_total, io_allocs, io_error)
+}
+
+/// The summary's `allocations after warm-up` line.
+fn allocation_line(
+    planner_allocs: Option<AfterWarmup>,
+    streams: usize,
+    io_total: &IoReport,
+    io_allocs: Option<u64>,
+) -> String {
+    format!(
+        "allocations after warm-up: planner {}, io stage{} {}; {} batches in all",
+        planner_allocs.map_or("n/a".to_string(), |n| n.to_string()),
+        if streams > 1 { "s" } else { "" },
+        io_allocs
+            .filter(|_| io_total.batches >= WARMUP_BATCHES)
+            .map_or("n/a".to_string(), |n| {
+                AfterWarmup {
+                    allocations: n,
+                    batches: io_total.batches_after_warmup,
+                    ..AfterWarmup::default()
+                }
+                .to_string()
+            }),
+        io_total.batches
+    )
 }
 
 /// Waits for every MCU to execute its last step, reads the positions back and checks them,

@@ -14,8 +14,8 @@
 //!   - [`hist`]: fixed-bound latency/margin histograms (hdrhistogram), summaries, interval logs.
 //!   - [`logger`]: the logger thread; other threads push fixed-size records, never block.
 //!   - [`shm`]: iceoryx2 services for step batches and telemetry (fixed-size `#[repr(C)]`
-//!     payloads, no loss, sequence-checked), and ([`shm::io`]) the services that let the IO
-//!     stage run in its own process (MCU info, clock snapshots, status, control).
+//!     payloads, no loss, sequence-checked), and the generic channel settings the `cadence`
+//!     library's IO-process services use.
 //!   - [`wakeup`]: the machine's timing noise floor (a cyclictest-like sleeper), to judge
 //!     measured tails as ratios within one run.
 //!

@@ -685,10 +685,6 @@ pub(crate) fn homing_pass(
 ) -> Result<(PassReport, Vec<String>), String> {
     let axis = e.axis;
     let axis_name = AXIS_NAMES[axis];
-    let trigger_name = match kind {
-        PassKind::Home { .. } => axis_name.to_string(),
-        PassKind::Probe { .. } => "probe".to_string(),
-    };
     let kinematics = ctx.machine.options.kinematics;
     if let Some(kin) = unsupported_kinematics(&kinematics) {
         return Err(format!(
@@ -699,38 +695,10 @@ pub(crate) fn homing_pass(
     // From before the move is queued until the stop is read back: no CPU halts meanwhile.
     let _idle_poll = ctx.rt.start_idle_poll();
     wait_motion_done(ctx)?;
-    // Every stepper that moves the axis stops on the trigger (corexy X: A and B).
-    let idxs = axis_steppers(ctx.machine, axis);
-    let Some(&idx0) = idxs.first() else {
-        return Err(format!("homing {axis_name}: the axis has no stepper"));
-    };
-    let mut kins = Vec::with_capacity(idxs.len());
-    for &i in &idxs {
-        let s = &ctx.machine.steppers[i];
-        kins.push(
-            kinematics
-                .stepper(s.axis, s.step_dist)
-                .map_err(|err| format!("homing {axis_name}: {}: {err}", s.name))?,
-        );
-    }
-    let kin0 = kins[0];
-    // mm the first stepper moves per mm of the axis (1 on cartesian and core* rails): the
-    // endstop samples about once per step of it.
-    let axis_coeff = kin0.linear_coeffs().map_or(1.0, |c| c[axis].abs()).max(1e-9);
-    // The group: the endstop's MCU first, then the steppers' MCUs.
-    let mut names = vec![e.pin.mcu.clone()];
-    for &i in &idxs {
-        let m = &ctx.machine.steppers[i].mcu;
-        if !names.contains(m) {
-            names.push(m.clone());
-        }
-    }
-    let mut conns = Vec::with_capacity(names.len());
-    for n in &names {
-        conns.push(mcu(ctx.mcus, n)?);
-    }
-    let endstop_conn = conns[0];
-    let before: Vec<i64> = idxs
+    let g = PassGroup::new(ctx.mcus, ctx.machine, e)?;
+    let endstop_conn = g.conns[0];
+    let before: Vec<i64> = g
+        .idxs
         .iter()
         .map(|&i| stepper_position(ctx, i))
         .collect::<Result<_, _>>()?;
@@ -747,56 +715,8 @@ pub(crate) fn homing_pass(
         PassKind::Probe { target: to } => target[axis] = to,
     }
 
-    let timeout = TriggerGroup::default_timeout(conns.len());
-    let members: Vec<(&McuLink, u8)> = conns.iter().map(|c| (&c.link, c.trsync_oid)).collect();
-    // Arm the trsyncs, then a round trip per member: every `trsync_state` still in flight from
-    // the previous pass (a triggered trsync keeps reporting) has arrived before the group
-    // listens. The endstop is armed only after that, so no trigger can be missed meanwhile.
-    let t_arm = ctx.earliest_start();
-    if let Err(err) = arm(ctx, &conns, &idxs, t_arm, timeout).and_then(|()| barrier(&conns)) {
-        quiet(&conns);
-        return Err(err);
-    }
-    let group = TriggerGroup::new(&members, timeout).map_err(|e| e.to_string())?;
-    let t0 = ctx.earliest_start().max(ctx.pipeline.toolhead_print_time());
-    let setup = ctx
-        .pipeline
-        .raise_print_time(t0)
-        .map_err(|e| e.to_string())
-        .and_then(|()| {
-            arm_endstop(
-                ctx,
-                e,
-                endstop_conn,
-                ctx.machine.steppers[idx0].step_dist / axis_coeff,
-                t0,
-                speed,
-            )
-        });
-    let rest_ticks = match setup {
-        Ok(rest_ticks) => rest_ticks,
-        Err(err) => {
-            group.trigger_all(REASON_HOST_REQUEST);
-            group.close();
-            quiet(&conns);
-            return Err(err);
-        }
-    };
-    let mv = ctx.pipeline.home_move(target, speed).map_err(|e| e.to_string());
-    let mv = match mv {
-        Ok(Some(mv)) => Ok(mv),
-        Ok(None) => Err(format!("homing {axis_name}: the homing move has no length")),
-        Err(err) => Err(err),
-    };
-    let sent = match mv {
-        Ok(mv) => {
-            let mut out = Vec::new();
-            generate(ctx, &mut out)
-                .and_then(|()| push_cmds(ctx, &out))
-                .map(|()| mv)
-        }
-        Err(err) => Err(err),
-    };
+    let (group, t0, rest_ticks) = arm_pass(ctx, &g, e, speed)?;
+    let sent = send_homing_move(ctx, target, speed, axis_name);
     let outcome = match &sent {
         Ok(mv) => {
             let main = ctx.mcus.main();
@@ -813,7 +733,7 @@ pub(crate) fn homing_pass(
         _ => REASON_HOST_REQUEST,
     };
     group.trigger_all(reason);
-    restop(ctx, &conns, &idxs);
+    restop(ctx, &g.conns, &g.idxs);
     let cancel = endstop_conn
         .link
         .dictionary()
@@ -827,86 +747,33 @@ pub(crate) fn homing_pass(
         Ok(mv) => mv,
         Err(err) => {
             group.close();
-            quiet(&conns);
+            quiet(&g.conns);
             return Err(err);
         }
     };
     // The trigger clock, and where the steppers halted.
     let trig = match &outcome {
-        Ok(o) if o.reason == REASON_ENDSTOP_HIT => endstop_state(ctx, e).and_then(|(next, _, homing)| {
-            // After a trigger the endstop reports the matching read's clock + rest_ticks.
-            let c = next.saturating_sub(rest_ticks);
-            if homing || c < clock_at_print_time(ctx.mcus, endstop_conn, t0) {
-                Err(format!(
-                    "homing {axis_name}: '{}' reported a trigger but the endstop did not trigger",
-                    o.mcu
-                ))
-            } else {
-                Ok(Some((e.pin.mcu.clone(), c)))
-            }
-        }),
+        Ok(o) if o.reason == REASON_ENDSTOP_HIT => {
+            trigger_clock(ctx, e, endstop_conn, &o.mcu, t0, rest_ticks).map(Some)
+        }
         _ => Ok(None),
     };
-    let after: Result<Vec<i64>, String> = idxs.iter().map(|&i| stepper_position(ctx, i)).collect();
+    let after: Result<Vec<i64>, String> = g.idxs.iter().map(|&i| stepper_position(ctx, i)).collect();
     // The relay to the axis steppers' MCU (written by now: `restop` waited for its link).
-    let stepper_mcu = &ctx.machine.steppers[idx0].mcu;
-    let relay_written_at = names
+    let stepper_mcu = &ctx.machine.steppers[g.idxs[0]].mcu;
+    let relay_written_at = g
+        .names
         .iter()
         .position(|n| n == stepper_mcu && *n != e.pin.mcu)
         .and_then(|i| group.trigger_written_at(i));
     group.close();
-    quiet(&conns);
-    let primary_error = match outcome {
-        Ok(o) if o.reason == REASON_ENDSTOP_HIT => None,
-        Ok(o) => Some(format!(
-            "homing {axis_name}: the move stopped with trigger reason {}",
-            o.reason
-        )),
-        Err(TrsyncError::CommTimeout { detail, .. }) => {
-            ctx.comm_timeout_detail = Some(detail);
-            Some(COMM_TIMEOUT_MSG.to_string())
-        }
-        Err(TrsyncError::NotTriggered) => Some(format!("No trigger on {trigger_name} after full movement")),
-        Err(other) => Some(other.to_string()),
-    };
+    quiet(&g.conns);
+    let primary_error = pass_error(ctx, outcome, axis_name, kind);
     let after = match after {
         Ok(a) => a,
         Err(err) => return Err(primary_error.unwrap_or(err)),
     };
-    let group: Vec<GroupStepper> = idxs
-        .iter()
-        .zip(&kins)
-        .zip(after.iter().zip(&before))
-        .map(|((&i, &kin), (a, b))| GroupStepper {
-            rail: ctx.machine.steppers[i].axis,
-            kin,
-            net_steps: a - b,
-        })
-        .collect();
-    let halt_at = |t_trig: f64| {
-        halt_position(&kinematics, &mv, &group, t_trig)
-            .ok_or_else(|| format!("homing {axis_name}: the kinematics is not linear"))
-    };
-    let resume = ctx.earliest_start();
-    let stopped: Vec<(usize, i64)> = idxs.iter().copied().zip(after.iter().copied()).collect();
-    // Each stopped stepper's MCU clock now (they are idle from here on).
-    let now_clocks: Vec<u64> = idxs
-        .iter()
-        .map(|&i| {
-            let conn = ctx.mcus.get(&ctx.machine.steppers[i].mcu);
-            conn.map_or(0.0, |c| c.link.clock().clock_at(McuLink::system_now()))
-                .max(0.0) as u64
-        })
-        .collect();
-    let resync = |ctx: &mut HomingCtx<'_>, p: [f64; 4]| -> Result<(), String> {
-        ctx.pipeline
-            .resync_after_stop(resume, p, &stopped)
-            .map_err(|e| e.to_string())?;
-        for (&(i, _), &now_clock) in stopped.iter().zip(&now_clocks) {
-            ctx.streams.note_stopped(i, now_clock);
-        }
-        Ok(())
-    };
+    let stopped = Stopped::new(ctx, &g, &before, &after);
     let (trig, error) = match (primary_error, trig) {
         (Some(err), _) => (None, Some(err)),
         (None, Ok(Some(t))) => (Some(t), None),
@@ -915,15 +782,15 @@ pub(crate) fn homing_pass(
     };
     let (Some((trigger_mcu, trigger_clock)), None) = (trig, error.clone()) else {
         // Keep host and MCU in agreement (positions in the pretended frame; axis not homed).
-        if let Ok(halt) = halt_at(mv.print_time) {
-            let _ = resync(ctx, halt.halted_at(ctx.pipeline.position()));
+        if let Ok(halt) = stopped.halt_at(&mv, mv.print_time, axis_name) {
+            let _ = stopped.resync(ctx, halt.halted_at(ctx.pipeline.position()));
         }
         return Err(error.unwrap_or_else(|| format!("homing {axis_name}: failed")));
     };
     cancel?;
     let trig_conn = mcu(ctx.mcus, &trigger_mcu)?;
     let t_trig = print_time_of_clock(ctx.mcus, trig_conn, trigger_clock);
-    let halt = halt_at(t_trig)?;
+    let halt = stopped.halt_at(&mv, t_trig, axis_name)?;
     let dir = if mv.axes_r[axis] >= 0.0 { 1.0 } else { -1.0 };
     let overshoot_mm = (halt.halted[axis] - halt.triggered[axis]) * dir + 0.0;
     let (position, trigger_position) = match kind {
@@ -933,19 +800,8 @@ pub(crate) fn homing_pass(
         ),
         PassKind::Probe { .. } => (halt.halted_at(ctx.pipeline.position()), halt.triggered[axis]),
     };
-    // The first stepper's last executed step reached index n_halt at boundary (n_halt −
-    // sdir·½)·sd, sdir its direction in the move.
-    let sd = kin0.step_dist;
-    let n_halt = step_index(kin0.position(&mv.start_pos), sd) + group[0].net_steps;
-    let sdir = if kin0.position_at(&mv, mv.duration()) >= kin0.position(&mv.start_pos) {
-        1.0
-    } else {
-        -1.0
-    };
-    let last_b = (n_halt as f64 - 0.5 * sdir) * sd;
-    let last_step = time_at_stepper_pos(&mv, &kin0, last_b);
-    let next_step = time_at_stepper_pos(&mv, &kin0, last_b + sdir * sd);
-    resync(ctx, position)?;
+    let (last_step, next_step) = stop_bounds(&mv, &g.kins[0], stopped.group[0].net_steps);
+    stopped.resync(ctx, position)?;
     Ok((
         PassReport {
             speed,
@@ -960,8 +816,241 @@ pub(crate) fn homing_pass(
             trigger_received_at: received_at,
             relay_written_at,
         },
-        names,
+        g.names,
     ))
+}
+
+/// The steppers and MCUs of one pass: every stepper that moves the axis stops on the trigger
+/// (corexy X: A and B); the trsync group is the endstop's MCU first, then the steppers'.
+struct PassGroup<'m> {
+    /// The axis steppers (machine order) and their kinematics.
+    idxs: Vec<usize>,
+    kins: Vec<StepperKin>,
+    /// MCU names, the endstop's first.
+    names: Vec<String>,
+    conns: Vec<&'m McuConn>,
+    /// mm the first stepper moves per mm of the axis (1 on cartesian and core* rails): the
+    /// endstop samples about once per step of it.
+    axis_coeff: f64,
+}
+
+impl<'m> PassGroup<'m> {
+    fn new(mcus: &'m Mcus, machine: &Machine, e: &EndstopOut) -> Result<PassGroup<'m>, String> {
+        let axis_name = AXIS_NAMES[e.axis];
+        let idxs = axis_steppers(machine, e.axis);
+        if idxs.is_empty() {
+            return Err(format!("homing {axis_name}: the axis has no stepper"));
+        }
+        let mut kins = Vec::with_capacity(idxs.len());
+        for &i in &idxs {
+            let s = &machine.steppers[i];
+            kins.push(
+                machine
+                    .options
+                    .kinematics
+                    .stepper(s.axis, s.step_dist)
+                    .map_err(|err| format!("homing {axis_name}: {}: {err}", s.name))?,
+            );
+        }
+        let axis_coeff = kins[0].linear_coeffs().map_or(1.0, |c| c[e.axis].abs()).max(1e-9);
+        let mut names = vec![e.pin.mcu.clone()];
+        for &i in &idxs {
+            let m = &machine.steppers[i].mcu;
+            if !names.contains(m) {
+                names.push(m.clone());
+            }
+        }
+        let conns = names
+            .iter()
+            .map(|n| mcu(mcus, n))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(PassGroup {
+            idxs,
+            kins,
+            names,
+            conns,
+            axis_coeff,
+        })
+    }
+}
+
+/// Arms the pass: the trsyncs (then a round trip per member: every `trsync_state` still in
+/// flight from the previous pass, as a triggered trsync keeps reporting, has arrived before the
+/// group listens), the trigger group, and the endstop only after that, so no trigger can be
+/// missed. Returns the group, the move's start print time and the endstop's rest ticks.
+fn arm_pass(
+    ctx: &mut HomingCtx<'_>,
+    g: &PassGroup<'_>,
+    e: &EndstopOut,
+    speed: f64,
+) -> Result<(TriggerGroup, f64, u64), String> {
+    let timeout = TriggerGroup::default_timeout(g.conns.len());
+    let members: Vec<(&McuLink, u8)> = g.conns.iter().map(|c| (&c.link, c.trsync_oid)).collect();
+    let t_arm = ctx.earliest_start();
+    if let Err(err) = arm(ctx, &g.conns, &g.idxs, t_arm, timeout).and_then(|()| barrier(&g.conns)) {
+        quiet(&g.conns);
+        return Err(err);
+    }
+    let group = TriggerGroup::new(&members, timeout).map_err(|e| e.to_string())?;
+    let t0 = ctx.earliest_start().max(ctx.pipeline.toolhead_print_time());
+    let sample_dist = ctx.machine.steppers[g.idxs[0]].step_dist / g.axis_coeff;
+    let setup = ctx
+        .pipeline
+        .raise_print_time(t0)
+        .map_err(|e| e.to_string())
+        .and_then(|()| arm_endstop(ctx, e, g.conns[0], sample_dist, t0, speed));
+    match setup {
+        Ok(rest_ticks) => Ok((group, t0, rest_ticks)),
+        Err(err) => {
+            group.trigger_all(REASON_HOST_REQUEST);
+            group.close();
+            quiet(&g.conns);
+            Err(err)
+        }
+    }
+}
+
+/// Plans the homing move to `target` and sends all its steps.
+fn send_homing_move(
+    ctx: &mut HomingCtx<'_>,
+    target: [f64; 4],
+    speed: f64,
+    axis_name: char,
+) -> Result<Move, String> {
+    let Some(mv) = ctx.pipeline.home_move(target, speed).map_err(|e| e.to_string())? else {
+        return Err(format!("homing {axis_name}: the homing move has no length"));
+    };
+    let mut out = Vec::new();
+    generate(ctx, &mut out)?;
+    push_cmds(ctx, &out)?;
+    Ok(mv)
+}
+
+/// The trigger clock the endstop MCU reports (after a trigger it reports the matching read's
+/// clock + `rest_ticks`), checked to be after the move's start `t0`.
+fn trigger_clock(
+    ctx: &HomingCtx<'_>,
+    e: &EndstopOut,
+    endstop_conn: &McuConn,
+    reporter: &str,
+    t0: f64,
+    rest_ticks: u64,
+) -> Result<(String, u64), String> {
+    let (next, _, homing) = endstop_state(ctx, e)?;
+    let c = next.saturating_sub(rest_ticks);
+    if homing || c < clock_at_print_time(ctx.mcus, endstop_conn, t0) {
+        return Err(format!(
+            "homing {}: '{reporter}' reported a trigger but the endstop did not trigger",
+            AXIS_NAMES[e.axis]
+        ));
+    }
+    Ok((e.pin.mcu.clone(), c))
+}
+
+/// The error a pass ends with, if any, from the trigger group's outcome.
+fn pass_error(
+    ctx: &mut HomingCtx<'_>,
+    outcome: Result<links::trsync::TriggerOutcome, TrsyncError>,
+    axis_name: char,
+    kind: PassKind,
+) -> Option<String> {
+    match outcome {
+        Ok(o) if o.reason == REASON_ENDSTOP_HIT => None,
+        Ok(o) => Some(format!(
+            "homing {axis_name}: the move stopped with trigger reason {}",
+            o.reason
+        )),
+        Err(TrsyncError::CommTimeout { detail, .. }) => {
+            ctx.comm_timeout_detail = Some(detail);
+            Some(COMM_TIMEOUT_MSG.to_string())
+        }
+        Err(TrsyncError::NotTriggered) => {
+            let trigger_name = match kind {
+                PassKind::Home { .. } => axis_name.to_string(),
+                PassKind::Probe { .. } => "probe".to_string(),
+            };
+            Some(format!("No trigger on {trigger_name} after full movement"))
+        }
+        Err(other) => Some(other.to_string()),
+    }
+}
+
+/// Where the pass's steppers stopped, to compute the halt position and resync the planner.
+struct Stopped {
+    kinematics: Kinematics,
+    group: Vec<GroupStepper>,
+    /// (stepper, MCU position) of each.
+    positions: Vec<(usize, i64)>,
+    /// Each stopped stepper's MCU clock when read (they are idle from here on).
+    now_clocks: Vec<u64>,
+    /// The print time the next move may start at.
+    resume: f64,
+}
+
+impl Stopped {
+    fn new(ctx: &HomingCtx<'_>, g: &PassGroup<'_>, before: &[i64], after: &[i64]) -> Stopped {
+        let group = g
+            .idxs
+            .iter()
+            .zip(&g.kins)
+            .zip(after.iter().zip(before))
+            .map(|((&i, &kin), (a, b))| GroupStepper {
+                rail: ctx.machine.steppers[i].axis,
+                kin,
+                net_steps: a - b,
+            })
+            .collect();
+        let now_clocks = g
+            .idxs
+            .iter()
+            .map(|&i| {
+                let conn = ctx.mcus.get(&ctx.machine.steppers[i].mcu);
+                conn.map_or(0.0, |c| c.link.clock().clock_at(McuLink::system_now()))
+                    .max(0.0) as u64
+            })
+            .collect();
+        Stopped {
+            kinematics: ctx.machine.options.kinematics,
+            group,
+            positions: g.idxs.iter().copied().zip(after.iter().copied()).collect(),
+            now_clocks,
+            resume: ctx.earliest_start(),
+        }
+    }
+
+    /// Where the steppers halted and where the trigger at `t_trig` found them.
+    fn halt_at(&self, mv: &Move, t_trig: f64, axis_name: char) -> Result<Halt, String> {
+        halt_position(&self.kinematics, mv, &self.group, t_trig)
+            .ok_or_else(|| format!("homing {axis_name}: the kinematics is not linear"))
+    }
+
+    /// The planner and the step streams continue from `p`, where the steppers stopped.
+    fn resync(&self, ctx: &mut HomingCtx<'_>, p: [f64; 4]) -> Result<(), String> {
+        ctx.pipeline
+            .resync_after_stop(self.resume, p, &self.positions)
+            .map_err(|e| e.to_string())?;
+        for (&(i, _), &now_clock) in self.positions.iter().zip(&self.now_clocks) {
+            ctx.streams.note_stopped(i, now_clock);
+        }
+        Ok(())
+    }
+}
+
+/// When the first stepper's last executed step and its first cancelled one were due: its
+/// last step reached index n_halt at boundary (n_halt − sdir·½)·sd, sdir its direction.
+fn stop_bounds(mv: &Move, kin0: &StepperKin, net_steps: i64) -> (f64, f64) {
+    let sd = kin0.step_dist;
+    let n_halt = step_index(kin0.position(&mv.start_pos), sd) + net_steps;
+    let sdir = if kin0.position_at(mv, mv.duration()) >= kin0.position(&mv.start_pos) {
+        1.0
+    } else {
+        -1.0
+    };
+    let last_b = (n_halt as f64 - 0.5 * sdir) * sd;
+    (
+        time_at_stepper_pos(mv, kin0, last_b),
+        time_at_stepper_pos(mv, kin0, last_b + sdir * sd),
+    )
 }
 
 /// Stops the axis steppers a second time once every step command queued before the trigger

@@ -9,7 +9,7 @@
 //! ([`links::clocksync::ClockShared`]) and watches the IO process's status, so the planner
 //! thread reads its clock lock-free and without touching iceoryx2. At the end it sends
 //! `FINISH`, waits for `DONE` with the MCU's stepper positions and checks them against its own.
-//! The handshake and payloads are documented in `rt_core::shm::io`.
+//! The handshake and payloads are documented in [`super::payloads`].
 //!
 //! Homing needs the trigger relay and the step queue of the MCU link in the planner's process:
 //! a G28 on a printer with endstops is refused in this mode with a clear error.
@@ -24,13 +24,13 @@ use links::dict::Dictionary;
 use links::mcu::McuLink;
 use rt_core::logger::{Arg, Level};
 use rt_core::os::apply_rt;
-use rt_core::shm::io::{
-    clock_service_name, control_kind, control_service_name, info_service_name, io_state, status_service_name,
-    ClockSnapshot, IoControl, IoStatus, McuInfo,
-};
 use rt_core::shm::{open_node, ChannelConfig, ShmPublisher, ShmSubscriber};
 use sysconfig::printer::PrinterConfig;
 
+use super::payloads::{
+    clock_service_name, control_kind, control_service_name, info_service_name, io_state, status_service_name,
+    ClockSnapshot, IoControl, IoStatus, McuInfo,
+};
 use crate::gcode_feed::GcodeInput;
 use crate::hardware::Machine;
 use crate::job::{LiveOutcome, PrintJob};
@@ -116,6 +116,20 @@ impl RemoteMcu {
             }
         }
         self.failed.store(true, Ordering::Release);
+    }
+
+    /// Waits (bounded) until the relay stored a valid clock snapshot.
+    fn wait_clock(&self) -> Result<(), String> {
+        let deadline = Instant::now() + Duration::from_secs(10);
+        // Acquire pairs with the relay's Release store after the snapshot.
+        while !self.clock_valid.load(Ordering::Acquire) {
+            self.check()?;
+            if Instant::now() > deadline {
+                return Err("the IO process published no valid clock within 10 s".to_string());
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        Ok(())
     }
 
     fn status(&self) -> IoStatus {
@@ -241,29 +255,7 @@ pub(crate) fn run(
     )
     .map_err(err)?;
     log.log(Level::Info, "waiting for the IO process", []);
-    wait_ready(&node, &instance, &child)?;
-    let info = wait_info(&node, &instance, &main_name, &child)?;
-    let dict = Dictionary::from_compressed(info.dict())
-        .map_err(|e| format!("mcu '{main_name}': the IO process sent a bad data dictionary: {e}"))?;
-    let ours = config_crc(&dict, machine, &main_name)?;
-    if ours != info.config_crc {
-        return Err(format!(
-            "mcu '{main_name}': the IO process configured the MCU differently (config CRC {:08x}, this \
-             printer config gives {ours:08x}): start both with the same printer.cfg",
-            info.config_crc
-        ));
-    }
-    let remote = RemoteMcu {
-        name: main_name.clone(),
-        dict,
-        clock_freq: info.clock_freq,
-        move_count: info.move_count as usize,
-        clock: ClockShared::new(ClockEstimate::INVALID),
-        failed: AtomicBool::new(false),
-        error: Mutex::new(None),
-        status: Mutex::new(IoStatus::default()),
-        clock_valid: AtomicBool::new(false),
-    };
+    let remote = attach(&node, &instance, &child, machine, &main_name)?;
     let clock_freq = remote.clock_freq;
     let stop_relay = AtomicBool::new(false);
     let telemetry_stop = AtomicBool::new(false);
@@ -279,17 +271,9 @@ pub(crate) fn run(
             stop_relay.store(true, Ordering::Release);
             let _ = relay.join();
         };
-        let deadline = Instant::now() + Duration::from_secs(10);
-        while !remote.clock_valid.load(Ordering::Acquire) {
-            if let Err(e) = remote.check() {
-                stop();
-                return Err(e);
-            }
-            if Instant::now() > deadline {
-                stop();
-                return Err("the IO process published no valid clock within 10 s".to_string());
-            }
-            std::thread::sleep(Duration::from_millis(5));
+        if let Err(e) = remote.wait_clock() {
+            stop();
+            return Err(e);
         }
         let planner_spec = rt.planner_spec();
         let (remote, rt) = (&remote, &rt);
@@ -342,63 +326,12 @@ pub(crate) fn run(
                 return Err(remote.check().err().unwrap_or(e));
             }
         };
-        let end_clock = streams.mcus[0].streamer.last_step_clock;
-        let batches = batches[0];
-        let finish = control.send_with(|c| {
-            c.kind = control_kind::FINISH;
-            c.batches = batches;
-            c.end_clock = end_clock;
-        });
-        if let Err(e) = finish {
-            stop();
-            return Err(format!("io control: {e}"));
-        }
-        log.log(
-            Level::Info,
-            "sent FINISH: batches, end clock",
-            [Arg::U(batches), Arg::U(end_clock)],
-        );
-        // Bounded: the rest of the print at the simulator's speed, plus slack.
-        let now_s = remote.clock().clock_at(McuLink::system_now()) / clock_freq;
-        let wait = (end_clock as f64 / clock_freq - now_s).max(0.0) / time_scale + 30.0;
-        let deadline = Instant::now() + Duration::from_secs_f64(wait);
-        let done = loop {
-            let s = remote.status();
-            if s.state == io_state::DONE {
-                break Ok(s);
-            }
-            if let Err(e) = remote.check() {
-                break Err(e);
-            }
-            if Instant::now() > deadline {
-                break Err(format!(
-                    "the IO process did not finish the print within {wait:.0} s"
-                ));
-            }
-            std::thread::sleep(Duration::from_millis(5));
-        };
+        let batches = batches.first().copied().unwrap_or(0);
+        let done = finish_handshake(&mut control, remote, &streams, batches, time_scale, &log);
         stop();
         let done = done?;
         let _ = control.send_with(|c| c.kind = control_kind::DONE_SEEN);
-        live::check_positions(
-            machine,
-            &pipeline,
-            &streams.steps_sent(),
-            done.positions(),
-            &mut summary,
-        )?;
-        let min_lead = (done.min_lead_margin_ticks != i64::MIN).then_some(done.min_lead_margin_ticks);
-        if let Some(m) = min_lead {
-            summary.extra.push(format!(
-                "mcu '{}' (in IO process {}): min lead margin {:.1} ms over {} clocked messages (required {:.0} ms)",
-                remote.name,
-                done.pid,
-                m as f64 / clock_freq * 1e3,
-                done.clocked_msgs,
-                crate::MIN_LEAD_S * 1e3
-            ));
-        }
-        live::check_min_lead(&remote.name, min_lead, clock_freq)?;
+        check_done(machine, &pipeline, &streams, &done, remote, &mut summary)?;
         summary.extra.extend(hists.report(clock_freq));
         summary.extra.push(format!(
             "allocations after warm-up: planner {}; io stage in process {} ({} batches)",
@@ -425,6 +358,119 @@ pub(crate) fn run(
         link_stats: Vec::new(),
         rt_report: rt_core::os::rt_report(),
     })
+}
+
+/// Waits for the IO process's `READY` and its main MCU's info, and checks that it configured
+/// the MCU as this printer config says (the configuration CRC).
+fn attach(
+    node: &iceoryx2::node::Node<Ipc>,
+    instance: &str,
+    child: &IoChild,
+    machine: &Machine,
+    main_name: &str,
+) -> Result<RemoteMcu, String> {
+    wait_ready(node, instance, child)?;
+    let info = wait_info(node, instance, main_name, child)?;
+    let dict = Dictionary::from_compressed(info.dict())
+        .map_err(|e| format!("mcu '{main_name}': the IO process sent a bad data dictionary: {e}"))?;
+    let ours = config_crc(&dict, machine, main_name)?;
+    if ours != info.config_crc {
+        return Err(format!(
+            "mcu '{main_name}': the IO process configured the MCU differently (config CRC {:08x}, this \
+             printer config gives {ours:08x}): start both with the same printer.cfg",
+            info.config_crc
+        ));
+    }
+    Ok(RemoteMcu {
+        name: main_name.to_string(),
+        dict,
+        clock_freq: info.clock_freq,
+        move_count: info.move_count as usize,
+        clock: ClockShared::new(ClockEstimate::INVALID),
+        failed: AtomicBool::new(false),
+        error: Mutex::new(None),
+        status: Mutex::new(IoStatus::default()),
+        clock_valid: AtomicBool::new(false),
+    })
+}
+
+/// Sends `FINISH` (the batches published and the last step clock) and waits for `DONE`.
+fn finish_handshake(
+    control: &mut ShmPublisher<Ipc, IoControl>,
+    remote: &RemoteMcu,
+    streams: &crate::step_stream::StepStreams,
+    batches: u64,
+    time_scale: f64,
+    log: &rt_core::logger::LoggerHandle,
+) -> Result<IoStatus, String> {
+    let end_clock = streams.mcus.first().map_or(0, |m| m.streamer.last_step_clock);
+    control
+        .send_with(|c| {
+            c.kind = control_kind::FINISH;
+            c.batches = batches;
+            c.end_clock = end_clock;
+        })
+        .map_err(|e| format!("io control: {e}"))?;
+    log.log(
+        Level::Info,
+        "sent FINISH: batches, end clock",
+        [Arg::U(batches), Arg::U(end_clock)],
+    );
+    wait_done(remote, end_clock, time_scale)
+}
+
+/// Waits (bounded: the rest of the print at the simulator's speed, plus slack) for the IO
+/// process's `DONE`, which carries the stepper positions it read back.
+fn wait_done(remote: &RemoteMcu, end_clock: u64, time_scale: f64) -> Result<IoStatus, String> {
+    let clock_freq = remote.clock_freq;
+    let now_s = remote.clock().clock_at(McuLink::system_now()) / clock_freq;
+    let wait = (end_clock as f64 / clock_freq - now_s).max(0.0) / time_scale + 30.0;
+    let deadline = Instant::now() + Duration::from_secs_f64(wait);
+    loop {
+        let s = remote.status();
+        if s.state == io_state::DONE {
+            return Ok(s);
+        }
+        remote.check()?;
+        if Instant::now() > deadline {
+            return Err(format!(
+                "the IO process did not finish the print within {wait:.0} s"
+            ));
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
+/// Checks the positions and the lead the IO process reported against this side's, adding its
+/// lead line to the summary.
+fn check_done(
+    machine: &Machine,
+    pipeline: &planner::pipeline::Pipeline,
+    streams: &crate::step_stream::StepStreams,
+    done: &IoStatus,
+    remote: &RemoteMcu,
+    summary: &mut crate::summary::Summary,
+) -> Result<(), String> {
+    let clock_freq = remote.clock_freq;
+    live::check_positions(
+        machine,
+        pipeline,
+        &streams.steps_sent(),
+        done.positions(),
+        summary,
+    )?;
+    let min_lead = (done.min_lead_margin_ticks != i64::MIN).then_some(done.min_lead_margin_ticks);
+    if let Some(m) = min_lead {
+        summary.extra.push(format!(
+            "mcu '{}' (in IO process {}): min lead margin {:.1} ms over {} clocked messages (required {:.0} ms)",
+            remote.name,
+            done.pid,
+            m as f64 / clock_freq * 1e3,
+            done.clocked_msgs,
+            crate::MIN_LEAD_S * 1e3
+        ));
+    }
+    live::check_min_lead(&remote.name, min_lead, clock_freq)
 }
 
 /// Waits (bounded) for the IO process's `READY`.

@@ -4,7 +4,7 @@
 //! from the same printer.cfg the planner loads, and then serves one print: it subscribes to the
 //! step channel `cadence/<instance>/mcu/<mcu>/steps` exactly as the in-process IO stage thread
 //! does and feeds the link. What the planner needs from the MCU side crosses over the services
-//! of `rt_core::shm::io` (MCU info with the data dictionary, clock snapshots, status, control);
+//! of [`super::payloads`] (MCU info with the data dictionary, clock snapshots, status, control);
 //! see that module for the handshake and the payload layouts.
 //!
 //! Threads: the IO stage (pinned, SCHED_FIFO where allowed, like in-process), the MCU links' IO
@@ -19,15 +19,15 @@ use std::time::{Duration, Instant};
 use links::mcu::McuLink;
 use rt_core::logger::{Arg, Level, LoggerHandle};
 use rt_core::os::{apply_rt, RtSpec};
-use rt_core::shm::io::{
-    clock_service_name, control_kind, control_service_name, info_service_name, io_state, status_service_name,
-    ClockSnapshot, IoControl, IoStatus, McuInfo, STATUS_POSITIONS,
-};
 use rt_core::shm::{
     open_node, steps_service_name, telemetry_service_name, ChannelConfig, ShmPublisher, ShmSubscriber,
     Telemetry,
 };
 
+use super::payloads::{
+    clock_service_name, control_kind, control_service_name, info_service_name, io_state, status_service_name,
+    ClockSnapshot, IoControl, IoStatus, McuInfo, STATUS_POSITIONS,
+};
 use crate::hardware::Machine;
 use crate::io_stage;
 use crate::latency::{self, Hists};
@@ -224,22 +224,12 @@ struct ServeCtx<'a> {
     scale: f64,
 }
 
-/// Publishes the MCU info and clocks, runs the IO stage thread for the main MCU until the
-/// planner's FINISH, then reads the final positions back and publishes DONE.
-fn serve_print(
-    ctx: &ServeCtx<'_>,
-    node: &iceoryx2::node::Node<Ipc>,
-    status: &mut ShmPublisher<Ipc, IoStatus>,
-    report: &mut StatusReport,
-) -> Result<ServedReport, String> {
-    let mcus = ctx.mcus;
-    let main = mcus.main();
-    let clock_freq = main.clock_freq;
+/// Publishes each MCU's info (kept as history) and opens its clock publisher.
+fn open_info_and_clocks(ctx: &ServeCtx<'_>, node: &iceoryx2::node::Node<Ipc>) -> Result<Publishers, String> {
     let err = |e: rt_core::shm::ShmError| e.to_string();
-    // Info (kept as history) and clock publishers, one per MCU.
     let mut infos = Vec::new();
     let mut clocks = Vec::new();
-    for (i, m) in mcus.list.iter().enumerate() {
+    for (i, m) in ctx.mcus.list.iter().enumerate() {
         let dict = m.link.dictionary();
         let crc = super::planner_side::config_crc(dict, ctx.machine, &m.name)?;
         let mut p = ShmPublisher::<Ipc, McuInfo>::open(
@@ -274,22 +264,70 @@ fn serve_print(
         .map_err(err)?;
         clocks.push(c);
     }
-    let publish_clocks = |clocks: &mut Vec<ShmPublisher<Ipc, ClockSnapshot>>| -> Result<(), String> {
-        let now = McuLink::system_now();
-        for (m, p) in mcus.list.iter().zip(clocks.iter_mut()) {
-            let est = m.link.clock();
-            p.send_with(|c| {
-                c.ref_time = now;
-                c.ref_clock = est.clock_at(now);
-                c.freq = est.freq();
-                c.residual_us = est.residual_us();
-                c.valid = est.is_valid() as u32;
-            })
-            .map_err(err)?;
-        }
-        Ok(())
-    };
-    publish_clocks(&mut clocks)?;
+    Ok((infos, clocks))
+}
+
+/// The info and clock publishers, one each per MCU.
+type Publishers = (
+    Vec<ShmPublisher<Ipc, McuInfo>>,
+    Vec<ShmPublisher<Ipc, ClockSnapshot>>,
+);
+
+/// Publishes every MCU's clock fit now.
+fn publish_clocks(mcus: &Mcus, clocks: &mut [ShmPublisher<Ipc, ClockSnapshot>]) -> Result<(), String> {
+    let now = McuLink::system_now();
+    for (m, p) in mcus.list.iter().zip(clocks.iter_mut()) {
+        let est = m.link.clock();
+        p.send_with(|c| {
+            c.ref_time = now;
+            c.ref_clock = est.clock_at(now);
+            c.freq = est.freq();
+            c.residual_us = est.residual_us();
+            c.valid = est.is_valid() as u32;
+        })
+        .map_err(|e| e.to_string())?;
+    }
+    Ok(())
+}
+
+/// Waits until the main MCU executed the last step, reads the stepper positions back and
+/// fills the `DONE` status with them and the link's lead figures.
+fn fill_done(
+    ctx: &ServeCtx<'_>,
+    end_clock: u64,
+    batches: u64,
+    report: &mut StatusReport,
+) -> Result<(), String> {
+    let positions = crate::live::read_final_positions(ctx.mcus, ctx.machine, &[(0, end_clock)], ctx.scale)?;
+    if positions.len() > STATUS_POSITIONS {
+        return Err(format!(
+            "{} steppers: an IoStatus carries at most {STATUS_POSITIONS} positions",
+            positions.len()
+        ));
+    }
+    let stats = ctx.mcus.main().link.stats();
+    report.base.batches = batches;
+    report.base.clocked_msgs = stats.clocked_msgs;
+    report.base.min_lead_margin_ticks = stats.min_lead_margin_ticks.unwrap_or(i64::MIN);
+    report.base.npos = positions.len() as u32;
+    report.base.positions[..positions.len()].copy_from_slice(&positions);
+    Ok(())
+}
+
+/// Publishes the MCU info and clocks, runs the IO stage thread for the main MCU until the
+/// planner's FINISH, then reads the final positions back and publishes DONE.
+fn serve_print(
+    ctx: &ServeCtx<'_>,
+    node: &iceoryx2::node::Node<Ipc>,
+    status: &mut ShmPublisher<Ipc, IoStatus>,
+    report: &mut StatusReport,
+) -> Result<ServedReport, String> {
+    let mcus = ctx.mcus;
+    let main = mcus.main();
+    let clock_freq = main.clock_freq;
+    let err = |e: rt_core::shm::ShmError| e.to_string();
+    let (infos, mut clocks) = open_info_and_clocks(ctx, node)?;
+    publish_clocks(mcus, &mut clocks)?;
     let mut control = ShmSubscriber::<Ipc, IoControl>::open(
         node,
         &control_service_name(ctx.instance),
@@ -346,7 +384,7 @@ fn serve_print(
         let mut finish: Option<IoControl> = None;
         loop {
             std::thread::sleep(CLOCK_PERIOD);
-            publish_clocks(&mut clocks)?;
+            publish_clocks(mcus, &mut clocks)?;
             // New subscribers get the history (info, status) when the publisher connects.
             for p in &infos {
                 p.connect().map_err(err)?;
@@ -397,20 +435,7 @@ fn serve_print(
                         "serve: all batches taken, waiting for the MCU: batches, end clock",
                         [Arg::U(n), Arg::U(f.end_clock)],
                     );
-                    let positions =
-                        crate::live::read_final_positions(mcus, ctx.machine, &[(0, f.end_clock)], ctx.scale)?;
-                    if positions.len() > STATUS_POSITIONS {
-                        return Err(format!(
-                            "{} steppers: an IoStatus carries at most {STATUS_POSITIONS} positions",
-                            positions.len()
-                        ));
-                    }
-                    let stats = link.stats();
-                    report.base.batches = io_report.batches;
-                    report.base.clocked_msgs = stats.clocked_msgs;
-                    report.base.min_lead_margin_ticks = stats.min_lead_margin_ticks.unwrap_or(i64::MIN);
-                    report.base.npos = positions.len() as u32;
-                    report.base.positions[..positions.len()].copy_from_slice(&positions);
+                    fill_done(ctx, f.end_clock, io_report.batches, report)?;
                     report.send(status, io_state::DONE, "")?;
                     hists.publish(
                         &mut telemetry,

@@ -1,4 +1,4 @@
-//! `cadence doctor`: is this host fit to run Cadence with hard timing?
+//! Host real-time checks (`cadence doctor`): is this host fit to run Cadence with hard timing?
 //!
 //! Each check turns one fact about the host (read from `/proc`, `/sys`, or a live attempt such
 //! as switching a thread to SCHED_FIFO) into a [`Check`] with a status and, when not fine, a
