@@ -62,14 +62,44 @@ pub(crate) struct MotionStatus {
     pub busy: bool,
 }
 
+/// A flag set once with the reason (the first one wins), read lock-free until it is set.
+#[derive(Debug, Default)]
+pub(crate) struct Latch {
+    set: AtomicBool,
+    reason: Mutex<Option<String>>,
+}
+
+impl Latch {
+    /// Sets the flag; the reason is kept if none was before.
+    pub fn set(&self, reason: String) {
+        if let Ok(mut r) = self.reason.lock() {
+            if r.is_none() {
+                *r = Some(reason);
+            }
+        }
+        // Release pairs with the Acquire load in `check`: the reason is written before.
+        self.set.store(true, Ordering::Release);
+    }
+
+    /// `Err(reason)` once set (`default` when the reason cannot be read).
+    pub fn check(&self, default: &str) -> Result<(), String> {
+        if !self.set.load(Ordering::Acquire) {
+            return Ok(());
+        }
+        Err(self
+            .reason
+            .lock()
+            .ok()
+            .and_then(|r| r.clone())
+            .unwrap_or_else(|| default.to_string()))
+    }
+}
+
 /// State shared between a printer's handle, its session thread and its planner thread.
 #[derive(Debug)]
 pub(crate) struct SessionShared {
     /// Set by `stop()`/`emergency_stop()`: the planner ends the session at its next check.
-    /// Release store by the requester, Acquire load by the planner (the reason is written
-    /// before).
-    pub stop: AtomicBool,
-    pub stop_reason: Mutex<Option<String>>,
+    stop: Latch,
     pub motion: Mutex<MotionStatus>,
     /// Set once the session ended, with the reason.
     pub shutdown: Mutex<Option<String>>,
@@ -82,8 +112,7 @@ pub(crate) struct SessionShared {
 impl SessionShared {
     pub fn new(events: Option<SyncSender<Event>>) -> SessionShared {
         SessionShared {
-            stop: AtomicBool::new(false),
-            stop_reason: Mutex::new(None),
+            stop: Latch::default(),
             motion: Mutex::new(MotionStatus::default()),
             shutdown: Mutex::new(None),
             last_homing: Mutex::new(None),
@@ -113,25 +142,12 @@ impl SessionShared {
 
     /// Asks the planner to stop, with the reason it reports.
     pub fn request_stop(&self, reason: &str) {
-        if let Ok(mut r) = self.stop_reason.lock() {
-            if r.is_none() {
-                *r = Some(reason.to_string());
-            }
-        }
-        self.stop.store(true, Ordering::Release);
+        self.stop.set(reason.to_string());
     }
 
     /// `Err(reason)` once a stop was requested.
     pub fn check_stop(&self) -> Result<(), String> {
-        if !self.stop.load(Ordering::Acquire) {
-            return Ok(());
-        }
-        Err(self
-            .stop_reason
-            .lock()
-            .ok()
-            .and_then(|r| r.clone())
-            .unwrap_or_else(|| "stopped by the host".to_string()))
+        self.stop.check("stopped by the host")
     }
 
     /// Updates the motion record if nobody is reading it right now (the next update catches up).

@@ -14,7 +14,6 @@ use crate::hardware::Machine;
 use crate::latency::Hists;
 use crate::live;
 use crate::logging::Logging;
-use crate::mcus::{ConnectOptions, Mcus};
 use crate::realtime::RtConfig;
 use crate::summary::Summary;
 
@@ -135,18 +134,10 @@ fn run_live(
         return Err("--time-scale only applies to a simulated printer".to_string());
     }
     let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
-    let hists = Hists::new();
     let logging = Logging::start(args.live.log_level, args.live.log_file.clone())?;
     let rt = RtConfig::from_section(&cfg.realtime, args.no_realtime);
     let _idle_hold = rt.hold_idle_latency();
-    let opts = ConnectOptions {
-        time_scale,
-        trace: args.trace.clone(),
-        lead_hooks: Some(hists.lead_hooks(logging.handle("io-link"))),
-        io_rt: Some(rt.link_spec()),
-    };
-    let mut mcus = Mcus::connect(cfg, machine, opts)?;
-    hists.set_min_lead(&mcus);
+    let (hists, mut mcus) = live::connect_mcus(cfg, machine, time_scale, args.trace.clone(), &rt, &logging)?;
     let log = logging.handle("main");
     let run = live::LiveRun {
         max_error_s: args.max_error_us * 1e-6,
@@ -160,15 +151,33 @@ fn run_live(
     };
     let result = live::print_on(gcode, machine, &mcus, &run);
     let stats = mcus.close();
-    let mut summary = result?;
+    live_outcome(
+        result?,
+        started,
+        args.histograms.as_deref(),
+        &hists,
+        logging,
+        stats,
+    )
+}
+
+/// The end of a live print: wall time, the histograms saved if asked, the logger's line.
+pub(crate) fn live_outcome(
+    mut summary: Summary,
+    started: Instant,
+    histograms: Option<&std::path::Path>,
+    hists: &Hists,
+    logging: Logging,
+    link_stats: Vec<(String, links::mcu::LinkStats)>,
+) -> Result<LiveOutcome, String> {
     summary.wall = started.elapsed().as_secs_f64();
-    if let Some(path) = &args.histograms {
+    if let Some(path) = histograms {
         hists.save(path, summary.wall)?;
     }
     summary.extra.push(logging.finish());
     Ok(LiveOutcome {
         summary,
-        link_stats: stats,
+        link_stats,
         rt_report: rt_core::os::rt_report(),
     })
 }

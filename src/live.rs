@@ -188,6 +188,29 @@ pub(crate) fn print_on(
     })
 }
 
+/// Connects and configures the MCUs for a live print: each link's lead-margin hook records
+/// into a new [`Hists`] (and logs a message that left late), each link's IO thread runs with
+/// `rt`'s settings.
+pub(crate) fn connect_mcus(
+    cfg: &sysconfig::printer::PrinterConfig,
+    machine: &Machine,
+    time_scale: f64,
+    trace: Option<std::path::PathBuf>,
+    rt: &RtConfig,
+    logging: &crate::logging::Logging,
+) -> Result<(Arc<Hists>, Mcus), String> {
+    let hists = Hists::new();
+    let opts = crate::mcus::ConnectOptions {
+        time_scale,
+        trace,
+        lead_hooks: Some(hists.lead_hooks(logging.handle("io-link"))),
+        io_rt: Some(rt.link_spec()),
+    };
+    let mcus = Mcus::connect(cfg, machine, opts)?;
+    hists.set_min_lead(&mcus);
+    Ok((hists, mcus))
+}
+
 /// Joins the IO stage threads: their batches in all, their allocations after warm-up (`None`
 /// when one of them could not count) and the first error.
 fn join_io_stages(

@@ -37,7 +37,7 @@ use crate::homing::HomingReport;
 use crate::latency::Hists;
 use crate::live::{self, LiveRun};
 use crate::logging::Logging;
-use crate::mcus::{ConnectOptions, Mcus};
+use crate::mcus::Mcus;
 use crate::realtime::RtConfig;
 use crate::summary::Summary;
 
@@ -286,15 +286,8 @@ impl Printer {
             .map_err(|why| OpenError::Thread { what: "logger", why })?;
         let rt = RtConfig::from_section(&cfg.realtime, !opts.realtime);
         let idle_hold = rt.hold_idle_latency();
-        let hists = Hists::new();
-        let connect = ConnectOptions {
-            time_scale,
-            trace: opts.trace.clone(),
-            lead_hooks: Some(hists.lead_hooks(logging.handle("io-link"))),
-            io_rt: Some(rt.link_spec()),
-        };
-        let mcus = Mcus::connect(&cfg, &machine, connect).map_err(OpenError::Connect)?;
-        hists.set_min_lead(&mcus);
+        let (hists, mcus) = live::connect_mcus(&cfg, &machine, time_scale, opts.trace.clone(), &rt, &logging)
+            .map_err(OpenError::Connect)?;
         let (events_tx, events_rx) = mpsc::sync_channel(EVENT_DEPTH);
         let n = OPENED.fetch_add(1, Ordering::Relaxed);
         let inner = Arc::new(Inner {

@@ -43,6 +43,8 @@ use std::thread::JoinHandle;
 use std::time::Instant;
 
 use clap::Args;
+
+use super::MotionArgs;
 use links::clocksync::ClockEstimate;
 use links::trsync::COMM_TIMEOUT_MSG;
 use planner::pipeline::{Pipeline, PipelineOptions};
@@ -71,22 +73,13 @@ pub struct HomeArgs {
     /// Distance (mm) the axes move off their endstops between cycles.
     #[arg(long, default_value_t = 5.0)]
     pub away: f64,
-    /// Simulated MCU clock runs this many times faster than the wall clock.
-    #[arg(long)]
-    pub time_scale: Option<f64>,
-    /// Write the simulated MCUs' step traces (others than the main one get `-NAME` inserted).
-    #[arg(long)]
-    pub trace: Option<PathBuf>,
-    /// Maximum step time error of the compression, in microseconds.
-    #[arg(long, default_value_t = 25.0)]
-    pub max_error_us: f64,
-    /// Don't pin threads, use SCHED_FIFO or lock memory (otherwise printer.cfg's `[realtime]`).
-    #[arg(long)]
-    pub no_realtime: bool,
     /// Load every core with a SCHED_OTHER busy-spinning thread while homing (stopped at the
     /// end): the loaded latency measurement.
     #[arg(long)]
     pub cpu_load: bool,
+    /// Time scale, trace, compression bound, real time.
+    #[command(flatten)]
+    pub motion: MotionArgs,
 }
 
 /// One SCHED_OTHER busy-spinning thread per core; stopped and joined when dropped.
@@ -156,7 +149,7 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
     if !(args.away.is_finite() && args.away > 0.0) {
         return Err(format!("--away {}: must be > 0", args.away));
     }
-    if let Some(scale) = args.time_scale {
+    if let Some(scale) = args.motion.time_scale {
         if !(scale > 0.0 && scale <= 50.0) {
             return Err(format!("--time-scale {scale}: must be in (0, 50]"));
         }
@@ -167,20 +160,20 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
     }
     let machine = Machine::from_config(&cfg)?;
     cadence::homing::check_config(&machine)?;
-    let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
+    let time_scale = args.motion.time_scale.unwrap_or(cfg.simulator.time_scale);
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let hogs = if args.cpu_load {
         Some(CpuHogs::start(cores)?)
     } else {
         None
     };
-    let rt = RtConfig::from_section(&cfg.realtime, args.no_realtime);
+    let rt = RtConfig::from_section(&cfg.realtime, args.motion.no_realtime);
     let _idle_hold = rt.hold_idle_latency();
     // Before this thread is pinned (the core count would then be 1).
     let link_spec = rt.link_spec();
     let opts = ConnectOptions {
         time_scale,
-        trace: args.trace.clone(),
+        trace: args.motion.trace.clone(),
         lead_hooks: None,
         io_rt: Some(link_spec.clone()),
     };
@@ -235,7 +228,7 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
     if let Some(r) = noise.ratio_to_p999(host_p999) {
         println!("  host view, last executed step after trigger p99.9 = {r:.1} x the wake-up p99.9");
     }
-    if let Some(base) = &args.trace {
+    if let Some(base) = &args.motion.trace {
         let trace_mcus = TraceMcus {
             main: main_name,
             trsyncs,
@@ -266,7 +259,7 @@ fn cycles(
             .map_or(ClockEstimate::INVALID, |m| m.link.clock())
     })?;
     let mut pipeline = Pipeline::with_clocks(
-        machine.pipeline_config(main.clock_freq, args.max_error_us * 1e-6),
+        machine.pipeline_config(main.clock_freq, args.motion.max_error_us * 1e-6),
         start,
         // The printer's kinematics; no pressure advance and no worker threads (homing plans
         // inline, and nothing extrudes here).

@@ -5,6 +5,8 @@ use std::path::PathBuf;
 use cadence::batch::BatchReport;
 use cadence::job::{LiveOptions, PrintJob, PrintOutcome};
 use clap::Args;
+
+use super::MotionArgs;
 use rt_core::logger::Level;
 
 /// Arguments of `cadence print`.
@@ -15,10 +17,6 @@ pub struct PrintArgs {
     /// Klipper-format printer.cfg (default: the built-in simulated cartesian printer).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Simulated MCU clock runs this many times faster than the wall clock (default: the
-    /// config's [simulator] time_scale, else 1).
-    #[arg(long)]
-    pub time_scale: Option<f64>,
     /// No MCU and no real-time waiting: write the exact wire stream to this file (another MCU
     /// with steppers gets its own file, `-NAME` inserted before the extension).
     #[arg(long)]
@@ -27,18 +25,12 @@ pub struct PrintArgs {
     /// Cadence firmware's own.
     #[arg(long)]
     pub dictionary: Option<PathBuf>,
-    /// Write the simulated MCU's step trace to this file.
-    #[arg(long)]
-    pub trace: Option<PathBuf>,
-    /// Maximum step time error of the compression, in microseconds.
-    #[arg(long, default_value_t = 25.0)]
-    pub max_error_us: f64,
-    /// Don't pin threads, use SCHED_FIFO or lock memory.
-    #[arg(long)]
-    pub no_realtime: bool,
     /// Save the print's latency histograms to this file (HdrHistogram V2 interval log).
     #[arg(long)]
     pub histograms: Option<PathBuf>,
+    /// Time scale, trace, compression bound, real time.
+    #[command(flatten)]
+    pub motion: MotionArgs,
     /// Logging and where the IO stage runs (see [`LiveArgs`]).
     #[command(flatten)]
     pub live: LiveArgs,
@@ -69,12 +61,12 @@ impl PrintArgs {
         PrintJob {
             file: self.file.clone(),
             config: self.config.clone(),
-            time_scale: self.time_scale,
+            time_scale: self.motion.time_scale,
             batch: self.batch.clone(),
             dictionary: self.dictionary.clone(),
-            trace: self.trace.clone(),
-            max_error_us: self.max_error_us,
-            no_realtime: self.no_realtime,
+            trace: self.motion.trace.clone(),
+            max_error_us: self.motion.max_error_us,
+            no_realtime: self.motion.no_realtime,
             histograms: self.histograms.clone(),
             live: LiveOptions {
                 log_file: self.live.log_file.clone(),

@@ -473,21 +473,26 @@ pub fn wait_motion_done(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
 }
 
 /// `query` with retries (the reply of an idempotent query can be lost on a noisy line).
-fn query(
-    conn: &McuConn,
+fn query<'m>(
+    mcus: &'m Mcus,
+    mcu_name: &str,
     name: &str,
-    args: &[i64],
+    oid: u8,
     response: &str,
-    oid: i64,
-) -> Result<links::dict::Message, String> {
-    let dict = conn.link.dictionary();
-    let cmd = dict
-        .encode(name, args)
+) -> Result<(&'m McuConn, links::dict::Message), String> {
+    let conn = mcu(mcus, mcu_name)?;
+    let cmd = conn
+        .link
+        .dictionary()
+        .encode(name, &[oid as i64])
         .map_err(|e| format!("mcu '{}': {e}", conn.name))?;
     let mut last = String::new();
     for _ in 0..QUERY_TRIES {
-        match conn.link.query(cmd, response, Some(("oid", oid)), QUERY_TIMEOUT) {
-            Ok(m) => return Ok(m),
+        match conn
+            .link
+            .query(cmd, response, Some(("oid", oid as i64)), QUERY_TIMEOUT)
+        {
+            Ok(m) => return Ok((conn, m)),
             Err(e @ links::mcu::LinkError::Timeout { .. }) => last = e.to_string(),
             Err(e) => return Err(e.to_string()),
         }
@@ -504,13 +509,12 @@ fn mcu<'m>(mcus: &'m Mcus, name: &str) -> Result<&'m McuConn, String> {
 /// inverted dir pin).
 pub fn stepper_position(ctx: &HomingCtx<'_>, idx: usize) -> Result<i64, String> {
     let s = &ctx.machine.steppers[idx];
-    let conn = mcu(ctx.mcus, &s.mcu)?;
-    let reply = query(
-        conn,
+    let (_, reply) = query(
+        ctx.mcus,
+        &s.mcu,
         "stepper_get_position",
-        &[s.oid as i64],
+        s.oid,
         "stepper_position",
-        s.oid as i64,
     )?;
     let raw = reply.get("pos").ok_or("stepper_position without pos")?;
     Ok(if s.dir_pin.invert { -raw } else { raw })
@@ -518,13 +522,12 @@ pub fn stepper_position(ctx: &HomingCtx<'_>, idx: usize) -> Result<i64, String> 
 
 /// (`next_clock` extended to 64 bits, the pin reads triggered, still homing) of endstop `e`.
 pub(crate) fn endstop_state(ctx: &HomingCtx<'_>, e: &EndstopOut) -> Result<(u64, bool, bool), String> {
-    let conn = mcu(ctx.mcus, &e.pin.mcu)?;
-    let reply = query(
-        conn,
+    let (conn, reply) = query(
+        ctx.mcus,
+        &e.pin.mcu,
         "endstop_query_state",
-        &[e.oid as i64],
+        e.oid,
         "endstop_state",
-        e.oid as i64,
     )?;
     let wire = reply.get("next_clock").unwrap_or(0) as u32;
     let clock = conn.link.clock().extend(wire, McuLink::system_now());

@@ -31,6 +31,7 @@ use super::payloads::{
     clock_service_name, control_kind, control_service_name, info_service_name, io_state, status_service_name,
     ClockSnapshot, IoControl, IoStatus, McuInfo,
 };
+use crate::events::Latch;
 use crate::gcode_feed::GcodeInput;
 use crate::hardware::Machine;
 use crate::job::{LiveOutcome, PrintJob};
@@ -81,8 +82,7 @@ pub(crate) struct RemoteMcu {
     pub clock_freq: f64,
     pub move_count: usize,
     clock: ClockShared,
-    failed: AtomicBool,
-    error: Mutex<Option<String>>,
+    failed: Latch,
     /// The newest status of the IO process.
     status: Mutex<IoStatus>,
     /// Set once a valid clock snapshot was stored.
@@ -97,25 +97,11 @@ impl RemoteMcu {
 
     /// The IO process's failure, as an error.
     pub fn check(&self) -> Result<(), String> {
-        // Acquire pairs with the Release store in `fail`: the message is written before.
-        if !self.failed.load(Ordering::Acquire) {
-            return Ok(());
-        }
-        Err(self
-            .error
-            .lock()
-            .ok()
-            .and_then(|e| e.clone())
-            .unwrap_or_else(|| "the IO process failed".to_string()))
+        self.failed.check("the IO process failed")
     }
 
     fn fail(&self, msg: String) {
-        if let Ok(mut e) = self.error.lock() {
-            if e.is_none() {
-                *e = Some(msg);
-            }
-        }
-        self.failed.store(true, Ordering::Release);
+        self.failed.set(msg);
     }
 
     /// Waits (bounded) until the relay stored a valid clock snapshot.
@@ -342,22 +328,20 @@ pub(crate) fn run(
         Ok(summary)
     });
     let exit = child.finish(Duration::from_secs(30));
-    let mut summary = result?;
+    let summary = result?;
     if let Some(status) = exit {
         if !status.success() {
             return Err(format!("the IO process exited with {status}"));
         }
     }
-    summary.wall = started.elapsed().as_secs_f64();
-    if let Some(path) = &args.histograms {
-        hists.save(path, summary.wall)?;
-    }
-    summary.extra.push(logging.finish());
-    Ok(LiveOutcome {
+    crate::job::live_outcome(
         summary,
-        link_stats: Vec::new(),
-        rt_report: rt_core::os::rt_report(),
-    })
+        started,
+        args.histograms.as_deref(),
+        &hists,
+        logging,
+        Vec::new(),
+    )
 }
 
 /// Waits for the IO process's `READY` and its main MCU's info, and checks that it configured
@@ -387,8 +371,7 @@ fn attach(
         clock_freq: info.clock_freq,
         move_count: info.move_count as usize,
         clock: ClockShared::new(ClockEstimate::INVALID),
-        failed: AtomicBool::new(false),
-        error: Mutex::new(None),
+        failed: Latch::default(),
         status: Mutex::new(IoStatus::default()),
         clock_valid: AtomicBool::new(false),
     })

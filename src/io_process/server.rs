@@ -32,7 +32,7 @@ use crate::hardware::Machine;
 use crate::io_stage;
 use crate::latency::{self, Hists};
 use crate::logging::Logging;
-use crate::mcus::{ConnectOptions, Mcus};
+use crate::mcus::Mcus;
 use crate::realtime::RtConfig;
 
 type Ipc = iceoryx2::prelude::ipc::Service;
@@ -113,21 +113,14 @@ pub fn run(args: &ServeOptions, warn: &mut dyn FnMut(&str)) -> Result<ServeOutco
 
     let rt = RtConfig::from_section(&cfg.realtime, args.no_realtime);
     let _idle_hold = rt.hold_idle_latency();
-    let hists = Hists::new();
-    let opts = ConnectOptions {
-        time_scale,
-        trace: args.trace.clone(),
-        lead_hooks: Some(hists.lead_hooks(logging.handle("io-link"))),
-        io_rt: Some(rt.link_spec()),
-    };
-    let mut mcus = match Mcus::connect(&cfg, &machine, opts) {
-        Ok(m) => m,
+    let connected = crate::live::connect_mcus(&cfg, &machine, time_scale, args.trace.clone(), &rt, &logging);
+    let (hists, mut mcus) = match connected {
+        Ok(c) => c,
         Err(e) => {
             let _ = report.send(&mut status, io_state::FAILED, &e);
             return Err(e);
         }
     };
-    hists.set_min_lead(&mcus);
     let ctx = ServeCtx {
         args,
         machine: &machine,
