@@ -198,7 +198,7 @@ pub(crate) fn connect_mcus(
     trace: Option<std::path::PathBuf>,
     rt: &RtConfig,
     logging: &crate::logging::Logging,
-) -> Result<(Arc<Hists>, Mcus), String> {
+) -> Result<(Arc<Hists>, Mcus), crate::mcus::McuError> {
     let hists = Hists::new();
     let opts = crate::mcus::ConnectOptions {
         time_scale,

@@ -80,7 +80,7 @@ impl<'a> McuSide<'a> {
     /// An MCU shutdown or a failed IO process, as an error.
     fn check(&self) -> Result<(), String> {
         match self {
-            McuSide::Local(m) => m.check(),
+            McuSide::Local(m) => Ok(m.check()?),
             McuSide::Remote(r) => r.check(),
         }
     }

@@ -32,12 +32,12 @@ use sysconfig::printer::PrinterConfig;
 
 use crate::events::{Event, PrinterState, SessionShared, Status};
 use crate::gcode_feed::{FeedMsg, GcodeInput};
-use crate::hardware::Machine;
+use crate::hardware::{HardwareError, Machine};
 use crate::homing::HomingReport;
 use crate::latency::Hists;
 use crate::live::{self, LiveRun};
 use crate::logging::Logging;
-use crate::mcus::Mcus;
+use crate::mcus::{McuError, Mcus};
 use crate::realtime::RtConfig;
 use crate::summary::Summary;
 
@@ -93,14 +93,10 @@ impl Default for PrinterOptions {
 /// Why a printer could not be opened.
 #[derive(Debug, thiserror::Error)]
 pub enum OpenError {
-    /// printer.cfg could not be read or is invalid (the message names file, line, section
-    /// and option).
+    /// printer.cfg could not be read, is invalid or describes no printer Cadence can drive
+    /// (the message names file, line, section and option).
     #[error("printer config: {0}")]
-    Config(String),
-    /// The configuration describes no printer Cadence can drive (e.g. steppers of one axis on
-    /// two MCUs).
-    #[error("printer: {0}")]
-    Printer(String),
+    Config(#[from] HardwareError),
     /// A bad option.
     #[error("{what}: {value}: {why}")]
     Option {
@@ -108,9 +104,9 @@ pub enum OpenError {
         value: f64,
         why: &'static str,
     },
-    /// An MCU did not connect, identify or configure (the message names it).
+    /// An MCU did not start, connect, identify or configure ([`McuError::mcu`] names it).
     #[error("connecting the MCUs: {0}")]
-    Connect(String),
+    Connect(#[from] McuError),
     /// A thread (logger, session) could not start.
     #[error("cannot start the {what}: {why}")]
     Thread { what: &'static str, why: String },
@@ -252,10 +248,8 @@ impl Printer {
     /// starts the pipeline threads, ready for G-code.
     pub fn open(source: PrinterSource, opts: PrinterOptions) -> Result<Printer, OpenError> {
         let cfg = match source {
-            PrinterSource::Simulated => crate::hardware::load_config(None).map_err(OpenError::Config)?,
-            PrinterSource::ConfigFile(p) => {
-                crate::hardware::load_config(Some(&p)).map_err(OpenError::Config)?
-            }
+            PrinterSource::Simulated => crate::hardware::load_config(None)?,
+            PrinterSource::ConfigFile(p) => crate::hardware::load_config(Some(&p))?,
             PrinterSource::Config(c) => *c,
         };
         if !(opts.max_error_us > 0.0 && opts.max_error_us <= 1000.0) {
@@ -281,13 +275,13 @@ impl Printer {
                 why: "must be in (0, 50]",
             });
         }
-        let machine = Machine::from_config(&cfg).map_err(OpenError::Printer)?;
+        let machine = Machine::from_config(&cfg)?;
         let logging = Logging::start_with(opts.log_level, opts.log_file.clone(), opts.log_to_stderr)
             .map_err(|why| OpenError::Thread { what: "logger", why })?;
         let rt = RtConfig::from_section(&cfg.realtime, !opts.realtime);
         let idle_hold = rt.hold_idle_latency();
-        let (hists, mcus) = live::connect_mcus(&cfg, &machine, time_scale, opts.trace.clone(), &rt, &logging)
-            .map_err(OpenError::Connect)?;
+        let (hists, mcus) =
+            live::connect_mcus(&cfg, &machine, time_scale, opts.trace.clone(), &rt, &logging)?;
         let (events_tx, events_rx) = mpsc::sync_channel(EVENT_DEPTH);
         let n = OPENED.fetch_add(1, Ordering::Relaxed);
         let inner = Arc::new(Inner {

@@ -469,7 +469,7 @@ pub fn wait_motion_done(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
             std::thread::sleep(Duration::from_millis(1));
         }
     }
-    ctx.mcus.check()
+    Ok(ctx.mcus.check()?)
 }
 
 /// `query` with retries (the reply of an idempotent query can be lost on a noisy line).

@@ -117,6 +117,7 @@ pub fn run(args: &ServeOptions, warn: &mut dyn FnMut(&str)) -> Result<ServeOutco
     let (hists, mut mcus) = match connected {
         Ok(c) => c,
         Err(e) => {
+            let e = e.to_string();
             let _ = report.send(&mut status, io_state::FAILED, &e);
             return Err(e);
         }
@@ -393,7 +394,7 @@ fn serve_print(
             }
             if let Err(e) = mcus.check() {
                 let _ = stop_io(io);
-                return Err(e);
+                return Err(e.into());
             }
             if io.is_finished() {
                 // The IO stage only ends on its own with an error (or after `done`).

@@ -184,3 +184,27 @@ fn stop_and_emergency_stop_from_another_thread() {
         }
     }
 }
+
+#[test]
+fn open_errors_say_what_and_where() {
+    use cadence::printer::OpenError;
+    let missing = workspace().join("no-such-printer.cfg");
+    match Printer::open(PrinterSource::ConfigFile(missing), PrinterOptions::default()) {
+        Err(OpenError::Config(e)) => assert!(e.to_string().contains("no-such-printer.cfg"), "{e}"),
+        other => panic!("expected a config error, got {other:?}"),
+    }
+    let opts = PrinterOptions {
+        time_scale: Some(500.0),
+        ..PrinterOptions::default()
+    };
+    match Printer::open(PrinterSource::Simulated, opts) {
+        Err(
+            e @ OpenError::Option {
+                what: "time_scale", ..
+            },
+        ) => {
+            assert!(e.to_string().contains("(0, 50]"), "{e}")
+        }
+        other => panic!("expected an option error, got {other:?}"),
+    }
+}
