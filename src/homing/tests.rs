@@ -1,6 +1,8 @@
+use super::halt::*;
 use super::*;
 use crate::hardware::StepperOut;
 use planner::kinematics::{Kinematics, StepperKin};
+use planner::toolhead::Move;
 use sysconfig::printer::PinRef;
 
 fn pin(mcu: &str, name: &str) -> PinRef {
