@@ -9,7 +9,8 @@
 //! - the G-code loop: [`gcode_feed`], [`accessories`];
 //! - the pipeline threads: [`planner_thread`], [`io_stage`], [`telemetry`], with
 //!   [`latency`], [`realtime`] and [`logging`];
-//! - homing and probing: [`homing`];
+//! - homing and probing: [`homing`]; [`home_cycles`] (`cadence home`: cycles with latency
+//!   figures);
 //! - whole prints: [`live`] (threads in this process), [`io_process`] (the IO stage in
 //!   another process), [`batch`] (wire files), [`job`] (what `cadence print` runs);
 //! - the API: [`printer`] ([`printer::Printer`], its handle, events and status in [`events`]);
@@ -28,6 +29,7 @@ pub mod batch;
 pub mod events;
 pub mod gcode_feed;
 pub mod hardware;
+pub mod home_cycles;
 pub mod homing;
 pub mod host_check;
 pub mod io_process;
