@@ -11,23 +11,20 @@
 //! - `mcu …` (hidden): the simulated MCU (the firmware's Linux-process target), for when the
 //!   separate `cadence-mcu` executable was not built.
 
-mod accessories;
-mod allocsites;
-mod benchcmd;
-mod decode;
-mod doctor;
-mod homing;
-mod live;
-mod machine;
-mod mcus;
-mod print;
-mod remote;
-mod serve;
-mod simmcu;
-mod sink;
-mod streams;
+//!
+//! Each subcommand is a small module of [`cli`] over the `cadence` library; `bench` is in
+//! `benchcmd` (the only user of the `bench` crate).
 
+mod benchcmd;
+mod cli;
+
+// `benchcmd` reaches the library through these paths.
+use cadence::hardware as machine;
+use cadence::wire_check as decode;
+
+use cadence::allocsites;
 use clap::{Parser, Subcommand};
+use cli::{decode as decode_cmd, doctor, home, print, serve};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -47,7 +44,7 @@ enum Cmd {
     /// Print a G-code file on the configured printer (default: the built-in simulated printer).
     Print(print::PrintArgs),
     /// Home the printer's axes with real motion (G28), once or in cycles with latency figures.
-    Home(homing::HomeArgs),
+    Home(home::HomeArgs),
     /// Run one stage of the live print in this process (`--role io`: the MCU connections),
     /// serving a `cadence print --io-process` or `--io-attach NAME`.
     Serve(serve::ServeArgs),
@@ -55,7 +52,7 @@ enum Cmd {
     /// latency), or print the systemd unit for the service with `--unit`.
     Doctor(doctor::DoctorArgs),
     /// Decode a wire stream written by `print --batch` into one message per line.
-    Decode(decode::DecodeArgs),
+    Decode(decode_cmd::DecodeArgs),
     /// Benchmarks: `bench wakeup` (wake-up latency, cyclictest-class), `bench handoff`,
     /// `bench plan FILE` (planning + step compression), with --json, --hlog, --plot, --load.
     Bench(benchcmd::BenchArgs),
@@ -80,11 +77,11 @@ fn main() -> ExitCode {
     };
     let result = match cli.command {
         Cmd::Print(args) => print::run(&args),
-        Cmd::Decode(args) => decode::run(&args),
+        Cmd::Decode(args) => decode_cmd::run(&args),
         Cmd::Doctor(args) => doctor::run(&args),
         Cmd::Serve(args) => serve::run(&args),
         Cmd::Bench(args) => benchcmd::run(&args),
-        Cmd::Home(args) => homing::run_cli(&args),
+        Cmd::Home(args) => home::run(&args),
         Cmd::Mcu { args } => {
             let argv = std::iter::once("cadence-mcu".to_string()).chain(args);
             let code = firmware::sim::main_with_args(argv);

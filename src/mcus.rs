@@ -12,8 +12,8 @@ use links::mcu::{LinkOptions, LinkStats, LinkTuning, McuLink};
 use links::transport::{PtyTransport, SerialTransport, Transport};
 use sysconfig::printer::PrinterConfig;
 
-use crate::machine::Machine;
-use crate::simmcu::{SimMcu, SimOptions};
+use crate::hardware::Machine;
+use crate::sim_mcu::{SimMcu, SimOptions};
 
 /// One connected MCU.
 #[derive(Debug)]
@@ -56,6 +56,54 @@ impl std::fmt::Debug for ConnectOptions {
     }
 }
 
+/// Why connecting, configuring or running an MCU failed; every variant names the MCU.
+#[derive(Debug, thiserror::Error)]
+pub enum McuError {
+    /// The simulated MCU process did not start.
+    #[error("{why}")]
+    Start { mcu: String, why: String },
+    /// The serial port or pty did not open.
+    #[error("mcu '{mcu}': {port}: {why}")]
+    Open { mcu: String, port: String, why: String },
+    /// The link did not come up (no identify answer, bad data dictionary).
+    #[error("{source}")]
+    Link {
+        mcu: String,
+        #[source]
+        source: links::mcu::LinkError,
+    },
+    /// The MCU's data dictionary lacks what the host needs.
+    #[error("mcu '{mcu}': {why}")]
+    Dictionary { mcu: String, why: String },
+    /// The MCU refused or did not take the configuration.
+    #[error("mcu '{mcu}': {why}")]
+    Configure { mcu: String, why: String },
+    /// The MCU shut down (its reason, as it reported it).
+    #[error("mcu '{mcu}' shut down: {reason}")]
+    Shutdown { mcu: String, reason: String },
+}
+
+impl McuError {
+    /// The MCU the error is about.
+    pub fn mcu(&self) -> &str {
+        match self {
+            McuError::Start { mcu, .. }
+            | McuError::Open { mcu, .. }
+            | McuError::Link { mcu, .. }
+            | McuError::Dictionary { mcu, .. }
+            | McuError::Configure { mcu, .. }
+            | McuError::Shutdown { mcu, .. } => mcu,
+        }
+    }
+}
+
+/// The CLI's and the older string-typed layers' view (the message as shown).
+impl From<McuError> for String {
+    fn from(e: McuError) -> String {
+        e.to_string()
+    }
+}
+
 /// Makes the lead-margin hook of the MCU with the given index (see [`ConnectOptions`]).
 pub type LeadHooks = Box<dyn Fn(usize) -> links::serialqueue::MarginHook>;
 
@@ -78,7 +126,7 @@ pub fn trace_path(base: &Path, name: &str, main: bool) -> PathBuf {
 
 impl Mcus {
     /// Starts (for `serial: simulator`) and connects every MCU, then configures its objects.
-    pub fn connect(cfg: &PrinterConfig, machine: &Machine, opts: ConnectOptions) -> Result<Mcus, String> {
+    pub fn connect(cfg: &PrinterConfig, machine: &Machine, opts: ConnectOptions) -> Result<Mcus, McuError> {
         let world = format!("cadence-{}", std::process::id());
         let mut mcus = Mcus { list: Vec::new() };
         for (i, mcu_cfg) in cfg.mcus.iter().enumerate() {
@@ -102,16 +150,25 @@ impl Mcus {
                         extra
                     },
                 };
-                let s = SimMcu::spawn(&name, &sim_opts)?;
-                let t = PtyTransport::open(&s.pty)
-                    .map_err(|e| format!("mcu '{name}': {}: {e}", s.pty.display()))?;
+                let s = SimMcu::spawn(&name, &sim_opts).map_err(|why| McuError::Start {
+                    mcu: name.clone(),
+                    why,
+                })?;
+                let t = PtyTransport::open(&s.pty).map_err(|e| McuError::Open {
+                    mcu: name.clone(),
+                    port: s.pty.display().to_string(),
+                    why: e.to_string(),
+                })?;
                 sim = Some(s);
                 Box::new(t)
             } else {
-                Box::new(
-                    SerialTransport::open(&mcu_cfg.serial, mcu_cfg.baud)
-                        .map_err(|e| format!("mcu '{name}': {}: {e}", mcu_cfg.serial))?,
-                )
+                Box::new(SerialTransport::open(&mcu_cfg.serial, mcu_cfg.baud).map_err(|e| {
+                    McuError::Open {
+                        mcu: name.clone(),
+                        port: mcu_cfg.serial.clone(),
+                        why: e.to_string(),
+                    }
+                })?)
             };
             let link_opts = LinkOptions {
                 name: name.clone(),
@@ -139,14 +196,17 @@ impl Mcus {
                     if let Some(s) = sim {
                         s.finish(Duration::from_secs(2));
                     }
-                    return Err(e.to_string());
+                    return Err(McuError::Link { mcu: name, source: e });
                 }
             };
             let clock_freq = match link.dictionary().clock_freq() {
                 Ok(f) => f,
                 Err(e) => {
                     mcus.close();
-                    return Err(format!("mcu '{name}': {e}"));
+                    return Err(McuError::Dictionary {
+                        mcu: name,
+                        why: e.to_string(),
+                    });
                 }
             };
             mcus.list.push(McuConn {
@@ -159,9 +219,10 @@ impl Mcus {
             });
         }
         for i in 0..mcus.list.len() {
-            if let Err(e) = mcus.configure(i, machine) {
+            if let Err(why) = mcus.configure(i, machine) {
+                let mcu = mcus.list[i].name.clone();
                 mcus.close();
-                return Err(e);
+                return Err(McuError::Configure { mcu, why });
             }
         }
         Ok(mcus)
@@ -172,12 +233,9 @@ impl Mcus {
         let conn = &self.list[i];
         let name = conn.name.clone();
         let dict = conn.link.dictionary();
-        let get_config = dict
-            .encode("get_config", &[])
-            .map_err(|e| format!("mcu '{name}': {e}"))?;
+        let get_config = dict.encode("get_config", &[]).map_err(|e| e.to_string())?;
         let reply = query_config(&conn.link, get_config)?;
-        let (cmds, trsync_oid, crc) =
-            config_commands(dict, machine, &name).map_err(|e| format!("mcu '{name}': {e}"))?;
+        let (cmds, trsync_oid, crc) = config_commands(dict, machine, &name).map_err(|e| e.to_string())?;
         if dict.command("config_digital_out").is_err()
             && machine
                 .steppers
@@ -200,7 +258,7 @@ impl Mcus {
                 "another configuration"
             };
             return Err(format!(
-                "mcu '{name}': already configured with {same} (crc {theirs:#010x}, this printer.cfg gives \
+                "already configured with {same} (crc {theirs:#010x}, this printer.cfg gives \
                  {crc:#010x}) by an earlier run: restart the MCU before printing"
             ));
         }
@@ -216,18 +274,14 @@ impl Mcus {
             // as the MCU did.
             if let Some(reason) = conn.link.shutdown_reason() {
                 return Err(format!(
-                    "mcu '{name}': shut down: {reason} (the configuration was not accepted; restart the MCU)"
+                    "shut down: {reason} (the configuration was not accepted; restart the MCU)"
                 ));
             }
-            return Err(format!(
-                "mcu '{name}': did not accept the configuration ({reply})"
-            ));
+            return Err(format!("did not accept the configuration ({reply})"));
         }
         let move_count = reply.get("move_count").unwrap_or(0).max(0) as usize;
         if move_count < 64 {
-            return Err(format!(
-                "mcu '{name}': its move queue is too small ({move_count} entries)"
-            ));
+            return Err(format!("its move queue is too small ({move_count} entries)"));
         }
         let conn = &mut self.list[i];
         conn.move_count = move_count;
@@ -246,13 +300,13 @@ impl Mcus {
     }
 
     /// What a step stream needs of each MCU that gets one (see `streams::stream_mcus`).
-    pub fn stream_params(&self, machine: &Machine) -> Vec<crate::streams::McuParams<'_>> {
+    pub fn stream_params(&self, machine: &Machine) -> Vec<crate::step_stream::McuParams<'_>> {
         let names: Vec<&str> = self.list.iter().map(|m| m.name.as_str()).collect();
-        crate::streams::stream_mcus(machine, &names)
+        crate::step_stream::stream_mcus(machine, &names)
             .into_iter()
             .map(|i| {
                 let m = &self.list[i];
-                crate::streams::McuParams {
+                crate::step_stream::McuParams {
                     name: &m.name,
                     mcu_index: i,
                     dict: m.link.dictionary(),
@@ -264,10 +318,13 @@ impl Mcus {
     }
 
     /// The first MCU that reported a shutdown, as an error.
-    pub fn check(&self) -> Result<(), String> {
+    pub fn check(&self) -> Result<(), McuError> {
         for m in &self.list {
             if let Some(reason) = m.link.shutdown_reason() {
-                return Err(format!("mcu '{}' shut down: {reason}", m.name));
+                return Err(McuError::Shutdown {
+                    mcu: m.name.clone(),
+                    reason,
+                });
             }
         }
         Ok(())

@@ -1,10 +1,10 @@
 //! The host facts printed above every benchmark (and in its JSON): kernel and preemption model,
 //! CPU frequency governor, isolated CPUs, real-time throttling and SMT. The raw facts come from
-//! `sysconfig::doctor::HostFacts` (what `cadence doctor` reads); this module only adds SMT and
+//! `rt_core::host_check::HostFacts` (what `cadence doctor` reads); this module only adds SMT and
 //! the kernel release and turns them into short strings.
 
+use rt_core::host_check::HostFacts;
 use serde::{Deserialize, Serialize};
-use sysconfig::doctor::HostFacts;
 
 /// What a latency figure depends on, in words.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]

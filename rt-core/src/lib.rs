@@ -12,10 +12,12 @@
 //!     never waits on the other side (crossbeam's `ArrayQueue` spins on a half-done push or
 //!     pop: a livelock under SCHED_FIFO on a shared core).
 //!   - [`hist`]: fixed-bound latency/margin histograms (hdrhistogram), summaries, interval logs.
+//!   - [`host_check`]: is this host fit for hard timing (`cadence doctor`; the host facts
+//!     `cadence bench` prints).
 //!   - [`logger`]: the logger thread; other threads push fixed-size records, never block.
 //!   - [`shm`]: iceoryx2 services for step batches and telemetry (fixed-size `#[repr(C)]`
-//!     payloads, no loss, sequence-checked), and ([`shm::io`]) the services that let the IO
-//!     stage run in its own process (MCU info, clock snapshots, status, control).
+//!     payloads, no loss, sequence-checked), and the generic channel settings the `cadence`
+//!     library's IO-process services use.
 //!   - [`wakeup`]: the machine's timing noise floor (a cyclictest-like sleeper), to judge
 //!     measured tails as ratios within one run.
 //!
@@ -32,6 +34,8 @@ pub mod alloc_count;
 pub mod handoff;
 #[cfg(feature = "std")]
 pub mod hist;
+#[cfg(feature = "std")]
+pub mod host_check;
 #[cfg(feature = "std")]
 pub mod logger;
 #[cfg(feature = "std")]

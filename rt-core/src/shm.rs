@@ -11,7 +11,8 @@
 //! | `cadence/<instance>/telemetry` | event | — | default |
 //!
 //! The services that let the IO stage run in another process (MCU info, clock snapshots, IO
-//! status and control) are described in [`io`].
+//! status and control) are the `cadence` library's (`cadence::io_process::payloads`), on these
+//! channels with [`ChannelConfig::info`], [`ChannelConfig::latest`] and [`ChannelConfig::control`].
 //!
 //! Every process must open a service with the same settings (the `ChannelConfig` constructors)
 //! and the same payload type names (`cadence::StepBatch.v2`, `cadence::Telemetry.v1`).
@@ -300,6 +301,46 @@ pub struct ChannelConfig {
 }
 
 impl ChannelConfig {
+    /// MCU info: published once, kept as history for late subscribers.
+    pub const fn info() -> ChannelConfig {
+        ChannelConfig {
+            buffer: 2,
+            history: 1,
+            safe_overflow: true,
+            backpressure_timeout: Duration::ZERO,
+            max_publishers: 1,
+            max_subscribers: 4,
+            min_receivers: 0,
+        }
+    }
+
+    /// A value whose newest sample is all that matters (clock snapshots, IO status): overflow
+    /// allowed, history 1.
+    pub const fn latest() -> ChannelConfig {
+        ChannelConfig {
+            buffer: 8,
+            history: 1,
+            safe_overflow: true,
+            backpressure_timeout: Duration::ZERO,
+            max_publishers: 1,
+            max_subscribers: 4,
+            min_receivers: 0,
+        }
+    }
+
+    /// Planner → IO commands: lossless, one receiver required.
+    pub const fn control() -> ChannelConfig {
+        ChannelConfig {
+            buffer: 8,
+            history: 0,
+            safe_overflow: false,
+            backpressure_timeout: Duration::from_secs(2),
+            max_publishers: 1,
+            max_subscribers: 1,
+            min_receivers: 1,
+        }
+    }
+
     /// Step batches: no overflow, 16 batches in flight, 1 publisher, 2 subscribers (the IO
     /// stage and a recorder), 2 s back-pressure bound.
     pub const fn steps() -> ChannelConfig {
@@ -673,7 +714,6 @@ impl<S: Service, T: Sequenced> ShmSubscriber<S, T> {
     }
 }
 
-pub mod io;
 pub mod pooled;
 
 #[cfg(test)]

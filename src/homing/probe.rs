@@ -1,5 +1,5 @@
 //! `PROBE`, `PROBE_ACCURACY` and `QUERY_PROBE` (the G-code commands of Klipper's `[probe]`) on a
-//! live print, through the homing machinery (docs/protocol.md "Homing: endstop + trsync").
+//! live print, through the homing machinery (the endstop + trsync protocol of [`crate::homing`]).
 //!
 //! One sample: Z must be homed (`Must home before probe`) and the probe open (`Probe triggered
 //! prior to movement`); then a homing pass in probe mode ([`PassKind::Probe`]): Z moves toward
@@ -25,7 +25,7 @@
 use sysconfig::printer::{ProbeSection, SamplesResult, SAMPLES_RESULTS};
 
 use super::{endstop_state, homing_pass, plain_move, wait_motion_done, HomingCtx, PassKind};
-use crate::machine::ProbeOut;
+use crate::hardware::ProbeOut;
 
 /// The G-code commands this module runs.
 pub const COMMANDS: [&str; 3] = ["PROBE", "PROBE_ACCURACY", "QUERY_PROBE"];

@@ -1,6 +1,8 @@
+use super::halt::*;
 use super::*;
-use crate::machine::StepperOut;
+use crate::hardware::StepperOut;
 use planner::kinematics::{Kinematics, StepperKin};
+use planner::toolhead::Move;
 use sysconfig::printer::PinRef;
 
 fn pin(mcu: &str, name: &str) -> PinRef {
@@ -26,7 +28,7 @@ fn machine(z_mcus: &[&str], endstop_mcu: &str) -> Machine {
             step_pin: pin(mcu, "PC0"),
             dir_pin: pin(mcu, "PC1"),
             enable_pin: None,
-            step_pulse_duration: crate::machine::DEFAULT_STEP_PULSE_DURATION,
+            step_pulse_duration: crate::hardware::DEFAULT_STEP_PULSE_DURATION,
             step_dist: 0.0025,
         });
     }
@@ -61,7 +63,7 @@ fn a_probe_on_yet_another_mcu_is_refused_too() {
         std::path::Path::new("printer.cfg"),
     )
     .unwrap();
-    m.probe = Some(crate::machine::ProbeOut {
+    m.probe = Some(crate::hardware::ProbeOut {
         endstop,
         z_virtual_endstop: false,
         z_position: 0.0,

@@ -7,15 +7,12 @@
 //!   bounds; every option must be consumed, unknown sections are errors unless listed as
 //!   accepted-and-ignored (then warnings).
 //!
-//! - [`doctor`]: is this host fit for hard timing (PREEMPT_RT, SCHED_FIFO, limits, isolated
-//!   CPUs, wake-up latency)?
 //! - [`systemd`]: the unit file that runs the IO stage as a service.
 //!
 //! Guarantees: no input makes these parsers panic; every error names the file, the line when
 //! there is one, the section and the option.
 #![deny(unsafe_code)]
 
-pub mod doctor;
 pub mod ini;
 pub mod planning;
 pub mod printer;

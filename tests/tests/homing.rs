@@ -19,7 +19,7 @@ use firmware::trace::read_trace;
 
 const TIMEOUT: Duration = Duration::from_secs(180);
 /// Steps per mm of X, Y (index 0, 1) and Z (index 2), and the simulated start: 10% of the
-/// 20 mm travel away from the endstops at 0 (src/machine.rs `sim_world_args`).
+/// 20 mm travel away from the endstops at 0 (src/hardware.rs `sim_world_args`).
 const STEPS_PER_MM: [f64; 3] = [80.0, 80.0, 400.0];
 const START_MM: f64 = 2.0;
 /// The main MCU's trsync (after steppers x, y, z, extruder (0-3), endstops x, y (4, 5) and the

@@ -39,7 +39,7 @@ fn square_prints_exactly_on_the_simulated_mcu() {
     let net = &check.net;
 
     // G28 homes for real: the simulated carriages start 10% of their travel away from their
-    // endstops (src/machine.rs), so the net steps of each axis take it from there to the final
+    // endstops (src/hardware.rs), so the net steps of each axis take it from there to the final
     // position of examples/square.gcode (X10 Y10 Z5); the extruder is not homed.
     let start = |axis: &str| {
         let s = cfg.steppers.iter().find(|s| s.name == axis).unwrap();

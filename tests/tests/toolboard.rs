@@ -21,7 +21,7 @@ const TOOLBOARD_16MHZ: &str = "--clock-freq 16000000";
 const Z_OID: u8 = 0;
 const E_OID: u8 = 1;
 const TOOLBOARD_TRSYNC_OID: u8 = 4;
-/// Z: 400 steps per mm, starts 10% of its travel above the endstop at 0 (src/machine.rs).
+/// Z: 400 steps per mm, starts 10% of its travel above the endstop at 0 (src/hardware.rs).
 const Z_STEPS_PER_MM: f64 = 400.0;
 /// Second-pass speed of the short-travel config, and the endstop's sampling: a read every
 /// ≤ 1 ms, 4 × 15 µs to confirm.

@@ -68,7 +68,7 @@ pub enum ConfigError {
     /// A `[gcode_macro]` whose template does not compile or whose variable is not a literal
     /// (the message names file, line and section).
     #[error(transparent)]
-    Macro(planner::gcode::macros::MacroError),
+    Macro(Box<planner::gcode::macros::MacroError>),
     /// A section nothing reads and that is not on the list of accepted-and-ignored sections.
     #[error("{at}: Section '{section}' is not a valid config section")]
     UnknownSection { at: Location, section: String },

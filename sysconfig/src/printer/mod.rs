@@ -199,7 +199,8 @@ impl PrinterConfig {
         let mut warnings = reader.finish(is_ignored)?;
         if let Some(first) = macros.first() {
             // Their templates are compiled (a broken one fails the load) but not run yet.
-            planner::gcode::macros::Macros::new(macros.clone()).map_err(ConfigError::Macro)?;
+            planner::gcode::macros::Macros::new(macros.clone())
+                .map_err(|e| ConfigError::Macro(Box::new(e)))?;
             let what = match macros.len() {
                 1 => "section".to_string(),
                 n => format!("{n} sections"),

@@ -1,4 +1,5 @@
-//! The contract between a planner process and an IO-stage process (`cadence serve --role io`):
+//! The payloads and services between a planner process and an IO-stage process
+//! (`cadence serve --role io`), on rt-core's generic shared-memory channels:
 //! everything besides the step batches that must cross so the MCU connections can live in the
 //! IO process while the planner compresses steps in MCU clock ticks.
 //!
@@ -6,15 +7,15 @@
 //!
 //! | service name | direction | payload | config |
 //! |---|---|---|---|
-//! | `cadence/<instance>/mcu/<mcu>/info` | IO → planner, once per MCU | [`McuInfo`] | [`ChannelConfig::info`] |
-//! | `cadence/<instance>/mcu/<mcu>/clock` | IO → planner, ~every 20 ms | [`ClockSnapshot`] | [`ChannelConfig::latest`] |
-//! | `cadence/<instance>/io/status` | IO → planner, on each change | [`IoStatus`] | [`ChannelConfig::latest`] |
-//! | `cadence/<instance>/io/control` | planner → IO | [`IoControl`] | [`ChannelConfig::control`] |
+//! | `cadence/<instance>/mcu/<mcu>/info` | IO → planner, once per MCU | [`McuInfo`] | `ChannelConfig::info` |
+//! | `cadence/<instance>/mcu/<mcu>/clock` | IO → planner, ~every 20 ms | [`ClockSnapshot`] | `ChannelConfig::latest` |
+//! | `cadence/<instance>/io/status` | IO → planner, on each change | [`IoStatus`] | `ChannelConfig::latest` |
+//! | `cadence/<instance>/io/control` | planner → IO | [`IoControl`] | `ChannelConfig::control` |
 //!
 //! Each has an event service of the same name beside it (the publisher notifies after a send).
 //! `info`, `clock` and `status` keep a history of one sample, so a planner that attaches after
 //! the IO process published still gets them; their readers take the newest sample
-//! ([`crate::shm::ShmSubscriber::latest`]). `control` is lossless like the step channels.
+//! (`rt_core::shm::ShmSubscriber::latest`). `control` is lossless like the step channels.
 //!
 //! # Handshake
 //!
@@ -50,7 +51,9 @@
 
 use iceoryx2::prelude::*;
 
-use super::{ChannelConfig, Sequenced};
+#[cfg(test)]
+use rt_core::shm::ChannelConfig;
+use rt_core::shm::Sequenced;
 
 /// Largest compressed data dictionary an [`McuInfo`] carries.
 pub const DICT_MAX: usize = 65536;
@@ -77,48 +80,6 @@ pub fn status_service_name(instance: &str) -> String {
 /// `cadence/<instance>/io/control`.
 pub fn control_service_name(instance: &str) -> String {
     format!("cadence/{instance}/io/control")
-}
-
-impl ChannelConfig {
-    /// MCU info: published once, kept as history for late subscribers.
-    pub const fn info() -> ChannelConfig {
-        ChannelConfig {
-            buffer: 2,
-            history: 1,
-            safe_overflow: true,
-            backpressure_timeout: std::time::Duration::ZERO,
-            max_publishers: 1,
-            max_subscribers: 4,
-            min_receivers: 0,
-        }
-    }
-
-    /// A value whose newest sample is all that matters (clock snapshots, IO status): overflow
-    /// allowed, history 1.
-    pub const fn latest() -> ChannelConfig {
-        ChannelConfig {
-            buffer: 8,
-            history: 1,
-            safe_overflow: true,
-            backpressure_timeout: std::time::Duration::ZERO,
-            max_publishers: 1,
-            max_subscribers: 4,
-            min_receivers: 0,
-        }
-    }
-
-    /// Planner → IO commands: lossless, one receiver required.
-    pub const fn control() -> ChannelConfig {
-        ChannelConfig {
-            buffer: 8,
-            history: 0,
-            safe_overflow: false,
-            backpressure_timeout: std::time::Duration::from_secs(2),
-            max_publishers: 1,
-            max_subscribers: 1,
-            min_receivers: 1,
-        }
-    }
 }
 
 /// What the IO process tells the planner about one MCU.
@@ -309,7 +270,7 @@ sequenced!(McuInfo, ClockSnapshot, IoControl, IoStatus);
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::shm::{open_node, ShmPublisher, ShmSubscriber};
+    use rt_core::shm::{open_node, ShmPublisher, ShmSubscriber};
     use std::mem::{align_of, offset_of, size_of};
     use std::time::{Duration, Instant};
 

@@ -1,5 +1,6 @@
-//! The printer as the host drives it: which steppers exist, on which MCU and oid, with which
-//! pins, and the planner configuration derived from printer.cfg.
+//! The printer's hardware as the host drives it (not the planner's `planner::machine`, the
+//! G-code state machine): which steppers exist, on which MCU and oid, with which pins, and the
+//! planner configuration derived from printer.cfg.
 
 use planner::pipeline::{Pipeline, PipelineConfig, PipelineOptions, StepperSpec};
 use planner::toolhead::ToolheadConfig;
@@ -99,12 +100,38 @@ pub struct Machine {
     pub real_board: bool,
 }
 
+/// Why a printer.cfg describes no printer the host can drive; each names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum HardwareError {
+    /// printer.cfg could not be read or is invalid (file, line, section, option).
+    #[error("{0}")]
+    Config(#[from] sysconfig::ConfigError),
+    /// The built-in simulated printer's config did not load.
+    #[error("built-in printer: {0}")]
+    Builtin(sysconfig::ConfigError),
+    /// The planner's configuration could not be derived (e.g. unsupported kinematics).
+    #[error("{file}: {why}")]
+    Planning { file: std::path::PathBuf, why: String },
+    /// A `[probe]` the printer cannot have.
+    #[error("{file}: {why}")]
+    Probe { file: std::path::PathBuf, why: String },
+}
+
+impl From<HardwareError> for String {
+    fn from(e: HardwareError) -> String {
+        e.to_string()
+    }
+}
+
 impl Machine {
     /// Derives the machine from a validated config: steppers and endstops on any of its MCUs.
-    pub fn from_config(cfg: &PrinterConfig) -> Result<Machine, String> {
+    pub fn from_config(cfg: &PrinterConfig) -> Result<Machine, HardwareError> {
         // Toolhead limits, kinematics and home position come from one shared derivation.
-        let (planning, kinematics) = sysconfig::planning::pipeline_config(cfg, 1.0, 25e-6)
-            .map_err(|e| format!("{}: {e}", cfg.source.display()))?;
+        let (planning, kinematics) =
+            sysconfig::planning::pipeline_config(cfg, 1.0, 25e-6).map_err(|e| HardwareError::Planning {
+                file: cfg.source.clone(),
+                why: e.to_string(),
+            })?;
         let mut steppers = Vec::new();
         let mut endstops = Vec::new();
         for (axis, s) in cfg.steppers.iter().enumerate().take(3) {
@@ -186,10 +213,10 @@ impl Machine {
 }
 
 /// The printer config at `path`, or the built-in simulated printer without one.
-pub fn load_config(path: Option<&std::path::Path>) -> Result<PrinterConfig, String> {
+pub fn load_config(path: Option<&std::path::Path>) -> Result<PrinterConfig, HardwareError> {
     match path {
-        Some(path) => sysconfig::printer::load(path).map_err(|e| e.to_string()),
-        None => sysconfig::printer::builtin_simulated().map_err(|e| format!("built-in printer: {e}")),
+        Some(path) => Ok(sysconfig::printer::load(path)?),
+        None => sysconfig::printer::builtin_simulated().map_err(HardwareError::Builtin),
     }
 }
 
@@ -348,12 +375,12 @@ fn probe_out(
     cfg: &PrinterConfig,
     endstops: &[EndstopOut],
     next: &mut std::collections::HashMap<String, u8>,
-) -> Result<ProbeOut, String> {
+) -> Result<ProbeOut, HardwareError> {
     let Some(z) = cfg.steppers.get(2).filter(|s| s.name == "stepper_z") else {
-        return Err(format!(
-            "{}: [probe] needs a [stepper_z] (cartesian or corexy kinematics)",
-            cfg.source.display()
-        ));
+        return Err(HardwareError::Probe {
+            file: cfg.source.clone(),
+            why: "[probe] needs a [stepper_z] (cartesian or corexy kinematics)".to_string(),
+        });
     };
     let shared = endstops.iter().find(|e| e.axis == 2 && e.probe);
     let oid = match shared {

@@ -1,4 +1,4 @@
-//! `cadence doctor`: is this host fit to run Cadence with hard timing?
+//! Host real-time checks (`cadence doctor`): is this host fit to run Cadence with hard timing?
 //!
 //! Each check turns one fact about the host (read from `/proc`, `/sys`, or a live attempt such
 //! as switching a thread to SCHED_FIFO) into a [`Check`] with a status and, when not fine, a
@@ -12,7 +12,7 @@
 use std::fmt;
 use std::time::Duration;
 
-use rt_core::hist::LatencyHist;
+use crate::hist::LatencyHist;
 
 /// How a check came out.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
@@ -276,7 +276,7 @@ pub fn check_governors(governors: &[String]) -> Check {
 /// Tries SCHED_FIFO on a scratch thread (the finding is whether the OS allows it).
 pub fn check_fifo(priority: i32) -> Check {
     const NAME: &str = "SCHED_FIFO";
-    let res = std::thread::spawn(move || rt_core::os::set_current_thread_fifo(priority))
+    let res = std::thread::spawn(move || crate::os::set_current_thread_fifo(priority))
         .join()
         .map_err(|_| "the probe thread panicked".to_string())
         .and_then(|r| r.map_err(|e| e.to_string()));
@@ -295,10 +295,10 @@ pub fn check_fifo(priority: i32) -> Check {
 /// cyclictest: how late each wake-up comes, in a histogram.
 pub fn measure_wakeup(samples: usize, period: Duration, fifo_priority: Option<i32>) -> (LatencyHist, bool) {
     let handle = std::thread::spawn(move || {
-        let fifo = fifo_priority.is_some_and(|p| rt_core::os::set_current_thread_fifo(p).is_ok());
+        let fifo = fifo_priority.is_some_and(|p| crate::os::set_current_thread_fifo(p).is_ok());
         let mut hist = LatencyHist::new();
         let mut n = 0;
-        rt_core::wakeup::sleep_loop(period, &mut hist, || {
+        crate::wakeup::sleep_loop(period, &mut hist, || {
             n += 1;
             n >= samples
         });
@@ -377,7 +377,7 @@ pub fn run_checks(facts: &HostFacts, opts: &DoctorOptions) -> Vec<Check> {
     ));
     out.push(check_governors(&facts.governors));
     // Held through the wake-up measurement, as while Cadence runs.
-    let hold = rt_core::os::hold_cpu_dma_latency_zero();
+    let hold = crate::os::hold_cpu_dma_latency_zero();
     out.push(check_idle_latency(
         hold.as_ref().map(|_| ()).map_err(|e| e.to_string()),
     ));

@@ -1,4 +1,4 @@
-//! `cadence decode STREAM --check FILE.gcode`: proves a wire stream written by `print --batch`
+//! Proves (`cadence decode STREAM --check FILE.gcode`) a wire stream written by `print --batch`
 //! against the motion of the G-code it came from.
 //!
 //! The G-code is planned again with the same printer.cfg, MCU clock and step-time bound,
@@ -26,9 +26,22 @@ use planner::checker::{CheckStats, Checker, StepCmd};
 use planner::gcode::GcodeReader;
 use planner::pipeline::Pipeline;
 
-use crate::machine::Machine;
+use crate::hardware::Machine;
 
-/// What `--check` needs besides the stream.
+/// The data dictionary in `path` (zlib-compressed JSON as served by identify, or plain JSON as
+/// Klipper's build writes `out/klipper.dict`), or the Cadence firmware's own when none is given.
+pub fn load_dictionary(path: Option<&std::path::Path>) -> Result<Dictionary, String> {
+    match path {
+        Some(p) => {
+            let bytes = std::fs::read(p).map_err(|e| format!("{}: {e}", p.display()))?;
+            Dictionary::from_file_bytes(&bytes).map_err(|e| format!("{}: {e}", p.display()))
+        }
+        None => Dictionary::from_compressed(&firmware::dictionary_bytes(50_000_000))
+            .map_err(|e| format!("firmware dictionary: {e}")),
+    }
+}
+
+/// What a check needs besides the stream.
 #[derive(Debug)]
 pub struct CheckSpec<'a> {
     pub gcode: &'a Path,
@@ -92,7 +105,13 @@ impl Planner {
 }
 
 /// Runs the check of `data` (the stream) and prints one line per stepper.
-pub fn run(stream: &Path, data: &[u8], dict: &Dictionary, spec: &CheckSpec<'_>) -> Result<(), String> {
+pub fn run(
+    stream: &Path,
+    data: &[u8],
+    dict: &Dictionary,
+    spec: &CheckSpec<'_>,
+    out: &mut dyn FnMut(String),
+) -> Result<(), String> {
     if !(spec.max_error_us > 0.0 && spec.max_error_us <= 1000.0) {
         return Err(format!(
             "--max-error-us {}: must be in (0, 1000]",
@@ -100,7 +119,7 @@ pub fn run(stream: &Path, data: &[u8], dict: &Dictionary, spec: &CheckSpec<'_>) 
         ));
     }
     let gcode = File::open(spec.gcode).map_err(|e| format!("{}: {e}", spec.gcode.display()))?;
-    let cfg = crate::machine::load_config(spec.config)?;
+    let cfg = crate::hardware::load_config(spec.config)?;
     let machine = Machine::from_config(&cfg)?;
     if !machine.steppers.iter().any(|s| s.mcu == spec.mcu) {
         return Err(format!(
@@ -158,13 +177,13 @@ pub fn run(stream: &Path, data: &[u8], dict: &Dictionary, spec: &CheckSpec<'_>) 
         }
     }
     while planner.more(&mut checked, spec.gcode)? {}
-    println!(
+    out(format!(
         "check: {} against {} (MCU '{}', max error {} µs)",
         stream.display(),
         spec.gcode.display(),
         spec.mcu,
         spec.max_error_us
-    );
+    ));
     for c in &checked {
         let stats: CheckStats = c.checker.finish().map_err(|e| {
             let note = if c.configured {
@@ -174,7 +193,7 @@ pub fn run(stream: &Path, data: &[u8], dict: &Dictionary, spec: &CheckSpec<'_>) 
             };
             format!("{}: {e}{note}", c.name)
         })?;
-        println!(
+        out(format!(
             "  {:<10} {} steps in {} queue_step, {} direction changes, position {}, max early {:.2} µs: ok",
             c.name,
             stats.steps,
@@ -182,7 +201,7 @@ pub fn run(stream: &Path, data: &[u8], dict: &Dictionary, spec: &CheckSpec<'_>) 
             stats.dir_changes,
             stats.position,
             stats.max_early_ticks / clock_freq * 1e6
-        );
+        ));
     }
     Ok(())
 }

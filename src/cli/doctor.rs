@@ -1,10 +1,10 @@
-//! `cadence doctor`: checks this host for hard timing (sysconfig::doctor) and, with `--unit`,
+//! `cadence doctor`: checks this host for hard timing (`cadence::host_check`) and, with `--unit`,
 //! prints the systemd unit that runs the IO stage as a service (sysconfig::systemd).
 
 use std::path::PathBuf;
 
+use cadence::host_check::{run_checks, DoctorOptions, HostFacts, Status};
 use clap::Args;
-use sysconfig::doctor::{run_checks, DoctorOptions, HostFacts, Status};
 use sysconfig::systemd::{unit, UnitSpec};
 
 #[derive(Debug, Args)]
@@ -37,7 +37,7 @@ pub fn run(args: &DoctorArgs) -> Result<(), String> {
         print!("{}", unit(&unit_spec(args)?));
         return Ok(());
     }
-    let is_root = sysconfig::doctor::running_as_root();
+    let is_root = cadence::host_check::running_as_root();
     let checks = run_checks(
         &HostFacts::read(),
         &DoctorOptions {

@@ -4,7 +4,7 @@
 //! from the same printer.cfg the planner loads, and then serves one print: it subscribes to the
 //! step channel `cadence/<instance>/mcu/<mcu>/steps` exactly as the in-process IO stage thread
 //! does and feeds the link. What the planner needs from the MCU side crosses over the services
-//! of `rt_core::shm::io` (MCU info with the data dictionary, clock snapshots, status, control);
+//! of [`super::payloads`] (MCU info with the data dictionary, clock snapshots, status, control);
 //! see that module for the handshake and the payload layouts.
 //!
 //! Threads: the IO stage (pinned, SCHED_FIFO where allowed, like in-process), the MCU links' IO
@@ -16,77 +16,71 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
 
-use clap::{Args, ValueEnum};
 use links::mcu::McuLink;
 use rt_core::logger::{Arg, Level, LoggerHandle};
 use rt_core::os::{apply_rt, RtSpec};
-use rt_core::shm::io::{
-    clock_service_name, control_kind, control_service_name, info_service_name, io_state, status_service_name,
-    ClockSnapshot, IoControl, IoStatus, McuInfo, STATUS_POSITIONS,
-};
 use rt_core::shm::{
     open_node, steps_service_name, telemetry_service_name, ChannelConfig, ShmPublisher, ShmSubscriber,
     Telemetry,
 };
 
-use crate::live::{self, Hists, Logging, RtConfig};
-use crate::machine::Machine;
-use crate::mcus::{ConnectOptions, Mcus};
+use super::payloads::{
+    clock_service_name, control_kind, control_service_name, info_service_name, io_state, status_service_name,
+    ClockSnapshot, IoControl, IoStatus, McuInfo, STATUS_POSITIONS,
+};
+use crate::hardware::Machine;
+use crate::io_stage;
+use crate::latency::{self, Hists};
+use crate::logging::Logging;
+use crate::mcus::Mcus;
+use crate::realtime::RtConfig;
 
 type Ipc = iceoryx2::prelude::ipc::Service;
 
 /// How often the main thread publishes clock snapshots and checks on everything.
 pub const CLOCK_PERIOD: Duration = Duration::from_millis(20);
 
-/// The stages `serve` can run.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum Role {
-    /// The IO stage: MCU connections, fed from the step channels.
-    Io,
-}
-
-/// Arguments of `cadence serve`.
-#[derive(Debug, Args)]
-pub struct ServeArgs {
-    /// The stage to run in this process.
-    #[arg(long, value_enum)]
-    pub role: Role,
+/// How `serve` runs the IO stage.
+#[derive(Debug, Clone)]
+pub struct ServeOptions {
     /// Klipper-format printer.cfg (default: the built-in simulated cartesian printer); the
     /// planner must load the same one (checked through the configuration CRC).
-    #[arg(long)]
     pub config: Option<PathBuf>,
     /// Service instance: services are named `cadence/<instance>/...` (default `p<pid>`).
-    #[arg(long)]
     pub instance: Option<String>,
     /// Simulated MCU clock runs this many times faster than the wall clock.
-    #[arg(long)]
     pub time_scale: Option<f64>,
     /// Write the simulated MCU's step trace to this file.
-    #[arg(long)]
     pub trace: Option<PathBuf>,
     /// Don't pin threads, use SCHED_FIFO or lock memory.
-    #[arg(long)]
     pub no_realtime: bool,
     /// Also write the log to this file (appended).
-    #[arg(long, value_name = "PATH")]
     pub log_file: Option<PathBuf>,
     /// Most verbose log level recorded: error, warn, info, debug or trace.
-    #[arg(long, default_value = "info", value_name = "LEVEL")]
     pub log_level: Level,
     /// Stop (and fail) when the process with this pid (the planner that started us) is gone.
-    #[arg(long)]
     pub parent_pid: Option<u32>,
     /// Fail when neither a step batch nor a command arrived for this many seconds (0: wait
-    /// forever).
-    #[arg(long, default_value_t = 120.0)]
+    /// forever; the CLI's default is 120).
     pub idle_timeout: f64,
 }
 
-pub fn run(args: &ServeArgs) -> Result<(), String> {
-    let Role::Io = args.role;
-    let cfg = crate::machine::load_config(args.config.as_deref())?;
+/// What `serve` reports: its lines (histograms, link statistics, allocations, log), which
+/// real-time guarantees were off, and how the served print ended.
+#[derive(Debug)]
+pub struct ServeOutcome {
+    pub report: Vec<String>,
+    pub rt_report: Vec<String>,
+    pub result: Result<(), String>,
+}
+
+/// Serves one print: connects and configures the MCUs, runs the IO stage until the planner's
+/// FINISH, publishes DONE. `warn` gets the printer.cfg's warnings. Errors before the MCUs are
+/// connected come back as `Err`; later ones in [`ServeOutcome::result`] after the report.
+pub fn run(args: &ServeOptions, warn: &mut dyn FnMut(&str)) -> Result<ServeOutcome, String> {
+    let cfg = crate::hardware::load_config(args.config.as_deref())?;
     for w in &cfg.warnings {
-        eprintln!("cadence serve: warning: {w}");
+        warn(w);
     }
     let simulated = cfg.mcus.iter().any(|m| m.is_simulated());
     if args.time_scale.is_some() && !simulated {
@@ -97,7 +91,7 @@ pub fn run(args: &ServeArgs) -> Result<(), String> {
         return Err(format!("--time-scale {time_scale}: must be in (0, 50]"));
     }
     let machine = Machine::from_config(&cfg)?;
-    crate::remote::check_single_mcu(&machine)?;
+    super::planner_side::check_single_mcu(&machine)?;
     let instance = args
         .instance
         .clone()
@@ -119,21 +113,15 @@ pub fn run(args: &ServeArgs) -> Result<(), String> {
 
     let rt = RtConfig::from_section(&cfg.realtime, args.no_realtime);
     let _idle_hold = rt.hold_idle_latency();
-    let hists = Hists::new();
-    let opts = ConnectOptions {
-        time_scale,
-        trace: args.trace.clone(),
-        lead_hooks: Some(hists.lead_hooks(logging.handle("io-link"))),
-        io_rt: Some(rt.link_spec()),
-    };
-    let mut mcus = match Mcus::connect(&cfg, &machine, opts) {
-        Ok(m) => m,
+    let connected = crate::live::connect_mcus(&cfg, &machine, time_scale, args.trace.clone(), &rt, &logging);
+    let (hists, mut mcus) = match connected {
+        Ok(c) => c,
         Err(e) => {
+            let e = e.to_string();
             let _ = report.send(&mut status, io_state::FAILED, &e);
             return Err(e);
         }
     };
-    hists.set_min_lead(&mcus);
     let ctx = ServeCtx {
         args,
         machine: &machine,
@@ -152,25 +140,28 @@ pub fn run(args: &ServeArgs) -> Result<(), String> {
     let stats = mcus.close();
     // The report: this process's histograms and link statistics.
     let clock_freq = machine_clock_freq(&result);
-    for line in hists.report(clock_freq) {
-        println!("  io: {line}");
-    }
+    let mut lines: Vec<String> = hists
+        .report(clock_freq)
+        .into_iter()
+        .map(|l| format!("  io: {l}"))
+        .collect();
     for (name, s) in &stats {
-        println!("  io: mcu '{name}': {s}");
+        lines.push(format!("  io: mcu '{name}': {s}"));
     }
     if let Ok(io) = &result {
-        println!(
+        lines.push(format!(
             "  io: stage took {} batches; allocations after warm-up: {}",
             io.batches,
             io.allocations_after_warmup
                 .map_or("n/a".to_string(), |n| n.to_string())
-        );
+        ));
     }
-    println!("  io: {}", logging.finish());
-    for line in rt_core::os::rt_report() {
-        eprintln!("cadence serve: {line}");
-    }
-    result.map(|_| ())
+    lines.push(format!("  io: {}", logging.finish()));
+    Ok(ServeOutcome {
+        report: lines,
+        rt_report: rt_core::os::rt_report(),
+        result: result.map(|_| ()),
+    })
 }
 
 /// The clock frequency the served print used (for the report's ms figures).
@@ -217,7 +208,7 @@ impl StatusReport {
 }
 
 struct ServeCtx<'a> {
-    args: &'a ServeArgs,
+    args: &'a ServeOptions,
     machine: &'a Machine,
     mcus: &'a Mcus,
     instance: &'a str,
@@ -227,24 +218,14 @@ struct ServeCtx<'a> {
     scale: f64,
 }
 
-/// Publishes the MCU info and clocks, runs the IO stage thread for the main MCU until the
-/// planner's FINISH, then reads the final positions back and publishes DONE.
-fn serve_print(
-    ctx: &ServeCtx<'_>,
-    node: &iceoryx2::node::Node<Ipc>,
-    status: &mut ShmPublisher<Ipc, IoStatus>,
-    report: &mut StatusReport,
-) -> Result<ServedReport, String> {
-    let mcus = ctx.mcus;
-    let main = mcus.main();
-    let clock_freq = main.clock_freq;
+/// Publishes each MCU's info (kept as history) and opens its clock publisher.
+fn open_info_and_clocks(ctx: &ServeCtx<'_>, node: &iceoryx2::node::Node<Ipc>) -> Result<Publishers, String> {
     let err = |e: rt_core::shm::ShmError| e.to_string();
-    // Info (kept as history) and clock publishers, one per MCU.
     let mut infos = Vec::new();
     let mut clocks = Vec::new();
-    for (i, m) in mcus.list.iter().enumerate() {
+    for (i, m) in ctx.mcus.list.iter().enumerate() {
         let dict = m.link.dictionary();
-        let crc = crate::remote::config_crc(dict, ctx.machine, &m.name)?;
+        let crc = super::planner_side::config_crc(dict, ctx.machine, &m.name)?;
         let mut p = ShmPublisher::<Ipc, McuInfo>::open(
             node,
             &info_service_name(ctx.instance, &m.name),
@@ -277,22 +258,70 @@ fn serve_print(
         .map_err(err)?;
         clocks.push(c);
     }
-    let publish_clocks = |clocks: &mut Vec<ShmPublisher<Ipc, ClockSnapshot>>| -> Result<(), String> {
-        let now = McuLink::system_now();
-        for (m, p) in mcus.list.iter().zip(clocks.iter_mut()) {
-            let est = m.link.clock();
-            p.send_with(|c| {
-                c.ref_time = now;
-                c.ref_clock = est.clock_at(now);
-                c.freq = est.freq();
-                c.residual_us = est.residual_us();
-                c.valid = est.is_valid() as u32;
-            })
-            .map_err(err)?;
-        }
-        Ok(())
-    };
-    publish_clocks(&mut clocks)?;
+    Ok((infos, clocks))
+}
+
+/// The info and clock publishers, one each per MCU.
+type Publishers = (
+    Vec<ShmPublisher<Ipc, McuInfo>>,
+    Vec<ShmPublisher<Ipc, ClockSnapshot>>,
+);
+
+/// Publishes every MCU's clock fit now.
+fn publish_clocks(mcus: &Mcus, clocks: &mut [ShmPublisher<Ipc, ClockSnapshot>]) -> Result<(), String> {
+    let now = McuLink::system_now();
+    for (m, p) in mcus.list.iter().zip(clocks.iter_mut()) {
+        let est = m.link.clock();
+        p.send_with(|c| {
+            c.ref_time = now;
+            c.ref_clock = est.clock_at(now);
+            c.freq = est.freq();
+            c.residual_us = est.residual_us();
+            c.valid = est.is_valid() as u32;
+        })
+        .map_err(|e| e.to_string())?;
+    }
+    Ok(())
+}
+
+/// Waits until the main MCU executed the last step, reads the stepper positions back and
+/// fills the `DONE` status with them and the link's lead figures.
+fn fill_done(
+    ctx: &ServeCtx<'_>,
+    end_clock: u64,
+    batches: u64,
+    report: &mut StatusReport,
+) -> Result<(), String> {
+    let positions = crate::live::read_final_positions(ctx.mcus, ctx.machine, &[(0, end_clock)], ctx.scale)?;
+    if positions.len() > STATUS_POSITIONS {
+        return Err(format!(
+            "{} steppers: an IoStatus carries at most {STATUS_POSITIONS} positions",
+            positions.len()
+        ));
+    }
+    let stats = ctx.mcus.main().link.stats();
+    report.base.batches = batches;
+    report.base.clocked_msgs = stats.clocked_msgs;
+    report.base.min_lead_margin_ticks = stats.min_lead_margin_ticks.unwrap_or(i64::MIN);
+    report.base.npos = positions.len() as u32;
+    report.base.positions[..positions.len()].copy_from_slice(&positions);
+    Ok(())
+}
+
+/// Publishes the MCU info and clocks, runs the IO stage thread for the main MCU until the
+/// planner's FINISH, then reads the final positions back and publishes DONE.
+fn serve_print(
+    ctx: &ServeCtx<'_>,
+    node: &iceoryx2::node::Node<Ipc>,
+    status: &mut ShmPublisher<Ipc, IoStatus>,
+    report: &mut StatusReport,
+) -> Result<ServedReport, String> {
+    let mcus = ctx.mcus;
+    let main = mcus.main();
+    let clock_freq = main.clock_freq;
+    let err = |e: rt_core::shm::ShmError| e.to_string();
+    let (infos, mut clocks) = open_info_and_clocks(ctx, node)?;
+    publish_clocks(mcus, &mut clocks)?;
     let mut control = ShmSubscriber::<Ipc, IoControl>::open(
         node,
         &control_service_name(ctx.instance),
@@ -322,12 +351,12 @@ fn serve_print(
             .name(io_spec.name.clone())
             .spawn_scoped(scope, move || {
                 apply_rt(&io_spec);
-                live::io_stage(
+                io_stage::io_stage(
                     link, service, ready_tx, done, consumed, hists, clock_freq, &io_log,
                 )
             })
             .map_err(|e| format!("cannot start the IO stage thread: {e}"))?;
-        let stop_io = |io: std::thread::ScopedJoinHandle<'_, Result<live::IoReport, String>>| {
+        let stop_io = |io: std::thread::ScopedJoinHandle<'_, Result<io_stage::IoReport, String>>| {
             done.store(true, Ordering::Release);
             io.join()
                 .map_err(|_| "the IO stage thread panicked".to_string())
@@ -349,7 +378,7 @@ fn serve_print(
         let mut finish: Option<IoControl> = None;
         loop {
             std::thread::sleep(CLOCK_PERIOD);
-            publish_clocks(&mut clocks)?;
+            publish_clocks(mcus, &mut clocks)?;
             // New subscribers get the history (info, status) when the publisher connects.
             for p in &infos {
                 p.connect().map_err(err)?;
@@ -360,12 +389,12 @@ fn serve_print(
                 hists.publish(
                     &mut telemetry,
                     started.elapsed().as_nanos() as u64,
-                    live::LEAD_SOURCE,
+                    latency::LEAD_SOURCE,
                 );
             }
             if let Err(e) = mcus.check() {
                 let _ = stop_io(io);
-                return Err(e);
+                return Err(e.into());
             }
             if io.is_finished() {
                 // The IO stage only ends on its own with an error (or after `done`).
@@ -400,25 +429,12 @@ fn serve_print(
                         "serve: all batches taken, waiting for the MCU: batches, end clock",
                         [Arg::U(n), Arg::U(f.end_clock)],
                     );
-                    let positions =
-                        live::read_final_positions(mcus, ctx.machine, &[(0, f.end_clock)], ctx.scale)?;
-                    if positions.len() > STATUS_POSITIONS {
-                        return Err(format!(
-                            "{} steppers: an IoStatus carries at most {STATUS_POSITIONS} positions",
-                            positions.len()
-                        ));
-                    }
-                    let stats = link.stats();
-                    report.base.batches = io_report.batches;
-                    report.base.clocked_msgs = stats.clocked_msgs;
-                    report.base.min_lead_margin_ticks = stats.min_lead_margin_ticks.unwrap_or(i64::MIN);
-                    report.base.npos = positions.len() as u32;
-                    report.base.positions[..positions.len()].copy_from_slice(&positions);
+                    fill_done(ctx, f.end_clock, io_report.batches, report)?;
                     report.send(status, io_state::DONE, "")?;
                     hists.publish(
                         &mut telemetry,
                         started.elapsed().as_nanos() as u64,
-                        live::LEAD_SOURCE,
+                        latency::LEAD_SOURCE,
                     );
                     ctx.log.log(Level::Info, "serve: print done", []);
                     // Keep the DONE sample alive until the planner has read it.

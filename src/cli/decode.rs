@@ -1,14 +1,12 @@
 //! `cadence decode`: prints a host→MCU wire stream (as written by `print --batch`) one message
 //! a line, with names and fields from the data dictionary; with `--check FILE.gcode`, proves
-//! its step commands against the G-code's motion instead ([`check`]).
-
-mod check;
+//! its step commands against the G-code's motion instead ([`cadence::wire_check`]).
 
 use std::io::Write;
 use std::path::PathBuf;
 
+use cadence::wire_check::{self as check, load_dictionary};
 use clap::Args;
-use links::dict::Dictionary;
 use links::proto::{block::block_payload, find_block, Frame};
 
 /// Arguments of `cadence decode`.
@@ -36,22 +34,8 @@ pub struct DecodeArgs {
     pub max_error_us: f64,
 }
 
-/// The data dictionary in `path` (zlib-compressed JSON as served by identify, or plain JSON as
-/// Klipper's build writes `out/klipper.dict`), or the Cadence
-/// firmware's own when none is given.
-pub fn load_dictionary(path: Option<&std::path::Path>) -> Result<Dictionary, String> {
-    match path {
-        Some(p) => {
-            let bytes = std::fs::read(p).map_err(|e| format!("{}: {e}", p.display()))?;
-            Dictionary::from_file_bytes(&bytes).map_err(|e| format!("{}: {e}", p.display()))
-        }
-        None => Dictionary::from_compressed(&firmware::dictionary_bytes(50_000_000))
-            .map_err(|e| format!("firmware dictionary: {e}")),
-    }
-}
-
 pub fn run(args: &DecodeArgs) -> Result<(), String> {
-    let dict = crate::decode::load_dictionary(args.dictionary.as_deref())?;
+    let dict = load_dictionary(args.dictionary.as_deref())?;
     let data = std::fs::read(&args.file).map_err(|e| format!("{}: {e}", args.file.display()))?;
     if let Some(gcode) = &args.check {
         let spec = check::CheckSpec {
@@ -60,7 +44,7 @@ pub fn run(args: &DecodeArgs) -> Result<(), String> {
             mcu: &args.mcu,
             max_error_us: args.max_error_us,
         };
-        return check::run(&args.file, &data, &dict, &spec);
+        return check::run(&args.file, &data, &dict, &spec, &mut |line| println!("{line}"));
     }
     let stdout = std::io::stdout();
     let mut out = std::io::BufWriter::new(stdout.lock());

@@ -1,5 +1,6 @@
-//! The step streams of a print: one per MCU that drives steppers (the main `[mcu]` always
-//! first), each with its own step streamer (move-pool accounting, encoders from that MCU's
+//! The step stream encoder: the planner's per-stepper step commands → encoded MCU messages
+//! ([`sink`]: encoding, send clocks and where messages go), in streams of a print: one per MCU
+//! that drives steppers (the main `[mcu]` always first), each with its own step streamer (move-pool accounting, encoders from that MCU's
 //! data dictionary) and, in a live print, its own shared-memory channel and IO stage.
 //!
 //! Clock domains: print time is the main MCU's clock divided by its `CLOCK_FREQ`. A stepper
@@ -13,7 +14,9 @@
 //! ```
 //!
 //! The planner gets the maps at start and again between batches ([`StepStreams::refresh_clocks`]),
-//! so each MCU's crystal drift is followed (docs/protocol.md "Clock sync").
+//! so each MCU's crystal drift is followed (the fits are `links::clocksync`'s).
+
+pub mod sink;
 
 use links::clocksync::ClockEstimate;
 use links::dict::Dictionary;
@@ -21,8 +24,8 @@ use links::mcu::McuLink;
 use planner::pipeline::{ClockMap, Pipeline};
 use planner::stepgen::StepCmd;
 
-use crate::machine::Machine;
-use crate::sink::{Sink, StepStreamer};
+use crate::hardware::Machine;
+use sink::{Sink, StepStreamer};
 
 /// What a stream needs to know of its MCU.
 #[derive(Debug, Clone, Copy)]
@@ -229,12 +232,12 @@ mod tests {
 
     #[test]
     fn the_main_mcu_always_streams_and_others_only_with_steppers() {
-        let text = include_str!("../examples/simulated-toolboard.cfg");
+        let text = include_str!("../../examples/simulated-toolboard.cfg");
         let cfg = sysconfig::parse_str(text, std::path::Path::new("printer.cfg")).unwrap();
         let m = Machine::from_config(&cfg).unwrap();
         assert_eq!(stream_mcus(&m, &["mcu", "toolboard"]), [0, 1]);
         assert_eq!(stream_mcus(&m, &["mcu", "toolboard", "spare"]), [0, 1]);
-        let dict = crate::decode::load_dictionary(None).unwrap();
+        let dict = crate::wire_check::load_dictionary(None).unwrap();
         let p = |name, mcu_index| McuParams {
             name,
             mcu_index,

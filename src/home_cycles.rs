@@ -1,4 +1,4 @@
-//! `cadence home`: homes the printer (default: the built-in simulated one) with real motion,
+//! Homing cycles with latency figures (`cadence home`): homes the printer (default: the built-in simulated one) with real motion,
 //! once or `--cycles N` times (each cycle first moves the homed axes `--away` mm off their
 //! endstops), and reports the homed position, the overshoot and trigger → stop latencies.
 //!
@@ -42,51 +42,47 @@ use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::Instant;
 
-use clap::Args;
 use links::clocksync::ClockEstimate;
 use links::trsync::COMM_TIMEOUT_MSG;
 use planner::pipeline::{Pipeline, PipelineOptions};
 use rt_core::hist::LatencyHist;
 use rt_core::wakeup::{WakeupProbe, WakeupReport};
 
-use super::{plain_move, print_now, HomingCtx, HomingReport, AXIS_NAMES};
-use crate::live::RtConfig;
-use crate::machine::Machine;
+use crate::hardware::Machine;
+use crate::homing::{plain_move, print_now, HomingCtx, HomingReport, AXIS_NAMES};
 use crate::mcus::{trace_path, ConnectOptions, Mcus};
-use crate::streams::StepStreams;
+use crate::realtime::RtConfig;
+use crate::step_stream::StepStreams;
 
-/// Arguments of `cadence home`.
-#[derive(Debug, Args)]
-pub struct HomeArgs {
-    /// Klipper-format printer.cfg (default: the built-in simulated cartesian printer).
-    #[arg(long)]
+/// What `cadence home` runs.
+#[derive(Debug, Clone)]
+pub struct HomeOptions {
+    /// Klipper-format printer.cfg (`None`: the built-in simulated cartesian printer).
     pub config: Option<PathBuf>,
-    /// Axes to home, as letters (e.g. `z`, `xy`).
-    #[arg(long, default_value = "xyz")]
-    pub axes: String,
-    /// Homing cycles; before each one after the first, the axes move `--away` mm off their
+    /// Axes to home (X, Y, Z).
+    pub axes: [bool; 3],
+    /// Homing cycles; before each one after the first, the axes move `away` mm off their
     /// endstops.
-    #[arg(long, default_value_t = 1)]
     pub cycles: u32,
     /// Distance (mm) the axes move off their endstops between cycles.
-    #[arg(long, default_value_t = 5.0)]
     pub away: f64,
-    /// Simulated MCU clock runs this many times faster than the wall clock.
-    #[arg(long)]
-    pub time_scale: Option<f64>,
-    /// Write the simulated MCUs' step traces (others than the main one get `-NAME` inserted).
-    #[arg(long)]
-    pub trace: Option<PathBuf>,
-    /// Maximum step time error of the compression, in microseconds.
-    #[arg(long, default_value_t = 25.0)]
-    pub max_error_us: f64,
-    /// Don't pin threads, use SCHED_FIFO or lock memory (otherwise printer.cfg's `[realtime]`).
-    #[arg(long)]
-    pub no_realtime: bool,
-    /// Load every core with a SCHED_OTHER busy-spinning thread while homing (stopped at the
-    /// end): the loaded latency measurement.
-    #[arg(long)]
+    /// Load every core with a SCHED_OTHER busy-spinning thread while homing.
     pub cpu_load: bool,
+    /// Simulated MCU clocks run this many times faster than the wall clock.
+    pub time_scale: Option<f64>,
+    /// Step traces of the simulated MCUs.
+    pub trace: Option<PathBuf>,
+    /// Maximum step time error of the compression (µs).
+    pub max_error_us: f64,
+    /// Don't pin threads, use SCHED_FIFO or lock memory.
+    pub no_realtime: bool,
+}
+
+/// Where the report goes: `out` the report lines (stdout in the CLI), `err` the warnings and
+/// notes (stderr).
+pub trait HomeOutput {
+    fn out(&mut self, line: String);
+    fn err(&mut self, line: String);
 }
 
 /// One SCHED_OTHER busy-spinning thread per core; stopped and joined when dropped.
@@ -145,14 +141,9 @@ struct PassTiming {
 /// Sleep period of the wake-up probe (the machine's noise floor during the run).
 const WAKEUP_PERIOD: std::time::Duration = std::time::Duration::from_millis(1);
 
-pub fn run(args: &HomeArgs) -> Result<(), String> {
-    let mut axes = [false; 3];
-    for c in args.axes.chars() {
-        match AXIS_NAMES.iter().position(|&a| a == c.to_ascii_lowercase()) {
-            Some(i) => axes[i] = true,
-            None => return Err(format!("--axes {}: '{c}' is not x, y or z", args.axes)),
-        }
-    }
+/// Homes `cycles` times and reports as it goes (see the module docs).
+pub fn run(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<(), String> {
+    let axes = args.axes;
     if !(args.away.is_finite() && args.away > 0.0) {
         return Err(format!("--away {}: must be > 0", args.away));
     }
@@ -161,12 +152,12 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
             return Err(format!("--time-scale {scale}: must be in (0, 50]"));
         }
     }
-    let cfg = crate::machine::load_config(args.config.as_deref())?;
+    let cfg = crate::hardware::load_config(args.config.as_deref())?;
     for w in &cfg.warnings {
-        eprintln!("cadence: warning: {w}");
+        o.err(format!("warning: {w}"));
     }
     let machine = Machine::from_config(&cfg)?;
-    super::check_config(&machine)?;
+    crate::homing::check_config(&machine)?;
     let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let hogs = if args.cpu_load {
@@ -191,7 +182,7 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
         .map_err(|e| format!("cannot start the wake-up probe thread: {e}"))?;
     // After the simulated MCUs were spawned (they would inherit this thread's core).
     let got = rt_core::os::apply_rt(&rt.planner_spec());
-    println!(
+    o.out(format!(
         "threads: real time {} (this thread pinned={} fifo={}, links' IO threads on core {} at \
          SCHED_FIFO {}); cpu load: {}",
         if rt.enabled { "on" } else { "off" },
@@ -203,13 +194,13 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
             Some(h) => format!("on ({} SCHED_OTHER spinning threads)", h.threads.len()),
             None => "off".to_string(),
         }
-    );
+    ));
     let clocks: Vec<(String, ClockEstimate)> = mcus
         .list
         .iter()
         .map(|m| (m.name.clone(), m.link.clock()))
         .collect();
-    let result = cycles(args, &machine, &mcus, axes, time_scale, &rt);
+    let result = cycles(args, o, &machine, &mcus, axes, time_scale, &rt);
     let noise = probe.finish();
     // Fresh estimates for the trace conversion (the fit keeps improving).
     let clocks: Vec<(String, ClockEstimate)> = mcus
@@ -223,17 +214,19 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
     mcus.close();
     drop(hogs);
     for line in rt_core::os::rt_report() {
-        eprintln!("cadence: {line}");
+        o.err(line);
     }
     let (timings, host_p999) = result?;
-    println!(
+    o.out(format!(
         "  machine wake-up latency meanwhile ({} ms sleeps, {}): {}",
         noise.period.as_secs_f64() * 1e3,
         if noise.fifo { "SCHED_FIFO" } else { "SCHED_OTHER" },
         noise.hist.summary().format_latency()
-    );
+    ));
     if let Some(r) = noise.ratio_to_p999(host_p999) {
-        println!("  host view, last executed step after trigger p99.9 = {r:.1} x the wake-up p99.9");
+        o.out(format!(
+            "  host view, last executed step after trigger p99.9 = {r:.1} x the wake-up p99.9"
+        ));
     }
     if let Some(base) = &args.trace {
         let trace_mcus = TraceMcus {
@@ -241,7 +234,7 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
             trsyncs,
             clocks,
         };
-        trace_latency(&machine, axes, base, &trace_mcus, &timings, &noise)?;
+        trace_latency(&machine, axes, base, &trace_mcus, &timings, &noise, o)?;
     }
     Ok(())
 }
@@ -250,7 +243,8 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
 /// host's timestamps of every successful pass and the host view's p99.9 (ns) of the last
 /// executed step after the trigger.
 fn cycles(
-    args: &HomeArgs,
+    args: &HomeOptions,
+    o: &mut dyn HomeOutput,
     machine: &Machine,
     mcus: &Mcus,
     axes: [bool; 3],
@@ -277,7 +271,7 @@ fn cycles(
         &maps,
     )
     .map_err(|e| e.to_string())?;
-    let mut sinks = super::direct_sinks(&streams, mcus);
+    let mut sinks = crate::homing::direct_sinks(&streams, mcus);
     let mut ctx = HomingCtx::new(mcus, machine, &mut pipeline, &mut streams, &mut sinks, scale, rt);
     let mut last_step = LatencyHist::new();
     let mut next_step = LatencyHist::new();
@@ -303,13 +297,13 @@ fn cycles(
         }
         // A communication timeout is an outcome to count here, not the end of the bench (the
         // planner was resynced to where the steppers stopped; the next cycle homes again).
-        let report = match super::home_axes(&mut ctx, axes) {
+        let report = match crate::homing::home_axes(&mut ctx, axes) {
             Ok(r) => r,
             Err(e) if e == COMM_TIMEOUT_MSG && args.cycles > 1 => {
                 timeouts += 1;
                 failed_last = true;
                 let detail = ctx.comm_timeout_detail.take().unwrap_or_default();
-                eprintln!("cadence: cycle {}: {e} ({detail})", cycle + 1);
+                o.err(format!("cycle {}: {e} ({detail})", cycle + 1));
                 continue;
             }
             Err(e) => return Err(e),
@@ -335,14 +329,14 @@ fn cycles(
         last_report = report;
     }
     if args.cycles > 1 {
-        println!("last cycle:");
+        o.out("last cycle:".to_string());
         print!("{last_report}");
     }
     // Everything executed, host and MCU agree on every stepper position.
-    super::wait_motion_done(&mut ctx)?;
+    crate::homing::wait_motion_done(&mut ctx)?;
     let host = ctx.pipeline.stepper_positions();
     for (i, s) in machine.steppers.iter().enumerate() {
-        let mcu_pos = super::stepper_position(&ctx, i)?;
+        let mcu_pos = crate::homing::stepper_position(&ctx, i)?;
         if host.get(i) != Some(&mcu_pos) {
             return Err(format!(
                 "{}: the MCU reports position {mcu_pos} steps but the host counts {:?}",
@@ -352,9 +346,12 @@ fn cycles(
         }
     }
     let pos = ctx.pipeline.position();
-    println!("homed position: x={:.6} y={:.6} z={:.6}", pos[0], pos[1], pos[2]);
+    o.out(format!(
+        "homed position: x={:.6} y={:.6} z={:.6}",
+        pos[0], pos[1], pos[2]
+    ));
     let passes = last_step.count();
-    println!(
+    o.out(format!(
         "homing: {} cycles, {passes} passes, {timeouts} communication timeouts, wall {:.1} s \
          (real time {}, idle poll {}, cpu load {})",
         args.cycles,
@@ -362,24 +359,24 @@ fn cycles(
         if rt.enabled { "on" } else { "off" },
         if rt.idle_poll_homing() { "on" } else { "off" },
         if args.cpu_load { "on" } else { "off" }
-    );
-    println!(
+    ));
+    o.out(format!(
         "  host view, last executed step after trigger:  {}",
         last_step.summary().format_latency()
-    );
-    println!(
+    ));
+    o.out(format!(
         "  host view, first cancelled step after trigger: {}",
         next_step.summary().format_latency()
-    );
-    let o = overshoot.summary();
+    ));
+    let ov = overshoot.summary();
     let mm = |nm: u64| nm as f64 * 1e-6;
-    println!(
+    o.out(format!(
         "  overshoot: p50 {:.4} mm p99 {:.4} mm p99.9 {:.4} mm max {:.4} mm",
-        mm(o.p50),
-        mm(o.p99),
-        mm(o.p999),
-        mm(o.max)
-    );
+        mm(ov.p50),
+        mm(ov.p99),
+        mm(ov.p999),
+        mm(ov.max)
+    ));
     let p999 = last_step.summary().p999 as f64 * last_step.ns_per_unit();
     Ok((timings, p999))
 }
@@ -478,6 +475,7 @@ fn trace_latency(
     mcus: &TraceMcus,
     timings: &[PassTiming],
     noise: &WakeupReport,
+    o: &mut dyn HomeOutput,
 ) -> Result<(), String> {
     let TraceMcus {
         main,
@@ -503,7 +501,7 @@ fn trace_latency(
     };
     for e in machine.endstops.iter().filter(|e| axes[e.axis]) {
         // The axis' steppers' MCU (one: `check_config` refuses split axes with a third-MCU endstop).
-        let group = super::axis_steppers(machine, e.axis);
+        let group = crate::homing::axis_steppers(machine, e.axis);
         let Some(stepper_mcu) = group
             .first()
             .map(|&i| machine.steppers[i].mcu.as_str())
@@ -523,9 +521,9 @@ fn trace_latency(
             continue;
         };
         if matches!((&e_est, &s_est), (TimeBase::Epoch { .. }, TimeBase::Epoch { .. })) {
-            println!("trace: MCU clocks converted with the simulators' clock epochs (exact)");
+            o.out("trace: MCU clocks converted with the simulators' clock epochs (exact)".to_string());
         } else {
-            println!("trace: MCU clocks converted with the host's clock estimates");
+            o.out("trace: MCU clocks converted with the host's clock estimates".to_string());
         }
         let triggers: Vec<f64> = e_trace
             .triggers
@@ -575,21 +573,26 @@ fn trace_latency(
         }
         let name = AXIS_NAMES[e.axis.min(2)];
         let line = |label: &str, h: &LatencyHist| {
-            println!(
+            format!(
                 "trace {name} ({} → {stepper_mcu}): {label:<33} {}",
                 e.pin.mcu,
                 h.summary().format_latency()
-            );
+            )
         };
-        line("trigger → stepper MCU stop:", &stop_h);
+        o.out(line("trigger → stepper MCU stop:", &stop_h));
         let p999 = stop_h.summary().p999 as f64 * stop_h.ns_per_unit();
         if let Some(r) = noise.ratio_to_p999(p999) {
-            println!("  trigger → stepper MCU stop p99.9 = {r:.1} x the machine's wake-up p99.9 meanwhile");
+            o.out(format!(
+                "  trigger → stepper MCU stop p99.9 = {r:.1} x the machine's wake-up p99.9 meanwhile"
+            ));
         }
-        line("trigger → last step before stop:", &last_h);
+        o.out(line("trigger → last step before stop:", &last_h));
         let s = last_h.summary();
         if s.negative > 0 {
-            println!("  ({} passes had their last step before the trigger)", s.negative);
+            o.out(format!(
+                "  ({} passes had their last step before the trigger)",
+                s.negative
+            ));
         }
         let axis_timings: Vec<PassTiming> = timings.iter().filter(|p| p.axis == e.axis).copied().collect();
         let (hops, unpaired) = pair_hops(&axis_timings, &triggers, &stop_of);
@@ -603,7 +606,7 @@ fn trace_latency(
         line("hop 2, host read → relay written:", &hists[1]);
         line("hop 3, relay written → MCU stop:", &hists[2]);
         let negative: u64 = hists.iter().map(|h| h.summary().negative).sum();
-        println!(
+        o.out(format!(
             "  hops of {} passes (per pass they add up to its trigger → stop exactly){}{}",
             hops.len(),
             if unpaired > 0 {
@@ -616,14 +619,17 @@ fn trace_latency(
             } else {
                 String::new()
             }
-        );
+        ));
         let mut slowest = hops;
         slowest.sort_by(|a, b| b.total().total_cmp(&a.total()));
         slowest.truncate(SLOWEST);
         if !slowest.is_empty() {
-            println!("  slowest passes, µs:  cycle pass  trigger→read  read→written  written→stop     total");
+            o.out(
+                "  slowest passes, µs:  cycle pass  trigger→read  read→written  written→stop     total"
+                    .to_string(),
+            );
             for h in &slowest {
-                println!(
+                o.out(format!(
                     "                      {:>5} {:>4}  {:>12.1}  {:>12.1}  {:>12.1}  {:>8.1}",
                     h.cycle,
                     h.pass,
@@ -631,7 +637,7 @@ fn trace_latency(
                     h.relay * 1e6,
                     h.stop * 1e6,
                     h.total() * 1e6
-                );
+                ));
             }
         }
     }

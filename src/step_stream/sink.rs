@@ -1,7 +1,7 @@
 //! Turns the planner's per-stepper step commands into MCU messages with the clocks that
 //! govern when they may be sent, and hands them to a sink: the live MCU link or a batch file.
 //!
-//! Send rules (see docs/architecture.md "Flow control"):
+//! Send rules (the live print keeps 1–2 s of print time buffered, see [`crate::planner_thread`]):
 //! - `req_clock` of a message is the first step clock it concerns, so the link releases
 //!   messages in step-time order and can measure each one's lead.
 //! - `min_clock` keeps the MCU's move pool from overflowing: the k-th `queue_step` may only be
@@ -12,7 +12,7 @@
 use links::dict::{Cmd, CmdEncoder, Dictionary};
 use planner::stepgen::StepCmd;
 
-use crate::machine::StepperOut;
+use crate::hardware::StepperOut;
 
 /// Where encoded messages go.
 pub trait Sink {

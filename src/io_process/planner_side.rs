@@ -9,12 +9,11 @@
 //! ([`links::clocksync::ClockShared`]) and watches the IO process's status, so the planner
 //! thread reads its clock lock-free and without touching iceoryx2. At the end it sends
 //! `FINISH`, waits for `DONE` with the MCU's stepper positions and checks them against its own.
-//! The handshake and payloads are documented in `rt_core::shm::io`.
+//! The handshake and payloads are documented in [`super::payloads`].
 //!
 //! Homing needs the trigger relay and the step queue of the MCU link in the planner's process:
 //! a G28 on a printer with endstops is refused in this mode with a clear error.
 
-use std::fs::File;
 use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Mutex;
@@ -25,16 +24,22 @@ use links::dict::Dictionary;
 use links::mcu::McuLink;
 use rt_core::logger::{Arg, Level};
 use rt_core::os::apply_rt;
-use rt_core::shm::io::{
-    clock_service_name, control_kind, control_service_name, info_service_name, io_state, status_service_name,
-    ClockSnapshot, IoControl, IoStatus, McuInfo,
-};
 use rt_core::shm::{open_node, ChannelConfig, ShmPublisher, ShmSubscriber};
 use sysconfig::printer::PrinterConfig;
 
-use crate::live::{self, Hists, Logging, McuSide, RtConfig};
-use crate::machine::Machine;
-use crate::print::PrintArgs;
+use super::payloads::{
+    clock_service_name, control_kind, control_service_name, info_service_name, io_state, status_service_name,
+    ClockSnapshot, IoControl, IoStatus, McuInfo,
+};
+use crate::events::Latch;
+use crate::gcode_feed::GcodeInput;
+use crate::hardware::Machine;
+use crate::job::{LiveOutcome, PrintJob};
+use crate::latency::{Hists, PLANNER_SOURCES};
+use crate::live;
+use crate::logging::Logging;
+use crate::planner_thread::{McuSide, PlannerStage};
+use crate::realtime::RtConfig;
 
 type Ipc = iceoryx2::prelude::ipc::Service;
 
@@ -77,8 +82,7 @@ pub(crate) struct RemoteMcu {
     pub clock_freq: f64,
     pub move_count: usize,
     clock: ClockShared,
-    failed: AtomicBool,
-    error: Mutex<Option<String>>,
+    failed: Latch,
     /// The newest status of the IO process.
     status: Mutex<IoStatus>,
     /// Set once a valid clock snapshot was stored.
@@ -93,25 +97,25 @@ impl RemoteMcu {
 
     /// The IO process's failure, as an error.
     pub fn check(&self) -> Result<(), String> {
-        // Acquire pairs with the Release store in `fail`: the message is written before.
-        if !self.failed.load(Ordering::Acquire) {
-            return Ok(());
-        }
-        Err(self
-            .error
-            .lock()
-            .ok()
-            .and_then(|e| e.clone())
-            .unwrap_or_else(|| "the IO process failed".to_string()))
+        self.failed.check("the IO process failed")
     }
 
     fn fail(&self, msg: String) {
-        if let Ok(mut e) = self.error.lock() {
-            if e.is_none() {
-                *e = Some(msg);
+        self.failed.set(msg);
+    }
+
+    /// Waits (bounded) until the relay stored a valid clock snapshot.
+    fn wait_clock(&self) -> Result<(), String> {
+        let deadline = Instant::now() + Duration::from_secs(10);
+        // Acquire pairs with the relay's Release store after the snapshot.
+        while !self.clock_valid.load(Ordering::Acquire) {
+            self.check()?;
+            if Instant::now() > deadline {
+                return Err("the IO process published no valid clock within 10 s".to_string());
             }
+            std::thread::sleep(Duration::from_millis(5));
         }
-        self.failed.store(true, Ordering::Release);
+        Ok(())
     }
 
     fn status(&self) -> IoStatus {
@@ -167,7 +171,7 @@ impl Drop for IoChild {
 }
 
 /// Starts `cadence serve --role io` for this print, with this print's settings.
-fn spawn_io(args: &PrintArgs, instance: &str, time_scale: f64) -> Result<Child, String> {
+fn spawn_io(args: &PrintJob, instance: &str, time_scale: f64) -> Result<Child, String> {
     let exe = std::env::current_exe().map_err(|e| format!("cannot locate the running executable: {e}"))?;
     let mut cmd = Command::new(exe);
     cmd.args(["serve", "--role", "io", "--instance", instance]);
@@ -197,11 +201,11 @@ fn spawn_io(args: &PrintArgs, instance: &str, time_scale: f64) -> Result<Child, 
 
 /// Runs a live print with the IO stage in another process; prints the summary.
 pub(crate) fn run(
-    args: &PrintArgs,
+    args: &PrintJob,
     cfg: &PrinterConfig,
     machine: &Machine,
-    gcode: File,
-) -> Result<(), String> {
+    gcode: GcodeInput,
+) -> Result<LiveOutcome, String> {
     let started = Instant::now();
     check_single_mcu(machine)?;
     let simulated = cfg.mcus.iter().any(|m| m.is_simulated());
@@ -237,29 +241,7 @@ pub(crate) fn run(
     )
     .map_err(err)?;
     log.log(Level::Info, "waiting for the IO process", []);
-    wait_ready(&node, &instance, &child)?;
-    let info = wait_info(&node, &instance, &main_name, &child)?;
-    let dict = Dictionary::from_compressed(info.dict())
-        .map_err(|e| format!("mcu '{main_name}': the IO process sent a bad data dictionary: {e}"))?;
-    let ours = config_crc(&dict, machine, &main_name)?;
-    if ours != info.config_crc {
-        return Err(format!(
-            "mcu '{main_name}': the IO process configured the MCU differently (config CRC {:08x}, this \
-             printer config gives {ours:08x}): start both with the same printer.cfg",
-            info.config_crc
-        ));
-    }
-    let remote = RemoteMcu {
-        name: main_name.clone(),
-        dict,
-        clock_freq: info.clock_freq,
-        move_count: info.move_count as usize,
-        clock: ClockShared::new(ClockEstimate::INVALID),
-        failed: AtomicBool::new(false),
-        error: Mutex::new(None),
-        status: Mutex::new(IoStatus::default()),
-        clock_valid: AtomicBool::new(false),
-    };
+    let remote = attach(&node, &instance, &child, machine, &main_name)?;
     let clock_freq = remote.clock_freq;
     let stop_relay = AtomicBool::new(false);
     let telemetry_stop = AtomicBool::new(false);
@@ -275,17 +257,9 @@ pub(crate) fn run(
             stop_relay.store(true, Ordering::Release);
             let _ = relay.join();
         };
-        let deadline = Instant::now() + Duration::from_secs(10);
-        while !remote.clock_valid.load(Ordering::Acquire) {
-            if let Err(e) = remote.check() {
-                stop();
-                return Err(e);
-            }
-            if Instant::now() > deadline {
-                stop();
-                return Err("the IO process published no valid clock within 10 s".to_string());
-            }
-            std::thread::sleep(Duration::from_millis(5));
+        if let Err(e) = remote.wait_clock() {
+            stop();
+            return Err(e);
         }
         let planner_spec = rt.planner_spec();
         let (remote, rt) = (&remote, &rt);
@@ -295,25 +269,26 @@ pub(crate) fn run(
             .name("planner".to_string())
             .spawn_scoped(scope, move || {
                 apply_rt(&planner_spec);
-                live::planner_stage(
-                    args,
+                let stage = PlannerStage {
                     machine,
-                    McuSide::Remote(remote),
-                    gcode,
-                    time_scale,
-                    instance_name,
+                    side: McuSide::Remote(remote),
+                    scale: time_scale,
+                    max_error_s: args.max_error_us * 1e-6,
+                    instance: instance_name,
                     consumed,
                     hists,
-                    &planner_log,
+                    log: &planner_log,
                     rt,
-                )
+                    session: None,
+                };
+                crate::planner_thread::planner_stage(gcode, &stage)
             })
             .map_err(|e| format!("cannot start the planner thread: {e}"));
         let telemetry_stop = &telemetry_stop;
         let telemetry = std::thread::Builder::new()
             .name("telemetry".to_string())
             .spawn_scoped(scope, || {
-                live::telemetry_thread(&instance, hists, started, live::PLANNER_SOURCES, telemetry_stop)
+                crate::telemetry::telemetry_thread(&instance, hists, started, PLANNER_SOURCES, telemetry_stop)
             });
         let planned = match planner {
             Ok(p) => p
@@ -337,63 +312,12 @@ pub(crate) fn run(
                 return Err(remote.check().err().unwrap_or(e));
             }
         };
-        let end_clock = streams.mcus[0].streamer.last_step_clock;
-        let batches = batches[0];
-        let finish = control.send_with(|c| {
-            c.kind = control_kind::FINISH;
-            c.batches = batches;
-            c.end_clock = end_clock;
-        });
-        if let Err(e) = finish {
-            stop();
-            return Err(format!("io control: {e}"));
-        }
-        log.log(
-            Level::Info,
-            "sent FINISH: batches, end clock",
-            [Arg::U(batches), Arg::U(end_clock)],
-        );
-        // Bounded: the rest of the print at the simulator's speed, plus slack.
-        let now_s = remote.clock().clock_at(McuLink::system_now()) / clock_freq;
-        let wait = (end_clock as f64 / clock_freq - now_s).max(0.0) / time_scale + 30.0;
-        let deadline = Instant::now() + Duration::from_secs_f64(wait);
-        let done = loop {
-            let s = remote.status();
-            if s.state == io_state::DONE {
-                break Ok(s);
-            }
-            if let Err(e) = remote.check() {
-                break Err(e);
-            }
-            if Instant::now() > deadline {
-                break Err(format!(
-                    "the IO process did not finish the print within {wait:.0} s"
-                ));
-            }
-            std::thread::sleep(Duration::from_millis(5));
-        };
+        let batches = batches.first().copied().unwrap_or(0);
+        let done = finish_handshake(&mut control, remote, &streams, batches, time_scale, &log);
         stop();
         let done = done?;
         let _ = control.send_with(|c| c.kind = control_kind::DONE_SEEN);
-        live::check_positions(
-            machine,
-            &pipeline,
-            &streams.steps_sent(),
-            done.positions(),
-            &mut summary,
-        )?;
-        let min_lead = (done.min_lead_margin_ticks != i64::MIN).then_some(done.min_lead_margin_ticks);
-        if let Some(m) = min_lead {
-            summary.extra.push(format!(
-                "mcu '{}' (in IO process {}): min lead margin {:.1} ms over {} clocked messages (required {:.0} ms)",
-                remote.name,
-                done.pid,
-                m as f64 / clock_freq * 1e3,
-                done.clocked_msgs,
-                crate::print::MIN_LEAD_S * 1e3
-            ));
-        }
-        live::check_min_lead(&remote.name, min_lead, clock_freq)?;
+        check_done(machine, &pipeline, &streams, &done, remote, &mut summary)?;
         summary.extra.extend(hists.report(clock_freq));
         summary.extra.push(format!(
             "allocations after warm-up: planner {}; io stage in process {} ({} batches)",
@@ -404,22 +328,132 @@ pub(crate) fn run(
         Ok(summary)
     });
     let exit = child.finish(Duration::from_secs(30));
-    let mut summary = result?;
+    let summary = result?;
     if let Some(status) = exit {
         if !status.success() {
             return Err(format!("the IO process exited with {status}"));
         }
     }
-    summary.wall = started.elapsed().as_secs_f64();
-    if let Some(path) = &args.histograms {
-        hists.save(path, summary.wall)?;
+    crate::job::live_outcome(
+        summary,
+        started,
+        args.histograms.as_deref(),
+        &hists,
+        logging,
+        Vec::new(),
+    )
+}
+
+/// Waits for the IO process's `READY` and its main MCU's info, and checks that it configured
+/// the MCU as this printer config says (the configuration CRC).
+fn attach(
+    node: &iceoryx2::node::Node<Ipc>,
+    instance: &str,
+    child: &IoChild,
+    machine: &Machine,
+    main_name: &str,
+) -> Result<RemoteMcu, String> {
+    wait_ready(node, instance, child)?;
+    let info = wait_info(node, instance, main_name, child)?;
+    let dict = Dictionary::from_compressed(info.dict())
+        .map_err(|e| format!("mcu '{main_name}': the IO process sent a bad data dictionary: {e}"))?;
+    let ours = config_crc(&dict, machine, main_name)?;
+    if ours != info.config_crc {
+        return Err(format!(
+            "mcu '{main_name}': the IO process configured the MCU differently (config CRC {:08x}, this \
+             printer config gives {ours:08x}): start both with the same printer.cfg",
+            info.config_crc
+        ));
     }
-    summary.extra.push(logging.finish());
-    summary.print(&[]);
-    for line in rt_core::os::rt_report() {
-        eprintln!("cadence: {line}");
+    Ok(RemoteMcu {
+        name: main_name.to_string(),
+        dict,
+        clock_freq: info.clock_freq,
+        move_count: info.move_count as usize,
+        clock: ClockShared::new(ClockEstimate::INVALID),
+        failed: Latch::default(),
+        status: Mutex::new(IoStatus::default()),
+        clock_valid: AtomicBool::new(false),
+    })
+}
+
+/// Sends `FINISH` (the batches published and the last step clock) and waits for `DONE`.
+fn finish_handshake(
+    control: &mut ShmPublisher<Ipc, IoControl>,
+    remote: &RemoteMcu,
+    streams: &crate::step_stream::StepStreams,
+    batches: u64,
+    time_scale: f64,
+    log: &rt_core::logger::LoggerHandle,
+) -> Result<IoStatus, String> {
+    let end_clock = streams.mcus.first().map_or(0, |m| m.streamer.last_step_clock);
+    control
+        .send_with(|c| {
+            c.kind = control_kind::FINISH;
+            c.batches = batches;
+            c.end_clock = end_clock;
+        })
+        .map_err(|e| format!("io control: {e}"))?;
+    log.log(
+        Level::Info,
+        "sent FINISH: batches, end clock",
+        [Arg::U(batches), Arg::U(end_clock)],
+    );
+    wait_done(remote, end_clock, time_scale)
+}
+
+/// Waits (bounded: the rest of the print at the simulator's speed, plus slack) for the IO
+/// process's `DONE`, which carries the stepper positions it read back.
+fn wait_done(remote: &RemoteMcu, end_clock: u64, time_scale: f64) -> Result<IoStatus, String> {
+    let clock_freq = remote.clock_freq;
+    let now_s = remote.clock().clock_at(McuLink::system_now()) / clock_freq;
+    let wait = (end_clock as f64 / clock_freq - now_s).max(0.0) / time_scale + 30.0;
+    let deadline = Instant::now() + Duration::from_secs_f64(wait);
+    loop {
+        let s = remote.status();
+        if s.state == io_state::DONE {
+            return Ok(s);
+        }
+        remote.check()?;
+        if Instant::now() > deadline {
+            return Err(format!(
+                "the IO process did not finish the print within {wait:.0} s"
+            ));
+        }
+        std::thread::sleep(Duration::from_millis(5));
     }
-    Ok(())
+}
+
+/// Checks the positions and the lead the IO process reported against this side's, adding its
+/// lead line to the summary.
+fn check_done(
+    machine: &Machine,
+    pipeline: &planner::pipeline::Pipeline,
+    streams: &crate::step_stream::StepStreams,
+    done: &IoStatus,
+    remote: &RemoteMcu,
+    summary: &mut crate::summary::Summary,
+) -> Result<(), String> {
+    let clock_freq = remote.clock_freq;
+    live::check_positions(
+        machine,
+        pipeline,
+        &streams.steps_sent(),
+        done.positions(),
+        summary,
+    )?;
+    let min_lead = (done.min_lead_margin_ticks != i64::MIN).then_some(done.min_lead_margin_ticks);
+    if let Some(m) = min_lead {
+        summary.extra.push(format!(
+            "mcu '{}' (in IO process {}): min lead margin {:.1} ms over {} clocked messages (required {:.0} ms)",
+            remote.name,
+            done.pid,
+            m as f64 / clock_freq * 1e3,
+            done.clocked_msgs,
+            crate::MIN_LEAD_S * 1e3
+        ));
+    }
+    live::check_min_lead(&remote.name, min_lead, clock_freq)
 }
 
 /// Waits (bounded) for the IO process's `READY`.
@@ -552,8 +586,8 @@ mod tests {
 
     #[test]
     fn config_crc_tells_printer_configs_apart() {
-        let text = include_str!("../examples/simulated-cartesian.cfg");
-        let dict = crate::decode::load_dictionary(None).unwrap();
+        let text = include_str!("../../examples/simulated-cartesian.cfg");
+        let dict = crate::wire_check::load_dictionary(None).unwrap();
         let a = config_crc(&dict, &machine(text), "mcu").unwrap();
         assert_eq!(a, config_crc(&dict, &machine(text), "mcu").unwrap());
         let moved = text.replace("step_pin: PA0", "step_pin: PA4");
@@ -562,10 +596,10 @@ mod tests {
 
     #[test]
     fn steppers_on_another_mcu_are_refused_by_the_io_process() {
-        let m = machine(include_str!("../examples/simulated-toolboard.cfg"));
+        let m = machine(include_str!("../../examples/simulated-toolboard.cfg"));
         let err = check_single_mcu(&m).unwrap_err();
         assert!(err.contains("[stepper_z] is driven by mcu 'toolboard'"), "{err}");
-        let m = machine(include_str!("../examples/simulated-multi-mcu.cfg"));
+        let m = machine(include_str!("../../examples/simulated-multi-mcu.cfg"));
         assert!(check_single_mcu(&m).is_ok());
     }
 }

@@ -1,0 +1,177 @@
+//! What a running printer tells its users: typed [`Event`]s (state changes, homing and probing
+//! results, G-code warnings) and the [`Status`] snapshot, plus the state the printer's threads
+//! share to publish them ([`SessionShared`]). The planner thread publishes without blocking or
+//! allocating: events go through a bounded channel with `try_send` (a full channel drops the
+//! event and counts it), the status through a `try_lock` of a `Copy` record.
+
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::mpsc::SyncSender;
+use std::sync::Mutex;
+
+use crate::homing::HomingReport;
+
+/// What the printer is doing.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum PrinterState {
+    /// MCUs connected and configured; no G-code waiting.
+    Ready,
+    /// Planning and streaming G-code.
+    Printing,
+    /// Stopped for good: an error, `stop()`, `emergency_stop()` or the end of the session.
+    Shutdown { reason: String },
+}
+
+/// An event of a running printer.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Event {
+    /// The state changed.
+    State(PrinterState),
+    /// A G28 homed with motion (per axis: passes, trigger MCU, overshoot, position).
+    Homed(HomingReport),
+    /// What a probing command reported (`PROBE`, `PROBE_ACCURACY`, `QUERY_PROBE`), one line
+    /// each, or a homing command's detail (a communication timeout's cause).
+    Response(String),
+    /// A warning about the G-code (an unsupported command skipped, heat asked of a real board).
+    Warning(String),
+}
+
+/// A snapshot of the printer's state.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Status {
+    pub state: PrinterState,
+    /// Toolhead position X, Y, Z, E (mm) as planned so far.
+    pub position: [f64; 4],
+    /// Which of X, Y, Z are homed.
+    pub homed: [bool; 3],
+    /// Print time (s) up to which moves are planned.
+    pub planned_until: f64,
+    /// The main MCU's print time now (s).
+    pub print_time: f64,
+    /// Each MCU's link statistics (bytes, retransmits, round-trip time, lead margin).
+    pub mcus: Vec<(String, links::mcu::LinkStats)>,
+    /// Events dropped because nobody read them fast enough.
+    pub events_dropped: u64,
+}
+
+/// What the planner thread publishes about the motion (a `Copy` record: no allocation).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub(crate) struct MotionStatus {
+    pub position: [f64; 4],
+    pub homed: [bool; 3],
+    pub planned_until: f64,
+    pub busy: bool,
+}
+
+/// A flag set once with the reason (the first one wins), read lock-free until it is set.
+#[derive(Debug, Default)]
+pub(crate) struct Latch {
+    set: AtomicBool,
+    reason: Mutex<Option<String>>,
+}
+
+impl Latch {
+    /// Sets the flag; the reason is kept if none was before.
+    pub fn set(&self, reason: String) {
+        if let Ok(mut r) = self.reason.lock() {
+            if r.is_none() {
+                *r = Some(reason);
+            }
+        }
+        // Release pairs with the Acquire load in `check`: the reason is written before.
+        self.set.store(true, Ordering::Release);
+    }
+
+    /// `Err(reason)` once set (`default` when the reason cannot be read).
+    pub fn check(&self, default: &str) -> Result<(), String> {
+        if !self.set.load(Ordering::Acquire) {
+            return Ok(());
+        }
+        Err(self
+            .reason
+            .lock()
+            .ok()
+            .and_then(|r| r.clone())
+            .unwrap_or_else(|| default.to_string()))
+    }
+}
+
+/// State shared between a printer's handle, its session thread and its planner thread.
+#[derive(Debug)]
+pub(crate) struct SessionShared {
+    /// Set by `stop()`/`emergency_stop()`: the planner ends the session at its next check.
+    stop: Latch,
+    pub motion: Mutex<MotionStatus>,
+    /// Set once the session ended, with the reason.
+    pub shutdown: Mutex<Option<String>>,
+    /// The report of the last G28 with motion (taken by `Printer::home`).
+    pub last_homing: Mutex<Option<HomingReport>>,
+    events: Mutex<Option<SyncSender<Event>>>,
+    events_dropped: AtomicU64,
+}
+
+impl SessionShared {
+    pub fn new(events: Option<SyncSender<Event>>) -> SessionShared {
+        SessionShared {
+            stop: Latch::default(),
+            motion: Mutex::new(MotionStatus::default()),
+            shutdown: Mutex::new(None),
+            last_homing: Mutex::new(None),
+            events: Mutex::new(events),
+            events_dropped: AtomicU64::new(0),
+        }
+    }
+
+    /// Publishes an event without blocking: dropped (and counted) when the channel is full,
+    /// the lock is held elsewhere or nobody listens.
+    pub fn emit(&self, event: Event) {
+        let sent = match self.events.try_lock() {
+            Ok(guard) => match guard.as_ref() {
+                Some(tx) => tx.try_send(event).is_ok(),
+                None => return,
+            },
+            Err(_) => false,
+        };
+        if !sent {
+            self.events_dropped.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    pub fn events_dropped(&self) -> u64 {
+        self.events_dropped.load(Ordering::Relaxed)
+    }
+
+    /// Asks the planner to stop, with the reason it reports.
+    pub fn request_stop(&self, reason: &str) {
+        self.stop.set(reason.to_string());
+    }
+
+    /// `Err(reason)` once a stop was requested.
+    pub fn check_stop(&self) -> Result<(), String> {
+        self.stop.check("stopped by the host")
+    }
+
+    /// Updates the motion record if nobody is reading it right now (the next update catches up).
+    pub fn publish_motion(&self, m: MotionStatus) {
+        if let Ok(mut g) = self.motion.try_lock() {
+            *g = m;
+        }
+    }
+
+    pub fn motion(&self) -> MotionStatus {
+        self.motion.lock().map(|g| *g).unwrap_or_default()
+    }
+
+    /// Records the end of the session (the first reason wins) and tells the listeners.
+    pub fn set_shutdown(&self, reason: String) {
+        if let Ok(mut s) = self.shutdown.lock() {
+            if s.is_none() {
+                *s = Some(reason.clone());
+                self.emit(Event::State(PrinterState::Shutdown { reason }));
+            }
+        }
+    }
+
+    pub fn shutdown_reason(&self) -> Option<String> {
+        self.shutdown.lock().ok().and_then(|s| s.clone())
+    }
+}

@@ -1,0 +1,304 @@
+//! The G-code loop shared by every print: lines from a [`GcodeInput`] through the planner's
+//! pipeline, step commands handed on as they become final, G28 and the probe commands given to
+//! the caller when the MCUs must be in the loop ([`MotionCmd`]), heater/fan/display commands
+//! recorded in [`Accessories`]. Errors name the file (or stream) and line.
+
+use std::collections::BTreeSet;
+use std::fs::File;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender};
+use std::time::Duration;
+
+use planner::gcode::{parse_line, Command, GcodeError, GcodeLine, GcodeReader};
+use planner::machine::{Applied, PlanErrorKind};
+use planner::pipeline::Pipeline;
+use planner::stepgen::StepCmd;
+
+use crate::accessories::Accessories;
+
+/// Where a print's G-code comes from: a name for messages (the file's path, or a stream's
+/// label) and either buffered bytes or a session's channel of commands.
+pub struct GcodeInput {
+    /// The file, or a stream's label, that errors and warnings name.
+    pub name: PathBuf,
+    source: Source,
+}
+
+enum Source {
+    Reader(Box<dyn BufRead + Send>),
+    Session(SessionFeed),
+}
+
+impl GcodeInput {
+    /// Opens a G-code file (64 KiB buffered).
+    pub fn open(path: &Path) -> std::io::Result<GcodeInput> {
+        let file = File::open(path)?;
+        Ok(GcodeInput {
+            name: path.to_path_buf(),
+            source: Source::Reader(Box::new(BufReader::with_capacity(1 << 16, file))),
+        })
+    }
+
+    /// G-code from any buffered reader (a pipe, a socket, generated text), named `name` in
+    /// messages.
+    pub fn from_reader(name: impl Into<PathBuf>, reader: impl BufRead + Send + 'static) -> GcodeInput {
+        GcodeInput {
+            name: name.into(),
+            source: Source::Reader(Box::new(reader)),
+        }
+    }
+
+    /// Commands sent one at a time over `rx` (a printer session): after `idle` without one the
+    /// lookahead is flushed so what was sent moves, and the next command starts from the MCUs'
+    /// time then.
+    pub(crate) fn session(name: impl Into<PathBuf>, rx: Receiver<FeedMsg>, idle: Duration) -> GcodeInput {
+        GcodeInput {
+            name: name.into(),
+            source: Source::Session(SessionFeed { rx, idle, line_no: 0 }),
+        }
+    }
+
+    fn is_session(&self) -> bool {
+        matches!(self.source, Source::Session(_))
+    }
+
+    fn items(self) -> Box<dyn Iterator<Item = FeedItem> + Send> {
+        match self.source {
+            Source::Reader(r) => Box::new(GcodeReader::new(r).map(FeedItem::Line)),
+            Source::Session(s) => Box::new(s),
+        }
+    }
+}
+
+impl std::fmt::Debug for GcodeInput {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GcodeInput")
+            .field("name", &self.name)
+            .finish_non_exhaustive()
+    }
+}
+
+/// What a printer session sends its planner thread.
+#[derive(Debug)]
+pub(crate) enum FeedMsg {
+    /// One line of G-code.
+    Line(String),
+    /// Everything before it is planned and handed on when the planner answers.
+    Barrier(SyncSender<()>),
+}
+
+/// The planner's view of a feed. Lines stay inline: boxing them would allocate per line on
+/// the planner thread.
+#[allow(clippy::large_enum_variant)]
+enum FeedItem {
+    Line(Result<GcodeLine, GcodeError>),
+    /// Nothing came for a while: flush the lookahead.
+    Idle,
+    Barrier(SyncSender<()>),
+}
+
+/// A session's commands as feed items (ends when the session's sender is dropped).
+struct SessionFeed {
+    rx: Receiver<FeedMsg>,
+    idle: Duration,
+    line_no: usize,
+}
+
+impl Iterator for SessionFeed {
+    type Item = FeedItem;
+
+    fn next(&mut self) -> Option<FeedItem> {
+        loop {
+            match self.rx.recv_timeout(self.idle) {
+                Ok(FeedMsg::Line(text)) => {
+                    self.line_no += 1;
+                    let raw = text.trim_end_matches(['\n', '\r']).as_bytes();
+                    match parse_line(self.line_no, raw) {
+                        Ok(Some(cmd)) => {
+                            return Some(FeedItem::Line(Ok(GcodeLine {
+                                line_no: self.line_no,
+                                cmd,
+                            })))
+                        }
+                        Ok(None) => continue,
+                        Err(e) => return Some(FeedItem::Line(Err(e))),
+                    }
+                }
+                Ok(FeedMsg::Barrier(done)) => return Some(FeedItem::Barrier(done)),
+                Err(RecvTimeoutError::Timeout) => return Some(FeedItem::Idle),
+                Err(RecvTimeoutError::Disconnected) => return None,
+            }
+        }
+    }
+}
+
+/// Where the G-code loop hands its results: the live planner thread or a batch print.
+pub(crate) trait FeedTarget {
+    /// Step commands that became final (the target may leave `cmds` as it is: it is cleared).
+    fn emit(&mut self, cmds: &mut Vec<(usize, StepCmd)>) -> Result<(), String>;
+    /// Runs between batches: flow control, MCU and stop checks, status.
+    fn pace(&mut self, pipeline: &mut Pipeline) -> Result<(), String>;
+    /// Runs G28 or a probe command with the MCUs in the loop (true), or leaves it to the
+    /// planner (false).
+    fn motion(&mut self, pipeline: &mut Pipeline, cmd: &MotionCmd<'_>) -> Result<bool, String>;
+    /// The earliest print time a move may start at after the feed was idle.
+    fn resume_at(&self) -> f64;
+    /// A warning about the G-code.
+    fn warn(&mut self, text: String);
+    /// The feed went idle (`true`) or got a command after being idle (`false`).
+    fn idle(&mut self, _idle: bool, _pipeline: &Pipeline) {}
+}
+
+/// Counts and reports G-code commands the planner does not implement yet, once per name.
+#[derive(Debug, Default)]
+struct Warnings {
+    seen: BTreeSet<String>,
+}
+
+impl Warnings {
+    fn unsupported(&mut self, file: &Path, line: usize, name: &str, target: &mut impl FeedTarget) {
+        // Look up first: the name is copied (allocated) only the first time it is seen.
+        if !self.seen.contains(name) && self.seen.insert(name.to_string()) {
+            target.warn(format!(
+                "{}:{line}: {name} is not implemented yet and is ignored (reported once)",
+                file.display()
+            ));
+        }
+    }
+}
+
+/// A G-code command that moves with the MCUs in the loop: `motion` in [`plan_file`] runs it on a
+/// live print (and says so) or leaves it to the planner.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum MotionCmd<'a> {
+    /// G28 with the axes to home.
+    Home([bool; 3]),
+    /// PROBE, PROBE_ACCURACY or QUERY_PROBE, as written.
+    Probe { name: &'a str, raw: &'a str },
+}
+
+impl MotionCmd<'_> {
+    /// The command's name for errors.
+    fn name(&self) -> &str {
+        match self {
+            MotionCmd::Home(_) => "G28",
+            MotionCmd::Probe { name, .. } => name,
+        }
+    }
+}
+
+/// Feeds the G-code through the planner, handing step commands to `target` as they become
+/// final; G28 and the probe commands go to [`FeedTarget::motion`] first. Heater, fan, display
+/// and M114 commands go to `accessories`. A session's idle spells flush the lookahead; the
+/// next command then starts no earlier than [`FeedTarget::resume_at`]. Returns the commands
+/// planned.
+pub(crate) fn plan_file(
+    input: GcodeInput,
+    pipeline: &mut Pipeline,
+    accessories: &mut Accessories,
+    target: &mut impl FeedTarget,
+) -> Result<u64, String> {
+    let mut warnings = Warnings::default();
+    let mut out = Vec::with_capacity(4096);
+    let mut lines = 0u64;
+    let file = input.name.clone();
+    // A session starts idle: its first command starts from the MCUs' time then.
+    let mut idle = input.is_session();
+    if idle {
+        target.idle(true, pipeline);
+    }
+    for item in input.items() {
+        let line = match item {
+            FeedItem::Line(line) => line.map_err(|e| format!("{}: {e}", file.display()))?,
+            FeedItem::Idle | FeedItem::Barrier(_) => {
+                if !idle {
+                    pipeline.flush_lookahead();
+                    release(pipeline, &mut out, target)?;
+                    idle = true;
+                    target.idle(true, pipeline);
+                }
+                target.pace(pipeline)?;
+                if let FeedItem::Barrier(done) = item {
+                    // The sender waits for it; a sender that gave up is no error.
+                    let _ = done.try_send(());
+                }
+                continue;
+            }
+        };
+        if idle {
+            idle = false;
+            pipeline
+                .raise_print_time(target.resume_at())
+                .map_err(|e| format!("{}: {e}", file.display()))?;
+            target.idle(false, pipeline);
+        }
+        lines += 1;
+        if plan_line(&line, &file, pipeline, accessories, &mut warnings, target)? {
+            release(pipeline, &mut out, target)?;
+        }
+    }
+    pipeline.finish(&mut out);
+    target.emit(&mut out)?;
+    Ok(lines)
+}
+
+/// Hands the step commands that became final to the target, then paces.
+fn release(
+    pipeline: &mut Pipeline,
+    out: &mut Vec<(usize, StepCmd)>,
+    target: &mut impl FeedTarget,
+) -> Result<(), String> {
+    pipeline.generate(out);
+    if !out.is_empty() {
+        target.emit(out)?;
+        out.clear();
+        target.pace(pipeline)?;
+    }
+    Ok(())
+}
+
+/// One G-code command: with the MCUs in the loop (G28 with motion, probing: false) or planned
+/// (true: steps may be ready).
+fn plan_line(
+    line: &GcodeLine,
+    file: &Path,
+    pipeline: &mut Pipeline,
+    accessories: &mut Accessories,
+    warnings: &mut Warnings,
+    target: &mut impl FeedTarget,
+) -> Result<bool, String> {
+    // G28 with real motion where the printer can home; otherwise the planner's own G28
+    // (which sets the configured endstop positions). The probe commands likewise.
+    let cmd = match &line.cmd {
+        Command::Home { x, y, z } => Some(MotionCmd::Home([*x, *y, *z])),
+        Command::Other { name, raw } if crate::homing::probe::is_probe_command(name) => {
+            Some(MotionCmd::Probe { name, raw })
+        }
+        _ => None,
+    };
+    if let Some(cmd) = cmd {
+        if target
+            .motion(pipeline, &cmd)
+            .map_err(|e| format!("{}:{}: {}: {e}", file.display(), line.line_no, cmd.name()))?
+        {
+            return Ok(false);
+        }
+    }
+    let applied = pipeline.apply(line).map_err(|e| {
+        let hint = match e.kind {
+            PlanErrorKind::UnknownCommand(_) => {
+                " (to skip unknown commands with a warning: `unknown_commands: warn` in [gcode] of printer.cfg)"
+            }
+            _ => "",
+        };
+        format!("{}: {e}{hint}", file.display())
+    })?;
+    if let Applied::Unsupported(name) = &applied {
+        warnings.unsupported(file, line.line_no, name, target);
+    }
+    if let Some(w) = accessories.record(line.line_no, &applied) {
+        target.warn(format!("{}: {w}", file.display()));
+    }
+    Ok(true)
+}

@@ -1,0 +1,581 @@
+//! G28 with motion, across MCUs: Klipper's endstop + trsync protocol (`links::trsync`: trigger
+//! relay, 25 ms status timeout), the halt position computed on the host.
+//!
+//! The axis steppers are every stepper that moves the homed axis ([`axis_steppers`]): X's own
+//! on a cartesian printer, both motors A (x + y) and B (x − y) for corexy X or Y, A (x + z) and
+//! B (x − z) for corexz X or Z. Delta homing is refused (its towers home together).
+//!
+//! Per axis, per pass (the second at `second_homing_speed` after retracting
+//! `homing_retract_dist`, skipped when that is 0):
+//! 1. every step already planned is sent and executed (the MCUs are idle);
+//! 2. the toolhead pretends to be 1.5 × travel (second pass: 2 × retract) away from the endstop
+//!    on the far side;
+//! 3. one trsync per involved MCU (the endstop's and the axis steppers') gets `trsync_start`
+//!    (reports every 0.3 × timeout from ~2 ms on) and `trsync_set_timeout`; the stepper MCUs get
+//!    `stepper_stop_on_trigger`; after a `get_clock` round trip per MCU (stale reports of the
+//!    previous pass are in) a [`TriggerGroup`] registers them, then the endstop MCU gets
+//!    `endstop_home` (15 µs samples, 4 of them, a read every ≤ 1 ms) from the move's start `t0`
+//!    (≥ now + lead + a margin);
+//! 4. the move to `position_endstop` at the homing speed is planned and all its steps are sent;
+//!    the IO threads relay the trigger and extend the timeouts while we wait;
+//! 5. whatever happened, every member is told to stop (`trsync_trigger`, host request) and the
+//!    endstop stops sampling; once the stepper links are idle the axis steppers are stopped a
+//!    second time (a step command the trigger overtook would restart them); then the endstop's trigger clock (`endstop_query_state`) and each
+//!    axis stepper's position (`stepper_get_position`) are read;
+//! 6. the position ([`halt_position`]): with `n(x) = ⌊x / step_dist + ½⌋` the step index of
+//!    stepper position x, each axis stepper was at index `n_start = n(start)` and the MCU says
+//!    it took `k` net steps, so it halted at `n_halt = n_start + k`; at the trigger print time
+//!    `t` its commanded position was `x(t)` on the move's profile, index `n_trig = n(x(t))`.
+//!    Forward kinematics of the rails at `n_halt · step_dist` and at `n_trig · step_dist` give
+//!    the halted and the triggered toolhead positions (cartesian: the rail itself; corexy:
+//!    x = (a + b) / 2, y = (a − b) / 2). The trigger defines `position_endstop`, so the homed
+//!    axis is now at `position_endstop + (halted − triggered)` (the overshoot is accounted
+//!    for; cartesian: `position_endstop + (n_halt − n_trig) · step_dist`), and any other axis
+//!    the steppers move at its halted coordinate (unchanged up to a step's rounding); the
+//!    planner and the step streamer are resynced to that, the next move starting at now + lead
+//!    + margin.
+//!
+//! Errors: a trsync that expired or a member silent past the timeout →
+//! exactly `Communication timeout during homing`; no trigger by the end of the move →
+//! `No trigger on <axis> after full movement`; the endstop still triggered after the retract →
+//! `Endstop <axis> still triggered after retract`. In every case all involved steppers have been
+//! told to stop first, and the planner is resynced to where they stopped when the MCUs still
+//! answer.
+//!
+//! Probing (`PROBE`, module `probe`) runs the same pass in probe mode ([`PassKind::Probe`]):
+//! no pretended start, the move heads for the probe's `z_position`, the triggered Z is the
+//! measurement and the toolhead keeps its coordinates (resynced to the halted position; on
+//! corexz both motors of Z stop). With `probe:z_virtual_endstop` the probe's pin is Z's endstop.
+//!
+//! Latency figures per pass (host's view, print-time seconds): the executed steps' times are
+//! known from the move profile, so the last executed step and the first cancelled one bound
+//! the moment the stepper MCU stopped, relative to the endstop's trigger.
+
+mod halt;
+mod pass;
+pub mod probe;
+
+pub(crate) use pass::homing_pass;
+
+use std::fmt;
+use std::time::{Duration, Instant};
+
+use links::mcu::McuLink;
+use planner::kinematics::{Kinematics, StepperKin};
+use planner::pipeline::Pipeline;
+use planner::stepgen::StepCmd;
+
+use crate::gcode_feed::MotionCmd;
+use crate::hardware::{EndstopOut, Machine};
+use crate::mcus::{McuConn, Mcus};
+use crate::step_stream::sink::{LinkSink, Sink};
+use crate::step_stream::StepStreams;
+use crate::MIN_LEAD_S;
+
+/// Endstop confirmation sample spacing (s of MCU time).
+pub const SAMPLE_TIME: f64 = 15e-6;
+/// Matching samples needed for a trigger.
+pub const SAMPLE_COUNT: u8 = 4;
+/// Longest time between endstop reads while waiting for a match (s).
+pub const MAX_REST_TIME: f64 = 1e-3;
+/// Shortest time between endstop reads (s).
+pub const MIN_REST_TIME: f64 = 100e-6;
+/// Margin on top of the lead between "now" and the start of a homing move, in seconds of wall
+/// time (× the simulator's time scale in print time): the set-up messages go out in it.
+pub const START_MARGIN: f64 = 0.030;
+/// The first homing move pretends to start this many axis travels away from the endstop.
+pub const TRAVEL_FACTOR: f64 = 1.5;
+/// Tries of a position / endstop-state query (a reply can be lost on a noisy line).
+const QUERY_TRIES: u32 = 5;
+/// Wait for one query reply (wall time).
+const QUERY_TIMEOUT: Duration = Duration::from_millis(300);
+/// First trsync report this long after the set-up is sent (wall time, s): room for a slow line
+/// (the command must arrive before it), well inside the 25 ms multi-MCU timeout.
+const FIRST_REPORT_DELAY: f64 = 0.010;
+/// Extra wall time after the homing move's end before "no trigger" is concluded.
+const END_GRACE: Duration = Duration::from_millis(50);
+
+pub const AXIS_NAMES: [char; 3] = ['x', 'y', 'z'];
+
+/// What homing borrows from the live print.
+pub struct HomingCtx<'a> {
+    pub mcus: &'a Mcus,
+    pub machine: &'a Machine,
+    pub pipeline: &'a mut Pipeline,
+    /// The step streams of the MCUs with steppers (the main MCU's first).
+    pub streams: &'a mut StepStreams,
+    /// Where each stream's step commands go (its MCU's live link), in stream order.
+    pub sinks: &'a mut [LinkSink<'a>],
+    /// MCU seconds per wall second (simulator `time_scale`; 1 for real MCUs): bounds waits.
+    pub time_scale: f64,
+    /// The real-time settings: each homing or probing pass keeps the idle CPUs polling when
+    /// they ask for it ([`crate::realtime::RtConfig::start_idle_poll`]).
+    pub rt: &'a crate::realtime::RtConfig,
+    /// What the last communication timeout was, beyond its exact message (which MCU, MCU
+    /// expiry or host-side silence): for logs and `cadence home`.
+    pub comm_timeout_detail: Option<String>,
+}
+
+impl<'a> HomingCtx<'a> {
+    /// Homing on the live links: step commands go to `sinks` (see [`direct_sinks`]) with the
+    /// print's lead ([`MIN_LEAD_S`]).
+    pub fn new(
+        mcus: &'a Mcus,
+        machine: &'a Machine,
+        pipeline: &'a mut Pipeline,
+        streams: &'a mut StepStreams,
+        sinks: &'a mut [LinkSink<'a>],
+        time_scale: f64,
+        rt: &'a crate::realtime::RtConfig,
+    ) -> HomingCtx<'a> {
+        HomingCtx {
+            mcus,
+            machine,
+            pipeline,
+            streams,
+            sinks,
+            time_scale,
+            rt,
+            comm_timeout_detail: None,
+        }
+    }
+}
+
+impl HomingCtx<'_> {
+    /// The earliest print time a command sent now may act at: the lead every step command must
+    /// have at the MCU, plus [`START_MARGIN`] (scaled with a fast simulated clock).
+    fn earliest_start(&self) -> f64 {
+        print_now(self.mcus) + MIN_LEAD_S + START_MARGIN * self.time_scale.max(1.0)
+    }
+}
+
+/// One sink per step stream, straight to that stream's MCU link (stream order).
+pub fn direct_sinks<'a>(streams: &StepStreams, mcus: &'a Mcus) -> Vec<LinkSink<'a>> {
+    streams
+        .mcus
+        .iter()
+        .map(|m| LinkSink {
+            link: &mcus.list[m.mcu_index].link,
+        })
+        .collect()
+}
+
+impl fmt::Debug for HomingCtx<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("HomingCtx")
+            .field("time_scale", &self.time_scale)
+            .finish_non_exhaustive()
+    }
+}
+
+/// One homing move of one axis.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PassReport {
+    /// Homing speed (mm/s).
+    pub speed: f64,
+    /// The MCU whose endstop triggered.
+    pub trigger_mcu: String,
+    /// Its trigger clock (64-bit, its own clock).
+    pub trigger_clock: u64,
+    /// The trigger on the main MCU's print time.
+    pub trigger_print_time: f64,
+    /// Position past the trigger point at which the axis halted (mm, ≥ 0 normally).
+    pub overshoot_mm: f64,
+    /// Axis coordinate of the trigger: `position_endstop` when homing (the trigger defines
+    /// it), the measured position when probing.
+    pub trigger_position: f64,
+    /// Net steps the first axis stepper took during the move.
+    pub steps: i64,
+    /// Last executed step − trigger (s of print time): a lower bound of the stop latency
+    /// (negative when no step fell between the trigger and the stop).
+    pub last_step_after_s: f64,
+    /// First cancelled step − trigger (s): an upper bound of the stop latency.
+    pub next_step_after_s: f64,
+    /// System time (`CLOCK_MONOTONIC` s) at which the host read the trigger's report.
+    pub trigger_received_at: f64,
+    /// System time at which the host's first `trsync_trigger` to the axis steppers' MCU was
+    /// written to its link (`None` when the steppers are on the triggering MCU).
+    pub relay_written_at: Option<f64>,
+}
+
+/// One homed axis.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AxisReport {
+    /// 0 = X, 1 = Y, 2 = Z.
+    pub axis: usize,
+    /// The MCUs of its trigger group.
+    pub mcus: Vec<String>,
+    pub passes: Vec<PassReport>,
+    /// Toolhead position of the axis after homing (position_endstop + last overshoot).
+    pub position: f64,
+}
+
+/// What [`home_axes`] did.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct HomingReport {
+    pub axes: Vec<AxisReport>,
+}
+
+impl fmt::Display for HomingReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for a in &self.axes {
+            let name = AXIS_NAMES[a.axis.min(2)];
+            write!(f, "homing {name}: mcus {}", a.mcus.join("+"))?;
+            for (i, p) in a.passes.iter().enumerate() {
+                write!(
+                    f,
+                    "; pass {} at {} mm/s: trigger on '{}', overshoot {:.4} mm, stop {:.0}..{:.0} us after trigger",
+                    i + 1,
+                    p.speed,
+                    p.trigger_mcu,
+                    p.overshoot_mm,
+                    p.last_step_after_s * 1e6,
+                    p.next_step_after_s * 1e6
+                )?;
+            }
+            writeln!(f, "; position {:.6}", a.position)?;
+        }
+        Ok(())
+    }
+}
+
+/// Checks the homing wiring: the steppers of one axis may sit on several MCUs only if the
+/// endstop is on one of them... and Klipper refuses even that; Cadence refuses the case the
+/// trigger relay cannot serve: steppers of one axis on different MCUs while the endstop is on
+/// yet another.
+pub fn check_config(machine: &Machine) -> Result<(), String> {
+    let probe = machine.probe.as_ref().map(|p| &p.endstop);
+    for e in machine.endstops.iter().chain(probe) {
+        let mut mcus: Vec<&str> = Vec::new();
+        for s in axis_steppers(machine, e.axis)
+            .into_iter()
+            .map(|i| &machine.steppers[i])
+        {
+            if !mcus.contains(&s.mcu.as_str()) {
+                mcus.push(&s.mcu);
+            }
+        }
+        if mcus.len() > 1 && !mcus.contains(&e.pin.mcu.as_str()) {
+            return Err(format!(
+                "[{}] {} '{}': the steppers of axis {} are on MCUs '{}' while its endstop is on \
+                 yet another MCU '{}': put the endstop on one of the steppers' MCUs or all steppers of the \
+                 axis on one MCU",
+                e.stepper,
+                if e.stepper == "probe" {
+                    "pin"
+                } else {
+                    "endstop_pin"
+                },
+                e.pin,
+                AXIS_NAMES[e.axis.min(2)],
+                mcus.join("', '"),
+                e.pin.mcu
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Runs a G-code command that needs the MCUs in the loop (G28 with motion, the probe
+/// commands) on a live print; its report lines go to `out` (also those before an error), and
+/// a G28's report comes back.
+pub(crate) fn run_motion(
+    ctx: &mut HomingCtx<'_>,
+    cmd: &MotionCmd<'_>,
+    out: &mut Vec<String>,
+) -> Result<Option<HomingReport>, String> {
+    match cmd {
+        MotionCmd::Home(axes) => {
+            let report = home_axes(ctx, *axes)?;
+            out.extend(report.to_string().lines().map(str::to_string));
+            Ok(Some(report))
+        }
+        MotionCmd::Probe { name, raw } => probe::run(ctx, name, raw, out).map(|()| None),
+    }
+}
+
+/// Homes the named axes (X, Y, Z order) on a live print: `G28` with motion. On success the
+/// axes are homed in the G-code state and the planner continues from the homed position.
+pub fn home_axes(ctx: &mut HomingCtx<'_>, axes: [bool; 3]) -> Result<HomingReport, String> {
+    if !ctx.pipeline.supports_homing() {
+        return Err("G28: homing needs the inline planner without pressure advance".to_string());
+    }
+    check_config(ctx.machine)?;
+    let mut report = HomingReport::default();
+    for axis in (0..3).filter(|&a| axes[a]) {
+        let mut homed = ctx.pipeline.gcode_state().homed();
+        homed[axis] = false;
+        ctx.pipeline.set_homed(homed);
+        match ctx.machine.endstops.iter().find(|e| e.axis == axis).cloned() {
+            Some(e) => report.axes.push(home_axis(ctx, &e)?),
+            None => {
+                // No endstop: the old behaviour, the position is declared.
+                let mut pos = ctx.pipeline.position();
+                pos[axis] = ctx.machine.home_position[axis];
+                ctx.pipeline.set_toolhead_position(pos);
+            }
+        }
+        let mut homed = ctx.pipeline.gcode_state().homed();
+        homed[axis] = true;
+        ctx.pipeline.set_homed(homed);
+    }
+    Ok(report)
+}
+
+/// Both passes of one axis.
+fn home_axis(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisReport, String> {
+    let axis = e.axis;
+    let travel = e.position_max - e.position_min;
+    let dir = if e.homing_positive_dir { 1.0 } else { -1.0 };
+    let mut passes = Vec::new();
+    let start = e.position_endstop - dir * TRAVEL_FACTOR * travel;
+    let (first, mcus) = homing_pass(ctx, e, PassKind::Home { start }, e.homing_speed)?;
+    passes.push(first);
+    let retract = e.homing_retract_dist;
+    if retract > 0.0 {
+        let mut pos = ctx.pipeline.position();
+        pos[axis] = e.position_endstop - dir * retract;
+        plain_move(ctx, pos, e.homing_speed)?;
+        wait_motion_done(ctx)?;
+        if endstop_state(ctx, e)?.1 {
+            return Err(format!(
+                "Endstop {} still triggered after retract",
+                AXIS_NAMES[axis]
+            ));
+        }
+        let start = e.position_endstop - dir * 2.0 * retract;
+        let (second, _) = homing_pass(ctx, e, PassKind::Home { start }, e.second_homing_speed)?;
+        passes.push(second);
+    }
+    Ok(AxisReport {
+        axis,
+        mcus,
+        passes,
+        position: ctx.pipeline.position()[axis],
+    })
+}
+
+/// A plain move of the toolhead to `pos` (retract, bench moves), sent at once.
+pub fn plain_move(ctx: &mut HomingCtx<'_>, pos: [f64; 4], speed: f64) -> Result<(), String> {
+    let t0 = ctx.earliest_start();
+    ctx.pipeline.raise_print_time(t0).map_err(|e| e.to_string())?;
+    ctx.pipeline.home_move(pos, speed).map_err(|e| e.to_string())?;
+    let mut out = Vec::new();
+    generate(ctx, &mut out)?;
+    push_cmds(ctx, &out)
+}
+
+/// Releases the planned step commands, each stepper's in its MCU's clock as the clock fits
+/// stand now.
+fn generate(ctx: &mut HomingCtx<'_>, out: &mut Vec<(usize, StepCmd)>) -> Result<(), String> {
+    let mcus = ctx.mcus;
+    ctx.streams.refresh_clocks(ctx.pipeline, |i| {
+        mcus.list
+            .get(i)
+            .map_or(links::clocksync::ClockEstimate::INVALID, |m| m.link.clock())
+    })?;
+    ctx.pipeline.generate(out);
+    Ok(())
+}
+
+/// MCU `mcu_index`'s clock now (its fit; 0 for an unknown MCU).
+fn mcu_clock_now(mcus: &Mcus, mcu_index: usize) -> f64 {
+    mcus.list
+        .get(mcu_index)
+        .map_or(0.0, |m| m.link.clock().clock_at(McuLink::system_now()))
+}
+
+/// The main MCU's print time now (its estimated clock / nominal CLOCK_FREQ).
+pub fn print_now(mcus: &Mcus) -> f64 {
+    let main = mcus.main();
+    main.link.clock().clock_at(McuLink::system_now()) / main.clock_freq
+}
+
+/// MCU `m`'s clock at main print time `t`.
+fn clock_at_print_time(mcus: &Mcus, m: &McuConn, t: f64) -> u64 {
+    let main = mcus.main();
+    if std::ptr::eq(main, m) {
+        return (t * main.clock_freq).max(0.0) as u64;
+    }
+    let sys = main.link.clock().system_time_at(t * main.clock_freq);
+    m.link.clock().clock_at(sys).max(0.0) as u64
+}
+
+/// Main print time at MCU `m`'s clock `clock`.
+fn print_time_of_clock(mcus: &Mcus, m: &McuConn, clock: u64) -> f64 {
+    let main = mcus.main();
+    if std::ptr::eq(main, m) {
+        return clock as f64 / main.clock_freq;
+    }
+    let sys = m.link.clock().system_time_at(clock as f64);
+    main.link.clock().clock_at(sys) / main.clock_freq
+}
+
+/// Hands released step commands to their MCUs' sinks, refusing any that would reach its MCU
+/// late.
+fn push_cmds(ctx: &mut HomingCtx<'_>, out: &[(usize, StepCmd)]) -> Result<(), String> {
+    let now: Vec<f64> = ctx
+        .streams
+        .mcus
+        .iter()
+        .map(|m| mcu_clock_now(ctx.mcus, m.mcu_index))
+        .collect();
+    for &(idx, cmd) in out {
+        if let StepCmd::QueueStep { first_clock, .. } = cmd {
+            let k = ctx.streams.stream_of(idx).unwrap_or(0);
+            let m = &ctx.streams.mcus[k];
+            if (first_clock as f64) < now[k] + MIN_LEAD_S * m.clock_freq {
+                return Err(format!(
+                    "homing: a step for {} on mcu '{}' was ready only {:.1} ms before it is due (at least {:.0} ms \
+                     required)",
+                    ctx.machine.steppers.get(idx).map_or("?", |s| s.name.as_str()),
+                    m.name,
+                    (first_clock as f64 - now[k]) / m.clock_freq * 1e3,
+                    MIN_LEAD_S * 1e3
+                ));
+            }
+        }
+        ctx.streams.push(idx, cmd, ctx.sinks)?;
+    }
+    ctx.sinks.iter_mut().try_for_each(|s| s.flush())
+}
+
+/// Sends everything planned so far and waits (bounded) until every MCU executed it.
+pub fn wait_motion_done(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
+    ctx.pipeline.flush_lookahead();
+    let mut out = Vec::new();
+    generate(ctx, &mut out)?;
+    push_cmds(ctx, &out)?;
+    for m in &ctx.streams.mcus {
+        let Some(conn) = ctx.mcus.list.get(m.mcu_index) else {
+            continue;
+        };
+        let end = m.streamer.last_step_clock as f64 + 0.001 * m.clock_freq;
+        let now = || mcu_clock_now(ctx.mcus, m.mcu_index);
+        let remaining = ((end - now()) / m.clock_freq).max(0.0);
+        let deadline = Instant::now() + Duration::from_secs_f64(remaining / ctx.time_scale.max(1e-3) + 5.0);
+        while now() < end {
+            ctx.mcus.check()?;
+            if let Some(e) = conn.link.error() {
+                return Err(format!("mcu '{}': {e}", conn.name));
+            }
+            if Instant::now() > deadline {
+                return Err(format!(
+                    "homing: the clock of mcu '{}' did not reach the end of the planned moves in time",
+                    conn.name
+                ));
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    }
+    Ok(ctx.mcus.check()?)
+}
+
+/// `query` with retries (the reply of an idempotent query can be lost on a noisy line).
+fn query<'m>(
+    mcus: &'m Mcus,
+    mcu_name: &str,
+    name: &str,
+    oid: u8,
+    response: &str,
+) -> Result<(&'m McuConn, links::dict::Message), String> {
+    let conn = mcu(mcus, mcu_name)?;
+    let cmd = conn
+        .link
+        .dictionary()
+        .encode(name, &[oid as i64])
+        .map_err(|e| format!("mcu '{}': {e}", conn.name))?;
+    let mut last = String::new();
+    for _ in 0..QUERY_TRIES {
+        match conn
+            .link
+            .query(cmd, response, Some(("oid", oid as i64)), QUERY_TIMEOUT)
+        {
+            Ok(m) => return Ok((conn, m)),
+            Err(e @ links::mcu::LinkError::Timeout { .. }) => last = e.to_string(),
+            Err(e) => return Err(e.to_string()),
+        }
+    }
+    Err(last)
+}
+
+fn mcu<'m>(mcus: &'m Mcus, name: &str) -> Result<&'m McuConn, String> {
+    mcus.get(name)
+        .ok_or_else(|| format!("homing: no MCU called '{name}'"))
+}
+
+/// Net steps of stepper `idx` as the host counts them (the MCU's count, sign-corrected for an
+/// inverted dir pin).
+pub fn stepper_position(ctx: &HomingCtx<'_>, idx: usize) -> Result<i64, String> {
+    let s = &ctx.machine.steppers[idx];
+    let (_, reply) = query(
+        ctx.mcus,
+        &s.mcu,
+        "stepper_get_position",
+        s.oid,
+        "stepper_position",
+    )?;
+    let raw = reply.get("pos").ok_or("stepper_position without pos")?;
+    Ok(if s.dir_pin.invert { -raw } else { raw })
+}
+
+/// (`next_clock` extended to 64 bits, the pin reads triggered, still homing) of endstop `e`.
+pub(crate) fn endstop_state(ctx: &HomingCtx<'_>, e: &EndstopOut) -> Result<(u64, bool, bool), String> {
+    let (conn, reply) = query(
+        ctx.mcus,
+        &e.pin.mcu,
+        "endstop_query_state",
+        e.oid,
+        "endstop_state",
+    )?;
+    let wire = reply.get("next_clock").unwrap_or(0) as u32;
+    let clock = conn.link.clock().extend(wire, McuLink::system_now());
+    let pin = reply.get("pin_value").unwrap_or(0) != 0;
+    let homing = reply.get("homing").unwrap_or(0) != 0;
+    Ok((clock, pin != e.pin.invert, homing))
+}
+
+/// What a homing move is for.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum PassKind {
+    /// G28: the axis position is unknown; the move pretends to start at `start` and heads for
+    /// `position_endstop`, which the trigger defines.
+    Home { start: f64 },
+    /// PROBE: from the current (homed) position toward `target`; the trigger's position is
+    /// measured and the axis keeps its coordinates.
+    Probe { target: f64 },
+}
+
+/// The kinematics' name when homing is not supported: delta (its towers home together, all
+/// three carriages to their endstops: a different sequence). Corexy and corexz axes are homed
+/// with all the steppers that move them.
+pub(crate) fn unsupported_kinematics(kin: &Kinematics) -> Option<&'static str> {
+    match kin {
+        Kinematics::Cartesian | Kinematics::CoreXY | Kinematics::CoreXZ => None,
+        Kinematics::Delta(_) => Some("delta"),
+    }
+}
+
+/// The steppers (indices into `machine.steppers`) that move toolhead axis `axis`: every one
+/// whose kinematics has a non-zero coefficient for it (corexy X: stepper_x = A and stepper_y =
+/// B). A delta tower counts for the axis of its index (delta homing is refused anyway).
+pub fn axis_steppers(machine: &Machine, axis: usize) -> Vec<usize> {
+    let kin = &machine.options.kinematics;
+    (0..machine.steppers.len())
+        .filter(|&i| {
+            let s = &machine.steppers[i];
+            match kin
+                .stepper(s.axis, s.step_dist)
+                .ok()
+                .as_ref()
+                .and_then(StepperKin::linear_coeffs)
+            {
+                Some(c) => c.get(axis).is_some_and(|&v| v != 0.0),
+                None => s.axis == axis,
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,183 @@
+//! A print job as the `print` command runs it: the G-code file, the printer.cfg (or the
+//! built-in simulated printer) and the options; batch mode to wire files, a live print with the
+//! IO stage in this process, or with it in a `cadence serve --role io` process.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use rt_core::logger::Level;
+use sysconfig::printer::PrinterConfig;
+
+use crate::batch::{run_batch, BatchJob, BatchReport};
+use crate::gcode_feed::GcodeInput;
+use crate::hardware::Machine;
+use crate::latency::Hists;
+use crate::live;
+use crate::logging::Logging;
+use crate::realtime::RtConfig;
+use crate::summary::Summary;
+
+/// Everything a print needs besides the printer.cfg's contents.
+#[derive(Debug, Clone)]
+pub struct PrintJob {
+    /// The G-code file to print.
+    pub file: PathBuf,
+    /// Klipper-format printer.cfg (`None`: the built-in simulated cartesian printer).
+    pub config: Option<PathBuf>,
+    /// Simulated MCU clock runs this many times faster than the wall clock (`None`: the
+    /// config's [simulator] time_scale, else 1).
+    pub time_scale: Option<f64>,
+    /// No MCU and no real-time waiting: write the exact wire stream to this file.
+    pub batch: Option<PathBuf>,
+    /// Data dictionary for `batch` (`None`: the Cadence firmware's own).
+    pub dictionary: Option<PathBuf>,
+    /// Write the simulated MCU's step trace to this file.
+    pub trace: Option<PathBuf>,
+    /// Maximum step time error of the compression, in microseconds.
+    pub max_error_us: f64,
+    /// Don't pin threads, use SCHED_FIFO or lock memory.
+    pub no_realtime: bool,
+    /// Save the print's latency histograms to this file (HdrHistogram V2 interval log).
+    pub histograms: Option<PathBuf>,
+    /// Logging and where the IO stage runs.
+    pub live: LiveOptions,
+}
+
+/// Options of a live print beyond the G-code and the printer.
+#[derive(Debug, Clone)]
+pub struct LiveOptions {
+    /// Also write the print's log (records of the planner, IO stage and link threads) to this
+    /// file (appended).
+    pub log_file: Option<PathBuf>,
+    /// Most verbose log level recorded: error, warn, info, debug or trace.
+    pub log_level: Level,
+    /// Run the IO stage (the MCU connections) in a separate `cadence serve --role io` process
+    /// started for this print. G28 with endstops is refused in this mode.
+    pub io_process: bool,
+    /// Like --io-process, but attach to a running `cadence serve --role io --instance NAME`.
+    pub io_attach: Option<String>,
+}
+
+impl LiveOptions {
+    /// True when the IO stage runs in another process.
+    pub fn remote(&self) -> bool {
+        self.io_process || self.io_attach.is_some()
+    }
+}
+
+/// What a finished print reports.
+#[derive(Debug)]
+pub enum PrintOutcome {
+    /// `batch` was set: the wire files and figures.
+    Batch(BatchReport),
+    /// A live print on the MCUs.
+    Live(LiveOutcome),
+}
+
+/// What a live print reports: its summary, each MCU link's statistics (empty when the IO stage
+/// ran in another process, which reports them itself) and which real-time guarantees were off.
+#[derive(Debug)]
+pub struct LiveOutcome {
+    pub summary: Summary,
+    pub link_stats: Vec<(String, links::mcu::LinkStats)>,
+    pub rt_report: Vec<String>,
+}
+
+/// Most time scale the simulator's 32-bit clock allows (it wraps every 86 s / scale at 50 MHz).
+const MAX_TIME_SCALE: f64 = 50.0;
+
+/// Runs a print job; `warn` gets the printer.cfg's warnings.
+pub fn run(args: &PrintJob, warn: &mut dyn FnMut(&str)) -> Result<PrintOutcome, String> {
+    if !(args.max_error_us > 0.0 && args.max_error_us <= 1000.0) {
+        return Err(format!(
+            "--max-error-us {}: must be in (0, 1000]",
+            args.max_error_us
+        ));
+    }
+    if let Some(scale) = args.time_scale {
+        if !(scale > 0.0 && scale <= MAX_TIME_SCALE) {
+            return Err(format!("--time-scale {scale}: must be in (0, {MAX_TIME_SCALE}]"));
+        }
+    }
+    // Open the G-code first: a missing file must not start any MCU.
+    let gcode = GcodeInput::open(&args.file).map_err(|e| format!("{}: {e}", args.file.display()))?;
+    let cfg = crate::hardware::load_config(args.config.as_deref())?;
+    for w in &cfg.warnings {
+        warn(w);
+    }
+    let machine = Machine::from_config(&cfg)?;
+    match &args.batch {
+        Some(out) => {
+            let job = BatchJob {
+                out,
+                dictionary: args.dictionary.as_deref(),
+                max_error_us: args.max_error_us,
+            };
+            run_batch(&job, &cfg, &machine, gcode).map(PrintOutcome::Batch)
+        }
+        None => run_live(args, &cfg, &machine, gcode).map(PrintOutcome::Live),
+    }
+}
+
+fn run_live(
+    args: &PrintJob,
+    cfg: &PrinterConfig,
+    machine: &Machine,
+    gcode: GcodeInput,
+) -> Result<LiveOutcome, String> {
+    if args.live.remote() {
+        return crate::io_process::planner_side::run(args, cfg, machine, gcode);
+    }
+    let started = Instant::now();
+    let simulated = cfg.mcus.iter().any(|m| m.is_simulated());
+    if args.time_scale.is_some() && !simulated {
+        return Err("--time-scale only applies to a simulated printer".to_string());
+    }
+    let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
+    let logging = Logging::start(args.live.log_level, args.live.log_file.clone())?;
+    let rt = RtConfig::from_section(&cfg.realtime, args.no_realtime);
+    let _idle_hold = rt.hold_idle_latency();
+    let (hists, mut mcus) = live::connect_mcus(cfg, machine, time_scale, args.trace.clone(), &rt, &logging)?;
+    let log = logging.handle("main");
+    let run = live::LiveRun {
+        max_error_s: args.max_error_us * 1e-6,
+        started,
+        scale: time_scale,
+        rt: &rt,
+        hists: &hists,
+        log: &log,
+        session: None,
+        instance: &format!("p{}", std::process::id()),
+    };
+    let result = live::print_on(gcode, machine, &mcus, &run);
+    let stats = mcus.close();
+    live_outcome(
+        result?,
+        started,
+        args.histograms.as_deref(),
+        &hists,
+        logging,
+        stats,
+    )
+}
+
+/// The end of a live print: wall time, the histograms saved if asked, the logger's line.
+pub(crate) fn live_outcome(
+    mut summary: Summary,
+    started: Instant,
+    histograms: Option<&std::path::Path>,
+    hists: &Hists,
+    logging: Logging,
+    link_stats: Vec<(String, links::mcu::LinkStats)>,
+) -> Result<LiveOutcome, String> {
+    summary.wall = started.elapsed().as_secs_f64();
+    if let Some(path) = histograms {
+        hists.save(path, summary.wall)?;
+    }
+    summary.extra.push(logging.finish());
+    Ok(LiveOutcome {
+        summary,
+        link_stats,
+        rt_report: rt_core::os::rt_report(),
+    })
+}

@@ -1,0 +1,539 @@
+//! The planner thread: G-code → lookahead → steps → compression → encoded step messages,
+//! published in batches over iceoryx2 shared memory (one lossless channel per MCU with
+//! steppers, `cadence/<instance>/mcu/<mcu>/steps`), paced between a low and a high water mark
+//! of buffered print time. A step that would reach its MCU with less than [`MIN_LEAD_S`] of
+//! lead stops the print before it is sent. G28 and the probe commands leave the streaming loop:
+//! the hand-off is drained and [`crate::homing`] drives the MCUs directly.
+//!
+//! The planner reaches the MCUs through [`McuSide`]: in this process (the IO stage is a thread
+//! here; homing works) or in a `cadence serve --role io` process (see [`crate::io_process`]):
+//! then the dictionary, move queue size and clock snapshots come over shared memory.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use links::clocksync::ClockEstimate;
+use links::dict::Cmd;
+use links::mcu::McuLink;
+use planner::pipeline::Pipeline;
+use planner::stepgen::StepCmd;
+use rt_core::alloc_count::AllocCounter;
+use rt_core::logger::{Arg, Level, LoggerHandle};
+use rt_core::shm::{open_node, steps_service_name, ChannelConfig, ShmPublisher, StepBatch, WireMsg};
+
+use crate::accessories::Accessories;
+use crate::events::{Event, MotionStatus, PrinterState, SessionShared};
+use crate::gcode_feed::{plan_file, FeedTarget, GcodeInput, MotionCmd};
+use crate::hardware::Machine;
+use crate::homing::{run_motion, HomingCtx};
+use crate::io_stage::AfterWarmup;
+use crate::latency::{mono_ns, Hists};
+use crate::mcus::Mcus;
+use crate::realtime::RtConfig;
+use crate::step_stream::sink::Sink;
+use crate::step_stream::{McuParams, StepStreams};
+use crate::summary::Summary;
+use crate::MIN_LEAD_S;
+
+/// `ipc::Service` with pooled per-loan state: a loan allocates nothing after warm-up (see
+/// rt-core's `shm::pooled`); it talks to `ipc::Service` ports of other processes unchanged.
+pub(crate) type Ipc = rt_core::shm::pooled::Ipc;
+
+/// Where the planner thread's MCU-side needs come from.
+#[derive(Debug, Clone, Copy)]
+pub(crate) enum McuSide<'a> {
+    /// The MCUs are connected in this process (the IO stage is a thread here).
+    Local(&'a Mcus),
+    /// The MCUs live in a `cadence serve --role io` process.
+    Remote(&'a crate::io_process::planner_side::RemoteMcu),
+}
+
+impl<'a> McuSide<'a> {
+    /// What the step streams need of each MCU that gets one (the main MCU first).
+    fn stream_params(&self, machine: &Machine) -> Result<Vec<McuParams<'a>>, String> {
+        match *self {
+            McuSide::Local(m) => Ok(m.stream_params(machine)),
+            McuSide::Remote(r) => {
+                crate::io_process::planner_side::check_single_mcu(machine)?;
+                Ok(vec![McuParams {
+                    name: &r.name,
+                    mcu_index: 0,
+                    dict: &r.dict,
+                    clock_freq: r.clock_freq,
+                    move_count: r.move_count,
+                }])
+            }
+        }
+    }
+
+    /// The clock fit of MCU `mcu_index` (in `[mcu]` order; lock-free).
+    fn clock(&self, mcu_index: usize) -> ClockEstimate {
+        match self {
+            McuSide::Local(m) => m
+                .list
+                .get(mcu_index)
+                .map_or(ClockEstimate::INVALID, |c| c.link.clock()),
+            McuSide::Remote(r) => r.clock(),
+        }
+    }
+
+    /// An MCU shutdown or a failed IO process, as an error.
+    fn check(&self) -> Result<(), String> {
+        match self {
+            McuSide::Local(m) => Ok(m.check()?),
+            McuSide::Remote(r) => r.check(),
+        }
+    }
+}
+
+/// The planner side of the shared-memory hand-off: packs messages into batches.
+pub(crate) struct ShmSink {
+    publisher: ShmPublisher<Ipc, StepBatch>,
+    batch: StepBatch,
+}
+
+impl ShmSink {
+    fn push(&mut self, m: WireMsg) -> Result<(), String> {
+        if !self.batch.push(m) {
+            self.flush()?;
+            self.batch.push(m);
+        }
+        Ok(())
+    }
+
+    /// Publishes the pending batch (if any).
+    fn flush(&mut self) -> Result<(), String> {
+        if self.batch.count == 0 {
+            return Ok(());
+        }
+        let batch = self.batch;
+        self.publisher
+            .send_with(|b| {
+                *b = batch;
+                b.t_ns = mono_ns();
+            })
+            .map_err(|e| format!("planner → io hand-off: {e}"))?;
+        self.batch.count = 0;
+        Ok(())
+    }
+}
+
+impl Sink for ShmSink {
+    fn send(&mut self, cmd: Cmd) -> Result<(), String> {
+        self.push(WireMsg::new(0, 0, cmd.as_bytes()).unwrap_or_default())
+    }
+    fn send_clocked(&mut self, cmd: Cmd, min_clock: u64, req_clock: u64) -> Result<(), String> {
+        self.push(WireMsg::new(min_clock, req_clock, cmd.as_bytes()).unwrap_or_default())
+    }
+}
+
+/// What the planner thread hands back: the summary so far, the pipeline and step streams
+/// (final positions, last step clocks), its allocations after warm-up and the number of step
+/// batches published per stream.
+pub(crate) type Planned = (Summary, Pipeline, StepStreams, Option<AfterWarmup>, Vec<u64>);
+
+/// What the planner thread works with besides its G-code.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct PlannerStage<'a> {
+    pub machine: &'a Machine,
+    pub side: McuSide<'a>,
+    /// MCU seconds per wall second (the simulator's time scale).
+    pub scale: f64,
+    /// Maximum step time error of the compression (s).
+    pub max_error_s: f64,
+    /// Service instance of the step channels (`cadence/<instance>/mcu/<mcu>/steps`).
+    pub instance: &'a str,
+    /// `consumed[k]`: the batches stream k's IO stage took.
+    pub consumed: &'a [AtomicU64],
+    pub hists: &'a Hists,
+    pub log: &'a LoggerHandle,
+    pub rt: &'a RtConfig,
+    /// A printer session's stop flag, status and events (`None`: a plain print).
+    pub session: Option<&'a SessionShared>,
+}
+
+/// The planner thread: G-code → pipeline → step messages into shared memory (one channel per
+/// MCU with steppers: `cadence/<instance>/mcu/<mcu>/steps`), paced.
+pub(crate) fn planner_stage(gcode: GcodeInput, st: &PlannerStage<'_>) -> Result<Planned, String> {
+    let params = st.side.stream_params(st.machine)?;
+    let Some(main) = params.first().copied() else {
+        return Err("the printer has no MCU".to_string());
+    };
+    if st.consumed.len() != params.len() {
+        return Err(format!(
+            "internal error: {} IO stages for {} step streams",
+            st.consumed.len(),
+            params.len()
+        ));
+    }
+    let (node, _) =
+        open_node::<Ipc>(&format!("cadence-planner-{}", std::process::id())).map_err(|e| e.to_string())?;
+    let sinks = open_sinks(&node, st.instance, &params)?;
+    let clock_freq = main.clock_freq;
+    let side = st.side;
+    let print_now = || side.clock(main.mcu_index).clock_at(McuLink::system_now()) / clock_freq;
+    // Start far enough ahead that the first batch is planned long before it is due.
+    let start = print_now() + (0.5f64).max(0.25 * st.scale);
+    let streams = StepStreams::new(st.machine, &params)?;
+    let maps = streams.clock_maps(|i| side.clock(i))?;
+    let mut pipeline = Pipeline::with_clocks(
+        st.machine.pipeline_config(clock_freq, st.max_error_s),
+        start,
+        st.machine.options,
+        &maps,
+    )
+    .map_err(|e| e.to_string())?;
+    let mut run = PlannerRun::new(st, main, sinks, streams, params.len());
+    st.log.log(
+        Level::Info,
+        "planner started: start print time s, high water s, step streams",
+        [Arg::F(start), Arg::F(run.high_water), Arg::U(params.len() as u64)],
+    );
+    let mut accessories = Accessories::new(st.machine.real_board);
+    let file = gcode.name.clone();
+    let lines = plan_file(gcode, &mut pipeline, &mut accessories, &mut run)?;
+    run.sinks.iter_mut().try_for_each(ShmSink::flush)?;
+    let total = run.published();
+    // Counted before anything below allocates (the report's own vectors).
+    let (motion_allocations, motion_count) = run.motions;
+    let allocs = run.warm.map(|(w, seq)| AfterWarmup {
+        allocations: AllocCounter::snapshot()
+            .since(w)
+            .allocations()
+            .saturating_sub(motion_allocations),
+        batches: total - seq,
+        motion_allocations,
+        motions: motion_count,
+    });
+    crate::allocsites::finish_if_requested("planner");
+    let mut summary_extra = accessories.lines();
+    summary_extra.append(&mut run.homing_reports);
+    let batches: Vec<u64> = run.sinks.iter().map(|s| s.publisher.next_seq()).collect();
+    let stats = pipeline.stats();
+    let summary = Summary {
+        file,
+        lines,
+        moves: stats.moves,
+        print_time: pipeline.planned_until() - start,
+        wall: 0.0,
+        queue_steps: run.streams.queue_steps(),
+        rows: Vec::new(),
+        clock_freq,
+        mcu_freqs: params
+            .iter()
+            .map(|m| (m.name.to_string(), m.clock_freq))
+            .collect(),
+        extra: summary_extra,
+    };
+    st.log.log(
+        Level::Info,
+        "planner done: lines, moves, queue_steps, batches",
+        [
+            Arg::U(lines),
+            Arg::U(stats.moves),
+            Arg::U(summary.queue_steps),
+            Arg::U(total),
+        ],
+    );
+    Ok((summary, pipeline, run.streams, allocs, batches))
+}
+
+/// One publisher per step stream, each waited for (bounded) until its IO stage subscribed.
+fn open_sinks(
+    node: &iceoryx2::node::Node<Ipc>,
+    instance: &str,
+    params: &[McuParams<'_>],
+) -> Result<Vec<ShmSink>, String> {
+    let mut sinks = Vec::with_capacity(params.len());
+    for m in params {
+        let service = steps_service_name(instance, m.name);
+        let publisher = ShmPublisher::<Ipc, StepBatch>::open(node, &service, &ChannelConfig::steps())
+            .map_err(|e| format!("planner → io hand-off of mcu '{}': {e}", m.name))?;
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while publisher.connect().map_err(|e| e.to_string())? < 1 {
+            if Instant::now() > deadline {
+                return Err(format!(
+                    "planner → io hand-off: the IO stage of mcu '{}' never subscribed",
+                    m.name
+                ));
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        sinks.push(ShmSink {
+            publisher,
+            batch: StepBatch::default(),
+        });
+    }
+    Ok(sinks)
+}
+
+/// The planner thread's end of the G-code loop: lead checks, the hand-off, flow control and
+/// homing with the MCUs in the loop.
+struct PlannerRun<'a, 'p> {
+    st: &'a PlannerStage<'p>,
+    main: McuParams<'p>,
+    sinks: Vec<ShmSink>,
+    streams: StepStreams,
+    /// Each stream's MCU clock now (reused: no allocation per batch).
+    now_clocks: Vec<f64>,
+    /// Buffering window in print time: 2 s, or 1 s of wall time when the clock runs faster.
+    high_water: f64,
+    low_water: f64,
+    /// Allocation counter and batches published when the pipeline first reached high water
+    /// (warm-up: every buffer has seen a full window).
+    warm: Option<(AllocCounter, u64)>,
+    /// Allocations of homing/probing commands after warm-up (counted apart) and their count.
+    motions: (u64, u64),
+    /// Report lines of homing and probing, printed with the summary.
+    homing_reports: Vec<String>,
+    /// Planning G-code (false while a session's feed is idle).
+    busy: bool,
+}
+
+/// Sleep between flow-control checks.
+const PACE: Duration = Duration::from_millis(5);
+
+impl<'a, 'p> PlannerRun<'a, 'p> {
+    fn new(
+        st: &'a PlannerStage<'p>,
+        main: McuParams<'p>,
+        sinks: Vec<ShmSink>,
+        streams: StepStreams,
+        n: usize,
+    ) -> Self {
+        let high_water = (2.0f64).max(1.0 * st.scale);
+        PlannerRun {
+            st,
+            main,
+            sinks,
+            streams,
+            now_clocks: vec![0.0f64; n],
+            high_water,
+            low_water: high_water / 2.0,
+            warm: None,
+            motions: (0, 0),
+            homing_reports: Vec::new(),
+            busy: true,
+        }
+    }
+
+    /// The main MCU's print time now.
+    fn print_now(&self) -> f64 {
+        self.st
+            .side
+            .clock(self.main.mcu_index)
+            .clock_at(McuLink::system_now())
+            / self.main.clock_freq
+    }
+
+    fn published(&self) -> u64 {
+        self.sinks.iter().map(|s| s.publisher.next_seq()).sum()
+    }
+
+    /// An MCU shutdown, a failed IO process or a stop request, as an error.
+    fn check(&self) -> Result<(), String> {
+        // A stop first: an emergency stop also shuts the MCUs down, and is the cause.
+        if let Some(s) = self.st.session {
+            s.check_stop()?;
+        }
+        self.st.side.check()
+    }
+
+    /// Refuses a step command that would reach its MCU with less than [`MIN_LEAD_S`].
+    fn check_lead(&self, idx: usize, cmd: &StepCmd) -> Result<(), String> {
+        let StepCmd::QueueStep { first_clock, .. } = *cmd else {
+            return Ok(());
+        };
+        let k = self.streams.stream_of(idx).unwrap_or(0);
+        let freq = self.streams.mcus[k].clock_freq;
+        let now_clock = self.now_clocks[k];
+        if (first_clock as f64) >= now_clock + MIN_LEAD_S * freq {
+            return Ok(());
+        }
+        let ahead_ms = (first_clock as f64 - now_clock) / freq * 1e3;
+        self.st.log.log(
+            Level::Error,
+            "planner fell behind: stepper index, ms before due",
+            [Arg::U(idx as u64), Arg::F(ahead_ms)],
+        );
+        Err(format!(
+            "the planner fell behind: a step for {} on mcu '{}' at its clock {first_clock} was \
+             ready only {ahead_ms:.1} ms before it is due (at least {:.0} ms required); print \
+             stopped before sending it",
+            self.st.machine.steppers[idx].name,
+            self.streams.mcus[k].name,
+            MIN_LEAD_S * 1e3
+        ))
+    }
+
+    /// Publishes the motion status of a session (no allocation).
+    fn publish_status(&self, pipeline: &Pipeline) {
+        if let Some(s) = self.st.session {
+            s.publish_motion(MotionStatus {
+                position: pipeline.position(),
+                homed: pipeline.gcode_state().homed(),
+                planned_until: pipeline.planned_until(),
+                busy: self.busy,
+            });
+        }
+    }
+
+    /// Drains the shared-memory hand-offs: everything planned so far must be in the links
+    /// before homing talks to the MCUs directly.
+    fn drain_handoff(&mut self, mcus: &Mcus) -> Result<(), String> {
+        self.sinks.iter_mut().try_for_each(ShmSink::flush)?;
+        let targets: Vec<u64> = self.sinks.iter().map(|s| s.publisher.next_seq()).collect();
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while self
+            .st
+            .consumed
+            .iter()
+            .zip(&targets)
+            .any(|(c, &t)| c.load(Ordering::Acquire) < t)
+        {
+            if Instant::now() > deadline {
+                return Err("the IO stages did not take the planned steps before homing".to_string());
+            }
+            mcus.check()?;
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        Ok(())
+    }
+}
+
+impl FeedTarget for PlannerRun<'_, '_> {
+    fn emit(&mut self, cmds: &mut Vec<(usize, StepCmd)>) -> Result<(), String> {
+        let now = McuLink::system_now();
+        for (c, m) in self.now_clocks.iter_mut().zip(&self.streams.mcus) {
+            *c = self.st.side.clock(m.mcu_index).clock_at(now);
+        }
+        for &(idx, cmd) in cmds.iter() {
+            self.check_lead(idx, &cmd)?;
+            self.streams.push(idx, cmd, &mut self.sinks[..])?;
+        }
+        self.sinks.iter_mut().try_for_each(ShmSink::flush)
+    }
+
+    fn pace(&mut self, p: &mut Pipeline) -> Result<(), String> {
+        let side = self.st.side;
+        // The next batch is planned with the MCUs' latest clock fits.
+        self.streams.refresh_clocks(p, |i| side.clock(i))?;
+        self.publish_status(p);
+        // Flow control: keep between the low and high water marks of buffered print time.
+        if p.planned_until() - self.print_now() > self.high_water {
+            if self.warm.is_none() {
+                self.warm = Some((AllocCounter::snapshot(), self.published()));
+                crate::allocsites::start_if_requested();
+            }
+            self.st.log.log(
+                Level::Debug,
+                "flow control: buffered print time s, waiting down to s",
+                [
+                    Arg::F(p.planned_until() - self.print_now()),
+                    Arg::F(self.low_water),
+                ],
+            );
+            while p.planned_until() - self.print_now() > self.low_water {
+                self.check()?;
+                let t = Instant::now();
+                std::thread::sleep(PACE);
+                if let Ok(mut h) = self.st.hists.wake_planner.try_lock() {
+                    h.record(t.elapsed().saturating_sub(PACE).as_nanos() as u64);
+                }
+            }
+        }
+        self.check()
+    }
+
+    fn motion(&mut self, pipeline: &mut Pipeline, cmd: &MotionCmd<'_>) -> Result<bool, String> {
+        let st = self.st;
+        if st.machine.endstops.is_empty() && st.machine.probe.is_none() {
+            return Ok(false);
+        }
+        let McuSide::Local(mcus) = st.side else {
+            let what = match cmd {
+                MotionCmd::Home(_) => "homing needs",
+                MotionCmd::Probe { .. } => "probing needs",
+            };
+            return Err(format!(
+                "{what} the in-process IO stage (triggers are relayed through the MCU link): \
+                 print without --io-process/--io-attach"
+            ));
+        };
+        let motion_start = AllocCounter::snapshot();
+        self.drain_handoff(mcus)?;
+        if let MotionCmd::Home(axes) = cmd {
+            st.log.log(
+                Level::Info,
+                "homing axes x, y, z",
+                [
+                    Arg::U(axes[0] as u64),
+                    Arg::U(axes[1] as u64),
+                    Arg::U(axes[2] as u64),
+                ],
+            );
+        }
+        let mut direct = crate::homing::direct_sinks(&self.streams, mcus);
+        let mut ctx = HomingCtx::new(
+            mcus,
+            st.machine,
+            pipeline,
+            &mut self.streams,
+            &mut direct,
+            st.scale,
+            st.rt,
+        );
+        // Formatted text is printed by the main thread with the summary.
+        let mut out = Vec::new();
+        let result = run_motion(&mut ctx, cmd, &mut out);
+        if let (Err(_), Some(detail)) = (&result, ctx.comm_timeout_detail.take()) {
+            out.push(format!("homing: communication timeout: {detail}"));
+        }
+        if let Some(session) = st.session {
+            match &result {
+                Ok(Some(report)) => {
+                    if let Ok(mut last) = session.last_homing.lock() {
+                        *last = Some(report.clone());
+                    }
+                    session.emit(Event::Homed(report.clone()));
+                }
+                _ => out.iter().for_each(|l| session.emit(Event::Response(l.clone()))),
+            }
+        }
+        self.homing_reports.extend(out);
+        result?;
+        st.log.log(Level::Info, "homing done", []);
+        self.publish_status(pipeline);
+        if self.warm.is_some() {
+            let (allocs, n) = self.motions;
+            let more = AllocCounter::snapshot().since(motion_start).allocations();
+            self.motions = (allocs + more, n + 1);
+        }
+        Ok(true)
+    }
+
+    fn resume_at(&self) -> f64 {
+        // As far ahead as the print's own start: the first batch is planned long before due.
+        self.print_now() + (0.5f64).max(0.25 * self.st.scale)
+    }
+
+    fn warn(&mut self, text: String) {
+        match self.st.session {
+            Some(s) => s.emit(Event::Warning(text)),
+            None => eprintln!("cadence: warning: {text}"),
+        }
+    }
+
+    fn idle(&mut self, idle: bool, pipeline: &Pipeline) {
+        self.busy = !idle;
+        self.publish_status(pipeline);
+        if let Some(s) = self.st.session {
+            let state = if idle {
+                PrinterState::Ready
+            } else {
+                PrinterState::Printing
+            };
+            s.emit(Event::State(state));
+        }
+    }
+}

@@ -1,0 +1,210 @@
+//! The `cadence` library used directly (no executable): a printer opened on the built-in
+//! simulated printer (its MCU a `cadence-mcu` child process on a real pty), homed, fed G-code
+//! one command at a time and from a file, stopped from another thread, and closed with every
+//! stepper's position read back from the MCU. Also runs the embedding example
+//! (`examples/embed.rs`) as built by `cargo test --workspace`.
+//!
+//! The tests take turns (a lock): each runs a simulated MCU process and real-time threads, and
+//! homing's 25 ms trsync budget must not compete with another test's homing on this VM.
+
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use cadence::{Event, Printer, PrinterError, PrinterOptions, PrinterSource, PrinterState};
+use cadence_tests::{assert_success, bin, run, workspace};
+
+/// Counts allocations per thread, so the summary's "allocations after warm-up" means something.
+#[global_allocator]
+static ALLOC: rt_core::alloc_count::CountingAlloc = rt_core::alloc_count::CountingAlloc;
+
+static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+fn turn() -> std::sync::MutexGuard<'static, ()> {
+    ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+fn open() -> Printer {
+    let opts = PrinterOptions {
+        log_to_stderr: true,
+        ..PrinterOptions::default()
+    };
+    Printer::open(PrinterSource::Simulated, opts).expect("open the simulated printer")
+}
+
+#[test]
+fn the_embedding_example_runs() {
+    let _turn = turn();
+    let example = bin("examples/embed");
+    let out = run(&mut std::process::Command::new(example), Duration::from_secs(120));
+    assert_success(&out);
+    for want in [
+        "homing x: mcus mcu",
+        "status: Ready, toolhead X20.000 Y20.000 Z5.000, homed [true, true, true]",
+        "lead margin: min",
+        "event: homed 3 axes",
+        "event: shut down (closed)",
+    ] {
+        assert!(out.stdout.contains(want), "missing {want:?} in:\n{}", out.stdout);
+    }
+    assert!(!out.stdout.contains("MISMATCH"), "{}", out.stdout);
+}
+
+#[test]
+fn home_stream_and_close_read_the_positions_back() {
+    let _turn = turn();
+    let mut printer = open();
+    let events = printer.events().expect("events");
+    let homing = printer.home([true, true, true]).expect("home");
+    assert_eq!(homing.axes.len(), 3, "{homing}");
+    for a in &homing.axes {
+        assert_eq!(a.position, 0.0, "{homing}");
+        assert_eq!(a.passes.len(), 2, "{homing}");
+    }
+    assert_eq!(printer.status().homed, [true, true, true]);
+
+    printer.send_line("G1 X30 Y40 Z2 F6000").expect("send");
+    printer.send_line("G1 X35").expect("send");
+    printer.wait_moves().expect("wait");
+    let status = printer.status();
+    assert_eq!(status.state, PrinterState::Ready);
+    assert_eq!(&status.position[..3], &[35.0, 40.0, 2.0]);
+    assert!(status.print_time >= status.planned_until);
+    assert_eq!(status.mcus.len(), 1);
+    assert!(status.mcus[0].1.queue.bytes_write > 0);
+
+    // A file on the same timeline.
+    printer
+        .run_gcode_file(&workspace().join("examples/square.gcode"))
+        .expect("file");
+    printer.wait_moves().expect("wait");
+    let latency = printer.latency();
+    assert!(latency.lead_margin.count > 0);
+    assert_eq!(latency.lead_margin.negative, 0, "a step message left late");
+    assert!(latency.lead_ms(latency.lead_margin.min) >= 100.0);
+
+    let report = printer.close().expect("close");
+    let rows = &report.summary.rows;
+    assert_eq!(rows.len(), 4);
+    for (name, _, mcu, host, _) in rows {
+        assert_eq!(mcu, host, "{name}: the MCU's position differs from the host's");
+    }
+    let states: Vec<PrinterState> = events
+        .try_iter()
+        .filter_map(|e| match e {
+            Event::State(s) => Some(s),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(states.first(), Some(&PrinterState::Ready));
+    assert!(states.contains(&PrinterState::Printing));
+    assert_eq!(
+        states.last(),
+        Some(&PrinterState::Shutdown {
+            reason: "closed".to_string()
+        })
+    );
+}
+
+#[test]
+fn a_bad_line_is_refused_and_the_session_goes_on_but_an_unknown_command_ends_it() {
+    let _turn = turn();
+    let printer = open();
+    match printer.send_line("G1 X(") {
+        Err(PrinterError::Gcode(e)) => assert!(e.to_string().contains("G1 X("), "{e}"),
+        other => panic!("expected a G-code error, got {other:?}"),
+    }
+    printer.send_line("G92 X10").expect("a good line after a bad one");
+    printer.wait_moves().expect("still running");
+
+    printer.send_line("NO_SUCH_COMMAND").expect("queued");
+    match printer.wait_moves() {
+        Err(PrinterError::Shutdown { reason }) => {
+            assert!(reason.contains("NO_SUCH_COMMAND"), "{reason}");
+            assert!(
+                reason.contains("session: line 2"),
+                "the reason names the command: {reason}"
+            );
+        }
+        other => panic!("expected a shutdown, got {other:?}"),
+    }
+    assert!(matches!(printer.handle().state(), PrinterState::Shutdown { .. }));
+    assert!(matches!(
+        printer.send_line("G1 X1"),
+        Err(PrinterError::Shutdown { .. })
+    ));
+    let err = printer.close().expect_err("the session failed");
+    assert!(err.reason.contains("NO_SUCH_COMMAND"), "{}", err.reason);
+}
+
+#[test]
+fn stop_and_emergency_stop_from_another_thread() {
+    let _turn = turn();
+    for emergency in [false, true] {
+        let printer = open();
+        let handle = printer.handle();
+        printer.home([true, false, false]).expect("home X");
+        // 200 mm at 5 mm/s: 40 s of motion, stopped long before its end.
+        printer.send_line("G1 X200 F300").expect("send");
+        let stopper = std::thread::spawn(move || {
+            let deadline = Instant::now() + Duration::from_secs(30);
+            while handle.state() != PrinterState::Printing && Instant::now() < deadline {
+                std::thread::sleep(Duration::from_millis(10));
+            }
+            std::thread::sleep(Duration::from_millis(500));
+            if emergency {
+                handle.emergency_stop();
+            } else {
+                handle.stop();
+            }
+            handle
+        });
+        let waited = printer.wait_moves();
+        let handle = stopper.join().expect("stopper thread");
+        let reason = match waited {
+            Err(PrinterError::Shutdown { reason }) => reason,
+            other => panic!("expected a shutdown, got {other:?}"),
+        };
+        let want = if emergency {
+            "emergency stop"
+        } else {
+            "stopped by the host"
+        };
+        assert!(reason.contains(want), "{reason}");
+        assert_eq!(
+            handle.state(),
+            PrinterState::Shutdown {
+                reason: reason.clone()
+            }
+        );
+        let err = printer.close().expect_err("a stopped session fails");
+        assert!(err.reason.contains(want), "{}", err.reason);
+        if emergency {
+            let mcu = &err.link_stats;
+            assert_eq!(mcu.len(), 1, "the link statistics come back anyway");
+        }
+    }
+}
+
+#[test]
+fn open_errors_say_what_and_where() {
+    use cadence::printer::OpenError;
+    let missing = workspace().join("no-such-printer.cfg");
+    match Printer::open(PrinterSource::ConfigFile(missing), PrinterOptions::default()) {
+        Err(OpenError::Config(e)) => assert!(e.to_string().contains("no-such-printer.cfg"), "{e}"),
+        other => panic!("expected a config error, got {other:?}"),
+    }
+    let opts = PrinterOptions {
+        time_scale: Some(500.0),
+        ..PrinterOptions::default()
+    };
+    match Printer::open(PrinterSource::Simulated, opts) {
+        Err(
+            e @ OpenError::Option {
+                what: "time_scale", ..
+            },
+        ) => {
+            assert!(e.to_string().contains("(0, 50]"), "{e}")
+        }
+        other => panic!("expected an option error, got {other:?}"),
+    }
+}
