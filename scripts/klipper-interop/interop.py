@@ -429,6 +429,10 @@ def compare_positions(rig):
     want = rig.klippy_mcu_positions()
     oids = oid_map(rig, "mcu")
     rig.stop()
+    with open(os.path.join(rig.dir, "cadence-mcu-mcu.log"), errors="replace") as f:
+        trouble = [l.strip() for l in f if "error:" in l]
+    if trouble:
+        raise Fail("the MCU's step trace is incomplete: " + "; ".join(trouble))
     got_by_oid = trace_positions(rig.mcus["mcu"][1])
     got = {name: got_by_oid.get(oid, 0) for oid, name in oids.items()}
     rows = []
