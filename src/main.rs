@@ -16,6 +16,7 @@ mod allocsites;
 mod benchcmd;
 mod decode;
 mod doctor;
+mod heaters;
 mod homing;
 mod live;
 mod machine;
