@@ -203,16 +203,19 @@ mod tests {
         // The heater stops heating 30 s into the heat-up, halfway there.
         let dead = Heater::new(0, 0, ThermalModel::HOTEND).with_fault(SimFault::NoHeat, 30.0);
         let (at, msg) = run("extruder", dead, 210.0, 600.0).unwrap();
+        eprintln!("hotend heater dead at 30 s of a heat-up to 210 C: verify_heater fault at {at:.1} s");
         assert!((30.0..=60.0).contains(&at), "{at}");
         assert_eq!(msg, "Heater extruder not heating at expected rate");
         // The sensor freezes at 30 s: it stops approaching, same fault.
         let frozen = Heater::new(0, 0, ThermalModel::HOTEND).with_fault(SimFault::FrozenSensor, 30.0);
         let (at, _) = run("extruder", frozen, 210.0, 600.0).unwrap();
+        eprintln!("hotend sensor frozen at 30 s of a heat-up to 210 C: verify_heater fault at {at:.1} s");
         assert!((30.0..=60.0).contains(&at), "{at}");
         // The bed's heater dies while it holds 60 °C: it cools below target − hysteresis and
         // the error grows until the fault.
         let bed_dead = Heater::new(0, 0, ThermalModel::BED).with_fault(SimFault::NoHeat, 200.0);
         let (at, msg) = run("heater_bed", bed_dead, 60.0, 900.0).unwrap();
+        eprintln!("bed heater dead at 200 s while holding 60 C: verify_heater fault at {at:.1} s");
         assert!(at > 200.0, "{at}");
         assert_eq!(msg, "Heater heater_bed not heating at expected rate");
     }
