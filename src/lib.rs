@@ -14,6 +14,8 @@
 //! - whole prints: [`live`] (threads in this process), [`io_process`] (the IO stage in
 //!   another process), [`batch`] (wire files), [`job`] (what `cadence print` runs);
 //! - the API: [`printer`] ([`printer::Printer`], its handle, events and status in [`events`]);
+//! - [`heaters`]: the heater logic (sensors, PID/watermark, verify_heater, PID calibration),
+//!   pure and clock-free, not yet driven by the print loop;
 //! - [`host_check`]: is this host fit for hard timing (PREEMPT_RT, SCHED_FIFO, limits,
 //!   isolated CPUs, wake-up latency)?
 //! - [`wire_check`]: a batch wire stream proved against its G-code.
@@ -29,6 +31,7 @@ pub mod batch;
 pub mod events;
 pub mod gcode_feed;
 pub mod hardware;
+pub mod heaters;
 pub mod home_cycles;
 pub mod homing;
 pub use rt_core::host_check;

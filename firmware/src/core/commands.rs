@@ -63,6 +63,8 @@ pub enum Cmd {
     QueueDigitalOut,
     /// `update_digital_out`.
     UpdateDigitalOut,
+    /// `set_digital_out` (a pin set once, no object).
+    SetDigitalOut,
     /// `config_analog_in`.
     ConfigAnalogIn,
     /// `query_analog_in`.
@@ -202,6 +204,7 @@ pub const MESSAGES: &[MessageDef] = &[
         false,
     ),
     cmd("update_digital_out oid=%c value=%c", Cmd::UpdateDigitalOut, false),
+    cmd("set_digital_out pin=%u value=%c", Cmd::SetDigitalOut, false),
     cmd("config_analog_in oid=%c pin=%u", Cmd::ConfigAnalogIn, false),
     cmd(
         "query_analog_in oid=%c clock=%u sample_ticks=%u sample_count=%c rest_ticks=%u \
@@ -315,6 +318,10 @@ mod tests {
         assert!(has(
             "config_digital_out oid=%c pin=%u value=%c default_value=%c max_duration=%u"
         ));
+        assert!(has("set_digital_out pin=%u value=%c"));
+        assert!(has("queue_digital_out oid=%c clock=%u on_ticks=%u"));
+        assert!(has("set_digital_out_pwm_cycle oid=%c cycle_ticks=%u"));
+        assert!(has("config_analog_in oid=%c pin=%u"));
         assert!(has(
             "trsync_start oid=%c report_clock=%u report_ticks=%u expire_reason=%c"
         ));

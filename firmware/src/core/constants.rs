@@ -39,6 +39,9 @@ pub mod reason {
     pub const STEPPER_TOO_FAR_IN_PAST: &str = "Stepper too far in past";
     /// A digital out update scheduled in the past, or `max_duration` passed without an update.
     pub const MISSED_DIGITAL_OUT: &str = "Missed scheduling of next digital out event";
+    /// A `queue_digital_out` further than `max_duration` after the previous update, which left
+    /// the pin away from its default.
+    pub const EXCEEDS_MAX_DURATION: &str = "Scheduled digital out event will exceed max_duration";
     /// An analog input out of its range for `range_check_count` rounds.
     pub const ADC_OUT_OF_RANGE: &str = "ADC out of range";
     /// `config_reset` while the MCU is not shut down.
@@ -67,6 +70,7 @@ pub const SHUTDOWN_REASONS: &[&str] = &[
     reason::MISSED_DIGITAL_OUT,
     reason::ADC_OUT_OF_RANGE,
     reason::CONFIG_RESET_NOT_SHUTDOWN,
+    reason::EXCEEDS_MAX_DURATION,
 ];
 
 /// The `static_string_id` of `reason` (0, "Unknown shutdown reason", if it is not listed).

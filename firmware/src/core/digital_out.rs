@@ -6,7 +6,10 @@
 //! `c + cycle_ticks`, and so on until the next update. Updates wait in a small FIFO
 //! ([`QUEUE_LEN`]). `max_duration` (non-zero): after an update leaves the pin away from its
 //! default, the next update must be applied within `max_duration` ticks, else the MCU shuts down
-//! ("Missed scheduling of next digital out event"). `update_digital_out` sets the pin at once.
+//! ("Missed scheduling of next digital out event"); an update queued more than `max_duration`
+//! after the previous one, which leaves the pin away from its default, is refused at once
+//! ("Scheduled digital out event will exceed max_duration"). `update_digital_out` sets the pin
+//! at once. A heater's pin thus turns itself off when the host stops sending updates.
 //!
 //! The timer wakes at the earliest of the next queued update, the next PWM edge and the
 //! `max_duration` deadline.
@@ -36,6 +39,9 @@ pub enum DigitalOutError {
     Missed,
     /// The update FIFO is full.
     QueueFull,
+    /// An update queued more than `max_duration` after the previous one, which left the pin
+    /// away from its default.
+    ExceedsMaxDuration,
 }
 
 /// The state of one digital out.
@@ -51,6 +57,8 @@ pub struct DigitalOut {
     cycle_start: WireClock,
     toggle_at: Option<WireClock>,
     deadline: Option<WireClock>,
+    /// The latest update queued or applied, and whether it leaves the pin away from default.
+    last_update: Option<(WireClock, bool)>,
 }
 
 fn earliest(a: Option<WireClock>, b: Option<WireClock>) -> Option<WireClock> {
@@ -74,6 +82,7 @@ impl DigitalOut {
             cycle_start: WireClock(0),
             toggle_at: None,
             deadline: None,
+            last_update: None,
         }
     }
 
@@ -100,6 +109,13 @@ impl DigitalOut {
         if self.len == QUEUE_LEN {
             return Err(DigitalOutError::QueueFull);
         }
+        let limit = self.config.max_duration;
+        if let Some((last, true)) = self.last_update.filter(|_| limit > 0) {
+            if last.add(limit).is_before(clock) {
+                return Err(DigitalOutError::ExceedsMaxDuration);
+            }
+        }
+        self.last_update = Some((clock, self.is_away(on_ticks)));
         self.queue[(self.head + self.len) % QUEUE_LEN] = (clock, on_ticks);
         self.len += 1;
         Ok(())
@@ -108,20 +124,31 @@ impl DigitalOut {
     /// `update_digital_out` at `now`: the new level (queued updates are dropped).
     pub fn update(&mut self, value: bool, now: WireClock) -> bool {
         self.len = 0;
-        self.apply(if value { u32::MAX } else { 0 }, now)
+        let on_ticks = if value { u32::MAX } else { 0 };
+        self.last_update = Some((now, self.is_away(on_ticks)));
+        self.apply(on_ticks, now)
     }
 
     fn is_on(&self, on_ticks: u32) -> bool {
         on_ticks > 0
     }
 
+    fn is_pwm(&self, on_ticks: u32) -> bool {
+        on_ticks > 0 && self.cycle_ticks > 0 && on_ticks < self.cycle_ticks
+    }
+
+    /// True if `on_ticks` leaves the pin away from its default (PWM counts as away).
+    fn is_away(&self, on_ticks: u32) -> bool {
+        self.is_on(on_ticks) != self.config.default_value || self.is_pwm(on_ticks)
+    }
+
     fn apply(&mut self, on_ticks: u32, at: WireClock) -> bool {
         self.on_ticks = on_ticks;
         self.value = self.is_on(on_ticks);
-        let pwm = on_ticks > 0 && self.cycle_ticks > 0 && on_ticks < self.cycle_ticks;
+        let pwm = self.is_pwm(on_ticks);
         self.cycle_start = at;
         self.toggle_at = pwm.then(|| at.add(on_ticks));
-        let away = self.value != self.config.default_value || pwm;
+        let away = self.is_away(on_ticks);
         self.deadline = (away && self.config.max_duration > 0).then(|| at.add(self.config.max_duration));
         self.value
     }
@@ -160,6 +187,7 @@ impl DigitalOut {
         self.len = 0;
         self.toggle_at = None;
         self.deadline = None;
+        self.last_update = None;
         self.value = self.config.default_value;
         self.value
     }
@@ -237,6 +265,16 @@ mod tests {
             Err(DigitalOutError::QueueFull)
         );
         assert!(d.update(true, WireClock(11_000)));
+        // Queued too far after an update that left the pin on: refused at once.
+        let mut far = out(500);
+        far.queue(WireClock(100), 1, WireClock(0)).unwrap();
+        far.queue(WireClock(600), 1, WireClock(0)).unwrap();
+        assert_eq!(
+            far.queue(WireClock(1101), 0, WireClock(0)),
+            Err(DigitalOutError::ExceedsMaxDuration)
+        );
+        far.queue(WireClock(1100), 0, WireClock(0)).unwrap();
+        far.queue(WireClock(90_000), 1, WireClock(0)).unwrap(); // after an off: any time
         assert_eq!(d.next_wake(), Some(WireClock(11_500)));
         assert!(!d.halt());
         assert_eq!(d.next_wake(), None);

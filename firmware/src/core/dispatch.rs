@@ -117,6 +117,7 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
             | Cmd::SetDigitalOutPwmCycle
             | Cmd::QueueDigitalOut
             | Cmd::UpdateDigitalOut
+            | Cmd::SetDigitalOut
             | Cmd::ConfigAnalogIn
             | Cmd::QueryAnalogIn
             | Cmd::CadenceGetLateness => self.handle_object(cmd, args, now),

@@ -30,6 +30,10 @@ struct FakeBoard {
     /// `config_input` calls: (pin, pull_up).
     inputs: Vec<(u8, bool)>,
     triggers: Vec<(TriggerSource, u8, u8, u32)>,
+    /// The host's clock at the current call (kept by [`Host::advance`]).
+    now: u64,
+    /// A simulated heater: its pin's sets drive it, its sensor pin reads it.
+    thermal: Option<crate::sim::heater::Heater>,
 }
 
 impl Board for FakeBoard {
@@ -44,9 +48,17 @@ impl Board for FakeBoard {
         }
     }
     fn read_adc(&mut self, pin: u8) -> u16 {
-        self.adc.get(&pin).copied().unwrap_or(0)
+        let t = self.now as f64 / FREQ as f64;
+        match self.thermal.as_mut() {
+            Some(h) if h.sensor_pin == pin => h.adc(t),
+            _ => self.adc.get(&pin).copied().unwrap_or(0),
+        }
     }
     fn set_pin(&mut self, pin: u8, value: bool, clock: WireClock) {
+        let t = rt_core::McuClock(self.now).extend(clock).0 as f64 / FREQ as f64;
+        if let Some(h) = self.thermal.as_mut().filter(|h| h.heater_pin == pin) {
+            h.set(value, t);
+        }
         self.pin_sets.push((pin, value, clock.0));
     }
     fn config_input(&mut self, pin: u8, pull_up: bool) {
@@ -217,6 +229,7 @@ impl Host {
     }
 
     fn raw(&mut self, bytes: &[u8]) -> Vec<Block> {
+        self.mcu.board_mut().now = self.now;
         self.mcu.receive(self.wire_now(), bytes);
         self.take()
     }
@@ -229,9 +242,11 @@ impl Host {
                 break;
             }
             self.now = wake.max(self.now);
+            self.mcu.board_mut().now = self.now;
             self.mcu.run_timers(self.wire_now());
         }
         self.now = until;
+        self.mcu.board_mut().now = self.now;
         self.mcu.run_timers(self.wire_now());
         self.take()
     }

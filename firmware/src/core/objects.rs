@@ -148,6 +148,7 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                 self.board.set_pin(pin, level, now);
                 self.arm_or_disarm(oid as u8, wake);
             }
+            Cmd::SetDigitalOut => self.board.set_pin(arg(0) as u8, arg(1) != 0, now),
             Cmd::ConfigAnalogIn => {
                 self.config_object(oid, Object::AnalogIn(AnalogIn::new(arg(1) as u8)), now);
             }
@@ -295,6 +296,7 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
     fn digital_out_fault(&mut self, e: DigitalOutError, now: WireClock) {
         let r = match e {
             DigitalOutError::Missed => reason::MISSED_DIGITAL_OUT,
+            DigitalOutError::ExceedsMaxDuration => reason::EXCEEDS_MAX_DURATION,
             DigitalOutError::QueueFull => reason::MOVE_QUEUE_OVERFLOW,
         };
         self.shutdown(r, now);

@@ -378,3 +378,135 @@ fn lateness_extension_reports_the_board_figures() {
     let msgs = all_msgs(&host.exchange(&[("cadence_get_lateness", &[])]));
     assert_eq!(named(&msgs, "cadence_lateness"), [&[7, 1, 2, 3, 4][..]]);
 }
+
+/// A heater on pin 12 (oid 0, `max_duration` 3 s, PWM cycle 0.1 s) warming the thermistor on
+/// ADC pin 20 (oid 1, Klipper's oversampling: 8 readings 1 ms apart every 0.3 s, range of
+/// 0..250 °C checked over 4 rounds), both on the simulator's hotend model.
+fn heater_host(heater: crate::sim::heater::Heater) -> Host {
+    use crate::sim::heater::adc_of;
+    let mut host = Host::new(64, 0);
+    host.mcu.board_mut().thermal = Some(heater);
+    host.exchange(&[("allocate_oids", &[2])]);
+    host.exchange(&[
+        ("config_digital_out", &[0, 12, 0, 0, 3 * FREQ as i64]),
+        ("config_analog_in", &[1, 20]),
+    ]);
+    host.exchange(&[("finalize_config", &[1])]);
+    let (min, max) = (8 * adc_of(250.0) as i64, 8 * adc_of(0.0) as i64);
+    host.exchange(&[
+        ("set_digital_out_pwm_cycle", &[0, 100_000]),
+        ("query_analog_in", &[1, 1000, 1000, 8, 300_000, min, max, 4]),
+    ]);
+    host
+}
+
+/// Plays a host that keeps the heater at `on_ticks` of every 0.1 s cycle, sending an update
+/// 0.1 s ahead every 0.3 s until `quiet_at` (µs), then goes silent until `until`. Returns the
+/// ADC sums reported and the messages after `quiet_at`.
+fn drive_heater(host: &mut Host, on_ticks: i64, quiet_at: u64, until: u64) -> (Vec<i64>, Vec<Resp>) {
+    let mut sums = Vec::new();
+    let mut t = 0;
+    while t < quiet_at {
+        let clock = (t + 100_000) as i64;
+        let msgs = all_msgs(&host.exchange(&[("queue_digital_out", &[0, clock, on_ticks])]));
+        assert!(find(&msgs, "shutdown").is_none(), "{msgs:?}");
+        t += 300_000;
+        let msgs = all_msgs(&host.advance(t));
+        assert!(find(&msgs, "shutdown").is_none(), "at {t}: {msgs:?}");
+        sums.extend(named(&msgs, "analog_in_state").iter().map(|a| a[2]));
+    }
+    (sums, all_msgs(&host.advance(until)))
+}
+
+#[test]
+fn heater_turns_itself_off_when_the_host_goes_quiet() {
+    use crate::sim::heater::{Heater, ThermalModel};
+    let mut host = heater_host(Heater::new(12, 20, ThermalModel::HOTEND));
+    // 75 % power for 40 s: the thermistor warms (its ADC sum falls) round after round.
+    let (sums, after) = drive_heater(&mut host, 75_000, 40_000_000, 50_000_000);
+    assert!(sums.len() >= 130, "{}", sums.len());
+    assert!(sums.windows(10).all(|w| w[9] < w[0]), "{sums:?}");
+    let last_update = 39_900_000 + 100_000; // the update queued at 39.9 s for 40.0 s
+    let shutdown = find(&after, "shutdown").expect("the MCU shuts the heater down");
+    assert_eq!(
+        shutdown.ints,
+        [
+            last_update + 3_000_000,
+            host.reason_id("Missed scheduling of next digital out event")
+        ]
+    );
+    let heater_sets: Vec<_> = host
+        .mcu
+        .board()
+        .pin_sets
+        .iter()
+        .filter(|s| s.0 == 12)
+        .copied()
+        .collect();
+    assert_eq!(
+        heater_sets.last(),
+        Some(&(12, false, (last_update + 3_000_000) as u32))
+    );
+    let board = host.mcu.board_mut();
+    let h = board.thermal.as_mut().unwrap();
+    let at_off = h.temperature(43.0);
+    assert!(at_off > 100.0, "heated to {at_off} °C");
+    assert!(h.temperature(100.0) < at_off - 20.0, "cooling once off");
+}
+
+#[test]
+fn open_thermistor_shuts_the_mcu_down_with_klippers_reason() {
+    use crate::sim::heater::{Heater, HeaterFault, ThermalModel};
+    let heater = Heater::new(12, 20, ThermalModel::HOTEND).with_fault(HeaterFault::OpenThermistor, 5.0);
+    let mut host = heater_host(heater);
+    let msgs = all_msgs(&host.exchange(&[("queue_digital_out", &[0, 100_000, 100_000])]));
+    assert!(find(&msgs, "shutdown").is_none());
+    // Updates keep coming (the host has not noticed): the MCU's own range check stops it.
+    let mut t = 0;
+    let mut seen = Vec::new();
+    while t < 8_000_000 {
+        let clock = (t + 100_000) as i64;
+        let msgs = all_msgs(&host.exchange(&[("queue_digital_out", &[0, clock, 100_000])]));
+        seen.extend(msgs);
+        t += 300_000;
+        seen.extend(all_msgs(&host.advance(t)));
+        if find(&seen, "shutdown").is_some() {
+            break;
+        }
+    }
+    // Rounds start at 1000 + k·0.3 s; rounds 17..=20 read the open sensor; the 4th ends at its
+    // 8th reading, 7 ms after its start.
+    let at = 1000 + 20 * 300_000 + 7000;
+    assert_eq!(
+        find(&seen, "shutdown").unwrap().ints,
+        [at, host.reason_id("ADC out of range")]
+    );
+    let reports = named(&seen, "analog_in_state");
+    assert_eq!(
+        reports.last().unwrap()[2],
+        8 * 4095,
+        "the open sensor's rounds are reported"
+    );
+    assert_eq!(host.mcu.board().pin_sets.last(), Some(&(12, false, at as u32)));
+}
+
+#[test]
+fn set_digital_out_sets_a_pin_once() {
+    let mut host = Host::new(64, 0);
+    host.exchange(&[("set_digital_out", &[7, 1])]);
+    assert_eq!(host.mcu.board().pin_sets, [(7, true, 0)]);
+}
+
+#[test]
+fn queue_past_max_duration_is_refused() {
+    let mut host = Host::new(64, 0);
+    host.exchange(&[("allocate_oids", &[1])]);
+    host.exchange(&[("config_digital_out", &[0, 3, 0, 0, 2000])]);
+    host.exchange(&[("finalize_config", &[1])]);
+    host.exchange(&[("queue_digital_out", &[0, 1000, 1])]);
+    let msgs = all_msgs(&host.exchange(&[("queue_digital_out", &[0, 3001, 0])]));
+    assert_eq!(
+        find(&msgs, "shutdown").unwrap().ints[1],
+        host.reason_id("Scheduled digital out event will exceed max_duration")
+    );
+}

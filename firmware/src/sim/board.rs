@@ -10,6 +10,7 @@
 //! world); endstop inputs read the world; heater outputs drive [`Heater`]s whose thermistors
 //! are the ADC inputs. Triggers go to the trace as kind-3 records.
 
+use super::cli::{HeaterFaultSpec, HeaterSpec};
 use super::heater::Heater;
 use super::world::World;
 use crate::core::{Board, Lateness, StepperConfig, TriggerSource};
@@ -86,9 +87,18 @@ impl SimBoard {
         self
     }
 
-    /// Adds heaters `(heater pin, sensor pin)`.
-    pub fn with_heaters(mut self, heaters: &[(u8, u8)]) -> SimBoard {
-        self.heaters = heaters.iter().map(|&(h, s)| Heater::new(h, s)).collect();
+    /// Adds heaters, each with the faults injected into it.
+    pub fn with_heaters(mut self, heaters: &[HeaterSpec], faults: &[HeaterFaultSpec]) -> SimBoard {
+        self.heaters = heaters
+            .iter()
+            .map(|h| {
+                let heater = Heater::new(h.heater_pin, h.sensor_pin, h.model);
+                faults
+                    .iter()
+                    .filter(|f| f.heater_pin == h.heater_pin)
+                    .fold(heater, |heater, f| heater.with_fault(f.fault, f.from_s))
+            })
+            .collect();
         self
     }
 

@@ -1,5 +1,6 @@
 //! The `cadence-mcu` command line (docs/contract.md).
 
+use super::heater::{HeaterFault, ThermalModel};
 use super::world::{AxisSpec, Coord, EndstopSpec};
 use crate::trace::TraceFormat;
 #[cfg(test)]
@@ -67,9 +68,15 @@ pub struct Cli {
     /// TRIGGER_MM; COORD is an axis (`x`) or a linear combination of axes (`0.5*a+0.5*b`).
     #[arg(long = "endstop", value_name = "PIN=COORD,TRIGGER_MM,min|max", value_parser = parse_endstop)]
     pub endstops: Vec<EndstopSpec>,
-    /// A heater output and the thermistor ADC input it warms (100K NTC beta 3950, 4.7k pull-up).
-    #[arg(long = "heater", value_name = "HEATER_PIN=SENSOR_PIN", value_parser = parse_heater)]
-    pub heaters: Vec<(u8, u8)>,
+    /// A heater output and the thermistor ADC input it warms (100K NTC beta 3950, 4.7k pull-up),
+    /// with the thermal model of a 40 W hotend (default) or a 150 W bed.
+    #[arg(long = "heater", value_name = "HEATER_PIN=SENSOR_PIN[,hotend|bed]", value_parser = parse_heater)]
+    pub heaters: Vec<HeaterSpec>,
+    /// Inject a heater fault from SECONDS of MCU time on: `open` (thermistor open, ADC at
+    /// max), `no-heat` (the heater stops heating), `frozen` (the reading stops changing).
+    #[arg(long = "heater-fault", value_name = "HEATER_PIN=open|no-heat|frozen@SECONDS",
+          value_parser = parse_heater_fault)]
+    pub heater_faults: Vec<HeaterFaultSpec>,
     /// Drop this fraction (0..=1) of outgoing bytes.
     #[arg(long, value_name = "RATE", default_value_t = 0.0, value_parser = parse_rate)]
     pub drop_tx: f64,
@@ -214,9 +221,67 @@ fn parse_endstop(s: &str) -> Result<EndstopSpec, String> {
     })
 }
 
-fn parse_heater(s: &str) -> Result<(u8, u8), String> {
-    let (h, t) = s.split_once('=').ok_or("expected HEATER_PIN=SENSOR_PIN")?;
-    Ok((parse_pin(h)?, parse_pin(t)?))
+/// `--heater`: pins and thermal model.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HeaterSpec {
+    /// Heater output pin.
+    pub heater_pin: u8,
+    /// Thermistor ADC pin.
+    pub sensor_pin: u8,
+    /// Thermal constants.
+    pub model: ThermalModel,
+}
+
+/// `--heater-fault`: which heater, what, from when.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HeaterFaultSpec {
+    /// The faulty heater's output pin.
+    pub heater_pin: u8,
+    /// The fault.
+    pub fault: HeaterFault,
+    /// MCU seconds from which it applies.
+    pub from_s: f64,
+}
+
+fn parse_heater(s: &str) -> Result<HeaterSpec, String> {
+    let (h, rest) = s
+        .split_once('=')
+        .ok_or("expected HEATER_PIN=SENSOR_PIN[,hotend|bed]")?;
+    let (t, kind) = rest.split_once(',').unwrap_or((rest, "hotend"));
+    let model = match kind {
+        "hotend" => ThermalModel::HOTEND,
+        "bed" => ThermalModel::BED,
+        other => return Err(format!("`{other}` is neither hotend nor bed")),
+    };
+    Ok(HeaterSpec {
+        heater_pin: parse_pin(h)?,
+        sensor_pin: parse_pin(t)?,
+        model,
+    })
+}
+
+fn parse_heater_fault(s: &str) -> Result<HeaterFaultSpec, String> {
+    let (h, rest) = s
+        .split_once('=')
+        .ok_or("expected HEATER_PIN=open|no-heat|frozen@SECONDS")?;
+    let (kind, at) = rest
+        .split_once('@')
+        .ok_or("expected the fault's start time in MCU seconds after `@`")?;
+    let fault = match kind {
+        "open" => HeaterFault::OpenThermistor,
+        "no-heat" => HeaterFault::NoHeat,
+        "frozen" => HeaterFault::FrozenSensor,
+        other => return Err(format!("`{other}` is not open, no-heat or frozen")),
+    };
+    let from_s = parse_f64(at, "fault time")?;
+    if from_s.is_nan() || from_s < 0.0 {
+        return Err(format!("fault time `{at}` is negative"));
+    }
+    Ok(HeaterFaultSpec {
+        heater_pin: parse_pin(h)?,
+        fault,
+        from_s,
+    })
 }
 
 fn parse_rate(s: &str) -> Result<f64, String> {
@@ -339,6 +404,10 @@ mod tests {
             "7=x,200,max",
             "--heater",
             "PE0=PF1",
+            "--heater",
+            "PE1=PF2,bed",
+            "--heater-fault",
+            "PE1=frozen@90.5",
             "--drop-tx",
             "0.01",
             "--fault-seed",
@@ -380,7 +449,38 @@ mod tests {
             (inverted.endstops[0].pin, inverted.endstops[0].active_low),
             (103, true)
         );
-        assert_eq!(c.heaters, [(32, 41)]);
+        assert_eq!(
+            (
+                c.heaters[0].heater_pin,
+                c.heaters[0].sensor_pin,
+                c.heaters[0].model
+            ),
+            (32, 41, ThermalModel::HOTEND)
+        );
+        assert_eq!(c.heaters[1].model, ThermalModel::BED);
+        assert_eq!(
+            c.heater_faults,
+            [HeaterFaultSpec {
+                heater_pin: 33,
+                fault: HeaterFault::FrozenSensor,
+                from_s: 90.5
+            }]
+        );
+        for bad in [
+            "PE0=PF1,oven",
+            "PE0",
+            "PE0=melt@1",
+            "PE0=open",
+            "PE0=open@-1",
+            "PE0=open@x",
+        ] {
+            let arg = if bad.contains('@') || bad == "PE0" {
+                "--heater-fault"
+            } else {
+                "--heater"
+            };
+            assert!(parse(&[arg, bad]).is_err(), "{bad}");
+        }
         assert_eq!((c.drop_tx, c.fault_seed, c.tx_delay_ms), (0.01, 42, 30));
         assert_eq!((c.freeze_after_ms, c.freeze_ms), (Some(500), Some(100)));
         assert_eq!(c.late_limit_us, 1000);

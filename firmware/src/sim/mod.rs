@@ -79,6 +79,9 @@ pub enum SimError {
     /// Writing the pty line to stdout failed.
     #[error("stdout: {0}")]
     Stdout(io::Error),
+    /// `--heater-fault` names a pin no `--heater` drives.
+    #[error("--heater-fault: pin {0} is not the heater pin of any --heater")]
+    UnknownHeater(u8),
     /// The lateness histogram could not be created.
     #[error("histogram: {0}")]
     Histogram(#[from] hdrhistogram::CreationError),
@@ -137,6 +140,13 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
     // Wake-ups as precise as the kernel allows (the default slack is 50 µs); best effort.
     let _ = nix::sys::prctl::set_timerslack(1);
     let parent = nix::unistd::getppid();
+    if let Some(f) = cli
+        .heater_faults
+        .iter()
+        .find(|f| !cli.heaters.iter().any(|h| h.heater_pin == f.heater_pin))
+    {
+        return Err(SimError::UnknownHeater(f.heater_pin));
+    }
     let pty = pty::Pty::open().map_err(sys("open pty"))?;
     let link = cli
         .pty_link
@@ -161,7 +171,7 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
     let world = world::World::new(cli.world.as_deref(), cli.axes.clone(), cli.endstops.clone())?;
     let board = SimBoard::new(cli.clock_freq, trace)?
         .with_world(world)
-        .with_heaters(&cli.heaters);
+        .with_heaters(&cli.heaters, &cli.heater_faults);
     let dictionary: &'static [u8] = Box::leak(crate::dictionary_bytes(cli.clock_freq).into_boxed_slice());
     let config = McuConfig {
         clock_freq: cli.clock_freq,

@@ -44,8 +44,18 @@ impl Host {
         self.slave.write_all(&block[..n]).unwrap();
     }
 
-    /// Reads until a response named `name` arrives; returns its ints and bytes.
+    /// Reads until a response named `name` arrives; returns its ints and bytes. A shutdown
+    /// fails the test.
     pub fn wait_for(&mut self, name: &str) -> (Vec<i64>, Vec<u8>) {
+        self.wait_for_any(name, false)
+    }
+
+    /// Reads until the MCU reports its shutdown; returns `[clock, static_string_id]`.
+    pub fn wait_for_shutdown(&mut self) -> Vec<i64> {
+        self.wait_for_any("shutdown", true).0
+    }
+
+    fn wait_for_any(&mut self, name: &str, shutdown_expected: bool) -> (Vec<i64>, Vec<u8>) {
         for _ in 0..200 {
             while let Frame::Block { len, .. } | Frame::Bad(len) | Frame::Skip(len) = find_block(&self.rx) {
                 let block: Vec<u8> = self.rx.drain(..len).collect();
@@ -68,7 +78,7 @@ impl Host {
                         }
                     }
                     assert!(
-                        self.shutdown_ok || message_name(&fmt) != "shutdown",
+                        shutdown_expected || self.shutdown_ok || message_name(&fmt) != "shutdown",
                         "MCU shut down: {ints:?}"
                     );
                     if message_name(&fmt) == name && found.is_none() {

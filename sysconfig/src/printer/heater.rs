@@ -60,13 +60,27 @@ pub(crate) fn read_heater(
     s: &SectionReader<'_>,
     pins: &mut PinRegistry,
 ) -> Result<HeaterSection, ConfigError> {
+    read_heater_options(s, pins, true)
+}
+
+/// The heater options of section `s`; `min_extrude_temp` only if `with_extrude_temp` (not in
+/// `[heater_generic]`, where it stays at its default and may not be written).
+pub(crate) fn read_heater_options(
+    s: &SectionReader<'_>,
+    pins: &mut PinRegistry,
+    with_extrude_temp: bool,
+) -> Result<HeaterSection, ConfigError> {
     let sensor_type = s.string("sensor_type")?;
     let sensor_pin = s.pin("sensor_pin", PinKind::Analog, pins, Share::Exclusive)?;
     let pullup_resistor = s.float_or("pullup_resistor", 4700.0, Bounds::ANY.above(0.0))?;
     let inline_resistor = s.float_or("inline_resistor", 0.0, Bounds::ANY.min(0.0))?;
     let min_temp = s.float("min_temp", Bounds::ANY.min(ABSOLUTE_ZERO_C))?;
     let max_temp = s.float("max_temp", Bounds::ANY.above(min_temp))?;
-    let min_extrude_temp = s.float_or("min_extrude_temp", 170.0, Bounds::ANY.min(min_temp).max(max_temp))?;
+    let min_extrude_temp = if with_extrude_temp {
+        s.float_or("min_extrude_temp", 170.0, Bounds::ANY.min(min_temp).max(max_temp))?
+    } else {
+        170.0
+    };
     let max_power = s.float_or("max_power", 1.0, Bounds::ANY.above(0.0).max(1.0))?;
     let smooth_time = s.float_or("smooth_time", 1.0, Bounds::ANY.above(0.0))?;
     let heater_pin = s.pin("heater_pin", PinKind::Output, pins, Share::Exclusive)?;

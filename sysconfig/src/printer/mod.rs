@@ -28,6 +28,7 @@ mod reader;
 mod realtime;
 mod sections;
 mod stepper;
+mod thermal;
 mod toolhead;
 
 use std::path::{Path, PathBuf};
@@ -46,6 +47,10 @@ pub use probe::{ProbeSection, SamplesResult, PROBE_PIN_MCU, SAMPLES_RESULTS, Z_V
 pub use realtime::RealtimeSection;
 pub use sections::{is_ignored, support as section_support, Support as SectionSupport, SECTIONS};
 pub use stepper::{MotorSection, StepperSection};
+pub use thermal::{
+    ControllerFanSection, FanOptions, HeaterFanSection, SensorSection, SensorSource, TemperatureFanSection,
+    TemperatureSensorSection, ThermalSections, ThermistorSection, VerifyHeaterSection,
+};
 pub use toolhead::{Kinematics, PrinterSection};
 
 use pins::PinRegistry;

@@ -1,0 +1,317 @@
+//! Heater control as Klipper does it: the heater's temperature smoothing, `control: pid` and
+//! `control: watermark`. Each takes a sensor reading (time in seconds, °C) and the target and
+//! returns the heater's power, 0..=max_power; time is an argument, nothing here reads a clock.
+//!
+//! PID gains are in Klipper's config units (`pid_Kp`, `pid_Ki`, `pid_Kd`): a power of 1.0 is
+//! 255 units, so `power = (Kp·e + Ki·∫e dt − Kd·dT/dt) / 255`. The derivative is of the
+//! temperature (not the error) smoothed over `smooth_time`; the integral is kept within
+//! `0..=max_power·255/Ki` and is not advanced while the output is saturated (anti-windup). The
+//! heater counts as settled (M109 stops waiting) within 1 °C of target and a slope below
+//! 0.1 °C/s. Watermark: full `max_power` below `target − max_delta`, off above
+//! `target + max_delta`, unchanged in between.
+
+/// Power of 1.0 in Klipper's PID units.
+pub const PID_PARAM_BASE: f64 = 255.0;
+/// A PID heater is settled within this many °C of its target ...
+pub const PID_SETTLE_DELTA: f64 = 1.0;
+/// ... and with a temperature slope below this (°C/s).
+pub const PID_SETTLE_SLOPE: f64 = 0.1;
+
+/// Exponential smoothing of the readings over `smooth_time` (Klipper's heater smoothing, the
+/// temperature M105 and the status report).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Smoothed {
+    smooth_time: f64,
+    value: Option<f64>,
+    last_time: f64,
+}
+
+impl Smoothed {
+    /// A smoother over `smooth_time` seconds (> 0).
+    pub fn new(smooth_time: f64) -> Smoothed {
+        Smoothed {
+            smooth_time: smooth_time.max(1e-6),
+            value: None,
+            last_time: 0.0,
+        }
+    }
+
+    /// Adds the reading `temp` taken at `time`; returns the smoothed temperature.
+    pub fn update(&mut self, time: f64, temp: f64) -> f64 {
+        let v = match self.value {
+            None => temp,
+            Some(v) => {
+                let adj = ((time - self.last_time) / self.smooth_time).clamp(0.0, 1.0);
+                v + (temp - v) * adj
+            }
+        };
+        self.value = Some(v);
+        self.last_time = time;
+        v
+    }
+
+    /// The smoothed temperature (`None` before the first reading).
+    pub fn value(&self) -> Option<f64> {
+        self.value
+    }
+}
+
+/// What a controller does with a reading.
+pub trait Control {
+    /// The power (0..=max_power) after the reading `temp` at `time` with `target`.
+    fn update(&mut self, time: f64, temp: f64, target: f64) -> f64;
+    /// True while the heater has not settled at `target` (M109/M190 keep waiting).
+    fn busy(&self, smoothed_temp: f64, target: f64) -> bool;
+}
+
+/// `control: watermark`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Watermark {
+    max_delta: f64,
+    max_power: f64,
+    heating: bool,
+}
+
+impl Watermark {
+    /// With `max_delta` (°C) and `max_power` (0..=1).
+    pub fn new(max_delta: f64, max_power: f64) -> Watermark {
+        Watermark {
+            max_delta,
+            max_power,
+            heating: false,
+        }
+    }
+}
+
+impl Control for Watermark {
+    fn update(&mut self, _time: f64, temp: f64, target: f64) -> f64 {
+        if self.heating {
+            if temp >= target + self.max_delta {
+                self.heating = false;
+            }
+        } else if temp <= target - self.max_delta {
+            self.heating = true;
+        }
+        if self.heating && target > 0.0 {
+            self.max_power
+        } else {
+            0.0
+        }
+    }
+
+    fn busy(&self, smoothed_temp: f64, target: f64) -> bool {
+        smoothed_temp < target - self.max_delta
+    }
+}
+
+/// PID gains in Klipper's config units.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PidGains {
+    /// `pid_Kp`.
+    pub kp: f64,
+    /// `pid_Ki`.
+    pub ki: f64,
+    /// `pid_Kd`.
+    pub kd: f64,
+}
+
+/// `control: pid`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pid {
+    kp: f64,
+    ki: f64,
+    kd: f64,
+    max_power: f64,
+    smooth_time: f64,
+    integ_max: f64,
+    prev: Option<(f64, f64)>,
+    deriv: f64,
+    integ: f64,
+}
+
+impl Pid {
+    /// With `gains` (Klipper units), `max_power` (0..=1) and the sensor's `smooth_time` (s).
+    pub fn new(gains: PidGains, max_power: f64, smooth_time: f64) -> Pid {
+        let (kp, ki, kd) = (
+            gains.kp / PID_PARAM_BASE,
+            gains.ki / PID_PARAM_BASE,
+            gains.kd / PID_PARAM_BASE,
+        );
+        Pid {
+            kp,
+            ki,
+            kd,
+            max_power,
+            smooth_time: smooth_time.max(1e-6),
+            integ_max: if ki > 0.0 { max_power / ki } else { 0.0 },
+            prev: None,
+            deriv: 0.0,
+            integ: 0.0,
+        }
+    }
+
+    /// The smoothed temperature slope (°C/s).
+    pub fn slope(&self) -> f64 {
+        self.deriv
+    }
+}
+
+impl Control for Pid {
+    fn update(&mut self, time: f64, temp: f64, target: f64) -> f64 {
+        let (prev_time, prev_temp) = self.prev.unwrap_or((time, temp));
+        let dt = (time - prev_time).max(0.0);
+        // Slope of the temperature, smoothed over smooth_time.
+        let deriv = if dt >= self.smooth_time {
+            (temp - prev_temp) / dt
+        } else {
+            (self.deriv * (self.smooth_time - dt) + (temp - prev_temp)) / self.smooth_time
+        };
+        let err = target - temp;
+        let integ = (self.integ + err * dt).clamp(0.0, self.integ_max);
+        let co = self.kp * err + self.ki * integ - self.kd * deriv;
+        let power = co.clamp(0.0, self.max_power);
+        self.prev = Some((time, temp));
+        self.deriv = deriv;
+        if co == power {
+            self.integ = integ;
+        }
+        if target > 0.0 {
+            power
+        } else {
+            0.0
+        }
+    }
+
+    fn busy(&self, smoothed_temp: f64, target: f64) -> bool {
+        (target - smoothed_temp).abs() > PID_SETTLE_DELTA || self.deriv.abs() > PID_SETTLE_SLOPE
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use firmware::sim::heater::{Heater, ThermalModel};
+
+    /// Runs `control` on the simulator's thermal model for `seconds`: a reading every 0.3 s
+    /// (Klipper's report time), the power applied as PWM with a 0.1 s cycle. Returns the
+    /// sensor temperatures read and the powers set.
+    pub(crate) fn run_plant(
+        model: ThermalModel,
+        control: &mut dyn Control,
+        target: f64,
+        seconds: f64,
+    ) -> (Vec<f64>, Vec<f64>) {
+        let mut h = Heater::new(0, 0, model);
+        let (mut temps, mut powers) = (Vec::new(), Vec::new());
+        let mut t = 0.0;
+        while t < seconds {
+            let temp = h.sensor_temperature(t);
+            let power = control.update(t, temp, target);
+            temps.push(temp);
+            powers.push(power);
+            for cycle in 0..3 {
+                let start = t + 0.1 * cycle as f64;
+                h.set(power > 0.0, start);
+                if power > 0.0 && power < 1.0 {
+                    h.set(false, start + 0.1 * power);
+                }
+            }
+            t += 0.3;
+        }
+        (temps, powers)
+    }
+
+    #[test]
+    fn smoothing_follows_smooth_time() {
+        let mut s = Smoothed::new(1.0);
+        assert_eq!(s.value(), None);
+        assert_eq!(s.update(0.0, 20.0), 20.0);
+        assert_eq!(s.update(0.5, 30.0), 25.0);
+        assert_eq!(
+            s.update(2.0, 40.0),
+            40.0,
+            "a gap of a full smooth_time catches up"
+        );
+    }
+
+    #[test]
+    fn pid_terms_are_in_klippers_units() {
+        // Kp 25.5: 1 °C of error is 0.1 of full power; saturates at max_power.
+        let gains = PidGains {
+            kp: 25.5,
+            ki: 0.0,
+            kd: 0.0,
+        };
+        let mut pid = Pid::new(gains, 0.8, 1.0);
+        assert!((pid.update(0.0, 199.0, 200.0) - 0.1).abs() < 1e-12);
+        assert_eq!(pid.update(0.3, 150.0, 200.0), 0.8);
+        assert_eq!(pid.update(0.6, 210.0, 200.0), 0.0);
+        assert_eq!(pid.update(0.9, 20.0, 0.0), 0.0, "target 0 is off");
+        // Ki: the integral of 1 °C for 2 s at Ki 25.5 is 0.2 (with no P term).
+        let mut pid = Pid::new(
+            PidGains {
+                kp: 0.0,
+                ki: 25.5,
+                kd: 0.0,
+            },
+            1.0,
+            1.0,
+        );
+        pid.update(0.0, 199.0, 200.0);
+        assert!((pid.update(2.0, 199.0, 200.0) - 0.2).abs() < 1e-12);
+        // Kd: rising 1 °C/s for longer than smooth_time takes Kd/255 per °C/s.
+        let mut pid = Pid::new(
+            PidGains {
+                kp: 0.0,
+                ki: 0.0,
+                kd: 25.5,
+            },
+            1.0,
+            1.0,
+        );
+        pid.update(0.0, 100.0, 200.0);
+        assert_eq!(pid.update(2.0, 102.0, 200.0), 0.0);
+        assert!((pid.slope() - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn pid_holds_the_simulated_hotend_at_target() {
+        // Hand-picked gains (calibrate's test holds 210 °C with the gains PID_CALIBRATE finds).
+        let gains = PidGains {
+            kp: 30.0,
+            ki: 1.2,
+            kd: 180.0,
+        };
+        let mut pid = Pid::new(gains, 1.0, 1.0);
+        let (temps, powers) = run_plant(ThermalModel::HOTEND, &mut pid, 210.0, 600.0);
+        let peak = temps.iter().cloned().fold(f64::MIN, f64::max);
+        assert!(peak < 220.0, "overshoot to {peak}");
+        let last: Vec<f64> = temps[temps.len() - 300..].to_vec();
+        assert!(last.iter().all(|t| (t - 210.0).abs() < 1.0), "{last:?}");
+        // Holding 210 °C takes (210 − 25)·0.12 W/K of 40 W: 55 %.
+        let hold = powers[powers.len() - 300..].iter().sum::<f64>() / 300.0;
+        assert!((hold - 0.555).abs() < 0.03, "{hold}");
+        assert!(!pid.busy(210.2, 210.0));
+        assert!(pid.busy(205.0, 210.0));
+    }
+
+    #[test]
+    fn watermark_keeps_within_its_band() {
+        let mut w = Watermark::new(2.0, 1.0);
+        assert_eq!(w.update(0.0, 20.0, 60.0), 1.0);
+        assert_eq!(
+            w.update(1.0, 60.0, 60.0),
+            1.0,
+            "heats on until target + max_delta"
+        );
+        assert_eq!(w.update(2.0, 62.0, 60.0), 0.0);
+        assert_eq!(w.update(3.0, 59.0, 60.0), 0.0, "off until target − max_delta");
+        assert_eq!(w.update(4.0, 58.0, 60.0), 1.0);
+        let mut w = Watermark::new(2.0, 1.0);
+        let (temps, _) = run_plant(ThermalModel::BED, &mut w, 60.0, 1200.0);
+        let settled = &temps[temps.len() / 2..];
+        // The bed's lag carries it a little past the band.
+        assert!(settled.iter().all(|t| (55.0..65.0).contains(t)), "{settled:?}");
+        assert!(!w.busy(58.5, 60.0));
+    }
+}
