@@ -301,16 +301,12 @@ pub struct ChannelConfig {
 }
 
 impl ChannelConfig {
-    /// MCU info: published once, kept as history for late subscribers.
+    /// MCU info: published once, kept as history for late subscribers ([`Self::latest`] with
+    /// a smaller buffer).
     pub const fn info() -> ChannelConfig {
         ChannelConfig {
             buffer: 2,
-            history: 1,
-            safe_overflow: true,
-            backpressure_timeout: Duration::ZERO,
-            max_publishers: 1,
-            max_subscribers: 4,
-            min_receivers: 0,
+            ..ChannelConfig::latest()
         }
     }
 
