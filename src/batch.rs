@@ -2,6 +2,7 @@
 //! stream of each MCU with steppers written to a file, planned on every core. The bytes are the
 //! golden output the reference printers are checked against.
 
+use planner::gcode::macros::Macros;
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
@@ -99,7 +100,8 @@ pub fn run_batch(
         streams: &mut streams,
         sinks: &mut sinks,
     };
-    let lines = plan_file(gcode, &mut pipeline, &mut accessories, &mut target)?;
+    let mut macros = Macros::new(machine.macros.clone()).map_err(|e| e.to_string())?;
+    let lines = plan_file(gcode, &mut pipeline, &mut accessories, &mut macros, &mut target)?;
     for s in &mut sinks {
         s.finish()?;
     }

@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender};
 use std::time::Duration;
 
+use planner::gcode::macros::{split_command, Macros, Script};
 use planner::gcode::{parse_line, Command, GcodeError, GcodeLine, GcodeReader};
 use planner::machine::{Applied, PlanErrorKind};
 use planner::pipeline::Pipeline;
@@ -197,6 +198,7 @@ pub(crate) fn plan_file(
     input: GcodeInput,
     pipeline: &mut Pipeline,
     accessories: &mut Accessories,
+    macros: &mut Macros,
     target: &mut impl FeedTarget,
 ) -> Result<u64, String> {
     let mut warnings = Warnings::default();
@@ -234,13 +236,153 @@ pub(crate) fn plan_file(
             target.idle(false, pipeline);
         }
         lines += 1;
-        if plan_line(&line, &file, pipeline, accessories, &mut warnings, target)? {
-            release(pipeline, &mut out, target)?;
+        let mut feed = Feed {
+            file: &file,
+            pipeline: &mut *pipeline,
+            accessories: &mut *accessories,
+            warnings: &mut warnings,
+            out: &mut out,
+        };
+        if !feed.run_macro_or_variable(&line, macros, target)? {
+            feed.plan(&line, target)?;
         }
     }
     pipeline.finish(&mut out);
     target.emit(&mut out)?;
     Ok(lines)
+}
+
+/// What one command line is planned with.
+struct Feed<'a> {
+    file: &'a Path,
+    pipeline: &'a mut Pipeline,
+    accessories: &'a mut Accessories,
+    warnings: &'a mut Warnings,
+    out: &'a mut Vec<(usize, StepCmd)>,
+}
+
+impl Feed<'_> {
+    /// Plans one command and hands on what became final.
+    fn plan(&mut self, line: &GcodeLine, target: &mut impl FeedTarget) -> Result<(), String> {
+        if plan_line(
+            line,
+            self.file,
+            self.pipeline,
+            self.accessories,
+            self.warnings,
+            target,
+        )? {
+            release(self.pipeline, self.out, target)?;
+        }
+        Ok(())
+    }
+
+    /// A `[gcode_macro]` call (run to its end, nested macros rendered when reached, with
+    /// Klipper's semantics: see `planner::gcode::macros`) or `SET_GCODE_VARIABLE`; false for
+    /// any other command. Macro lines are reported under the calling line's number.
+    fn run_macro_or_variable(
+        &mut self,
+        line: &GcodeLine,
+        macros: &mut Macros,
+        target: &mut impl FeedTarget,
+    ) -> Result<bool, String> {
+        let Some((name, rawparams)) = macro_call(&line.cmd, macros) else {
+            return Ok(false);
+        };
+        let at = |why: String| format!("{}:{}: {why}", self.file.display(), line.line_no);
+        if name == "SET_GCODE_VARIABLE" {
+            macros.set_variable(&rawparams).map_err(|e| at(e.to_string()))?;
+            return Ok(true);
+        }
+        if !macros.is_macro(&name) {
+            return Ok(false);
+        }
+        let mut script = Script::new();
+        let said = script
+            .call(macros, &name, &rawparams, &self.status())
+            .map_err(|e| at(e.to_string()))?;
+        said.into_iter().for_each(|m| target.warn(format!("{name}: {m}")));
+        while let Some(next) = script.next_line() {
+            let via = next.macros.join(" > ");
+            let in_macro = |why: String| at(format!("in macro {via}: {why}"));
+            let Some((called, rest)) = split_command(&next.text) else {
+                continue;
+            };
+            // A `rename_existing` name runs the command the macro replaced.
+            let text = match macros.original_of(&called) {
+                Some(original) => format!("{original} {rest}"),
+                None => next.text.clone(),
+            };
+            if called == "SET_GCODE_VARIABLE" {
+                macros.set_variable(rest).map_err(|e| in_macro(e.to_string()))?;
+                continue;
+            }
+            if macros.is_macro(&called) && macros.original_of(&called).is_none() {
+                let said = script
+                    .call(macros, &called, rest, &self.status())
+                    .map_err(|e| in_macro(e.to_string()))?;
+                said.into_iter()
+                    .for_each(|m| target.warn(format!("{called}: {m}")));
+                continue;
+            }
+            let cmd = match parse_line(line.line_no, text.as_bytes()) {
+                Ok(Some(cmd)) => cmd,
+                Ok(None) => continue,
+                Err(e) => return Err(in_macro(e.to_string())),
+            };
+            let sub = GcodeLine {
+                line_no: line.line_no,
+                cmd,
+            };
+            self.plan(&sub, target)
+                .map_err(|e| format!("{e} (in macro {via})"))?;
+        }
+        Ok(true)
+    }
+
+    /// The `printer` objects a macro sees: `toolhead` and `gcode_move` positions and the
+    /// homed axes, as Klipper names them.
+    fn status(&self) -> serde_json::Value {
+        let [x, y, z, e] = self.pipeline.position();
+        let homed = self.pipeline.gcode_state().homed();
+        let homed_axes: String = ["x", "y", "z"]
+            .iter()
+            .zip(homed)
+            .filter(|(_, h)| *h)
+            .map(|(a, _)| *a)
+            .collect();
+        let position = serde_json::json!({"x": x, "y": y, "z": z, "e": e});
+        serde_json::json!({
+            "toolhead": {"position": position.clone(), "homed_axes": homed_axes},
+            "gcode_move": {"position": position.clone(), "gcode_position": position},
+        })
+    }
+}
+
+/// The name and parameters of a command that is a macro call or `SET_GCODE_VARIABLE`:
+/// extended and M commands (`START_PRINT BED=60`, `M600`) and G28 (often overridden with
+/// `rename_existing`). Other commands return `None` without allocating (the planner thread's
+/// steady state stays allocation-free for files without macros).
+fn macro_call(cmd: &Command, macros: &Macros) -> Option<(String, String)> {
+    match cmd {
+        Command::Other { name, raw } => {
+            let name = name.as_str();
+            if name != "SET_GCODE_VARIABLE" && !macros.is_macro(name) {
+                return None;
+            }
+            let rest = split_command(raw.as_str()).map(|(_, rest)| rest).unwrap_or("");
+            Some((name.to_string(), rest.to_string()))
+        }
+        Command::Home { x, y, z } if macros.is_macro("G28") => {
+            let axes: Vec<&str> = [(*x, "X"), (*y, "Y"), (*z, "Z")]
+                .iter()
+                .filter(|(on, _)| *on)
+                .map(|(_, a)| *a)
+                .collect();
+            Some(("G28".to_string(), axes.join(" ")))
+        }
+        _ => None,
+    }
 }
 
 /// Hands the step commands that became final to the target, then paces.

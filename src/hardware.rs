@@ -98,6 +98,8 @@ pub struct Machine {
     pub options: PipelineOptions,
     /// Some MCU is a real board (not `serial: simulator`): heat asked of it is warned about.
     pub real_board: bool,
+    /// `[gcode_macro]` sections, run by the G-code feed.
+    pub macros: Vec<planner::gcode::macros::MacroDef>,
 }
 
 /// Why a printer.cfg describes no printer the host can drive; each names the file.
@@ -189,6 +191,7 @@ impl Machine {
             home_position: home,
             options,
             real_board: cfg.mcus.iter().any(|m| !m.is_simulated()),
+            macros: cfg.macros.clone(),
         })
     }
 

@@ -9,6 +9,7 @@
 //! here; homing works) or in a `cadence serve --role io` process (see [`crate::io_process`]):
 //! then the dictionary, move queue size and clock snapshots come over shared memory.
 
+use planner::gcode::macros::Macros;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
@@ -191,7 +192,8 @@ pub(crate) fn planner_stage(gcode: GcodeInput, st: &PlannerStage<'_>) -> Result<
     );
     let mut accessories = Accessories::new(st.machine.real_board);
     let file = gcode.name.clone();
-    let lines = plan_file(gcode, &mut pipeline, &mut accessories, &mut run)?;
+    let mut macros = Macros::new(st.machine.macros.clone()).map_err(|e| e.to_string())?;
+    let lines = plan_file(gcode, &mut pipeline, &mut accessories, &mut macros, &mut run)?;
     run.sinks.iter_mut().try_for_each(ShmSink::flush)?;
     let total = run.published();
     // Counted before anything below allocates (the report's own vectors).

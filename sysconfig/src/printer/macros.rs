@@ -1,8 +1,8 @@
 //! `[gcode_macro NAME]` sections → the planner's [`MacroDef`]s: `gcode` (required, the Jinja
 //! template, continuation lines kept), `description`, `rename_existing`, and any number of
-//! `variable_NAME` literals. The name is upper-cased as Klipper does; the templates compile
-//! when the printer's [`planner::gcode::macros::Macros`] is built, so a syntax error names its
-//! section there.
+//! `variable_NAME` literals. The name is upper-cased as Klipper does; the templates are
+//! compiled at load ([`planner::gcode::macros::Macros`]), so a syntax error names its section
+//! before anything moves; the G-code feed runs them.
 
 use planner::gcode::macros::MacroDef;
 

@@ -202,18 +202,10 @@ impl PrinterConfig {
         let macros = macros::read_gcode_macros(&reader)?;
 
         let mut warnings = reader.finish(is_ignored)?;
-        if let Some(first) = macros.first() {
-            // Their templates are compiled (a broken one fails the load) but not run yet.
+        if !macros.is_empty() {
+            // A broken template or a non-literal variable fails the load here, not mid-print.
             planner::gcode::macros::Macros::new(macros.clone())
                 .map_err(|e| ConfigError::Macro(Box::new(e)))?;
-            let what = match macros.len() {
-                1 => "section".to_string(),
-                n => format!("{n} sections"),
-            };
-            warnings.push(format!(
-                "{}: [gcode_macro] is not run by Cadence yet (templates checked); {what} ignored",
-                first.at
-            ));
         }
         if let Some(s) = simulator_section {
             if !mcus.iter().any(McuSection::is_simulated) {

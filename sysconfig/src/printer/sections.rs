@@ -67,7 +67,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("gcode", Read),
     ("gcode_arcs", Read),
     ("gcode_button", Ignored),
-    ("gcode_macro", Ignored),
+    ("gcode_macro", Read),
     ("hall_filament_width_sensor", Ignored),
     ("heater_bed", Read),
     ("heater_fan", Ignored),
@@ -226,7 +226,8 @@ mod tests {
 
     #[test]
     fn kinds() {
-        assert!(is_ignored("gcode_macro") && is_ignored("tmc2209") && is_ignored("ad5206"));
+        assert!(is_ignored("bed_mesh") && is_ignored("tmc2209") && is_ignored("ad5206"));
+        assert_eq!(support("gcode_macro"), Some(Read));
         assert_eq!(support("stepper_x"), Some(Read));
         assert_eq!(support("stepper_a"), Some(Read));
         assert_eq!(support("stepper_z1"), Some(Refused("several motors on one axis")));
