@@ -290,45 +290,28 @@ impl Feed<'_> {
             return Ok(false);
         };
         let at = |why: String| format!("{}:{}: {why}", self.file.display(), line.line_no);
-        if name == "SET_GCODE_VARIABLE" {
-            macros.set_variable(&rawparams).map_err(|e| at(e.to_string()))?;
-            return Ok(true);
-        }
-        if !macros.is_macro(&name) {
-            return Ok(false);
-        }
         let mut script = Script::new();
-        let said = script
-            .call(macros, &name, &rawparams, &self.status())
-            .map_err(|e| at(e.to_string()))?;
-        said.into_iter().for_each(|m| target.warn(format!("{name}: {m}")));
+        self.macro_step(&name, &rawparams, macros, &mut script, target)
+            .map_err(at)?;
         while let Some(next) = script.next_line() {
             let via = next.macros.join(" > ");
-            let in_macro = |why: String| at(format!("in macro {via}: {why}"));
             let Some((called, rest)) = split_command(&next.text) else {
                 continue;
             };
+            if called == "SET_GCODE_VARIABLE" || macros.is_macro(&called) {
+                self.macro_step(&called, rest, macros, &mut script, target)
+                    .map_err(|why| at(format!("in macro {via}: {why}")))?;
+                continue;
+            }
             // A `rename_existing` name runs the command the macro replaced.
             let text = match macros.original_of(&called) {
                 Some(original) => format!("{original} {rest}"),
-                None => next.text.clone(),
+                None => next.text,
             };
-            if called == "SET_GCODE_VARIABLE" {
-                macros.set_variable(rest).map_err(|e| in_macro(e.to_string()))?;
-                continue;
-            }
-            if macros.is_macro(&called) && macros.original_of(&called).is_none() {
-                let said = script
-                    .call(macros, &called, rest, &self.status())
-                    .map_err(|e| in_macro(e.to_string()))?;
-                said.into_iter()
-                    .for_each(|m| target.warn(format!("{called}: {m}")));
-                continue;
-            }
             let cmd = match parse_line(line.line_no, text.as_bytes()) {
                 Ok(Some(cmd)) => cmd,
                 Ok(None) => continue,
-                Err(e) => return Err(in_macro(e.to_string())),
+                Err(e) => return Err(at(format!("in macro {via}: {e}"))),
             };
             let sub = GcodeLine {
                 line_no: line.line_no,
@@ -338,6 +321,27 @@ impl Feed<'_> {
                 .map_err(|e| format!("{e} (in macro {via})"))?;
         }
         Ok(true)
+    }
+
+    /// `SET_GCODE_VARIABLE`, or a call of macro `name` (rendered now, its lines pushed on
+    /// `script`, its `action_respond_info` messages handed on as warnings). The error has no
+    /// location: the caller names the line and the macros it came through.
+    fn macro_step(
+        &self,
+        name: &str,
+        rawparams: &str,
+        macros: &mut Macros,
+        script: &mut Script,
+        target: &mut impl FeedTarget,
+    ) -> Result<(), String> {
+        if name == "SET_GCODE_VARIABLE" {
+            return macros.set_variable(rawparams).map_err(|e| e.to_string());
+        }
+        let said = script
+            .call(macros, name, rawparams, &self.status())
+            .map_err(|e| e.to_string())?;
+        said.into_iter().for_each(|m| target.warn(format!("{name}: {m}")));
+        Ok(())
     }
 
     /// The `printer` objects a macro sees: `toolhead` and `gcode_move` positions and the
