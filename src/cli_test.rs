@@ -28,7 +28,9 @@ fn bad_arguments_are_a_clear_error_not_a_panic() {
         &["print", "x.gcode", "--max-error-us", "-1"],
         &["print", "x.gcode", "--log-level", "loud"],
         &["print", "x.gcode", "--io-process", "--io-attach", "x"],
-        &["serve"],
+        &["serve", "--retry", "0"],
+        &["serve", "--simulated", "--config", "x.cfg"],
+        &["serve", "-a"],
         &["serve", "--role", "planner"],
         &["frobnicate"],
     ] {

@@ -2,7 +2,7 @@
 //! results, G-code warnings) and the [`Status`] snapshot, plus the state the printer's threads
 //! share to publish them ([`SessionShared`]). The planner thread publishes without blocking or
 //! allocating: events go through a bounded channel with `try_send` (a full channel drops the
-//! event and counts it), the status through a `try_lock` of a `Copy` record.
+//! event and counts it), the motion status through a sequence lock (it never waits).
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::SyncSender;
@@ -62,6 +62,58 @@ pub(crate) struct MotionStatus {
     pub busy: bool,
 }
 
+/// The latest [`MotionStatus`] behind a sequence lock: one writer (the planner thread) never
+/// waits or skips an update; a reader retries while a write is under way. (A `try_lock` that
+/// skipped the update when a reader held the lock left the status stale once the printer went
+/// idle: a service's query right after a command saw the position before it.)
+#[derive(Debug, Default)]
+struct MotionCell {
+    /// Odd while a write is under way.
+    seq: AtomicU64,
+    /// x, y, z, e, planned_until (f64 bits), then flags (homed x/y/z, busy).
+    words: [AtomicU64; 6],
+}
+
+impl MotionCell {
+    fn write(&self, m: &MotionStatus) {
+        let s = self.seq.load(Ordering::Relaxed);
+        self.seq.store(s.wrapping_add(1), Ordering::Relaxed);
+        std::sync::atomic::fence(Ordering::Release);
+        for (w, v) in self.words.iter().zip(m.position) {
+            w.store(v.to_bits(), Ordering::Relaxed);
+        }
+        self.words[4].store(m.planned_until.to_bits(), Ordering::Relaxed);
+        let flags = m
+            .homed
+            .iter()
+            .enumerate()
+            .fold(u64::from(m.busy) << 3, |f, (i, h)| f | (u64::from(*h) << i));
+        self.words[5].store(flags, Ordering::Relaxed);
+        self.seq.store(s.wrapping_add(2), Ordering::Release);
+    }
+
+    fn read(&self) -> MotionStatus {
+        loop {
+            let before = self.seq.load(Ordering::Acquire);
+            if !before.is_multiple_of(2) {
+                std::hint::spin_loop();
+                continue;
+            }
+            let w: [u64; 6] = std::array::from_fn(|i| self.words[i].load(Ordering::Relaxed));
+            std::sync::atomic::fence(Ordering::Acquire);
+            if self.seq.load(Ordering::Relaxed) != before {
+                continue;
+            }
+            return MotionStatus {
+                position: [0, 1, 2, 3].map(|i| f64::from_bits(w[i])),
+                planned_until: f64::from_bits(w[4]),
+                homed: [0, 1, 2].map(|i| w[5] >> i & 1 == 1),
+                busy: w[5] >> 3 & 1 == 1,
+            };
+        }
+    }
+}
+
 /// A flag set once with the reason (the first one wins), read lock-free until it is set.
 #[derive(Debug, Default)]
 pub(crate) struct Latch {
@@ -100,7 +152,7 @@ impl Latch {
 pub(crate) struct SessionShared {
     /// Set by `stop()`/`emergency_stop()`: the planner ends the session at its next check.
     stop: Latch,
-    pub motion: Mutex<MotionStatus>,
+    motion: MotionCell,
     /// Set once the session ended, with the reason.
     pub shutdown: Mutex<Option<String>>,
     /// The report of the last G28 with motion (taken by `Printer::home`).
@@ -113,7 +165,7 @@ impl SessionShared {
     pub fn new(events: Option<SyncSender<Event>>) -> SessionShared {
         SessionShared {
             stop: Latch::default(),
-            motion: Mutex::new(MotionStatus::default()),
+            motion: MotionCell::default(),
             shutdown: Mutex::new(None),
             last_homing: Mutex::new(None),
             events: Mutex::new(events),
@@ -150,15 +202,13 @@ impl SessionShared {
         self.stop.check("stopped by the host")
     }
 
-    /// Updates the motion record if nobody is reading it right now (the next update catches up).
+    /// Updates the motion record (lock-free: readers retry, the planner never waits).
     pub fn publish_motion(&self, m: MotionStatus) {
-        if let Ok(mut g) = self.motion.try_lock() {
-            *g = m;
-        }
+        self.motion.write(&m);
     }
 
     pub fn motion(&self) -> MotionStatus {
-        self.motion.lock().map(|g| *g).unwrap_or_default()
+        self.motion.read()
     }
 
     /// Records the end of the session (the first reason wins) and tells the listeners.
@@ -173,5 +223,43 @@ impl SessionShared {
 
     pub fn shutdown_reason(&self) -> Option<String> {
         self.shutdown.lock().ok().and_then(|s| s.clone())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_motion_cell_reads_what_was_written_whole() {
+        let cell = std::sync::Arc::new(MotionCell::default());
+        assert_eq!(cell.read(), MotionStatus::default());
+        let writer = {
+            let cell = std::sync::Arc::clone(&cell);
+            std::thread::spawn(move || {
+                for k in 1..=20_000u32 {
+                    let v = f64::from(k);
+                    cell.write(&MotionStatus {
+                        position: [v, v, v, v],
+                        homed: [k.is_multiple_of(2); 3],
+                        planned_until: v,
+                        busy: k.is_multiple_of(2),
+                    });
+                }
+            })
+        };
+        for _ in 0..20_000 {
+            let m = cell.read();
+            // A torn read would mix two writes.
+            assert!(m.position.iter().all(|p| *p == m.planned_until), "{m:?}");
+            if m == MotionStatus::default() {
+                continue; // before the first write
+            }
+            let even = (m.planned_until as u32).is_multiple_of(2);
+            assert_eq!(m.homed, [even; 3], "{m:?}");
+            assert_eq!(m.busy, even, "{m:?}");
+        }
+        writer.join().expect("writer");
+        assert_eq!(cell.read().planned_until, 20_000.0);
     }
 }

@@ -87,6 +87,19 @@ pub(crate) enum FeedMsg {
     Line(String),
     /// Everything before it is planned and handed on when the planner answers.
     Barrier(SyncSender<()>),
+    /// One line of G-code whose outcome is answered on the channel once it is planned: a
+    /// command the planner refuses (a parse error, an unknown command, a move out of range, a
+    /// macro error) is answered with its error and the session goes on; an error of the MCUs
+    /// or a stop is answered too and ends the session.
+    Checked(String, SyncSender<Result<(), LineError>>),
+}
+
+/// Why a [`FeedMsg::Checked`] line failed.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct LineError {
+    pub message: String,
+    /// The error came from the MCUs, the hand-off or a stop: the session ends.
+    pub ends_session: bool,
 }
 
 /// The planner's view of a feed. Lines stay inline: boxing them would allocate per line on
@@ -97,6 +110,7 @@ enum FeedItem {
     /// Nothing came for a while: flush the lookahead.
     Idle,
     Barrier(SyncSender<()>),
+    Checked(Result<GcodeLine, GcodeError>, SyncSender<Result<(), LineError>>),
 }
 
 /// A session's commands as feed items (ends when the session's sender is dropped).
@@ -106,26 +120,40 @@ struct SessionFeed {
     line_no: usize,
 }
 
+impl SessionFeed {
+    /// The next line of the session (`None`: blank or a comment).
+    fn parse(&mut self, text: &str) -> Option<Result<GcodeLine, GcodeError>> {
+        self.line_no += 1;
+        let raw = text.trim_end_matches(['\n', '\r']).as_bytes();
+        match parse_line(self.line_no, raw) {
+            Ok(Some(cmd)) => Some(Ok(GcodeLine {
+                line_no: self.line_no,
+                cmd,
+            })),
+            Ok(None) => None,
+            Err(e) => Some(Err(e)),
+        }
+    }
+}
+
 impl Iterator for SessionFeed {
     type Item = FeedItem;
 
     fn next(&mut self) -> Option<FeedItem> {
         loop {
             match self.rx.recv_timeout(self.idle) {
-                Ok(FeedMsg::Line(text)) => {
-                    self.line_no += 1;
-                    let raw = text.trim_end_matches(['\n', '\r']).as_bytes();
-                    match parse_line(self.line_no, raw) {
-                        Ok(Some(cmd)) => {
-                            return Some(FeedItem::Line(Ok(GcodeLine {
-                                line_no: self.line_no,
-                                cmd,
-                            })))
-                        }
-                        Ok(None) => continue,
-                        Err(e) => return Some(FeedItem::Line(Err(e))),
+                Ok(FeedMsg::Line(text)) => match self.parse(&text) {
+                    Some(line) => return Some(FeedItem::Line(line)),
+                    None => continue,
+                },
+                Ok(FeedMsg::Checked(text, reply)) => match self.parse(&text) {
+                    Some(line) => return Some(FeedItem::Checked(line, reply)),
+                    None => {
+                        // A blank line or a comment: nothing to plan.
+                        let _ = reply.try_send(Ok(()));
+                        continue;
                     }
-                }
+                },
                 Ok(FeedMsg::Barrier(done)) => return Some(FeedItem::Barrier(done)),
                 Err(RecvTimeoutError::Timeout) => return Some(FeedItem::Idle),
                 Err(RecvTimeoutError::Disconnected) => return None,
@@ -211,8 +239,9 @@ pub(crate) fn plan_file(
         target.idle(true, pipeline);
     }
     for item in input.items() {
-        let line = match item {
-            FeedItem::Line(line) => line.map_err(|e| format!("{}: {e}", file.display()))?,
+        let (line, reply) = match item {
+            FeedItem::Line(line) => (line, None),
+            FeedItem::Checked(line, reply) => (line, Some(reply)),
             FeedItem::Idle | FeedItem::Barrier(_) => {
                 if !idle {
                     pipeline.flush_lookahead();
@@ -228,13 +257,6 @@ pub(crate) fn plan_file(
                 continue;
             }
         };
-        if idle {
-            idle = false;
-            pipeline
-                .raise_print_time(target.resume_at())
-                .map_err(|e| format!("{}: {e}", file.display()))?;
-            target.idle(false, pipeline);
-        }
         lines += 1;
         let mut feed = Feed {
             file: &file,
@@ -243,8 +265,28 @@ pub(crate) fn plan_file(
             warnings: &mut warnings,
             out: &mut out,
         };
-        if !feed.run_macro_or_variable(&line, macros, target)? {
-            feed.plan(&line, target)?;
+        let Some(reply) = reply else {
+            let line = line.map_err(|e| format!("{}: {e}", file.display()))?;
+            feed.run_line(&line, &mut idle, macros, target)?;
+            continue;
+        };
+        // A checked command: its own error is answered and the session goes on; an error of
+        // the target (the MCUs, the hand-off, a stop) ends the session as for any line.
+        let mut checked = Checked {
+            target,
+            failed: false,
+        };
+        let result = line
+            .map_err(|e| format!("{}: {e}", file.display()))
+            .and_then(|line| feed.run_line(&line, &mut idle, macros, &mut checked));
+        let failed = checked.failed;
+        // The sender waits for the answer; a sender that gave up is no error.
+        let _ = reply.try_send(result.clone().map_err(|message| LineError {
+            message,
+            ends_session: failed,
+        }));
+        if failed {
+            result?;
         }
     }
     pipeline.finish(&mut out);
@@ -262,6 +304,28 @@ struct Feed<'a> {
 }
 
 impl Feed<'_> {
+    /// One command line of the feed: a macro call or a planned command, after an idle spell
+    /// from the MCUs' time then.
+    fn run_line(
+        &mut self,
+        line: &GcodeLine,
+        idle: &mut bool,
+        macros: &mut Macros,
+        target: &mut impl FeedTarget,
+    ) -> Result<(), String> {
+        if *idle {
+            *idle = false;
+            self.pipeline
+                .raise_print_time(target.resume_at())
+                .map_err(|e| format!("{}: {e}", self.file.display()))?;
+            target.idle(false, self.pipeline);
+        }
+        if !self.run_macro_or_variable(line, macros, target)? {
+            self.plan(line, target)?;
+        }
+        Ok(())
+    }
+
     /// Plans one command and hands on what became final.
     fn plan(&mut self, line: &GcodeLine, target: &mut impl FeedTarget) -> Result<(), String> {
         if plan_line(
@@ -386,6 +450,44 @@ fn macro_call(cmd: &Command, macros: &Macros) -> Option<(String, String)> {
             Some(("G28".to_string(), axes.join(" ")))
         }
         _ => None,
+    }
+}
+
+/// A target that notes whether one of its own calls failed: such an error ends the session,
+/// while the command's own errors (parse, planner, macro) only fail that command.
+struct Checked<'t, T> {
+    target: &'t mut T,
+    failed: bool,
+}
+
+impl<T> Checked<'_, T> {
+    fn note<R>(&mut self, r: Result<R, String>) -> Result<R, String> {
+        self.failed |= r.is_err();
+        r
+    }
+}
+
+impl<T: FeedTarget> FeedTarget for Checked<'_, T> {
+    fn emit(&mut self, cmds: &mut Vec<(usize, StepCmd)>) -> Result<(), String> {
+        let r = self.target.emit(cmds);
+        self.note(r)
+    }
+    fn pace(&mut self, pipeline: &mut Pipeline) -> Result<(), String> {
+        let r = self.target.pace(pipeline);
+        self.note(r)
+    }
+    fn motion(&mut self, pipeline: &mut Pipeline, cmd: &MotionCmd<'_>) -> Result<bool, String> {
+        let r = self.target.motion(pipeline, cmd);
+        self.note(r)
+    }
+    fn resume_at(&self) -> f64 {
+        self.target.resume_at()
+    }
+    fn warn(&mut self, text: String) {
+        self.target.warn(text);
+    }
+    fn idle(&mut self, idle: bool, pipeline: &Pipeline) {
+        self.target.idle(idle, pipeline);
     }
 }
 

@@ -14,6 +14,8 @@
 //! - whole prints: [`live`] (threads in this process), [`io_process`] (the IO stage in
 //!   another process), [`batch`] (wire files), [`job`] (what `cadence print` runs);
 //! - the API: [`printer`] ([`printer::Printer`], its handle, events and status in [`events`]);
+//! - the service: [`service`] (`cadence serve`: the printer kept up for front ends, Klipper's
+//!   API socket);
 //! - [`heaters`]: the heater logic (sensors, PID/watermark, verify_heater, PID calibration),
 //!   pure and clock-free, not yet driven by the print loop;
 //! - [`host_check`]: is this host fit for hard timing (PREEMPT_RT, SCHED_FIFO, limits,
@@ -45,6 +47,7 @@ pub mod mcus;
 pub mod planner_thread;
 pub mod printer;
 pub mod realtime;
+pub mod service;
 pub mod sim_mcu;
 pub mod step_stream;
 pub mod summary;

@@ -6,8 +6,10 @@
 //!   reporting overshoot and trigger → stop latencies (see `homing`).
 //! - `decode OUT.bin`: print a wire stream one message a line.
 //! - `doctor [--unit --config printer.cfg]`: host real-time checks, or the systemd unit.
-//! - `serve --role io [--config printer.cfg] [--instance NAME]`: the IO stage in its own
-//!   process (MCU connections), serving one `print --io-process` / `--io-attach NAME`.
+//! - `serve [--config printer.cfg | --simulated] [-a SOCKET]`: the printer service front ends
+//!   attach to (Klipper's API socket); `serve --role io [--config printer.cfg] [--instance
+//!   NAME]`: the IO stage in its own process (MCU connections), serving one `print
+//!   --io-process` / `--io-attach NAME`.
 //! - `mcu …` (hidden): the simulated MCU (the firmware's Linux-process target), for when the
 //!   separate `cadence-mcu` executable was not built.
 
@@ -45,8 +47,9 @@ enum Cmd {
     Print(print::PrintArgs),
     /// Home the printer's axes with real motion (G28), once or in cycles with latency figures.
     Home(home::HomeArgs),
-    /// Run one stage of the live print in this process (`--role io`: the MCU connections),
-    /// serving a `cadence print --io-process` or `--io-attach NAME`.
+    /// The printer service front ends attach to (Klipper's API socket with `-a`), or with
+    /// `--role io` one stage of the live print (the MCU connections) serving a `cadence print
+    /// --io-process` or `--io-attach NAME`.
     Serve(serve::ServeArgs),
     /// Check this host for hard timing (PREEMPT_RT, SCHED_FIFO, limits, CPU isolation, wake-up
     /// latency), or print the systemd unit for the service with `--unit`.

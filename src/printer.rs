@@ -12,8 +12,9 @@
 //! printer or stops it in an emergency from any thread.
 //!
 //! A G-code line that does not parse is refused by `send_line` and the session goes on; a
-//! command the planner refuses (an unknown command, a move out of range), an MCU shutdown or a
-//! stop ends the session: the printer is then [`PrinterState::Shutdown`] with the reason, and
+//! command given to [`Printer::run_command`] that the planner refuses fails alone (the printer
+//! stays ready, as a service needs); through `send_line` or a file, a command the planner
+//! refuses (an unknown command, a move out of range), an MCU shutdown or a stop ends the session: the printer is then [`PrinterState::Shutdown`] with the reason, and
 //! every later call returns [`PrinterError::Shutdown`].
 
 use std::io::BufRead;
@@ -125,6 +126,10 @@ pub enum PrinterError {
     /// A line given to `send_line` does not parse (the session goes on).
     #[error("G-code: {0}")]
     Gcode(#[from] GcodeError),
+    /// A command given to [`Printer::run_command`] was refused (unknown, out of range, a macro
+    /// error); the printer stays ready.
+    #[error("{message}")]
+    Command { message: String },
     /// The session ended: a G-code error, an MCU shutdown, a stop or `close`.
     #[error("the printer shut down: {reason}")]
     Shutdown { reason: String },
@@ -342,6 +347,28 @@ impl Printer {
         self.feed(FeedMsg::Line(line.to_string()))
     }
 
+    /// Runs one G-code command and waits until it is planned (its moves are queued, as
+    /// Klipper's `gcode/script` answers). A command the planner refuses (it does not parse, is
+    /// unknown, moves out of range, a macro fails) returns [`PrinterError::Command`] and the
+    /// printer stays ready, unlike `send_line`, where such a command ends the session. An MCU
+    /// error or a stop while it runs ends the session ([`PrinterError::Shutdown`]).
+    pub fn run_command(&self, line: &str) -> Result<(), PrinterError> {
+        let (tx, rx) = mpsc::sync_channel(1);
+        self.feed(FeedMsg::Checked(line.to_string(), tx))?;
+        match rx.recv() {
+            Ok(Ok(())) => Ok(()),
+            Ok(Err(e)) if !e.ends_session => Err(PrinterError::Command { message: e.message }),
+            Ok(Err(_)) | Err(_) => Err(self.shutdown_error()),
+        }
+    }
+
+    /// Waits until everything sent so far is planned and handed on to the MCUs, with the
+    /// lookahead flushed: the next command starts from the MCUs' time then (a service calls it
+    /// at the end of each script, whose next one may come any time later).
+    pub fn flush(&self) -> Result<(), PrinterError> {
+        self.sync()
+    }
+
     /// Plans and streams a G-code file; returns once every command of it is planned and handed
     /// to the IO stages (use [`Printer::wait_moves`] to wait until the MCUs executed them).
     pub fn run_gcode_file(&self, path: &Path) -> Result<(), PrinterError> {
@@ -535,6 +562,11 @@ impl PrinterHandle {
     /// The printer's state.
     pub fn state(&self) -> PrinterState {
         state_of(&self.shared)
+    }
+
+    /// The latency histograms so far (`None` once the printer is closed).
+    pub fn latency(&self) -> Option<Latency> {
+        self.inner.upgrade().map(|inner| latency_of(&inner))
     }
 
     /// A snapshot (without link statistics once the printer is closed).

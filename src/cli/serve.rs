@@ -1,9 +1,15 @@
-//! `cadence serve --role io`: arguments → [`ServeOptions`] → [`cadence::io_process::server`]
-//! → its report on stdout.
+//! `cadence serve`: the printer service (arguments → [`cadence::service::ServiceOptions`] →
+//! [`cadence::service::run`] until SIGTERM/SIGINT), or with `--role io` the IO stage in its own
+//! process (→ [`cadence::io_process::server`] → its report on stdout).
 
 use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::Duration;
 
 use cadence::io_process::server::{self, ServeOptions};
+use cadence::printer::{PrinterOptions, PrinterSource};
+use cadence::service::ServiceOptions;
 use clap::{Args, ValueEnum};
 use rt_core::logger::Level;
 
@@ -17,13 +23,22 @@ pub enum Role {
 /// Arguments of `cadence serve`.
 #[derive(Debug, Args)]
 pub struct ServeArgs {
-    /// The stage to run in this process.
+    /// Run one stage only (`io`: the MCU connections for a `print --io-process`); without it,
+    /// the printer service.
     #[arg(long, value_enum)]
-    pub role: Role,
-    /// Klipper-format printer.cfg (default: the built-in simulated cartesian printer); the
-    /// planner must load the same one (checked through the configuration CRC).
-    #[arg(long)]
+    pub role: Option<Role>,
+    /// Klipper-format printer.cfg (default: the built-in simulated cartesian printer).
+    #[arg(long, conflicts_with = "simulated")]
     pub config: Option<PathBuf>,
+    /// The built-in simulated cartesian printer (the default without --config).
+    #[arg(long)]
+    pub simulated: bool,
+    /// Klipper's API server socket (Moonraker attaches here), created owner-only.
+    #[arg(short = 'a', long = "api-socket", value_name = "PATH")]
+    pub api_socket: Option<PathBuf>,
+    /// Also let this group (numeric gid) read and write the API socket.
+    #[arg(long, value_name = "GID")]
+    pub api_group: Option<u32>,
     /// Service instance: services are named `cadence/<instance>/...` (default `p<pid>`).
     #[arg(long)]
     pub instance: Option<String>,
@@ -42,17 +57,64 @@ pub struct ServeArgs {
     /// Most verbose log level recorded: error, warn, info, debug or trace.
     #[arg(long, default_value = "info", value_name = "LEVEL")]
     pub log_level: Level,
-    /// Stop (and fail) when the process with this pid (the planner that started us) is gone.
+    /// Stop (and fail) when the process with this pid (the planner that started us) is gone
+    /// (`--role io`).
     #[arg(long)]
     pub parent_pid: Option<u32>,
     /// Fail when neither a step batch nor a command arrived for this many seconds (0: wait
-    /// forever).
+    /// forever; `--role io`).
     #[arg(long, default_value_t = 120.0)]
     pub idle_timeout: f64,
+    /// Seconds between attempts to open a printer that failed to start (the service).
+    #[arg(long, default_value_t = 5.0)]
+    pub retry: f64,
 }
 
 pub fn run(args: &ServeArgs) -> Result<(), String> {
-    let Role::Io = args.role;
+    match args.role {
+        Some(Role::Io) => run_io(args),
+        None => run_service(args),
+    }
+}
+
+fn run_service(args: &ServeArgs) -> Result<(), String> {
+    let quit = Arc::new(AtomicBool::new(false));
+    for signal in [signal_hook::consts::SIGTERM, signal_hook::consts::SIGINT] {
+        signal_hook::flag::register(signal, Arc::clone(&quit))
+            .map_err(|e| format!("cannot handle signal {signal}: {e}"))?;
+    }
+    let source = match &args.config {
+        Some(p) => PrinterSource::ConfigFile(p.clone()),
+        None => PrinterSource::Simulated,
+    };
+    let opts = ServiceOptions {
+        source,
+        config_file: args.config.clone(),
+        printer: PrinterOptions {
+            time_scale: args.time_scale,
+            trace: args.trace.clone(),
+            realtime: !args.no_realtime,
+            log_level: args.log_level,
+            log_file: args.log_file.clone(),
+            log_to_stderr: true,
+            idle_flush: Duration::from_millis(200),
+            ..PrinterOptions::default()
+        },
+        api_socket: args.api_socket.clone(),
+        retry_s: args.retry,
+    };
+    if !(args.retry > 0.0 && args.retry.is_finite()) {
+        return Err(format!(
+            "--retry {}: must be a positive number of seconds",
+            args.retry
+        ));
+    }
+    cadence::service::run(&opts, quit, args.api_group)?;
+    eprintln!("cadence serve: stopped");
+    Ok(())
+}
+
+fn run_io(args: &ServeArgs) -> Result<(), String> {
     let opts = ServeOptions {
         config: args.config.clone(),
         instance: args.instance.clone(),

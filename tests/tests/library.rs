@@ -137,6 +137,30 @@ fn a_bad_line_is_refused_and_the_session_goes_on_but_an_unknown_command_ends_it(
 }
 
 #[test]
+fn run_command_fails_a_refused_command_alone_and_the_printer_stays_ready() {
+    let _turn = turn();
+    let printer = open();
+    printer.run_command("G28").expect("home");
+    for bad in ["G1 X100000", "G1 X(", "NO_SUCH_COMMAND_EITHER"] {
+        match printer.run_command(bad) {
+            Err(PrinterError::Command { message }) => assert!(!message.is_empty(), "{bad}"),
+            other => panic!("{bad}: expected a command error, got {other:?}"),
+        }
+        assert!(
+            !matches!(printer.handle().state(), PrinterState::Shutdown { .. }),
+            "{bad} shut the printer down"
+        );
+    }
+    printer
+        .run_command("G1 X10 F3000")
+        .expect("a good command after bad ones");
+    printer.flush().expect("flush");
+    printer.wait_moves().expect("moves run");
+    assert_eq!(printer.status().position[0], 10.0);
+    printer.close().expect("close");
+}
+
+#[test]
 fn stop_and_emergency_stop_from_another_thread() {
     let _turn = turn();
     for emergency in [false, true] {

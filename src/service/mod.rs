@@ -1,0 +1,174 @@
+//! `cadence serve`: the always-on printer service. One thread owns the [`Printer`]
+//! ([`worker`]): it opens it (retrying after a failed start), runs G-code scripts one command
+//! at a time (a refused command fails alone, the printer stays ready), reopens it on
+//! `RESTART`/`FIRMWARE_RESTART`, and notices a shutdown. Front ends attach over Klipper's API
+//! socket ([`api`]: framing in [`framing`], status objects in [`objects`]). The states and
+//! their messages are Klipper's: `startup`, `ready`, `error` (the printer could not be
+//! opened), `shutdown` (an MCU shutdown, an emergency stop, an error of the running session).
+//!
+//! Not yet served: print jobs (`virtual_sdcard` and `print_stats` report an idle printer), the
+//! G-code pseudo-terminal and heaters.
+
+pub mod api;
+pub mod framing;
+pub mod objects;
+pub mod worker;
+
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, Mutex};
+
+use crate::printer::{PrinterHandle, PrinterOptions, PrinterSource};
+
+/// Klipper's `ready` message.
+pub const MESSAGE_READY: &str = "Printer is ready";
+/// Klipper's `startup` message (the host software named Cadence).
+pub const MESSAGE_STARTUP: &str =
+    "Printer is not ready\nThe Cadence host software is attempting to connect.  Please\nretry in a few moments.";
+/// What follows a shutdown's reason (Klipper's wording).
+pub const HELP_SHUTDOWN: &str = "Once the underlying issue is corrected, use the \"FIRMWARE_RESTART\" command to reset the firmware, reload the config, and restart the host software.\nPrinter is shutdown";
+/// What follows the reason the printer could not start (Klipper's wording).
+pub const HELP_ERROR: &str = "Once the underlying issue is corrected, use the \"RESTART\"\ncommand to reload the config and restart the host software.\nPrinter is halted";
+
+/// The service's state, as Klipper's `webhooks.state` names it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ServiceState {
+    Startup,
+    Ready,
+    Error,
+    Shutdown,
+}
+
+impl ServiceState {
+    pub fn name(self) -> &'static str {
+        match self {
+            ServiceState::Startup => "startup",
+            ServiceState::Ready => "ready",
+            ServiceState::Error => "error",
+            ServiceState::Shutdown => "shutdown",
+        }
+    }
+}
+
+/// What the worker publishes for the API: the state, its message, the open printer's handle
+/// and its configuration facts.
+#[derive(Debug, Clone)]
+pub struct Published {
+    pub state: ServiceState,
+    pub message: String,
+    pub handle: Option<PrinterHandle>,
+    pub config: Option<Arc<objects::ConfigFacts>>,
+    pub mcus: Vec<String>,
+}
+
+/// State shared between the worker and the API.
+#[derive(Debug)]
+pub struct Shared {
+    published: Mutex<Published>,
+    /// Set by SIGTERM/SIGINT (or a test): the service stops motion and exits.
+    pub quit: Arc<AtomicBool>,
+}
+
+impl Shared {
+    pub fn new(quit: Arc<AtomicBool>) -> Shared {
+        Shared {
+            published: Mutex::new(Published {
+                state: ServiceState::Startup,
+                message: MESSAGE_STARTUP.to_string(),
+                handle: None,
+                config: None,
+                mcus: Vec::new(),
+            }),
+            quit,
+        }
+    }
+
+    /// The state now; a printer whose session ended since the worker last looked is reported
+    /// shut down with its reason.
+    pub fn get(&self) -> Published {
+        let mut p = match self.published.lock() {
+            Ok(g) => g.clone(),
+            Err(e) => e.into_inner().clone(),
+        };
+        if p.state == ServiceState::Ready {
+            if let Some(crate::events::PrinterState::Shutdown { reason }) =
+                p.handle.as_ref().map(|h| h.state())
+            {
+                p.state = ServiceState::Shutdown;
+                p.message = shutdown_message(&reason);
+            }
+        }
+        p
+    }
+
+    fn set(&self, f: impl FnOnce(&mut Published)) {
+        match self.published.lock() {
+            Ok(mut g) => f(&mut g),
+            Err(e) => f(&mut e.into_inner()),
+        }
+    }
+}
+
+/// A shutdown's state message.
+pub fn shutdown_message(reason: &str) -> String {
+    format!("{reason}\n{HELP_SHUTDOWN}")
+}
+
+/// How the service runs.
+#[derive(Debug, Clone)]
+pub struct ServiceOptions {
+    pub source: PrinterSource,
+    /// The config file named in `info` (`None`: the built-in simulated printer).
+    pub config_file: Option<PathBuf>,
+    pub printer: PrinterOptions,
+    /// Klipper's API socket (`-a`).
+    pub api_socket: Option<PathBuf>,
+    /// Seconds between attempts to open a printer that failed to start.
+    pub retry_s: f64,
+}
+
+/// Runs the service until `quit` is set (SIGTERM/SIGINT in `cadence serve`): the worker on
+/// its own thread, the API server (when a socket is given) on this one. Stops motion and
+/// closes the printer before returning.
+pub fn run(opts: &ServiceOptions, quit: Arc<AtomicBool>, api_group: Option<u32>) -> Result<(), String> {
+    let listener = match &opts.api_socket {
+        Some(path) => Some(api::bind(path, api_group).map_err(|e| e.to_string())?),
+        None => None,
+    };
+    let shared = Shared::new(quit);
+    let (jobs_tx, jobs_rx) = std::sync::mpsc::channel();
+    let (to_api_tx, to_api_rx) = std::sync::mpsc::channel();
+    let shared_ref = &shared;
+    std::thread::scope(|scope| {
+        let worker = std::thread::Builder::new()
+            .name("serve-printer".to_string())
+            .spawn_scoped(scope, move || worker::run(opts, shared_ref, &jobs_rx, &to_api_tx))
+            .map_err(|e| format!("cannot start the printer thread: {e}"))?;
+        match &listener {
+            Some(l) => api::serve(
+                l,
+                &shared,
+                &jobs_tx,
+                &to_api_rx,
+                env!("CARGO_PKG_VERSION"),
+                opts.config_file.as_deref(),
+                opts.printer.log_file.as_deref(),
+            ),
+            None => {
+                while !shared.quit.load(std::sync::atomic::Ordering::Acquire) {
+                    // Nobody reads the output without a socket.
+                    while to_api_rx.try_recv().is_ok() {}
+                    std::thread::sleep(std::time::Duration::from_millis(50));
+                }
+            }
+        }
+        drop(jobs_tx);
+        worker
+            .join()
+            .map_err(|_| "the printer thread panicked".to_string())
+    })?;
+    if let Some(path) = &opts.api_socket {
+        let _ = std::fs::remove_file(path);
+    }
+    Ok(())
+}

@@ -1,0 +1,301 @@
+//! The status objects the API socket serves (`objects/list`, `objects/query`,
+//! `objects/subscribe`), with the names and fields of Klipper's Status Reference where Cadence
+//! has the value, built from one [`Snapshot`] of the service; plus Cadence's own `latency`.
+
+use std::path::Path;
+
+use serde_json::{json, Map, Value};
+use sysconfig::printer::PrinterConfig;
+
+use crate::events::{PrinterState, Status};
+use crate::printer::Latency;
+
+use super::ServiceState;
+
+/// What the printer's configuration says, read once per opened config.
+#[derive(Debug, Clone)]
+pub struct ConfigFacts {
+    /// `configfile.config`: every section's options as written.
+    pub config: Value,
+    /// `configfile.settings`: the same with lower-case names (values as text).
+    pub settings: Value,
+    pub axis_minimum: [f64; 4],
+    pub axis_maximum: [f64; 4],
+    pub max_velocity: f64,
+    pub max_accel: f64,
+    pub minimum_cruise_ratio: f64,
+    pub square_corner_velocity: f64,
+    pub steppers: Vec<String>,
+    pub has_extruder: bool,
+}
+
+impl ConfigFacts {
+    /// Reads the raw sections of `ini_path` (or of the built-in simulated printer's text) and
+    /// the typed values of `cfg`.
+    pub fn new(cfg: &PrinterConfig, ini_path: Option<&Path>) -> ConfigFacts {
+        let ini = match ini_path {
+            Some(p) => sysconfig::ini::load(p).ok(),
+            None => sysconfig::ini::parse_str(
+                sysconfig::printer::SIMULATED_PRINTER_CFG,
+                Path::new(sysconfig::printer::SIMULATED_PRINTER_NAME),
+            )
+            .ok(),
+        };
+        let mut config = Map::new();
+        let mut settings = Map::new();
+        for section in ini.iter().flat_map(|f| f.sections()) {
+            let mut raw = Map::new();
+            let mut low = Map::new();
+            for (k, v) in section.options() {
+                raw.insert(k.to_string(), Value::from(v.text.clone()));
+                low.insert(k.to_lowercase(), Value::from(v.text.clone()));
+            }
+            config.insert(section.name().to_string(), Value::Object(raw));
+            settings.insert(section.name().to_lowercase(), Value::Object(low));
+        }
+        let mut axis_minimum = [0.0; 4];
+        let mut axis_maximum = [0.0; 4];
+        for (i, axis) in ["stepper_x", "stepper_y", "stepper_z"].iter().enumerate() {
+            if let Some(s) = cfg.stepper(axis) {
+                axis_minimum[i] = s.position_min;
+                axis_maximum[i] = s.position_max;
+            }
+        }
+        ConfigFacts {
+            config: Value::Object(config),
+            settings: Value::Object(settings),
+            axis_minimum,
+            axis_maximum,
+            max_velocity: cfg.printer.max_velocity,
+            max_accel: cfg.printer.max_accel,
+            minimum_cruise_ratio: cfg.printer.minimum_cruise_ratio,
+            square_corner_velocity: cfg.printer.square_corner_velocity,
+            steppers: cfg.steppers.iter().map(|s| s.name.clone()).collect(),
+            has_extruder: cfg.extruder.is_some(),
+        }
+    }
+}
+
+/// Everything the objects are built from at one moment.
+#[derive(Debug)]
+pub struct Snapshot<'a> {
+    pub state: ServiceState,
+    pub state_message: &'a str,
+    /// The open printer's status (`None` while starting or after a failed start).
+    pub status: Option<Status>,
+    pub latency: Option<Latency>,
+    pub config: Option<&'a ConfigFacts>,
+    /// Process CPU seconds, load average, available memory (kB).
+    pub system: SystemFacts,
+}
+
+/// `system_stats`.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct SystemFacts {
+    pub sysload: f64,
+    pub cputime: f64,
+    pub memavail: u64,
+}
+
+impl SystemFacts {
+    /// Reads /proc (zeros where it cannot be read).
+    pub fn read() -> SystemFacts {
+        let sysload = std::fs::read_to_string("/proc/loadavg")
+            .ok()
+            .and_then(|s| s.split_whitespace().next().and_then(|v| v.parse().ok()))
+            .unwrap_or(0.0);
+        let memavail = std::fs::read_to_string("/proc/meminfo")
+            .ok()
+            .and_then(|s| {
+                s.lines()
+                    .find(|l| l.starts_with("MemAvailable:"))
+                    .and_then(|l| l.split_whitespace().nth(1).and_then(|v| v.parse().ok()))
+            })
+            .unwrap_or(0);
+        // utime and stime, fields 14 and 15 of /proc/self/stat, in clock ticks (100 Hz on
+        // Linux's user ABI); the command name (field 2) may hold spaces, so count after ')'.
+        let cputime = std::fs::read_to_string("/proc/self/stat")
+            .ok()
+            .and_then(|s| {
+                let after = s.rsplit_once(')')?.1;
+                let f: Vec<&str> = after.split_whitespace().collect();
+                let utime: f64 = f.get(11)?.parse().ok()?;
+                let stime: f64 = f.get(12)?.parse().ok()?;
+                Some((utime + stime) / 100.0)
+            })
+            .unwrap_or(0.0);
+        SystemFacts {
+            sysload,
+            cputime,
+            memavail,
+        }
+    }
+}
+
+/// The names `objects/list` reports for a printer with these MCUs.
+pub fn names(mcus: &[String]) -> Vec<String> {
+    let mut names: Vec<String> = [
+        "webhooks",
+        "configfile",
+        "toolhead",
+        "gcode_move",
+        "print_stats",
+        "virtual_sdcard",
+        "pause_resume",
+        "display_status",
+        "idle_timeout",
+        "system_stats",
+        "motion_report",
+        "query_endstops",
+        "latency",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    for m in mcus {
+        names.push(if m == "mcu" {
+            "mcu".to_string()
+        } else {
+            format!("mcu {m}")
+        });
+    }
+    names
+}
+
+/// Every object's status at this snapshot, by name.
+pub fn all(s: &Snapshot<'_>) -> Map<String, Value> {
+    let mut out = Map::new();
+    out.insert(
+        "webhooks".into(),
+        json!({"state": s.state.name(), "state_message": s.state_message}),
+    );
+    let (config, settings) = match s.config {
+        Some(c) => (c.config.clone(), c.settings.clone()),
+        None => (json!({}), json!({})),
+    };
+    out.insert(
+        "configfile".into(),
+        json!({"config": config, "settings": settings, "save_config_pending": false,
+               "save_config_pending_items": {}, "warnings": []}),
+    );
+    let status = s.status.as_ref();
+    let position = status.map(|st| st.position).unwrap_or([0.0; 4]);
+    let homed_axes: String = status
+        .map(|st| {
+            ["x", "y", "z"]
+                .iter()
+                .zip(st.homed)
+                .filter(|(_, h)| *h)
+                .map(|(a, _)| *a)
+                .collect()
+        })
+        .unwrap_or_default();
+    let printing = matches!(status.map(|st| &st.state), Some(PrinterState::Printing));
+    let print_time = status.map(|st| st.print_time).unwrap_or(0.0);
+    let mut toolhead = json!({
+        "homed_axes": homed_axes,
+        "position": position,
+        "print_time": status.map(|st| st.planned_until.max(st.print_time)).unwrap_or(0.0),
+        "estimated_print_time": print_time,
+        "extruder": if s.config.is_some_and(|c| c.has_extruder) { "extruder" } else { "" },
+    });
+    if let (Some(c), Some(obj)) = (s.config, toolhead.as_object_mut()) {
+        obj.insert("axis_minimum".into(), json!(c.axis_minimum));
+        obj.insert("axis_maximum".into(), json!(c.axis_maximum));
+        obj.insert("max_velocity".into(), json!(c.max_velocity));
+        obj.insert("max_accel".into(), json!(c.max_accel));
+        obj.insert("minimum_cruise_ratio".into(), json!(c.minimum_cruise_ratio));
+        obj.insert("square_corner_velocity".into(), json!(c.square_corner_velocity));
+    }
+    out.insert("toolhead".into(), toolhead);
+    out.insert(
+        "gcode_move".into(),
+        json!({"position": position, "gcode_position": position,
+               "homing_origin": [0.0, 0.0, 0.0, 0.0]}),
+    );
+    out.insert(
+        "print_stats".into(),
+        json!({"filename": "", "total_duration": 0.0, "print_duration": 0.0,
+               "filament_used": 0.0, "state": "standby", "message": "",
+               "info": {"total_layer": null, "current_layer": null}}),
+    );
+    out.insert(
+        "virtual_sdcard".into(),
+        json!({"file_path": null, "progress": 0.0, "is_active": false,
+               "file_position": 0, "file_size": 0}),
+    );
+    out.insert("pause_resume".into(), json!({"is_paused": false}));
+    out.insert("display_status".into(), json!({"progress": 0.0, "message": null}));
+    out.insert(
+        "idle_timeout".into(),
+        json!({"state": if printing { "Printing" } else { "Ready" }}),
+    );
+    out.insert(
+        "system_stats".into(),
+        json!({"sysload": s.system.sysload, "cputime": s.system.cputime,
+               "memavail": s.system.memavail}),
+    );
+    out.insert(
+        "motion_report".into(),
+        json!({"live_position": position,
+               "steppers": s.config.map(|c| c.steppers.clone()).unwrap_or_default(),
+               "trapq": ["toolhead"]}),
+    );
+    out.insert("query_endstops".into(), json!({"last_query": {}}));
+    for (name, stats) in status.map(|st| st.mcus.as_slice()).unwrap_or(&[]) {
+        let key = if name == "mcu" {
+            "mcu".to_string()
+        } else {
+            format!("mcu {name}")
+        };
+        let q = &stats.queue;
+        out.insert(
+            key,
+            json!({"last_stats": {
+                "mcu_awake": stats.mcu_awake, "mcu_task_avg": stats.mcu_task_avg,
+                "mcu_task_stddev": stats.mcu_task_stddev, "bytes_write": q.bytes_write,
+                "bytes_read": q.bytes_read, "bytes_retransmit": q.bytes_retransmit,
+                "bytes_invalid": q.bytes_invalid, "send_seq": q.send_seq,
+                "receive_seq": q.receive_seq, "retransmit_seq": q.retransmits,
+                "srtt": q.srtt, "rttvar": q.rttvar, "rto": q.rto,
+                "ready_bytes": q.ready_bytes, "freq": stats.clock_freq}}),
+        );
+    }
+    out.insert("latency".into(), latency(s.latency.as_ref()));
+    out
+}
+
+/// Cadence's `latency` object: lead margin (ms) and the hand-off and planner wake-up (µs)
+/// histogram summaries of the session.
+fn latency(l: Option<&Latency>) -> Value {
+    let Some(l) = l else {
+        return json!({});
+    };
+    let ms = |t: u64| l.lead_ms(t);
+    let lead = &l.lead_margin;
+    let us = |h: &rt_core::hist::Summary| {
+        json!({"count": h.count, "p50": h.p50 as f64 / 1e3, "p99": h.p99 as f64 / 1e3,
+               "p999": h.p999 as f64 / 1e3, "max": h.max as f64 / 1e3})
+    };
+    json!({
+        "lead_margin_ms": {"count": lead.count, "violations": lead.negative,
+            "min": ms(lead.min), "p0_1": ms(lead.p0_1), "p1": ms(lead.p1), "p50": ms(lead.p50)},
+        "handoff_us": us(&l.handoff),
+        "wake_planner_us": us(&l.wake_planner),
+    })
+}
+
+/// The fields of `status` a query asked for: `None` → every field, else the listed ones that
+/// exist. Unknown objects give `{}` as Klipper does.
+pub fn select(all: &Map<String, Value>, name: &str, fields: Option<&[String]>) -> Map<String, Value> {
+    let Some(Value::Object(obj)) = all.get(name) else {
+        return Map::new();
+    };
+    match fields {
+        None => obj.clone(),
+        Some(list) => list
+            .iter()
+            .map(|f| (f.clone(), obj.get(f).cloned().unwrap_or(Value::Null)))
+            .collect(),
+    }
+}

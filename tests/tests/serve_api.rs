@@ -1,0 +1,369 @@
+//! `cadence serve` on the simulated printer, driven over Klipper's API socket as a front end
+//! (Moonraker) drives Klipper: the socket's permissions, `info` until ready, objects, G-code
+//! scripts (a refused command fails alone and the printer stays ready), subscriptions, bad
+//! messages, an emergency stop and a firmware restart, then SIGTERM → exit 0.
+
+use std::io::{Read, Write};
+use std::os::unix::fs::PermissionsExt;
+use std::os::unix::net::UnixStream;
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use cadence_tests::{bin, scratch, workspace};
+use serde_json::{json, Value};
+
+/// A client of the API socket.
+struct Api {
+    stream: UnixStream,
+    pending: Vec<u8>,
+    next_id: u64,
+    /// Notifications read while waiting for replies.
+    notes: Vec<Value>,
+}
+
+impl Api {
+    fn connect(path: &Path) -> Api {
+        let stream = UnixStream::connect(path).expect("connect to the API socket");
+        stream
+            .set_read_timeout(Some(Duration::from_secs(120)))
+            .expect("timeout");
+        Api {
+            stream,
+            pending: Vec::new(),
+            next_id: 1,
+            notes: Vec::new(),
+        }
+    }
+
+    fn send_raw(&mut self, bytes: &[u8]) {
+        self.stream.write_all(bytes).expect("write");
+    }
+
+    /// The next message (reply or notification).
+    fn read(&mut self) -> Value {
+        loop {
+            if let Some(end) = self.pending.iter().position(|&b| b == 0x03) {
+                let msg: Vec<u8> = self.pending.drain(..=end).collect();
+                return serde_json::from_slice(&msg[..end]).expect("a JSON message");
+            }
+            let mut buf = [0u8; 65536];
+            let n = self.stream.read(&mut buf).expect("read from the service");
+            assert!(n > 0, "the service closed the connection");
+            self.pending.extend_from_slice(&buf[..n]);
+        }
+    }
+
+    /// The reply to `id` (notifications on the way are kept).
+    fn reply(&mut self, id: &Value) -> Value {
+        loop {
+            let msg = self.read();
+            if msg.get("id") == Some(id) {
+                return msg;
+            }
+            self.notes.push(msg);
+        }
+    }
+
+    fn call(&mut self, method: &str, params: Value) -> Value {
+        let id = json!(self.next_id);
+        self.next_id += 1;
+        let mut bytes =
+            serde_json::to_vec(&json!({"id": id, "method": method, "params": params})).expect("json");
+        bytes.push(0x03);
+        self.send_raw(&bytes);
+        self.reply(&id)
+    }
+
+    fn ok(&mut self, method: &str, params: Value) -> Value {
+        let r = self.call(method, params);
+        assert!(r.get("error").is_none(), "{method}: {r}");
+        r["result"].clone()
+    }
+
+    fn error(&mut self, method: &str, params: Value) -> String {
+        let r = self.call(method, params);
+        assert_eq!(r["error"]["error"], "WebRequestError", "{method}: {r}");
+        r["error"]["message"].as_str().expect("message").to_string()
+    }
+
+    fn wait_state(&mut self, want: &str) -> Value {
+        let deadline = Instant::now() + Duration::from_secs(120);
+        loop {
+            let info = self.ok("info", json!({}));
+            if info["state"] == want {
+                return info;
+            }
+            assert!(Instant::now() < deadline, "never {want}: {info}");
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+}
+
+/// The service process, killed if the test fails.
+struct Service(Child);
+
+impl Drop for Service {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// examples/simulated-cartesian.cfg without endstops: G28 homes without motion (homing's
+/// timing under a loaded test machine is tested elsewhere).
+fn printer_without_endstops(dir: &Path) -> std::path::PathBuf {
+    let text = std::fs::read_to_string(workspace().join("examples/simulated-cartesian.cfg"))
+        .expect("example config");
+    let body: Vec<&str> = text
+        .lines()
+        .filter(|l| {
+            let l = l.trim_start();
+            !(l.starts_with("endstop_pin")
+                || l.starts_with("position_endstop")
+                || l.starts_with("homing_speed"))
+        })
+        .collect();
+    let path = dir.join("no-endstops.cfg");
+    std::fs::write(&path, body.join("\n")).expect("write config");
+    path
+}
+
+/// Starts `cadence serve` with `printer` arguments (`--config PATH` or `--simulated`).
+fn start(dir: &Path, socket: &Path, printer: &[&std::ffi::OsStr]) -> Service {
+    let child = Command::new(bin("cadence"))
+        .args(["serve", "--no-realtime", "-a"])
+        .arg(socket)
+        .args(printer)
+        .arg("--log-file")
+        .arg(dir.join("serve.log"))
+        .current_dir(workspace())
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(dir.join("stderr.txt")).expect("stderr file"))
+        .spawn()
+        .expect("start cadence serve");
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while !socket.exists() {
+        assert!(Instant::now() < deadline, "no API socket after 60 s");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    Service(child)
+}
+
+#[test]
+fn a_front_end_drives_the_service_over_the_api_socket() {
+    let dir = scratch("serve-api");
+    let socket = dir.join("klippy.sock");
+    let cfg = printer_without_endstops(&dir);
+    let mut service = start(&dir, &socket, &["--config".as_ref(), cfg.as_os_str()]);
+    let mode = std::fs::metadata(&socket).expect("socket").permissions().mode();
+    assert_eq!(mode & 0o777, 0o600, "the socket is owner-only: {mode:o}");
+
+    let mut api = Api::connect(&socket);
+    let info = api.wait_state("ready");
+    assert_eq!(info["state_message"], "Printer is ready");
+    assert_eq!(info["process_id"], json!(service.0.id()));
+    assert_eq!(info["config_file"], json!(cfg.display().to_string()));
+    for key in [
+        "hostname",
+        "software_version",
+        "user_id",
+        "group_id",
+        "app",
+        "log_file",
+    ] {
+        assert!(info.get(key).is_some(), "info has {key}: {info}");
+    }
+    let endpoints = api.ok("list_endpoints", json!({}));
+    assert!(endpoints["endpoints"]
+        .as_array()
+        .expect("list")
+        .contains(&json!("gcode/script")));
+    let objects = api.ok("objects/list", json!({}));
+    for name in [
+        "webhooks",
+        "toolhead",
+        "print_stats",
+        "mcu",
+        "latency",
+        "configfile",
+    ] {
+        assert!(
+            objects["objects"]
+                .as_array()
+                .expect("list")
+                .contains(&json!(name)),
+            "{objects}"
+        );
+    }
+    api.ok("gcode/subscribe_output", json!({"response_template": {}}));
+
+    // G28 homes; the query then shows the homed axes.
+    api.ok("gcode/script", json!({"script": "G28"}));
+    let q = api.ok(
+        "objects/query",
+        json!({"objects": {"toolhead": ["homed_axes", "position"], "webhooks": null}}),
+    );
+    assert_eq!(q["status"]["toolhead"]["homed_axes"], "xyz", "{q}");
+    assert_eq!(q["status"]["webhooks"]["state"], "ready", "{q}");
+    assert!(q["eventtime"].is_number(), "{q}");
+
+    // A refused command fails alone: the printer stays ready and takes the next one.
+    let e = api.error("gcode/script", json!({"script": "G1 X100000"}));
+    assert!(!e.is_empty());
+    assert_eq!(api.ok("info", json!({}))["state"], "ready");
+    let output_seen = api.notes.iter().any(|n| {
+        n["method"] == "notify_gcode_response"
+            && n["params"]["response"]
+                .as_str()
+                .is_some_and(|r| r.starts_with("!! "))
+    });
+    assert!(
+        output_seen,
+        "the error went to the G-code output: {:?}",
+        api.notes
+    );
+
+    // Subscriptions: the changed fields come every 250 ms.
+    let sub = api.ok(
+        "objects/subscribe",
+        json!({"objects": {"toolhead": ["position"]}}),
+    );
+    assert!(sub["status"]["toolhead"]["position"].is_array(), "{sub}");
+    api.notes.clear();
+    api.ok("gcode/script", json!({"script": "G1 X20 Y10 F6000"}));
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let moved = loop {
+        if let Some(n) = api.notes.iter().find(|n| n["method"] == "notify_status_update") {
+            break n.clone();
+        }
+        assert!(Instant::now() < deadline, "no status update: {:?}", api.notes);
+        let m = api.read();
+        api.notes.push(m);
+    };
+    assert!(moved["params"]["eventtime"].is_number(), "{moved}");
+    assert_eq!(
+        moved["params"]["status"]["toolhead"]["position"][0],
+        json!(20.0),
+        "{moved}"
+    );
+
+    // Bad requests: each gets Klipper's error shape and the connection goes on.
+    let e = api.error("no/such/endpoint", json!({}));
+    assert!(
+        e.contains("No registered callback for path 'no/such/endpoint'"),
+        "{e}"
+    );
+    let e = api.error("gcode/script", json!({}));
+    assert_eq!(e, "Missing Argument [script]");
+    let e = api.error("gcode/script", json!({"script": 5}));
+    assert_eq!(e, "Invalid Argument Type [script]");
+    api.send_raw(b"{not json\x03");
+    let r = api.reply(&Value::Null);
+    assert!(
+        r["error"]["message"]
+            .as_str()
+            .expect("message")
+            .contains("not JSON"),
+        "{r}"
+    );
+    api.send_raw(b"{\"id\":1,\"method\":\"info\xff\"}\x03");
+    let r = api.reply(&Value::Null);
+    assert!(
+        r["error"]["message"].as_str().expect("message").contains("UTF-8"),
+        "{r}"
+    );
+
+    // A second client sending over 1 MiB without 0x03 is disconnected; the first goes on.
+    let mut flood = UnixStream::connect(&socket).expect("second client");
+    flood
+        .set_read_timeout(Some(Duration::from_secs(60)))
+        .expect("timeout");
+    let junk = vec![b' '; 64 * 1024];
+    for _ in 0..20 {
+        if flood.write_all(&junk).is_err() {
+            break;
+        }
+    }
+    let mut buf = [0u8; 16];
+    assert!(
+        matches!(flood.read(&mut buf), Ok(0) | Err(_)),
+        "the flooding client was dropped"
+    );
+    assert_eq!(api.ok("info", json!({}))["state"], "ready");
+
+    // Emergency stop → shutdown with the reason; commands are refused; a firmware restart
+    // brings the printer back.
+    api.ok("emergency_stop", json!({}));
+    let info = api.wait_state("shutdown");
+    assert!(
+        info["state_message"]
+            .as_str()
+            .expect("message")
+            .contains("emergency stop"),
+        "{info}"
+    );
+    let e = api.error("gcode/script", json!({"script": "G1 X1"}));
+    assert!(e.contains("FIRMWARE_RESTART"), "{e}");
+    api.ok("gcode/firmware_restart", json!({}));
+    api.wait_state("ready");
+    api.ok("gcode/script", json!({"script": "G28 X\nG1 X5 F3000"}));
+
+    // SIGTERM: motion stops, the log is flushed, exit 0, the socket is gone.
+    let (status, stderr) = stop(&mut service, &dir, nix::sys::signal::Signal::SIGTERM);
+    assert!(status.success(), "exit {status:?}\n{stderr}");
+    assert!(!socket.exists(), "the socket was removed");
+    assert!(
+        stderr.contains("too slow") || stderr.contains("without its 0x03"),
+        "{stderr}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Stops `service` with `signal` and returns its exit status and stderr.
+fn stop(
+    service: &mut Service,
+    dir: &Path,
+    signal: nix::sys::signal::Signal,
+) -> (std::process::ExitStatus, String) {
+    nix::sys::signal::kill(nix::unistd::Pid::from_raw(service.0.id() as i32), signal).expect("signal");
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let status = loop {
+        if let Some(s) = service.0.try_wait().expect("wait") {
+            break s;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "cadence serve did not stop on {signal}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    (
+        status,
+        std::fs::read_to_string(dir.join("stderr.txt")).unwrap_or_default(),
+    )
+}
+
+#[test]
+fn the_built_in_simulated_printer_serves_and_stops_on_sigint() {
+    let dir = scratch("serve-sim");
+    let socket = dir.join("api.sock");
+    let mut service = start(&dir, &socket, &["--simulated".as_ref()]);
+    let mut api = Api::connect(&socket);
+    let info = api.wait_state("ready");
+    assert_eq!(info["config_file"], Value::Null, "{info}");
+    let q = api.ok(
+        "objects/query",
+        json!({"objects": {"configfile": ["config"], "mcu": null}}),
+    );
+    assert!(
+        q["status"]["configfile"]["config"]["stepper_x"].is_object(),
+        "{q}"
+    );
+    assert!(q["status"]["mcu"]["last_stats"].is_object(), "{q}");
+    let (status, stderr) = stop(&mut service, &dir, nix::sys::signal::Signal::SIGINT);
+    assert!(status.success(), "exit {status:?}\n{stderr}");
+    assert!(!socket.exists(), "the socket was removed");
+    let _ = std::fs::remove_dir_all(&dir);
+}
