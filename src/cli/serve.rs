@@ -65,6 +65,9 @@ pub struct ServeArgs {
     /// forever; `--role io`).
     #[arg(long, default_value_t = 120.0)]
     pub idle_timeout: f64,
+    /// The virtual sdcard's directory (default: `[virtual_sdcard] path` of the config).
+    #[arg(long, value_name = "DIR")]
+    pub virtual_sdcard: Option<PathBuf>,
     /// Seconds between attempts to open a printer that failed to start (the service).
     #[arg(long, default_value_t = 5.0)]
     pub retry: f64,
@@ -101,6 +104,7 @@ fn run_service(args: &ServeArgs) -> Result<(), String> {
             ..PrinterOptions::default()
         },
         api_socket: args.api_socket.clone(),
+        virtual_sdcard: args.virtual_sdcard.clone(),
         retry_s: args.retry,
     };
     if !(args.retry > 0.0 && args.retry.is_finite()) {

@@ -308,6 +308,7 @@ impl Server<'_> {
             status,
             latency,
             config: p.config.as_deref(),
+            print: &p.print,
             system: SystemFacts::read(),
         })
     }
@@ -356,6 +357,18 @@ impl Server<'_> {
                 None => Err("Missing Argument [script]".into()),
                 Some(_) => Err("Invalid Argument Type [script]".into()),
             },
+            "pause_resume/pause" | "pause_resume/resume" | "pause_resume/cancel" => {
+                let text = match method.as_str() {
+                    "pause_resume/pause" => "PAUSE",
+                    "pause_resume/resume" => "RESUME",
+                    _ => "CANCEL_PRINT",
+                };
+                let _ = self.jobs.send(Job::Script {
+                    text: text.to_string(),
+                    asker,
+                });
+                return;
+            }
             "gcode/restart" | "gcode/firmware_restart" => {
                 let _ = self.jobs.send(Job::Restart { asker });
                 return;
@@ -543,6 +556,9 @@ const ENDPOINTS: &[&str] = &[
     "gcode/restart",
     "gcode/firmware_restart",
     "gcode/subscribe_output",
+    "pause_resume/pause",
+    "pause_resume/resume",
+    "pause_resume/cancel",
 ];
 
 /// `gcode/help`: the commands the service runs, with a line each.
@@ -555,5 +571,12 @@ fn gcode_help() -> Value {
     "RESTART": "Reload the config and restart the printer",
         "FIRMWARE_RESTART": "Restart the MCUs and the printer",
         "SET_GCODE_VARIABLE": "Set a macro variable",
+        "SDCARD_PRINT_FILE": "Load a file from the virtual sdcard and print it",
+        "SDCARD_RESET_FILE": "Clear the loaded file", "M23": "Select a file",
+        "M24": "Start or resume the print", "M25": "Pause the print",
+        "M26": "Set the file position", "M27": "Report the print's byte position",
+        "PAUSE": "Pause the print", "RESUME": "Resume the paused print",
+        "CANCEL_PRINT": "Cancel the print", "M73": "Set the progress shown",
+        "M117": "Set the message shown",
     })
 }

@@ -6,12 +6,13 @@
 //! their messages are Klipper's: `startup`, `ready`, `error` (the printer could not be
 //! opened), `shutdown` (an MCU shutdown, an emergency stop, an error of the running session).
 //!
-//! Not yet served: print jobs (`virtual_sdcard` and `print_stats` report an idle printer), the
+//! Print jobs run as Klipper's `virtual_sdcard` runs them ([`sdcard`]). Not yet served: the
 //! G-code pseudo-terminal and heaters.
 
 pub mod api;
 pub mod framing;
 pub mod objects;
+pub mod sdcard;
 pub mod worker;
 
 use std::path::PathBuf;
@@ -59,6 +60,8 @@ pub struct Published {
     pub handle: Option<PrinterHandle>,
     pub config: Option<Arc<objects::ConfigFacts>>,
     pub mcus: Vec<String>,
+    /// The print job's figures.
+    pub print: sdcard::PrintInfo,
 }
 
 /// State shared between the worker and the API.
@@ -78,6 +81,7 @@ impl Shared {
                 handle: None,
                 config: None,
                 mcus: Vec::new(),
+                print: sdcard::PrintInfo::default(),
             }),
             quit,
         }
@@ -123,6 +127,8 @@ pub struct ServiceOptions {
     pub printer: PrinterOptions,
     /// Klipper's API socket (`-a`).
     pub api_socket: Option<PathBuf>,
+    /// The virtual sdcard's directory (else `[virtual_sdcard] path` of the config).
+    pub virtual_sdcard: Option<PathBuf>,
     /// Seconds between attempts to open a printer that failed to start.
     pub retry_s: f64,
 }

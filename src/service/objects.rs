@@ -10,6 +10,7 @@ use sysconfig::printer::PrinterConfig;
 use crate::events::{PrinterState, Status};
 use crate::printer::Latency;
 
+use super::sdcard::{PrintInfo, PrintState};
 use super::ServiceState;
 
 /// What the printer's configuration says, read once per opened config.
@@ -27,6 +28,8 @@ pub struct ConfigFacts {
     pub square_corner_velocity: f64,
     pub steppers: Vec<String>,
     pub has_extruder: bool,
+    /// `[virtual_sdcard] path` (`~` expanded).
+    pub sdcard: Option<std::path::PathBuf>,
 }
 
 impl ConfigFacts {
@@ -61,7 +64,16 @@ impl ConfigFacts {
                 axis_maximum[i] = s.position_max;
             }
         }
+        let sdcard = settings
+            .get("virtual_sdcard")
+            .and_then(|s| s.get("path"))
+            .and_then(Value::as_str)
+            .map(|p| match (p.strip_prefix("~/"), std::env::var_os("HOME")) {
+                (Some(rest), Some(home)) => Path::new(&home).join(rest),
+                _ => Path::new(p).to_path_buf(),
+            });
         ConfigFacts {
+            sdcard,
             config: Value::Object(config),
             settings: Value::Object(settings),
             axis_minimum,
@@ -85,6 +97,7 @@ pub struct Snapshot<'a> {
     pub status: Option<Status>,
     pub latency: Option<Latency>,
     pub config: Option<&'a ConfigFacts>,
+    pub print: &'a PrintInfo,
     /// Process CPU seconds, load average, available memory (kB).
     pub system: SystemFacts,
 }
@@ -213,22 +226,33 @@ pub fn all(s: &Snapshot<'_>) -> Map<String, Value> {
         json!({"position": position, "gcode_position": position,
                "homing_origin": [0.0, 0.0, 0.0, 0.0]}),
     );
+    let pr = s.print;
     out.insert(
         "print_stats".into(),
-        json!({"filename": "", "total_duration": 0.0, "print_duration": 0.0,
-               "filament_used": 0.0, "state": "standby", "message": "",
+        json!({"filename": pr.filename, "total_duration": pr.total_duration(),
+               "print_duration": pr.print_duration(), "filament_used": 0.0,
+               "state": pr.state.name(), "message": pr.message,
                "info": {"total_layer": null, "current_layer": null}}),
     );
     out.insert(
         "virtual_sdcard".into(),
-        json!({"file_path": null, "progress": 0.0, "is_active": false,
-               "file_position": 0, "file_size": 0}),
+        json!({"file_path": pr.file_path.as_ref().map(|p| p.display().to_string()),
+               "progress": pr.progress(), "is_active": pr.is_active(),
+               "file_position": pr.file_position, "file_size": pr.file_size}),
     );
-    out.insert("pause_resume".into(), json!({"is_paused": false}));
-    out.insert("display_status".into(), json!({"progress": 0.0, "message": null}));
+    out.insert(
+        "pause_resume".into(),
+        json!({"is_paused": pr.state == PrintState::Paused}),
+    );
+    out.insert(
+        "display_status".into(),
+        json!({"progress": pr.m73_progress.unwrap_or_else(|| pr.progress()),
+               "message": pr.display_message}),
+    );
     out.insert(
         "idle_timeout".into(),
-        json!({"state": if printing { "Printing" } else { "Ready" }}),
+        json!({"state": if printing || pr.is_active() { "Printing" } else { "Ready" },
+               "printing_time": if pr.is_active() { pr.print_duration() } else { 0.0 }}),
     );
     out.insert(
         "system_stats".into(),

@@ -4,7 +4,7 @@
 //! `FIRMWARE_RESTART`, and stops motion and closes it when the service quits.
 
 use std::sync::atomic::Ordering;
-use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, TryRecvError};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -14,6 +14,7 @@ use crate::events::{Event, PrinterState};
 use crate::printer::{Printer, PrinterError, PrinterSource};
 
 use super::objects::ConfigFacts;
+use super::sdcard::{PrintState, SdCard};
 use super::{
     shutdown_message, ServiceOptions, ServiceState, Shared, HELP_ERROR, MESSAGE_READY, MESSAGE_STARTUP,
 };
@@ -72,7 +73,15 @@ pub fn run(opts: &ServiceOptions, shared: &Shared, jobs: &Receiver<Job>, to_api:
             });
         }
         let next = match opened {
-            Ok((printer, facts)) => serve_printer(printer, facts, shared, jobs, to_api, &mut pending_restart),
+            Ok((printer, facts)) => serve_printer(
+                printer,
+                facts,
+                shared,
+                jobs,
+                to_api,
+                &mut pending_restart,
+                opts.virtual_sdcard.clone(),
+            ),
             Err(why) => {
                 eprintln!("cadence serve: the printer did not start: {why}");
                 let message = format!("{why}\n{HELP_ERROR}");
@@ -147,6 +156,7 @@ fn serve_printer(
     jobs: &Receiver<Job>,
     to_api: &Sender<ToApi>,
     pending_restart: &mut Option<Asker>,
+    sdcard_dir: Option<std::path::PathBuf>,
 ) -> Next {
     let handle = printer.handle();
     if let Some(events) = printer.events() {
@@ -159,29 +169,47 @@ fn serve_printer(
         }
     }
     let mcus: Vec<String> = printer.status().mcus.into_iter().map(|(n, _)| n).collect();
+    let mut sd = SdCard::new(sdcard_dir.or_else(|| facts.sdcard.clone()));
     shared.set(|p| {
         p.state = ServiceState::Ready;
         p.message = MESSAGE_READY.to_string();
         p.handle = Some(handle.clone());
         p.config = Some(Arc::new(facts));
         p.mcus = mcus;
+        p.print = sd.info.clone();
     });
+    let mut ctx = Ctx {
+        printer: &printer,
+        sd: &mut sd,
+        out: to_api,
+        shared,
+    };
     let mut shut_down = false;
     let next = loop {
         if shared.quit.load(Ordering::Acquire) {
             // Stop motion: an emergency stop when something moves, else a plain stop.
-            if handle.state() == PrinterState::Printing {
+            if handle.state() == PrinterState::Printing || ctx.sd.info.is_active() {
                 handle.emergency_stop();
             } else {
                 handle.stop();
             }
             break Next::Quit;
         }
-        match jobs.recv_timeout(Duration::from_millis(100)) {
+        // While a file prints, requests are taken between its lines.
+        let job = if ctx.sd.info.is_active() {
+            match jobs.try_recv() {
+                Ok(job) => Ok(job),
+                Err(TryRecvError::Empty) => Err(RecvTimeoutError::Timeout),
+                Err(TryRecvError::Disconnected) => Err(RecvTimeoutError::Disconnected),
+            }
+        } else {
+            jobs.recv_timeout(Duration::from_millis(100))
+        };
+        match job {
             Ok(Job::Script { text, asker }) => {
-                let (result, restart) = run_script(&printer, &text, shared);
+                let (result, restart) = ctx.run_script(&text);
                 if let Err(e) = &result {
-                    let _ = to_api.send(ToApi::Output(format!("!! {e}")));
+                    ctx.say(format!("!! {e}"));
                 }
                 let _ = to_api.send(ToApi::Reply {
                     asker,
@@ -198,14 +226,26 @@ fn serve_printer(
             Err(RecvTimeoutError::Timeout) => {}
             Err(RecvTimeoutError::Disconnected) => break Next::Quit,
         }
+        if ctx.sd.info.is_active() {
+            if let Some(restart) = ctx.print_some() {
+                if restart {
+                    break Next::Reopen;
+                }
+            }
+        }
+        shared.set(|p| p.print = ctx.sd.info.clone());
         if !shut_down {
             if let PrinterState::Shutdown { reason } = handle.state() {
                 shut_down = true;
                 eprintln!("cadence serve: printer shut down: {reason}");
+                if ctx.sd.info.state == PrintState::Printing || ctx.sd.info.state == PrintState::Paused {
+                    ctx.sd.end(PrintState::Error, &reason);
+                }
                 let message = shutdown_message(&reason);
                 shared.set(|p| {
                     p.state = ServiceState::Shutdown;
                     p.message = message;
+                    p.print = ctx.sd.info.clone();
                 });
             }
         }
@@ -222,44 +262,195 @@ fn serve_printer(
     next
 }
 
-/// Runs a script's lines in order; the first error ends it. `true` when it asked for a
-/// restart (`RESTART` or `FIRMWARE_RESTART`).
-fn run_script(printer: &Printer, text: &str, shared: &Shared) -> (Result<(), String>, bool) {
-    let (result, restart) = run_lines(printer, text, shared);
-    if restart || shared.get().state != ServiceState::Ready {
-        return (result, restart);
-    }
-    // The next script may come any time later: what this one planned moves now.
-    match (result, printer.flush()) {
-        (Err(e), _) => (Err(e), false),
-        (Ok(()), Err(e)) => (Err(e.to_string()), false),
-        (Ok(()), Ok(())) => (Ok(()), false),
-    }
+/// What a command line runs with: the printer, the sdcard, the G-code output.
+struct Ctx<'a> {
+    printer: &'a Printer,
+    sd: &'a mut SdCard,
+    out: &'a Sender<ToApi>,
+    shared: &'a Shared,
 }
 
-/// The lines of [`run_script`].
-fn run_lines(printer: &Printer, text: &str, shared: &Shared) -> (Result<(), String>, bool) {
-    for line in text.lines() {
-        let word = line.split_whitespace().next().unwrap_or("").to_ascii_uppercase();
+/// Lines of a printing file run per turn of the worker's loop at most (requests are taken and
+/// the status published between turns)...
+const LINES_PER_TURN: usize = 64;
+/// ...and the time a turn may take (a line waits while the planner's buffer is full).
+const TURN: Duration = Duration::from_millis(50);
+
+impl Ctx<'_> {
+    /// A line of G-code output.
+    fn say(&self, line: String) {
+        let _ = self.out.send(ToApi::Output(line));
+    }
+
+    /// Runs a script's lines in order; the first error ends it. `true` when it asked for a
+    /// restart (`RESTART` or `FIRMWARE_RESTART`).
+    fn run_script(&mut self, text: &str) -> (Result<(), String>, bool) {
+        for line in text.lines() {
+            match self.run_line(line) {
+                Ok(false) => {}
+                Ok(true) => return (Ok(()), true),
+                Err(e) => return (Err(e), false),
+            }
+        }
+        // The next script may come any time later: what this one planned moves now (a
+        // printing file goes on instead).
+        if self.shared.get().state != ServiceState::Ready || self.sd.info.is_active() {
+            return (Ok(()), false);
+        }
+        (self.printer.flush().map_err(|e| e.to_string()), false)
+    }
+
+    /// Up to [`LINES_PER_TURN`] lines of the printing file (or [`TURN`] of them); `Some(true)` when one asked for a
+    /// restart. A failed line ends the print in `error` with its message.
+    fn print_some(&mut self) -> Option<bool> {
+        let started = std::time::Instant::now();
+        for _ in 0..LINES_PER_TURN {
+            if started.elapsed() > TURN {
+                return None;
+            }
+            let line = match self.sd.next_line() {
+                None => {
+                    if self.sd.info.is_active() {
+                        let flushed = self.printer.flush();
+                        match flushed {
+                            Ok(()) => {
+                                self.sd.end(PrintState::Complete, "");
+                                self.say("Done printing file".into());
+                            }
+                            Err(e) => self.sd.end(PrintState::Error, &e.to_string()),
+                        }
+                    }
+                    return None;
+                }
+                Some(Err(e)) => {
+                    self.say(format!("!! {e}"));
+                    self.sd.end(PrintState::Error, &e);
+                    return None;
+                }
+                Some(Ok(line)) => line.to_string(),
+            };
+            match self.run_line(&line) {
+                Ok(false) => {}
+                Ok(true) => return Some(true),
+                Err(e) => {
+                    self.say(format!("!! {e}"));
+                    self.sd.end(PrintState::Error, &e);
+                    return None;
+                }
+            }
+            if !self.sd.info.is_active() {
+                return None;
+            }
+        }
+        None
+    }
+
+    /// One command: the service's own (restarts, M112, the sdcard and print commands, M73,
+    /// M117) or the printer's. `Ok(true)`: restart the printer.
+    fn run_line(&mut self, line: &str) -> Result<bool, String> {
+        let code = line.split(';').next().unwrap_or("").trim();
+        let (word, rest) = match code.split_once(char::is_whitespace) {
+            Some((w, r)) => (w.to_ascii_uppercase(), r.trim()),
+            None => (code.to_ascii_uppercase(), ""),
+        };
         match word.as_str() {
-            "RESTART" | "FIRMWARE_RESTART" => return (Ok(()), true),
+            "RESTART" | "FIRMWARE_RESTART" => return Ok(true),
             "M112" => {
-                printer.handle().emergency_stop();
-                return (Ok(()), false);
+                self.printer.handle().emergency_stop();
+                return Ok(false);
+            }
+            "SDCARD_PRINT_FILE" => {
+                let name = param(rest, "FILENAME").ok_or("Missing Argument [FILENAME]")?;
+                let opened = self.sd.load(&name)?;
+                self.say(opened);
+                self.sd.start()?;
+                return Ok(false);
+            }
+            "M23" => {
+                let opened = self.sd.load(rest)?;
+                self.say(opened);
+                self.say("File selected".into());
+                return Ok(false);
+            }
+            "M24" => return self.sd.start().map(|()| false),
+            "RESUME" => {
+                if self.sd.info.state != PrintState::Paused {
+                    return Err("Print is not paused, resume aborted".into());
+                }
+                return self.sd.start().map(|()| false);
+            }
+            "M25" | "PAUSE" => {
+                self.sd.pause()?;
+                // What was planned moves; the next line starts from the MCUs' time then.
+                self.printer.flush().map_err(|e| e.to_string())?;
+                return Ok(false);
+            }
+            "CANCEL_PRINT" => {
+                if matches!(self.sd.info.state, PrintState::Printing | PrintState::Paused) {
+                    self.sd.end(PrintState::Cancelled, "");
+                }
+                self.printer.flush().map_err(|e| e.to_string())?;
+                return Ok(false);
+            }
+            "SDCARD_RESET_FILE" => {
+                if self.sd.info.is_active() {
+                    return Err("SD busy".into());
+                }
+                self.sd.end(PrintState::Standby, "");
+                return Ok(false);
+            }
+            "M26" => {
+                let pos = param(rest, "S")
+                    .and_then(|v| v.parse::<u64>().ok())
+                    .ok_or("M26: S<byte position> expected")?;
+                return self.sd.set_position(pos).map(|()| false);
+            }
+            "M27" => {
+                self.say(self.sd.report());
+                return Ok(false);
+            }
+            "M73" => {
+                if let Some(p) = param(rest, "P").and_then(|v| v.parse::<f64>().ok()) {
+                    self.sd.info.m73_progress = Some((p / 100.0).clamp(0.0, 1.0));
+                }
+                return Ok(false);
+            }
+            "M117" => {
+                // The message as written (after the command word), comments included.
+                let text = line.trim().get(4..).unwrap_or("").trim();
+                self.sd.info.display_message = (!text.is_empty()).then(|| text.to_string());
+                return Ok(false);
             }
             _ => {}
         }
-        let state = shared.get();
+        let state = self.shared.get();
         if state.state != ServiceState::Ready {
-            return (Err(state.message), false);
+            return Err(state.message);
         }
-        match printer.run_command(line) {
-            Ok(()) => {}
-            Err(PrinterError::Command { message }) => return (Err(message), false),
-            Err(e) => return (Err(e.to_string()), false),
+        match self.printer.run_command(line) {
+            Ok(()) => Ok(false),
+            Err(PrinterError::Command { message }) => Err(message),
+            Err(e) => Err(e.to_string()),
         }
     }
-    (Ok(()), false)
+}
+
+/// A `NAME=value` parameter of an extended command (`FILENAME="a b.gcode"`), or a classic
+/// one (`S100`, `P50`); names are case-insensitive.
+fn param(rest: &str, name: &str) -> Option<String> {
+    let upper = rest.to_ascii_uppercase();
+    if name.len() > 1 {
+        let key = format!("{name}=");
+        let at = upper.find(&key)? + key.len();
+        let value = &rest[at..];
+        return Some(match value.strip_prefix('"') {
+            Some(quoted) => quoted.split('"').next().unwrap_or("").to_string(),
+            None => value.split_whitespace().next().unwrap_or("").to_string(),
+        });
+    }
+    rest.split_whitespace()
+        .find(|w| w.to_ascii_uppercase().starts_with(name))
+        .map(|w| w[name.len()..].to_string())
 }
 
 /// Hands the printer's messages to the API as G-code output, Klipper-style: `// ` for
@@ -275,5 +466,25 @@ fn forward_events(events: &Receiver<Event>, out: &Sender<ToApi>) {
         if out.send(ToApi::Output(line)).is_err() {
             return;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::param;
+
+    #[test]
+    fn parameters_of_extended_and_classic_commands() {
+        assert_eq!(
+            param("FILENAME=\"my print.gcode\"", "FILENAME").as_deref(),
+            Some("my print.gcode")
+        );
+        assert_eq!(
+            param("filename=a.gcode X=1", "FILENAME").as_deref(),
+            Some("a.gcode")
+        );
+        assert_eq!(param("S1234", "S").as_deref(), Some("1234"));
+        assert_eq!(param("P50 R10", "P").as_deref(), Some("50"));
+        assert_eq!(param("X=1", "FILENAME"), None);
     }
 }

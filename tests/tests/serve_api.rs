@@ -367,3 +367,113 @@ fn the_built_in_simulated_printer_serves_and_stops_on_sigint() {
     assert!(!socket.exists(), "the socket was removed");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A status object's field.
+fn field(api: &mut Api, object: &str, name: &str) -> Value {
+    let q = api.ok("objects/query", json!({"objects": {object: [name]}}));
+    q["status"][object][name].clone()
+}
+
+fn wait_field(api: &mut Api, object: &str, name: &str, want: &Value) {
+    let deadline = Instant::now() + Duration::from_secs(120);
+    loop {
+        let v = field(api, object, name);
+        if &v == want {
+            return;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{object}.{name} stayed {v}, not {want}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn sdcard_prints_pause_resume_at_the_same_byte_and_cancel() {
+    let dir = scratch("serve-sd");
+    let socket = dir.join("api.sock");
+    let cfg = printer_without_endstops(&dir);
+    let gcodes = dir.join("gcodes");
+    std::fs::create_dir_all(&gcodes).expect("gcodes dir");
+    // 60 moves of 5 mm at 20 mm/s: 15 s, far more than the planner buffers ahead.
+    let mut text = String::from("G28\nM117 Printing zigzag\nM73 P10\n");
+    for k in 0..60 {
+        text.push_str(&format!("G1 X{} Y10 F1200\n", if k % 2 == 0 { 5 } else { 0 }));
+    }
+    text.push_str("G1 X42 Y7\n");
+    std::fs::write(gcodes.join("zig zag.gcode"), &text).expect("gcode");
+    let mut service = start(
+        &dir,
+        &socket,
+        &[
+            "--config".as_ref(),
+            cfg.as_os_str(),
+            "--virtual-sdcard".as_ref(),
+            gcodes.as_os_str(),
+        ],
+    );
+    let mut api = Api::connect(&socket);
+    api.wait_state("ready");
+
+    let e = api.error(
+        "gcode/script",
+        json!({"script": "SDCARD_PRINT_FILE FILENAME=../no-endstops.cfg"}),
+    );
+    assert!(e.contains("Unable to open file"), "{e}");
+    api.ok(
+        "gcode/script",
+        json!({"script": "SDCARD_PRINT_FILE FILENAME=\"zig zag.gcode\""}),
+    );
+    wait_field(&mut api, "print_stats", "state", &json!("printing"));
+    wait_field(&mut api, "display_status", "message", &json!("Printing zigzag"));
+    assert_eq!(field(&mut api, "print_stats", "filename"), json!("zig zag.gcode"));
+
+    api.ok("pause_resume/pause", json!({}));
+    assert_eq!(field(&mut api, "pause_resume", "is_paused"), json!(true));
+    assert_eq!(field(&mut api, "print_stats", "state"), json!("paused"));
+    let at = field(&mut api, "virtual_sdcard", "file_position");
+    let size = field(&mut api, "virtual_sdcard", "file_size");
+    assert!(at.as_u64() < size.as_u64(), "paused at {at} of {size}");
+    std::thread::sleep(Duration::from_millis(1500));
+    assert_eq!(
+        field(&mut api, "virtual_sdcard", "file_position"),
+        at,
+        "nothing read while paused"
+    );
+    let e = api.error("gcode/script", json!({"script": "PAUSE"}));
+    assert_eq!(e, "Print already paused");
+
+    api.ok("pause_resume/resume", json!({}));
+    wait_field(&mut api, "print_stats", "state", &json!("complete"));
+    assert_eq!(field(&mut api, "virtual_sdcard", "progress"), json!(1.0));
+    let pos = field(&mut api, "toolhead", "position");
+    assert_eq!(
+        (pos[0].as_f64(), pos[1].as_f64()),
+        (Some(42.0), Some(7.0)),
+        "{pos}"
+    );
+    let r = api.ok("gcode/script", json!({"script": "M27"}));
+    assert!(r.is_object());
+
+    // Cancel: the print ends, nothing more moves once what was queued ran.
+    api.ok("gcode/script", json!({"script": "M23 zig zag.gcode\nM24"}));
+    wait_field(&mut api, "print_stats", "state", &json!("printing"));
+    api.ok("pause_resume/cancel", json!({}));
+    assert_eq!(field(&mut api, "print_stats", "state"), json!("cancelled"));
+    assert_eq!(field(&mut api, "virtual_sdcard", "is_active"), json!(false));
+    let e = api.error("gcode/script", json!({"script": "RESUME"}));
+    assert!(e.contains("not paused"), "{e}");
+    let after = field(&mut api, "toolhead", "position");
+    std::thread::sleep(Duration::from_millis(1000));
+    assert_eq!(
+        field(&mut api, "toolhead", "position"),
+        after,
+        "nothing planned after the cancel"
+    );
+    assert_eq!(api.ok("info", json!({}))["state"], "ready");
+
+    let (status, stderr) = stop(&mut service, &dir, nix::sys::signal::Signal::SIGTERM);
+    assert!(status.success(), "exit {status:?}\n{stderr}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
