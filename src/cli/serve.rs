@@ -86,13 +86,18 @@ fn run_service(args: &ServeArgs) -> Result<(), String> {
         signal_hook::flag::register(signal, Arc::clone(&quit))
             .map_err(|e| format!("cannot handle signal {signal}: {e}"))?;
     }
+    // `info` reports the config file by its absolute path.
+    let config_file = match &args.config {
+        Some(p) => Some(std::fs::canonicalize(p).map_err(|e| format!("{}: {e}", p.display()))?),
+        None => None,
+    };
     let source = match &args.config {
         Some(p) => PrinterSource::ConfigFile(p.clone()),
         None => PrinterSource::Simulated,
     };
     let opts = ServiceOptions {
         source,
-        config_file: args.config.clone(),
+        config_file,
         printer: PrinterOptions {
             time_scale: args.time_scale,
             trace: args.trace.clone(),

@@ -403,10 +403,17 @@ impl Server<'_> {
                 )
             })
             .unwrap_or((0, 0));
+        // Klipper's source and interpreter paths: Cadence's executable and its directory
+        // (front ends store them; Moonraker requires both).
+        let exe = std::env::current_exe().unwrap_or_default();
+        let dir = exe.parent().map(Path::to_path_buf).unwrap_or_default();
         json!({
             "state": p.state.name(),
             "state_message": p.message,
             "hostname": hostname,
+            "klipper_path": dir.display().to_string(),
+            "python_path": exe.display().to_string(),
+            "cpu_info": cpu_info(),
             "software_version": self.info.software_version,
             "config_file": self.info.config_file,
             "log_file": self.info.log_file,
@@ -533,6 +540,21 @@ impl Server<'_> {
             }
         });
     }
+}
+
+/// The CPU model and count, as Klipper's `cpu_info` (e.g. "2 core Intel(R) Xeon(R) ...").
+fn cpu_info() -> String {
+    let text = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
+    let model = text
+        .lines()
+        .find_map(|l| {
+            l.strip_prefix("model name")
+                .and_then(|r| r.split_once(':'))
+                .map(|(_, m)| m.trim())
+        })
+        .unwrap_or("?");
+    let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    format!("{cores} core {model}")
 }
 
 /// Seconds of the monotonic clock, as Klipper's `eventtime`.

@@ -226,6 +226,8 @@ fn serve_printer(
             Err(RecvTimeoutError::Timeout) => {}
             Err(RecvTimeoutError::Disconnected) => break Next::Quit,
         }
+        // What a request changed shows at once (a turn of the print may take a while).
+        shared.set(|p| p.print = ctx.sd.info.clone());
         if ctx.sd.info.is_active() {
             if let Some(restart) = ctx.print_some() {
                 if restart {
