@@ -36,6 +36,10 @@ pub struct ServeArgs {
     /// Klipper's API server socket (Moonraker attaches here), created owner-only.
     #[arg(short = 'a', long = "api-socket", value_name = "PATH")]
     pub api_socket: Option<PathBuf>,
+    /// A G-code pseudo-terminal linked at this path (OctoPrint-style senders: `ok` replies,
+    /// `!! ` errors).
+    #[arg(short = 'I', long = "gcode-pty", value_name = "PATH")]
+    pub gcode_pty: Option<PathBuf>,
     /// Also let this group (numeric gid) read and write the API socket.
     #[arg(long, value_name = "GID")]
     pub api_group: Option<u32>,
@@ -109,6 +113,7 @@ fn run_service(args: &ServeArgs) -> Result<(), String> {
             ..PrinterOptions::default()
         },
         api_socket: args.api_socket.clone(),
+        gcode_pty: args.gcode_pty.clone(),
         virtual_sdcard: args.virtual_sdcard.clone(),
         retry_s: args.retry,
     };

@@ -318,6 +318,7 @@ impl Server<'_> {
         let asker = Asker {
             client: self.clients[idx].id,
             id: id.clone(),
+            via: None,
         };
         let result: Result<Value, String> = match method.as_str() {
             "info" => Ok(self.info()),

@@ -2,15 +2,17 @@
 //! ([`worker`]): it opens it (retrying after a failed start), runs G-code scripts one command
 //! at a time (a refused command fails alone, the printer stays ready), reopens it on
 //! `RESTART`/`FIRMWARE_RESTART`, and notices a shutdown. Front ends attach over Klipper's API
-//! socket ([`api`]: framing in [`framing`], status objects in [`objects`]). The states and
-//! their messages are Klipper's: `startup`, `ready`, `error` (the printer could not be
-//! opened), `shutdown` (an MCU shutdown, an emergency stop, an error of the running session).
+//! socket ([`api`]: framing in [`framing`], status objects in [`objects`]) and G-code senders
+//! over a pseudo-terminal ([`gcode_pty`]). The states and their messages are Klipper's:
+//! `startup`, `ready`, `error` (the printer could not be opened), `shutdown` (an MCU shutdown,
+//! an emergency stop, an error of the running session).
 //!
-//! Print jobs run as Klipper's `virtual_sdcard` runs them ([`sdcard`]). Not yet served: the
-//! G-code pseudo-terminal and heaters.
+//! Print jobs run as Klipper's `virtual_sdcard` runs them ([`sdcard`]). Not yet served:
+//! heaters.
 
 pub mod api;
 pub mod framing;
+pub mod gcode_pty;
 pub mod objects;
 pub mod sdcard;
 pub mod worker;
@@ -127,6 +129,8 @@ pub struct ServiceOptions {
     pub printer: PrinterOptions,
     /// Klipper's API socket (`-a`).
     pub api_socket: Option<PathBuf>,
+    /// The G-code pseudo-terminal's link (`-I`).
+    pub gcode_pty: Option<PathBuf>,
     /// The virtual sdcard's directory (else `[virtual_sdcard] path` of the config).
     pub virtual_sdcard: Option<PathBuf>,
     /// Seconds between attempts to open a printer that failed to start.
@@ -141,10 +145,13 @@ pub fn run(opts: &ServiceOptions, quit: Arc<AtomicBool>, api_group: Option<u32>)
         Some(path) => Some(api::bind(path, api_group).map_err(|e| e.to_string())?),
         None => None,
     };
-    let shared = Shared::new(quit);
+    let shared = Arc::new(Shared::new(quit));
     let (jobs_tx, jobs_rx) = std::sync::mpsc::channel();
     let (to_api_tx, to_api_rx) = std::sync::mpsc::channel();
-    let shared_ref = &shared;
+    if let Some(path) = &opts.gcode_pty {
+        gcode_pty::GcodePty::open(path)?.serve(jobs_tx.clone(), Arc::clone(&shared))?;
+    }
+    let shared_ref = &*shared;
     std::thread::scope(|scope| {
         let worker = std::thread::Builder::new()
             .name("serve-printer".to_string())
@@ -173,7 +180,7 @@ pub fn run(opts: &ServiceOptions, quit: Arc<AtomicBool>, api_group: Option<u32>)
             .join()
             .map_err(|_| "the printer thread panicked".to_string())
     })?;
-    if let Some(path) = &opts.api_socket {
+    for path in opts.api_socket.iter().chain(&opts.gcode_pty) {
         let _ = std::fs::remove_file(path);
     }
     Ok(())

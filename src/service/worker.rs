@@ -19,11 +19,25 @@ use super::{
     shutdown_message, ServiceOptions, ServiceState, Shared, HELP_ERROR, MESSAGE_READY, MESSAGE_STARTUP,
 };
 
-/// Who asked: the API client and its request id (answered through [`ToApi::Reply`]).
-#[derive(Debug, Clone, PartialEq)]
+/// Who asked: the API client and its request id (answered through [`ToApi::Reply`]), or
+/// another front end (the G-code pseudo-terminal) waiting on its own channel.
+#[derive(Debug, Clone)]
 pub struct Asker {
     pub client: u64,
     pub id: Option<Value>,
+    pub via: Option<Sender<Result<Value, String>>>,
+}
+
+/// Answers `asker`.
+fn answer(to_api: &Sender<ToApi>, asker: Asker, result: Result<Value, String>) {
+    match &asker.via {
+        Some(tx) => {
+            let _ = tx.send(result);
+        }
+        None => {
+            let _ = to_api.send(ToApi::Reply { asker, result });
+        }
+    }
 }
 
 /// What the API asks of the worker.
@@ -67,10 +81,7 @@ pub fn run(opts: &ServiceOptions, shared: &Shared, jobs: &Receiver<Job>, to_api:
         });
         let opened = open(opts);
         if let Some(asker) = pending_restart.take() {
-            let _ = to_api.send(ToApi::Reply {
-                asker,
-                result: Ok(Value::Object(Default::default())),
-            });
+            answer(to_api, asker, Ok(Value::Object(Default::default())));
         }
         let next = match opened {
             Ok((printer, facts)) => serve_printer(
@@ -133,10 +144,7 @@ fn wait_failed(
         }
         match jobs.recv_timeout(left.min(Duration::from_millis(100))) {
             Ok(Job::Script { asker, .. }) => {
-                let _ = to_api.send(ToApi::Reply {
-                    asker,
-                    result: Err(message.to_string()),
-                });
+                answer(to_api, asker, Err(message.to_string()));
             }
             Ok(Job::Restart { asker }) => {
                 *pending_restart = Some(asker);
@@ -211,10 +219,7 @@ fn serve_printer(
                 if let Err(e) = &result {
                     ctx.say(format!("!! {e}"));
                 }
-                let _ = to_api.send(ToApi::Reply {
-                    asker,
-                    result: result.map(|()| Value::Object(Default::default())),
-                });
+                answer(to_api, asker, result.map(|()| Value::Object(Default::default())));
                 if restart {
                     break Next::Reopen;
                 }

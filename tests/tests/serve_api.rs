@@ -477,3 +477,47 @@ fn sdcard_prints_pause_resume_at_the_same_byte_and_cancel() {
     assert!(status.success(), "exit {status:?}\n{stderr}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn the_gcode_pseudo_terminal_answers_ok_and_errors() {
+    let dir = scratch("serve-pty");
+    let socket = dir.join("api.sock");
+    let link = dir.join("printer");
+    let cfg = printer_without_endstops(&dir);
+    let mut service = start(
+        &dir,
+        &socket,
+        &[
+            "--config".as_ref(),
+            cfg.as_os_str(),
+            "-I".as_ref(),
+            link.as_os_str(),
+        ],
+    );
+    let mut api = Api::connect(&socket);
+    api.wait_state("ready");
+    let mut tty = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(&link)
+        .expect("open the G-code terminal");
+    let mut answers = std::io::BufReader::new(tty.try_clone().expect("clone"));
+    let mut read_line = || {
+        let mut line = String::new();
+        std::io::BufRead::read_line(&mut answers, &mut line).expect("read an answer");
+        line
+    };
+    tty.write_all(b"G28\n").expect("write");
+    assert_eq!(read_line(), "ok\n");
+    tty.write_all(b"G1 X100000\n").expect("write");
+    let error = read_line();
+    assert!(error.starts_with("!! "), "{error}");
+    assert_eq!(read_line(), "ok\n");
+    tty.write_all(b"G1 X12 F3000\n").expect("write");
+    assert_eq!(read_line(), "ok\n");
+    assert_eq!(api.ok("info", json!({}))["state"], "ready");
+    let (status, stderr) = stop(&mut service, &dir, nix::sys::signal::Signal::SIGTERM);
+    assert!(status.success(), "exit {status:?}\n{stderr}");
+    assert!(std::fs::symlink_metadata(&link).is_err(), "the link was removed");
+    let _ = std::fs::remove_dir_all(&dir);
+}

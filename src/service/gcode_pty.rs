@@ -1,0 +1,136 @@
+//! The G-code pseudo-terminal (`cadence serve -I PATH`, like Klipper's `/tmp/printer`): a pty
+//! whose other end is linked at PATH, for OctoPrint-style senders. Each line is run as a
+//! script by the worker; the answer is `ok`, after `!! message` when the command failed. The
+//! service keeps the terminal's other end open too, so a sender may close and reopen it; the
+//! link is removed when the service stops.
+
+use std::fs::File;
+use std::io::{BufRead, BufReader, Write};
+use std::os::fd::{AsRawFd, OwnedFd};
+use std::path::Path;
+use std::sync::atomic::Ordering;
+use std::sync::mpsc::{self, Sender};
+use std::sync::Arc;
+
+use nix::sys::termios::{cfmakeraw, tcgetattr, tcsetattr, SetArg};
+
+use super::worker::{Asker, Job};
+use super::Shared;
+
+/// An open G-code terminal: the link at `path` names its other end.
+#[derive(Debug)]
+pub struct GcodePty {
+    master: OwnedFd,
+    /// Held open so the master never sees a hang-up when a sender closes its end.
+    _slave: OwnedFd,
+}
+
+impl GcodePty {
+    /// Opens a raw pty and links `path` to its other end (replacing an old link).
+    pub fn open(path: &Path) -> Result<GcodePty, String> {
+        let err = |what: &str, e: &dyn std::fmt::Display| {
+            format!("G-code terminal {}: {what}: {e}", path.display())
+        };
+        let pty = nix::pty::openpty(None, None).map_err(|e| err("cannot open a pty", &e))?;
+        let mut t = tcgetattr(&pty.slave).map_err(|e| err("termios", &e))?;
+        cfmakeraw(&mut t);
+        tcsetattr(&pty.slave, SetArg::TCSANOW, &t).map_err(|e| err("termios", &e))?;
+        let name = std::fs::read_link(format!("/proc/self/fd/{}", pty.slave.as_raw_fd()))
+            .map_err(|e| err("cannot name the pty", &e))?;
+        if let Ok(meta) = std::fs::symlink_metadata(path) {
+            if !meta.file_type().is_symlink() {
+                return Err(err("exists and is not a link", &"refusing to replace it"));
+            }
+            std::fs::remove_file(path).map_err(|e| err("cannot remove the old link", &e))?;
+        }
+        std::os::unix::fs::symlink(&name, path).map_err(|e| err("cannot link it", &e))?;
+        Ok(GcodePty {
+            master: pty.master,
+            _slave: pty.slave,
+        })
+    }
+
+    /// Serves the terminal on a thread of its own until the service quits (the thread ends
+    /// with the process).
+    pub fn serve(self, jobs: Sender<Job>, shared: Arc<Shared>) -> Result<(), String> {
+        let reader = File::from(self.master.try_clone().map_err(|e| e.to_string())?);
+        let writer = File::from(self.master.try_clone().map_err(|e| e.to_string())?);
+        std::thread::Builder::new()
+            .name("serve-pty".to_string())
+            .spawn(move || {
+                let _keep = self;
+                serve_lines(BufReader::new(reader), writer, &jobs, &shared);
+            })
+            .map(|_| ())
+            .map_err(|e| format!("cannot start the G-code terminal thread: {e}"))
+    }
+}
+
+/// Each line → a script → `ok` (after `!! message` on an error).
+fn serve_lines(reader: impl BufRead, mut writer: impl Write, jobs: &Sender<Job>, shared: &Shared) {
+    for line in reader.split(b'\n') {
+        if shared.quit.load(Ordering::Acquire) {
+            return;
+        }
+        let Ok(line) = line else {
+            return;
+        };
+        let text = String::from_utf8_lossy(&line).trim().to_string();
+        let reply = if text.is_empty() {
+            Ok(())
+        } else {
+            let (tx, rx) = mpsc::channel();
+            let asker = Asker {
+                client: 0,
+                id: None,
+                via: Some(tx),
+            };
+            if jobs.send(Job::Script { text, asker }).is_err() {
+                return;
+            }
+            match rx.recv() {
+                Ok(r) => r.map(|_| ()),
+                Err(_) => return,
+            }
+        };
+        let out = match reply {
+            Ok(()) => "ok\n".to_string(),
+            Err(e) => format!("!! {}\nok\n", e.lines().next().unwrap_or("")),
+        };
+        if writer.write_all(out.as_bytes()).is_err() {
+            return;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::AtomicBool;
+
+    #[test]
+    fn lines_are_answered_ok_or_with_the_error() {
+        let (jobs_tx, jobs_rx) = mpsc::channel::<Job>();
+        let worker = std::thread::spawn(move || {
+            for job in jobs_rx {
+                if let Job::Script { text, asker } = job {
+                    let r = if text == "BAD" {
+                        Err("Unknown command:\"BAD\"\nmore".to_string())
+                    } else {
+                        Ok(serde_json::json!({}))
+                    };
+                    asker.via.expect("a channel").send(r).expect("answer");
+                }
+            }
+        });
+        let shared = Shared::new(Arc::new(AtomicBool::new(false)));
+        let mut out = Vec::new();
+        serve_lines(&b"G28\n\nBAD\nG1 X1\n"[..], &mut out, &jobs_tx, &shared);
+        drop(jobs_tx);
+        worker.join().expect("worker");
+        assert_eq!(
+            String::from_utf8(out).unwrap(),
+            "ok\nok\n!! Unknown command:\"BAD\"\nok\nok\n"
+        );
+    }
+}
