@@ -5,6 +5,7 @@
 //! - `home [--config printer.cfg] [--axes xyz] [--cycles N]`: G28 with motion on the MCUs,
 //!   reporting overshoot and trigger → stop latencies (see `homing`).
 //! - `decode OUT.bin`: print a wire stream one message a line.
+//! - `service print|install --config printer.cfg`: the systemd unit of `cadence serve`.
 //! - `doctor [--unit --config printer.cfg]`: host real-time checks, or the systemd unit.
 //! - `serve [--config printer.cfg | --simulated] [-a SOCKET]`: the printer service front ends
 //!   attach to (Klipper's API socket); `serve --role io [--config printer.cfg] [--instance
@@ -26,7 +27,7 @@ use cadence::wire_check as decode;
 
 use cadence::allocsites;
 use clap::{Parser, Subcommand};
-use cli::{decode as decode_cmd, doctor, home, print, serve};
+use cli::{decode as decode_cmd, doctor, home, print, serve, service};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -51,6 +52,8 @@ enum Cmd {
     /// `--role io` one stage of the live print (the MCU connections) serving a `cadence print
     /// --io-process` or `--io-attach NAME`.
     Serve(serve::ServeArgs),
+    /// The systemd unit of `cadence serve` for a printer.cfg: `print` it or `install` it.
+    Service(service::ServiceArgs),
     /// Check this host for hard timing (PREEMPT_RT, SCHED_FIFO, limits, CPU isolation, wake-up
     /// latency), or print the systemd unit for the service with `--unit`.
     Doctor(doctor::DoctorArgs),
@@ -83,6 +86,7 @@ fn main() -> ExitCode {
         Cmd::Decode(args) => decode_cmd::run(&args),
         Cmd::Doctor(args) => doctor::run(&args),
         Cmd::Serve(args) => serve::run(&args),
+        Cmd::Service(args) => service::run(&args),
         Cmd::Bench(args) => benchcmd::run(&args),
         Cmd::Home(args) => home::run(&args),
         Cmd::Mcu { args } => {

@@ -6,6 +6,7 @@ pub mod doctor;
 pub mod home;
 pub mod print;
 pub mod serve;
+pub mod service;
 
 use std::path::PathBuf;
 

@@ -521,3 +521,44 @@ fn the_gcode_pseudo_terminal_answers_ok_and_errors() {
     assert!(std::fs::symlink_metadata(&link).is_err(), "the link was removed");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn the_service_unit_passes_systemd_analyze_verify() {
+    let dir = scratch("serve-unit");
+    let run = cadence_tests::cadence(
+        &[
+            "service",
+            "print",
+            "--config",
+            "examples/simulated-cartesian.cfg",
+            "--user",
+            "root",
+        ],
+        Duration::from_secs(60),
+    );
+    cadence_tests::assert_success(&run);
+    for want in [
+        "ExecStart=",
+        " serve --config ",
+        "LimitRTPRIO=",
+        "LimitMEMLOCK=infinity",
+        "Restart=on-failure",
+    ] {
+        assert!(run.stdout.contains(want), "{want} missing:\n{}", run.stdout);
+    }
+    let unit = dir.join("cadence.service");
+    std::fs::write(&unit, &run.stdout).expect("write the unit");
+    match Command::new("systemd-analyze").arg("verify").arg(&unit).output() {
+        Err(e) => println!("SKIPPED systemd-analyze verify: systemd-analyze not available ({e})"),
+        Ok(out) => {
+            let err = String::from_utf8_lossy(&out.stderr);
+            // Only complaints about this unit count (the host's own units may have some).
+            let ours: Vec<&str> = err.lines().filter(|l| l.contains("cadence.service")).collect();
+            assert!(
+                out.status.success() && ours.is_empty(),
+                "systemd-analyze verify:\n{err}"
+            );
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
