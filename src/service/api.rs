@@ -603,3 +603,55 @@ fn gcode_help() -> Value {
         "M117": "Set the message shown",
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_client_that_does_not_read_is_cut_off_at_the_backlog_limit() {
+        let (ours, _theirs) = UnixStream::pair().expect("socket pair");
+        ours.set_nonblocking(true).expect("non-blocking");
+        let mut client = Client {
+            id: 1,
+            stream: ours,
+            framer: Framer::default(),
+            out: Vec::new(),
+            subscription: None,
+            output_template: None,
+            closing: None,
+        };
+        let update = json!({"method": "notify_status_update", "params": {"pad": "x".repeat(64 * 1024)}});
+        let mut sent = 0usize;
+        while client.closing.is_none() {
+            client.send(&update);
+            sent += 1;
+            assert!(sent < 1000, "never cut off");
+        }
+        assert!(
+            client.closing.as_deref().is_some_and(|w| w.contains("too slow")),
+            "{:?}",
+            client.closing
+        );
+        assert!(client.out.len() <= MAX_BACKLOG);
+    }
+
+    #[test]
+    fn the_socket_is_owner_only_and_a_stale_one_is_replaced() {
+        let dir = std::env::temp_dir().join(format!("cadence-api-bind-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let path = dir.join("s.sock");
+        let first = bind(&path, None).expect("bind");
+        drop(first);
+        let _second = bind(&path, None).expect("a stale socket is replaced");
+        let mode = std::fs::metadata(&path).expect("socket").permissions().mode();
+        assert_eq!(mode & 0o777, 0o600);
+        let file = dir.join("plain");
+        std::fs::write(&file, "x").expect("file");
+        assert!(
+            bind(&file, None).is_err(),
+            "a file that is not a socket is left alone"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

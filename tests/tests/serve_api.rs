@@ -562,3 +562,47 @@ fn the_service_unit_passes_systemd_analyze_verify() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_printer_that_cannot_start_is_in_error_with_the_reason_and_the_service_stays_up() {
+    let dir = scratch("serve-error");
+    let socket = dir.join("api.sock");
+    let text = std::fs::read_to_string(workspace().join("examples/simulated-cartesian.cfg")).expect("config");
+    let cfg = dir.join("absent.cfg");
+    let mut body: Vec<String> = Vec::new();
+    let mut in_mcu = false;
+    for line in text.lines() {
+        if line.starts_with('[') {
+            in_mcu = line.trim() == "[mcu]";
+        }
+        if in_mcu && line.trim_start().starts_with("serial") {
+            body.push("serial: /dev/ttyCADENCE_ABSENT".to_string());
+        } else {
+            body.push(line.to_string());
+        }
+    }
+    std::fs::write(&cfg, body.join("\n")).expect("write config");
+    let mut service = start(
+        &dir,
+        &socket,
+        &[
+            "--config".as_ref(),
+            cfg.as_os_str(),
+            "--retry".as_ref(),
+            "0.5".as_ref(),
+        ],
+    );
+    let mut api = Api::connect(&socket);
+    let info = api.wait_state("error");
+    let message = info["state_message"].as_str().expect("message");
+    assert!(message.contains("ttyCADENCE_ABSENT"), "{message}");
+    assert!(message.contains("RESTART"), "{message}");
+    let e = api.error("gcode/script", json!({"script": "G28"}));
+    assert!(e.contains("ttyCADENCE_ABSENT"), "{e}");
+    // Still retrying, still answering.
+    std::thread::sleep(Duration::from_millis(1500));
+    assert_eq!(api.ok("info", json!({}))["state"], "error");
+    let (status, stderr) = stop(&mut service, &dir, nix::sys::signal::Signal::SIGTERM);
+    assert!(status.success(), "exit {status:?}\n{stderr}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
