@@ -15,7 +15,8 @@
 //!   another process), [`batch`] (wire files), [`job`] (what `cadence print` runs);
 //! - the API: [`printer`] ([`printer::Printer`], its handle, events and status in [`events`]);
 //! - [`heaters`]: the heater logic (sensors, PID/watermark, verify_heater, PID calibration),
-//!   pure and clock-free, not yet driven by the print loop;
+//!   pure and clock-free, its MCU objects and the heater thread of a live print (used by
+//!   [`hardware`], [`mcus`], [`gcode_feed`], [`live`] and [`events`]);
 //! - [`host_check`]: is this host fit for hard timing (PREEMPT_RT, SCHED_FIFO, limits,
 //!   isolated CPUs, wake-up latency)?
 //! - [`wire_check`]: a batch wire stream proved against its G-code.
