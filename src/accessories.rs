@@ -1,9 +1,9 @@
-//! What a print's G-code asks of things Cadence records but does not drive yet: the heaters
-//! (M104/M109/M140/M190), the part fan (M106/M107), the display (M117), position queries
-//! (M114) and motors off (M84/M18). Recorded while planning, with no I/O and no allocation on
-//! the planner thread, and reported with the print's summary. On the simulated printer every
-//! heater reaches its target at once (as the simulated printer does); with a real board
-//! the first heater command that asks for heat says, once, that nothing heats.
+//! What a print's G-code asked of the heaters (M104/M109/M140/M190), the part fan (M106/M107),
+//! the display (M117), position and temperature queries (M114, M105) and motors off (M84/M18).
+//! Recorded while planning, with no I/O and no allocation on the planner thread, and reported
+//! with the print's summary (the heaters themselves are driven by `crate::heaters::runtime`;
+//! without a heater loop, e.g. in batch mode, a real board's first heat command is warned about
+//! once).
 
 use planner::gcode::CommandText;
 use planner::machine::{Applied, HeaterId};
@@ -116,13 +116,13 @@ impl Accessories {
             let how = if self.real_board {
                 "not driven by Cadence"
             } else {
-                "simulated: each target reached at once"
+                "G-code"
             };
             out.push(format!("heaters ({how}): {}", used.join(", ")));
         }
         if let Some(speed) = self.fan_speed {
             out.push(format!(
-                "part fan (recorded, not driven): {} changes, last {:.0} %",
+                "part fan (G-code): {} changes, last {:.0} %",
                 self.fan_changes,
                 speed * 100.0
             ));
@@ -180,9 +180,9 @@ mod tests {
         let lines = a.lines();
         assert_eq!(
             lines[0],
-            "heaters (simulated: each target reached at once): extruder last target 215 °C (2 commands, 1 waits)"
+            "heaters (G-code): extruder last target 215 °C (2 commands, 1 waits)"
         );
-        assert_eq!(lines[1], "part fan (recorded, not driven): 2 changes, last 50 %");
+        assert_eq!(lines[1], "part fan (G-code): 2 changes, last 50 %");
         assert_eq!(lines[2], "M117: 2 earlier, then:");
         assert_eq!(lines[3], "M117 (line 12): Layer 2");
         assert_eq!(lines[6], "M117 (line 15): Layer 5");

@@ -51,6 +51,30 @@ pub struct Status {
     pub mcus: Vec<(String, links::mcu::LinkStats)>,
     /// Events dropped because nobody read them fast enough.
     pub events_dropped: u64,
+    /// Each heater (`extruder`, `heater_bed`, `[heater_generic]`s) while a print runs.
+    pub heaters: Vec<HeaterStatus>,
+    /// Each fan (`fan`, `[heater_fan]`s) while a print runs.
+    pub fans: Vec<FanStatus>,
+}
+
+/// One heater in a [`Status`] (Klipper's `extruder`/`heater_bed` status objects).
+#[derive(Debug, Clone, PartialEq)]
+pub struct HeaterStatus {
+    pub name: String,
+    /// Smoothed temperature (°C; NaN before the first reading).
+    pub temperature: f64,
+    /// Target (°C, 0 = off).
+    pub target: f64,
+    /// Power applied (0..=max_power).
+    pub power: f64,
+}
+
+/// One fan in a [`Status`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct FanStatus {
+    pub name: String,
+    /// Speed (0..=1).
+    pub speed: f64,
 }
 
 /// What the planner thread publishes about the motion (a `Copy` record: no allocation).
@@ -159,6 +183,8 @@ pub(crate) struct SessionShared {
     pub last_homing: Mutex<Option<HomingReport>>,
     events: Mutex<Option<SyncSender<Event>>>,
     events_dropped: AtomicU64,
+    /// The heater loop's state, once the session's print started it.
+    pub heaters: std::sync::OnceLock<std::sync::Arc<crate::heaters::runtime::HeaterShared>>,
 }
 
 impl SessionShared {
@@ -170,7 +196,33 @@ impl SessionShared {
             last_homing: Mutex::new(None),
             events: Mutex::new(events),
             events_dropped: AtomicU64::new(0),
+            heaters: std::sync::OnceLock::new(),
         }
+    }
+
+    /// The heaters' and fans' status (empty before the print started its heater loop).
+    pub fn heater_status(&self) -> (Vec<HeaterStatus>, Vec<FanStatus>) {
+        let Some(h) = self.heaters.get() else {
+            return (Vec::new(), Vec::new());
+        };
+        (
+            h.heaters
+                .iter()
+                .map(|c| HeaterStatus {
+                    name: c.name.clone(),
+                    temperature: c.temp.get(),
+                    target: c.target.get(),
+                    power: c.power.get(),
+                })
+                .collect(),
+            h.fans
+                .iter()
+                .map(|f| FanStatus {
+                    name: f.name.clone(),
+                    speed: f.speed.get(),
+                })
+                .collect(),
+        )
     }
 
     /// Publishes an event without blocking: dropped (and counted) when the channel is full,

@@ -17,6 +17,7 @@ use planner::pipeline::Pipeline;
 use planner::stepgen::StepCmd;
 
 use crate::accessories::Accessories;
+use crate::heaters::gcode::{self as heat_gcode, HeatCmd};
 
 /// Where a print's G-code comes from: a name for messages (the file's path, or a stream's
 /// label) and either buffered bytes or a session's channel of commands.
@@ -177,6 +178,15 @@ pub(crate) trait FeedTarget {
     fn warn(&mut self, text: String);
     /// The feed went idle (`true`) or got a command after being idle (`false`).
     fn idle(&mut self, _idle: bool, _pipeline: &Pipeline) {}
+    /// A heater or fan command ([`HeatCmd`]; waits hold the G-code, with the moves before
+    /// them flushed; M105 reports). Without heaters (batch) nothing.
+    fn heat(&mut self, _pipeline: &mut Pipeline, _cmd: &HeatCmd) -> Result<(), String> {
+        Ok(())
+    }
+    /// An extruding move is allowed (the extruder is at `min_extrude_temp` or above).
+    fn can_extrude(&self) -> Result<(), String> {
+        Ok(())
+    }
 }
 
 /// Counts and reports G-code commands the planner does not implement yet, once per name.
@@ -525,6 +535,12 @@ fn plan_line(
         }
         _ => None,
     };
+    if let Some(heat) = heat_gcode::parse(&line.cmd) {
+        let at = |e: String| format!("{}:{}: {e}", file.display(), line.line_no);
+        let heat = heat.map_err(at)?;
+        target.heat(pipeline, &heat).map_err(at)?;
+        return Ok(true);
+    }
     if let Some(cmd) = cmd {
         if target
             .motion(pipeline, &cmd)
@@ -533,6 +549,11 @@ fn plan_line(
             return Ok(false);
         }
     }
+    let extrudes = matches!(
+        line.cmd,
+        Command::Move { e: Some(_), .. } | Command::Arc { e: Some(_), .. }
+    );
+    let e_before = pipeline.position()[3];
     let applied = pipeline.apply(line).map_err(|e| {
         let hint = match e.kind {
             PlanErrorKind::UnknownCommand(_) => {
@@ -547,6 +568,16 @@ fn plan_line(
     }
     if let Some(w) = accessories.record(line.line_no, &applied) {
         target.warn(format!("{}: {w}", file.display()));
+    }
+    if extrudes && pipeline.position()[3] != e_before {
+        target
+            .can_extrude()
+            .map_err(|e| format!("{}:{}: {e}", file.display(), line.line_no))?;
+    }
+    if let Some(heat) = heat_gcode::of_applied(&applied) {
+        target
+            .heat(pipeline, &heat)
+            .map_err(|e| format!("{}:{}: {e}", file.display(), line.line_no))?;
     }
     Ok(true)
 }

@@ -100,6 +100,8 @@ pub struct Machine {
     pub real_board: bool,
     /// `[gcode_macro]` sections, run by the G-code feed.
     pub macros: Vec<planner::gcode::macros::MacroDef>,
+    /// Heaters, temperature sensors and fans.
+    pub thermal: crate::heaters::objects::Thermal,
 }
 
 /// Why a printer.cfg describes no printer the host can drive; each names the file.
@@ -117,6 +119,13 @@ pub enum HardwareError {
     /// A `[probe]` the printer cannot have.
     #[error("{file}: {why}")]
     Probe { file: std::path::PathBuf, why: String },
+    /// Heaters, sensors or fans the host cannot drive (unknown sensor type, bad reference).
+    #[error("{file}: {source}")]
+    Thermal {
+        file: std::path::PathBuf,
+        #[source]
+        source: crate::heaters::objects::ThermalError,
+    },
 }
 
 impl From<HardwareError> for String {
@@ -182,6 +191,11 @@ impl Machine {
             None => None,
         };
         let options = sysconfig::planning::pipeline_options(cfg, kinematics);
+        let thermal =
+            crate::heaters::objects::Thermal::from_config(cfg).map_err(|source| HardwareError::Thermal {
+                file: cfg.source.clone(),
+                source,
+            })?;
         Ok(Machine {
             steppers,
             endstops,
@@ -192,6 +206,7 @@ impl Machine {
             options,
             real_board: cfg.mcus.iter().any(|m| !m.is_simulated()),
             macros: cfg.macros.clone(),
+            thermal,
         })
     }
 

@@ -17,7 +17,8 @@
 //! - the service: [`service`] (`cadence serve`: the printer kept up for front ends, Klipper's
 //!   API socket);
 //! - [`heaters`]: the heater logic (sensors, PID/watermark, verify_heater, PID calibration),
-//!   pure and clock-free, not yet driven by the print loop;
+//!   pure and clock-free, its MCU objects and the heater thread of a live print (used by
+//!   [`hardware`], [`mcus`], [`gcode_feed`], [`live`] and [`events`]);
 //! - [`host_check`]: is this host fit for hard timing (PREEMPT_RT, SCHED_FIFO, limits,
 //!   isolated CPUs, wake-up latency)?
 //! - [`wire_check`]: a batch wire stream proved against its G-code.

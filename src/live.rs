@@ -94,8 +94,24 @@ pub(crate) fn print_on(
     let done = &done_flag;
     let consumed_counts: Vec<AtomicU64> = streams.iter().map(|_| AtomicU64::new(0)).collect();
     let consumed = consumed_counts.as_slice();
+    let heater_state = Arc::new(crate::heaters::runtime::HeaterShared::new(&machine.thermal));
+    if let Some(s) = session {
+        // A session's status reads the heaters (its first print's loop: one per session).
+        let _ = s.heaters.set(heater_state.clone());
+    }
+    let heaters = &*heater_state;
 
     std::thread::scope(|scope| {
+        // The heater loop runs for the whole print (every heater off when it ends).
+        let heater_thread = std::thread::Builder::new()
+            .name("heaters".to_string())
+            .spawn_scoped(scope, move || {
+                crate::heaters::runtime::run(mcus, &machine.thermal, heaters)
+            })
+            .map_err(|e| format!("cannot start the heater thread: {e}"))?;
+        // Whatever way this closure returns, the heater loop ends (before the scope joins it).
+        let _stop_heaters = crate::heaters::runtime::StopOnDrop(heaters);
+        let stop_heaters = || heaters.stop.store(true, Ordering::Release);
         let mut ios = Vec::with_capacity(streams.len());
         for (k, (mcu_index, service)) in streams.iter().enumerate() {
             let conn = &mcus.list[*mcu_index];
@@ -122,6 +138,7 @@ pub(crate) fn print_on(
             ios.push(io);
             if let Err(e) = ready {
                 done.store(true, Ordering::Release);
+                stop_heaters();
                 return Err(e);
             }
         }
@@ -143,6 +160,7 @@ pub(crate) fn print_on(
                     log: &log,
                     rt,
                     session,
+                    heaters: Some(heaters),
                 };
                 let r = planner_stage(gcode, &stage);
                 done.store(true, Ordering::Release);
@@ -153,6 +171,7 @@ pub(crate) fn print_on(
             Ok(p) => p,
             Err(e) => {
                 done.store(true, Ordering::Release);
+                stop_heaters();
                 return Err(e);
             }
         };
@@ -162,10 +181,19 @@ pub(crate) fn print_on(
                 telemetry_thread(instance, hists, started, ALL_SOURCES, done)
             })
             .map_err(|e| format!("cannot start the telemetry thread: {e}"))?;
-        let planned = planner
-            .join()
-            .map_err(|_| "the planner thread panicked".to_string())?;
+        let planned = planner.join();
         done.store(true, Ordering::Release);
+        stop_heaters();
+        let heater_result = heater_thread.join();
+        let planned = planned.map_err(|_| "the planner thread panicked".to_string())?;
+        match heater_result {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => {
+                log.log(Level::Warn, "heater loop failed (see stderr)", []);
+                eprintln!("cadence: heaters: {e}");
+            }
+            Err(_) => return Err("the heater thread panicked".to_string()),
+        }
         if let Ok(Err(e)) = telemetry.join() {
             log.log(Level::Warn, "telemetry failed (see stderr)", []);
             eprintln!("cadence: telemetry: {e}");

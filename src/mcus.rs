@@ -2,7 +2,8 @@
 //! shutting everything down cleanly.
 //!
 //! Object ids per MCU: that MCU's steppers first (in machine order), then its endstops (the
-//! `[probe]` last), then one trsync (homing trigger sync) object.
+//! `[probe]` last), its stepper enable pins, one trsync (homing trigger sync) object, then its
+//! heaters, sensors and fans (`crate::heaters::objects`).
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -139,6 +140,8 @@ impl Mcus {
                     trace: opts.trace.as_deref().map(|t| trace_path(t, &name, i == 0)),
                     extra: {
                         let mut extra = machine.sim_world_args(&name, &world);
+                        // Each heater of this MCU gets the simulator's thermal model.
+                        extra.extend(machine.thermal.sim_args(&name));
                         // A simulated MCU stands in for hardware that is never descheduled:
                         // when the host's threads run SCHED_FIFO, it runs SCHED_FIFO too, below
                         // them (they preempt it) but above ordinary processes. Refused: it
@@ -393,8 +396,13 @@ pub fn config_commands(
         }
     }
     let enable_oid0 = steppers.len() + endstops.len();
-    let count = enable_oid0 + enables.len() + 1;
-    let trsync_oid = u8::try_from(count - 1).map_err(|_| "too many objects".to_string())?;
+    let trsync_oid = u8::try_from(enable_oid0 + enables.len()).map_err(|_| "too many objects".to_string())?;
+    // Heaters, sensors and fans (crate::heaters::objects) right after the trsync.
+    let thermal_oid0 = usize::from(trsync_oid) + 1;
+    let count = thermal_oid0 + machine.thermal.objects_on(mcu).len();
+    if count > 255 {
+        return Err("too many objects".to_string());
+    }
     let err = |e: links::dict::DictError| e.to_string();
     let clock_freq = dict.clock_freq().map_err(err)?;
     let mut cmds = vec![dict.encode("allocate_oids", &[count as i64]).map_err(err)?];
@@ -458,6 +466,7 @@ pub fn config_commands(
             .map_err(err)?,
         );
     }
+    cmds.extend(machine.thermal.config_commands(dict, mcu, thermal_oid0)?);
     let mut crc = crc32fast::Hasher::new();
     for c in &cmds {
         crc.update(c.as_bytes());

@@ -151,6 +151,8 @@ pub(crate) struct PlannerStage<'a> {
     pub rt: &'a RtConfig,
     /// A printer session's stop flag, status and events (`None`: a plain print).
     pub session: Option<&'a SessionShared>,
+    /// The heater thread's state (`None`: no heater loop, heater commands are only recorded).
+    pub heaters: Option<&'a crate::heaters::runtime::HeaterShared>,
 }
 
 /// The planner thread: G-code → pipeline → step messages into shared memory (one channel per
@@ -190,7 +192,8 @@ pub(crate) fn planner_stage(gcode: GcodeInput, st: &PlannerStage<'_>) -> Result<
         "planner started: start print time s, high water s, step streams",
         [Arg::F(start), Arg::F(run.high_water), Arg::U(params.len() as u64)],
     );
-    let mut accessories = Accessories::new(st.machine.real_board);
+    // With the heater loop running, heat asked of a real board is real: no warning.
+    let mut accessories = Accessories::new(st.machine.real_board && st.heaters.is_none());
     let file = gcode.name.clone();
     let mut macros = Macros::new(st.machine.macros.clone()).map_err(|e| e.to_string())?;
     let lines = plan_file(gcode, &mut pipeline, &mut accessories, &mut macros, &mut run)?;
@@ -210,6 +213,7 @@ pub(crate) fn planner_stage(gcode: GcodeInput, st: &PlannerStage<'_>) -> Result<
     crate::allocsites::finish_if_requested("planner");
     let mut summary_extra = accessories.lines();
     summary_extra.append(&mut run.homing_reports);
+    summary_extra.append(&mut run.heat.lines(st.heaters));
     let batches: Vec<u64> = run.sinks.iter().map(|s| s.publisher.next_seq()).collect();
     let stats = pipeline.stats();
     let summary = Summary {
@@ -290,6 +294,8 @@ struct PlannerRun<'a, 'p> {
     homing_reports: Vec<String>,
     /// Planning G-code (false while a session's feed is idle).
     busy: bool,
+    /// Heater commands' waits, for the summary.
+    heat: crate::heaters::feed::HeatLog,
 }
 
 /// Sleep between flow-control checks.
@@ -316,6 +322,7 @@ impl<'a, 'p> PlannerRun<'a, 'p> {
             motions: (0, 0),
             homing_reports: Vec::new(),
             busy: true,
+            heat: crate::heaters::feed::HeatLog::default(),
         }
     }
 
@@ -337,6 +344,10 @@ impl<'a, 'p> PlannerRun<'a, 'p> {
         // A stop first: an emergency stop also shuts the MCUs down, and is the cause.
         if let Some(s) = self.st.session {
             s.check_stop()?;
+        }
+        // A thermal runaway also shuts the MCUs down, and is the cause.
+        if let Some(fault) = self.st.heaters.and_then(|h| h.fault()) {
+            return Err(fault);
         }
         self.st.side.check()
     }
@@ -523,6 +534,60 @@ impl FeedTarget for PlannerRun<'_, '_> {
         match self.st.session {
             Some(s) => s.emit(Event::Warning(text)),
             None => eprintln!("cadence: warning: {text}"),
+        }
+    }
+
+    fn heat(&mut self, pipeline: &mut Pipeline, cmd: &crate::heaters::gcode::HeatCmd) -> Result<(), String> {
+        let Some(shared) = self.st.heaters else {
+            return Ok(());
+        };
+        let thermal = &self.st.machine.thermal;
+        let Some(wait) = crate::heaters::feed::apply(thermal, shared, cmd)? else {
+            if *cmd == crate::heaters::gcode::HeatCmd::EmergencyStop {
+                // As Klipper's M112: every MCU shuts down now (outputs off, motion stopped).
+                if let McuSide::Local(mcus) = self.st.side {
+                    for m in &mcus.list {
+                        if let Ok(stop) = m.link.dictionary().encode("emergency_stop", &[]) {
+                            let _ = m.link.send(stop);
+                        }
+                    }
+                }
+                return Err("Shutdown due to M112 command".to_string());
+            }
+            if *cmd == crate::heaters::gcode::HeatCmd::Report {
+                let text = crate::heaters::runtime::m105_text(shared);
+                if let Some(s) = self.st.session {
+                    s.emit(Event::Response(text.clone()));
+                }
+                self.heat.report(text);
+            }
+            return Ok(());
+        };
+        // Klipper's M109/M190/TEMPERATURE_WAIT: the moves before it run, the G-code waits.
+        let mut out = Vec::new();
+        pipeline.flush_lookahead();
+        pipeline.generate(&mut out);
+        self.emit(&mut out)?;
+        let started = shared.heaters.get(wait.heater).map(|h| h.time.get());
+        let wall = Instant::now();
+        while !wait.done(shared) {
+            self.check()?;
+            self.publish_status(pipeline);
+            std::thread::sleep(PACE);
+        }
+        let ended = shared.heaters.get(wait.heater).map(|h| h.time.get());
+        self.heat
+            .record(&wait, started, ended, wall.elapsed().as_secs_f64());
+        pipeline
+            .raise_print_time(self.resume_at())
+            .map_err(|e| e.to_string())?;
+        Ok(())
+    }
+
+    fn can_extrude(&self) -> Result<(), String> {
+        match self.st.heaters {
+            Some(shared) => crate::heaters::feed::can_extrude(&self.st.machine.thermal, shared),
+            None => Ok(()),
         }
     }
 

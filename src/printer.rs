@@ -550,6 +550,9 @@ impl PrinterHandle {
     /// stops the session.
     pub fn emergency_stop(&self) {
         self.shared.request_stop("emergency stop");
+        if let Some(heaters) = self.shared.heaters.get() {
+            heaters.turn_off_all();
+        }
         if let Some(inner) = self.inner.upgrade() {
             for m in &inner.mcus.list {
                 if let Ok(cmd) = m.link.dictionary().encode("emergency_stop", &[]) {
@@ -581,6 +584,8 @@ impl PrinterHandle {
                 print_time: 0.0,
                 mcus: Vec::new(),
                 events_dropped: self.shared.events_dropped(),
+                heaters: self.shared.heater_status().0,
+                fans: self.shared.heater_status().1,
             },
         }
     }
@@ -647,6 +652,8 @@ fn status_of(inner: &Inner) -> Status {
             .map(|m| (m.name.clone(), m.link.stats()))
             .collect(),
         events_dropped: inner.shared.events_dropped(),
+        heaters: inner.shared.heater_status().0,
+        fans: inner.shared.heater_status().1,
     }
 }
 

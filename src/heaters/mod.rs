@@ -3,11 +3,15 @@
 //! Klipper's units, watermark, smoothing), thermal runaway protection ([`verify`]:
 //! `[verify_heater]`) and PID calibration ([`calibrate`]: the relay method of PID_CALIBRATE).
 //!
-//! The print loop, M104/M109/M140/M190, the heater objects on the MCUs and the status are
-//! wired to these in the host integration that follows the library restructuring (issue #17);
-//! until then only the tests and embedders use them.
+//! Driving them: [`objects`] (printer.cfg → heaters, sensors and fans with their MCU objects
+//! and configuration commands) and [`runtime`] (the heater thread of a live print: ADC reports
+//! → temperature → control → PWM on the MCU clock, verify_heater, fans).
 
 pub mod calibrate;
 pub mod control;
+pub mod feed;
+pub mod gcode;
+pub mod objects;
+pub mod runtime;
 pub mod thermistor;
 pub mod verify;

@@ -280,6 +280,7 @@ pub(crate) fn run(
                     log: &planner_log,
                     rt,
                     session: None,
+                    heaters: None,
                 };
                 crate::planner_thread::planner_stage(gcode, &stage)
             })

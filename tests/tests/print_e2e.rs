@@ -224,9 +224,9 @@ fn heaters_fan_and_display_are_recorded_in_the_summary() {
     );
     assert_eq!(run.code, Some(0), "{}", run.stderr);
     for want in [
-        "heaters (simulated: each target reached at once): extruder last target 215 °C (1 commands, 1 waits), \
+        "heaters (G-code): extruder last target 215 °C (1 commands, 1 waits), \
          heater_bed last target 60 °C (1 commands, 0 waits)",
-        "part fan (recorded, not driven): 2 changes, last 0 %",
+        "part fan (G-code): 2 changes, last 0 %",
         "M117 (line 6): Layer 1",
         "M114 (line 7): X:10.000 Y:10.000 Z:0.000 E:0.000",
     ] {

@@ -126,6 +126,7 @@ struct Known {
     is_shutdown: Option<u32>,
     starting: Option<u32>,
     trsync_state: Option<u32>,
+    analog_in_state: Option<u32>,
     stats: Option<u32>,
 }
 
@@ -557,6 +558,15 @@ impl IoThread {
         } else if Some(id) == k.trsync_state {
             let clock = self.shared.clock.load().extend(int(3) as u32, now);
             crate::trsync::on_state(&self.shared, now, int(0), int(1) != 0, int(2), clock);
+        } else if Some(id) == k.analog_in_state {
+            if let Some(slot) = usize::try_from(int(0))
+                .ok()
+                .and_then(|o| self.shared.analog.get(o))
+            {
+                let count = (((slot.load(Ordering::Relaxed) >> 16) & 0xFFFF) % 0xFFFF) + 1;
+                let packed = ((int(1) as u64 & 0xFFFF_FFFF) << 32) | (count << 16) | (int(2) as u64 & 0xFFFF);
+                slot.store(packed, Ordering::Release);
+            }
         } else if Some(id) == k.starting && matches!(self.phase, Phase::Running) {
             // Sent once by a freshly booted MCU: after the handshake it means a restart.
             return Err(Death::Reset("it sent 'starting'".into()));
@@ -621,6 +631,7 @@ impl IoThread {
             is_shutdown: dict.response("is_shutdown").ok().map(|d| d.id),
             starting: dict.response("starting").ok().map(|d| d.id),
             trsync_state: dict.response("trsync_state").ok().map(|d| d.id),
+            analog_in_state: dict.response("analog_in_state").ok().map(|d| d.id),
             stats: dict.response("stats").ok().map(|d| d.id),
         };
         self.sq.set_receive_window(dict.receive_window());

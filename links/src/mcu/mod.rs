@@ -520,6 +520,15 @@ impl McuLink {
         *lock(&self.shared.stats)
     }
 
+    /// The latest `analog_in_state` report of analog input `oid` (< 64): `(count, next_clock,
+    /// value)`, where `count` (mod 2^16, from 1) tells a new report from the one seen before;
+    /// `None` before the first. Lock-free: the IO thread overwrites one slot per oid.
+    pub fn analog_report(&self, oid: u8) -> Option<(u16, u32, u16)> {
+        let v = self.shared.analog.get(usize::from(oid))?.load(Ordering::Acquire);
+        let count = ((v >> 16) & 0xFFFF) as u16;
+        (count != 0).then_some((count, (v >> 32) as u32, (v & 0xFFFF) as u16))
+    }
+
     /// The MCU's shutdown reason, once it sent `shutdown` or `is_shutdown`.
     pub fn shutdown_reason(&self) -> Option<String> {
         lock(&self.shared.shutdown).clone()

@@ -201,7 +201,13 @@ pub(crate) struct Shared {
     /// Ends the IO thread's read wait when another thread hands it work (`None` if the
     /// eventfd could not be made: the IO thread then reads in short slices).
     pub wake: Option<crate::transport::Wake>,
+    /// The latest `analog_in_state` of oids `0..ANALOG_SLOTS`: `(next_clock << 32) |
+    /// (reports mod 2^16) << 16 | value`, 0 before the first (see `McuLink::analog_report`).
+    pub analog: [AtomicU64; ANALOG_SLOTS],
 }
+
+/// Oids whose `analog_in_state` reports the link keeps (the latest of each).
+pub const ANALOG_SLOTS: usize = 64;
 
 impl Shared {
     pub(crate) fn new(name: &str, capacity: usize) -> Shared {
@@ -228,6 +234,7 @@ impl Shared {
             trsyncs: RwLock::new(Vec::with_capacity(8)),
             armed: AtomicUsize::new(0),
             wake: crate::transport::Wake::new().ok(),
+            analog: std::array::from_fn(|_| AtomicU64::new(0)),
         }
     }
 

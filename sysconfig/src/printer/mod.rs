@@ -10,7 +10,7 @@
 //! Build order (it decides which error is reported first): MCUs (pins are checked against
 //! them), `[printer]`, `[probe]` (its `z_offset` is Z's endstop position with
 //! `probe:z_virtual_endstop`), the steppers the kinematics needs, `[extruder]`, `[heater_bed]`,
-//! `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`,
+//! the thermal sections (`thermal`), `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`,
 //! `[input_shaper]`, `[gcode_macro]`s, then the unused-option/section check.
 
 mod board_pins;
@@ -50,6 +50,7 @@ pub use stepper::{MotorSection, StepperSection};
 pub use thermal::{
     ControllerFanSection, FanOptions, HeaterFanSection, SensorSection, SensorSource, TemperatureFanSection,
     TemperatureSensorSection, ThermalSections, ThermistorSection, VerifyHeaterSection,
+    DRIVEN as THERMAL_DRIVEN,
 };
 pub use toolhead::{Kinematics, PrinterSection};
 
@@ -91,6 +92,10 @@ pub struct PrinterConfig {
     pub firmware_retraction: FirmwareRetractionSection,
     /// `[input_shaper]`, when there is one.
     pub input_shaper: Option<InputShaperSection>,
+    /// The thermal sections the host drives beyond `[extruder]`/`[heater_bed]`
+    /// (`[heater_generic]`, `[verify_heater]`, `[thermistor]`, `[temperature_sensor]`, `[fan]`,
+    /// `[heater_fan]`).
+    pub thermal: ThermalSections,
     /// `[gcode_macro NAME]` sections, in file order.
     pub macros: Vec<planner::gcode::macros::MacroDef>,
     /// Accepted-but-ignored sections and other things worth telling the user.
@@ -183,6 +188,7 @@ impl PrinterConfig {
             Some(s) => Some(heater::read_heater(&s, &mut pins)?),
             None => None,
         };
+        let thermal = thermal::read_thermal(&reader, &mut pins, false)?;
         let simulator_section = reader.section("simulator");
         let simulator = match &simulator_section {
             Some(s) => mcu::read_simulator(s)?,
@@ -230,6 +236,7 @@ impl PrinterConfig {
             gcode_arcs,
             firmware_retraction,
             input_shaper,
+            thermal,
             macros,
             warnings,
         })

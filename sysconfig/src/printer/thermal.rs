@@ -3,11 +3,10 @@
 //! `[heater_fan]`, `[controller_fan]`, `[fan_generic]`, `[temperature_fan]`), with Klipper's
 //! options, defaults and bounds.
 //!
-//! The host does not act on these yet (the heater loop comes with the host integration), so
-//! `sections.rs` still lists their kinds as ignored and [`read_thermal`] is not part of the load;
-//! it is built and tested so that the integration only has to switch them on (hence the
-//! dead-code allowance outside tests until then).
-#![cfg_attr(not(test), allow(dead_code))]
+//! The load reads the sections the host drives ([`DRIVEN`]: heaters, `[verify_heater]`,
+//! `[thermistor]`, `[temperature_sensor]`, `[fan]`, `[heater_fan]`); the other fans
+//! (`[controller_fan]`, `[fan_generic]`, `[temperature_fan]`) have typed readers too but stay
+//! accepted and ignored (with a warning) until the host drives them.
 
 use super::error::{ConfigError, ValueProblem};
 use super::heater::{read_heater_options, HeaterSection, ABSOLUTE_ZERO_C};
@@ -316,10 +315,22 @@ fn read_thermistor(s: &SectionReader<'_>) -> Result<ThermistorSection, ConfigErr
     Ok(ThermistorSection::Points([(t1, r1), (t2, r2), (t3, r3)]))
 }
 
-/// Reads every thermal section of `reader` (marking them read).
+/// The thermal section kinds the host drives (the load reads them; sections.rs lists them read).
+pub const DRIVEN: &[&str] = &[
+    "fan",
+    "heater_fan",
+    "heater_generic",
+    "temperature_sensor",
+    "thermistor",
+    "verify_heater",
+];
+
+/// Reads the thermal sections of `reader` (marking them read): those the host drives, and
+/// with `all` also `[controller_fan]`, `[fan_generic]` and `[temperature_fan]`.
 pub(crate) fn read_thermal(
     reader: &Reader<'_>,
     pins: &mut PinRegistry,
+    all: bool,
 ) -> Result<ThermalSections, ConfigError> {
     let mut out = ThermalSections::default();
     for s in reader.sections_with_arg("thermistor") {
@@ -366,6 +377,9 @@ pub(crate) fn read_thermal(
             heater_temp: s.float_or("heater_temp", 50.0, Bounds::ANY)?,
             fan_speed: s.float_or("fan_speed", 1.0, UNIT)?,
         });
+    }
+    if !all {
+        return Ok(out);
     }
     for s in reader.sections_with_arg("controller_fan") {
         let fan = read_fan(&s, pins, 0.0)?;
@@ -414,8 +428,8 @@ mod tests {
     fn read(text: &str) -> Result<ThermalSections, String> {
         let file = ini::parse_str(text, Path::new("printer.cfg")).map_err(|e| e.to_string())?;
         let reader = Reader::new(&file);
-        let t =
-            read_thermal(&reader, &mut PinRegistry::new(vec!["mcu".into()])).map_err(|e| e.to_string())?;
+        let t = read_thermal(&reader, &mut PinRegistry::new(vec!["mcu".into()]), true)
+            .map_err(|e| e.to_string())?;
         reader.finish(|_| false).map_err(|e| e.to_string())?;
         Ok(t)
     }

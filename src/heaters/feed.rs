@@ -1,0 +1,231 @@
+//! What a heater command does to the running heaters, for the G-code loop: targets checked
+//! against the heater's range (Klipper's "Requested temperature (300.0) out of range
+//! (0.0:250.0)"), the waits of M109/M190/TEMPERATURE_WAIT as conditions on the heater thread's
+//! state, the extrusion check ("Extrude below minimum temp") and the waits' log for the
+//! summary.
+
+use super::gcode::HeatCmd;
+use super::objects::Thermal;
+use super::runtime::HeaterShared;
+use std::sync::atomic::Ordering;
+
+/// A wait the G-code holds for.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Wait {
+    /// The heater's index.
+    pub heater: usize,
+    /// The command, for the log (`M109`, `TEMPERATURE_WAIT`).
+    pub what: &'static str,
+    /// Until its control settles at the target (M109/M190) …
+    pub settle: bool,
+    /// … or its temperature is within these (TEMPERATURE_WAIT).
+    pub min: Option<f64>,
+    pub max: Option<f64>,
+    /// The target waited for.
+    pub target: f64,
+}
+
+impl Wait {
+    /// True once the wait is over.
+    pub fn done(&self, shared: &HeaterShared) -> bool {
+        let Some(h) = shared.heaters.get(self.heater) else {
+            return true;
+        };
+        if self.settle {
+            return !h.busy.load(Ordering::Acquire);
+        }
+        let t = h.temp.get();
+        !t.is_nan() && self.min.is_none_or(|m| t >= m) && self.max.is_none_or(|m| t <= m)
+    }
+}
+
+/// Applies `cmd` to the heaters; returns the wait the G-code must hold for, if any.
+pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<Option<Wait>, String> {
+    match cmd {
+        HeatCmd::Set { heater, target, wait } => {
+            let i = thermal
+                .heater(heater)
+                .ok_or_else(|| format!("The value '{heater}' is not valid for HEATER"))?;
+            let h = &thermal.heaters[i];
+            if *target != 0.0 && (*target < h.min_temp || *target > h.max_temp) {
+                return Err(format!(
+                    "Requested temperature ({target:.1}) out of range ({:.1}:{:.1})",
+                    h.min_temp, h.max_temp
+                ));
+            }
+            shared.set_target(i, *target);
+            Ok(wait.then_some(Wait {
+                heater: i,
+                what: if heater == "heater_bed" { "M190" } else { "M109" },
+                settle: true,
+                min: None,
+                max: None,
+                target: *target,
+            }))
+        }
+        HeatCmd::Wait { sensor, min, max } => {
+            let i = thermal
+                .heater(sensor)
+                .ok_or_else(|| format!("Unknown sensor '{sensor}' (TEMPERATURE_WAIT waits for heaters)"))?;
+            Ok(Some(Wait {
+                heater: i,
+                what: "TEMPERATURE_WAIT",
+                settle: false,
+                min: *min,
+                max: *max,
+                target: min.or(*max).unwrap_or(0.0),
+            }))
+        }
+        HeatCmd::TurnOffAll | HeatCmd::EmergencyStop => {
+            shared.turn_off_all();
+            Ok(None)
+        }
+        HeatCmd::Report => Ok(None),
+        HeatCmd::Fan { speed } => {
+            shared.set_fan("fan", *speed);
+            Ok(None)
+        }
+    }
+}
+
+/// Klipper's refusal of an extruding move while the extruder is below `min_extrude_temp`.
+pub fn can_extrude(thermal: &Thermal, shared: &HeaterShared) -> Result<(), String> {
+    for (h, cell) in thermal.heaters.iter().zip(&shared.heaters) {
+        let Some(min) = h.min_extrude_temp else {
+            continue;
+        };
+        let t = cell.temp.get();
+        if min > 0.0 && (t.is_nan() || t < min) {
+            return Err(format!(
+                "Extrude below minimum temp ({} at {:.1} °C, min_extrude_temp {min:.1}; see the \
+                 'min_extrude_temp' config option)",
+                h.name,
+                if t.is_nan() { 0.0 } else { t }
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// The waits of a print, for its summary.
+#[derive(Debug, Default)]
+pub struct HeatLog {
+    waits: Vec<String>,
+}
+
+impl HeatLog {
+    /// A finished wait: MCU seconds of the heater's reports at its start and end, wall seconds.
+    pub fn record(&mut self, wait: &Wait, start: Option<f64>, end: Option<f64>, wall_s: f64) {
+        let mcu = match (start, end) {
+            (Some(a), Some(b)) => format!("{:.1} s", b - a),
+            _ => "?".to_string(),
+        };
+        self.waits.push(format!(
+            "{} waited {mcu} of printer time ({wall_s:.1} s wall) for {} °C",
+            wait.what, wait.target
+        ));
+    }
+
+    /// An M105 report (kept for the summary, the latest few).
+    pub fn report(&mut self, text: String) {
+        if self.waits.iter().filter(|w| w.starts_with("M105")).count() < 8 {
+            self.waits.push(format!("M105: {text}"));
+        }
+    }
+
+    /// The summary's heater lines: each heater's state at the end and the waits.
+    pub fn lines(&mut self, shared: Option<&HeaterShared>) -> Vec<String> {
+        let Some(shared) = shared else {
+            return Vec::new();
+        };
+        let mut out = Vec::new();
+        for h in &shared.heaters {
+            let fmt = |t: f64| {
+                if t.is_nan() {
+                    "no reading".to_string()
+                } else {
+                    format!("{t:.1} °C")
+                }
+            };
+            out.push(format!(
+                "heater {}: {} (highest {}), target {:.1} °C, power {:.0} %",
+                h.name,
+                fmt(h.temp.get()),
+                fmt(h.max_seen.get()),
+                h.target.get(),
+                h.power.get() * 100.0
+            ));
+        }
+        for f in &shared.fans {
+            out.push(format!("fan {}: {:.0} %", f.name, f.speed.get() * 100.0));
+        }
+        out.extend(self.waits.drain(..).map(|w| format!("heaters: {w}")));
+        if let Some(fault) = shared.fault() {
+            out.push(format!("heaters: shut down: {fault}"));
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::borrow::Cow;
+
+    fn setup() -> (Thermal, HeaterShared) {
+        let cfg = sysconfig::builtin_simulated().unwrap();
+        let t = Thermal::from_config(&cfg).unwrap();
+        let s = HeaterShared::new(&t);
+        (t, s)
+    }
+
+    fn set(heater: &'static str, target: f64, wait: bool) -> HeatCmd {
+        HeatCmd::Set {
+            heater: Cow::Borrowed(heater),
+            target,
+            wait,
+        }
+    }
+
+    #[test]
+    fn targets_out_of_range_are_refused_as_klipper_words_it() {
+        let (t, s) = setup();
+        assert_eq!(
+            apply(&t, &s, &set("extruder", 300.0, false)),
+            Err("Requested temperature (300.0) out of range (0.0:250.0)".to_string())
+        );
+        assert_eq!(apply(&t, &s, &set("extruder", 210.0, false)), Ok(None));
+        assert_eq!(s.heaters[0].target.get(), 210.0);
+        let w = apply(&t, &s, &set("heater_bed", 60.0, true)).unwrap().unwrap();
+        assert_eq!((w.heater, w.what), (1, "M190"));
+        assert!(!w.done(&s), "busy from the moment the target is set");
+        assert!(apply(&t, &s, &set("chamber", 60.0, false)).is_err());
+        apply(&t, &s, &HeatCmd::TurnOffAll).unwrap();
+        assert_eq!(s.heaters[0].target.get(), 0.0);
+    }
+
+    #[test]
+    fn extrusion_needs_min_extrude_temp() {
+        let cfg = sysconfig::parse_str(
+            &sysconfig::printer::SIMULATED_PRINTER_CFG
+                .replace("min_extrude_temp: 0", "min_extrude_temp: 170"),
+            std::path::Path::new("printer.cfg"),
+        )
+        .unwrap();
+        let t = Thermal::from_config(&cfg).unwrap();
+        let s = HeaterShared::new(&t);
+        let e = can_extrude(&t, &s).unwrap_err();
+        assert!(e.starts_with("Extrude below minimum temp"), "{e}");
+        s.heaters[0].temp.set(171.0);
+        assert_eq!(can_extrude(&t, &s), Ok(()));
+        let w = Wait {
+            heater: 0,
+            what: "TEMPERATURE_WAIT",
+            settle: false,
+            min: Some(170.0),
+            max: None,
+            target: 170.0,
+        };
+        assert!(w.done(&s));
+    }
+}

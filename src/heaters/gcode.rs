@@ -1,0 +1,143 @@
+//! The heater and fan G-code the planner does not see, with Klipper's names and parameters:
+//! `SET_HEATER_TEMPERATURE HEATER= TARGET=`, `TEMPERATURE_WAIT SENSOR= MINIMUM= MAXIMUM=`,
+//! `TURN_OFF_HEATERS`, `M105`, `M112`; and the commands the planner parses itself (M104/M109/M140/M190,
+//! M106/M107) as [`HeatCmd`]s. Pure: parsing only, nothing here touches a heater.
+
+use std::borrow::Cow;
+
+use planner::gcode::{Command, OtherParams};
+use planner::machine::{Applied, HeaterId};
+
+/// A heater or fan command.
+#[derive(Debug, Clone, PartialEq)]
+pub enum HeatCmd {
+    /// Set `heater`'s target (°C, 0 = off); `wait` until it settles (M109/M190).
+    Set {
+        /// `extruder`, `heater_bed` (no allocation for M104/M140), or as written.
+        heater: Cow<'static, str>,
+        target: f64,
+        wait: bool,
+    },
+    /// Wait until `sensor` (a heater or temperature sensor) is within `min..=max`.
+    Wait {
+        sensor: String,
+        min: Option<f64>,
+        max: Option<f64>,
+    },
+    /// Every heater's target to 0.
+    TurnOffAll,
+    /// M105: the temperature report.
+    Report,
+    /// M112: emergency stop (every MCU shut down, every heater off).
+    EmergencyStop,
+    /// The part fan's speed (0..=1).
+    Fan { speed: f64 },
+}
+
+/// The heater command of an extended/M command line the planner does not know, `None` for any
+/// other command; a malformed one is an error naming the parameter.
+pub fn parse(cmd: &Command) -> Option<Result<HeatCmd, String>> {
+    let Command::Other { name, raw } = cmd else {
+        return None;
+    };
+    let name = name.as_str();
+    if !matches!(
+        name,
+        "SET_HEATER_TEMPERATURE" | "TEMPERATURE_WAIT" | "TURN_OFF_HEATERS" | "M105" | "M112"
+    ) {
+        return None;
+    }
+    Some(parse_named(name, raw.as_str()))
+}
+
+fn parse_named(name: &str, raw: &str) -> Result<HeatCmd, String> {
+    let p = OtherParams::parse(raw).map_err(|e| format!("{name}: {e}"))?;
+    let num = |k: &str| p.float(k).map_err(|e| format!("{name}: {e}"));
+    let text = |k: &str| -> Result<String, String> {
+        p.get(k)
+            .map(str::to_string)
+            .ok_or_else(|| format!("Error on '{}': missing {k}", raw.trim()))
+    };
+    Ok(match name {
+        "SET_HEATER_TEMPERATURE" => HeatCmd::Set {
+            heater: Cow::Owned(text("HEATER")?),
+            target: num("TARGET")?.unwrap_or(0.0),
+            wait: false,
+        },
+        "TEMPERATURE_WAIT" => {
+            let (min, max) = (num("MINIMUM")?, num("MAXIMUM")?);
+            if min.is_none() && max.is_none() {
+                return Err("Error on 'TEMPERATURE_WAIT': missing MINIMUM or MAXIMUM.".to_string());
+            }
+            HeatCmd::Wait {
+                sensor: text("SENSOR")?,
+                min,
+                max,
+            }
+        }
+        "TURN_OFF_HEATERS" => HeatCmd::TurnOffAll,
+        "M112" => HeatCmd::EmergencyStop,
+        _ => HeatCmd::Report,
+    })
+}
+
+/// The heater command of what the planner applied (M104/M109/M140/M190, M106/M107).
+pub fn of_applied(applied: &Applied) -> Option<HeatCmd> {
+    match *applied {
+        Applied::Heater { heater, target, wait } => Some(HeatCmd::Set {
+            heater: Cow::Borrowed(match heater {
+                HeaterId::Extruder => "extruder",
+                HeaterId::Bed => "heater_bed",
+            }),
+            target,
+            wait,
+        }),
+        Applied::Fan { speed } => Some(HeatCmd::Fan { speed }),
+        _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use planner::gcode::parse_line;
+
+    fn cmd(text: &str) -> Option<Result<HeatCmd, String>> {
+        parse(&parse_line(1, text.as_bytes()).unwrap().unwrap())
+    }
+
+    #[test]
+    fn klippers_commands() {
+        assert_eq!(
+            cmd("SET_HEATER_TEMPERATURE HEATER=heater_bed TARGET=60"),
+            Some(Ok(HeatCmd::Set {
+                heater: "heater_bed".into(),
+                target: 60.0,
+                wait: false
+            }))
+        );
+        assert_eq!(
+            cmd("TEMPERATURE_WAIT SENSOR=extruder MINIMUM=200"),
+            Some(Ok(HeatCmd::Wait {
+                sensor: "extruder".into(),
+                min: Some(200.0),
+                max: None
+            }))
+        );
+        assert_eq!(cmd("TURN_OFF_HEATERS"), Some(Ok(HeatCmd::TurnOffAll)));
+        assert_eq!(cmd("M105"), Some(Ok(HeatCmd::Report)));
+        assert_eq!(cmd("M112"), Some(Ok(HeatCmd::EmergencyStop)));
+        assert_eq!(cmd("G1 X1"), None);
+        assert_eq!(cmd("SET_VELOCITY_LIMIT ACCEL=1"), None);
+    }
+
+    #[test]
+    fn bad_parameters_are_errors() {
+        assert!(cmd("TEMPERATURE_WAIT SENSOR=extruder").unwrap().is_err());
+        let e = cmd("SET_HEATER_TEMPERATURE TARGET=60").unwrap().unwrap_err();
+        assert!(e.contains("missing HEATER"), "{e}");
+        assert!(cmd("SET_HEATER_TEMPERATURE HEATER=extruder TARGET=abc")
+            .unwrap()
+            .is_err());
+    }
+}

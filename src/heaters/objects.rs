@@ -1,0 +1,503 @@
+//! The thermal hardware as the host drives it: each heater (`[extruder]`, `[heater_bed]`,
+//! `[heater_generic]`) with its sensor, control and `[verify_heater]` check, each ADC
+//! `[temperature_sensor]`, and the fans (`[fan]`, `[heater_fan]`), resolved from printer.cfg
+//! (sensor types looked up, `[thermistor]` definitions included), with their MCU objects and
+//! Klipper's configuration commands for them (`config_digital_out` + `set_digital_out_pwm_cycle`
+//! for PWM outputs, `config_analog_in` for sensors).
+//!
+//! Object ids: on each MCU the thermal objects follow the steppers, endstops, enable pins and
+//! the trsync, in this order: each heater's PWM output then its ADC
+//! input, each sensor's ADC input, each fan's output.
+
+use links::dict::{Cmd, Dictionary};
+use sysconfig::printer::{
+    FanOptions, HeaterControl, HeaterSection, PinRef, PrinterConfig, ThermistorSection,
+};
+
+use super::thermistor::{Element, Sensor, SensorError, SteinhartHart};
+use super::verify::VerifyConfig;
+
+/// Klipper's longest time a heater PWM value may stay in force without a refresh (s): the
+/// MCU's `max_duration` of every heater output.
+pub const MAX_HEAT_TIME: f64 = 3.0;
+/// ADC readings summed per report (Klipper's thermistor oversampling).
+pub const SAMPLE_COUNT: u8 = 8;
+/// Seconds between the readings of one report.
+pub const SAMPLE_TIME: f64 = 0.001;
+/// Seconds between reports.
+pub const REPORT_TIME: f64 = 0.300;
+/// Consecutive out-of-range reports after which the MCU shuts itself down.
+pub const RANGE_CHECK_COUNT: u8 = 4;
+
+/// The simulated thermal model a heater gets on the simulated printer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SimKind {
+    /// A 40 W hotend.
+    Hotend,
+    /// A 150 W bed.
+    Bed,
+}
+
+/// One heater.
+#[derive(Debug, Clone)]
+pub struct HeaterOut {
+    /// `extruder`, `heater_bed`, or the NAME of `[heater_generic NAME]`.
+    pub name: String,
+    /// The MCU of its heater pin (the sensor pin must be on the same one).
+    pub mcu: String,
+    pub heater_pin: PinRef,
+    pub sensor_pin: PinRef,
+    pub sensor: Sensor,
+    pub max_power: f64,
+    pub pwm_cycle_time: f64,
+    pub smooth_time: f64,
+    pub control: HeaterControl,
+    pub min_temp: f64,
+    pub max_temp: f64,
+    /// `[extruder]`'s `min_extrude_temp`.
+    pub min_extrude_temp: Option<f64>,
+    pub verify: VerifyConfig,
+    pub sim: SimKind,
+}
+
+/// One ADC `[temperature_sensor NAME]`.
+#[derive(Debug, Clone)]
+pub struct SensorOut {
+    pub name: String,
+    pub mcu: String,
+    pub pin: PinRef,
+    pub sensor: Sensor,
+    pub smooth_time: f64,
+    pub min_temp: f64,
+    pub max_temp: f64,
+}
+
+/// What drives a fan.
+#[derive(Debug, Clone, PartialEq)]
+pub enum FanRole {
+    /// `[fan]`: M106/M107.
+    Part,
+    /// `[heater_fan NAME]`: on at `fan_speed` while any of `heaters` is above `heater_temp`
+    /// or has a target.
+    Heater {
+        heaters: Vec<String>,
+        heater_temp: f64,
+        fan_speed: f64,
+    },
+}
+
+/// One fan.
+#[derive(Debug, Clone)]
+pub struct FanOut {
+    /// `fan` or the NAME of `[heater_fan NAME]`.
+    pub name: String,
+    pub mcu: String,
+    pub opts: FanOptions,
+    pub role: FanRole,
+}
+
+/// Every thermal object of the printer.
+#[derive(Debug, Clone, Default)]
+pub struct Thermal {
+    pub heaters: Vec<HeaterOut>,
+    pub sensors: Vec<SensorOut>,
+    pub fans: Vec<FanOut>,
+}
+
+/// Why the thermal sections describe nothing the host can drive; each names the section.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ThermalError {
+    #[error("[{section}] sensor_type: {source}")]
+    Sensor {
+        section: String,
+        #[source]
+        source: SensorError,
+    },
+    #[error("[{section}] {what}")]
+    Invalid { section: String, what: String },
+}
+
+/// The object of one MCU's thermal list.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ThermalObject {
+    /// Heater `i`'s PWM output.
+    HeaterPwm(usize),
+    /// Heater `i`'s ADC input.
+    HeaterAdc(usize),
+    /// Sensor `i`'s ADC input.
+    SensorAdc(usize),
+    /// Fan `i`'s output.
+    Fan(usize),
+}
+
+fn sensor_of(
+    section: &str,
+    sensor_type: &str,
+    pullup: f64,
+    inline: f64,
+    thermistors: &[(String, ThermistorSection)],
+) -> Result<Sensor, ThermalError> {
+    let bad = |source| ThermalError::Sensor {
+        section: section.to_string(),
+        source,
+    };
+    if let Some((_, t)) = thermistors.iter().find(|(n, _)| n == sensor_type) {
+        let sh = match *t {
+            ThermistorSection::Beta { t1, r1, beta } => SteinhartHart::from_beta(t1, r1, beta),
+            ThermistorSection::Points([a, b, c]) => SteinhartHart::from_points(a, b, c),
+        }
+        .map_err(bad)?;
+        return Ok(Sensor {
+            element: Element::Thermistor(sh),
+            pullup,
+            inline,
+        });
+    }
+    Sensor::named(sensor_type, pullup, inline).map_err(bad)
+}
+
+impl Thermal {
+    /// The thermal objects of `cfg`.
+    pub fn from_config(cfg: &PrinterConfig) -> Result<Thermal, ThermalError> {
+        let th = &cfg.thermal;
+        let mut out = Thermal::default();
+        let sections: Vec<(&HeaterSection, bool)> = cfg
+            .extruder
+            .iter()
+            .map(|e| (&e.heater, true))
+            .chain(cfg.heater_bed.iter().map(|h| (h, false)))
+            .chain(th.heater_generic.iter().map(|h| (h, false)))
+            .collect();
+        for (h, extruder) in sections {
+            let section = if h.name == "extruder" || h.name == "heater_bed" {
+                h.name.clone()
+            } else {
+                format!("heater_generic {}", h.name)
+            };
+            if h.sensor_pin.mcu != h.heater_pin.mcu {
+                return Err(ThermalError::Invalid {
+                    section,
+                    what: format!(
+                        "sensor_pin is on mcu '{}' and heater_pin on mcu '{}': both must be on one MCU",
+                        h.sensor_pin.mcu, h.heater_pin.mcu
+                    ),
+                });
+            }
+            let sensor = sensor_of(
+                &section,
+                &h.sensor_type,
+                h.pullup_resistor,
+                h.inline_resistor,
+                &th.thermistors,
+            )?;
+            let verify = th
+                .verify_heater
+                .iter()
+                .find(|(n, _)| *n == h.name)
+                .map(|(_, v)| VerifyConfig {
+                    max_error: v.max_error,
+                    check_gain_time: v.check_gain_time,
+                    hysteresis: v.hysteresis,
+                    heating_gain: v.heating_gain,
+                })
+                .unwrap_or_else(|| VerifyConfig::defaults_for(&h.name));
+            out.heaters.push(HeaterOut {
+                name: h.name.clone(),
+                mcu: h.heater_pin.mcu.clone(),
+                heater_pin: h.heater_pin.clone(),
+                sensor_pin: h.sensor_pin.clone(),
+                sensor,
+                max_power: h.max_power,
+                pwm_cycle_time: h.pwm_cycle_time,
+                smooth_time: h.smooth_time,
+                control: h.control,
+                min_temp: h.min_temp,
+                max_temp: h.max_temp,
+                min_extrude_temp: extruder.then_some(h.min_extrude_temp),
+                verify,
+                sim: if extruder { SimKind::Hotend } else { SimKind::Bed },
+            });
+        }
+        for (name, _) in &th.verify_heater {
+            if !out.heaters.iter().any(|h| &h.name == name) {
+                return Err(ThermalError::Invalid {
+                    section: format!("verify_heater {name}"),
+                    what: format!("there is no heater '{name}'"),
+                });
+            }
+        }
+        for s in &th.temperature_sensors {
+            let section = format!("temperature_sensor {}", s.name);
+            let sysconfig::printer::SensorSource::Adc {
+                sensor_pin,
+                pullup_resistor,
+                inline_resistor,
+            } = &s.sensor.source
+            else {
+                // temperature_host is read from the host's own sysfs, no MCU object.
+                continue;
+            };
+            let sensor = sensor_of(
+                &section,
+                &s.sensor.sensor_type,
+                *pullup_resistor,
+                *inline_resistor,
+                &th.thermistors,
+            )?;
+            out.sensors.push(SensorOut {
+                name: s.name.clone(),
+                mcu: sensor_pin.mcu.clone(),
+                pin: sensor_pin.clone(),
+                sensor,
+                smooth_time: s.sensor.smooth_time,
+                min_temp: s.min_temp,
+                max_temp: s.max_temp,
+            });
+        }
+        if let Some(f) = &th.fan {
+            out.fans.push(FanOut {
+                name: "fan".to_string(),
+                mcu: f.pin.mcu.clone(),
+                opts: f.clone(),
+                role: FanRole::Part,
+            });
+        }
+        for f in &th.heater_fans {
+            for h in &f.heaters {
+                if !out.heaters.iter().any(|x| &x.name == h) {
+                    return Err(ThermalError::Invalid {
+                        section: format!("heater_fan {}", f.name),
+                        what: format!("heater: there is no heater '{h}'"),
+                    });
+                }
+            }
+            out.fans.push(FanOut {
+                name: f.name.clone(),
+                mcu: f.fan.pin.mcu.clone(),
+                opts: f.fan.clone(),
+                role: FanRole::Heater {
+                    heaters: f.heaters.clone(),
+                    heater_temp: f.heater_temp,
+                    fan_speed: f.fan_speed,
+                },
+            });
+        }
+        for f in &out.fans {
+            if f.opts.hardware_pwm {
+                return Err(ThermalError::Invalid {
+                    section: f.name.clone(),
+                    what: "hardware_pwm: the Cadence MCUs drive fans with software PWM \
+                           (set hardware_pwm: False)"
+                        .to_string(),
+                });
+            }
+            if f.opts.enable_pin.is_some() || f.opts.tachometer_pin.is_some() {
+                return Err(ThermalError::Invalid {
+                    section: f.name.clone(),
+                    what: "enable_pin and tachometer_pin are not supported yet".to_string(),
+                });
+            }
+        }
+        Ok(out)
+    }
+
+    /// The heater called `name`.
+    pub fn heater(&self, name: &str) -> Option<usize> {
+        self.heaters.iter().position(|h| h.name == name)
+    }
+
+    /// The thermal objects on MCU `mcu`, in oid order.
+    pub fn objects_on(&self, mcu: &str) -> Vec<ThermalObject> {
+        let mut v = Vec::new();
+        for (i, h) in self.heaters.iter().enumerate().filter(|(_, h)| h.mcu == mcu) {
+            let _ = h;
+            v.push(ThermalObject::HeaterPwm(i));
+            v.push(ThermalObject::HeaterAdc(i));
+        }
+        v.extend(
+            self.sensors
+                .iter()
+                .enumerate()
+                .filter(|(_, s)| s.mcu == mcu)
+                .map(|(i, _)| ThermalObject::SensorAdc(i)),
+        );
+        v.extend(
+            self.fans
+                .iter()
+                .enumerate()
+                .filter(|(_, f)| f.mcu == mcu)
+                .map(|(i, _)| ThermalObject::Fan(i)),
+        );
+        v
+    }
+
+    /// `cadence-mcu` arguments giving the simulated MCU `mcu` a thermal model per heater
+    /// (`--heater HEATER_PIN=SENSOR_PIN,hotend|bed`).
+    pub fn sim_args(&self, mcu: &str) -> Vec<String> {
+        let mut args = Vec::new();
+        for h in self.heaters.iter().filter(|h| h.mcu == mcu) {
+            let kind = match h.sim {
+                SimKind::Hotend => "hotend",
+                SimKind::Bed => "bed",
+            };
+            args.push("--heater".to_string());
+            args.push(format!("{}={},{kind}", h.heater_pin.pin, h.sensor_pin.pin));
+        }
+        args
+    }
+
+    /// The configuration commands of MCU `mcu`'s thermal objects, oids from `oid0`.
+    pub fn config_commands(&self, dict: &Dictionary, mcu: &str, oid0: usize) -> Result<Vec<Cmd>, String> {
+        let objects = self.objects_on(mcu);
+        if objects.is_empty() {
+            return Ok(Vec::new());
+        }
+        for needed in [
+            "config_digital_out",
+            "set_digital_out_pwm_cycle",
+            "config_analog_in",
+        ] {
+            if dict.command(needed).is_err() {
+                return Err(format!(
+                    "the MCU has no {needed} in its dictionary: it cannot drive heaters, sensors or fans"
+                ));
+            }
+        }
+        let err = |e: links::dict::DictError| e.to_string();
+        let clock_freq = dict.clock_freq().map_err(err)?;
+        let mut cmds = Vec::new();
+        for (k, obj) in objects.iter().enumerate() {
+            let oid = (oid0 + k) as i64;
+            let pin_of = |p: &PinRef, what: &str| {
+                dict.pin(&p.pin)
+                    .map(i64::from)
+                    .map_err(|e| format!("{what}: {e}"))
+            };
+            let mut pwm = |pin: &PinRef, what: &str, cycle: f64, max_duration: f64| -> Result<(), String> {
+                let off = i64::from(pin.invert);
+                let pin = pin_of(pin, what)?;
+                let max_ticks = (max_duration * clock_freq).round() as i64;
+                cmds.push(
+                    dict.encode("config_digital_out", &[oid, pin, off, off, max_ticks])
+                        .map_err(err)?,
+                );
+                let cycle_ticks = (cycle * clock_freq).round().max(1.0) as i64;
+                cmds.push(
+                    dict.encode("set_digital_out_pwm_cycle", &[oid, cycle_ticks])
+                        .map_err(err)?,
+                );
+                Ok(())
+            };
+            match *obj {
+                ThermalObject::HeaterPwm(i) => {
+                    let h = &self.heaters[i];
+                    pwm(
+                        &h.heater_pin,
+                        &format!("[{}] heater_pin", h.name),
+                        h.pwm_cycle_time,
+                        MAX_HEAT_TIME,
+                    )?;
+                }
+                ThermalObject::Fan(i) => {
+                    let f = &self.fans[i];
+                    pwm(&f.opts.pin, &format!("[{}] pin", f.name), f.opts.cycle_time, 0.0)?;
+                }
+                ThermalObject::HeaterAdc(i) => {
+                    let h = &self.heaters[i];
+                    let pin = pin_of(&h.sensor_pin, &format!("[{}] sensor_pin", h.name))?;
+                    cmds.push(dict.encode("config_analog_in", &[oid, pin]).map_err(err)?);
+                }
+                ThermalObject::SensorAdc(i) => {
+                    let s = &self.sensors[i];
+                    let pin = pin_of(&s.pin, &format!("[temperature_sensor {}] sensor_pin", s.name))?;
+                    cmds.push(dict.encode("config_analog_in", &[oid, pin]).map_err(err)?);
+                }
+            }
+        }
+        Ok(cmds)
+    }
+}
+
+/// `query_analog_in`'s range check of a sensor: the sums of [`SAMPLE_COUNT`] readings (of an
+/// ADC whose largest reading is `adc_max`) between `min_temp` and `max_temp`, as (min, max).
+pub fn adc_range(sensor: &Sensor, min_temp: f64, max_temp: f64, adc_max: f64) -> (u16, u16) {
+    let full = adc_max * f64::from(SAMPLE_COUNT);
+    let a = sensor.adc(min_temp);
+    let b = sensor.adc(max_temp);
+    let sum = |x: f64| (x * full).clamp(0.0, f64::from(u16::MAX)) as u16;
+    (sum(a.min(b)), sum(a.max(b)).max(sum(a.min(b))))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn thermal(text: &str) -> Result<Thermal, String> {
+        let cfg =
+            sysconfig::parse_str(text, std::path::Path::new("printer.cfg")).map_err(|e| e.to_string())?;
+        Thermal::from_config(&cfg).map_err(|e| e.to_string())
+    }
+
+    const BASE: &str = include_str!("../../examples/simulated-cartesian.cfg");
+
+    #[test]
+    fn the_simulated_printer_has_a_hotend_a_bed_and_a_fan() {
+        let t = thermal(BASE).unwrap();
+        let names: Vec<&str> = t.heaters.iter().map(|h| h.name.as_str()).collect();
+        assert_eq!(names, ["extruder", "heater_bed"]);
+        assert_eq!(
+            t.heaters[0].min_extrude_temp,
+            Some(0.0),
+            "the examples extrude cold"
+        );
+        assert_eq!(t.heaters[1].verify.check_gain_time, 60.0);
+        assert!(t.fans.iter().any(|f| f.role == FanRole::Part));
+        let objs = t.objects_on("mcu");
+        assert_eq!(
+            objs[..4],
+            [
+                ThermalObject::HeaterPwm(0),
+                ThermalObject::HeaterAdc(0),
+                ThermalObject::HeaterPwm(1),
+                ThermalObject::HeaterAdc(1)
+            ]
+        );
+    }
+
+    #[test]
+    fn bad_sensor_types_and_references_name_the_section() {
+        let text = BASE.replace(
+            "sensor_type: Generic 3950\nsensor_pin: PF0",
+            "sensor_type: Bogus 9\nsensor_pin: PF0",
+        );
+        let e = thermal(&text).unwrap_err();
+        assert!(
+            e.starts_with("[extruder] sensor_type:") && e.contains("Bogus 9"),
+            "{e}"
+        );
+        let e = thermal(&format!("{BASE}\n[verify_heater chamber]\n")).unwrap_err();
+        assert_eq!(e, "[verify_heater chamber] there is no heater 'chamber'");
+        // A custom [thermistor] is a sensor_type.
+        let text = format!(
+            "{}\n[thermistor my_ntc]\ntemperature1: 25\nresistance1: 100000\nbeta: 3950\n",
+            BASE.replace(
+                "sensor_type: Generic 3950\nsensor_pin: PF0",
+                "sensor_type: my_ntc\nsensor_pin: PF0"
+            )
+        );
+        let t = thermal(&text).unwrap();
+        assert!((t.heaters[0].sensor.temperature(t.heaters[0].sensor.adc(200.0)) - 200.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn range_check_brackets_the_allowed_temperatures() {
+        let s = Sensor::named("Generic 3950", 4700.0, 0.0).unwrap();
+        let (lo, hi) = adc_range(&s, 0.0, 250.0, 4095.0);
+        // NTC: hot is a low reading.
+        assert!(lo < hi);
+        let at = |t: f64| (s.adc(t) * 4095.0 * 8.0) as u16;
+        assert!(at(25.0) > lo && at(25.0) < hi && at(240.0) > lo);
+        assert!(at(260.0) < lo, "{} {lo}", at(260.0));
+        assert!(4095 * 8 > hi as u32, "an open thermistor is out of range");
+    }
+}

@@ -1,0 +1,564 @@
+//! The heater loop of a live print, on its own thread (`heaters`): it starts each ADC's
+//! periodic reports (`query_analog_in` with Klipper's oversampling and the range check that
+//! lets the MCU shut itself down on an open or shorted sensor), turns each report into a
+//! temperature (smoothed over `smooth_time`), runs the heater's control (PID or watermark) and
+//! schedules the PWM on the MCU clock (`queue_digital_out`, refreshed well within the
+//! `max_duration` the MCU enforces), runs `[verify_heater]` once a second of MCU time, and
+//! drives the fans. Time is the heater MCU's clock in seconds (`clock / CLOCK_FREQ`), so a
+//! simulated printer with `--time-scale` heats in scaled time like everything else.
+//!
+//! The planner thread and the API reach it through [`HeaterShared`] (atomics and one mutex
+//! for the fault text): targets and fan speeds in, temperatures, powers and settled flags out.
+//! A thermal runaway sets the fault (`Heater NAME not heating at expected rate`), turns every
+//! heater off and shuts every MCU down (`emergency_stop`: their outputs fall to their default,
+//! off), as Klipper does.
+
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Mutex;
+use std::time::Duration;
+
+use links::dict::Dictionary;
+use links::mcu::McuLink;
+
+use super::control::{Control, Pid, PidGains, Smoothed, Watermark};
+use super::objects::{
+    adc_range, FanRole, Thermal, ThermalObject, MAX_HEAT_TIME, RANGE_CHECK_COUNT, REPORT_TIME, SAMPLE_COUNT,
+    SAMPLE_TIME,
+};
+use super::verify::{VerifyHeater, CHECK_INTERVAL_S};
+use crate::mcus::Mcus;
+use sysconfig::printer::HeaterControl;
+
+/// An `f64` in an atomic.
+#[derive(Debug, Default)]
+pub struct AtomicF64(AtomicU64);
+
+impl AtomicF64 {
+    fn new(v: f64) -> AtomicF64 {
+        AtomicF64(AtomicU64::new(v.to_bits()))
+    }
+    /// The value.
+    pub fn get(&self) -> f64 {
+        f64::from_bits(self.0.load(Ordering::Acquire))
+    }
+    pub(crate) fn set(&self, v: f64) {
+        self.0.store(v.to_bits(), Ordering::Release)
+    }
+}
+
+/// One heater's state as the other threads see it.
+#[derive(Debug)]
+pub struct HeaterCell {
+    /// `extruder`, `heater_bed`, …
+    pub name: String,
+    /// Target (°C, 0 = off).
+    pub target: AtomicF64,
+    /// Smoothed temperature (°C; NaN before the first report).
+    pub temp: AtomicF64,
+    /// Power applied (0..=max_power).
+    pub power: AtomicF64,
+    /// Its control says it has not settled at the target (M109/M190 keep waiting).
+    pub busy: AtomicBool,
+    /// MCU seconds of the latest report.
+    pub time: AtomicF64,
+    /// Highest temperature seen during the print.
+    pub max_seen: AtomicF64,
+}
+
+/// One fan's state.
+#[derive(Debug)]
+pub struct FanCell {
+    /// `fan` or the heater fan's name.
+    pub name: String,
+    /// Requested speed (0..=1): M106/M107 for `[fan]`.
+    pub requested: AtomicF64,
+    /// Speed applied (0..=1, before `max_power`).
+    pub speed: AtomicF64,
+}
+
+/// What the heater thread shares with the planner thread and the API.
+#[derive(Debug)]
+pub struct HeaterShared {
+    pub heaters: Vec<HeaterCell>,
+    pub fans: Vec<FanCell>,
+    fault: Mutex<Option<String>>,
+    faulted: AtomicBool,
+    /// Ends the heater thread (every heater off first).
+    pub stop: AtomicBool,
+}
+
+impl HeaterShared {
+    /// The shared state of `thermal`'s heaters and fans (cold, off).
+    pub fn new(thermal: &Thermal) -> HeaterShared {
+        HeaterShared {
+            heaters: thermal
+                .heaters
+                .iter()
+                .map(|h| HeaterCell {
+                    name: h.name.clone(),
+                    target: AtomicF64::new(0.0),
+                    temp: AtomicF64::new(f64::NAN),
+                    power: AtomicF64::new(0.0),
+                    busy: AtomicBool::new(false),
+                    time: AtomicF64::new(0.0),
+                    max_seen: AtomicF64::new(f64::NAN),
+                })
+                .collect(),
+            fans: thermal
+                .fans
+                .iter()
+                .map(|f| FanCell {
+                    name: f.name.clone(),
+                    requested: AtomicF64::new(0.0),
+                    speed: AtomicF64::new(0.0),
+                })
+                .collect(),
+            fault: Mutex::new(None),
+            faulted: AtomicBool::new(false),
+            stop: AtomicBool::new(false),
+        }
+    }
+
+    /// The thermal runaway (or other heater fault) that shut the printer down, if any.
+    pub fn fault(&self) -> Option<String> {
+        if !self.faulted.load(Ordering::Acquire) {
+            return None;
+        }
+        self.fault.lock().ok().and_then(|f| f.clone())
+    }
+
+    fn set_fault(&self, why: String) {
+        if let Ok(mut f) = self.fault.lock() {
+            if f.is_none() {
+                *f = Some(why);
+            }
+        }
+        self.faulted.store(true, Ordering::Release);
+    }
+
+    /// Sets every heater's target to 0 (TURN_OFF_HEATERS, M112).
+    pub fn turn_off_all(&self) {
+        self.heaters.iter().for_each(|h| h.target.set(0.0));
+    }
+
+    /// Sets heater `i`'s target.
+    pub fn set_target(&self, i: usize, target: f64) {
+        if let Some(h) = self.heaters.get(i) {
+            h.target.set(target);
+            // Busy at once: a wait that follows must not see the old settled state.
+            h.busy.store(target > 0.0, Ordering::Release);
+        }
+    }
+
+    /// Sets the part fan's speed (M106/M107; 0..=1).
+    pub fn set_fan(&self, name: &str, speed: f64) {
+        if let Some(f) = self.fans.iter().find(|f| f.name == name) {
+            f.requested.set(speed.clamp(0.0, 1.0));
+        }
+    }
+}
+
+/// Sets [`HeaterShared::stop`] when dropped (ends the heater loop on every way out of a print).
+#[derive(Debug)]
+pub struct StopOnDrop<'a>(pub &'a HeaterShared);
+
+impl Drop for StopOnDrop<'_> {
+    fn drop(&mut self) {
+        self.0.stop.store(true, Ordering::Release);
+    }
+}
+
+/// Klipper's M105 report: `T:cur /target B:cur /target` (plus each other heater and sensor by
+/// name).
+pub fn m105_text(shared: &HeaterShared) -> String {
+    let mut parts = Vec::new();
+    for h in &shared.heaters {
+        let id = match h.name.as_str() {
+            "extruder" => "T".to_string(),
+            "heater_bed" => "B".to_string(),
+            other => other.to_string(),
+        };
+        let t = h.temp.get();
+        let t = if t.is_nan() { 0.0 } else { t };
+        parts.push(format!("{id}:{t:.1} /{:.1}", h.target.get()));
+    }
+    if parts.is_empty() {
+        "T:0".to_string()
+    } else {
+        parts.join(" ")
+    }
+}
+
+/// One heater's loop state.
+struct Running {
+    link_index: usize,
+    pwm_oid: u8,
+    adc_oid: u8,
+    cycle_ticks: f64,
+    invert: bool,
+    max_power: f64,
+    smooth: Smoothed,
+    control: Box<dyn Control + Send>,
+    verify: VerifyHeater,
+    next_check: f64,
+    last_count: u16,
+    /// (MCU clock, on_ticks) of the last update sent.
+    last_sent: Option<(u64, u32)>,
+    /// Seconds per sensor fraction: ADC full scale of one report.
+    full_scale: f64,
+    sensor: super::thermistor::Sensor,
+}
+
+struct RunningFan {
+    link_index: usize,
+    oid: u8,
+    cycle_ticks: f64,
+    invert: bool,
+    last: Option<f64>,
+}
+
+/// Seconds of wall time a PWM update is sent ahead of its clock at least (and 0.1 s of MCU
+/// time): host pauses of this VM's kind (~10–100 ms) must not make an update late, which the
+/// MCU would take as a missed update and shut down. On a time-scaled simulator this is more MCU
+/// time, capped at [`MAX_LEAD_S`].
+const WALL_LEAD_S: f64 = 0.25;
+/// Longest lead in MCU seconds: half the heaters' `max_duration`, so refreshes keep within it.
+const MAX_LEAD_S: f64 = 0.5 * MAX_HEAT_TIME;
+
+/// Runs the heater loop until `shared.stop` (then every heater off) or an MCU shutdown. Errors
+/// (a missing command, a dead link) end the loop and are returned after every heater is off.
+pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), String> {
+    if thermal.heaters.is_empty() && thermal.fans.is_empty() && thermal.sensors.is_empty() {
+        return Ok(());
+    }
+    let mut heaters = Vec::new();
+    let mut fans = Vec::new();
+    for (li, conn) in mcus.list.iter().enumerate() {
+        let objects = thermal.objects_on(&conn.name);
+        if objects.is_empty() {
+            continue;
+        }
+        let dict = conn.link.dictionary();
+        let freq = conn.clock_freq;
+        // Right after the trsync (see crate::mcus::config_commands).
+        let oid0 = usize::from(conn.trsync_oid) + 1;
+        let adc_max = dict.config_f64("ADC_MAX").unwrap_or(4095.0);
+        // The first round starts once the query has surely arrived (0.1 s of MCU time past
+        // the update lead).
+        let start = lead_clock(&conn.link, freq) as f64 + 0.1 * freq;
+        for (k, obj) in objects.iter().enumerate() {
+            let oid = u8::try_from(oid0 + k).map_err(|_| "too many objects".to_string())?;
+            match *obj {
+                ThermalObject::HeaterPwm(i) => {
+                    let h = &thermal.heaters[i];
+                    let control: Box<dyn Control + Send> = match h.control {
+                        HeaterControl::Watermark { max_delta } => {
+                            Box::new(Watermark::new(max_delta, h.max_power))
+                        }
+                        HeaterControl::Pid { kp, ki, kd } => {
+                            Box::new(Pid::new(PidGains { kp, ki, kd }, h.max_power, h.smooth_time))
+                        }
+                    };
+                    heaters.push((
+                        i,
+                        Running {
+                            link_index: li,
+                            pwm_oid: oid,
+                            adc_oid: oid + 1,
+                            cycle_ticks: h.pwm_cycle_time * freq,
+                            invert: h.heater_pin.invert,
+                            max_power: h.max_power,
+                            smooth: Smoothed::new(h.smooth_time),
+                            control,
+                            verify: VerifyHeater::new(&h.name, h.verify),
+                            next_check: 0.0,
+                            last_count: 0,
+                            last_sent: None,
+                            full_scale: adc_max * f64::from(SAMPLE_COUNT),
+                            sensor: h.sensor,
+                        },
+                    ));
+                    let (lo, hi) = adc_range(&h.sensor, h.min_temp, h.max_temp, adc_max);
+                    query_analog(&conn.link, dict, oid + 1, start, freq, lo, hi, RANGE_CHECK_COUNT)?;
+                }
+                ThermalObject::SensorAdc(i) => {
+                    let s = &thermal.sensors[i];
+                    let (lo, hi) = adc_range(&s.sensor, s.min_temp.max(-273.0), s.max_temp.min(1e4), adc_max);
+                    query_analog(&conn.link, dict, oid, start, freq, lo, hi, 0)?;
+                }
+                ThermalObject::Fan(i) => fans.push((
+                    i,
+                    RunningFan {
+                        link_index: li,
+                        oid,
+                        cycle_ticks: thermal.fans[i].opts.cycle_time * freq,
+                        invert: thermal.fans[i].opts.pin.invert,
+                        last: None,
+                    },
+                )),
+                ThermalObject::HeaterAdc(_) => {}
+            }
+        }
+    }
+    let result = heater_loop(mcus, thermal, shared, &mut heaters, &mut fans);
+    // Every heater off, whatever ended the loop (an MCU that shut down has them off already).
+    for (_, r) in &heaters {
+        let conn = &mcus.list[r.link_index];
+        let at = lead_clock(&conn.link, conn.clock_freq);
+        let _ = send_pwm(&conn.link, r.pwm_oid, at, 0, r.invert, r.cycle_ticks);
+    }
+    result
+}
+
+#[allow(clippy::too_many_arguments)]
+fn query_analog(
+    link: &McuLink,
+    dict: &Dictionary,
+    oid: u8,
+    start: f64,
+    freq: f64,
+    min: u16,
+    max: u16,
+    range_check: u8,
+) -> Result<(), String> {
+    let cmd = dict
+        .encode(
+            "query_analog_in",
+            &[
+                i64::from(oid),
+                (start as u64 & 0xFFFF_FFFF) as i64,
+                (SAMPLE_TIME * freq).round() as i64,
+                i64::from(SAMPLE_COUNT),
+                (REPORT_TIME * freq).round() as i64,
+                i64::from(min),
+                i64::from(max),
+                i64::from(range_check),
+            ],
+        )
+        .map_err(|e| e.to_string())?;
+    link.send(cmd).map_err(|e| e.to_string())
+}
+
+/// The lead (MCU ticks) of an update sent now.
+fn lead_ticks(link: &McuLink, nominal: f64) -> f64 {
+    (0.1 * nominal)
+        .max(WALL_LEAD_S * link.clock().freq())
+        .min(MAX_LEAD_S * nominal)
+}
+
+/// The earliest MCU clock an update sent now may be scheduled at.
+fn lead_clock(link: &McuLink, nominal: f64) -> u64 {
+    let now = link.clock().clock_at(McuLink::system_now());
+    (now + lead_ticks(link, nominal)) as u64
+}
+
+fn send_pwm(
+    link: &McuLink,
+    oid: u8,
+    clock: u64,
+    on_ticks: u32,
+    invert: bool,
+    cycle: f64,
+) -> Result<(), String> {
+    let dict = link.dictionary();
+    let on = if invert {
+        (cycle.round() as u32).saturating_sub(on_ticks)
+    } else {
+        on_ticks
+    };
+    let cmd = dict
+        .encode(
+            "queue_digital_out",
+            &[i64::from(oid), (clock & 0xFFFF_FFFF) as i64, i64::from(on)],
+        )
+        .map_err(|e| e.to_string())?;
+    link.send_clocked(cmd, 0, clock).map_err(|e| e.to_string())
+}
+
+/// On ticks of `power` (0..=1) in a cycle of `cycle` ticks: 0 off, the whole cycle on.
+fn on_ticks(power: f64, cycle: f64) -> u32 {
+    if power <= 0.0 {
+        0
+    } else if power >= 1.0 {
+        cycle.round() as u32
+    } else {
+        (power * cycle).round().max(1.0) as u32
+    }
+}
+
+fn heater_loop(
+    mcus: &Mcus,
+    thermal: &Thermal,
+    shared: &HeaterShared,
+    heaters: &mut [(usize, Running)],
+    fans: &mut [(usize, RunningFan)],
+) -> Result<(), String> {
+    loop {
+        if shared.stop.load(Ordering::Acquire) {
+            return Ok(());
+        }
+        if mcus.list.iter().any(|m| m.link.shutdown_reason().is_some()) {
+            // The MCU's own outputs fell to their defaults (off); nothing more to drive.
+            shared.turn_off_all();
+            return Ok(());
+        }
+        let now_sys = McuLink::system_now();
+        for (i, r) in heaters.iter_mut() {
+            let conn = &mcus.list[r.link_index];
+            let Some((count, next_clock, value)) = conn.link.analog_report(r.adc_oid) else {
+                continue;
+            };
+            if count == r.last_count {
+                continue;
+            }
+            r.last_count = count;
+            let est = conn.link.clock();
+            let freq = conn.clock_freq;
+            let read_clock = est
+                .extend(next_clock, now_sys)
+                .saturating_sub((REPORT_TIME * freq) as u64);
+            let time = read_clock as f64 / freq;
+            let temp = r.sensor.temperature(f64::from(value) / r.full_scale);
+            let cell = &shared.heaters[*i];
+            let target = cell.target.get();
+            let smoothed = r.smooth.update(time, temp);
+            let power = r.control.update(time, temp, target).clamp(0.0, r.max_power);
+            cell.temp.set(smoothed);
+            cell.time.set(time);
+            cell.power.set(power);
+            let seen = cell.max_seen.get();
+            if seen.is_nan() || smoothed > seen {
+                cell.max_seen.set(smoothed);
+            }
+            cell.busy.store(
+                target > 0.0 && r.control.busy(smoothed, target),
+                Ordering::Release,
+            );
+            if time >= r.next_check {
+                r.next_check = time + CHECK_INTERVAL_S;
+                if let Err(fault) = r.verify.check(time, temp, target) {
+                    shutdown(mcus, shared, &fault.to_string());
+                    return Ok(());
+                }
+            }
+            let on = on_ticks(power / 1.0, r.cycle_ticks);
+            let at = ((read_clock as f64 + REPORT_TIME * freq) as u64).max(lead_clock(&conn.link, freq));
+            // The MCU queues few updates (8): with a long lead (a time-scaled simulator) a new
+            // value waits until a fifth of the lead has passed since the last one.
+            let min_gap = (lead_ticks(&conn.link, freq) / 5.0) as u64;
+            let send = r.last_sent.is_none_or(|(c, o)| {
+                let gap = at.saturating_sub(c);
+                (o != on && gap >= min_gap) || gap as f64 > 0.25 * MAX_HEAT_TIME * freq
+            });
+            if send {
+                if send_pwm(&conn.link, r.pwm_oid, at, on, r.invert, r.cycle_ticks).is_err() {
+                    // The MCU shut down or the link died: the check above ends the loop.
+                    continue;
+                }
+                r.last_sent = Some((at, on));
+            }
+        }
+        for (i, f) in fans.iter_mut() {
+            let spec = &thermal.fans[*i];
+            let cell = &shared.fans[*i];
+            let want = match &spec.role {
+                FanRole::Part => cell.requested.get(),
+                FanRole::Heater {
+                    heaters: names,
+                    heater_temp,
+                    fan_speed,
+                } => {
+                    let hot = shared.heaters.iter().any(|h| {
+                        names.contains(&h.name) && (h.target.get() > 0.0 || h.temp.get() > *heater_temp)
+                    });
+                    if hot {
+                        *fan_speed
+                    } else {
+                        0.0
+                    }
+                }
+            };
+            let speed = if want < spec.opts.off_below { 0.0 } else { want };
+            if f.last == Some(speed) {
+                continue;
+            }
+            let conn = &mcus.list[f.link_index];
+            let at = lead_clock(&conn.link, conn.clock_freq);
+            let value = on_ticks(speed * spec.opts.max_power, f.cycle_ticks);
+            let kick = spec.opts.kick_start_time;
+            let from_off = f.last.is_none_or(|l| l == 0.0);
+            let ok = if kick > 0.0 && from_off && speed > 0.0 && speed < 1.0 {
+                let full = on_ticks(spec.opts.max_power, f.cycle_ticks);
+                send_pwm(&conn.link, f.oid, at, full, f.invert, f.cycle_ticks).is_ok()
+                    && send_pwm(
+                        &conn.link,
+                        f.oid,
+                        at + (kick * conn.clock_freq) as u64,
+                        value,
+                        f.invert,
+                        f.cycle_ticks,
+                    )
+                    .is_ok()
+            } else {
+                send_pwm(&conn.link, f.oid, at, value, f.invert, f.cycle_ticks).is_ok()
+            };
+            if ok {
+                f.last = Some(speed);
+                cell.speed.set(speed);
+            }
+        }
+        // Reports come every 0.3 s of MCU time: look four times per report (every 50 ms at
+        // most; every 2 ms at least, on a fast time-scaled simulator).
+        let scale = mcus
+            .list
+            .first()
+            .map_or(1.0, |m| m.link.clock().freq() / m.clock_freq)
+            .max(1.0);
+        std::thread::sleep(Duration::from_secs_f64(
+            (REPORT_TIME / scale / 4.0).clamp(0.002, 0.05),
+        ));
+    }
+}
+
+/// A heater fault: every heater off and every MCU shut down (their outputs fall to off).
+fn shutdown(mcus: &Mcus, shared: &HeaterShared, why: &str) {
+    shared.set_fault(why.to_string());
+    shared.turn_off_all();
+    for m in &mcus.list {
+        if let Ok(cmd) = m.link.dictionary().encode("emergency_stop", &[]) {
+            let _ = m.link.send(cmd);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn on_ticks_cover_off_pwm_and_full() {
+        assert_eq!(on_ticks(0.0, 1000.0), 0);
+        assert_eq!(on_ticks(0.25, 1000.0), 250);
+        assert_eq!(on_ticks(1.0, 1000.0), 1000);
+        assert_eq!(on_ticks(1e-9, 1000.0), 1, "any heat is at least one tick");
+    }
+
+    #[test]
+    fn m105_reports_as_klipper() {
+        let cfg = sysconfig::builtin_simulated().unwrap();
+        let t = Thermal::from_config(&cfg).unwrap();
+        let s = HeaterShared::new(&t);
+        s.set_target(0, 210.0);
+        s.heaters[0].temp.set(25.04);
+        s.heaters[1].temp.set(24.96);
+        assert_eq!(m105_text(&s), "T:25.0 /210.0 B:25.0 /0.0");
+        s.turn_off_all();
+        assert_eq!(s.heaters[0].target.get(), 0.0);
+        assert_eq!(s.fault(), None);
+        s.set_fault("Heater extruder not heating at expected rate".into());
+        assert_eq!(
+            s.fault().as_deref(),
+            Some("Heater extruder not heating at expected rate")
+        );
+    }
+}
