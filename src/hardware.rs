@@ -158,6 +158,10 @@ impl Machine {
             }
             steppers.push(StepperOut::new(name, axis, &s.motor));
         }
+        // A rail's further motors (`stepper_z1`…) move with it and stop on its endstop.
+        for s in &cfg.extra_steppers {
+            steppers.push(StepperOut::new(s.name.clone(), s.rail, &s.motor));
+        }
         let toolhead = planning.toolhead;
         let home = planning.home_position;
         if let Some(e) = &cfg.extruder {
@@ -334,20 +338,31 @@ impl Machine {
     /// and the endstops wired to its pins, each reading its axis' coordinate.
     ///
     /// World axes are the rails: a stepper that moves one toolhead axis alone drives that axis
-    /// (`x`, `y`, `z`); the steppers of a corexy / corexz printer, which move two axes, drive
-    /// `a` and `b` (in rail order), and an endstop reads the forward kinematics of them (corexy
+    /// (`x`, `y`, `z`), and a rail's further motors (`stepper_z1`…) each drive their own end of
+    /// the carriage (`z1`, `z2`…; the rail's endstop reads the first motor's end); the
+    /// steppers of a corexy / corexz printer, which move two axes, drive `a` and `b` (in rail
+    /// order), and an endstop reads the forward kinematics of them (corexy
     /// X: `0.5*a+0.5*b`). A delta's towers drive `x`, `y`, `z` and each endstop reads its tower's
     /// carriage.
     pub fn sim_world_args(&self, mcu: &str, world: &str) -> Vec<String> {
         let mut args = Vec::new();
         let rails = self.sim_rails();
-        for s in self.steppers.iter().filter(|s| s.mcu == mcu && s.axis < 3) {
+        for (i, s) in self.steppers.iter().enumerate() {
+            if s.mcu != mcu || s.axis >= 3 {
+                continue;
+            }
             let steps_per_mm = if s.dir_pin.invert {
                 -1.0 / s.step_dist
             } else {
                 1.0 / s.step_dist
             };
             let (name, start) = &rails[s.axis];
+            // A rail's further motors each drive their own end of the carriage: `z1`, `z2`…
+            let nth = self.steppers[..i].iter().filter(|o| o.axis == s.axis).count();
+            let name = match nth {
+                0 => name.clone(),
+                n => format!("{name}{n}"),
+            };
             args.push("--axis".to_string());
             args.push(format!("{name}={},{steps_per_mm},{start}", s.step_pin.pin));
         }
@@ -513,6 +528,55 @@ mod tests {
         for c in ["0.5*a+0.5*b", "0.5*a-0.5*b", "y"] {
             assert!(firmware::sim::world::Coord::parse(c).is_ok(), "{c}");
         }
+    }
+
+    #[test]
+    fn further_motors_of_a_rail_move_with_it_and_drive_their_own_world_axes() {
+        let mut text = include_str!("../examples/simulated-cartesian.cfg").to_string();
+        for (n, port) in [(1, 'G'), (2, 'H')] {
+            text.push_str(&format!(
+                "\n[stepper_z{n}]\nstep_pin: P{port}0\ndir_pin: !P{port}1\nenable_pin: !P{port}2\n\
+                 microsteps: 16\nrotation_distance: 8\n"
+            ));
+        }
+        text.push_str("\n[stepper_x1]\nstep_pin: PJ0\ndir_pin: PJ1\nmicrosteps: 16\nrotation_distance: 40\n");
+        let m = machine(&text);
+        let names: Vec<(&str, usize, u8)> = m
+            .steppers
+            .iter()
+            .map(|s| (s.name.as_str(), s.axis, s.oid))
+            .collect();
+        assert_eq!(
+            names,
+            [
+                ("stepper_x", 0, 0),
+                ("stepper_y", 1, 1),
+                ("stepper_z", 2, 2),
+                ("stepper_x1", 0, 3),
+                ("stepper_z1", 2, 4),
+                ("stepper_z2", 2, 5),
+                ("extruder", 3, 6)
+            ]
+        );
+        // Homing Z stops all three Z motors; X both X motors.
+        assert_eq!(crate::homing::axis_steppers(&m, 2), [2, 4, 5]);
+        assert_eq!(crate::homing::axis_steppers(&m, 0), [0, 3]);
+        let spec: Vec<usize> = m
+            .pipeline_config(1e6, 25e-6)
+            .steppers
+            .iter()
+            .map(|s| s.axis)
+            .collect();
+        assert_eq!(spec, [0, 1, 2, 0, 2, 2, 3]);
+        // Each motor drives its own end of the carriage (an inverted dir pin counts down); the
+        // endstops read the first motor's.
+        let args = m.sim_world_args("mcu", "w").join(" ");
+        assert_eq!(
+            args,
+            "--axis x=PA0,80,22 --axis y=PB0,80,22 --axis z=PC0,400,20 --axis x1=PJ0,80,22 \
+             --axis z1=PG0,-400,20 --axis z2=PH0,-400,20 --endstop PA3=x,0,min --endstop PB3=y,0,min \
+             --endstop PC3=z,0,min --world w"
+        );
     }
 
     #[test]

@@ -9,7 +9,8 @@
 //!
 //! Build order (it decides which error is reported first): MCUs (pins are checked against
 //! them), `[printer]`, `[probe]` (its `z_offset` is Z's endstop position with
-//! `probe:z_virtual_endstop`), the steppers the kinematics needs, `[extruder]`, `[heater_bed]`,
+//! `probe:z_virtual_endstop`), the steppers the kinematics needs, their further motors
+//! (`[stepper_z1]`…), `[extruder]`, `[heater_bed]`,
 //! `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`,
 //! `[input_shaper]`, `[gcode_macro]`s, then the unused-option/section check.
 
@@ -46,7 +47,7 @@ pub use pins::{is_simulator_pin, PinKind, PinProblem, PinRef, MAIN_MCU};
 pub use probe::{ProbeSection, SamplesResult, PROBE_PIN_MCU, SAMPLES_RESULTS, Z_VIRTUAL_ENDSTOP};
 pub use realtime::RealtimeSection;
 pub use sections::{is_ignored, support as section_support, Support as SectionSupport, SECTIONS};
-pub use stepper::{MotorSection, StepperSection};
+pub use stepper::{ExtraStepperSection, MotorSection, StepperSection};
 pub use thermal::{
     ControllerFanSection, FanOptions, HeaterFanSection, SensorSection, SensorSource, TemperatureFanSection,
     TemperatureSensorSection, ThermalSections, ThermistorSection, VerifyHeaterSection,
@@ -71,6 +72,9 @@ pub struct PrinterConfig {
     /// The kinematics' steppers in axis order: `stepper_x`, `stepper_y`, `stepper_z` (delta:
     /// `stepper_a`, `stepper_b`, `stepper_c`).
     pub steppers: Vec<StepperSection>,
+    /// Further motors of those rails (`[stepper_z1]`, `[stepper_z2]`…, `[stepper_x1]`), in rail
+    /// order then index order.
+    pub extra_steppers: Vec<ExtraStepperSection>,
     /// The geometry, for delta kinematics.
     pub delta: Option<DeltaSection>,
     pub extruder: Option<ExtruderSection>,
@@ -164,6 +168,7 @@ impl PrinterConfig {
                 towers.push(delta::read_tower(&s, i, first_arm, radius)?);
             }
         }
+        let extra_steppers = read_extra_steppers(&reader, &printer, &steppers, &mut pins)?;
         let delta = match (delta_printer, towers.as_slice()) {
             (Some((delta_radius, print_radius, minimum_z_position)), &[a, b, c]) => Some(DeltaSection {
                 delta_radius,
@@ -219,6 +224,7 @@ impl PrinterConfig {
             source,
             printer,
             steppers,
+            extra_steppers,
             delta,
             extruder,
             mcus,
@@ -244,6 +250,34 @@ impl PrinterConfig {
     pub fn mcu(&self, name: &str) -> Option<&McuSection> {
         self.mcus.iter().find(|m| m.name == name)
     }
+}
+
+/// The further motors of each rail: `[stepper_z1]`, `[stepper_z2]`… up to the first missing
+/// index (as Klipper looks them up; a later one is then an unread section). Not on a delta.
+fn read_extra_steppers(
+    reader: &Reader<'_>,
+    printer: &PrinterSection,
+    steppers: &[StepperSection],
+    pins: &mut PinRegistry,
+) -> Result<Vec<ExtraStepperSection>, ConfigError> {
+    let mut extras = Vec::new();
+    for (rail, primary) in steppers.iter().enumerate() {
+        for index in 1.. {
+            let name = format!("{}{index}", primary.name);
+            let Some(s) = reader.section(&name) else {
+                break;
+            };
+            if printer.kinematics == Kinematics::Delta {
+                return Err(ConfigError::BadSection {
+                    at: s.at().clone(),
+                    section: name,
+                    reason: "is not supported by Cadence yet (several motors on a delta tower)".to_string(),
+                });
+            }
+            extras.push(stepper::read_extra(&s, pins, rail, primary)?);
+        }
+    }
+    Ok(extras)
 }
 
 /// Pin providers among the ignored sections: `[adc_scaled NAME]` and `[sx1509 NAME]` provide
