@@ -98,8 +98,10 @@ pub struct Machine {
     pub options: PipelineOptions,
     /// Some MCU is a real board (not `serial: simulator`): heat asked of it is warned about.
     pub real_board: bool,
-    /// `[gcode_macro]` sections, run by the G-code feed.
+    /// `[gcode_macro]` sections, run by the G-code feed, and the `[homing_override]` script.
     pub macros: Vec<planner::gcode::macros::MacroDef>,
+    /// How G28 runs (`[safe_z_home]`, `[homing_override]`).
+    pub homing: crate::homing::procedure::HomingProcedure,
 }
 
 /// Why a printer.cfg describes no printer the host can drive; each names the file.
@@ -195,7 +197,16 @@ impl Machine {
             home_position: home,
             options,
             real_board: cfg.mcus.iter().any(|m| !m.is_simulated()),
-            macros: cfg.macros.clone(),
+            macros: cfg
+                .macros
+                .iter()
+                .chain(cfg.homing_override.as_ref().map(|o| &o.script))
+                .cloned()
+                .collect(),
+            homing: crate::homing::procedure::HomingProcedure {
+                safe_z_home: cfg.safe_z_home.clone(),
+                homing_override: cfg.homing_override.clone(),
+            },
         })
     }
 

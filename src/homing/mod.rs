@@ -56,6 +56,7 @@
 mod halt;
 mod pass;
 pub mod probe;
+pub mod procedure;
 
 pub(crate) use pass::homing_pass;
 

@@ -12,7 +12,8 @@
 //! `probe:z_virtual_endstop`), the steppers the kinematics needs, their further motors
 //! (`[stepper_z1]`…), `[extruder]`, `[heater_bed]`,
 //! `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`,
-//! `[input_shaper]`, `[gcode_macro]`s, then the unused-option/section check.
+//! `[input_shaper]`, `[gcode_macro]`s, `[safe_z_home]` / `[homing_override]`, then the
+//! unused-option/section check.
 
 mod board_pins;
 mod delta;
@@ -20,6 +21,7 @@ mod error;
 mod extruder;
 mod gcode;
 mod heater;
+mod homing;
 mod input_shaper;
 mod macros;
 mod mcu;
@@ -41,6 +43,7 @@ pub use error::{ConfigError, ValueProblem};
 pub use extruder::ExtruderSection;
 pub use gcode::{FirmwareRetractionSection, GcodeArcsSection, GcodeSection, UnknownCommands};
 pub use heater::{HeaterControl, HeaterSection, ABSOLUTE_ZERO_C};
+pub use homing::{HomingOverrideSection, SafeZHomeSection, HOMING_OVERRIDE_MACRO};
 pub use input_shaper::InputShaperSection;
 pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
 pub use pins::{is_simulator_pin, PinKind, PinProblem, PinRef, MAIN_MCU};
@@ -95,6 +98,10 @@ pub struct PrinterConfig {
     pub firmware_retraction: FirmwareRetractionSection,
     /// `[input_shaper]`, when there is one.
     pub input_shaper: Option<InputShaperSection>,
+    /// `[safe_z_home]`: how G28 homes Z.
+    pub safe_z_home: Option<SafeZHomeSection>,
+    /// `[homing_override]`: the script G28 runs instead.
+    pub homing_override: Option<HomingOverrideSection>,
     /// `[gcode_macro NAME]` sections, in file order.
     pub macros: Vec<planner::gcode::macros::MacroDef>,
     /// Accepted-but-ignored sections and other things worth telling the user.
@@ -205,12 +212,18 @@ impl PrinterConfig {
             None => None,
         };
         let macros = macros::read_gcode_macros(&reader)?;
+        let has_stepper_z = steppers.iter().any(|s| s.name == "stepper_z");
+        let (safe_z_home, homing_override) = homing::read_homing(&reader, has_stepper_z)?;
 
         let mut warnings = reader.finish(is_ignored)?;
-        if !macros.is_empty() {
+        let scripts: Vec<_> = macros
+            .iter()
+            .chain(homing_override.as_ref().map(|o| &o.script))
+            .cloned()
+            .collect();
+        if !scripts.is_empty() {
             // A broken template or a non-literal variable fails the load here, not mid-print.
-            planner::gcode::macros::Macros::new(macros.clone())
-                .map_err(|e| ConfigError::Macro(Box::new(e)))?;
+            planner::gcode::macros::Macros::new(scripts).map_err(|e| ConfigError::Macro(Box::new(e)))?;
         }
         if let Some(s) = simulator_section {
             if !mcus.iter().any(McuSection::is_simulated) {
@@ -236,6 +249,8 @@ impl PrinterConfig {
             gcode_arcs,
             firmware_retraction,
             input_shaper,
+            safe_z_home,
+            homing_override,
             macros,
             warnings,
         })

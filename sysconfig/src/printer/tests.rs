@@ -677,3 +677,64 @@ fn further_motor_errors_name_the_option() {
     );
     assert!(parse(&shared).is_err());
 }
+
+#[test]
+fn safe_z_home_and_homing_override_are_read() {
+    let cfg = ok(&format!(
+        "{MINIMAL}[safe_z_home]\nhome_xy_position: 100, 120.5\nz_hop: 10\nmove_to_previous: True\n"
+    ));
+    assert_eq!(
+        cfg.safe_z_home,
+        Some(SafeZHomeSection {
+            home_xy_position: [100.0, 120.5],
+            speed: 50.0,
+            z_hop: 10.0,
+            z_hop_speed: 15.0,
+            move_to_previous: true,
+        })
+    );
+    let cfg = ok(&format!(
+        "{MINIMAL}[homing_override]\naxes: z\nset_position_z: 0\ngcode:\n  G28 X\n  G28 Z\n"
+    ));
+    let o = cfg.homing_override.unwrap_or_else(|| panic!("no override"));
+    assert_eq!(
+        (o.axes, o.set_position),
+        ([false, false, true], [None, None, Some(0.0)])
+    );
+    assert_eq!(o.script.name, HOMING_OVERRIDE_MACRO);
+    assert!(o.script.gcode.contains("G28 Z"), "{}", o.script.gcode);
+}
+
+#[test]
+fn homing_section_errors() {
+    let errors = [
+        (
+            "[safe_z_home]\nspeed: 5\n",
+            "printer.cfg:25: Option 'home_xy_position' in section 'safe_z_home' must be specified",
+        ),
+        (
+            "[safe_z_home]\nhome_xy_position: 100\n",
+            "printer.cfg:26: [safe_z_home] home_xy_position: must be two numbers 'X, Y', got '100'",
+        ),
+        (
+            "[safe_z_home]\nhome_xy_position: 1,2\nz_hop_speed: 0\n",
+            "printer.cfg:27: [safe_z_home] z_hop_speed: must be above 0, got 0",
+        ),
+        (
+            "[homing_override]\naxes: z\n",
+            "printer.cfg:25: Option 'gcode' in section 'homing_override' must be specified",
+        ),
+        // A broken script fails the load, naming its section.
+        ("[homing_override]\ngcode: {% if %}\n", "homing_override"),
+    ];
+    for (extra, want) in errors {
+        let err = parse(&format!("{MINIMAL}{extra}")).map(|_| ()).unwrap_err();
+        assert!(err.contains(want), "{extra}: {err}");
+    }
+    let both = format!("{MINIMAL}[safe_z_home]\nhome_xy_position: 1,2\n[homing_override]\ngcode: G28\n");
+    let err = parse(&both).map(|_| ()).unwrap_err();
+    assert!(
+        err.starts_with("printer.cfg:25: ") && err.contains("cannot be used together with [homing_override]"),
+        "{err}"
+    );
+}
