@@ -405,11 +405,25 @@ fn probe_out(
     endstops: &[EndstopOut],
     next: &mut std::collections::HashMap<String, u8>,
 ) -> Result<ProbeOut, HardwareError> {
-    let Some(z) = cfg.steppers.get(2).filter(|s| s.name == "stepper_z") else {
-        return Err(HardwareError::Probe {
-            file: cfg.source.clone(),
-            why: "[probe] needs a [stepper_z] (cartesian or corexy kinematics)".to_string(),
-        });
+    // Z's range: `[stepper_z]`'s, or a delta's (minimum_z_position .. the lowest tower top),
+    // where probing is refused when asked for (delta homing is not supported yet).
+    let (z_min, z_max) = match cfg.steppers.get(2).filter(|s| s.name == "stepper_z") {
+        Some(z) => (z.position_min, z.position_max),
+        None => match &cfg.delta {
+            Some(d) => (
+                d.minimum_z_position,
+                cfg.steppers
+                    .iter()
+                    .map(|s| s.position_max)
+                    .fold(f64::INFINITY, f64::min),
+            ),
+            None => {
+                return Err(HardwareError::Probe {
+                    file: cfg.source.clone(),
+                    why: "[probe] needs a [stepper_z] or delta kinematics".to_string(),
+                })
+            }
+        },
     };
     let shared = endstops.iter().find(|e| e.axis == 2 && e.probe);
     let oid = match shared {
@@ -427,8 +441,8 @@ fn probe_out(
             pin: p.pin.clone(),
             oid,
             position_endstop: p.z_offset,
-            position_min: z.position_min,
-            position_max: z.position_max,
+            position_min: z_min,
+            position_max: z_max,
             homing_speed: p.speed,
             second_homing_speed: p.speed,
             homing_retract_dist: p.sample_retract_dist,
@@ -436,7 +450,7 @@ fn probe_out(
             probe: true,
         },
         z_virtual_endstop: shared.is_some(),
-        z_position: p.z_position.unwrap_or(z.position_min),
+        z_position: p.z_position.unwrap_or(z_min),
         cfg: p.clone(),
     })
 }
@@ -588,6 +602,27 @@ mod tests {
              --axis z1=PG0,-400,20 --axis z2=PH0,-400,20 --endstop PA3=x,0,min --endstop PB3=y,0,min \
              --endstop PC3=z,0,min --world w"
         );
+    }
+
+    #[test]
+    fn a_probe_on_a_delta_takes_the_delta_z_range() {
+        let text = "[mcu]\nserial: simulator\n\
+            [printer]\nkinematics: delta\nmax_velocity: 300\nmax_accel: 3000\ndelta_radius: 140\n\
+            minimum_z_position: -5\n\
+            [stepper_a]\nstep_pin: PA0\ndir_pin: PA1\nmicrosteps: 16\nrotation_distance: 40\nendstop_pin: PA2\n\
+            position_endstop: 250\narm_length: 270\n\
+            [stepper_b]\nstep_pin: PA3\ndir_pin: PA4\nmicrosteps: 16\nrotation_distance: 40\nendstop_pin: PA5\n\
+            position_endstop: 251\n\
+            [stepper_c]\nstep_pin: PA6\ndir_pin: PA7\nmicrosteps: 16\nrotation_distance: 40\nendstop_pin: PB0\n\
+            position_endstop: 249\n\
+            [probe]\npin: PB1\nz_offset: 1\n";
+        let m = machine(text);
+        let p = m.probe.as_ref().unwrap();
+        assert_eq!(
+            (p.z_position, p.endstop.position_min, p.endstop.position_max),
+            (-5.0, -5.0, 249.0)
+        );
+        assert_eq!((p.endstop.oid, p.z_virtual_endstop), (6, false));
     }
 
     #[test]
