@@ -101,7 +101,14 @@ pub fn run_batch(
         sinks: &mut sinks,
     };
     let mut macros = Macros::new(machine.macros.clone()).map_err(|e| e.to_string())?;
-    let lines = plan_file(gcode, &mut pipeline, &mut accessories, &mut macros, &mut target)?;
+    let lines = plan_file(
+        gcode,
+        &mut pipeline,
+        &mut accessories,
+        &mut macros,
+        &machine.homing,
+        &mut target,
+    )?;
     for s in &mut sinks {
         s.finish()?;
     }

@@ -18,6 +18,7 @@ use planner::stepgen::StepCmd;
 
 use crate::accessories::Accessories;
 use crate::heaters::gcode::{self as heat_gcode, HeatCmd};
+use crate::homing::procedure::{HomeOps, HomingProcedure};
 
 /// Where a print's G-code comes from: a name for messages (the file's path, or a stream's
 /// label) and either buffered bytes or a session's channel of commands.
@@ -237,6 +238,7 @@ pub(crate) fn plan_file(
     pipeline: &mut Pipeline,
     accessories: &mut Accessories,
     macros: &mut Macros,
+    homing: &HomingProcedure,
     target: &mut impl FeedTarget,
 ) -> Result<u64, String> {
     let mut warnings = Warnings::default();
@@ -277,7 +279,7 @@ pub(crate) fn plan_file(
         };
         let Some(reply) = reply else {
             let line = line.map_err(|e| format!("{}: {e}", file.display()))?;
-            feed.run_line(&line, &mut idle, macros, target)?;
+            feed.run_line(&line, &mut idle, macros, homing, target)?;
             continue;
         };
         // A checked command: its own error is answered and the session goes on; an error of
@@ -288,7 +290,7 @@ pub(crate) fn plan_file(
         };
         let result = line
             .map_err(|e| format!("{}: {e}", file.display()))
-            .and_then(|line| feed.run_line(&line, &mut idle, macros, &mut checked));
+            .and_then(|line| feed.run_line(&line, &mut idle, macros, homing, &mut checked));
         let failed = checked.failed;
         // The sender waits for the answer; a sender that gave up is no error.
         let _ = reply.try_send(result.clone().map_err(|message| LineError {
@@ -321,6 +323,7 @@ impl Feed<'_> {
         line: &GcodeLine,
         idle: &mut bool,
         macros: &mut Macros,
+        homing: &HomingProcedure,
         target: &mut impl FeedTarget,
     ) -> Result<(), String> {
         if *idle {
@@ -330,8 +333,22 @@ impl Feed<'_> {
                 .map_err(|e| format!("{}: {e}", self.file.display()))?;
             target.idle(false, self.pipeline);
         }
-        if !self.run_macro_or_variable(line, macros, target)? {
-            self.plan(line, target)?;
+        match line.cmd {
+            // `[safe_z_home]` / `[homing_override]` (unless a `[gcode_macro G28]` replaces G28).
+            Command::Home { x, y, z } if homing.is_custom() && !macros.is_macro("G28") => {
+                let mut ops = FeedHoming {
+                    feed: self,
+                    macros,
+                    target,
+                    line_no: line.line_no,
+                };
+                homing.g28([x, y, z], &mut ops)?;
+            }
+            _ => {
+                if !self.run_macro_or_variable(line, macros, target)? {
+                    self.plan(line, target)?;
+                }
+            }
         }
         Ok(())
     }
@@ -363,9 +380,22 @@ impl Feed<'_> {
         let Some((name, rawparams)) = macro_call(&line.cmd, macros) else {
             return Ok(false);
         };
-        let at = |why: String| format!("{}:{}: {why}", self.file.display(), line.line_no);
+        self.run_script(&name, &rawparams, line.line_no, macros, target)?;
+        Ok(true)
+    }
+
+    /// Runs macro `name` called with `rawparams` from line `line_no` to its end.
+    fn run_script(
+        &mut self,
+        name: &str,
+        rawparams: &str,
+        line_no: usize,
+        macros: &mut Macros,
+        target: &mut impl FeedTarget,
+    ) -> Result<(), String> {
+        let at = |why: String| format!("{}:{}: {why}", self.file.display(), line_no);
         let mut script = Script::new();
-        self.macro_step(&name, &rawparams, macros, &mut script, target)
+        self.macro_step(name, rawparams, macros, &mut script, target)
             .map_err(at)?;
         while let Some(next) = script.next_line() {
             let via = next.macros.join(" > ");
@@ -382,19 +412,16 @@ impl Feed<'_> {
                 Some(original) => format!("{original} {rest}"),
                 None => next.text,
             };
-            let cmd = match parse_line(line.line_no, text.as_bytes()) {
+            let cmd = match parse_line(line_no, text.as_bytes()) {
                 Ok(Some(cmd)) => cmd,
                 Ok(None) => continue,
                 Err(e) => return Err(at(format!("in macro {via}: {e}"))),
             };
-            let sub = GcodeLine {
-                line_no: line.line_no,
-                cmd,
-            };
+            let sub = GcodeLine { line_no, cmd };
             self.plan(&sub, target)
                 .map_err(|e| format!("{e} (in macro {via})"))?;
         }
-        Ok(true)
+        Ok(())
     }
 
     /// `SET_GCODE_VARIABLE`, or a call of macro `name` (rendered now, its lines pushed on
@@ -434,6 +461,58 @@ impl Feed<'_> {
             "toolhead": {"position": position.clone(), "homed_axes": homed_axes},
             "gcode_move": {"position": position.clone(), "gcode_position": position},
         })
+    }
+}
+
+/// The printer a G28 procedure ([`HomingProcedure`]) runs on: the feed's planner, the printer's
+/// own G28 (with the MCUs where they home) and the `[homing_override]` script, errors located
+/// at the G28's line.
+struct FeedHoming<'f, 'a, T> {
+    feed: &'f mut Feed<'a>,
+    macros: &'f mut Macros,
+    target: &'f mut T,
+    line_no: usize,
+}
+
+impl<T: FeedTarget> HomeOps for FeedHoming<'_, '_, T> {
+    fn homed(&self) -> [bool; 3] {
+        self.feed.pipeline.gcode_state().homed()
+    }
+
+    fn position(&self) -> [f64; 4] {
+        self.feed.pipeline.position()
+    }
+
+    fn set_position(&mut self, pos: [f64; 4], homed: [bool; 3]) {
+        self.feed.pipeline.set_toolhead_position(pos);
+        self.feed.pipeline.set_homed(homed);
+    }
+
+    fn home(&mut self, axes: [bool; 3]) -> Result<(), String> {
+        let [x, y, z] = axes;
+        let line = GcodeLine {
+            line_no: self.line_no,
+            cmd: Command::Home { x, y, z },
+        };
+        self.feed.plan(&line, self.target)
+    }
+
+    fn move_to(&mut self, pos: [f64; 4], speed: f64) -> Result<(), String> {
+        self.feed
+            .pipeline
+            .home_move(pos, speed)
+            .map_err(|e| self.fail(&e.to_string()))?;
+        release(self.feed.pipeline, self.feed.out, self.target)
+    }
+
+    fn run_override(&mut self, rawparams: &str) -> Result<(), String> {
+        let name = sysconfig::printer::HOMING_OVERRIDE_MACRO;
+        self.feed
+            .run_script(name, rawparams, self.line_no, self.macros, self.target)
+    }
+
+    fn fail(&self, why: &str) -> String {
+        format!("{}:{}: G28: {why}", self.feed.file.display(), self.line_no)
     }
 }
 

@@ -98,10 +98,12 @@ pub struct Machine {
     pub options: PipelineOptions,
     /// Some MCU is a real board (not `serial: simulator`): heat asked of it is warned about.
     pub real_board: bool,
-    /// `[gcode_macro]` sections, run by the G-code feed.
+    /// `[gcode_macro]` sections, run by the G-code feed, and the `[homing_override]` script.
     pub macros: Vec<planner::gcode::macros::MacroDef>,
     /// Heaters, temperature sensors and fans.
     pub thermal: crate::heaters::objects::Thermal,
+    /// How G28 runs (`[safe_z_home]`, `[homing_override]`).
+    pub homing: crate::homing::procedure::HomingProcedure,
 }
 
 /// Why a printer.cfg describes no printer the host can drive; each names the file.
@@ -167,6 +169,10 @@ impl Machine {
             }
             steppers.push(StepperOut::new(name, axis, &s.motor));
         }
+        // A rail's further motors (`stepper_z1`…) move with it and stop on its endstop.
+        for s in &cfg.extra_steppers {
+            steppers.push(StepperOut::new(s.name.clone(), s.rail, &s.motor));
+        }
         let toolhead = planning.toolhead;
         let home = planning.home_position;
         if let Some(e) = &cfg.extruder {
@@ -205,7 +211,16 @@ impl Machine {
             home_position: home,
             options,
             real_board: cfg.mcus.iter().any(|m| !m.is_simulated()),
-            macros: cfg.macros.clone(),
+            macros: cfg
+                .macros
+                .iter()
+                .chain(cfg.homing_override.as_ref().map(|o| &o.script))
+                .cloned()
+                .collect(),
+            homing: crate::homing::procedure::HomingProcedure {
+                safe_z_home: cfg.safe_z_home.clone(),
+                homing_override: cfg.homing_override.clone(),
+            },
             thermal,
         })
     }
@@ -349,20 +364,31 @@ impl Machine {
     /// and the endstops wired to its pins, each reading its axis' coordinate.
     ///
     /// World axes are the rails: a stepper that moves one toolhead axis alone drives that axis
-    /// (`x`, `y`, `z`); the steppers of a corexy / corexz printer, which move two axes, drive
-    /// `a` and `b` (in rail order), and an endstop reads the forward kinematics of them (corexy
+    /// (`x`, `y`, `z`), and a rail's further motors (`stepper_z1`…) each drive their own end of
+    /// the carriage (`z1`, `z2`…; the rail's endstop reads the first motor's end); the
+    /// steppers of a corexy / corexz printer, which move two axes, drive `a` and `b` (in rail
+    /// order), and an endstop reads the forward kinematics of them (corexy
     /// X: `0.5*a+0.5*b`). A delta's towers drive `x`, `y`, `z` and each endstop reads its tower's
     /// carriage.
     pub fn sim_world_args(&self, mcu: &str, world: &str) -> Vec<String> {
         let mut args = Vec::new();
         let rails = self.sim_rails();
-        for s in self.steppers.iter().filter(|s| s.mcu == mcu && s.axis < 3) {
+        for (i, s) in self.steppers.iter().enumerate() {
+            if s.mcu != mcu || s.axis >= 3 {
+                continue;
+            }
             let steps_per_mm = if s.dir_pin.invert {
                 -1.0 / s.step_dist
             } else {
                 1.0 / s.step_dist
             };
             let (name, start) = &rails[s.axis];
+            // A rail's further motors each drive their own end of the carriage: `z1`, `z2`…
+            let nth = self.steppers[..i].iter().filter(|o| o.axis == s.axis).count();
+            let name = match nth {
+                0 => name.clone(),
+                n => format!("{name}{n}"),
+            };
             args.push("--axis".to_string());
             args.push(format!("{name}={},{steps_per_mm},{start}", s.step_pin.pin));
         }
@@ -394,11 +420,25 @@ fn probe_out(
     endstops: &[EndstopOut],
     next: &mut std::collections::HashMap<String, u8>,
 ) -> Result<ProbeOut, HardwareError> {
-    let Some(z) = cfg.steppers.get(2).filter(|s| s.name == "stepper_z") else {
-        return Err(HardwareError::Probe {
-            file: cfg.source.clone(),
-            why: "[probe] needs a [stepper_z] (cartesian or corexy kinematics)".to_string(),
-        });
+    // Z's range: `[stepper_z]`'s, or a delta's (minimum_z_position .. the lowest tower top),
+    // where probing is refused when asked for (delta homing is not supported yet).
+    let (z_min, z_max) = match cfg.steppers.get(2).filter(|s| s.name == "stepper_z") {
+        Some(z) => (z.position_min, z.position_max),
+        None => match &cfg.delta {
+            Some(d) => (
+                d.minimum_z_position,
+                cfg.steppers
+                    .iter()
+                    .map(|s| s.position_max)
+                    .fold(f64::INFINITY, f64::min),
+            ),
+            None => {
+                return Err(HardwareError::Probe {
+                    file: cfg.source.clone(),
+                    why: "[probe] needs a [stepper_z] or delta kinematics".to_string(),
+                })
+            }
+        },
     };
     let shared = endstops.iter().find(|e| e.axis == 2 && e.probe);
     let oid = match shared {
@@ -416,8 +456,8 @@ fn probe_out(
             pin: p.pin.clone(),
             oid,
             position_endstop: p.z_offset,
-            position_min: z.position_min,
-            position_max: z.position_max,
+            position_min: z_min,
+            position_max: z_max,
             homing_speed: p.speed,
             second_homing_speed: p.speed,
             homing_retract_dist: p.sample_retract_dist,
@@ -425,7 +465,7 @@ fn probe_out(
             probe: true,
         },
         z_virtual_endstop: shared.is_some(),
-        z_position: p.z_position.unwrap_or(z.position_min),
+        z_position: p.z_position.unwrap_or(z_min),
         cfg: p.clone(),
     })
 }
@@ -528,6 +568,76 @@ mod tests {
         for c in ["0.5*a+0.5*b", "0.5*a-0.5*b", "y"] {
             assert!(firmware::sim::world::Coord::parse(c).is_ok(), "{c}");
         }
+    }
+
+    #[test]
+    fn further_motors_of_a_rail_move_with_it_and_drive_their_own_world_axes() {
+        let mut text = include_str!("../examples/simulated-cartesian.cfg").to_string();
+        for (n, port) in [(1, 'G'), (2, 'H')] {
+            text.push_str(&format!(
+                "\n[stepper_z{n}]\nstep_pin: P{port}0\ndir_pin: !P{port}1\nenable_pin: !P{port}2\n\
+                 microsteps: 16\nrotation_distance: 8\n"
+            ));
+        }
+        text.push_str("\n[stepper_x1]\nstep_pin: PJ0\ndir_pin: PJ1\nmicrosteps: 16\nrotation_distance: 40\n");
+        let m = machine(&text);
+        let names: Vec<(&str, usize, u8)> = m
+            .steppers
+            .iter()
+            .map(|s| (s.name.as_str(), s.axis, s.oid))
+            .collect();
+        assert_eq!(
+            names,
+            [
+                ("stepper_x", 0, 0),
+                ("stepper_y", 1, 1),
+                ("stepper_z", 2, 2),
+                ("stepper_x1", 0, 3),
+                ("stepper_z1", 2, 4),
+                ("stepper_z2", 2, 5),
+                ("extruder", 3, 6)
+            ]
+        );
+        // Homing Z stops all three Z motors; X both X motors.
+        assert_eq!(crate::homing::axis_steppers(&m, 2), [2, 4, 5]);
+        assert_eq!(crate::homing::axis_steppers(&m, 0), [0, 3]);
+        let spec: Vec<usize> = m
+            .pipeline_config(1e6, 25e-6)
+            .steppers
+            .iter()
+            .map(|s| s.axis)
+            .collect();
+        assert_eq!(spec, [0, 1, 2, 0, 2, 2, 3]);
+        // Each motor drives its own end of the carriage (an inverted dir pin counts down); the
+        // endstops read the first motor's.
+        let args = m.sim_world_args("mcu", "w").join(" ");
+        assert_eq!(
+            args,
+            "--axis x=PA0,80,22 --axis y=PB0,80,22 --axis z=PC0,400,20 --axis x1=PJ0,80,22 \
+             --axis z1=PG0,-400,20 --axis z2=PH0,-400,20 --endstop PA3=x,0,min --endstop PB3=y,0,min \
+             --endstop PC3=z,0,min --world w"
+        );
+    }
+
+    #[test]
+    fn a_probe_on_a_delta_takes_the_delta_z_range() {
+        let text = "[mcu]\nserial: simulator\n\
+            [printer]\nkinematics: delta\nmax_velocity: 300\nmax_accel: 3000\ndelta_radius: 140\n\
+            minimum_z_position: -5\n\
+            [stepper_a]\nstep_pin: PA0\ndir_pin: PA1\nmicrosteps: 16\nrotation_distance: 40\nendstop_pin: PA2\n\
+            position_endstop: 250\narm_length: 270\n\
+            [stepper_b]\nstep_pin: PA3\ndir_pin: PA4\nmicrosteps: 16\nrotation_distance: 40\nendstop_pin: PA5\n\
+            position_endstop: 251\n\
+            [stepper_c]\nstep_pin: PA6\ndir_pin: PA7\nmicrosteps: 16\nrotation_distance: 40\nendstop_pin: PB0\n\
+            position_endstop: 249\n\
+            [probe]\npin: PB1\nz_offset: 1\n";
+        let m = machine(text);
+        let p = m.probe.as_ref().unwrap();
+        assert_eq!(
+            (p.z_position, p.endstop.position_min, p.endstop.position_max),
+            (-5.0, -5.0, 249.0)
+        );
+        assert_eq!((p.endstop.oid, p.z_virtual_endstop), (6, false));
     }
 
     #[test]

@@ -196,7 +196,14 @@ pub(crate) fn planner_stage(gcode: GcodeInput, st: &PlannerStage<'_>) -> Result<
     let mut accessories = Accessories::new(st.machine.real_board && st.heaters.is_none());
     let file = gcode.name.clone();
     let mut macros = Macros::new(st.machine.macros.clone()).map_err(|e| e.to_string())?;
-    let lines = plan_file(gcode, &mut pipeline, &mut accessories, &mut macros, &mut run)?;
+    let lines = plan_file(
+        gcode,
+        &mut pipeline,
+        &mut accessories,
+        &mut macros,
+        &st.machine.homing,
+        &mut run,
+    )?;
     run.sinks.iter_mut().try_for_each(ShmSink::flush)?;
     let total = run.published();
     // Counted before anything below allocates (the report's own vectors).

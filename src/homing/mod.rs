@@ -3,7 +3,9 @@
 //!
 //! The axis steppers are every stepper that moves the homed axis ([`axis_steppers`]): X's own
 //! on a cartesian printer, both motors A (x + y) and B (x − y) for corexy X or Y, A (x + z) and
-//! B (x − z) for corexz X or Z. Delta homing is refused (its towers home together).
+//! B (x − z) for corexz X or Z, each rail with its further motors (`stepper_z1`…, on the rail
+//! motor's MCU), all stopped by the one trigger. Delta homing is refused (its towers home
+//! together).
 //!
 //! Per axis, per pass (the second at `second_homing_speed` after retracting
 //! `homing_retract_dist`, skipped when that is 0):
@@ -54,6 +56,7 @@
 mod halt;
 mod pass;
 pub mod probe;
+pub mod procedure;
 
 pub(crate) use pass::homing_pass;
 

@@ -9,7 +9,7 @@ use planner::toolhead::ToolheadConfig;
 use crate::printer::{PrinterConfig, UnknownCommands};
 
 /// The planner configuration of a validated printer config: kinematics, steppers in the
-/// kinematics' order (then the extruder), limits, home position; for MCU clocks at `clock_freq`
+/// kinematics' order (then the rails' further motors, then the extruder), limits, home position; for MCU clocks at `clock_freq`
 /// ticks per print second and a step compression bound of `max_error_s`.
 pub fn pipeline_config(
     cfg: &PrinterConfig,
@@ -44,6 +44,14 @@ pub fn pipeline_config(
             name: s.name.clone(),
             axis,
             step_dist: s.step_dist(),
+        });
+    }
+    // Further motors of a rail follow its motion (`[stepper_z1]` moves as `[stepper_z]`).
+    for s in &cfg.extra_steppers {
+        steppers.push(StepperSpec {
+            name: s.name.clone(),
+            axis: s.rail,
+            step_dist: s.motor.step_dist(),
         });
     }
     if let (Kinematics::Delta(g), Some(d)) = (kin, &cfg.delta) {

@@ -9,9 +9,11 @@
 //!
 //! Build order (it decides which error is reported first): MCUs (pins are checked against
 //! them), `[printer]`, `[probe]` (its `z_offset` is Z's endstop position with
-//! `probe:z_virtual_endstop`), the steppers the kinematics needs, `[extruder]`, `[heater_bed]`,
-//! the thermal sections (`thermal`), `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`,
-//! `[input_shaper]`, `[gcode_macro]`s, then the unused-option/section check.
+//! `probe:z_virtual_endstop`), the steppers the kinematics needs, their further motors
+//! (`[stepper_z1]`…), `[extruder]`, `[heater_bed]`, the thermal sections (`thermal`),
+//! `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`,
+//! `[input_shaper]`, `[gcode_macro]`s, `[safe_z_home]` / `[homing_override]`, then the
+//! unused-option/section check.
 
 mod board_pins;
 mod delta;
@@ -19,6 +21,7 @@ mod error;
 mod extruder;
 mod gcode;
 mod heater;
+mod homing;
 mod input_shaper;
 mod macros;
 mod mcu;
@@ -40,13 +43,14 @@ pub use error::{ConfigError, ValueProblem};
 pub use extruder::ExtruderSection;
 pub use gcode::{FirmwareRetractionSection, GcodeArcsSection, GcodeSection, UnknownCommands};
 pub use heater::{HeaterControl, HeaterSection, ABSOLUTE_ZERO_C};
+pub use homing::{HomingOverrideSection, SafeZHomeSection, HOMING_OVERRIDE_MACRO};
 pub use input_shaper::InputShaperSection;
 pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
 pub use pins::{is_simulator_pin, PinKind, PinProblem, PinRef, MAIN_MCU};
 pub use probe::{ProbeSection, SamplesResult, PROBE_PIN_MCU, SAMPLES_RESULTS, Z_VIRTUAL_ENDSTOP};
 pub use realtime::RealtimeSection;
 pub use sections::{is_ignored, support as section_support, Support as SectionSupport, SECTIONS};
-pub use stepper::{MotorSection, StepperSection};
+pub use stepper::{ExtraStepperSection, MotorSection, StepperSection};
 pub use thermal::{
     ControllerFanSection, FanOptions, HeaterFanSection, SensorSection, SensorSource, TemperatureFanSection,
     TemperatureSensorSection, ThermalSections, ThermistorSection, VerifyHeaterSection,
@@ -72,6 +76,9 @@ pub struct PrinterConfig {
     /// The kinematics' steppers in axis order: `stepper_x`, `stepper_y`, `stepper_z` (delta:
     /// `stepper_a`, `stepper_b`, `stepper_c`).
     pub steppers: Vec<StepperSection>,
+    /// Further motors of those rails (`[stepper_z1]`, `[stepper_z2]`…, `[stepper_x1]`), in rail
+    /// order then index order.
+    pub extra_steppers: Vec<ExtraStepperSection>,
     /// The geometry, for delta kinematics.
     pub delta: Option<DeltaSection>,
     pub extruder: Option<ExtruderSection>,
@@ -96,6 +103,10 @@ pub struct PrinterConfig {
     /// (`[heater_generic]`, `[verify_heater]`, `[thermistor]`, `[temperature_sensor]`, `[fan]`,
     /// `[heater_fan]`).
     pub thermal: ThermalSections,
+    /// `[safe_z_home]`: how G28 homes Z.
+    pub safe_z_home: Option<SafeZHomeSection>,
+    /// `[homing_override]`: the script G28 runs instead.
+    pub homing_override: Option<HomingOverrideSection>,
     /// `[gcode_macro NAME]` sections, in file order.
     pub macros: Vec<planner::gcode::macros::MacroDef>,
     /// Accepted-but-ignored sections and other things worth telling the user.
@@ -169,6 +180,7 @@ impl PrinterConfig {
                 towers.push(delta::read_tower(&s, i, first_arm, radius)?);
             }
         }
+        let extra_steppers = read_extra_steppers(&reader, &printer, &steppers, &mut pins)?;
         let delta = match (delta_printer, towers.as_slice()) {
             (Some((delta_radius, print_radius, minimum_z_position)), &[a, b, c]) => Some(DeltaSection {
                 delta_radius,
@@ -206,12 +218,18 @@ impl PrinterConfig {
             None => None,
         };
         let macros = macros::read_gcode_macros(&reader)?;
+        let has_stepper_z = steppers.iter().any(|s| s.name == "stepper_z");
+        let (safe_z_home, homing_override) = homing::read_homing(&reader, has_stepper_z)?;
 
         let mut warnings = reader.finish(is_ignored)?;
-        if !macros.is_empty() {
+        let scripts: Vec<_> = macros
+            .iter()
+            .chain(homing_override.as_ref().map(|o| &o.script))
+            .cloned()
+            .collect();
+        if !scripts.is_empty() {
             // A broken template or a non-literal variable fails the load here, not mid-print.
-            planner::gcode::macros::Macros::new(macros.clone())
-                .map_err(|e| ConfigError::Macro(Box::new(e)))?;
+            planner::gcode::macros::Macros::new(scripts).map_err(|e| ConfigError::Macro(Box::new(e)))?;
         }
         if let Some(s) = simulator_section {
             if !mcus.iter().any(McuSection::is_simulated) {
@@ -225,6 +243,7 @@ impl PrinterConfig {
             source,
             printer,
             steppers,
+            extra_steppers,
             delta,
             extruder,
             mcus,
@@ -237,6 +256,8 @@ impl PrinterConfig {
             firmware_retraction,
             input_shaper,
             thermal,
+            safe_z_home,
+            homing_override,
             macros,
             warnings,
         })
@@ -251,6 +272,34 @@ impl PrinterConfig {
     pub fn mcu(&self, name: &str) -> Option<&McuSection> {
         self.mcus.iter().find(|m| m.name == name)
     }
+}
+
+/// The further motors of each rail: `[stepper_z1]`, `[stepper_z2]`… up to the first missing
+/// index (as Klipper looks them up; a later one is then an unread section). Not on a delta.
+fn read_extra_steppers(
+    reader: &Reader<'_>,
+    printer: &PrinterSection,
+    steppers: &[StepperSection],
+    pins: &mut PinRegistry,
+) -> Result<Vec<ExtraStepperSection>, ConfigError> {
+    let mut extras = Vec::new();
+    for (rail, primary) in steppers.iter().enumerate() {
+        for index in 1.. {
+            let name = format!("{}{index}", primary.name);
+            let Some(s) = reader.section(&name) else {
+                break;
+            };
+            if printer.kinematics == Kinematics::Delta {
+                return Err(ConfigError::BadSection {
+                    at: s.at().clone(),
+                    section: name,
+                    reason: "is not supported by Cadence yet (several motors on a delta tower)".to_string(),
+                });
+            }
+            extras.push(stepper::read_extra(&s, pins, rail, primary)?);
+        }
+    }
+    Ok(extras)
 }
 
 /// Pin providers among the ignored sections: `[adc_scaled NAME]` and `[sx1509 NAME]` provide

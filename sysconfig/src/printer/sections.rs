@@ -7,9 +7,9 @@
 //! yet (displays, LEDs, digipots, accelerometers, fans and sensors, filament sensors) or are host
 //! features not implemented yet whose absence the user should know of (`gcode_macro`,
 //! `bed_mesh`, `safe_z_home`…): the load warning is the notice, and their G-code commands are
-//! unknown commands. Refused sections (other probes than `[probe]`, several motors on one axis,
-//! more extruders) fail the load with `[section] is not supported by Cadence yet (what)`, before
-//! anything else is checked, so the first error names the real cause.
+//! unknown commands. Refused sections (other probes than `[probe]`, more extruders) fail the
+//! load with `[section] is not supported by Cadence yet (what)`, before anything else is
+//! checked, so the first error names the real cause.
 
 /// What Cadence does with a section kind.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -73,7 +73,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("heater_fan", Read),
     ("heater_generic", Read),
     ("homing_heaters", Ignored),
-    ("homing_override", Ignored),
+    ("homing_override", Read),
     ("icm20948", Ignored),
     ("idle_timeout", Ignored),
     ("input_shaper", Read),
@@ -107,7 +107,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("replicape", Ignored),
     ("resonance_tester", Ignored),
     ("respond", Ignored),
-    ("safe_z_home", Ignored),
+    ("safe_z_home", Read),
     ("samd_sercom", Ignored),
     ("save_variables", Ignored),
     ("screws_tilt_adjust", Ignored),
@@ -138,15 +138,13 @@ pub const SECTIONS: &[(&str, Support)] = &[
 
 /// What Cadence does with sections of `kind`; `None` for a kind Klipper does not have either
 /// (then "is not a valid config section"). The kinematics' rails (`stepper_x`, `stepper_a`…)
-/// are read; further motors on an axis (`stepper_z1`, `stepper_x2`) and further extruders
+/// and their further motors (`stepper_z1`, `stepper_x2`) are read; further extruders
 /// (`extruder1`) are refused.
 pub fn support(kind: &str) -> Option<Support> {
     if let Some(axis) = kind.strip_prefix("stepper_") {
         return match axis.as_bytes() {
             [a] if a.is_ascii_lowercase() => Some(Read),
-            [a, n @ ..] if a.is_ascii_lowercase() && is_index(n) => {
-                Some(Refused("several motors on one axis"))
-            }
+            [a, n @ ..] if a.is_ascii_lowercase() && is_index(n) => Some(Read),
             _ => None,
         };
     }
@@ -230,11 +228,8 @@ mod tests {
         assert_eq!(support("gcode_macro"), Some(Read));
         assert_eq!(support("stepper_x"), Some(Read));
         assert_eq!(support("stepper_a"), Some(Read));
-        assert_eq!(support("stepper_z1"), Some(Refused("several motors on one axis")));
-        assert_eq!(
-            support("stepper_y12"),
-            Some(Refused("several motors on one axis"))
-        );
+        assert_eq!(support("stepper_z1"), Some(Read));
+        assert_eq!(support("stepper_y12"), Some(Read));
         assert_eq!(support("extruder1"), Some(Refused("more than one extruder")));
         assert_eq!(support("extruder"), Some(Read));
         assert_eq!(support("bltouch"), Some(Refused("BLTouch probe")));

@@ -242,6 +242,56 @@ pub(crate) fn read_rail(
     })
 }
 
+/// A further motor of a rail (`[stepper_z1]`, `[stepper_x1]`…): stepped with the rail's first
+/// motor (`[stepper_z]`), from the same planned motion, and stopped with it when homing.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ExtraStepperSection {
+    /// Section name: `stepper_z1`.
+    pub name: String,
+    /// The rail it moves with: its index in [`super::PrinterConfig::steppers`] (0..=2).
+    pub rail: usize,
+    /// Pins, microstepping and gearing (its own).
+    pub motor: MotorSection,
+}
+
+/// Reads `[stepper_z1]`-style section `s`, a further motor of `primary` (rail `rail`).
+///
+/// The motors that stop on one endstop share its trigger's MCU-side stop, so they must share an
+/// MCU (Klipper: "Multi-mcu homing not supported on multi-mcu shared axis"); a motor's own
+/// `endstop_pin` (homing each motor to its own switch) is refused, naming the feature.
+pub(crate) fn read_extra(
+    s: &SectionReader<'_>,
+    pins: &mut PinRegistry,
+    rail: usize,
+    primary: &StepperSection,
+) -> Result<ExtraStepperSection, ConfigError> {
+    let motor = read_motor(s, pins)?;
+    if let Some(v) = s.value("endstop_pin") {
+        let why = format!(
+            "is not supported by Cadence yet (a separate endstop per motor): without it [{}] stops on \
+             [{}]'s endstop",
+            s.name(),
+            primary.name
+        );
+        return Err(s.bad("endstop_pin", v, ValueProblem::Invalid(why)));
+    }
+    if motor.step_pin.mcu != primary.motor.step_pin.mcu {
+        let v = s.required("step_pin")?;
+        let why = format!(
+            "must be on the same mcu as [{}]'s step_pin ('{}'): the motors of one axis stop together on \
+             its endstop, which Cadence (like Klipper: multi-mcu homing is not supported on a multi-mcu \
+             shared axis) does only for motors on one MCU",
+            primary.name, primary.motor.step_pin.mcu
+        );
+        return Err(s.bad("step_pin", v, ValueProblem::Invalid(why)));
+    }
+    Ok(ExtraStepperSection {
+        name: s.name().to_string(),
+        rail,
+        motor,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

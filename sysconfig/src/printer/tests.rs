@@ -184,9 +184,9 @@ fn unknown_sections_and_options_are_errors_ignored_ones_warnings() {
         Err("printer.cfg:25: Section 'frobnicator' is not a valid config section".to_string())
     );
     assert_eq!(
-        parse(&format!("{MINIMAL}[stepper_z1]\nstep_pin: PD0\n")).map(|_| ()),
+        parse(&format!("{MINIMAL}[extruder1]\nstep_pin: PD0\n")).map(|_| ()),
         Err(
-            "printer.cfg:25: [stepper_z1] is not supported by Cadence yet (several motors on one axis)"
+            "printer.cfg:25: [extruder1] is not supported by Cadence yet (more than one extruder)"
                 .to_string()
         )
     );
@@ -585,5 +585,156 @@ fn simulator_bed_surface() {
     assert_eq!(
         parse(&format!("{MINIMAL}[simulator]\nbed_surface_z: x\n")).map(|_| ()),
         Err("printer.cfg:26: [simulator] bed_surface_z: expected a number, got 'x'".to_string())
+    );
+}
+
+/// `[stepper_zN]` with the given pins, as a further Z motor.
+fn extra_z(n: u32, port: char, extra: &str) -> String {
+    format!(
+        "[stepper_z{n}]\nstep_pin: P{port}0\ndir_pin: !P{port}1\nenable_pin: !P{port}2\nmicrosteps: 16\n\
+         rotation_distance: 8\n{extra}"
+    )
+}
+
+#[test]
+fn further_motors_of_a_rail_are_read_in_index_order() {
+    let text = format!(
+        "{MINIMAL}{}{}{}[stepper_x1]\nstep_pin: PJ0\ndir_pin: PJ1\nmicrosteps: 32\nrotation_distance: 40\n",
+        extra_z(1, 'G', ""),
+        extra_z(2, 'H', "full_steps_per_rotation: 400\n"),
+        extra_z(3, 'K', "")
+    );
+    let cfg = ok(&text);
+    let names: Vec<(&str, usize)> = cfg
+        .extra_steppers
+        .iter()
+        .map(|s| (s.name.as_str(), s.rail))
+        .collect();
+    assert_eq!(
+        names,
+        [
+            ("stepper_x1", 0),
+            ("stepper_z1", 2),
+            ("stepper_z2", 2),
+            ("stepper_z3", 2)
+        ]
+    );
+    assert_eq!(cfg.extra_steppers[0].motor.step_dist(), 40.0 / (200.0 * 32.0));
+    assert_eq!(cfg.extra_steppers[2].motor.step_dist(), 8.0 / (400.0 * 16.0));
+    assert!(cfg.extra_steppers[1].motor.dir_pin.invert);
+    // The planner steps them with their rail, after the rails.
+    let (pc, _) = crate::planning::pipeline_config(&cfg, 1e6, 25e-6).unwrap_or_else(|e| panic!("{e}"));
+    let specs: Vec<(&str, usize)> = pc.steppers.iter().map(|s| (s.name.as_str(), s.axis)).collect();
+    assert_eq!(
+        specs,
+        [
+            ("stepper_x", 0),
+            ("stepper_y", 1),
+            ("stepper_z", 2),
+            ("stepper_x1", 0),
+            ("stepper_z1", 2),
+            ("stepper_z2", 2),
+            ("stepper_z3", 2)
+        ]
+    );
+}
+
+#[test]
+fn further_motor_errors_name_the_option() {
+    // A gap in the indices: stepper_z2 is looked up only after stepper_z1.
+    assert_eq!(
+        parse(&format!("{MINIMAL}{}", extra_z(2, 'G', ""))).map(|_| ()),
+        Err("printer.cfg:25: Section 'stepper_z2' is not a valid config section".to_string())
+    );
+    assert_eq!(
+        parse(&format!("{MINIMAL}{}", extra_z(1, 'G', "endstop_pin: PG3\n"))).map(|_| ()),
+        Err(
+            "printer.cfg:31: [stepper_z1] endstop_pin: is not supported by Cadence yet (a separate endstop per \
+             motor): without it [stepper_z1] stops on [stepper_z]'s endstop"
+                .to_string()
+        )
+    );
+    assert_eq!(
+        parse(&format!("{MINIMAL}{}", extra_z(1, 'G', "position_max: 10\n"))).map(|_| ()),
+        Err("printer.cfg:31: Option 'position_max' is not valid in section 'stepper_z1'".to_string())
+    );
+    let two_mcus = format!(
+        "{MINIMAL}[mcu zboard]\nserial: /dev/ttyACM1\n{}",
+        extra_z(1, 'G', "").replace("P", "zboard:P")
+    );
+    let err = parse(&two_mcus).map(|_| ()).unwrap_err();
+    assert!(
+        err.starts_with(
+            "printer.cfg:28: [stepper_z1] step_pin: must be on the same mcu as [stepper_z]'s step_pin ('mcu')"
+        ),
+        "{err}"
+    );
+    assert!(err.contains("multi-mcu homing"), "{err}");
+    // A pin shared with the rail's motor is refused like any pin used twice.
+    let shared = format!(
+        "{MINIMAL}{}",
+        extra_z(1, 'G', "").replace("step_pin: PG0", "step_pin: PC0")
+    );
+    assert!(parse(&shared).is_err());
+}
+
+#[test]
+fn safe_z_home_and_homing_override_are_read() {
+    let cfg = ok(&format!(
+        "{MINIMAL}[safe_z_home]\nhome_xy_position: 100, 120.5\nz_hop: 10\nmove_to_previous: True\n"
+    ));
+    assert_eq!(
+        cfg.safe_z_home,
+        Some(SafeZHomeSection {
+            home_xy_position: [100.0, 120.5],
+            speed: 50.0,
+            z_hop: 10.0,
+            z_hop_speed: 15.0,
+            move_to_previous: true,
+        })
+    );
+    let cfg = ok(&format!(
+        "{MINIMAL}[homing_override]\naxes: z\nset_position_z: 0\ngcode:\n  G28 X\n  G28 Z\n"
+    ));
+    let o = cfg.homing_override.unwrap_or_else(|| panic!("no override"));
+    assert_eq!(
+        (o.axes, o.set_position),
+        ([false, false, true], [None, None, Some(0.0)])
+    );
+    assert_eq!(o.script.name, HOMING_OVERRIDE_MACRO);
+    assert!(o.script.gcode.contains("G28 Z"), "{}", o.script.gcode);
+}
+
+#[test]
+fn homing_section_errors() {
+    let errors = [
+        (
+            "[safe_z_home]\nspeed: 5\n",
+            "printer.cfg:25: Option 'home_xy_position' in section 'safe_z_home' must be specified",
+        ),
+        (
+            "[safe_z_home]\nhome_xy_position: 100\n",
+            "printer.cfg:26: [safe_z_home] home_xy_position: must be two numbers 'X, Y', got '100'",
+        ),
+        (
+            "[safe_z_home]\nhome_xy_position: 1,2\nz_hop_speed: 0\n",
+            "printer.cfg:27: [safe_z_home] z_hop_speed: must be above 0, got 0",
+        ),
+        (
+            "[homing_override]\naxes: z\n",
+            "printer.cfg:25: Option 'gcode' in section 'homing_override' must be specified",
+        ),
+        // A broken script fails the load, naming its section.
+        ("[homing_override]\ngcode: {% if %}\n", "homing_override"),
+    ];
+    for (extra, want) in errors {
+        let err = parse(&format!("{MINIMAL}{extra}")).map(|_| ()).unwrap_err();
+        assert!(err.contains(want), "{extra}: {err}");
+    }
+    let both = format!("{MINIMAL}[safe_z_home]\nhome_xy_position: 1,2\n[homing_override]\ngcode: G28\n");
+    let err = parse(&both).map(|_| ()).unwrap_err();
+    assert!(
+        err.starts_with("printer.cfg:25: ") && err.contains("cannot be used together with [homing_override]"),
+        "{err}"
     );
 }
