@@ -11,6 +11,7 @@ use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender};
 use std::time::Duration;
 
 use planner::gcode::macros::{split_command, Macros, Script};
+use planner::gcode::respond::{is_respond_command, respond};
 use planner::gcode::{parse_line, Command, GcodeError, GcodeLine, GcodeReader};
 use planner::machine::{Applied, PlanErrorKind};
 use planner::pipeline::Pipeline;
@@ -151,7 +152,7 @@ pub(crate) trait FeedTarget {
     fn idle(&mut self, _idle: bool, _pipeline: &Pipeline) {}
 }
 
-/// Counts and reports G-code commands the planner does not implement yet, once per name.
+/// Reports G-code commands the planner does not know, once per name, in Klipper's words.
 #[derive(Debug, Default)]
 struct Warnings {
     seen: BTreeSet<String>,
@@ -162,7 +163,8 @@ impl Warnings {
         // Look up first: the name is copied (allocated) only the first time it is seen.
         if !self.seen.contains(name) && self.seen.insert(name.to_string()) {
             target.warn(format!(
-                "{}:{line}: {name} is not implemented yet and is ignored (reported once)",
+                "{}:{line}: Unknown command:\"{name}\" (skipped as Klipper does, reported once; \
+                 --strict or `unknown_commands: error` in [gcode] stops the print instead)",
                 file.display()
             ));
         }
@@ -298,7 +300,7 @@ impl Feed<'_> {
             let Some((called, rest)) = split_command(&next.text) else {
                 continue;
             };
-            if called == "SET_GCODE_VARIABLE" || macros.is_macro(&called) {
+            if macros.is_feed_command(&called) {
                 self.macro_step(&called, rest, macros, &mut script, target)
                     .map_err(|why| at(format!("in macro {via}: {why}")))?;
                 continue;
@@ -337,6 +339,12 @@ impl Feed<'_> {
         if name == "SET_GCODE_VARIABLE" {
             return macros.set_variable(rawparams).map_err(|e| e.to_string());
         }
+        if let Some(prefix) = macros.respond_prefix().filter(|_| is_respond_command(name)) {
+            if !macros.is_macro(name) {
+                target.warn(respond(prefix, name, rawparams)?);
+                return Ok(());
+            }
+        }
         let said = script
             .call(macros, name, rawparams, &self.status())
             .map_err(|e| e.to_string())?;
@@ -371,7 +379,7 @@ fn macro_call(cmd: &Command, macros: &Macros) -> Option<(String, String)> {
     match cmd {
         Command::Other { name, raw } => {
             let name = name.as_str();
-            if name != "SET_GCODE_VARIABLE" && !macros.is_macro(name) {
+            if !macros.is_feed_command(name) {
                 return None;
             }
             let rest = split_command(raw.as_str()).map(|(_, rest)| rest).unwrap_or("");
@@ -434,7 +442,7 @@ fn plan_line(
     let applied = pipeline.apply(line).map_err(|e| {
         let hint = match e.kind {
             PlanErrorKind::UnknownCommand(_) => {
-                " (to skip unknown commands with a warning: `unknown_commands: warn` in [gcode] of printer.cfg)"
+                " (strict mode: without --strict and with `unknown_commands: warn` in [gcode], the default, it is reported and skipped as Klipper does)"
             }
             _ => "",
         };

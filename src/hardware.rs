@@ -100,6 +100,8 @@ pub struct Machine {
     pub real_board: bool,
     /// `[gcode_macro]` sections, run by the G-code feed.
     pub macros: Vec<planner::gcode::macros::MacroDef>,
+    /// `[respond]`'s default prefix, when the printer has the section.
+    pub respond_prefix: Option<String>,
 }
 
 /// Why a printer.cfg describes no printer the host can drive; each names the file.
@@ -192,6 +194,7 @@ impl Machine {
             options,
             real_board: cfg.mcus.iter().any(|m| !m.is_simulated()),
             macros: cfg.macros.clone(),
+            respond_prefix: cfg.respond.clone(),
         })
     }
 

@@ -192,7 +192,9 @@ pub(crate) fn planner_stage(gcode: GcodeInput, st: &PlannerStage<'_>) -> Result<
     );
     let mut accessories = Accessories::new(st.machine.real_board);
     let file = gcode.name.clone();
-    let mut macros = Macros::new(st.machine.macros.clone()).map_err(|e| e.to_string())?;
+    let mut macros = Macros::new(st.machine.macros.clone())
+        .map_err(|e| e.to_string())?
+        .with_respond(st.machine.respond_prefix.clone());
     let lines = plan_file(gcode, &mut pipeline, &mut accessories, &mut macros, &mut run)?;
     run.sinks.iter_mut().try_for_each(ShmSink::flush)?;
     let total = run.published();

@@ -34,6 +34,30 @@ pub const ARC_RESOLUTION: f64 = 1.0;
 /// Most chords one arc may be split into.
 const MAX_ARC_SEGMENTS: f64 = 1e6;
 
+/// The [`Command::Other`] commands [`GcodeState::apply`] implements (besides M117 and, with an
+/// input shaper, SET_INPUT_SHAPER); a test keeps it equal to the commands handled.
+const KNOWN_OTHER: [&str; 19] = [
+    "G10",
+    "G11",
+    "G20",
+    "G21",
+    "M104",
+    "M106",
+    "M107",
+    "M109",
+    "M114",
+    "M140",
+    "M18",
+    "M190",
+    "M204",
+    "M220",
+    "M221",
+    "M84",
+    "SET_PRESSURE_ADVANCE",
+    "SET_RETRACTION",
+    "SET_VELOCITY_LIMIT",
+];
+
 /// Which heater a temperature command addresses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum HeaterId {
@@ -93,7 +117,7 @@ pub enum PlanErrorKind {
     BadFeedrate(f64),
     #[error("G20 (inches) is not supported: use millimeters (G21)")]
     Inches,
-    #[error("Unknown command: \"{0}\"")]
+    #[error("Unknown command:\"{0}\"")]
     UnknownCommand(String),
     #[error("{0}")]
     BadParameter(String),
@@ -416,7 +440,13 @@ impl GcodeState {
             let text = raw.trim().get(4..).unwrap_or("").trim();
             return Ok(Applied::Message(CommandText::new(text)));
         }
-        let p = OtherParams::parse(raw).map_err(bad)?;
+        let p = match OtherParams::parse(raw) {
+            Ok(p) => p,
+            // Klipper says an unknown command is unknown whatever its parameters
+            // (`M118 layer 1`); only a known command's parameters are errors.
+            Err(_) if !self.knows(name) => return self.unknown(name),
+            Err(e) => return Err(bad(e)),
+        };
         let num = |k: &str| p.float(k).map_err(bad);
         let non_neg = |k: &str| -> Result<Option<f64>, PlanErrorKind> {
             match num(k)? {
@@ -604,10 +634,22 @@ impl GcodeState {
                     self.retracted = retract;
                 }
             }
-            _ if self.unknown_is_error => return Err(PlanErrorKind::UnknownCommand(name.to_string())),
-            _ => return Ok(Applied::Unsupported(CommandName::new(name))),
+            _ => return self.unknown(name),
         }
         Ok(Applied::Done)
+    }
+
+    /// Whether [`Self::other`] implements `name` (`SET_INPUT_SHAPER` only with a shaper).
+    fn knows(&self, name: &str) -> bool {
+        KNOWN_OTHER.contains(&name) || (name == "SET_INPUT_SHAPER" && self.input_shaper.is_some())
+    }
+
+    /// An unknown command: an error in strict mode, else [`Applied::Unsupported`].
+    fn unknown(&self, name: &str) -> Result<Applied, PlanErrorKind> {
+        match self.unknown_is_error {
+            true => Err(PlanErrorKind::UnknownCommand(name.to_string())),
+            false => Ok(Applied::Unsupported(CommandName::new(name))),
+        }
     }
 }
 
@@ -884,13 +926,34 @@ mod tests {
     }
 
     #[test]
+    fn known_commands_are_the_ones_handled() {
+        let src = include_str!("machine.rs");
+        let body = &src[src.find("fn other(").unwrap()..src.find("fn knows(").unwrap()];
+        let handled: std::collections::BTreeSet<&str> = body
+            .lines()
+            .map(str::trim_start)
+            .filter(|l| l.starts_with('"') && l.contains("=>"))
+            .flat_map(|l| l.split("=>").next().unwrap().split('|'))
+            .map(|w| w.trim().trim_matches('"'))
+            .filter(|w| !w.is_empty() && !w.contains(' ') && *w != "SET_INPUT_SHAPER")
+            .collect();
+        let known: std::collections::BTreeSet<&str> = KNOWN_OTHER.into_iter().collect();
+        assert_eq!(handled, known);
+        // An unknown command with text Klipper would not parse as parameters is still just
+        // unknown; a known one's bad parameters are errors.
+        let (_, _, res) = run(&["M118 layer 1", "M104 S2..5"]);
+        assert_eq!(res[0], Ok(Applied::Unsupported("M118".into())));
+        assert!(res[1].is_err());
+    }
+
+    #[test]
     fn unknown_commands_can_be_errors() {
         let mut st = GcodeState::new([0.0; 3]);
         st.set_unknown_is_error(true);
         let mut th = Toolhead::new(ToolheadConfig::default(), 0.0);
         let cmd = parse_line(7, b"M999 S1").unwrap().unwrap();
         let e = st.apply(&GcodeLine { line_no: 7, cmd }, &mut th).unwrap_err();
-        assert_eq!(e.to_string(), "line 7: Unknown command: \"M999\"");
+        assert_eq!(e.to_string(), "line 7: Unknown command:\"M999\"");
     }
 
     fn arb_line() -> impl proptest::strategy::Strategy<Value = String> {

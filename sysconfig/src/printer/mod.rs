@@ -14,6 +14,7 @@
 //! `[input_shaper]`, `[gcode_macro]`s, then the unused-option/section check.
 
 mod board_pins;
+pub mod check;
 mod delta;
 mod error;
 mod extruder;
@@ -93,6 +94,8 @@ pub struct PrinterConfig {
     pub input_shaper: Option<InputShaperSection>,
     /// `[gcode_macro NAME]` sections, in file order.
     pub macros: Vec<planner::gcode::macros::MacroDef>,
+    /// `[respond]`'s default prefix (`echo:`), when the section is there.
+    pub respond: Option<String>,
     /// Accepted-but-ignored sections and other things worth telling the user.
     pub warnings: Vec<String>,
 }
@@ -200,6 +203,10 @@ impl PrinterConfig {
             None => None,
         };
         let macros = macros::read_gcode_macros(&reader)?;
+        let respond = match reader.section("respond") {
+            Some(s) => Some(gcode::read_respond(&s)?),
+            None => None,
+        };
 
         let mut warnings = reader.finish(is_ignored)?;
         if !macros.is_empty() {
@@ -231,6 +238,7 @@ impl PrinterConfig {
             firmware_retraction,
             input_shaper,
             macros,
+            respond,
             warnings,
         })
     }

@@ -106,7 +106,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("realtime", Read),
     ("replicape", Ignored),
     ("resonance_tester", Ignored),
-    ("respond", Ignored),
+    ("respond", Read),
     ("safe_z_home", Ignored),
     ("samd_sercom", Ignored),
     ("save_variables", Ignored),
