@@ -213,3 +213,33 @@ fn config_tool_arguments_are_clear_errors() {
         );
     }
 }
+
+#[test]
+fn decode_check_runs_macros_as_the_print_did() {
+    let dir = scratch("dialect-decode-macros");
+    let macros = "[gcode_macro PRINT_START]\nvariable_lift: 2\ngcode:\n  G28\n  G1 Z{lift} F600\n  \
+                  PURGE LEN={params.LEN|default(20)}\n\
+                  [gcode_macro PURGE]\ngcode:\n  G1 X10 Y5 F3000\n  G1 X{10 + params.LEN|float} E2\n";
+    let cfg = config(&dir, macros);
+    let g = dir.join("macros.gcode");
+    std::fs::write(&g, "M83\nPRINT_START LEN=30\nG1 X20 Y20 E1\nPURGE\n").unwrap();
+    let out = dir.join("out.bin");
+    let (g_s, cfg_s, out_s) = (g.to_str().unwrap(), cfg.to_str().unwrap(), out.to_str().unwrap());
+    let run = cadence(&["print", g_s, "--config", cfg_s, "--batch", out_s], TIMEOUT);
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    let check = cadence(&["decode", out_s, "--check", g_s, "--config", cfg_s], TIMEOUT);
+    assert_eq!(check.code, Some(0), "{}\n{}", check.stdout, check.stderr);
+    for stepper in ["stepper_x", "stepper_y", "stepper_z", "extruder"] {
+        let line = check.stdout.lines().find(|l| l.trim_start().starts_with(stepper));
+        assert!(
+            line.is_some_and(|l| l.ends_with(": ok")),
+            "{stepper}: {}",
+            check.stdout
+        );
+    }
+    // The same G-code without the macros plans less motion: the check refuses the stream.
+    let plain = config(&dir, "");
+    let plain_s = plain.to_str().unwrap();
+    let check = cadence(&["decode", out_s, "--check", g_s, "--config", plain_s], TIMEOUT);
+    assert_eq!(check.code, Some(1), "{}\n{}", check.stdout, check.stderr);
+}
