@@ -20,6 +20,7 @@
 //! bytes) inline (longer ones are boxed). [`OtherParams`] borrows the command text. Errors
 //! allocate (their message).
 
+pub mod exclude;
 pub mod macros;
 pub mod respond;
 mod text;

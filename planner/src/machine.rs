@@ -20,6 +20,7 @@
 //! M117 are returned to the caller as [`Applied`] values. Unknown commands are
 //! [`Applied::Unsupported`] (the caller warns), or errors with [`GcodeState::set_unknown_is_error`].
 
+use crate::gcode::exclude::{ExcludeObjects, EXCLUDE_COMMANDS};
 use crate::gcode::{Command, CommandName, CommandText, GcodeErrorKind, GcodeLine, OtherParams, TextBuilder};
 use crate::shaper::{InputShaper, ShaperType};
 use crate::toolhead::{MoveError, Toolhead, AXIS_NAMES};
@@ -152,6 +153,10 @@ pub struct GcodeState {
     arc_resolution: f64,
     /// `[input_shaper]` settings (`None`: no such section, SET_INPUT_SHAPER is unknown).
     input_shaper: Option<InputShaper>,
+    /// `[exclude_object]`'s objects (`None` without the section).
+    objects: Option<ExcludeObjects>,
+    /// Moves of an excluded object were dropped: the toolhead is not at `last`.
+    behind: bool,
 }
 
 /// Firmware retraction settings (Klipper's `[firmware_retraction]`).
@@ -193,7 +198,20 @@ impl GcodeState {
             pressure_advance: (0.0, 0.04),
             arc_resolution: ARC_RESOLUTION,
             input_shaper: None,
+            objects: None,
+            behind: false,
         }
+    }
+
+    /// With `[exclude_object]` (`true`) the EXCLUDE_OBJECT commands are known and an excluded
+    /// object's moves are dropped; without, they are unknown commands as on Klipper.
+    pub fn set_exclude_object(&mut self, on: bool) {
+        self.objects = on.then(ExcludeObjects::default);
+    }
+
+    /// The objects of `[exclude_object]` (`None` without the section).
+    pub fn exclude_objects(&self) -> Option<&ExcludeObjects> {
+        self.objects.as_ref()
     }
 
     /// The input shaper settings (`None`: the printer has no `[input_shaper]`).
@@ -359,7 +377,16 @@ impl GcodeState {
 
     /// One straight move to `next` (toolhead coordinates) at `speed` mm/s (before M220).
     fn move_to(&mut self, next: [f64; 4], speed: f64, th: &mut Toolhead) -> Result<(), PlanErrorKind> {
-        if next == self.last {
+        if next == self.last && !self.behind {
+            return Ok(());
+        }
+        if self.objects.as_ref().is_some_and(ExcludeObjects::skipping) {
+            // An excluded object's move is dropped, as Klipper's exclude_object does: the
+            // G-code position follows it, E's offset takes up its extrusion (never made up),
+            // and the next move kept starts from where the toolhead really is.
+            self.base[3] -= next[3] - self.last[3];
+            self.last = [next[0], next[1], next[2], self.last[3]];
+            self.behind = true;
             return Ok(());
         }
         for axis in 0..3 {
@@ -371,6 +398,7 @@ impl GcodeState {
         }
         th.move_to(next, speed * self.speed_factor)?;
         self.last = next;
+        self.behind = false;
         Ok(())
     }
 
@@ -439,6 +467,14 @@ impl GcodeState {
         if name == "M117" {
             let text = raw.trim().get(4..).unwrap_or("").trim();
             return Ok(Applied::Message(CommandText::new(text)));
+        }
+        if let Some(objects) = self.objects.as_mut().filter(|_| EXCLUDE_COMMANDS.contains(&name)) {
+            let rawparams = raw.trim_start().get(name.len()..).unwrap_or("");
+            return match objects.command(name, rawparams) {
+                Ok(Some(said)) => Ok(Applied::Report(CommandText::new(&said))),
+                Ok(None) => Ok(Applied::Done),
+                Err(e) => Err(PlanErrorKind::BadParameter(format!("{name}: {e}"))),
+            };
         }
         let p = match OtherParams::parse(raw) {
             Ok(p) => p,
@@ -923,6 +959,47 @@ mod tests {
             "line 3: SET_PRESSURE_ADVANCE: EXTRUDER=extruder1: this printer has one extruder, 'extruder'"
         );
         assert_eq!(err(4), "line 5: M109: T1: this printer has one extruder (T0)");
+    }
+
+    #[test]
+    fn an_excluded_objects_moves_are_dropped() {
+        let gcode = [
+            "G28",
+            "G1 X10 Y10 F6000",
+            "EXCLUDE_OBJECT_DEFINE NAME=a",
+            "EXCLUDE_OBJECT NAME=b",
+            "EXCLUDE_OBJECT_START NAME=b",
+            "G1 X50 E5",
+            "G1 Y50 E10",
+            "EXCLUDE_OBJECT_END NAME=b",
+            "EXCLUDE_OBJECT_START NAME=a",
+            "G1 X50 Y50",
+            "G1 X60 E11",
+            "EXCLUDE_OBJECT_END",
+        ];
+        let mut st = GcodeState::new([0.0, 0.0, 0.5]);
+        st.set_exclude_object(true);
+        let mut th = Toolhead::new(ToolheadConfig::default(), 0.0);
+        for (i, l) in gcode.iter().enumerate() {
+            let cmd = parse_line(i + 1, l.as_bytes()).unwrap().unwrap();
+            st.apply(&GcodeLine { line_no: i + 1, cmd }, &mut th).unwrap();
+        }
+        th.flush();
+        let ends: Vec<[f64; 4]> = moves(&mut th).iter().map(|m| m.end_pos).collect();
+        // B's moves are gone; A's first move (to where B ended) is made from X10 Y10, and its
+        // extrusion is only its own 1 mm.
+        assert_eq!(
+            ends,
+            [
+                [10.0, 10.0, 0.5, 0.0],
+                [50.0, 50.0, 0.5, 0.0],
+                [60.0, 50.0, 0.5, 1.0]
+            ]
+        );
+        assert_eq!(st.gcode_position()[3], 11.0);
+        // Without the section they are unknown commands, as on Klipper.
+        let (_, _, res) = run(&["EXCLUDE_OBJECT_START NAME=a"]);
+        assert_eq!(res[0], Ok(Applied::Unsupported("EXCLUDE_OBJECT_START".into())));
     }
 
     #[test]

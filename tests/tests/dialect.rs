@@ -243,3 +243,45 @@ fn decode_check_runs_macros_as_the_print_did() {
     let check = cadence(&["decode", out_s, "--check", g_s, "--config", plain_s], TIMEOUT);
     assert_eq!(check.code, Some(1), "{}\n{}", check.stdout, check.stderr);
 }
+
+#[test]
+fn exclude_object_drops_an_excluded_objects_moves() {
+    let dir = scratch("dialect-exclude");
+    let g = dir.join("two.gcode");
+    std::fs::write(
+        &g,
+        "EXCLUDE_OBJECT_DEFINE NAME=a CENTER=15,15 POLYGON=[[10,10],[20,10],[20,20]]\n\
+         EXCLUDE_OBJECT_DEFINE NAME=b CENTER=45,45\nEXCLUDE_OBJECT NAME=b\nG28\nM83\n\
+         EXCLUDE_OBJECT_START NAME=a\nG1 X10 Y10 F3000\nG1 X20 E1\nEXCLUDE_OBJECT_END NAME=a\n\
+         EXCLUDE_OBJECT_START NAME=b\nG1 X40 Y40\nG1 X50 E1\nG1 Y50 E1\nEXCLUDE_OBJECT_END NAME=b\n\
+         G1 X0 Y0\n",
+    )
+    .unwrap();
+    let out = dir.join("out.bin");
+    let print = |cfg: &std::path::Path| {
+        cadence(
+            &[
+                "print",
+                g.to_str().unwrap(),
+                "--config",
+                cfg.to_str().unwrap(),
+                "--batch",
+                out.to_str().unwrap(),
+            ],
+            TIMEOUT,
+        )
+    };
+    let run = print(&config(&dir, "[exclude_object]"));
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    assert!(run.stdout.contains("moves 3,"), "{}", run.stdout);
+    assert!(!run.stderr.contains("Unknown command"), "{}", run.stderr);
+    // Without the section, as on Klipper: unknown commands, every object printed.
+    let run = print(&config(&dir, ""));
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    assert!(run.stdout.contains("moves 6,"), "{}", run.stdout);
+    assert!(
+        run.stderr.contains("Unknown command:\"EXCLUDE_OBJECT_DEFINE\""),
+        "{}",
+        run.stderr
+    );
+}

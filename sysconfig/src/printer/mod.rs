@@ -96,6 +96,8 @@ pub struct PrinterConfig {
     pub macros: Vec<planner::gcode::macros::MacroDef>,
     /// `[respond]`'s default prefix (`echo:`), when the section is there.
     pub respond: Option<String>,
+    /// Whether there is an `[exclude_object]` section (it has no options).
+    pub exclude_object: bool,
     /// Accepted-but-ignored sections and other things worth telling the user.
     pub warnings: Vec<String>,
 }
@@ -203,6 +205,7 @@ impl PrinterConfig {
             None => None,
         };
         let macros = macros::read_gcode_macros(&reader)?;
+        let exclude_object = reader.section("exclude_object").is_some();
         let respond = match reader.section("respond") {
             Some(s) => Some(gcode::read_respond(&s)?),
             None => None,
@@ -239,6 +242,7 @@ impl PrinterConfig {
             input_shaper,
             macros,
             respond,
+            exclude_object,
             warnings,
         })
     }

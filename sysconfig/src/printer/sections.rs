@@ -54,7 +54,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("dual_carriage", Refused("dual carriage")),
     ("duplicate_pin_override", Ignored),
     ("endstop_phase", Ignored),
-    ("exclude_object", Ignored),
+    ("exclude_object", Read),
     ("extra_carriage", Refused("dual carriage")),
     ("extruder", Read),
     ("extruder_stepper", Refused("extra extruder steppers")),
