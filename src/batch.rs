@@ -100,7 +100,9 @@ pub fn run_batch(
         streams: &mut streams,
         sinks: &mut sinks,
     };
-    let mut macros = Macros::new(machine.macros.clone()).map_err(|e| e.to_string())?;
+    let mut macros = Macros::new(machine.macros.clone())
+        .map_err(|e| e.to_string())?
+        .with_respond(machine.respond_prefix.clone());
     let lines = plan_file(
         gcode,
         &mut pipeline,

@@ -11,6 +11,7 @@ use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender};
 use std::time::Duration;
 
 use planner::gcode::macros::{split_command, Macros, Script};
+use planner::gcode::respond::{is_respond_command, respond};
 use planner::gcode::{parse_line, Command, GcodeError, GcodeLine, GcodeReader};
 use planner::machine::{Applied, PlanErrorKind};
 use planner::pipeline::Pipeline;
@@ -190,7 +191,7 @@ pub(crate) trait FeedTarget {
     }
 }
 
-/// Counts and reports G-code commands the planner does not implement yet, once per name.
+/// Reports G-code commands the planner does not know, once per name, in Klipper's words.
 #[derive(Debug, Default)]
 struct Warnings {
     seen: BTreeSet<String>,
@@ -201,7 +202,8 @@ impl Warnings {
         // Look up first: the name is copied (allocated) only the first time it is seen.
         if !self.seen.contains(name) && self.seen.insert(name.to_string()) {
             target.warn(format!(
-                "{}:{line}: {name} is not implemented yet and is ignored (reported once)",
+                "{}:{line}: Unknown command:\"{name}\" (skipped as Klipper does, reported once; \
+                 --strict or `unknown_commands: error` in [gcode] stops the print instead)",
                 file.display()
             ));
         }
@@ -369,22 +371,26 @@ impl Feed<'_> {
     }
 
     /// A `[gcode_macro]` call (run to its end, nested macros rendered when reached, with
-    /// Klipper's semantics: see `planner::gcode::macros`) or `SET_GCODE_VARIABLE`; false for
-    /// any other command. Macro lines are reported under the calling line's number.
+    /// Klipper's semantics: see `planner::gcode::macros`), `SET_GCODE_VARIABLE` or a `[respond]`
+    /// command; false for any other command. Macro lines are reported under the calling line's
+    /// number.
     fn run_macro_or_variable(
         &mut self,
         line: &GcodeLine,
         macros: &mut Macros,
         target: &mut impl FeedTarget,
     ) -> Result<bool, String> {
-        let Some((name, rawparams)) = macro_call(&line.cmd, macros) else {
+        let pipeline = &*self.pipeline;
+        let status = || macro_status(pipeline);
+        let Some(mut run) = MacroRun::start(line, macros, status, self.file, &mut |m| target.warn(m))? else {
             return Ok(false);
         };
-        self.run_script(&name, &rawparams, line.line_no, macros, target)?;
+        self.run_to_end(&mut run, macros, target)?;
         Ok(true)
     }
 
-    /// Runs macro `name` called with `rawparams` from line `line_no` to its end.
+    /// Runs macro `name` called with `rawparams` from line `line_no` to its end (the
+    /// `[homing_override]` script).
     fn run_script(
         &mut self,
         name: &str,
@@ -393,75 +399,177 @@ impl Feed<'_> {
         macros: &mut Macros,
         target: &mut impl FeedTarget,
     ) -> Result<(), String> {
-        let at = |why: String| format!("{}:{}: {why}", self.file.display(), line_no);
-        let mut script = Script::new();
-        self.macro_step(name, rawparams, macros, &mut script, target)
-            .map_err(at)?;
-        while let Some(next) = script.next_line() {
-            let via = next.macros.join(" > ");
+        let status = macro_status(self.pipeline);
+        let mut run = MacroRun::call(
+            name,
+            rawparams,
+            line_no,
+            macros,
+            &status,
+            self.file,
+            &mut |m| target.warn(m),
+        )?;
+        self.run_to_end(&mut run, macros, target)
+    }
+
+    /// Plans the lines of a started macro run until it ends.
+    fn run_to_end(
+        &mut self,
+        run: &mut MacroRun,
+        macros: &mut Macros,
+        target: &mut impl FeedTarget,
+    ) -> Result<(), String> {
+        loop {
+            let status = macro_status(self.pipeline);
+            let Some(sub) = run.next(macros, &status, self.file, &mut |m| target.warn(m))? else {
+                return Ok(());
+            };
+            self.plan(&sub, target)
+                .map_err(|e| format!("{e} (in macro {})", run.via()))?;
+        }
+    }
+}
+
+/// One feed command run as a print runs it: a macro call's lines pulled one at a time, each
+/// macro rendered when its call line is reached (so it sees the state the lines before it
+/// left), `SET_GCODE_VARIABLE` and `[respond]`'s commands answered on the way. Used by the
+/// print's feed and by `decode --check`, which pulls planned lines as the stream needs them.
+pub(crate) struct MacroRun {
+    script: Script,
+    /// The calling line's number (every line of the run is reported under it).
+    line_no: usize,
+    /// The macros the last line came through (`OUTER > INNER`).
+    via: String,
+}
+
+impl MacroRun {
+    /// Starts `line` when it is a macro call, `SET_GCODE_VARIABLE` or (with `[respond]`)
+    /// `RESPOND`/`M118`; `None` (without allocating) for any other command. `printer` gives
+    /// the status objects a macro sees ([`macro_status`]), asked only for a feed command;
+    /// messages go to `say`.
+    pub(crate) fn start(
+        line: &GcodeLine,
+        macros: &mut Macros,
+        printer: impl FnOnce() -> serde_json::Value,
+        file: &Path,
+        say: &mut dyn FnMut(String),
+    ) -> Result<Option<MacroRun>, String> {
+        let Some((name, rawparams)) = macro_call(&line.cmd, macros) else {
+            return Ok(None);
+        };
+        let printer = printer();
+        MacroRun::call(&name, &rawparams, line.line_no, macros, &printer, file, say).map(Some)
+    }
+
+    /// Starts a call of `name` with `rawparams` from line `line_no` (a macro,
+    /// `SET_GCODE_VARIABLE` or a `[respond]` command).
+    pub(crate) fn call(
+        name: &str,
+        rawparams: &str,
+        line_no: usize,
+        macros: &mut Macros,
+        printer: &serde_json::Value,
+        file: &Path,
+        say: &mut dyn FnMut(String),
+    ) -> Result<MacroRun, String> {
+        let mut run = MacroRun {
+            script: Script::new(),
+            line_no,
+            via: String::new(),
+        };
+        macro_step(name, rawparams, macros, &mut run.script, printer, say)
+            .map_err(|why| format!("{}:{line_no}: {why}", file.display()))?;
+        Ok(run)
+    }
+
+    /// The macros the last line returned came through, for errors.
+    pub(crate) fn via(&self) -> &str {
+        &self.via
+    }
+
+    /// The next line to plan (`None` once the call has run to its end); nested calls,
+    /// variables and `[respond]` commands are run here. `rename_existing` names run the
+    /// command the macro replaced.
+    pub(crate) fn next(
+        &mut self,
+        macros: &mut Macros,
+        printer: &serde_json::Value,
+        file: &Path,
+        say: &mut dyn FnMut(String),
+    ) -> Result<Option<GcodeLine>, String> {
+        let at = |why: String| format!("{}:{}: {why}", file.display(), self.line_no);
+        while let Some(next) = self.script.next_line() {
+            self.via = next.macros.join(" > ");
             let Some((called, rest)) = split_command(&next.text) else {
                 continue;
             };
-            if called == "SET_GCODE_VARIABLE" || macros.is_macro(&called) {
-                self.macro_step(&called, rest, macros, &mut script, target)
-                    .map_err(|why| at(format!("in macro {via}: {why}")))?;
+            if macros.is_feed_command(&called) {
+                macro_step(&called, rest, macros, &mut self.script, printer, say)
+                    .map_err(|why| at(format!("in macro {}: {why}", self.via)))?;
                 continue;
             }
-            // A `rename_existing` name runs the command the macro replaced.
             let text = match macros.original_of(&called) {
                 Some(original) => format!("{original} {rest}"),
                 None => next.text,
             };
-            let cmd = match parse_line(line_no, text.as_bytes()) {
-                Ok(Some(cmd)) => cmd,
+            match parse_line(self.line_no, text.as_bytes()) {
+                Ok(Some(cmd)) => {
+                    return Ok(Some(GcodeLine {
+                        line_no: self.line_no,
+                        cmd,
+                    }))
+                }
                 Ok(None) => continue,
-                Err(e) => return Err(at(format!("in macro {via}: {e}"))),
-            };
-            let sub = GcodeLine { line_no, cmd };
-            self.plan(&sub, target)
-                .map_err(|e| format!("{e} (in macro {via})"))?;
+                Err(e) => return Err(at(format!("in macro {}: {e}", self.via))),
+            }
         }
-        Ok(())
+        Ok(None)
     }
+}
 
-    /// `SET_GCODE_VARIABLE`, or a call of macro `name` (rendered now, its lines pushed on
-    /// `script`, its `action_respond_info` messages handed on as warnings). The error has no
-    /// location: the caller names the line and the macros it came through.
-    fn macro_step(
-        &self,
-        name: &str,
-        rawparams: &str,
-        macros: &mut Macros,
-        script: &mut Script,
-        target: &mut impl FeedTarget,
-    ) -> Result<(), String> {
-        if name == "SET_GCODE_VARIABLE" {
-            return macros.set_variable(rawparams).map_err(|e| e.to_string());
+/// `SET_GCODE_VARIABLE`, a `[respond]` command, or a call of macro `name` (rendered now, its
+/// lines pushed on `script`, its `action_respond_info` messages handed to `say`). The error
+/// has no location: the caller names the line and the macros it came through.
+fn macro_step(
+    name: &str,
+    rawparams: &str,
+    macros: &mut Macros,
+    script: &mut Script,
+    printer: &serde_json::Value,
+    say: &mut dyn FnMut(String),
+) -> Result<(), String> {
+    if name == "SET_GCODE_VARIABLE" {
+        return macros.set_variable(rawparams).map_err(|e| e.to_string());
+    }
+    if let Some(prefix) = macros.respond_prefix().filter(|_| is_respond_command(name)) {
+        if !macros.is_macro(name) {
+            say(respond(prefix, name, rawparams)?);
+            return Ok(());
         }
-        let said = script
-            .call(macros, name, rawparams, &self.status())
-            .map_err(|e| e.to_string())?;
-        said.into_iter().for_each(|m| target.warn(format!("{name}: {m}")));
-        Ok(())
     }
+    let said = script
+        .call(macros, name, rawparams, printer)
+        .map_err(|e| e.to_string())?;
+    said.into_iter().for_each(|m| say(format!("{name}: {m}")));
+    Ok(())
+}
 
-    /// The `printer` objects a macro sees: `toolhead` and `gcode_move` positions and the
-    /// homed axes, as Klipper names them.
-    fn status(&self) -> serde_json::Value {
-        let [x, y, z, e] = self.pipeline.position();
-        let homed = self.pipeline.gcode_state().homed();
-        let homed_axes: String = ["x", "y", "z"]
-            .iter()
-            .zip(homed)
-            .filter(|(_, h)| *h)
-            .map(|(a, _)| *a)
-            .collect();
-        let position = serde_json::json!({"x": x, "y": y, "z": z, "e": e});
-        serde_json::json!({
-            "toolhead": {"position": position.clone(), "homed_axes": homed_axes},
-            "gcode_move": {"position": position.clone(), "gcode_position": position},
-        })
-    }
+/// The `printer` objects a macro sees: `toolhead` and `gcode_move` positions and the homed
+/// axes, as Klipper names them.
+pub(crate) fn macro_status(pipeline: &Pipeline) -> serde_json::Value {
+    let [x, y, z, e] = pipeline.position();
+    let homed = pipeline.gcode_state().homed();
+    let homed_axes: String = ["x", "y", "z"]
+        .iter()
+        .zip(homed)
+        .filter(|(_, h)| *h)
+        .map(|(a, _)| *a)
+        .collect();
+    let position = serde_json::json!({"x": x, "y": y, "z": z, "e": e});
+    serde_json::json!({
+        "toolhead": {"position": position.clone(), "homed_axes": homed_axes},
+        "gcode_move": {"position": position.clone(), "gcode_position": position},
+    })
 }
 
 /// The printer a G28 procedure ([`HomingProcedure`]) runs on: the feed's planner, the printer's
@@ -524,7 +632,7 @@ fn macro_call(cmd: &Command, macros: &Macros) -> Option<(String, String)> {
     match cmd {
         Command::Other { name, raw } => {
             let name = name.as_str();
-            if name != "SET_GCODE_VARIABLE" && !macros.is_macro(name) {
+            if !macros.is_feed_command(name) {
                 return None;
             }
             let rest = split_command(raw.as_str()).map(|(_, rest)| rest).unwrap_or("");
@@ -636,7 +744,7 @@ fn plan_line(
     let applied = pipeline.apply(line).map_err(|e| {
         let hint = match e.kind {
             PlanErrorKind::UnknownCommand(_) => {
-                " (to skip unknown commands with a warning: `unknown_commands: warn` in [gcode] of printer.cfg)"
+                " (strict mode: without --strict and with `unknown_commands: warn` in [gcode], the default, it is reported and skipped as Klipper does)"
             }
             _ => "",
         };

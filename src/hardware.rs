@@ -104,6 +104,8 @@ pub struct Machine {
     pub thermal: crate::heaters::objects::Thermal,
     /// How G28 runs (`[safe_z_home]`, `[homing_override]`).
     pub homing: crate::homing::procedure::HomingProcedure,
+    /// `[respond]`'s default prefix, when the printer has the section.
+    pub respond_prefix: Option<String>,
 }
 
 /// Why a printer.cfg describes no printer the host can drive; each names the file.
@@ -222,6 +224,7 @@ impl Machine {
                 homing_override: cfg.homing_override.clone(),
             },
             thermal,
+            respond_prefix: cfg.respond.clone(),
         })
     }
 

@@ -39,6 +39,9 @@ pub struct PrintJob {
     pub no_realtime: bool,
     /// Save the print's latency histograms to this file (HdrHistogram V2 interval log).
     pub histograms: Option<PathBuf>,
+    /// An unknown G-code command stops the print (as `[gcode] unknown_commands: error`);
+    /// otherwise the config decides (by default it is reported and skipped, as Klipper does).
+    pub strict: bool,
     /// Logging and where the IO stage runs.
     pub live: LiveOptions,
 }
@@ -101,7 +104,10 @@ pub fn run(args: &PrintJob, warn: &mut dyn FnMut(&str)) -> Result<PrintOutcome, 
     }
     // Open the G-code first: a missing file must not start any MCU.
     let gcode = GcodeInput::open(&args.file).map_err(|e| format!("{}: {e}", args.file.display()))?;
-    let cfg = crate::hardware::load_config(args.config.as_deref())?;
+    let mut cfg = crate::hardware::load_config(args.config.as_deref())?;
+    if args.strict {
+        cfg.gcode.unknown_commands = sysconfig::printer::UnknownCommands::Error;
+    }
     for w in &cfg.warnings {
         warn(w);
     }

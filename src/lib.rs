@@ -44,6 +44,7 @@ pub mod job;
 pub mod latency;
 pub mod live;
 pub mod logging;
+pub mod mcu_dictionary;
 pub mod mcus;
 pub mod planner_thread;
 pub mod printer;

@@ -6,6 +6,9 @@
 //!   reporting overshoot and trigger → stop latencies (see `homing`).
 //! - `decode OUT.bin`: print a wire stream one message a line.
 //! - `service print|install --config printer.cfg`: the systemd unit of `cadence serve`.
+//! - `check-config printer.cfg`: every error and warning of a config, the sections read,
+//!   ignored and refused.
+//! - `dictionary [--simulator | --serial DEV | --file PATH] [--json]`: an MCU's data dictionary.
 //! - `doctor [--unit --config printer.cfg]`: host real-time checks, or the systemd unit.
 //! - `serve [--config printer.cfg | --simulated] [-a SOCKET]`: the printer service front ends
 //!   attach to (Klipper's API socket); `serve --role io [--config printer.cfg] [--instance
@@ -27,7 +30,7 @@ use cadence::wire_check as decode;
 
 use cadence::allocsites;
 use clap::{Parser, Subcommand};
-use cli::{decode as decode_cmd, doctor, home, print, serve, service};
+use cli::{check_config, decode as decode_cmd, dictionary, doctor, home, print, serve, service};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -59,6 +62,12 @@ enum Cmd {
     Doctor(doctor::DoctorArgs),
     /// Decode a wire stream written by `print --batch` into one message per line.
     Decode(decode_cmd::DecodeArgs),
+    /// Check a printer.cfg: every error and warning with file:line, the sections read, ignored
+    /// and refused, the MCUs' pins against a data dictionary (exit status 1 on errors).
+    CheckConfig(check_config::CheckConfigArgs),
+    /// Print an MCU's data dictionary (from a simulated MCU, a serial device, a saved file or
+    /// the built-in firmware's) as a table or JSON, or save it for --dictionary.
+    Dictionary(dictionary::DictionaryArgs),
     /// Benchmarks: `bench wakeup` (wake-up latency, cyclictest-class), `bench handoff`,
     /// `bench plan FILE` (planning + step compression), with --json, --hlog, --plot, --load.
     Bench(benchcmd::BenchArgs),
@@ -84,6 +93,8 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Cmd::Print(args) => print::run(&args),
         Cmd::Decode(args) => decode_cmd::run(&args),
+        Cmd::CheckConfig(args) => check_config::run(&args),
+        Cmd::Dictionary(args) => dictionary::run(&args),
         Cmd::Doctor(args) => doctor::run(&args),
         Cmd::Serve(args) => serve::run(&args),
         Cmd::Service(args) => service::run(&args),

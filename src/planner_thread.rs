@@ -195,7 +195,9 @@ pub(crate) fn planner_stage(gcode: GcodeInput, st: &PlannerStage<'_>) -> Result<
     // With the heater loop running, heat asked of a real board is real: no warning.
     let mut accessories = Accessories::new(st.machine.real_board && st.heaters.is_none());
     let file = gcode.name.clone();
-    let mut macros = Macros::new(st.machine.macros.clone()).map_err(|e| e.to_string())?;
+    let mut macros = Macros::new(st.machine.macros.clone())
+        .map_err(|e| e.to_string())?
+        .with_respond(st.machine.respond_prefix.clone());
     let lines = plan_file(
         gcode,
         &mut pipeline,

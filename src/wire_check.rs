@@ -7,7 +7,8 @@
 //! bound before its ideal time, never before the previous step, in its ideal direction, and
 //! every planned step must be in the stream ([`planner::checker`]). Planning is pulled as the
 //! stream needs steps, so memory stays bounded by the steps between the stream's order and the
-//! planner's, whatever the file size.
+//! planner's, whatever the file size. `[gcode_macro]` calls run as a print runs them (each
+//! macro rendered when its call is reached), so a stream of a print with macros checks too.
 //!
 //! Steppers are matched by step pin: each `config_stepper` of the stream names a step pin,
 //! which must be the step pin of a stepper on that MCU in printer.cfg (so the stream's object
@@ -23,9 +24,11 @@ use std::path::Path;
 use links::dict::{Dictionary, Message};
 use links::proto::{block::block_payload, find_block, Frame};
 use planner::checker::{CheckStats, Checker, StepCmd};
+use planner::gcode::macros::Macros;
 use planner::gcode::GcodeReader;
 use planner::pipeline::Pipeline;
 
+use crate::gcode_feed::{macro_status, MacroRun};
 use crate::hardware::Machine;
 
 /// The data dictionary in `path` (zlib-compressed JSON as served by identify, or plain JSON as
@@ -68,6 +71,10 @@ struct Checked {
 struct Planner {
     pipeline: Pipeline,
     lines: GcodeReader<BufReader<File>>,
+    /// The printer's macros, run as a print runs them.
+    macros: Macros,
+    /// The macro call whose lines are being planned.
+    run: Option<MacroRun>,
     done: bool,
     out: Vec<(usize, StepCmd)>,
     /// Planner stepper count (steppers of other MCUs are planned and their steps dropped).
@@ -80,18 +87,43 @@ impl Planner {
         if self.done {
             return Ok(false);
         }
-        match self.lines.next() {
-            Some(line) => {
-                let line = line.map_err(|e| format!("{}: {e}", file.display()))?;
-                self.pipeline
-                    .apply(&line)
-                    .map_err(|e| format!("{}: {e}", file.display()))?;
-                self.pipeline.generate(&mut self.out);
+        // Messages of macros and [respond] are not part of the check.
+        let say = &mut |_: String| {};
+        loop {
+            if let Some(run) = self.run.as_mut() {
+                let status = macro_status(&self.pipeline);
+                match run.next(&mut self.macros, &status, file, say)? {
+                    Some(sub) => {
+                        self.pipeline
+                            .apply(&sub)
+                            .map_err(|e| format!("{}: {e} (in macro {})", file.display(), run.via()))?;
+                        self.pipeline.generate(&mut self.out);
+                        break;
+                    }
+                    None => self.run = None,
+                }
+                continue;
             }
-            None => {
-                self.pipeline.finish(&mut self.out);
-                self.done = true;
+            match self.lines.next() {
+                Some(line) => {
+                    let line = line.map_err(|e| format!("{}: {e}", file.display()))?;
+                    let pipeline = &self.pipeline;
+                    self.run =
+                        MacroRun::start(&line, &mut self.macros, || macro_status(pipeline), file, say)?;
+                    if self.run.is_some() {
+                        continue;
+                    }
+                    self.pipeline
+                        .apply(&line)
+                        .map_err(|e| format!("{}: {e}", file.display()))?;
+                    self.pipeline.generate(&mut self.out);
+                }
+                None => {
+                    self.pipeline.finish(&mut self.out);
+                    self.done = true;
+                }
             }
+            break;
         }
         self.out.clear();
         for idx in 0..self.steppers {
@@ -151,6 +183,10 @@ pub fn run(
     let mut planner = Planner {
         pipeline,
         lines: GcodeReader::new(BufReader::with_capacity(1 << 16, gcode)),
+        macros: Macros::new(machine.macros.clone())
+            .map_err(|e| e.to_string())?
+            .with_respond(machine.respond_prefix.clone()),
+        run: None,
         done: false,
         out: Vec::with_capacity(4096),
         steppers: machine.steppers.len(),

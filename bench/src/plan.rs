@@ -78,7 +78,7 @@ pub struct PlanReport {
     pub peak_rss_bytes: u64,
     /// Print time covered (s).
     pub print_time_s: f64,
-    /// Unknown G-code commands skipped (`[gcode] unknown_commands: warn`; else they are errors).
+    /// Unknown G-code commands skipped (`[gcode] unknown_commands: warn`, the default; else they are errors).
     pub skipped_unknown: u64,
 }
 
@@ -192,8 +192,8 @@ pub fn plan_reader(src: impl BufRead, cfg: &PrinterConfig, opts: &PlanOptions) -
         }
         let line = line.map_err(|e| e.to_string())?;
         rep.lines += 1;
-        // Heaters and fans do not affect planning; unknown commands are errors, or skipped and
-        // counted under `unknown_commands: warn`.
+        // Heaters and fans do not affect planning; unknown commands are skipped and counted
+        // (`unknown_commands: warn`, the default), or errors.
         if let Applied::Unsupported(_) = p.apply(&line).map_err(|e| e.to_string())? {
             rep.skipped_unknown += 1;
         }
@@ -259,11 +259,11 @@ mod tests {
     #[test]
     fn unknown_commands_are_errors_or_counted_skips() {
         let g = "G28\nM73 P5\nG1 X10 F6000\nM73 P50\n";
-        let cfg = sysconfig::parse_str(CFG, Path::new("t.cfg")).unwrap();
+        let strict = format!("{CFG}[gcode]\nunknown_commands: error\n");
+        let cfg = sysconfig::parse_str(&strict, Path::new("t.cfg")).unwrap();
         let e = plan_reader(g.as_bytes(), &cfg, &PlanOptions::default()).unwrap_err();
         assert!(e.contains("line 2") && e.contains("M73"), "{e}");
-        let warn = format!("{CFG}[gcode]\nunknown_commands: warn\n");
-        let cfg = sysconfig::parse_str(&warn, Path::new("t.cfg")).unwrap();
+        let cfg = sysconfig::parse_str(CFG, Path::new("t.cfg")).unwrap();
         let r = plan_reader(g.as_bytes(), &cfg, &PlanOptions::default()).unwrap();
         assert_eq!((r.moves, r.skipped_unknown), (1, 2));
         assert!(r.to_string().ends_with(", 2 unknown commands skipped"), "{r}");

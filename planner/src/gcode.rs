@@ -20,7 +20,9 @@
 //! bytes) inline (longer ones are boxed). [`OtherParams`] borrows the command text. Errors
 //! allocate (their message).
 
+pub mod exclude;
 pub mod macros;
+pub mod respond;
 mod text;
 
 use std::fmt;
@@ -517,7 +519,7 @@ impl<'a> OtherParams<'a> {
             extended: None,
         };
         if extended {
-            for tok in rest.split_ascii_whitespace() {
+            for tok in extended_words(rest) {
                 let Some((k, _)) = tok.split_once('=') else {
                     return Err(GcodeErrorKind::BadWord(tok.to_string()));
                 };
@@ -539,11 +541,10 @@ impl<'a> OtherParams<'a> {
                 let i = LETTERS.iter().position(|&l| l == key)?;
                 self.words[i].map(|w| &w[1..])
             }
-            Some(rest) => rest
-                .split_ascii_whitespace()
+            Some(rest) => extended_words(rest)
                 .filter_map(|tok| tok.split_once('='))
                 .find(|(k, _)| upper_eq(k, key))
-                .map(|(_, v)| v),
+                .map(|(_, v)| unquote(v)),
         }
     }
 
@@ -571,7 +572,7 @@ impl<'a> OtherParams<'a> {
             .filter(|(w, _)| w.is_some())
             .map(|(_, l)| CommandName::new(l));
         let extended = self.extended.into_iter().flat_map(|rest| {
-            rest.split_ascii_whitespace()
+            extended_words(rest)
                 .filter_map(|tok| tok.split_once('='))
                 .map(|(k, _)| {
                     let mut k = CommandName::new(k);
@@ -581,6 +582,36 @@ impl<'a> OtherParams<'a> {
         });
         letters.chain(extended)
     }
+}
+
+/// The `KEY=value` words of an extended command: split at whitespace outside double quotes, as
+/// Klipper's shell-style parsing does (`MSG="two words"` is one word).
+fn extended_words(rest: &str) -> impl Iterator<Item = &str> {
+    let mut left = rest;
+    std::iter::from_fn(move || {
+        left = left.trim_start_matches(|c: char| c.is_ascii_whitespace());
+        if left.is_empty() {
+            return None;
+        }
+        let mut quoted = false;
+        let end = left
+            .char_indices()
+            .find(|&(_, c)| {
+                if c == '"' {
+                    quoted = !quoted;
+                }
+                c.is_ascii_whitespace() && !quoted
+            })
+            .map_or(left.len(), |(i, _)| i);
+        let (word, next) = left.split_at(end);
+        left = next;
+        Some(word)
+    })
+}
+
+/// A value without the double quotes around it (`"two words"` → `two words`).
+fn unquote(v: &str) -> &str {
+    v.strip_prefix('"').and_then(|v| v.strip_suffix('"')).unwrap_or(v)
 }
 
 /// Whether `k` upper-cased equals `key`.

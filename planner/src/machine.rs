@@ -20,6 +20,7 @@
 //! M117 are returned to the caller as [`Applied`] values. Unknown commands are
 //! [`Applied::Unsupported`] (the caller warns), or errors with [`GcodeState::set_unknown_is_error`].
 
+use crate::gcode::exclude::{ExcludeObjects, EXCLUDE_COMMANDS};
 use crate::gcode::{Command, CommandName, CommandText, GcodeErrorKind, GcodeLine, OtherParams, TextBuilder};
 use crate::shaper::{InputShaper, ShaperType};
 use crate::toolhead::{MoveError, Toolhead, AXIS_NAMES};
@@ -33,6 +34,30 @@ const MIN_SPEED: f64 = 0.01;
 pub const ARC_RESOLUTION: f64 = 1.0;
 /// Most chords one arc may be split into.
 const MAX_ARC_SEGMENTS: f64 = 1e6;
+
+/// The [`Command::Other`] commands [`GcodeState::apply`] implements (besides M117 and, with an
+/// input shaper, SET_INPUT_SHAPER); a test keeps it equal to the commands handled.
+const KNOWN_OTHER: [&str; 19] = [
+    "G10",
+    "G11",
+    "G20",
+    "G21",
+    "M104",
+    "M106",
+    "M107",
+    "M109",
+    "M114",
+    "M140",
+    "M18",
+    "M190",
+    "M204",
+    "M220",
+    "M221",
+    "M84",
+    "SET_PRESSURE_ADVANCE",
+    "SET_RETRACTION",
+    "SET_VELOCITY_LIMIT",
+];
 
 /// Which heater a temperature command addresses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -93,7 +118,7 @@ pub enum PlanErrorKind {
     BadFeedrate(f64),
     #[error("G20 (inches) is not supported: use millimeters (G21)")]
     Inches,
-    #[error("Unknown command: \"{0}\"")]
+    #[error("Unknown command:\"{0}\"")]
     UnknownCommand(String),
     #[error("{0}")]
     BadParameter(String),
@@ -128,6 +153,10 @@ pub struct GcodeState {
     arc_resolution: f64,
     /// `[input_shaper]` settings (`None`: no such section, SET_INPUT_SHAPER is unknown).
     input_shaper: Option<InputShaper>,
+    /// `[exclude_object]`'s objects (`None` without the section).
+    objects: Option<ExcludeObjects>,
+    /// Moves of an excluded object were dropped: the toolhead is not at `last`.
+    behind: bool,
 }
 
 /// Firmware retraction settings (Klipper's `[firmware_retraction]`).
@@ -169,7 +198,20 @@ impl GcodeState {
             pressure_advance: (0.0, 0.04),
             arc_resolution: ARC_RESOLUTION,
             input_shaper: None,
+            objects: None,
+            behind: false,
         }
+    }
+
+    /// With `[exclude_object]` (`true`) the EXCLUDE_OBJECT commands are known and an excluded
+    /// object's moves are dropped; without, they are unknown commands as on Klipper.
+    pub fn set_exclude_object(&mut self, on: bool) {
+        self.objects = on.then(ExcludeObjects::default);
+    }
+
+    /// The objects of `[exclude_object]` (`None` without the section).
+    pub fn exclude_objects(&self) -> Option<&ExcludeObjects> {
+        self.objects.as_ref()
     }
 
     /// The input shaper settings (`None`: the printer has no `[input_shaper]`).
@@ -335,7 +377,16 @@ impl GcodeState {
 
     /// One straight move to `next` (toolhead coordinates) at `speed` mm/s (before M220).
     fn move_to(&mut self, next: [f64; 4], speed: f64, th: &mut Toolhead) -> Result<(), PlanErrorKind> {
-        if next == self.last {
+        if next == self.last && !self.behind {
+            return Ok(());
+        }
+        if self.objects.as_ref().is_some_and(ExcludeObjects::skipping) {
+            // An excluded object's move is dropped, as Klipper's exclude_object does: the
+            // G-code position follows it, E's offset takes up its extrusion (never made up),
+            // and the next move kept starts from where the toolhead really is.
+            self.base[3] -= next[3] - self.last[3];
+            self.last = [next[0], next[1], next[2], self.last[3]];
+            self.behind = true;
             return Ok(());
         }
         for axis in 0..3 {
@@ -347,6 +398,7 @@ impl GcodeState {
         }
         th.move_to(next, speed * self.speed_factor)?;
         self.last = next;
+        self.behind = false;
         Ok(())
     }
 
@@ -416,7 +468,21 @@ impl GcodeState {
             let text = raw.trim().get(4..).unwrap_or("").trim();
             return Ok(Applied::Message(CommandText::new(text)));
         }
-        let p = OtherParams::parse(raw).map_err(bad)?;
+        if let Some(objects) = self.objects.as_mut().filter(|_| EXCLUDE_COMMANDS.contains(&name)) {
+            let rawparams = raw.trim_start().get(name.len()..).unwrap_or("");
+            return match objects.command(name, rawparams) {
+                Ok(Some(said)) => Ok(Applied::Report(CommandText::new(&said))),
+                Ok(None) => Ok(Applied::Done),
+                Err(e) => Err(PlanErrorKind::BadParameter(format!("{name}: {e}"))),
+            };
+        }
+        let p = match OtherParams::parse(raw) {
+            Ok(p) => p,
+            // Klipper says an unknown command is unknown whatever its parameters
+            // (`M118 layer 1`); only a known command's parameters are errors.
+            Err(_) if !self.knows(name) => return self.unknown(name),
+            Err(e) => return Err(bad(e)),
+        };
         let num = |k: &str| p.float(k).map_err(bad);
         let non_neg = |k: &str| -> Result<Option<f64>, PlanErrorKind> {
             match num(k)? {
@@ -604,10 +670,22 @@ impl GcodeState {
                     self.retracted = retract;
                 }
             }
-            _ if self.unknown_is_error => return Err(PlanErrorKind::UnknownCommand(name.to_string())),
-            _ => return Ok(Applied::Unsupported(CommandName::new(name))),
+            _ => return self.unknown(name),
         }
         Ok(Applied::Done)
+    }
+
+    /// Whether [`Self::other`] implements `name` (`SET_INPUT_SHAPER` only with a shaper).
+    fn knows(&self, name: &str) -> bool {
+        KNOWN_OTHER.contains(&name) || (name == "SET_INPUT_SHAPER" && self.input_shaper.is_some())
+    }
+
+    /// An unknown command: an error in strict mode, else [`Applied::Unsupported`].
+    fn unknown(&self, name: &str) -> Result<Applied, PlanErrorKind> {
+        match self.unknown_is_error {
+            true => Err(PlanErrorKind::UnknownCommand(name.to_string())),
+            false => Ok(Applied::Unsupported(CommandName::new(name))),
+        }
     }
 }
 
@@ -884,13 +962,75 @@ mod tests {
     }
 
     #[test]
+    fn an_excluded_objects_moves_are_dropped() {
+        let gcode = [
+            "G28",
+            "G1 X10 Y10 F6000",
+            "EXCLUDE_OBJECT_DEFINE NAME=a",
+            "EXCLUDE_OBJECT NAME=b",
+            "EXCLUDE_OBJECT_START NAME=b",
+            "G1 X50 E5",
+            "G1 Y50 E10",
+            "EXCLUDE_OBJECT_END NAME=b",
+            "EXCLUDE_OBJECT_START NAME=a",
+            "G1 X50 Y50",
+            "G1 X60 E11",
+            "EXCLUDE_OBJECT_END",
+        ];
+        let mut st = GcodeState::new([0.0, 0.0, 0.5]);
+        st.set_exclude_object(true);
+        let mut th = Toolhead::new(ToolheadConfig::default(), 0.0);
+        for (i, l) in gcode.iter().enumerate() {
+            let cmd = parse_line(i + 1, l.as_bytes()).unwrap().unwrap();
+            st.apply(&GcodeLine { line_no: i + 1, cmd }, &mut th).unwrap();
+        }
+        th.flush();
+        let ends: Vec<[f64; 4]> = moves(&mut th).iter().map(|m| m.end_pos).collect();
+        // B's moves are gone; A's first move (to where B ended) is made from X10 Y10, and its
+        // extrusion is only its own 1 mm.
+        assert_eq!(
+            ends,
+            [
+                [10.0, 10.0, 0.5, 0.0],
+                [50.0, 50.0, 0.5, 0.0],
+                [60.0, 50.0, 0.5, 1.0]
+            ]
+        );
+        assert_eq!(st.gcode_position()[3], 11.0);
+        // Without the section they are unknown commands, as on Klipper.
+        let (_, _, res) = run(&["EXCLUDE_OBJECT_START NAME=a"]);
+        assert_eq!(res[0], Ok(Applied::Unsupported("EXCLUDE_OBJECT_START".into())));
+    }
+
+    #[test]
+    fn known_commands_are_the_ones_handled() {
+        let src = include_str!("machine.rs");
+        let body = &src[src.find("fn other(").unwrap()..src.find("fn knows(").unwrap()];
+        let handled: std::collections::BTreeSet<&str> = body
+            .lines()
+            .map(str::trim_start)
+            .filter(|l| l.starts_with('"') && l.contains("=>"))
+            .flat_map(|l| l.split("=>").next().unwrap().split('|'))
+            .map(|w| w.trim().trim_matches('"'))
+            .filter(|w| !w.is_empty() && !w.contains(' ') && *w != "SET_INPUT_SHAPER")
+            .collect();
+        let known: std::collections::BTreeSet<&str> = KNOWN_OTHER.into_iter().collect();
+        assert_eq!(handled, known);
+        // An unknown command with text Klipper would not parse as parameters is still just
+        // unknown; a known one's bad parameters are errors.
+        let (_, _, res) = run(&["M118 layer 1", "M104 S2..5"]);
+        assert_eq!(res[0], Ok(Applied::Unsupported("M118".into())));
+        assert!(res[1].is_err());
+    }
+
+    #[test]
     fn unknown_commands_can_be_errors() {
         let mut st = GcodeState::new([0.0; 3]);
         st.set_unknown_is_error(true);
         let mut th = Toolhead::new(ToolheadConfig::default(), 0.0);
         let cmd = parse_line(7, b"M999 S1").unwrap().unwrap();
         let e = st.apply(&GcodeLine { line_no: 7, cmd }, &mut th).unwrap_err();
-        assert_eq!(e.to_string(), "line 7: Unknown command: \"M999\"");
+        assert_eq!(e.to_string(), "line 7: Unknown command:\"M999\"");
     }
 
     fn arb_line() -> impl proptest::strategy::Strategy<Value = String> {

@@ -142,6 +142,9 @@ pub struct PipelineOptions {
     /// `None`: the printer has no such section (SET_INPUT_SHAPER is an unknown command, as on
     /// Klipper). Cartesian, corexy and corexz only.
     pub input_shaper: Option<InputShaper>,
+    /// `[exclude_object]`: the EXCLUDE_OBJECT commands are known and an excluded object's moves
+    /// dropped (without it they are unknown commands, as on Klipper).
+    pub exclude_object: bool,
 }
 
 impl Default for PipelineOptions {
@@ -156,6 +159,7 @@ impl Default for PipelineOptions {
             retraction: Retraction::default(),
             arc_resolution: ARC_RESOLUTION,
             input_shaper: None,
+            exclude_object: false,
         }
     }
 }
@@ -387,6 +391,7 @@ impl Pipeline {
         state.set_retraction(opts.retraction);
         state.set_arc_resolution(opts.arc_resolution);
         state.set_input_shaper(opts.input_shaper);
+        state.set_exclude_object(opts.exclude_object);
         if let Some(p) = opts.pressure_advance {
             state.set_pressure_advance(p.advance, p.smooth_time);
         }

@@ -1,7 +1,9 @@
 //! The `cadence` command line: one module per subcommand, each turning its arguments into the
 //! library's options, calling the library and printing the result. No engine code lives here.
 
+pub mod check_config;
 pub mod decode;
+pub mod dictionary;
 pub mod doctor;
 pub mod home;
 pub mod print;

@@ -28,6 +28,10 @@ pub struct PrintArgs {
     /// Save the print's latency histograms to this file (HdrHistogram V2 interval log).
     #[arg(long)]
     pub histograms: Option<PathBuf>,
+    /// Stop at the first unknown G-code command (by default it is reported once and skipped,
+    /// as Klipper does; same as `unknown_commands: error` in printer.cfg's [gcode]).
+    #[arg(long)]
+    pub strict: bool,
     /// Time scale, trace, compression bound, real time.
     #[command(flatten)]
     pub motion: MotionArgs,
@@ -68,6 +72,7 @@ impl PrintArgs {
             max_error_us: self.motion.max_error_us,
             no_realtime: self.motion.no_realtime,
             histograms: self.histograms.clone(),
+            strict: self.strict,
             live: LiveOptions {
                 log_file: self.live.log_file.clone(),
                 log_level: self.live.log_level,

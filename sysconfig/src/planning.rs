@@ -124,6 +124,7 @@ pub fn pipeline_options(cfg: &PrinterConfig, kinematics: Kinematics) -> Pipeline
         retraction: cfg.firmware_retraction,
         arc_resolution: cfg.gcode_arcs.resolution,
         input_shaper: cfg.input_shaper,
+        exclude_object: cfg.exclude_object,
         ..PipelineOptions::default()
     }
 }

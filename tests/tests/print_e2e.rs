@@ -97,36 +97,53 @@ fn bad_gcode_line_names_line_and_text() {
 }
 
 #[test]
-fn unknown_command_stops_the_print_unless_the_config_says_warn() {
+fn unknown_command_is_reported_and_skipped_unless_strict() {
     let dir = scratch("unknown");
     let g = dir.join("unknown.gcode");
-    std::fs::write(&g, "G28\nG1 X10 F3000\nM73 P10 R5\nG1 X20\nM73 P20\n").unwrap();
+    std::fs::write(
+        &g,
+        "G28\nG1 X10 F3000\nM73 P10 R5\nFOO_BAR A=1\nG1 X20\nFOO_BAR\n",
+    )
+    .unwrap();
     let out = dir.join("out.bin");
     let print = |extra: &[&str]| {
         let mut args = vec!["print", g.to_str().unwrap(), "--batch", out.to_str().unwrap()];
         args.extend_from_slice(extra);
         cadence(&args, TIMEOUT)
     };
-    // Default: an error naming the file, the line and the command, and how to downgrade it.
+    // Default, as Klipper: `Unknown command:"FOO_BAR"` once per name, the moves all made.
     let run = print(&[]);
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    assert_eq!(
+        run.stderr.matches("Unknown command:\"FOO_BAR\"").count(),
+        1,
+        "{}",
+        run.stderr
+    );
+    assert!(run.stderr.contains("unknown.gcode:4"), "{}", run.stderr);
+    assert!(run.stdout.contains("moves 2"), "{}", run.stdout);
+
+    // --strict: an error naming the file, the line and the command.
+    let run = print(&["--strict"]);
     assert_eq!(run.code, Some(1), "{}", run.stderr);
-    assert!(run.stderr.contains("unknown.gcode: line 3"), "{}", run.stderr);
-    assert!(run.stderr.contains("M73"), "{}", run.stderr);
-    assert!(run.stderr.contains("unknown_commands: warn"), "{}", run.stderr);
+    assert!(
+        run.stderr
+            .contains("unknown.gcode: line 3: Unknown command:\"M73\""),
+        "{}",
+        run.stderr
+    );
     assert!(!run.stderr.contains("panicked"), "{}", run.stderr);
 
-    // `[gcode] unknown_commands: warn`: skipped with one warning per name, the moves all made.
+    // `[gcode] unknown_commands: error` is the same strict mode.
     let cfg = dir.join("printer.cfg");
     let text = format!(
-        "{}\n[gcode]\nunknown_commands: warn\n",
+        "{}\n[gcode]\nunknown_commands: error\n",
         sysconfig::printer::SIMULATED_PRINTER_CFG
     );
     std::fs::write(&cfg, text).unwrap();
     let run = print(&["--config", cfg.to_str().unwrap()]);
-    assert_eq!(run.code, Some(0), "{}", run.stderr);
-    assert_eq!(run.stderr.matches("M73").count(), 1, "{}", run.stderr);
-    assert!(run.stderr.contains("unknown.gcode:3"), "{}", run.stderr);
-    assert!(run.stdout.contains("moves 2"), "{}", run.stdout);
+    assert_eq!(run.code, Some(1), "{}", run.stderr);
+    assert!(run.stderr.contains("line 3"), "{}", run.stderr);
 }
 
 #[test]

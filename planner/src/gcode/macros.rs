@@ -118,6 +118,9 @@ pub struct Macros {
     renamed: HashMap<String, String>,
     /// Collects the `action_*` calls of the render in progress.
     actions: Arc<Mutex<Actions>>,
+    /// `[respond]`'s default prefix when the printer has the section (then `RESPOND` and
+    /// `M118` are commands, see [`super::respond`]).
+    respond_prefix: Option<String>,
 }
 
 #[derive(Debug, Default)]
@@ -214,7 +217,28 @@ impl Macros {
             macros,
             renamed,
             actions,
+            respond_prefix: None,
         })
+    }
+
+    /// With `[respond]` (its default prefix), `RESPOND` and `M118` answer; without, they are
+    /// unknown commands as on Klipper.
+    pub fn with_respond(mut self, prefix: Option<String>) -> Macros {
+        self.respond_prefix = prefix;
+        self
+    }
+
+    /// `[respond]`'s default prefix, when the printer has the section.
+    pub fn respond_prefix(&self) -> Option<&str> {
+        self.respond_prefix.as_deref()
+    }
+
+    /// True when the G-code feed runs `name` here rather than planning it: a macro,
+    /// `SET_GCODE_VARIABLE`, or with `[respond]` `RESPOND`/`M118`.
+    pub fn is_feed_command(&self, name: &str) -> bool {
+        name == "SET_GCODE_VARIABLE"
+            || self.is_macro(name)
+            || (self.respond_prefix.is_some() && super::respond::is_respond_command(name))
     }
 
     /// True when `name` (upper-cased) is a macro.

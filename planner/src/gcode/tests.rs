@@ -284,6 +284,13 @@ fn other_params_both_styles() {
     assert!(p.float("ACCEL").is_err());
     assert!(OtherParams::parse("SET_VELOCITY_LIMIT VELOCITY").is_err());
     assert!(OtherParams::parse("M104 S2..5").is_err());
+    // Quoted values hold spaces, as Klipper's shell-style parsing has them.
+    let p = OtherParams::parse("RESPOND TYPE=command MSG=\"homed, printing\" PREFIX=x").unwrap();
+    assert_eq!(p.get("MSG"), Some("homed, printing"));
+    assert_eq!(p.get("PREFIX"), Some("x"));
+    let keys: Vec<String> = p.keys().map(|k| k.as_str().to_string()).collect();
+    assert_eq!(keys, ["TYPE", "MSG", "PREFIX"]);
+    assert!(OtherParams::parse("RESPOND MSG=\"a b\" stray").is_err());
 }
 
 #[test]

@@ -884,7 +884,7 @@ fn set_input_shaper_needs_the_section_and_checks_its_numbers() {
     };
     let mut p = Pipeline::new(benchy_config(), 0.25).unwrap();
     let e = p.apply(&line("SET_INPUT_SHAPER SHAPER_FREQ_X=40")).unwrap_err();
-    assert_eq!(e.to_string(), "line 3: Unknown command: \"SET_INPUT_SHAPER\"");
+    assert_eq!(e.to_string(), "line 3: Unknown command:\"SET_INPUT_SHAPER\"");
     let opts = PipelineOptions {
         input_shaper: Some(shaper_of(1, 0.0, 0.0)),
         ..PipelineOptions::default()

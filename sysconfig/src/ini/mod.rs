@@ -128,6 +128,24 @@ impl ConfigFile {
         self.files.first().map_or(Path::new(""), PathBuf::as_path)
     }
 
+    /// Removes section `name`; false when there is none. (`cadence check-config` drops a
+    /// section it has reported to look for further errors.)
+    pub fn remove_section(&mut self, name: &str) -> bool {
+        let before = self.sections.len();
+        self.sections.retain(|s| s.name != name);
+        self.sections.len() != before
+    }
+
+    /// Removes option `key` of section `section`; false when there is none.
+    pub fn remove_option(&mut self, section: &str, key: &str) -> bool {
+        let Some(s) = self.sections.iter_mut().find(|s| s.name == section) else {
+            return false;
+        };
+        let before = s.options.len();
+        s.options.retain(|(k, _)| k != key);
+        s.options.len() != before
+    }
+
     /// Index of section `name`, adding an empty one located at `at` when new.
     fn section_index_or_insert(&mut self, name: String, at: Location) -> usize {
         if let Some(i) = self.sections.iter().position(|s| s.name == name) {

@@ -1,23 +1,24 @@
 //! The sections that shape how G-code is taken, all optional:
-//! - `[gcode]` (Cadence-specific): a command the planner does not know stops the print with an
-//!   error naming its line (`unknown_commands: error`, the default); `unknown_commands: warn`
-//!   skips each such command with one warning per name (for files full of slicer or macro
-//!   commands this host does not implement, such as `START_PRINT` from an ignored
-//!   `[gcode_macro]`).
+//! - `[gcode]` (Cadence-specific): a command the planner does not know is reported the way
+//!   Klipper reports it (`Unknown command:"M486"`, once per name) and skipped, the print going
+//!   on (`unknown_commands: warn`, the default, Klipper's behaviour); `unknown_commands: error`
+//!   (or `cadence print --strict`) stops the print with an error naming its line instead.
 //! - `[gcode_arcs]` (Klipper's): `resolution`, the chord length G2/G3 arcs are split into.
 //! - `[firmware_retraction]` (Klipper's): what G10/G11 do, until SET_RETRACTION changes it.
+//! - `[respond]` (Klipper's): `RESPOND` and `M118` answer with `default_prefix`, else the
+//!   prefix of `default_type` (`echo`, `command`, `error`; default `echo`).
 
 use planner::machine::{Retraction, ARC_RESOLUTION};
 
-use super::error::ConfigError;
+use super::error::{ConfigError, ValueProblem};
 use super::reader::{Bounds, SectionReader};
 
 /// What an unknown G-code command does.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum UnknownCommands {
-    /// Stop with an error naming file and line.
+    /// Stop with an error naming file and line (strict).
     Error,
-    /// Skip it, warning once per command name.
+    /// Report it as Klipper does and skip it, once per command name (the default).
     Warn,
 }
 
@@ -30,7 +31,7 @@ pub struct GcodeSection {
 impl Default for GcodeSection {
     fn default() -> Self {
         GcodeSection {
-            unknown_commands: UnknownCommands::Error,
+            unknown_commands: UnknownCommands::Warn,
         }
     }
 }
@@ -64,6 +65,32 @@ pub(crate) fn read_gcode_arcs(s: &SectionReader<'_>) -> Result<GcodeArcsSection,
     let d = GcodeArcsSection::default();
     Ok(GcodeArcsSection {
         resolution: s.float_or("resolution", d.resolution, Bounds::ANY.above(0.0))?,
+    })
+}
+
+/// `[respond]`: the default prefix of `RESPOND`/`M118` answers.
+pub(crate) fn read_respond(s: &SectionReader<'_>) -> Result<String, ConfigError> {
+    let types = planner::gcode::respond::RESPOND_TYPES;
+    let default_type = match s.value("default_type") {
+        Some(v) => {
+            let t = v.text.trim();
+            planner::gcode::respond::type_prefix(Some(t)).ok_or_else(|| {
+                let expected = types.iter().map(|(n, _)| n.to_string()).collect();
+                s.bad(
+                    "default_type",
+                    v,
+                    ValueProblem::NotAChoice {
+                        got: t.to_string(),
+                        expected,
+                    },
+                )
+            })?
+        }
+        None => "echo:",
+    };
+    Ok(match s.value("default_prefix") {
+        Some(v) => v.text.trim().to_string(),
+        None => default_type.to_string(),
     })
 }
 
@@ -138,8 +165,30 @@ mod tests {
     }
 
     #[test]
-    fn unknown_commands_are_errors_unless_warn() {
-        assert_eq!(with("").unwrap().unknown_commands, UnknownCommands::Error);
+    fn respond_prefix_from_type_or_prefix() {
+        let prefix = |section: &str| config(section).map(|c| c.respond);
+        assert_eq!(prefix("").unwrap(), None);
+        assert_eq!(prefix("[respond]").unwrap().as_deref(), Some("echo:"));
+        assert_eq!(
+            prefix("[respond]\ndefault_type: error").unwrap().as_deref(),
+            Some("!!")
+        );
+        assert_eq!(
+            prefix("[respond]\ndefault_type: command\ndefault_prefix: note:")
+                .unwrap()
+                .as_deref(),
+            Some("note:")
+        );
+        let e = prefix("[respond]\ndefault_type: loud").unwrap_err();
+        assert!(
+            e.contains("default_type") && e.contains("loud") && e.contains("command"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn unknown_commands_are_skipped_unless_error() {
+        assert_eq!(with("").unwrap().unknown_commands, UnknownCommands::Warn);
         assert_eq!(
             with("[gcode]\nunknown_commands: warn").unwrap().unknown_commands,
             UnknownCommands::Warn

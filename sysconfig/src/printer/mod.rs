@@ -16,6 +16,7 @@
 //! unused-option/section check.
 
 mod board_pins;
+pub mod check;
 mod delta;
 mod error;
 mod extruder;
@@ -109,6 +110,10 @@ pub struct PrinterConfig {
     pub homing_override: Option<HomingOverrideSection>,
     /// `[gcode_macro NAME]` sections, in file order.
     pub macros: Vec<planner::gcode::macros::MacroDef>,
+    /// `[respond]`'s default prefix (`echo:`), when the section is there.
+    pub respond: Option<String>,
+    /// Whether there is an `[exclude_object]` section (it has no options).
+    pub exclude_object: bool,
     /// Accepted-but-ignored sections and other things worth telling the user.
     pub warnings: Vec<String>,
 }
@@ -220,6 +225,11 @@ impl PrinterConfig {
         let macros = macros::read_gcode_macros(&reader)?;
         let has_stepper_z = steppers.iter().any(|s| s.name == "stepper_z");
         let (safe_z_home, homing_override) = homing::read_homing(&reader, has_stepper_z)?;
+        let exclude_object = reader.section("exclude_object").is_some();
+        let respond = match reader.section("respond") {
+            Some(s) => Some(gcode::read_respond(&s)?),
+            None => None,
+        };
 
         let mut warnings = reader.finish(is_ignored)?;
         let scripts: Vec<_> = macros
@@ -259,6 +269,8 @@ impl PrinterConfig {
             safe_z_home,
             homing_override,
             macros,
+            respond,
+            exclude_object,
             warnings,
         })
     }
