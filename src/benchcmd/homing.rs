@@ -269,7 +269,13 @@ fn group_passes(printer: &str, reports: &[HomingReport], groups: &mut Vec<Group>
 fn verdict(groups: &[Group], timeouts: u32, wake_p999: f64, budget_ns: Option<u64>) -> Option<String> {
     let budget = budget_ns? as f64;
     let fmt = rt_core::hist::fmt_ns;
-    let worst = groups.iter().max_by_key(|g| g.stop.max())?;
+    let Some(worst) = groups.iter().max_by_key(|g| g.stop.max()) else {
+        return Some(format!(
+            "OVER the {} homing budget: no homing pass completed ({timeouts} cycles ended in a \
+             communication timeout)",
+            fmt(budget)
+        ));
+    };
     let passes: u64 = groups.iter().map(|g| g.stop.len()).sum();
     let max = worst.stop.max() as f64;
     let p999 = Percentiles::of(&worst.stop).p99_9_ns as f64;
@@ -370,5 +376,10 @@ mod tests {
             .unwrap()
             .starts_with("OVER"));
         assert_eq!(verdict(&groups, 0, 0.0, None), None);
+        let v = verdict(&[], 2, 0.0, Some(HOMING_BUDGET_NS)).unwrap();
+        assert!(
+            v.starts_with("OVER") && v.contains("no homing pass completed (2 cycles"),
+            "{v}"
+        );
     }
 }
