@@ -141,8 +141,28 @@ struct PassTiming {
 /// Sleep period of the wake-up probe (the machine's noise floor during the run).
 const WAKEUP_PERIOD: std::time::Duration = std::time::Duration::from_millis(1);
 
+/// What a run of cycles measured, for a caller that reports it its own way (`cadence bench
+/// homing`).
+#[derive(Debug)]
+pub struct CycleFigures {
+    /// The report of every cycle that homed (a cycle with a communication timeout has none).
+    pub reports: Vec<HomingReport>,
+    /// Cycles that ended in a communication timeout.
+    pub timeouts: u32,
+    /// The machine's wake-up latency meanwhile (1 ms sleeps at the IO threads' priority).
+    pub noise: WakeupReport,
+    /// Simulated MCU clocks ran this many times faster than the wall clock (pass latencies
+    /// are print time).
+    pub time_scale: f64,
+}
+
 /// Homes `cycles` times and reports as it goes (see the module docs).
 pub fn run(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<(), String> {
+    run_figures(args, o).map(|_| ())
+}
+
+/// [`run`], returning what it measured.
+pub fn run_figures(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<CycleFigures, String> {
     let axes = args.axes;
     if !(args.away.is_finite() && args.away > 0.0) {
         return Err(format!("--away {}: must be > 0", args.away));
@@ -216,7 +236,7 @@ pub fn run(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<(), String> {
     for line in rt_core::os::rt_report() {
         o.err(line);
     }
-    let (timings, host_p999) = result?;
+    let (timings, host_p999, reports, timeouts) = result?;
     o.out(format!(
         "  machine wake-up latency meanwhile ({} ms sleeps, {}): {}",
         noise.period.as_secs_f64() * 1e3,
@@ -236,12 +256,17 @@ pub fn run(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<(), String> {
         };
         trace_latency(&machine, axes, base, &trace_mcus, &timings, &noise, o)?;
     }
-    Ok(())
+    Ok(CycleFigures {
+        reports,
+        timeouts,
+        noise,
+        time_scale,
+    })
 }
 
 /// Homes `cycles` times and prints the reports and the host-view histograms; returns the
-/// host's timestamps of every successful pass and the host view's p99.9 (ns) of the last
-/// executed step after the trigger.
+/// host's timestamps of every successful pass, the host view's p99.9 (ns) of the last
+/// executed step after the trigger, every successful cycle's report and the timeouts.
 fn cycles(
     args: &HomeOptions,
     o: &mut dyn HomeOutput,
@@ -250,7 +275,7 @@ fn cycles(
     axes: [bool; 3],
     scale: f64,
     rt: &RtConfig,
-) -> Result<(Vec<PassTiming>, f64), String> {
+) -> Result<(Vec<PassTiming>, f64, Vec<HomingReport>, u32), String> {
     let main = mcus.main();
     let start = print_now(mcus) + (0.5f64).max(0.25 * scale);
     let mut streams = StepStreams::new(machine, &mcus.stream_params(machine))?;
@@ -280,6 +305,7 @@ fn cycles(
     let started = Instant::now();
     let mut last_report = HomingReport::default();
     let mut timeouts = 0u32;
+    let mut reports = Vec::new();
     let mut failed_last = false;
     for cycle in 0..args.cycles {
         // After a failed cycle the axis is not homed: its position is unknown, so no away move.
@@ -324,13 +350,14 @@ fn cycles(
             }
         }
         if cycle == 0 {
-            print!("{report}");
+            report.to_string().lines().for_each(|l| o.out(l.to_string()));
         }
+        reports.push(report.clone());
         last_report = report;
     }
     if args.cycles > 1 {
         o.out("last cycle:".to_string());
-        print!("{last_report}");
+        last_report.to_string().lines().for_each(|l| o.out(l.to_string()));
     }
     // Everything executed, host and MCU agree on every stepper position.
     crate::homing::wait_motion_done(&mut ctx)?;
@@ -378,7 +405,7 @@ fn cycles(
         mm(ov.max)
     ));
     let p999 = last_step.summary().p999 as f64 * last_step.ns_per_unit();
-    Ok((timings, p999))
+    Ok((timings, p999, reports, timeouts))
 }
 
 /// MCU clock → system time (CLOCK_MONOTONIC seconds).

@@ -37,7 +37,34 @@ pub struct Hists {
     lead_scale: [AtomicU64; LEAD_MCUS],
 }
 
+/// A copy of the histograms of a live print so far, in their recorded units (for a caller that
+/// wants more than the summaries: `cadence bench pipeline`'s percentiles, logs and plots).
+#[derive(Debug, Clone)]
+pub struct HistSnapshot {
+    /// Lead margin of each step message when its bytes left, in ticks of the main MCU's clock
+    /// (`clock_freq`); negative margins are counted in its summary's `negative` (recorded as 0).
+    pub lead: LatencyHist,
+    /// Planner → IO stage hand-off (ns): how long after the planner sent a batch the IO stage
+    /// woke and took it.
+    pub handoff: LatencyHist,
+    /// Planner thread wake-up lateness after a flow-control sleep (ns).
+    pub wake_planner: LatencyHist,
+    /// The main MCU's CLOCK_FREQ (Hz): the unit of `lead`.
+    pub clock_freq: f64,
+}
+
 impl Hists {
+    /// A copy of every histogram (each locked in turn; empty where a lock was poisoned).
+    pub fn snapshot(&self, clock_freq: f64) -> HistSnapshot {
+        let copy = |m: &Mutex<LatencyHist>| m.lock().map(|h| h.clone()).unwrap_or_default();
+        HistSnapshot {
+            lead: copy(&self.lead),
+            handoff: copy(&self.handoff),
+            wake_planner: copy(&self.wake_planner),
+            clock_freq,
+        }
+    }
+
     pub fn new() -> Arc<Hists> {
         let ticks = || LatencyHist::with_bounds(1, 1 << 42, 3, 1.0).unwrap_or_else(|_| LatencyHist::new());
         Arc::new(Hists {

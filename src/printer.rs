@@ -446,6 +446,12 @@ impl Printer {
         latency_of(&self.inner)
     }
 
+    /// A copy of the latency histograms so far (full histograms, where [`Printer::latency`]
+    /// gives their summaries).
+    pub fn latency_histograms(&self) -> crate::latency::HistSnapshot {
+        self.inner.hists.snapshot(self.inner.mcus.main().clock_freq)
+    }
+
     /// Stops the session (see [`PrinterHandle::stop`]).
     pub fn stop(&self) {
         self.handle().stop();

@@ -3,13 +3,15 @@
 //! - [`wakeup`]: cyclictest-class wake-up latency (pinned threads, SCHED_FIFO, absolute
 //!   deadlines, busy-wait mode), and [`cyclictest`]: the same settings run by cyclictest itself.
 //! - [`handoff`]: hand-off latency of the project's queues and iceoryx2 channels.
-//! - [`plan`]: planner + step compression throughput.
+//! - [`plan`]: planner + step compression throughput, and [`callgrind`]: instruction counts of
+//!   a whole process under valgrind.
 //!
 //! Shared by all: [`stats`] (ns histograms and their percentiles), [`report`] (the one `--json`
 //! schema), [`hlog`] (HdrHistogram interval logs), [`plot`] (SVG/PNG charts), [`load`]
 //! (stressors), [`host`] (the host facts header) and [`run`] (options and outputs common to
 //! every mode).
 
+pub mod callgrind;
 pub mod cyclictest;
 pub mod error;
 pub mod handoff;
@@ -25,6 +27,9 @@ pub mod stats;
 pub mod wakeup;
 
 pub use error::BenchError;
+/// The histogram type of every series, for modes run outside this crate (`cadence bench
+/// pipeline|homing`).
+pub use hdrhistogram;
 
 /// An executable named `name` in one of the `PATH` directories.
 pub fn find_on_path(name: &str) -> Option<std::path::PathBuf> {

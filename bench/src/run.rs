@@ -35,6 +35,8 @@ pub struct Common {
     pub budget_ns: Option<u64>,
     /// Show a progress bar on runs over a few seconds when stderr is a terminal.
     pub progress: bool,
+    /// A saved `--json` report of the same mode to compare this run with (`baseline`).
+    pub compare: Option<PathBuf>,
 }
 
 impl Default for Common {
@@ -47,6 +49,7 @@ impl Default for Common {
             load_tool: LoadTool::Auto,
             budget_ns: None,
             progress: true,
+            compare: None,
         }
     }
 }
@@ -64,6 +67,8 @@ pub struct Session {
     started: Instant,
     load: Option<Load>,
     progress: Option<ProgressBar>,
+    /// The saved report of `--compare`.
+    saved: Option<(PathBuf, Report)>,
 }
 
 impl Session {
@@ -89,6 +94,21 @@ impl Session {
         if let Some(p) = &common.plot {
             crate::plot::check_path(p)?;
         }
+        // Read before measuring, so a bad file fails at once.
+        let saved = match &common.compare {
+            Some(p) => {
+                let r = Report::read(p)?;
+                if r.mode != mode {
+                    return Err(BenchError::Options(format!(
+                        "--compare {}: a report of bench {}, not of bench {mode}",
+                        p.display(),
+                        r.mode
+                    )));
+                }
+                Some((p.clone(), r))
+            }
+            None => None,
+        };
         let hlog = match &common.hlog {
             Some(p) => Some(Hlog::create(
                 p,
@@ -140,6 +160,7 @@ impl Session {
             started: Instant::now(),
             load,
             progress,
+            saved,
         })
     }
 
@@ -170,6 +191,17 @@ impl Session {
         }
     }
 
+    /// Sets the report's `baseline` (with `--compare`) from its figures and series now, for a
+    /// mode that removes figures from the report before [`Session::finish`].
+    pub fn take_baseline(&mut self) {
+        if let Some((path, saved)) = self.saved.take() {
+            self.report.baseline = Some(crate::report::Baseline {
+                file: path.display().to_string(),
+                ratios: self.report.ratios_to(&saved),
+            });
+        }
+    }
+
     /// Adds a latency series to the report.
     pub fn series(&mut self, name: &str, hist: &Histogram<u64>) {
         self.report.series.push(series(name, hist));
@@ -196,6 +228,7 @@ impl Session {
         if let Some(path) = &self.common.plot {
             render(path, title, plot, self.report.budget_ns)?;
         }
+        self.take_baseline();
         if self.common.json {
             let text = self
                 .report

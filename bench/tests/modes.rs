@@ -224,7 +224,7 @@ fn plan_reports_figures_and_refuses_latency_outputs() {
         ..Common::default()
     };
     let mut out = Vec::new();
-    let r = bench::modes::plan::run(&gcode, &cfg, &opts, 2, &c, &mut out).unwrap();
+    let r = bench::modes::plan::run(&gcode, &cfg, &opts, 2, None, &c, &mut out).unwrap();
     let back: Report = serde_json::from_slice(&out).unwrap();
     assert_eq!(back.mode, "plan");
     for k in [
@@ -237,8 +237,72 @@ fn plan_reports_figures_and_refuses_latency_outputs() {
     ] {
         assert!(r.figures.get(k).is_some_and(|v| *v > 0.0), "{k}: {:?}", r.figures);
     }
-    let e =
-        bench::modes::plan::run(&gcode, &cfg, &opts, 1, &common(&dir, false), &mut Vec::new()).unwrap_err();
+    let e = bench::modes::plan::run(
+        &gcode,
+        &cfg,
+        &opts,
+        1,
+        None,
+        &common(&dir, false),
+        &mut Vec::new(),
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("--hlog and --plot"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn plan_compares_with_a_saved_report() {
+    let dir = scratch("plan_compare");
+    let examples = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples");
+    let gcode = examples.join("square.gcode");
+    let cfg = sysconfig::printer::load(&examples.join("simulated-cartesian.cfg")).unwrap();
+    let opts = bench::plan::PlanOptions::default();
+    let c = Common {
+        json: true,
+        progress: false,
+        ..Common::default()
+    };
+    let mut out = Vec::new();
+    bench::modes::plan::run(&gcode, &cfg, &opts, 1, None, &c, &mut out).unwrap();
+    let saved = dir.join("saved.json");
+    std::fs::write(&saved, &out).unwrap();
+    // Text mode: the comparison table is printed, and the report keeps the ratios.
+    let c = Common {
+        json: false,
+        progress: false,
+        compare: Some(saved.clone()),
+        ..Common::default()
+    };
+    let mut text = Vec::new();
+    let r = bench::modes::plan::run(&gcode, &cfg, &opts, 1, None, &c, &mut text).unwrap();
+    let text = String::from_utf8(text).unwrap();
+    assert!(text.contains(&format!("against {}:", saved.display())), "{text}");
+    let b = r.baseline.unwrap();
+    let get = |f: &str| b.ratios.iter().find(|x| x.figure == f).unwrap();
+    // Planning is deterministic: the same commands, bytes and steps.
+    for f in ["queue_steps", "wire_bytes", "steps", "moves"] {
+        assert_eq!(get(f).ratio, Some(1.0), "{f}: {:?}", get(f));
+    }
+    assert!(get("wall_s").ratio.is_some_and(|x| x > 0.0));
+    // A report of another mode, or not a report at all, is refused before running.
+    let mut wakeup = Report::new("wakeup", bench::host::Host::read());
+    wakeup.wall_s = 1.0;
+    let other = dir.join("wakeup.json");
+    std::fs::write(&other, wakeup.to_json().unwrap()).unwrap();
+    let garbage = dir.join("garbage.json");
+    std::fs::write(&garbage, "{\"schema\": 1}").unwrap();
+    for (file, want) in [
+        (&other, "not of bench plan"),
+        (&garbage, "not a cadence bench --json report"),
+    ] {
+        let c = Common {
+            compare: Some(file.clone()),
+            progress: false,
+            ..Common::default()
+        };
+        let e = bench::modes::plan::run(&gcode, &cfg, &opts, 1, None, &c, &mut Vec::new()).unwrap_err();
+        assert!(e.to_string().contains(want), "{e}");
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -1,6 +1,8 @@
 //! `cadence bench plan`: planner + step compression throughput ([`crate::plan`]) with the
 //! common options. It measures throughput, not latency: its figures go to `figures` and it has
-//! no histogram, so `--hlog` and `--plot` are refused.
+//! no histogram, so `--hlog` and `--plot` are refused. With an instruction command it also
+//! counts the instructions of one whole planning process (every thread) under valgrind's
+//! callgrind ([`crate::callgrind`]); without valgrind that figure is skipped with a note.
 
 use std::io::Write;
 use std::path::Path;
@@ -9,16 +11,20 @@ use std::time::Duration;
 use sysconfig::printer::PrinterConfig;
 
 use crate::error::BenchError;
+use crate::handoff::ChildCommand;
 use crate::plan::{plan_file, PlanOptions, PlanReport};
 use crate::report::Report;
 use crate::run::{Common, Session};
 
-/// Plans `file` `runs` times (every run must give the same commands) and reports the figures.
+/// Plans `file` `runs` times (every run must give the same commands) and reports the figures;
+/// with `instructions` (a command that plans the same file once, e.g. `cadence bench plan FILE
+/// …`), also that process' instruction count under callgrind.
 pub fn run(
     file: &Path,
     cfg: &PrinterConfig,
     opts: &PlanOptions,
     runs: u32,
+    instructions: Option<&ChildCommand>,
     common: &Common,
     out: &mut dyn Write,
 ) -> Result<Report, BenchError> {
@@ -66,6 +72,28 @@ pub fn run(
     if !common.json {
         writeln!(out, "{first}").map_err(|e| BenchError::file("(standard output)", e))?;
     }
+    if let Some(cmd) = instructions {
+        match crate::callgrind::find() {
+            Some(valgrind) => {
+                let n = crate::callgrind::count(&valgrind, &cmd.exe, &cmd.args)?;
+                let f = &mut s.report.figures;
+                f.insert("instructions".into(), n as f64);
+                let per_step = n as f64 / first.steps.max(1) as f64;
+                f.insert("instructions_per_step".into(), per_step);
+                if !common.json {
+                    writeln!(
+                        out,
+                        "instructions (callgrind, whole process, all threads): {n} ({:.2} G, {per_step:.0} per step)",
+                        n as f64 / 1e9
+                    )
+                    .map_err(|e| BenchError::file("(standard output)", e))?;
+                }
+            }
+            None => s.report.notes.push(
+                "instructions skipped: valgrind is not installed (Debian: apt install valgrind)".into(),
+            ),
+        }
+    }
     if runs > 1 {
         let (min, median, max) = spread(&mut walls);
         s.report.figures.insert("wall_min_s".into(), min);
@@ -75,6 +103,7 @@ pub fn run(
             "wall over {runs} runs: min {min:.4} s, median {median:.4} s, max {max:.4} s"
         ));
     }
+    s.take_baseline();
     // The text line above already says every figure; keep the table for JSON only.
     if !common.json {
         s.report.figures.clear();

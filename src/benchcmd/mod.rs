@@ -1,7 +1,12 @@
-//! `cadence bench wakeup|handoff|plan`: the command line of the benchmarks in the `bench`
-//! crate (which runs them and prints their reports); this module only turns arguments into
-//! their options. Every mode takes the common options (`--json`, `--hlog`, `--plot`, `--load`,
-//! `--budget-us`, `--no-progress`).
+//! `cadence bench wakeup|handoff|plan|pipeline|homing`: the command line of the benchmarks.
+//! `wakeup`, `handoff` and `plan` run in the `bench` crate (which prints their reports); this
+//! module only turns arguments into their options. `pipeline` and `homing` need the running
+//! printer, so they run here ([`pipeline`], [`homing`]) over the `cadence` library and report
+//! through `bench`'s session (same schema, logs and plots). Every mode takes the common
+//! options (`--json`, `--hlog`, `--plot`, `--load`, `--budget-us`, `--no-progress`).
+
+mod homing;
+mod pipeline;
 
 use std::path::PathBuf;
 use std::time::Duration;
@@ -49,6 +54,10 @@ pub struct CommonArgs {
     /// No progress bar (it only shows on a terminal, on runs of 3 s or more).
     #[arg(long)]
     pub no_progress: bool,
+    /// A saved `--json` report of the same mode: print this run's figures and percentiles over
+    /// its, figure by figure.
+    #[arg(long, value_name = "REPORT.json")]
+    pub compare: Option<PathBuf>,
 }
 
 /// What to measure.
@@ -123,6 +132,54 @@ pub enum BenchWhat {
         mode: String,
         core: usize,
     },
+    /// A live print on the simulated printer (or --config): lead-margin histogram against the
+    /// 100 ms lead, planner→IO hand-off, planner wake-up lateness, serial round trip.
+    Pipeline {
+        /// The G-code file (default: the built-in reference print, examples/square.gcode).
+        file: Option<PathBuf>,
+        /// Klipper-format printer.cfg (default: the built-in simulated printer).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Simulated MCU clocks run N× faster than the wall clock (up to 50; default: the
+        /// config's).
+        #[arg(long, value_parser = parse_time_scale)]
+        time_scale: Option<f64>,
+        /// Maximum step time error of the compression, in microseconds.
+        #[arg(long, default_value_t = 25.0)]
+        max_error_us: f64,
+        /// Don't pin threads, use SCHED_FIFO or lock memory.
+        #[arg(long)]
+        no_realtime: bool,
+        #[command(flatten)]
+        common: CommonArgs,
+    },
+    /// Repeated homing on the simulated single-MCU and multi-MCU printers (or --config):
+    /// trigger→stop against the 25 ms budget, overshoot, the machine's wake-up beside it.
+    Homing {
+        /// Which simulated printers: single, multi (Z endstop on a second MCU) or both.
+        #[arg(long, default_value = "both", value_parser = ["single", "multi", "both"], conflicts_with = "config")]
+        printer: String,
+        /// Home this printer.cfg instead of the simulated ones.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Axes to home, as letters (default: xyz; z on the multi-MCU printer).
+        #[arg(long)]
+        axes: Option<String>,
+        /// Homing cycles per printer.
+        #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..=100_000))]
+        cycles: u32,
+        /// Distance (mm) the axes move off their endstops between cycles.
+        #[arg(long, default_value_t = 5.0)]
+        away: f64,
+        /// Simulated MCU clocks run N× faster than the wall clock (up to 50).
+        #[arg(long, value_parser = parse_time_scale)]
+        time_scale: Option<f64>,
+        /// Don't pin threads, use SCHED_FIFO or lock memory.
+        #[arg(long)]
+        no_realtime: bool,
+        #[command(flatten)]
+        common: CommonArgs,
+    },
     /// Plan and compress a G-code file flat out and print the figures.
     Plan {
         /// The G-code file.
@@ -146,6 +203,10 @@ pub enum BenchWhat {
         /// minute to the next; every run must give the same commands).
         #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=1000))]
         runs: u32,
+        /// Also count the instructions of one planning process (all threads) under valgrind's
+        /// callgrind (skipped with a note when valgrind is not installed).
+        #[arg(long)]
+        instructions: bool,
         #[command(flatten)]
         common: CommonArgs,
     },
@@ -201,6 +262,12 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
             };
             println!("{}", bench::handoff::child_main(service, *samples, poll, *core)?);
         }
+        BenchWhat::Pipeline { common, .. } => {
+            pipeline::run(&pipeline_mode(&args.what)?, &common_options(common), &mut out)?;
+        }
+        BenchWhat::Homing { common, .. } => {
+            homing::run(&homing_mode(&args.what)?, &common_options(common), &mut out)?;
+        }
         BenchWhat::Plan {
             file,
             config,
@@ -208,6 +275,7 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
             max_error_us,
             clock_freq,
             runs,
+            instructions,
             common,
         } => {
             let cfg = crate::machine::load_config(config.as_deref())?;
@@ -223,11 +291,48 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
                 clock_freq: clock_freq.unwrap_or(opts.clock_freq),
                 ..opts
             };
-            bench::modes::plan::run(file, &cfg, &opts, *runs, &common_options(common), &mut out)
-                .map_err(|e| e.to_string())?;
+            let counted = if *instructions {
+                Some(plan_child(file, config.as_deref(), &opts)?)
+            } else {
+                None
+            };
+            bench::modes::plan::run(
+                file,
+                &cfg,
+                &opts,
+                *runs,
+                counted.as_ref(),
+                &common_options(common),
+                &mut out,
+            )
+            .map_err(|e| e.to_string())?;
         }
     }
     Ok(())
+}
+
+/// `cadence bench plan` of the same file with the same options, planned once: the process
+/// whose instructions `--instructions` counts.
+fn plan_child(
+    file: &std::path::Path,
+    config: Option<&std::path::Path>,
+    opts: &bench::plan::PlanOptions,
+) -> Result<ChildCommand, String> {
+    let exe = std::env::current_exe().map_err(|e| format!("cannot find the cadence executable: {e}"))?;
+    let mut args: Vec<String> = vec!["bench".into(), "plan".into(), file.display().to_string()];
+    if let Some(c) = config {
+        args.extend(["--config".into(), c.display().to_string()]);
+    }
+    args.extend([
+        "--threads".into(),
+        opts.threads.to_string(),
+        "--max-error-us".into(),
+        (opts.max_error_s * 1e6).to_string(),
+        "--clock-freq".into(),
+        opts.clock_freq.to_string(),
+        "--no-progress".into(),
+    ]);
+    Ok(ChildCommand { exe, args })
 }
 
 /// The library's common options.
@@ -240,7 +345,86 @@ fn common_options(a: &CommonArgs) -> Common {
         load_tool: a.load_tool,
         budget_ns: a.budget_us.map(|us| (us * 1e3).round() as u64),
         progress: !a.no_progress,
+        compare: a.compare.clone(),
     }
+}
+
+/// The pipeline mode of `bench pipeline` arguments.
+fn pipeline_mode(what: &BenchWhat) -> Result<pipeline::PipelineMode, String> {
+    let BenchWhat::Pipeline {
+        file,
+        config,
+        time_scale,
+        max_error_us,
+        no_realtime,
+        ..
+    } = what
+    else {
+        return Err("not a pipeline command".into());
+    };
+    if !(*max_error_us > 0.0 && *max_error_us <= 1000.0) {
+        return Err(format!("--max-error-us {max_error_us}: must be in (0, 1000]"));
+    }
+    Ok(pipeline::PipelineMode {
+        file: file.clone(),
+        config: config.clone(),
+        time_scale: *time_scale,
+        max_error_us: *max_error_us,
+        realtime: !no_realtime,
+    })
+}
+
+/// The homing mode of `bench homing` arguments.
+fn homing_mode(what: &BenchWhat) -> Result<homing::HomingMode, String> {
+    let BenchWhat::Homing {
+        printer,
+        config,
+        axes,
+        cycles,
+        away,
+        time_scale,
+        no_realtime,
+        ..
+    } = what
+    else {
+        return Err("not a homing command".into());
+    };
+    let printers = match (config, printer.as_str()) {
+        (Some(c), _) => homing::Printers::Config(c.clone()),
+        (None, "single") => homing::Printers::Single,
+        (None, "multi") => homing::Printers::Multi,
+        _ => homing::Printers::Both,
+    };
+    let axes = match axes {
+        None => None,
+        Some(text) => {
+            let mut a = [false; 3];
+            for c in text.chars() {
+                match cadence::homing::AXIS_NAMES
+                    .iter()
+                    .position(|&n| n == c.to_ascii_lowercase())
+                {
+                    Some(i) => a[i] = true,
+                    None => return Err(format!("--axes {text}: '{c}' is not x, y or z")),
+                }
+            }
+            if a == [false; 3] {
+                return Err("--axes: give at least one of x, y, z".into());
+            }
+            Some(a)
+        }
+    };
+    if !(away.is_finite() && *away > 0.0) {
+        return Err(format!("--away {away}: must be more than 0 mm"));
+    }
+    Ok(homing::HomingMode {
+        printers,
+        axes,
+        cycles: *cycles,
+        away: *away,
+        time_scale: *time_scale,
+        realtime: !no_realtime,
+    })
 }
 
 /// The wakeup mode of `bench wakeup` arguments.
@@ -316,6 +500,16 @@ fn parse_budget(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
         Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
         _ => Err(format!("budget {s:?}: expected microseconds, 0 or more")),
+    }
+}
+
+/// A simulated time scale in (0, 50].
+fn parse_time_scale(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v > 0.0 && v <= 50.0 => Ok(v),
+        _ => Err(format!(
+            "time scale {s:?}: expected a number more than 0 and at most 50"
+        )),
     }
 }
 
@@ -431,6 +625,78 @@ mod tests {
         assert!(wakeup_mode(&w).unwrap_err().contains("CPU 4096 does not exist"));
         let w = parse(&["wakeup", "--cpus", "0,0"]).unwrap();
         assert!(wakeup_mode(&w).unwrap_err().contains("CPU 0 is given twice"));
+    }
+
+    #[test]
+    fn pipeline_and_homing_options_parse_into_their_modes() {
+        let p = parse(&[
+            "pipeline",
+            "print.gcode",
+            "--config",
+            "printer.cfg",
+            "--time-scale",
+            "5",
+            "--no-realtime",
+            "--json",
+            "--plot",
+            "p.png",
+        ])
+        .unwrap();
+        let m = pipeline_mode(&p).unwrap();
+        assert_eq!(m.file, Some(PathBuf::from("print.gcode")));
+        assert_eq!(m.config, Some(PathBuf::from("printer.cfg")));
+        assert_eq!(
+            (m.time_scale, m.max_error_us, m.realtime),
+            (Some(5.0), 25.0, false)
+        );
+        let m = pipeline_mode(&parse(&["pipeline"]).unwrap()).unwrap();
+        assert_eq!((m.file, m.config, m.time_scale), (None, None, None));
+        assert!(m.realtime);
+
+        let h = parse(&[
+            "homing",
+            "--printer",
+            "multi",
+            "--axes",
+            "Zx",
+            "--cycles",
+            "3",
+            "--away",
+            "2",
+        ])
+        .unwrap();
+        let m = homing_mode(&h).unwrap();
+        assert_eq!(m.printers, homing::Printers::Multi);
+        assert_eq!(m.axes, Some([true, false, true]));
+        assert_eq!((m.cycles, m.away), (3, 2.0));
+        let m = homing_mode(&parse(&["homing", "--config", "a.cfg", "--load", "io"]).unwrap()).unwrap();
+        assert_eq!(m.printers, homing::Printers::Config(PathBuf::from("a.cfg")));
+        assert_eq!((m.axes, m.cycles), (None, 10));
+        let m = homing_mode(&parse(&["homing"]).unwrap()).unwrap();
+        assert_eq!(m.printers, homing::Printers::Both);
+    }
+
+    #[test]
+    fn bad_pipeline_and_homing_options_are_clear_errors() {
+        for (args, want) in [
+            (&["pipeline", "--time-scale", "0"][..], "at most 50"),
+            (&["pipeline", "--time-scale", "51"], "at most 50"),
+            (&["homing", "--printer", "three"], "three"),
+            (&["homing", "--cycles", "0"], "0"),
+            (
+                &["homing", "--printer", "multi", "--config", "x.cfg"],
+                "cannot be used with",
+            ),
+        ] {
+            let e = parse(args).unwrap_err();
+            assert!(e.contains(want), "{args:?}: {e}");
+        }
+        let e = homing_mode(&parse(&["homing", "--axes", "xw"]).unwrap()).unwrap_err();
+        assert!(e.contains("'w' is not x, y or z"), "{e}");
+        let e = homing_mode(&parse(&["homing", "--away", "0"]).unwrap()).unwrap_err();
+        assert!(e.contains("more than 0"), "{e}");
+        let e = pipeline_mode(&parse(&["pipeline", "--max-error-us", "0"]).unwrap()).unwrap_err();
+        assert!(e.contains("(0, 1000]"), "{e}");
     }
 
     #[test]

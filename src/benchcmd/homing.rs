@@ -1,0 +1,385 @@
+//! `cadence bench homing`: repeated homing cycles on the simulated printers through the
+//! library's homing cycles ([`cadence::home_cycles`]): the built-in single-MCU printer (every
+//! endstop on the steppers' MCU: the MCU stops itself) and the multi-MCU one
+//! (`examples/simulated-multi-mcu.cfg`: the Z endstop on `probe_mcu`, the host relays the
+//! trigger to the steppers' MCU), or one printer.cfg.
+//!
+//! Per axis and printer: trigger → stop, measured as the first step the stop cancelled minus
+//! the endstop's trigger (an upper bound of the stop latency; the last executed step is its
+//! lower bound), against the 25 ms homing budget; the overshoot (mm past the trigger point);
+//! and the machine's own wake-up latency meanwhile (1 ms sleeps at the IO threads' priority)
+//! as a series and as the ratio of each p99.9 to its p99.9.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use bench::hdrhistogram::Histogram;
+use bench::modes::HOMING_BUDGET_NS;
+use bench::run::{Common, Session};
+use bench::stats::{merge, new_hist, Percentiles};
+use bench::wakeup::mono_ns;
+use bench::BenchError;
+use cadence::home_cycles::{CycleFigures, HomeOptions, HomeOutput};
+use cadence::homing::{HomingReport, AXIS_NAMES};
+
+const MULTI_MCU_CFG: &str = include_str!("../../examples/simulated-multi-mcu.cfg");
+
+/// Which printers to home.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Printers {
+    /// The built-in single-MCU printer, then the multi-MCU one.
+    Both,
+    /// The built-in simulated printer (one MCU).
+    Single,
+    /// `examples/simulated-multi-mcu.cfg` (built in): Z endstop on a second MCU.
+    Multi,
+    /// A printer.cfg.
+    Config(PathBuf),
+}
+
+/// Options of `cadence bench homing`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HomingMode {
+    pub printers: Printers,
+    /// Axes to home (`None`: X, Y and Z on the single-MCU printer and a config, Z on the
+    /// multi-MCU one, its relayed axis).
+    pub axes: Option<[bool; 3]>,
+    /// Homing cycles per printer.
+    pub cycles: u32,
+    /// mm the axes move off their endstops between cycles.
+    pub away: f64,
+    pub time_scale: Option<f64>,
+    pub realtime: bool,
+}
+
+/// Notes of the homing cycles go to the report; their own text report is not repeated.
+#[derive(Default)]
+struct Collect {
+    notes: Vec<String>,
+}
+
+impl HomeOutput for Collect {
+    fn out(&mut self, _line: String) {}
+    fn err(&mut self, line: String) {
+        self.notes.push(line);
+    }
+}
+
+/// One series: passes of one axis on one printer.
+struct Group {
+    name: String,
+    mcus: Vec<String>,
+    stop: Histogram<u64>,
+    /// Overshoot in nm.
+    overshoot: Histogram<u64>,
+}
+
+/// Homes and reports (see the module docs).
+pub fn run(m: &HomingMode, common: &Common, out: &mut dyn Write) -> Result<bench::report::Report, String> {
+    if m.cycles == 0 {
+        return Err("--cycles must be at least 1".into());
+    }
+    let err = |e: BenchError| e.to_string();
+    let printers: Vec<(String, Option<PathBuf>, [bool; 3])> = {
+        let all = [true; 3];
+        let z = [false, false, true];
+        let multi = || -> Result<PathBuf, String> {
+            let p = std::env::temp_dir().join(format!("cadence-bench-multi-mcu-{}.cfg", std::process::id()));
+            std::fs::write(&p, MULTI_MCU_CFG).map_err(|e| format!("{}: {e}", p.display()))?;
+            Ok(p)
+        };
+        match &m.printers {
+            Printers::Both => vec![
+                ("single".into(), None, m.axes.unwrap_or(all)),
+                ("multi".into(), Some(multi()?), m.axes.unwrap_or(z)),
+            ],
+            Printers::Single => vec![("single".into(), None, m.axes.unwrap_or(all))],
+            Printers::Multi => vec![("multi".into(), Some(multi()?), m.axes.unwrap_or(z))],
+            Printers::Config(p) => vec![(stem(p), Some(p.clone()), m.axes.unwrap_or(all))],
+        }
+    };
+    let names: Vec<String> = printers
+        .iter()
+        .map(|(n, _, axes)| format!("{n} ({})", axes_str(*axes)))
+        .collect();
+    let describe = format!(
+        "homing: {} cycles on each of {}, {} mm away between cycles, time scale {}, real time {}",
+        m.cycles,
+        names.join(", "),
+        m.away,
+        m.time_scale
+            .map_or("as configured".to_string(), |s| s.to_string()),
+        if m.realtime { "on" } else { "off" }
+    );
+    // About 2 s per axis and cycle at the simulated printers' homing speeds.
+    let passes: u32 = printers
+        .iter()
+        .map(|(_, _, a)| a.iter().filter(|x| **x).count() as u32)
+        .sum();
+    let expected = Duration::from_secs(2) * m.cycles.saturating_mul(passes);
+    let mut s =
+        Session::start("homing", &describe, common, Some(HOMING_BUDGET_NS), expected, out).map_err(err)?;
+    s.report.set("printers", names.clone());
+    s.report.set("cycles", m.cycles);
+    s.report.set("away_mm", m.away);
+    s.report.set("time_scale", m.time_scale);
+    s.report.set("realtime", m.realtime);
+    let mut groups: Vec<Group> = Vec::new();
+    let mut wakeup = new_hist().map_err(err)?;
+    let mut timeouts = 0u32;
+    let mut scales = Vec::new();
+    let t0 = mono_ns().map_err(err)?;
+    for (name, config, axes) in &printers {
+        let opts = HomeOptions {
+            config: config.clone(),
+            axes: *axes,
+            cycles: m.cycles,
+            away: m.away,
+            cpu_load: false,
+            time_scale: m.time_scale,
+            trace: None,
+            max_error_us: 25.0,
+            no_realtime: !m.realtime,
+        };
+        let (figures, notes) = home_in_thread(opts)?;
+        s.report
+            .notes
+            .extend(notes.into_iter().map(|n| format!("{name}: {n}")));
+        timeouts += figures.timeouts;
+        scales.push(figures.time_scale);
+        group_passes(name, &figures.reports, &mut groups).map_err(err)?;
+        merge(&mut wakeup, figures.noise.hist.histogram()).map_err(err)?;
+        s.progress(Duration::from_secs_f64(
+            (mono_ns().map_err(err)?.saturating_sub(t0)) as f64 * 1e-9,
+        ));
+    }
+    if let Printers::Both | Printers::Multi = m.printers {
+        if let Some((_, Some(p), _)) = printers.iter().find(|(n, _, _)| n == "multi") {
+            let _ = std::fs::remove_file(p);
+        }
+    }
+    let t1 = mono_ns().map_err(err)?;
+    let wake_p999 = Percentiles::of(&wakeup).p99_9_ns as f64;
+    for g in &groups {
+        s.series(&g.name, &g.stop);
+        s.interval(&g.name, t0, t1, &g.stop).map_err(err)?;
+        let mm = |nm: u64| nm as f64 * 1e-6;
+        let ov = Percentiles::of(&g.overshoot);
+        let f = &mut s.report.figures;
+        f.insert(format!("{}_overshoot_p50_mm", g.name), mm(ov.p50_ns));
+        f.insert(format!("{}_overshoot_p99_mm", g.name), mm(ov.p99_ns));
+        f.insert(format!("{}_overshoot_p99_9_mm", g.name), mm(ov.p99_9_ns));
+        f.insert(format!("{}_overshoot_max_mm", g.name), mm(ov.max_ns));
+        if wake_p999 > 0.0 {
+            f.insert(
+                format!("{}_p99_9_over_wakeup_p99_9", g.name),
+                Percentiles::of(&g.stop).p99_9_ns as f64 / wake_p999,
+            );
+        }
+        s.report.notes.push(format!(
+            "{}: trigger group {} ({})",
+            g.name,
+            g.mcus.join("+"),
+            if g.mcus.len() > 1 {
+                "the host relays the trigger between MCUs"
+            } else {
+                "the MCU stops its own steppers"
+            }
+        ));
+    }
+    if !wakeup.is_empty() {
+        s.series("machine-wakeup", &wakeup);
+        s.interval("machine-wakeup", t0, t1, &wakeup).map_err(err)?;
+    }
+    s.report.figures.insert("timeouts".into(), f64::from(timeouts));
+    if scales.iter().any(|&x| x != 1.0) {
+        s.report.notes.push(
+            "trigger → stop and overshoot are MCU print time, which ran time-scale times faster than \
+             the wall clock (the machine's wake-up is wall time)"
+                .into(),
+        );
+    }
+    s.report.notes.push(
+        "trigger → stop: first step the stop cancelled − the endstop's trigger (an upper bound; MCU time)"
+            .into(),
+    );
+    s.report.verdict = verdict(&groups, timeouts, wake_p999, s.report.budget_ns);
+    let mut plot: Vec<bench::plot::PlotSeries<'_>> = groups
+        .iter()
+        .map(|g| bench::plot::PlotSeries {
+            name: &g.name,
+            hist: &g.stop,
+        })
+        .collect();
+    if !wakeup.is_empty() {
+        plot.push(bench::plot::PlotSeries {
+            name: "machine-wakeup",
+            hist: &wakeup,
+        });
+    }
+    let title = format!("homing trigger → stop, {} cycles", m.cycles);
+    s.finish(&title, &plot, out).map_err(err)
+}
+
+/// Runs the cycles on a thread of their own: they pin their thread and give it SCHED_FIFO,
+/// which the next printer's simulated MCUs and sleeper must not inherit.
+fn home_in_thread(opts: HomeOptions) -> Result<(CycleFigures, Vec<String>), String> {
+    std::thread::Builder::new()
+        .name("bench-homing".into())
+        .spawn(move || {
+            let mut o = Collect::default();
+            cadence::home_cycles::run_figures(&opts, &mut o).map(|f| (f, o.notes))
+        })
+        .map_err(|e| format!("cannot start the homing thread: {e}"))?
+        .join()
+        .map_err(|_| "the homing thread panicked".to_string())?
+}
+
+/// Adds every pass of `reports` to the group of its printer and axis.
+fn group_passes(printer: &str, reports: &[HomingReport], groups: &mut Vec<Group>) -> Result<(), BenchError> {
+    for r in reports {
+        for a in &r.axes {
+            let name = format!("{printer}-{}", AXIS_NAMES[a.axis.min(2)]);
+            let i = match groups.iter().position(|g| g.name == name) {
+                Some(i) => i,
+                None => {
+                    groups.push(Group {
+                        name,
+                        mcus: a.mcus.clone(),
+                        stop: new_hist()?,
+                        overshoot: new_hist()?,
+                    });
+                    groups.len() - 1
+                }
+            };
+            let g = &mut groups[i];
+            for p in &a.passes {
+                g.stop
+                    .saturating_record((p.next_step_after_s.max(0.0) * 1e9) as u64);
+                g.overshoot
+                    .saturating_record((p.overshoot_mm.max(0.0) * 1e6) as u64);
+            }
+        }
+    }
+    Ok(())
+}
+
+/// "25 ms homing budget held: …" or "OVER …", with the worst group and the wake-up ratio.
+fn verdict(groups: &[Group], timeouts: u32, wake_p999: f64, budget_ns: Option<u64>) -> Option<String> {
+    let budget = budget_ns? as f64;
+    let fmt = rt_core::hist::fmt_ns;
+    let Some(worst) = groups.iter().max_by_key(|g| g.stop.max()) else {
+        return Some(format!(
+            "OVER the {} homing budget: no homing pass completed ({timeouts} cycles ended in a \
+             communication timeout)",
+            fmt(budget)
+        ));
+    };
+    let passes: u64 = groups.iter().map(|g| g.stop.len()).sum();
+    let max = worst.stop.max() as f64;
+    let p999 = Percentiles::of(&worst.stop).p99_9_ns as f64;
+    let ratio = if wake_p999 > 0.0 {
+        format!(
+            ", its p99.9 {} = {:.1} x the machine's wake-up p99.9",
+            fmt(p999),
+            p999 / wake_p999
+        )
+    } else {
+        String::new()
+    };
+    let timed_out = if timeouts > 0 {
+        format!("; {timeouts} cycles ended in a communication timeout")
+    } else {
+        String::new()
+    };
+    Some(if max <= budget && timeouts == 0 {
+        format!(
+            "{} homing budget held: trigger → stop max {} ({}) over {passes} passes{ratio}",
+            fmt(budget),
+            fmt(max),
+            worst.name
+        )
+    } else {
+        format!(
+            "OVER the {} homing budget: trigger → stop max {} ({}) over {passes} passes{ratio}{timed_out}",
+            fmt(budget),
+            fmt(max),
+            worst.name
+        )
+    })
+}
+
+fn stem(p: &Path) -> String {
+    p.file_stem()
+        .map_or("config".to_string(), |s| s.to_string_lossy().into_owned())
+}
+
+fn axes_str(axes: [bool; 3]) -> String {
+    axes.iter()
+        .zip(AXIS_NAMES)
+        .filter(|(on, _)| **on)
+        .map(|(_, n)| n)
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use cadence::homing::{AxisReport, PassReport};
+
+    fn pass(next_step_after_s: f64, overshoot_mm: f64) -> PassReport {
+        PassReport {
+            speed: 10.0,
+            trigger_mcu: "probe_mcu".into(),
+            trigger_clock: 0,
+            trigger_print_time: 0.0,
+            overshoot_mm,
+            trigger_position: 0.0,
+            steps: 0,
+            last_step_after_s: 0.0,
+            next_step_after_s,
+            trigger_received_at: 0.0,
+            relay_written_at: None,
+        }
+    }
+
+    #[test]
+    fn passes_group_by_printer_and_axis_and_the_verdict_takes_the_worst() {
+        let report = HomingReport {
+            axes: vec![
+                AxisReport {
+                    axis: 2,
+                    mcus: vec!["probe_mcu".into(), "mcu".into()],
+                    passes: vec![pass(0.002, 0.01), pass(0.004, 0.02)],
+                    position: 0.0,
+                },
+                AxisReport {
+                    axis: 0,
+                    mcus: vec!["mcu".into()],
+                    passes: vec![pass(0.0002, 0.001)],
+                    position: 0.0,
+                },
+            ],
+        };
+        let mut groups = Vec::new();
+        group_passes("multi", &[report.clone(), report], &mut groups).unwrap();
+        assert_eq!(groups.len(), 2);
+        assert_eq!((groups[0].name.as_str(), groups[0].stop.len()), ("multi-z", 4));
+        assert_eq!(groups[1].name, "multi-x");
+        let v = verdict(&groups, 0, 1e6, Some(HOMING_BUDGET_NS)).unwrap();
+        assert!(v.starts_with("25.00 ms homing budget held"), "{v}");
+        assert!(v.contains("(multi-z) over 6 passes"), "{v}");
+        let v = verdict(&groups, 1, 0.0, Some(HOMING_BUDGET_NS)).unwrap();
+        assert!(v.starts_with("OVER") && v.contains("1 cycles ended"), "{v}");
+        assert!(verdict(&groups, 0, 0.0, Some(3_000_000))
+            .unwrap()
+            .starts_with("OVER"));
+        assert_eq!(verdict(&groups, 0, 0.0, None), None);
+        let v = verdict(&[], 2, 0.0, Some(HOMING_BUDGET_NS)).unwrap();
+        assert!(
+            v.starts_with("OVER") && v.contains("no homing pass completed (2 cycles"),
+            "{v}"
+        );
+    }
+}

@@ -1,0 +1,256 @@
+//! `cadence bench pipeline`: a live print on the simulated printer (or a printer.cfg) through
+//! the library's [`Printer`], measured as it runs: the lead margin of every step message when
+//! its bytes left for the MCU (against the 100 ms lead), the planner → IO stage hand-off (the
+//! IO stage has no timer: the planner's event wakes it, so this is its wake-up latency) and the
+//! planner thread's wake-up lateness after its flow-control sleeps, plus each MCU link's serial
+//! round trip. The verdict says whether the 100 ms lead held, or the first violation and where.
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use bench::hdrhistogram::Histogram;
+use bench::run::{Common, Session};
+use bench::stats::new_hist;
+use bench::wakeup::mono_ns;
+use bench::BenchError;
+use cadence::latency::HistSnapshot;
+use cadence::printer::{PrinterOptions, PrinterSource};
+use cadence::{Printer, MIN_LEAD_S};
+use rt_core::hist::LatencyHist;
+
+/// The reference print run when no file is given (the repository's `examples/square.gcode`).
+pub const REFERENCE_NAME: &str = "examples/square.gcode";
+const REFERENCE: &str = include_str!("../../examples/square.gcode");
+
+/// Options of `cadence bench pipeline`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PipelineMode {
+    /// The G-code file (`None`: the built-in reference print).
+    pub file: Option<PathBuf>,
+    /// printer.cfg (`None`: the built-in simulated printer).
+    pub config: Option<PathBuf>,
+    /// Simulated MCU clocks this many times faster than the wall clock (`None`: the config's).
+    pub time_scale: Option<f64>,
+    /// Step compression bound (µs).
+    pub max_error_us: f64,
+    /// Pin threads, SCHED_FIFO, locked memory (printer.cfg's `[realtime]`).
+    pub realtime: bool,
+}
+
+/// Series names, in report order.
+pub const SERIES: [&str; 3] = ["lead-margin", "handoff", "planner-wake"];
+
+/// Prints the file and reports (see the module docs). A print that failed still writes its
+/// report (with the reason as verdict) before the error is returned.
+pub fn run(m: &PipelineMode, common: &Common, out: &mut dyn Write) -> Result<bench::report::Report, String> {
+    let file_name = m
+        .file
+        .as_ref()
+        .map_or(format!("{REFERENCE_NAME} (built in)"), |f| {
+            f.display().to_string()
+        });
+    let printer_name = m
+        .config
+        .as_ref()
+        .map_or("the built-in simulated printer".to_string(), |c| {
+            c.display().to_string()
+        });
+    let describe = format!(
+        "pipeline: {file_name} on {printer_name}, time scale {}, real time {}",
+        m.time_scale
+            .map_or("as configured".to_string(), |s| s.to_string()),
+        if m.realtime { "on" } else { "off" }
+    );
+    let budget = Some((MIN_LEAD_S * 1e9) as u64);
+    let err = |e: BenchError| e.to_string();
+    let mut s = Session::start("pipeline", &describe, common, budget, Duration::ZERO, out).map_err(err)?;
+    s.report.set("file", file_name.clone());
+    s.report
+        .set("config", m.config.as_ref().map(|c| c.display().to_string()));
+    s.report.set("time_scale", m.time_scale);
+    s.report.set("max_error_us", m.max_error_us);
+    s.report.set("realtime", m.realtime);
+    let t0 = mono_ns().map_err(err)?;
+    let (hists, outcome) = print(m, &mut s.report.figures);
+    let t1 = mono_ns().map_err(err)?;
+    let lead = lead_ns(&hists.lead, hists.clock_freq).map_err(err)?;
+    let series: [(&str, Histogram<u64>); 3] = [
+        (SERIES[0], lead),
+        (SERIES[1], hists.handoff.histogram().clone()),
+        (SERIES[2], hists.wake_planner.histogram().clone()),
+    ];
+    for (name, h) in &series {
+        if h.is_empty() {
+            s.report.notes.push(format!(
+                "{name}: no samples (none of its events happened in this run: e.g. the planner never \
+                 waited for the MCU clock)"
+            ));
+        } else {
+            s.series(name, h);
+            s.interval(name, t0, t1, h).map_err(err)?;
+        }
+    }
+    let lead_summary = hists.lead.summary();
+    s.report
+        .figures
+        .insert("lead_late_messages".into(), lead_summary.negative as f64);
+    let under = under_budget(&series[0].1);
+    s.report
+        .figures
+        .insert("lead_under_100ms_messages".into(), under as f64);
+    s.report.verdict = Some(verdict(
+        &series[0].1,
+        lead_summary.negative,
+        under,
+        outcome.as_ref().err(),
+    ));
+    if m.time_scale.is_some_and(|t| t != 1.0) {
+        s.report.notes.push(
+            "lead margins are print time, which runs time-scale times faster than the wall clock".into(),
+        );
+    }
+    s.report.notes.push(
+        "handoff: planner sent a step batch → the IO stage woke and took it (the IO stage has no timer of its own)"
+            .into(),
+    );
+    let plot: Vec<bench::plot::PlotSeries<'_>> = series
+        .iter()
+        .filter(|(_, h)| !h.is_empty())
+        .map(|(name, hist)| bench::plot::PlotSeries { name, hist })
+        .collect();
+    let title = format!("live print of {file_name}: lead margin and stage latencies");
+    let report = s.finish(&title, &plot, out).map_err(err)?;
+    outcome.map(|()| report)
+}
+
+/// Runs the print; returns the histograms (whatever happened) and the outcome. Figures of the
+/// run (lines, moves, times, link round trips) go to `figures`.
+fn print(
+    m: &PipelineMode,
+    figures: &mut std::collections::BTreeMap<String, f64>,
+) -> (HistSnapshot, Result<(), String>) {
+    let empty = HistSnapshot {
+        lead: LatencyHist::new(),
+        handoff: LatencyHist::new(),
+        wake_planner: LatencyHist::new(),
+        clock_freq: 1.0,
+    };
+    let source = match &m.config {
+        Some(p) => PrinterSource::ConfigFile(p.clone()),
+        None => PrinterSource::Simulated,
+    };
+    let opts = PrinterOptions {
+        time_scale: m.time_scale,
+        max_error_us: m.max_error_us,
+        realtime: m.realtime,
+        ..PrinterOptions::default()
+    };
+    let printer = match Printer::open(source, opts) {
+        Ok(p) => p,
+        Err(e) => return (empty, Err(e.to_string())),
+    };
+    let ran = match &m.file {
+        Some(f) => printer.run_gcode_file(f),
+        None => printer.run_gcode_stream(REFERENCE_NAME, REFERENCE.as_bytes()),
+    }
+    .and_then(|()| printer.wait_moves())
+    .map_err(|e| e.to_string());
+    let hists = printer.latency_histograms();
+    let closed = printer.close();
+    let outcome = match (ran, closed) {
+        (Err(e), _) => Err(e),
+        (Ok(()), Err(e)) => Err(e.reason),
+        (Ok(()), Ok(r)) => {
+            let sm = &r.summary;
+            figures.insert("lines".into(), sm.lines as f64);
+            figures.insert("moves".into(), sm.moves as f64);
+            figures.insert("queue_steps".into(), sm.queue_steps as f64);
+            figures.insert("print_time_s".into(), sm.print_time);
+            figures.insert("wall_s".into(), sm.wall);
+            for (name, st) in &r.link_stats {
+                figures.insert(format!("{name}_srtt_us"), st.queue.srtt * 1e6);
+                figures.insert(format!("{name}_rttvar_us"), st.queue.rttvar * 1e6);
+                figures.insert(format!("{name}_retransmits"), st.queue.retransmits as f64);
+            }
+            Ok(())
+        }
+    };
+    (hists, outcome)
+}
+
+/// The lead margins (ticks of `clock_freq`) in nanoseconds.
+pub fn lead_ns(lead: &LatencyHist, clock_freq: f64) -> Result<Histogram<u64>, BenchError> {
+    let mut h = new_hist()?;
+    let ns_per_tick = 1e9 / clock_freq;
+    for v in lead.histogram().iter_recorded() {
+        h.saturating_record_n(
+            (v.value_iterated_to() as f64 * ns_per_tick).round() as u64,
+            v.count_at_value(),
+        );
+    }
+    Ok(h)
+}
+
+/// Step messages whose margin was under the 100 ms lead.
+fn under_budget(lead_ns: &Histogram<u64>) -> u64 {
+    let limit = (MIN_LEAD_S * 1e9) as u64;
+    lead_ns
+        .iter_recorded()
+        .filter(|v| v.value_iterated_to() < limit)
+        .map(|v| v.count_at_value())
+        .sum()
+}
+
+/// "100 ms lead held: min margin X ms over N step messages", or what broke it and where.
+fn verdict(lead_ns: &Histogram<u64>, late: u64, under: u64, failed: Option<&String>) -> String {
+    let ms = |ns: u64| ns as f64 / 1e6;
+    let lead_ms = MIN_LEAD_S * 1e3;
+    if let Some(reason) = failed {
+        return format!("{lead_ms:.0} ms lead NOT held: the print stopped: {reason}");
+    }
+    if lead_ns.is_empty() {
+        return "no step message was sent: nothing to judge".into();
+    }
+    if under == 0 {
+        format!(
+            "{lead_ms:.0} ms lead held: min margin {:.1} ms over {} step messages",
+            ms(lead_ns.min()),
+            lead_ns.len()
+        )
+    } else {
+        format!(
+            "{lead_ms:.0} ms lead NOT held: {under} of {} step messages left the MCU link with less \
+             ({late} after their clock), min margin {:.1} ms (stage: the MCU link's IO thread)",
+            lead_ns.len(),
+            ms(lead_ns.min())
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lead_ticks_become_ns_and_the_verdict_judges_the_minimum() {
+        let mut lead = LatencyHist::with_bounds(1, 1 << 42, 3, 1.0).unwrap();
+        lead.record(50_000_000); // 1 s at 50 MHz
+        lead.record(10_000_000); // 200 ms
+        let h = lead_ns(&lead, 50e6).unwrap();
+        assert_eq!(h.len(), 2);
+        assert!((h.min() as f64 - 200e6).abs() < 200e6 * 1e-3, "{}", h.min());
+        assert_eq!(under_budget(&h), 0);
+        let v = verdict(&h, 0, 0, None);
+        assert!(
+            v.starts_with("100 ms lead held: min margin 200.0 ms over 2"),
+            "{v}"
+        );
+        lead.record(2_500_000); // 50 ms
+        let h = lead_ns(&lead, 50e6).unwrap();
+        assert_eq!(under_budget(&h), 1);
+        assert!(verdict(&h, 0, 1, None).contains("NOT held: 1 of 3"));
+        let why = "the IO stage fell behind".to_string();
+        assert!(verdict(&h, 0, 1, Some(&why)).contains("stopped: the IO stage fell behind"));
+    }
+}
