@@ -3,9 +3,12 @@
 
 pub mod decode;
 pub mod doctor;
+pub mod gcode_source;
 pub mod home;
 pub mod print;
+pub mod progress;
 pub mod serve;
+pub mod signals;
 
 use std::path::PathBuf;
 
