@@ -158,11 +158,14 @@ pub fn run(args: &PrintArgs) -> Result<u8, String> {
     Ok(code)
 }
 
-/// `error` with a plain explanation when a simulated MCU refused a late step at a raised time
-/// scale: the simulator (not the host) fell behind.
+/// `error` with a plain explanation when, at a raised time scale, a step reached the simulated
+/// MCU too late (`Timer too close`) or could not leave the host in time (`fell behind`): the
+/// simulation did not keep up with its clock on this machine.
 fn explain(error: &str, time_scale: Option<f64>) -> String {
     match time_scale {
-        Some(scale) if scale > 1.0 && error.contains("Timer too close") => {
+        Some(scale)
+            if scale > 1.0 && (error.contains("Timer too close") || error.contains("fell behind")) =>
+        {
             let load = std::fs::read_to_string("/proc/loadavg")
                 .ok()
                 .and_then(|l| l.split_whitespace().next().map(str::to_string))
@@ -170,10 +173,10 @@ fn explain(error: &str, time_scale: Option<f64>) -> String {
             let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
             let lower = (scale / 2.5).floor().max(1.0);
             format!(
-                "{error}\n  the simulated MCU could not keep up at --time-scale {scale}: it has to run {scale} s \
-                 of printer time (and emit {scale}× the steps) every second, and on this machine \
-                 (load average {load} on {cpus} CPUs) a step command reached it after its time; \
-                 try --time-scale {lower}"
+                "{error}\n  the simulation could not keep up at --time-scale {scale}: the simulated MCU has \
+                 to run {scale} s of printer time (and emit {scale}× the steps) every second, and on \
+                 this machine (load average {load} on {cpus} CPUs) a step command did not reach it \
+                 in time; try --time-scale {lower}"
             )
         }
         _ => error.to_string(),
@@ -214,5 +217,25 @@ fn print_batch(r: &BatchReport) {
     );
     for line in &r.accessories {
         println!("  {line}");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::explain;
+
+    #[test]
+    fn a_late_step_at_a_raised_time_scale_is_explained() {
+        let e = explain("mcu 'mcu' shut down: Timer too close", Some(50.0));
+        assert!(e.starts_with("mcu 'mcu' shut down: Timer too close\n"), "{e}");
+        assert!(
+            e.contains("could not keep up at --time-scale 50") && e.ends_with("try --time-scale 20"),
+            "{e}"
+        );
+        assert_eq!(
+            explain("mcu 'mcu' shut down: Timer too close", None),
+            "mcu 'mcu' shut down: Timer too close"
+        );
+        assert_eq!(explain("bad line", Some(50.0)), "bad line");
     }
 }
