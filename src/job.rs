@@ -3,17 +3,20 @@
 //! IO stage in this process, or with it in a `cadence serve --role io` process.
 
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use rt_core::logger::Level;
 use sysconfig::printer::PrinterConfig;
 
 use crate::batch::{run_batch, BatchJob, BatchReport};
+use crate::events::SessionShared;
 use crate::gcode_feed::GcodeInput;
 use crate::hardware::Machine;
 use crate::latency::Hists;
 use crate::live;
 use crate::logging::Logging;
+use crate::mcus::Mcus;
 use crate::realtime::RtConfig;
 use crate::summary::Summary;
 
@@ -86,11 +89,47 @@ pub struct LiveOutcome {
     pub rt_report: Vec<String>,
 }
 
+/// A live print's state as a progress display shows it (taken about 4 times a second).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Progress {
+    /// Print time the MCUs executed since the print started (s; 0 until motion starts).
+    pub print_time: f64,
+    /// Print time planned so far (s since the print's start).
+    pub planned: f64,
+    /// Planned toolhead position (X, Y, Z, E; mm).
+    pub position: [f64; 4],
+    /// Smallest lead of a step message when its bytes left, over every MCU so far (ms);
+    /// `None` before the first.
+    pub min_lead_ms: Option<f64>,
+    /// Each MCU's name and, once it shut down or its link failed, why.
+    pub mcus: Vec<(String, Option<String>)>,
+    /// The simulated clocks' speed-up (1 on real hardware).
+    pub time_scale: f64,
+}
+
+/// Called with a fresh [`Progress`] about every 250 ms while a live print runs.
+pub type ProgressObserver<'a> = &'a (dyn Fn(&Progress) + Sync);
+
+/// How often the observer is called.
+const PROGRESS_PERIOD: std::time::Duration = std::time::Duration::from_millis(250);
+
 /// Most time scale the simulator's 32-bit clock allows (it wraps every 86 s / scale at 50 MHz).
 const MAX_TIME_SCALE: f64 = 50.0;
 
 /// Runs a print job; `warn` gets the printer.cfg's warnings.
 pub fn run(args: &PrintJob, warn: &mut dyn FnMut(&str)) -> Result<PrintOutcome, String> {
+    run_with(args, None, warn, None)
+}
+
+/// [`run`] with the G-code from `gcode` (named as the file; `None`: the job's file opened
+/// here) and an observer of the live print's progress (not called in batch mode or with the
+/// IO stage in another process).
+pub fn run_with(
+    args: &PrintJob,
+    gcode: Option<GcodeInput>,
+    warn: &mut dyn FnMut(&str),
+    observer: Option<ProgressObserver<'_>>,
+) -> Result<PrintOutcome, String> {
     if !(args.max_error_us > 0.0 && args.max_error_us <= 1000.0) {
         return Err(format!(
             "--max-error-us {}: must be in (0, 1000]",
@@ -103,7 +142,10 @@ pub fn run(args: &PrintJob, warn: &mut dyn FnMut(&str)) -> Result<PrintOutcome, 
         }
     }
     // Open the G-code first: a missing file must not start any MCU.
-    let gcode = GcodeInput::open(&args.file).map_err(|e| format!("{}: {e}", args.file.display()))?;
+    let gcode = match gcode {
+        Some(g) => g,
+        None => GcodeInput::open(&args.file).map_err(|e| format!("{}: {e}", args.file.display()))?,
+    };
     let mut cfg = crate::hardware::load_config(args.config.as_deref())?;
     if args.strict {
         cfg.gcode.unknown_commands = sysconfig::printer::UnknownCommands::Error;
@@ -121,7 +163,7 @@ pub fn run(args: &PrintJob, warn: &mut dyn FnMut(&str)) -> Result<PrintOutcome, 
             };
             run_batch(&job, &cfg, &machine, gcode).map(PrintOutcome::Batch)
         }
-        None => run_live(args, &cfg, &machine, gcode).map(PrintOutcome::Live),
+        None => run_live(args, &cfg, &machine, gcode, observer).map(PrintOutcome::Live),
     }
 }
 
@@ -130,6 +172,7 @@ fn run_live(
     cfg: &PrinterConfig,
     machine: &Machine,
     gcode: GcodeInput,
+    observer: Option<ProgressObserver<'_>>,
 ) -> Result<LiveOutcome, String> {
     if args.live.remote() {
         return crate::io_process::planner_side::run(args, cfg, machine, gcode);
@@ -145,6 +188,7 @@ fn run_live(
     let _idle_hold = rt.hold_idle_latency();
     let (hists, mut mcus) = live::connect_mcus(cfg, machine, time_scale, args.trace.clone(), &rt, &logging)?;
     let log = logging.handle("main");
+    let shared = SessionShared::new(None);
     let run = live::LiveRun {
         max_error_s: args.max_error_us * 1e-6,
         started,
@@ -152,10 +196,38 @@ fn run_live(
         rt: &rt,
         hists: &hists,
         log: &log,
-        session: None,
+        session: Some(&shared),
         instance: &format!("p{}", std::process::id()),
     };
-    let result = live::print_on(gcode, machine, &mcus, &run);
+    let result = match observer {
+        None => live::print_on(gcode, machine, &mcus, &run),
+        Some(observe) => {
+            let done = AtomicBool::new(false);
+            std::thread::scope(|scope| {
+                let watch = Watch {
+                    mcus: &mcus,
+                    shared: &shared,
+                    time_scale,
+                    start: print_now(&mcus) + (0.5f64).max(0.25 * time_scale),
+                };
+                let done = &done;
+                let watcher = std::thread::Builder::new()
+                    .name("progress".to_string())
+                    .spawn_scoped(scope, move || {
+                        while !done.load(Ordering::Acquire) {
+                            observe(&watch.progress());
+                            std::thread::sleep(PROGRESS_PERIOD);
+                        }
+                    });
+                let r = live::print_on(gcode, machine, &mcus, &run);
+                done.store(true, Ordering::Release);
+                if let Ok(w) = watcher {
+                    let _ = w.join();
+                }
+                r
+            })
+        }
+    };
     let stats = mcus.close();
     live_outcome(
         result?,
@@ -165,6 +237,54 @@ fn run_live(
         logging,
         stats,
     )
+}
+
+/// What the progress thread reads.
+struct Watch<'a> {
+    mcus: &'a Mcus,
+    shared: &'a SessionShared,
+    time_scale: f64,
+    /// The print's start in print time (as the planner picks it: a little ahead of now).
+    start: f64,
+}
+
+impl Watch<'_> {
+    fn progress(&self) -> Progress {
+        let motion = self.shared.motion();
+        let mut min_lead_ms: Option<f64> = None;
+        let mut mcus = Vec::with_capacity(self.mcus.list.len());
+        for m in &self.mcus.list {
+            let stats = m.link.stats();
+            if let Some(t) = stats.min_lead_margin_ticks {
+                let ms = t as f64 / m.clock_freq * 1e3;
+                min_lead_ms = Some(min_lead_ms.map_or(ms, |v| v.min(ms)));
+            }
+            let down = m
+                .link
+                .shutdown_reason()
+                .or_else(|| m.link.error().map(|e| e.to_string()));
+            mcus.push((m.name.clone(), down));
+        }
+        let planned = if motion.planned_until > self.start {
+            motion.planned_until - self.start
+        } else {
+            0.0
+        };
+        Progress {
+            print_time: (print_now(self.mcus) - self.start).clamp(0.0, planned),
+            planned,
+            position: motion.position,
+            min_lead_ms,
+            mcus,
+            time_scale: self.time_scale,
+        }
+    }
+}
+
+/// The main MCU's print time now.
+fn print_now(mcus: &Mcus) -> f64 {
+    let main = mcus.main();
+    main.link.clock().clock_at(links::mcu::McuLink::system_now()) / main.clock_freq
 }
 
 /// The end of a live print: wall time, the histograms saved if asked, the logger's line.

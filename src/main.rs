@@ -91,7 +91,10 @@ fn main() -> ExitCode {
         _ => "cadence",
     };
     let result = match cli.command {
-        Cmd::Print(args) => print::run(&args),
+        Cmd::Print(args) => match print::run(&args) {
+            Ok(code) => return ExitCode::from(code),
+            Err(e) => Err(e),
+        },
         Cmd::Decode(args) => decode_cmd::run(&args),
         Cmd::CheckConfig(args) => check_config::run(&args),
         Cmd::Dictionary(args) => dictionary::run(&args),
@@ -109,11 +112,36 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("{who}: error: {e}");
+            eprintln!("{who}: error: {}", printable(&e));
             ExitCode::FAILURE
         }
     }
 }
 
+/// `text` safe for a terminal: control characters other than newlines (as in a G-code line
+/// quoted from a binary file) written as `\xNN`.
+fn printable(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    for c in text.chars() {
+        if c.is_control() && c != '\n' {
+            out.push_str(&format!("\\x{:02x}", c as u32));
+        } else {
+            out.push(c);
+        }
+    }
+    out
+}
+
 /// Paths the CLI takes.
 pub type FilePath = PathBuf;
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn control_characters_are_escaped() {
+        assert_eq!(
+            super::printable("bad \u{1b}[2J\x07 line\n2"),
+            "bad \\x1b[2J\\x07 line\n2"
+        );
+    }
+}

@@ -291,7 +291,7 @@ struct PlannerRun<'a, 'p> {
     streams: StepStreams,
     /// Each stream's MCU clock now (reused: no allocation per batch).
     now_clocks: Vec<f64>,
-    /// Buffering window in print time: 2 s, or 1 s of wall time when the clock runs faster.
+    /// Buffering window in print time (see [`buffer_window`]).
     high_water: f64,
     low_water: f64,
     /// Allocation counter and batches published when the pipeline first reached high water
@@ -310,6 +310,21 @@ struct PlannerRun<'a, 'p> {
 /// Sleep between flow-control checks.
 const PACE: Duration = Duration::from_millis(5);
 
+/// Share of half the MCUs' 32-bit clock range the buffered print time may span: a step
+/// command is sent up to the buffered time (plus the move being planned) before it is due,
+/// and an MCU compares 32-bit clocks, so a command due more than 2^31 ticks ahead reads as
+/// one in the past ("Timer too close"). 0.3 leaves room for a long move beyond the window.
+const WRAP_SHARE: f64 = 0.3;
+
+/// The high water mark of buffered print time (s): 2 s, or 1 s of wall time when the clock
+/// runs `scale` times faster, but never more than [`WRAP_SHARE`] of 2^31 ticks of the fastest
+/// MCU clock (12.9 s at 50 MHz: from `--time-scale` 13 on, the wall-time buffer shrinks to
+/// 12.9 s / scale, 258 ms at 50×).
+pub(crate) fn buffer_window(scale: f64, fastest_clock_freq: f64) -> f64 {
+    let wrap_limit = WRAP_SHARE * 2f64.powi(31) / fastest_clock_freq;
+    (2.0f64).max(scale).min(wrap_limit)
+}
+
 impl<'a, 'p> PlannerRun<'a, 'p> {
     fn new(
         st: &'a PlannerStage<'p>,
@@ -318,7 +333,12 @@ impl<'a, 'p> PlannerRun<'a, 'p> {
         streams: StepStreams,
         n: usize,
     ) -> Self {
-        let high_water = (2.0f64).max(1.0 * st.scale);
+        let fastest = streams
+            .mcus
+            .iter()
+            .map(|m| m.clock_freq)
+            .fold(main.clock_freq, f64::max);
+        let high_water = buffer_window(st.scale, fastest);
         PlannerRun {
             st,
             main,
@@ -611,5 +631,22 @@ impl FeedTarget for PlannerRun<'_, '_> {
             };
             s.emit(Event::State(state));
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::buffer_window;
+
+    #[test]
+    fn buffer_window_stays_inside_half_the_clock_range() {
+        assert_eq!(buffer_window(1.0, 50e6), 2.0);
+        assert_eq!(buffer_window(10.0, 50e6), 10.0);
+        // At 50× a 50 s window would put commands more than 2^31 ticks (42.9 s) ahead.
+        let w = buffer_window(50.0, 50e6);
+        assert!((w - 0.3 * 2f64.powi(31) / 50e6).abs() < 1e-9, "{w}");
+        assert!(w * 50e6 < 0.5 * 2f64.powi(31));
+        // A slow clock wraps later: the window is not cut.
+        assert!((buffer_window(50.0, 16e6) - 0.3 * 2f64.powi(31) / 16e6).abs() < 1e-9);
     }
 }

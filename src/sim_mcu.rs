@@ -77,6 +77,9 @@ impl SimMcu {
             cmd.arg("--trace").arg(trace);
         }
         cmd.args(&opts.extra);
+        // Its own process group: a Ctrl-C on the terminal goes to the host, which stops the
+        // print cleanly; the simulator ends when the host does (it watches its parent).
+        std::os::unix::process::CommandExt::process_group(&mut cmd, 0);
         cmd.stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit());

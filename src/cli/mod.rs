@@ -5,10 +5,13 @@ pub mod check_config;
 pub mod decode;
 pub mod dictionary;
 pub mod doctor;
+pub mod gcode_source;
 pub mod home;
 pub mod print;
+pub mod progress;
 pub mod serve;
 pub mod service;
+pub mod signals;
 
 use std::path::PathBuf;
 

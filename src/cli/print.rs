@@ -1,11 +1,20 @@
-//! `cadence print`: arguments → [`PrintJob`] → [`cadence::job::run`] → the report on stdout.
+//! `cadence print`: arguments → [`PrintJob`] → [`cadence::job::run_with`] → the report on
+//! stdout. A live print shows its progress on stderr ([`super::progress`]) and ends cleanly on
+//! Ctrl-C or SIGTERM ([`super::signals`]): the file is read no further, what was planned moves,
+//! the summary follows an "interrupted at line N" note and the exit status is 130 or 143.
 
 use std::path::PathBuf;
+use std::sync::atomic::Ordering;
 
 use cadence::batch::BatchReport;
-use cadence::job::{LiveOptions, PrintJob, PrintOutcome};
+use cadence::gcode_feed::GcodeInput;
+use cadence::job::{LiveOptions, PrintJob, PrintOutcome, Progress};
+use cadence::summary::human_duration;
 use clap::Args;
 
+use super::gcode_source::GcodeSource;
+use super::progress::Display;
+use super::signals::{self, StopRequest};
 use super::MotionArgs;
 use rt_core::logger::Level;
 
@@ -32,6 +41,12 @@ pub struct PrintArgs {
     /// as Klipper does; same as `unknown_commands: error` in printer.cfg's [gcode]).
     #[arg(long)]
     pub strict: bool,
+    /// Write the summary as JSON on stdout instead of text.
+    #[arg(long)]
+    pub json: bool,
+    /// No progress display on stderr.
+    #[arg(long)]
+    pub no_progress: bool,
     /// Time scale, trace, compression bound, real time.
     #[command(flatten)]
     pub motion: MotionArgs,
@@ -83,20 +98,112 @@ impl PrintArgs {
     }
 }
 
-pub fn run(args: &PrintArgs) -> Result<(), String> {
-    let outcome = cadence::job::run(&args.job(), &mut |w| eprintln!("cadence: warning: {w}"))?;
+/// Runs `cadence print`; the exit status (0, or 130/143 after SIGINT/SIGTERM).
+pub fn run(args: &PrintArgs) -> Result<u8, String> {
+    let file_bytes = std::fs::metadata(&args.file)
+        .map_err(|e| format!("{}: {e}", args.file.display()))?
+        .len();
+    if file_bytes == 0 {
+        eprintln!(
+            "cadence: warning: {} is empty: nothing to print",
+            args.file.display()
+        );
+        return Ok(0);
+    }
+    let job = args.job();
+    let mut warn = |w: &str| eprintln!("cadence: warning: {w}");
+    let stop = StopRequest::default();
+    if job.batch.is_none() {
+        signals::install(&stop, |sig| {
+            eprintln!("\ncadence: {sig}: stopping after the moves already planned (again to exit at once)");
+        })?;
+    }
+    let (source, pos) =
+        GcodeSource::open(&args.file, stop.clone()).map_err(|e| format!("{}: {e}", args.file.display()))?;
+    let input = GcodeInput::from_reader(args.file.clone(), source);
+    if job.batch.is_some() {
+        let outcome = cadence::job::run_with(&job, Some(input), &mut warn, None)?;
+        report(args, &outcome);
+        return Ok(0);
+    }
+    let plain = args.live.log_file.is_some();
+    let display = (!args.no_progress).then(|| Display::new(pos.clone(), file_bytes, plain));
+    let observe = |p: &Progress| {
+        if let Some(d) = &display {
+            d.update(p);
+        }
+    };
+    let result = cadence::job::run_with(&job, Some(input), &mut warn, Some(&observe));
+    if let Some(d) = &display {
+        d.finish();
+    }
+    let outcome = result.map_err(|e| explain(&e, args.motion.time_scale))?;
+    let code = match stop.signal() {
+        Some(sig) if pos.cut.load(Ordering::Acquire) => {
+            let bytes = pos.bytes.load(Ordering::Relaxed);
+            let line = pos.lines.load(Ordering::Relaxed);
+            let print_time = match &outcome {
+                PrintOutcome::Live(l) => l.summary.print_time,
+                PrintOutcome::Batch(b) => b.print_time,
+            };
+            eprintln!(
+                "cadence: interrupted ({sig}) at line {line} ({:.1} % of the file, print time {})",
+                bytes as f64 * 100.0 / file_bytes as f64,
+                human_duration(print_time)
+            );
+            signals::exit_code(sig)
+        }
+        Some(sig) => {
+            eprintln!("cadence: {sig} came after the whole file was read: the print ran to its end");
+            signals::exit_code(sig)
+        }
+        None => 0,
+    };
+    report(args, &outcome);
+    Ok(code)
+}
+
+/// `error` with a plain explanation when, at a raised time scale, a step reached the simulated
+/// MCU too late (`Timer too close`) or could not leave the host in time (`fell behind`): the
+/// simulation did not keep up with its clock on this machine.
+fn explain(error: &str, time_scale: Option<f64>) -> String {
+    match time_scale {
+        Some(scale)
+            if scale > 1.0 && (error.contains("Timer too close") || error.contains("fell behind")) =>
+        {
+            let load = std::fs::read_to_string("/proc/loadavg")
+                .ok()
+                .and_then(|l| l.split_whitespace().next().map(str::to_string))
+                .unwrap_or_else(|| "?".to_string());
+            let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+            let lower = (scale / 2.5).floor().max(1.0);
+            format!(
+                "{error}\n  the simulation could not keep up at --time-scale {scale}: the simulated MCU has \
+                 to run {scale} s of printer time (and emit {scale}× the steps) every second, and on \
+                 this machine (load average {load} on {cpus} CPUs) a step command did not reach it \
+                 in time; try --time-scale {lower}"
+            )
+        }
+        _ => error.to_string(),
+    }
+}
+
+fn report(args: &PrintArgs, outcome: &PrintOutcome) {
     match outcome {
-        PrintOutcome::Batch(report) => print_batch(&report),
+        PrintOutcome::Batch(report) => print_batch(report),
+        PrintOutcome::Live(live) if args.json => {
+            println!("{}", live.summary.to_json(&live.link_stats));
+        }
         PrintOutcome::Live(live) => {
+            println!("print: {}", live.summary.file.display());
             for line in live.summary.report_lines(&live.link_stats) {
                 println!("{line}");
             }
-            for line in live.rt_report {
+            for line in &live.rt_report {
                 eprintln!("cadence: {line}");
             }
         }
     }
-    Ok(())
 }
 
 fn print_batch(r: &BatchReport) {
@@ -115,5 +222,25 @@ fn print_batch(r: &BatchReport) {
     );
     for line in &r.accessories {
         println!("  {line}");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::explain;
+
+    #[test]
+    fn a_late_step_at_a_raised_time_scale_is_explained() {
+        let e = explain("mcu 'mcu' shut down: Timer too close", Some(50.0));
+        assert!(e.starts_with("mcu 'mcu' shut down: Timer too close\n"), "{e}");
+        assert!(
+            e.contains("could not keep up at --time-scale 50") && e.ends_with("try --time-scale 20"),
+            "{e}"
+        );
+        assert_eq!(
+            explain("mcu 'mcu' shut down: Timer too close", None),
+            "mcu 'mcu' shut down: Timer too close"
+        );
+        assert_eq!(explain("bad line", Some(50.0)), "bad line");
     }
 }

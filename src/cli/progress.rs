@@ -1,0 +1,187 @@
+//! What `cadence print` shows while a live print runs: on a terminal one line redrawn in place
+//! (indicatif); otherwise (stderr redirected, or `--log-file`) a plain line every
+//! [`PLAIN_PERIOD`]. Both say how far the file is read, the print time done and an estimate of
+//! what is left, the planned Z, and a health mark: the smallest lead of a step message so far
+//! against the 100 ms the MCUs need, and the MCU links' state:
+//!
+//! `████▌      42 % · line 27,015 · 26 m 40 s printed, ~36 m 50 s left · Z 12.90 · ✓ lead ≥ 1353 ms`
+//!
+//! The estimate of the remaining print time extrapolates the planner's own print time: the
+//! moves planned so far took `planned` seconds of print time for the share of the file read,
+//! so the whole file takes about `planned / share`.
+
+use std::io::IsTerminal;
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use cadence::job::Progress;
+use cadence::summary::human_duration;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+
+use super::gcode_source::ReadPosition;
+
+/// Period of the plain progress lines.
+pub const PLAIN_PERIOD: Duration = Duration::from_secs(10);
+
+/// The progress display of one print.
+pub struct Display {
+    pos: Arc<ReadPosition>,
+    file_bytes: u64,
+    out: Out,
+}
+
+enum Out {
+    Bar(ProgressBar),
+    Plain(Mutex<Option<Instant>>),
+}
+
+/// What one progress report says, in words.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Line {
+    pub percent: f64,
+    pub line: u64,
+    pub text: String,
+    /// The health mark is not "ok".
+    pub warn: bool,
+}
+
+impl Display {
+    /// A bar on a terminal (unless `plain`), plain lines otherwise.
+    pub fn new(pos: Arc<ReadPosition>, file_bytes: u64, plain: bool) -> Display {
+        let out = if !plain && std::io::stderr().is_terminal() {
+            let bar = ProgressBar::with_draw_target(Some(1000), ProgressDrawTarget::stderr_with_hz(4));
+            let style = ProgressStyle::with_template("{bar:16.cyan/blue} {wide_msg}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar())
+                .progress_chars("█▌ ");
+            bar.set_style(style);
+            Out::Bar(bar)
+        } else {
+            Out::Plain(Mutex::new(None))
+        };
+        Display { pos, file_bytes, out }
+    }
+
+    /// Shows `p`.
+    pub fn update(&self, p: &Progress) {
+        let line = describe(
+            p,
+            self.pos.bytes.load(Ordering::Relaxed),
+            self.file_bytes,
+            self.pos.lines.load(Ordering::Relaxed),
+        );
+        match &self.out {
+            Out::Bar(bar) => {
+                bar.set_position((line.percent * 10.0) as u64);
+                bar.set_message(line.text);
+            }
+            Out::Plain(last) => {
+                let Ok(mut last) = last.lock() else { return };
+                let due = last.is_none_or(|t| t.elapsed() >= PLAIN_PERIOD);
+                if due && p.planned > 0.0 {
+                    *last = Some(Instant::now());
+                    eprintln!("cadence: progress: {}", line.text);
+                }
+            }
+        }
+    }
+
+    /// Removes the bar (before the summary or an error is printed).
+    pub fn finish(&self) {
+        if let Out::Bar(bar) = &self.out {
+            bar.finish_and_clear();
+        }
+    }
+}
+
+/// The words of one progress report: `bytes` of `file_bytes` read, `lines` lines.
+pub fn describe(p: &Progress, bytes: u64, file_bytes: u64, lines: u64) -> Line {
+    let share = if file_bytes == 0 {
+        1.0
+    } else {
+        (bytes as f64 / file_bytes as f64).clamp(0.0, 1.0)
+    };
+    let percent = share * 100.0;
+    let mut text = format!("{percent:.0} % · line {lines}");
+    if p.planned > 0.0 && share > 0.0 {
+        let total = p.planned / share;
+        let left = (total - p.print_time).max(0.0);
+        text.push_str(&format!(
+            " · {} printed, ~{} left",
+            human_duration(p.print_time),
+            human_duration(left)
+        ));
+    } else {
+        text.push_str(" · starting");
+    }
+    text.push_str(&format!(" · Z {:.2}", p.position[2]));
+    let down: Vec<String> = p
+        .mcus
+        .iter()
+        .filter_map(|(name, why)| why.as_ref().map(|w| format!("mcu '{name}' down: {w}")))
+        .collect();
+    let (mark, warn) = if !down.is_empty() {
+        (format!("✗ {}", down.join("; ")), true)
+    } else {
+        match p.min_lead_ms {
+            Some(ms) if ms < cadence::MIN_LEAD_S * 1e3 => {
+                (format!("⚠ lead only {ms:.0} ms (< 100 ms)"), true)
+            }
+            Some(ms) => (format!("✓ lead ≥ {ms:.0} ms"), false),
+            None => ("✓ link up".to_string(), false),
+        }
+    };
+    text.push_str(" · ");
+    text.push_str(&mark);
+    Line {
+        percent,
+        line: lines,
+        text,
+        warn,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn progress(print_time: f64, planned: f64, lead: Option<f64>) -> Progress {
+        Progress {
+            print_time,
+            planned,
+            position: [0.0, 0.0, 1.2, 0.0],
+            min_lead_ms: lead,
+            mcus: vec![("mcu".to_string(), None)],
+            time_scale: 1.0,
+        }
+    }
+
+    #[test]
+    fn estimates_what_is_left_from_the_share_planned() {
+        // A quarter of the file planned 100 s of print time: about 400 s in all, 330 s left.
+        let l = describe(&progress(70.0, 100.0, Some(180.0)), 250, 1000, 12);
+        assert_eq!(l.percent, 25.0);
+        assert_eq!(l.line, 12);
+        assert_eq!(
+            l.text,
+            "25 % · line 12 · 1 m 10 s printed, ~5 m 30 s left · Z 1.20 · ✓ lead ≥ 180 ms"
+        );
+        assert!(!l.warn);
+    }
+
+    #[test]
+    fn health_mark_warns_on_low_lead_and_a_dead_link() {
+        let l = describe(&progress(1.0, 2.0, Some(60.0)), 1, 10, 1);
+        assert!(l.warn && l.text.contains("lead only 60 ms"), "{}", l.text);
+        let mut p = progress(1.0, 2.0, Some(300.0));
+        p.mcus[0].1 = Some("Timer too close".to_string());
+        let l = describe(&p, 1, 10, 1);
+        assert!(
+            l.warn && l.text.contains("mcu 'mcu' down: Timer too close"),
+            "{}",
+            l.text
+        );
+        let l = describe(&progress(0.0, 0.0, None), 0, 10, 0);
+        assert!(l.text.contains("starting") && !l.warn, "{}", l.text);
+    }
+}
