@@ -400,15 +400,9 @@ impl Feed<'_> {
         target: &mut impl FeedTarget,
     ) -> Result<(), String> {
         let status = macro_status(self.pipeline);
-        let mut run = MacroRun::call(
-            name,
-            rawparams,
-            line_no,
-            macros,
-            &status,
-            self.file,
-            &mut |m| target.warn(m),
-        )?;
+        let mut run = MacroRun::call(name, rawparams, line_no, macros, &status, self.file, &mut |m| {
+            target.warn(m)
+        })?;
         self.run_to_end(&mut run, macros, target)
     }
 

@@ -384,7 +384,8 @@ fn printer_cfg(pty: &str) -> String {
          [extruder]\nstep_pin: PD12\ndir_pin: PD13\nenable_pin: !PD14\nmicrosteps: 16\n\
          rotation_distance: 33.5\nnozzle_diameter: 0.4\nfilament_diameter: 1.75\n\
          heater_pin: PE5\nsensor_type: EPCOS 100K B57560G104F\nsensor_pin: PC0\n\
-         control: pid\npid_Kp: 22.2\npid_Ki: 1.08\npid_Kd: 114\nmin_temp: 0\nmax_temp: 250\n"
+         control: pid\npid_Kp: 22.2\npid_Ki: 1.08\npid_Kd: 114\nmin_temp: 0\nmax_temp: 250\n\
+         min_extrude_temp: 0\n"
     )
 }
 
