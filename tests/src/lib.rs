@@ -3,7 +3,7 @@
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 /// The workspace root.
@@ -46,6 +46,12 @@ pub fn cadence(args: &[&str], timeout: Duration) -> Run {
 
 /// Runs `cmd` to completion with a bounded wait.
 pub fn run(cmd: &mut Command, timeout: Duration) -> Run {
+    run_then(cmd, timeout, |_| {})
+}
+
+/// Starts `cmd`, calls `during` with the running child (e.g. to signal it), then waits for it
+/// to end, bounded by `timeout` (a hang is a test failure).
+pub fn run_then(cmd: &mut Command, timeout: Duration, during: impl FnOnce(&Child)) -> Run {
     let mut child = cmd
         .current_dir(workspace())
         .stdin(Stdio::null())
@@ -65,6 +71,7 @@ pub fn run(cmd: &mut Command, timeout: Duration) -> Run {
         let _ = err.read_to_string(&mut s);
         s
     });
+    during(&child);
     let deadline = Instant::now() + timeout;
     let status = loop {
         if let Some(status) = child.try_wait().expect("wait") {

@@ -3,12 +3,11 @@
 //! note, the full summary and exit status 130/143; the summary in plain words, `--json`; an
 //! empty file, a UTF-8 byte-order mark and control bytes in a bad line.
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::process::Command;
+use std::time::Duration;
 
-use cadence_tests::{assert_exit, assert_success, bin, cadence, scratch, workspace, Run};
+use cadence_tests::{assert_exit, assert_success, bin, cadence, run_then, scratch, workspace, Run};
 use nix::sys::signal::{kill, Signal};
 use nix::unistd::Pid;
 
@@ -28,51 +27,11 @@ fn long_print(dir: &Path, n: usize) -> PathBuf {
 
 /// Starts `cmd`, sends `sig` once it has run `after`, and waits (bounded) for it to end.
 fn signalled(cmd: &mut Command, sig: Signal, after: Duration) -> Run {
-    let mut child = cmd
-        .current_dir(workspace())
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn");
-    let mut out = child.stdout.take().expect("stdout");
-    let mut err = child.stderr.take().expect("stderr");
-    let t_out = std::thread::spawn(move || {
-        let mut s = String::new();
-        let _ = out.read_to_string(&mut s);
-        s
-    });
-    let t_err = std::thread::spawn(move || {
-        let mut s = String::new();
-        let _ = err.read_to_string(&mut s);
-        s
-    });
-    std::thread::sleep(after);
-    let pid = Pid::from_raw(i32::try_from(child.id()).expect("pid"));
-    kill(pid, sig).expect("send the signal");
-    let deadline = Instant::now() + TIMEOUT;
-    let status = loop {
-        if let Some(status) = child.try_wait().expect("wait") {
-            break Some(status);
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            let _ = child.wait();
-            break None;
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    };
-    let stdout = t_out.join().unwrap_or_default();
-    let stderr = t_err.join().unwrap_or_default();
-    assert!(
-        status.is_some(),
-        "no exit after {sig}\nstdout:\n{stdout}\nstderr:\n{stderr}"
-    );
-    Run {
-        code: status.and_then(|s| s.code()),
-        stdout,
-        stderr,
-    }
+    run_then(cmd, TIMEOUT, |child| {
+        std::thread::sleep(after);
+        let pid = Pid::from_raw(i32::try_from(child.id()).expect("pid"));
+        kill(pid, sig).expect("send the signal");
+    })
 }
 
 /// The line number of the "interrupted … at line N" note.
