@@ -1,12 +1,12 @@
 //! `cadence service print|install`: the systemd unit of `cadence serve` for a printer.cfg
-//! ([`cadence::service::unit`]), printed or installed (the unit file written, the dedicated
+//! (`sysconfig::systemd::service`), printed or installed (the unit file written, the dedicated
 //! user created in the serial group when missing, systemd reloaded).
 
 use std::path::PathBuf;
 use std::process::Command;
 
-use cadence::service::unit::{unit_text, ServiceUnit};
 use clap::{Args, Subcommand};
+use sysconfig::systemd::{unit_text, ServiceUnit};
 
 #[derive(Debug, Args)]
 pub struct ServiceArgs {

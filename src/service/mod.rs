@@ -15,7 +15,6 @@ pub mod framing;
 pub mod gcode_pty;
 pub mod objects;
 pub mod sdcard;
-pub mod unit;
 pub mod worker;
 
 use std::path::PathBuf;

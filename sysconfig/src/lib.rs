@@ -7,7 +7,7 @@
 //!   bounds; every option must be consumed, unknown sections are errors unless listed as
 //!   accepted-and-ignored (then warnings).
 //!
-//! - [`systemd`]: the unit file that runs the IO stage as a service.
+//! - [`systemd`]: the systemd units: the printer service and the IO stage alone.
 //!
 //! Guarantees: no input makes these parsers panic; every error names the file, the line when
 //! there is one, the section and the option.

@@ -1,6 +1,6 @@
-//! The systemd unit that runs Cadence as a service on a PREEMPT_RT board.
+//! The systemd unit that runs Cadence's IO stage alone as a service on a PREEMPT_RT board.
 //!
-//! The service is the IO stage (`cadence serve --role io`): it owns the MCU connections and
+//! That service is the IO stage (`cadence serve --role io`): it owns the MCU connections and
 //! serves prints that attach to it (`cadence print --io-attach INSTANCE FILE.gcode`). The unit
 //! grants what the real-time threads need without running as root: `LimitRTPRIO` (SCHED_FIFO),
 //! `LimitMEMLOCK` (mlockall), access to serial devices through the `dialout` group, and
@@ -8,6 +8,8 @@
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
+
+use super::quote;
 
 /// What the generated unit runs.
 #[derive(Debug, Clone, PartialEq)]
@@ -23,33 +25,6 @@ pub struct UnitSpec {
     /// CPUs the service may use (`CPUAffinity=`); empty = all. The [realtime] section still
     /// pins each thread inside this set.
     pub cpus: Vec<usize>,
-}
-
-/// Quotes one argument for an `ExecStart=` line (systemd's own quoting rules: double quotes,
-/// backslash escapes).
-fn quote(arg: &str) -> String {
-    if !arg.is_empty()
-        && arg
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || "/._-:=+,@".contains(c))
-    {
-        return arg.to_owned();
-    }
-    let mut q = String::with_capacity(arg.len() + 2);
-    q.push('"');
-    for c in arg.chars() {
-        match c {
-            '"' | '\\' => {
-                q.push('\\');
-                q.push(c);
-            }
-            '%' => q.push_str("%%"),
-            '$' => q.push_str("$$"),
-            _ => q.push(c),
-        }
-    }
-    q.push('"');
-    q
 }
 
 /// The unit file text.
@@ -145,16 +120,6 @@ mod tests {
             assert!(u.lines().any(|l| l == line), "missing {line}\n{u}");
         }
         assert!(u.starts_with("[Unit]\n"));
-    }
-
-    #[test]
-    fn quoting_follows_systemd_rules() {
-        assert_eq!(quote("/a/b.cfg"), "/a/b.cfg");
-        assert_eq!(quote("a b"), "\"a b\"");
-        assert_eq!(quote("100%"), "\"100%%\"");
-        assert_eq!(quote("$HOME"), "\"$$HOME\"");
-        assert_eq!(quote("q\"\\"), "\"q\\\"\\\\\"");
-        assert_eq!(quote(""), "\"\"");
     }
 
     #[test]

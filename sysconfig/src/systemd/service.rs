@@ -10,7 +10,8 @@
 
 use std::path::PathBuf;
 
-use sysconfig::printer::RealtimeSection;
+use super::quote;
+use crate::printer::RealtimeSection;
 
 /// What the unit runs.
 #[derive(Debug, Clone)]
@@ -30,31 +31,6 @@ pub struct ServiceUnit {
     pub realtime: RealtimeSection,
     /// The log file (its directory is made writable).
     pub log_file: Option<PathBuf>,
-}
-
-/// Quotes one `ExecStart=` argument by systemd's rules.
-fn quote(arg: &str) -> String {
-    if !arg.is_empty()
-        && arg
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || "/._-:=+,@".contains(c))
-    {
-        return arg.to_owned();
-    }
-    let mut q = String::from("\"");
-    for c in arg.chars() {
-        match c {
-            '"' | '\\' => {
-                q.push('\\');
-                q.push(c);
-            }
-            '%' => q.push_str("%%"),
-            '$' => q.push_str("$$"),
-            _ => q.push(c),
-        }
-    }
-    q.push('"');
-    q
 }
 
 /// The unit file's text.
