@@ -136,6 +136,13 @@ pub fn benchy_prefix(dir: &Path, lines: usize) -> Option<(PathBuf, PathBuf)> {
 /// `examples/<example>` made quick to home, written to `dir/printer.cfg`: 20 mm axes, homing at
 /// 10 mm/s, and a second pass (retract 2 mm, 5 mm/s) on every stepper.
 pub fn short_homing_config(dir: &Path, example: &str) -> PathBuf {
+    let path = dir.join("printer.cfg");
+    std::fs::write(&path, short_homing_config_text(example)).expect("write config");
+    path
+}
+
+/// The text of [`short_homing_config`], for tests that add sections before writing it.
+pub fn short_homing_config_text(example: &str) -> String {
     let text = std::fs::read_to_string(workspace().join("examples").join(example)).expect("example");
     let mut out = String::new();
     for line in text.lines() {
@@ -152,9 +159,7 @@ pub fn short_homing_config(dir: &Path, example: &str) -> PathBuf {
         out.push_str(line);
         out.push('\n');
     }
-    let path = dir.join("printer.cfg");
-    std::fs::write(&path, out).expect("write config");
-    path
+    out
 }
 
 /// Fails the test unless `run` exited 0, showing both outputs.

@@ -14,7 +14,7 @@ use std::time::Duration;
 
 use cadence_tests::{
     assert_exit, assert_no_step_after_stop, assert_success, home_traced, homing_timed_out, net_steps,
-    print_traced, retry_homing_timeouts, run, scratch, workspace, Run,
+    print_traced, retry_homing_timeouts, run, scratch, short_homing_config_text, Run,
 };
 use firmware::trace::read_trace;
 
@@ -38,23 +38,7 @@ const SIM_LATE_S: f64 = 0.010;
 /// The built-in printer with short axes and the further motors; with `z_endstop_mcu`, Z's
 /// endstop sits on a second simulated MCU of that name (the trigger is relayed by the host).
 fn config(dir: &Path, z_endstop_mcu: Option<&str>) -> PathBuf {
-    let text =
-        std::fs::read_to_string(workspace().join("examples/simulated-cartesian.cfg")).expect("example");
-    let mut out = String::new();
-    for line in text.lines() {
-        let line = match line.trim() {
-            "position_max: 220" | "position_max: 200" => "position_max: 20",
-            "homing_speed: 50" => "homing_speed: 10",
-            l if l.starts_with("[stepper_") => {
-                out.push_str(line);
-                out.push_str("\nhoming_retract_dist: 2\nsecond_homing_speed: 5\n");
-                continue;
-            }
-            _ => line,
-        };
-        out.push_str(line);
-        out.push('\n');
-    }
+    let mut out = short_homing_config_text("simulated-cartesian.cfg");
     // X1 turns the other way round (inverted dir pin), as a motor facing its twin does.
     out.push_str(
         "\n[stepper_x1]\nstep_pin: PJ0\ndir_pin: !PJ1\nenable_pin: !PJ2\nmicrosteps: 16\nrotation_distance: 40\n",

@@ -7,7 +7,9 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use cadence_tests::{assert_success, print_traced, retry_homing_timeouts, run, scratch, workspace, Run};
+use cadence_tests::{
+    assert_success, print_traced, retry_homing_timeouts, run, scratch, short_homing_config_text, Run,
+};
 use firmware::trace::{read_trace, TraceRecord};
 
 const TIMEOUT: Duration = Duration::from_secs(180);
@@ -19,23 +21,7 @@ const TOL: f64 = 1.0 / 80.0 + 5.0 * 1.06e-3 + 1e-9;
 
 /// The short built-in printer plus `extra` sections.
 fn config(dir: &Path, extra: &str) -> PathBuf {
-    let text =
-        std::fs::read_to_string(workspace().join("examples/simulated-cartesian.cfg")).expect("example");
-    let mut out = String::new();
-    for line in text.lines() {
-        let line = match line.trim() {
-            "position_max: 220" | "position_max: 200" => "position_max: 20",
-            "homing_speed: 50" => "homing_speed: 10",
-            l if l.starts_with("[stepper_") => {
-                out.push_str(line);
-                out.push_str("\nhoming_retract_dist: 2\nsecond_homing_speed: 5\n");
-                continue;
-            }
-            _ => line,
-        };
-        out.push_str(line);
-        out.push('\n');
-    }
+    let mut out = short_homing_config_text("simulated-cartesian.cfg");
     out.push_str(extra);
     let path = dir.join("printer.cfg");
     std::fs::write(&path, out).expect("write config");
