@@ -218,28 +218,16 @@ where
         .x_label_formatter(&|x| axis_us(*x))
         .draw()
         .map_err(e)?;
-    for (i, (s, pts)) in present.iter().zip(&bins).enumerate() {
-        let color = colour(i);
-        chart
-            .draw_series(LineSeries::new(pts.iter().copied(), color.stroke_width(2)))
-            .map_err(e)?
-            .label(s.name)
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
-    }
-    if let Some(b) = budget {
-        chart
-            .draw_series(LineSeries::new([(b, FLOOR), (b, top_count)], RED.stroke_width(2)))
-            .map_err(e)?
-            .label(format!("budget {}", rt_core::hist::fmt_ns(b * 1e3)))
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED.stroke_width(2)));
-    }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(e)?;
+    let names: Vec<&str> = present.iter().map(|s| s.name).collect();
+    let budget_line = budget.map(|b| [(b, FLOOR), (b, top_count)]);
+    draw_lines(
+        &mut chart,
+        &names,
+        &bins,
+        budget_line,
+        SeriesLabelPosition::UpperRight,
+    )
+    .map_err(e)?;
 
     // Percentile distribution.
     let count = present.iter().map(|s| s.hist.len()).max().unwrap_or(1) as f64;
@@ -275,29 +263,57 @@ where
         .x_label_formatter(&|x| percentile_label(*x))
         .draw()
         .map_err(e)?;
-    for (i, (s, pts)) in present.iter().zip(&curves).enumerate() {
+    let budget_line = budget.map(|b| [(1.0, b), (x_max, b)]);
+    draw_lines(
+        &mut chart,
+        &names,
+        &curves,
+        budget_line,
+        SeriesLabelPosition::UpperLeft,
+    )
+    .map_err(e)?;
+    root.present().map_err(e)
+}
+
+/// A log-log chart's lines: one per series (its colour and name in the legend), the budget as a
+/// red line through `budget` (its two ends; its value in µs is the one that is not the same at
+/// both ends), and the legend box at `legend`.
+fn draw_lines<'a, DB: DrawingBackend + 'a>(
+    chart: &mut ChartContext<'a, DB, Cartesian2d<LogCoord<f64>, LogCoord<f64>>>,
+    names: &[&str],
+    curves: &[Vec<(f64, f64)>],
+    budget: Option<[(f64, f64); 2]>,
+    legend: SeriesLabelPosition,
+) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>>
+where
+    DB::ErrorType: 'static,
+{
+    for (i, (name, pts)) in names.iter().zip(curves).enumerate() {
         let color = colour(i);
         chart
-            .draw_series(LineSeries::new(pts.iter().copied(), color.stroke_width(2)))
-            .map_err(e)?
-            .label(s.name)
+            .draw_series(LineSeries::new(pts.iter().copied(), color.stroke_width(2)))?
+            .label(*name)
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
     }
-    if let Some(b) = budget {
+    if let Some(ends) = budget {
+        // The budget line is vertical on the histogram (x = budget) and horizontal on the
+        // percentile chart (y = budget): its value is the coordinate both ends share.
+        let value = if ends[0].0 == ends[1].0 {
+            ends[0].0
+        } else {
+            ends[0].1
+        };
         chart
-            .draw_series(LineSeries::new([(1.0, b), (x_max, b)], RED.stroke_width(2)))
-            .map_err(e)?
-            .label(format!("budget {}", rt_core::hist::fmt_ns(b * 1e3)))
+            .draw_series(LineSeries::new(ends, RED.stroke_width(2)))?
+            .label(format!("budget {}", rt_core::hist::fmt_ns(value * 1e3)))
             .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED.stroke_width(2)));
     }
     chart
         .configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
+        .position(legend)
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
         .draw()
-        .map_err(e)?;
-    root.present().map_err(e)
 }
 
 #[cfg(test)]
