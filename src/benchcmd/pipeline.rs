@@ -3,7 +3,10 @@
 //! its bytes left for the MCU (against the 100 ms lead), the planner → IO stage hand-off (the
 //! IO stage has no timer: the planner's event wakes it, so this is its wake-up latency) and the
 //! planner thread's wake-up lateness after its flow-control sleeps, plus each MCU link's serial
-//! round trip. The verdict says whether the 100 ms lead held, or the first violation and where.
+//! round trip. On simulated MCUs the MCU's own view joins them, read back from their step
+//! traces: each `queue_step`'s lead when it arrived (first step − receipt, MCU time) and each
+//! step's lateness (executed − scheduled). The verdict says whether the 100 ms lead held, or
+//! the first violation and where.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -40,6 +43,8 @@ pub struct PipelineMode {
 
 /// Series names, in report order.
 pub const SERIES: [&str; 3] = ["lead-margin", "handoff", "planner-wake"];
+/// The MCU-side series (simulated MCUs only), in report order.
+pub const MCU_SERIES: [&str; 2] = ["mcu-lead", "mcu-step-late"];
 
 /// Prints the file and reports (see the module docs). A print that failed still writes its
 /// report (with the reason as verdict) before the error is returned.
@@ -71,15 +76,37 @@ pub fn run(m: &PipelineMode, common: &Common, out: &mut dyn Write) -> Result<ben
     s.report.set("time_scale", m.time_scale);
     s.report.set("max_error_us", m.max_error_us);
     s.report.set("realtime", m.realtime);
+    let traces = TraceDir::new().map_err(|e| format!("bench pipeline: {e}"))?;
     let t0 = mono_ns().map_err(err)?;
-    let (hists, outcome) = print(m, &mut s.report.figures);
+    let (hists, outcome) = print(m, traces.base(), &mut s.report.figures);
     let t1 = mono_ns().map_err(err)?;
+    let mcu = mcu_view(&traces).map_err(|e| format!("bench pipeline: reading the MCU traces: {e}"))?;
+    drop(traces);
     let lead = lead_ns(&hists.lead, hists.clock_freq).map_err(err)?;
-    let series: [(&str, Histogram<u64>); 3] = [
+    let mut series: Vec<(&str, Histogram<u64>)> = vec![
         (SERIES[0], lead),
         (SERIES[1], hists.handoff.histogram().clone()),
         (SERIES[2], hists.wake_planner.histogram().clone()),
     ];
+    if let Some(v) = &mcu {
+        series.push((MCU_SERIES[0], v.lead.clone()));
+        series.push((MCU_SERIES[1], v.step_late.clone()));
+        s.report.figures.insert("mcu_traces".into(), v.traces as f64);
+        s.report
+            .figures
+            .insert("mcu_steps".into(), v.step_late.len() as f64);
+        s.report
+            .figures
+            .insert("mcu_queue_steps".into(), v.lead.len() as f64);
+        s.report
+            .figures
+            .insert("mcu_late_queue_steps".into(), v.late_on_arrival as f64);
+        s.report.notes.push(
+            "mcu-lead: each queue_step's first step − its arrival at the MCU; mcu-step-late: each step's \
+             execution − its scheduled clock; both in MCU time, read from the simulated MCUs' step traces"
+                .into(),
+        );
+    }
     for (name, h) in &series {
         if h.is_empty() {
             s.report.notes.push(format!(
@@ -99,12 +126,16 @@ pub fn run(m: &PipelineMode, common: &Common, out: &mut dyn Write) -> Result<ben
     s.report
         .figures
         .insert("lead_under_100ms_messages".into(), under as f64);
-    s.report.verdict = Some(verdict(
-        &series[0].1,
-        lead_summary.negative,
-        under,
-        outcome.as_ref().err(),
-    ));
+    let mut v = verdict(&series[0].1, lead_summary.negative, under, outcome.as_ref().err());
+    if let Some(m) = mcu.as_ref().filter(|m| !m.lead.is_empty()) {
+        v.push_str(&format!(
+            "; at the MCU: min lead {:.1} ms on arrival over {} queue_step, steps late max {}",
+            m.lead.min() as f64 / 1e6,
+            m.lead.len(),
+            rt_core::hist::fmt_ns(m.step_late.max() as f64)
+        ));
+    }
+    s.report.verdict = Some(v);
     if m.time_scale.is_some_and(|t| t != 1.0) {
         s.report.notes.push(
             "lead margins are print time, which runs time-scale times faster than the wall clock".into(),
@@ -128,6 +159,7 @@ pub fn run(m: &PipelineMode, common: &Common, out: &mut dyn Write) -> Result<ben
 /// run (lines, moves, times, link round trips) go to `figures`.
 fn print(
     m: &PipelineMode,
+    trace: PathBuf,
     figures: &mut std::collections::BTreeMap<String, f64>,
 ) -> (HistSnapshot, Result<(), String>) {
     let empty = HistSnapshot {
@@ -144,6 +176,7 @@ fn print(
         time_scale: m.time_scale,
         max_error_us: m.max_error_us,
         realtime: m.realtime,
+        trace: Some(trace),
         ..PrinterOptions::default()
     };
     let printer = match Printer::open(source, opts) {
@@ -177,6 +210,87 @@ fn print(
         }
     };
     (hists, outcome)
+}
+
+/// A scratch folder for the simulated MCUs' step traces, removed when dropped.
+struct TraceDir(PathBuf);
+
+impl TraceDir {
+    fn new() -> std::io::Result<TraceDir> {
+        let dir = std::env::temp_dir().join(format!("cadence-bench-pipeline-{}", std::process::id()));
+        std::fs::create_dir_all(&dir)?;
+        Ok(TraceDir(dir))
+    }
+
+    /// The main MCU's trace; the others' are named from it ([`cadence::mcus::trace_path`]).
+    fn base(&self) -> PathBuf {
+        self.0.join("mcu.trace")
+    }
+}
+
+impl Drop for TraceDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// What the MCUs saw, from their step traces.
+struct McuView {
+    /// Traces read (one per simulated MCU).
+    traces: usize,
+    /// Each `queue_step`'s lead on arrival (ns of MCU time).
+    lead: Histogram<u64>,
+    /// `queue_step`s that arrived after their first step's clock.
+    late_on_arrival: u64,
+    /// Each step's lateness (ns of MCU time, µs resolution).
+    step_late: Histogram<u64>,
+}
+
+/// Reads every trace the simulated MCUs wrote; `None` when there is none (real MCUs only).
+fn mcu_view(dir: &TraceDir) -> Result<Option<McuView>, String> {
+    use firmware::trace::{for_each_record, TraceRecord};
+    let mut paths: Vec<PathBuf> = std::fs::read_dir(&dir.0)
+        .map_err(|e| format!("{}: {e}", dir.0.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "trace"))
+        .collect();
+    paths.sort();
+    if paths.is_empty() {
+        return Ok(None);
+    }
+    let mut view = McuView {
+        traces: paths.len(),
+        lead: new_hist().map_err(|e| e.to_string())?,
+        late_on_arrival: 0,
+        step_late: new_hist().map_err(|e| e.to_string())?,
+    };
+    for path in &paths {
+        // The frequency is known once the file is read: collect ticks, scale after.
+        let mut leads: Vec<u64> = Vec::new();
+        let (freq, _) = for_each_record(path, |r| match *r {
+            TraceRecord::Step { lateness_us, .. } => {
+                view.step_late.saturating_record(u64::from(lateness_us) * 1000);
+            }
+            TraceRecord::QueueStep {
+                received_clock,
+                first_step_clock,
+                ..
+            } => {
+                if first_step_clock <= received_clock {
+                    view.late_on_arrival += 1;
+                }
+                leads.push(first_step_clock.saturating_sub(received_clock));
+            }
+            TraceRecord::Shutdown { .. } => {}
+        })
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+        let ns_per_tick = 1e9 / freq.max(1) as f64;
+        for ticks in leads {
+            view.lead
+                .saturating_record((ticks as f64 * ns_per_tick).round() as u64);
+        }
+    }
+    Ok(Some(view))
 }
 
 /// The lead margins (ticks of `clock_freq`) in nanoseconds.

@@ -111,12 +111,37 @@ fn pipeline_prints_the_reference_print_and_judges_the_lead() {
         r.figures
     );
     assert!(r.figures["mcu_srtt_us"] > 0.0, "{:?}", r.figures);
+    // The simulated MCU's own view: it received every queue_step the host sent, each with its
+    // lead on arrival, and executed steps (their lateness may all be 0 µs on a quiet machine).
+    check_series(&r, &["mcu-lead"]);
+    let mcu_lead = &r
+        .series
+        .iter()
+        .find(|s| s.name == "mcu-lead")
+        .unwrap()
+        .percentiles;
+    assert_eq!(mcu_lead.count as f64, r.figures["queue_steps"], "{:?}", r.figures);
+    let late = &r
+        .series
+        .iter()
+        .find(|s| s.name == "mcu-step-late")
+        .unwrap()
+        .percentiles;
+    assert!(late.count > 0 && late.ordered(), "{late:?}");
+    assert_eq!(late.count as f64, r.figures["mcu_steps"]);
     let verdict = r.verdict.as_deref().unwrap();
     assert!(
         verdict.starts_with("100 ms lead held: min margin") || verdict.contains("NOT held"),
         "{verdict}"
     );
     assert!(verdict.contains(&format!("over {} step messages", lead.count)) || verdict.contains("NOT held"));
+    assert!(
+        verdict.contains(&format!(
+            "at the MCU: min lead {:.1} ms",
+            mcu_lead.min_ns as f64 / 1e6
+        )),
+        "{verdict}"
+    );
     check_hlog(&hlog, &["lead-margin", "handoff"]);
     check_svg(&svg, &["lead-margin", "handoff"]);
 }
