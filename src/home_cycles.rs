@@ -154,6 +154,8 @@ pub struct CycleFigures {
     /// Simulated MCU clocks ran this many times faster than the wall clock (pass latencies
     /// are print time).
     pub time_scale: f64,
+    /// Each homed axis's trigger → stop from the simulated MCUs' traces (with a trace).
+    pub trace_stops: Vec<TraceStops>,
 }
 
 /// Homes `cycles` times and reports as it goes (see the module docs).
@@ -248,19 +250,21 @@ pub fn run_figures(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<CycleFi
             "  host view, last executed step after trigger p99.9 = {r:.1} x the wake-up p99.9"
         ));
     }
+    let mut trace_stops = Vec::new();
     if let Some(base) = &args.trace {
         let trace_mcus = TraceMcus {
             main: main_name,
             trsyncs,
             clocks,
         };
-        trace_latency(&machine, axes, base, &trace_mcus, &timings, &noise, o)?;
+        trace_stops = trace_latency(&machine, axes, base, &trace_mcus, &timings, &noise, o)?;
     }
     Ok(CycleFigures {
         reports,
         timeouts,
         noise,
         time_scale,
+        trace_stops,
     })
 }
 
@@ -492,9 +496,30 @@ struct TraceMcus {
     clocks: Vec<(String, ClockEstimate)>,
 }
 
-/// Trigger → stop latencies from the simulated MCUs' traces (see the module doc), for each
-/// homed axis whose endstop is on another MCU than its steppers (either way round), with the
-/// relay's hops from the host's timestamps in `timings`.
+/// One axis's trigger → stop latencies read from the simulated MCUs' traces (exact: the
+/// endstop MCU's trigger record and the steppers' MCU's trsync trigger record, the moment its
+/// steppers stopped, both in system time).
+#[derive(Debug)]
+pub struct TraceStops {
+    /// 0 = X, 1 = Y, 2 = Z.
+    pub axis: usize,
+    /// The MCU of the axis's endstop.
+    pub endstop_mcu: String,
+    /// The MCU of the axis's steppers (the same as `endstop_mcu` when the MCU stops itself).
+    pub stepper_mcu: String,
+    /// Endstop trigger → steppers stopped, per pass (ns).
+    pub stop: LatencyHist,
+    /// Endstop trigger → the last step executed before the stop, per pass (ns; negative when
+    /// the last step came before the trigger).
+    pub last_step: LatencyHist,
+    /// Each endstop trigger's system time and its stop's (when one was paired).
+    triggers: Vec<f64>,
+    stop_of: Vec<Option<f64>>,
+}
+
+/// Trigger → stop latencies from the simulated MCUs' traces (see the module doc) for each homed
+/// axis, reported through `o`; for an axis whose endstop is on another MCU than its steppers
+/// (either way round) also the relay's hops from the host's timestamps in `timings`.
 fn trace_latency(
     machine: &Machine,
     axes: [bool; 3],
@@ -503,102 +528,14 @@ fn trace_latency(
     timings: &[PassTiming],
     noise: &WakeupReport,
     o: &mut dyn HomeOutput,
-) -> Result<(), String> {
-    let TraceMcus {
-        main,
-        trsyncs,
-        clocks,
-    } = mcus;
-    let main = main.as_str();
-    let est = |name: &str| clocks.iter().find(|(n, _)| n == name).map(|&(_, e)| e);
-    let read = |name: &str| {
-        let path = trace_path(base, name, name == main);
-        firmware::trace::read_trace(&path).map_err(|e| format!("{}: {e}", path.display()))
-    };
-    // Exact when both simulators wrote their clock epoch (they count CLOCK_MONOTONIC).
-    let to_sys = |name: &str, trace: &firmware::trace::TraceFile| -> Option<TimeBase> {
-        let epoch = firmware::sim::read_epoch(&trace_path(base, name, name == main));
-        match epoch {
-            Some(epoch) if trace.clock_freq > 0 && trace.time_scale > 0.0 => Some(TimeBase::Epoch {
-                epoch,
-                ticks_per_s: trace.clock_freq as f64 * trace.time_scale,
-            }),
-            _ => est(name).map(TimeBase::Estimate),
-        }
-    };
+) -> Result<Vec<TraceStops>, String> {
+    let mut all = Vec::new();
     for e in machine.endstops.iter().filter(|e| axes[e.axis]) {
-        // The axis' steppers' MCU (one: `check_config` refuses split axes with a third-MCU endstop).
-        let group = crate::homing::axis_steppers(machine, e.axis);
-        let Some(stepper_mcu) = group
-            .first()
-            .map(|&i| machine.steppers[i].mcu.as_str())
-            .filter(|m| *m != e.pin.mcu)
-        else {
+        let Some(t) = trace_stops(machine, e, base, mcus, o)? else {
             continue;
         };
-        let Some(&(_, trsync_oid)) = trsyncs.iter().find(|(n, _)| n == stepper_mcu) else {
-            continue;
-        };
-        let s_trace = read(stepper_mcu)?;
-        let Some(s_est) = to_sys(stepper_mcu, &s_trace) else {
-            continue;
-        };
-        let e_trace = read(&e.pin.mcu)?;
-        let Some(e_est) = to_sys(&e.pin.mcu, &e_trace) else {
-            continue;
-        };
-        if matches!((&e_est, &s_est), (TimeBase::Epoch { .. }, TimeBase::Epoch { .. })) {
-            o.out("trace: MCU clocks converted with the simulators' clock epochs (exact)".to_string());
-        } else {
-            o.out("trace: MCU clocks converted with the host's clock estimates".to_string());
-        }
-        let triggers: Vec<f64> = e_trace
-            .triggers
-            .iter()
-            .filter(|t| t.endstop && t.oid == e.oid)
-            .map(|t| e_est.system_time_at(t.clock as f64))
-            .collect();
-        let stops: Vec<(u64, f64)> = s_trace
-            .triggers
-            .iter()
-            .filter(|t| !t.endstop && t.oid == trsync_oid)
-            .map(|t| (t.clock, s_est.system_time_at(t.clock as f64)))
-            .collect();
-        let oids: Vec<u8> = group
-            .iter()
-            .map(|&i| &machine.steppers[i])
-            .filter(|s| s.mcu == stepper_mcu)
-            .map(|s| s.oid)
-            .collect();
-        let mut steps: Vec<u64> = s_trace
-            .records
-            .iter()
-            .filter_map(|r| match *r {
-                firmware::trace::TraceRecord::Step { oid, clock, .. } if oids.contains(&oid) => Some(clock),
-                _ => None,
-            })
-            .collect();
-        steps.sort_unstable();
-        let mut stop_h = LatencyHist::new();
-        let mut last_h = LatencyHist::new();
-        let mut stop_of = vec![None; triggers.len()];
-        let mut j = 0;
-        for (&t, stop_of) in triggers.iter().zip(&mut stop_of) {
-            while j < stops.len() && stops[j].1 < t - 0.005 {
-                j += 1;
-            }
-            let Some(&(stop_clock, stop_sys)) = stops.get(j) else {
-                break;
-            };
-            j += 1;
-            *stop_of = Some(stop_sys);
-            stop_h.record_signed(((stop_sys - t) * 1e9) as i64);
-            let k = steps.partition_point(|&c| c <= stop_clock);
-            if k > 0 {
-                last_h.record_signed(((s_est.system_time_at(steps[k - 1] as f64) - t) * 1e9) as i64);
-            }
-        }
         let name = AXIS_NAMES[e.axis.min(2)];
+        let stepper_mcu = t.stepper_mcu.as_str();
         let line = |label: &str, h: &LatencyHist| {
             format!(
                 "trace {name} ({} → {stepper_mcu}): {label:<33} {}",
@@ -606,32 +543,39 @@ fn trace_latency(
                 h.summary().format_latency()
             )
         };
-        o.out(line("trigger → stepper MCU stop:", &stop_h));
-        let p999 = stop_h.summary().p999 as f64 * stop_h.ns_per_unit();
+        if t.endstop_mcu == t.stepper_mcu {
+            // The MCU stops itself: no relay, no hops; `cadence home` reports those axes from
+            // the host's view, `cadence bench homing` takes the figures.
+            all.push(t);
+            continue;
+        }
+        o.out(line("trigger → stepper MCU stop:", &t.stop));
+        let p999 = t.stop.summary().p999 as f64 * t.stop.ns_per_unit();
         if let Some(r) = noise.ratio_to_p999(p999) {
             o.out(format!(
                 "  trigger → stepper MCU stop p99.9 = {r:.1} x the machine's wake-up p99.9 meanwhile"
             ));
         }
-        o.out(line("trigger → last step before stop:", &last_h));
-        let s = last_h.summary();
+        o.out(line("trigger → last step before stop:", &t.last_step));
+        let s = t.last_step.summary();
         if s.negative > 0 {
             o.out(format!(
                 "  ({} passes had their last step before the trigger)",
                 s.negative
             ));
         }
+        let (triggers, stop_of) = (&t.triggers, &t.stop_of);
         let axis_timings: Vec<PassTiming> = timings.iter().filter(|p| p.axis == e.axis).copied().collect();
-        let (hops, unpaired) = pair_hops(&axis_timings, &triggers, &stop_of);
+        let (hops, unpaired) = pair_hops(&axis_timings, triggers, stop_of);
         let mut hists = [LatencyHist::new(), LatencyHist::new(), LatencyHist::new()];
         for h in &hops {
             for (hist, v) in hists.iter_mut().zip([h.read, h.relay, h.stop]) {
                 hist.record_signed((v * 1e9) as i64);
             }
         }
-        line("hop 1, trigger → host read:", &hists[0]);
-        line("hop 2, host read → relay written:", &hists[1]);
-        line("hop 3, relay written → MCU stop:", &hists[2]);
+        o.out(line("hop 1, trigger → host read:", &hists[0]));
+        o.out(line("hop 2, host read → relay written:", &hists[1]));
+        o.out(line("hop 3, relay written → MCU stop:", &hists[2]));
         let negative: u64 = hists.iter().map(|h| h.summary().negative).sum();
         o.out(format!(
             "  hops of {} passes (per pass they add up to its trigger → stop exactly){}{}",
@@ -667,8 +611,123 @@ fn trace_latency(
                 ));
             }
         }
+        all.push(t);
     }
-    Ok(())
+    Ok(all)
+}
+
+/// One endstop's passes from the traces: `None` when a trace or its time base is missing.
+fn trace_stops(
+    machine: &Machine,
+    e: &crate::hardware::EndstopOut,
+    base: &Path,
+    mcus: &TraceMcus,
+    o: &mut dyn HomeOutput,
+) -> Result<Option<TraceStops>, String> {
+    let TraceMcus {
+        main,
+        trsyncs,
+        clocks,
+    } = mcus;
+    let main = main.as_str();
+    let est = |name: &str| clocks.iter().find(|(n, _)| n == name).map(|&(_, e)| e);
+    let read = |name: &str| {
+        let path = trace_path(base, name, name == main);
+        firmware::trace::read_trace(&path).map_err(|e| format!("{}: {e}", path.display()))
+    };
+    // Exact when both simulators wrote their clock epoch (they count CLOCK_MONOTONIC).
+    let to_sys = |name: &str, trace: &firmware::trace::TraceFile| -> Option<TimeBase> {
+        let epoch = firmware::sim::read_epoch(&trace_path(base, name, name == main));
+        match epoch {
+            Some(epoch) if trace.clock_freq > 0 && trace.time_scale > 0.0 => Some(TimeBase::Epoch {
+                epoch,
+                ticks_per_s: trace.clock_freq as f64 * trace.time_scale,
+            }),
+            _ => est(name).map(TimeBase::Estimate),
+        }
+    };
+    // The axis' steppers' MCU (one: `check_config` refuses split axes with a third-MCU endstop).
+    let group = crate::homing::axis_steppers(machine, e.axis);
+    let Some(stepper_mcu) = group.first().map(|&i| machine.steppers[i].mcu.as_str()) else {
+        return Ok(None);
+    };
+    let Some(&(_, trsync_oid)) = trsyncs.iter().find(|(n, _)| n == stepper_mcu) else {
+        return Ok(None);
+    };
+    let s_trace = read(stepper_mcu)?;
+    let Some(s_est) = to_sys(stepper_mcu, &s_trace) else {
+        return Ok(None);
+    };
+    let e_trace;
+    let (e_trace, e_est) = if e.pin.mcu == stepper_mcu {
+        (&s_trace, s_est)
+    } else {
+        e_trace = read(&e.pin.mcu)?;
+        let Some(e_est) = to_sys(&e.pin.mcu, &e_trace) else {
+            return Ok(None);
+        };
+        if matches!((&e_est, &s_est), (TimeBase::Epoch { .. }, TimeBase::Epoch { .. })) {
+            o.out("trace: MCU clocks converted with the simulators' clock epochs (exact)".to_string());
+        } else {
+            o.out("trace: MCU clocks converted with the host's clock estimates".to_string());
+        }
+        (&e_trace, e_est)
+    };
+    let triggers: Vec<f64> = e_trace
+        .triggers
+        .iter()
+        .filter(|t| t.endstop && t.oid == e.oid)
+        .map(|t| e_est.system_time_at(t.clock as f64))
+        .collect();
+    let stops: Vec<(u64, f64)> = s_trace
+        .triggers
+        .iter()
+        .filter(|t| !t.endstop && t.oid == trsync_oid)
+        .map(|t| (t.clock, s_est.system_time_at(t.clock as f64)))
+        .collect();
+    let oids: Vec<u8> = group
+        .iter()
+        .map(|&i| &machine.steppers[i])
+        .filter(|s| s.mcu == stepper_mcu)
+        .map(|s| s.oid)
+        .collect();
+    let mut steps: Vec<u64> = s_trace
+        .records
+        .iter()
+        .filter_map(|r| match *r {
+            firmware::trace::TraceRecord::Step { oid, clock, .. } if oids.contains(&oid) => Some(clock),
+            _ => None,
+        })
+        .collect();
+    steps.sort_unstable();
+    let mut stop_h = LatencyHist::new();
+    let mut last_h = LatencyHist::new();
+    let mut stop_of = vec![None; triggers.len()];
+    let mut j = 0;
+    for (&t, stop_of) in triggers.iter().zip(&mut stop_of) {
+        while j < stops.len() && stops[j].1 < t - PAIR_SLACK_S {
+            j += 1;
+        }
+        let Some(&(stop_clock, stop_sys)) = stops.get(j) else {
+            break;
+        };
+        j += 1;
+        *stop_of = Some(stop_sys);
+        stop_h.record_signed(((stop_sys - t) * 1e9) as i64);
+        let k = steps.partition_point(|&c| c <= stop_clock);
+        if k > 0 {
+            last_h.record_signed(((s_est.system_time_at(steps[k - 1] as f64) - t) * 1e9) as i64);
+        }
+    }
+    Ok(Some(TraceStops {
+        axis: e.axis,
+        endstop_mcu: e.pin.mcu.clone(),
+        stepper_mcu: stepper_mcu.to_string(),
+        stop: stop_h,
+        last_step: last_h,
+        triggers,
+        stop_of,
+    }))
 }
 
 #[cfg(test)]

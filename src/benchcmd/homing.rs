@@ -9,6 +9,11 @@
 //! lower bound), against the 25 ms homing budget; the overshoot (mm past the trigger point);
 //! and the machine's own wake-up latency meanwhile (1 ms sleeps at the IO threads' priority)
 //! as a series and as the ratio of each p99.9 to its p99.9.
+//!
+//! On the simulated MCUs the exact figure joins it, read from their step traces
+//! ([`cadence::home_cycles::TraceStops`]): the endstop's trigger record to the steppers' MCU's
+//! trsync trigger record (the moment its steppers stopped), per printer and axis as
+//! `<printer>-<axis>-exact`.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -129,8 +134,10 @@ pub fn run(m: &HomingMode, common: &Common, out: &mut dyn Write) -> Result<bench
     let mut wakeup = new_hist().map_err(err)?;
     let mut timeouts = 0u32;
     let mut scales = Vec::new();
+    let mut exact: Vec<(String, Histogram<u64>)> = Vec::new();
     let t0 = mono_ns().map_err(err)?;
     for (name, config, axes) in &printers {
+        let traces = TraceDir::new(name).map_err(|e| format!("bench homing: {e}"))?;
         let opts = HomeOptions {
             config: config.clone(),
             axes: *axes,
@@ -138,7 +145,7 @@ pub fn run(m: &HomingMode, common: &Common, out: &mut dyn Write) -> Result<bench
             away: m.away,
             cpu_load: false,
             time_scale: m.time_scale,
-            trace: None,
+            trace: Some(traces.base()),
             max_error_us: 25.0,
             no_realtime: !m.realtime,
         };
@@ -149,6 +156,11 @@ pub fn run(m: &HomingMode, common: &Common, out: &mut dyn Write) -> Result<bench
         timeouts += figures.timeouts;
         scales.push(figures.time_scale);
         group_passes(name, &figures.reports, &mut groups).map_err(err)?;
+        for t in &figures.trace_stops {
+            let axis = AXIS_NAMES[t.axis.min(2)].to_ascii_lowercase();
+            exact.push((format!("{name}-{axis}-exact"), to_ns(&t.stop).map_err(err)?));
+        }
+        drop(traces);
         merge(&mut wakeup, figures.noise.hist.histogram()).map_err(err)?;
         s.progress(Duration::from_secs_f64(
             (mono_ns().map_err(err)?.saturating_sub(t0)) as f64 * 1e-9,
@@ -188,6 +200,10 @@ pub fn run(m: &HomingMode, common: &Common, out: &mut dyn Write) -> Result<bench
             }
         ));
     }
+    for (name, h) in exact.iter().filter(|(_, h)| !h.is_empty()) {
+        s.series(name, h);
+        s.interval(name, t0, t1, h).map_err(err)?;
+    }
     if !wakeup.is_empty() {
         s.series("machine-wakeup", &wakeup);
         s.interval("machine-wakeup", t0, t1, &wakeup).map_err(err)?;
@@ -204,6 +220,13 @@ pub fn run(m: &HomingMode, common: &Common, out: &mut dyn Write) -> Result<bench
         "trigger → stop: first step the stop cancelled − the endstop's trigger (an upper bound; MCU time)"
             .into(),
     );
+    if !exact.is_empty() {
+        s.report.notes.push(
+            "*-exact: the endstop MCU's trigger record → the steppers' MCU's trsync trigger record (its \
+             steppers stopped), from the simulated MCUs' traces, in system time"
+                .into(),
+        );
+    }
     s.report.verdict = verdict(&groups, timeouts, wake_p999, s.report.budget_ns);
     let mut plot: Vec<bench::plot::PlotSeries<'_>> = groups
         .iter()
@@ -212,6 +235,12 @@ pub fn run(m: &HomingMode, common: &Common, out: &mut dyn Write) -> Result<bench
             hist: &g.stop,
         })
         .collect();
+    plot.extend(
+        exact
+            .iter()
+            .filter(|(_, h)| !h.is_empty())
+            .map(|(name, hist)| bench::plot::PlotSeries { name, hist }),
+    );
     if !wakeup.is_empty() {
         plot.push(bench::plot::PlotSeries {
             name: "machine-wakeup",
@@ -220,6 +249,39 @@ pub fn run(m: &HomingMode, common: &Common, out: &mut dyn Write) -> Result<bench
     }
     let title = format!("homing trigger → stop, {} cycles", m.cycles);
     s.finish(&title, &plot, out).map_err(err)
+}
+
+/// A scratch folder for one printer's simulated MCU traces, removed when dropped.
+struct TraceDir(PathBuf);
+
+impl TraceDir {
+    fn new(printer: &str) -> std::io::Result<TraceDir> {
+        let dir = std::env::temp_dir().join(format!("cadence-bench-homing-{}-{printer}", std::process::id()));
+        std::fs::create_dir_all(&dir)?;
+        Ok(TraceDir(dir))
+    }
+
+    fn base(&self) -> PathBuf {
+        self.0.join("mcu.trace")
+    }
+}
+
+impl Drop for TraceDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// A latency histogram (negative values counted as 0) in nanoseconds.
+fn to_ns(h: &rt_core::hist::LatencyHist) -> Result<Histogram<u64>, BenchError> {
+    let mut out = new_hist()?;
+    for v in h.histogram().iter_recorded() {
+        out.saturating_record_n(
+            (v.value_iterated_to() as f64 * h.ns_per_unit()).round() as u64,
+            v.count_at_value(),
+        );
+    }
+    Ok(out)
 }
 
 /// Runs the cycles on a thread of their own: they pin their thread and give it SCHED_FIFO,

@@ -141,6 +141,14 @@ fn g28_across_two_mcus_lands_on_the_trigger() {
         "{}",
         run.stdout
     );
+    // The relay's three hops are reported (they were once formatted and dropped).
+    for hop in [
+        "hop 1, trigger → host read:",
+        "hop 2, host read → relay written:",
+        "hop 3, relay written → MCU stop:",
+    ] {
+        assert!(run.stdout.contains(hop), "{hop} missing:\n{}", run.stdout);
+    }
     assert!(
         run.stdout.contains("idle poll off"),
         "off by default\n{}",
