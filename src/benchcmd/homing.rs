@@ -86,24 +86,7 @@ pub fn run(m: &HomingMode, common: &Common, out: &mut dyn Write) -> Result<bench
         return Err("--cycles must be at least 1".into());
     }
     let err = |e: BenchError| e.to_string();
-    let printers: Vec<(String, Option<PathBuf>, [bool; 3])> = {
-        let all = [true; 3];
-        let z = [false, false, true];
-        let multi = || -> Result<PathBuf, String> {
-            let p = std::env::temp_dir().join(format!("cadence-bench-multi-mcu-{}.cfg", std::process::id()));
-            std::fs::write(&p, MULTI_MCU_CFG).map_err(|e| format!("{}: {e}", p.display()))?;
-            Ok(p)
-        };
-        match &m.printers {
-            Printers::Both => vec![
-                ("single".into(), None, m.axes.unwrap_or(all)),
-                ("multi".into(), Some(multi()?), m.axes.unwrap_or(z)),
-            ],
-            Printers::Single => vec![("single".into(), None, m.axes.unwrap_or(all))],
-            Printers::Multi => vec![("multi".into(), Some(multi()?), m.axes.unwrap_or(z))],
-            Printers::Config(p) => vec![(stem(p), Some(p.clone()), m.axes.unwrap_or(all))],
-        }
-    };
+    let printers = printers_of(m)?;
     let names: Vec<String> = printers
         .iter()
         .map(|(n, _, axes)| format!("{n} ({})", axes_str(*axes)))
@@ -173,9 +156,86 @@ pub fn run(m: &HomingMode, common: &Common, out: &mut dyn Write) -> Result<bench
     }
     let t1 = mono_ns().map_err(err)?;
     let wake_p999 = Percentiles::of(&wakeup).p99_9_ns as f64;
-    for g in &groups {
+    report_groups(&mut s, &groups, wake_p999, (t0, t1)).map_err(err)?;
+    let has_exact = !exact.is_empty();
+    // After the groups: the exact series, then the machine's wake-up.
+    let mut more = exact;
+    more.push(("machine-wakeup".into(), wakeup));
+    more.retain(|(_, h)| !h.is_empty());
+    for (name, h) in &more {
+        s.series(name, h);
+        s.interval(name, t0, t1, h).map_err(err)?;
+    }
+    s.report.figures.insert("timeouts".into(), f64::from(timeouts));
+    if scales.iter().any(|&x| x != 1.0) {
+        s.report.notes.push(
+            "trigger → stop and overshoot are MCU print time, which ran time-scale times faster than \
+             the wall clock (the machine's wake-up is wall time)"
+                .into(),
+        );
+    }
+    s.report.notes.push(
+        "trigger → stop: first step the stop cancelled − the endstop's trigger (an upper bound; MCU time)"
+            .into(),
+    );
+    if has_exact {
+        s.report.notes.push(
+            "*-exact: the endstop MCU's trigger record → the steppers' MCU's trsync trigger record (its \
+             steppers stopped), from the simulated MCUs' traces, in system time"
+                .into(),
+        );
+    }
+    s.report.verdict = verdict(&groups, timeouts, wake_p999, s.report.budget_ns);
+    let mut plot: Vec<bench::plot::PlotSeries<'_>> = groups
+        .iter()
+        .map(|g| bench::plot::PlotSeries {
+            name: &g.name,
+            hist: &g.stop,
+        })
+        .collect();
+    plot.extend(
+        more.iter()
+            .map(|(name, hist)| bench::plot::PlotSeries { name, hist }),
+    );
+    let title = format!("homing trigger → stop, {} cycles", m.cycles);
+    s.finish(&title, &plot, out).map_err(err)
+}
+
+/// One printer to home: its name, its printer.cfg (`None`: the built-in one) and the axes.
+type PrinterRun = (String, Option<PathBuf>, [bool; 3]);
+
+/// The printers to home. The
+/// multi-MCU printer's config is written to a temporary file (removed after its cycles).
+fn printers_of(m: &HomingMode) -> Result<Vec<PrinterRun>, String> {
+    let all = [true; 3];
+    let z = [false, false, true];
+    let multi = || -> Result<PathBuf, String> {
+        let p = std::env::temp_dir().join(format!("cadence-bench-multi-mcu-{}.cfg", std::process::id()));
+        std::fs::write(&p, MULTI_MCU_CFG).map_err(|e| format!("{}: {e}", p.display()))?;
+        Ok(p)
+    };
+    Ok(match &m.printers {
+        Printers::Both => vec![
+            ("single".into(), None, m.axes.unwrap_or(all)),
+            ("multi".into(), Some(multi()?), m.axes.unwrap_or(z)),
+        ],
+        Printers::Single => vec![("single".into(), None, m.axes.unwrap_or(all))],
+        Printers::Multi => vec![("multi".into(), Some(multi()?), m.axes.unwrap_or(z))],
+        Printers::Config(p) => vec![(stem(p), Some(p.clone()), m.axes.unwrap_or(all))],
+    })
+}
+
+/// Each group's trigger → stop series and interval log, overshoot figures, ratio to the
+/// machine's wake-up p99.9 and trigger group note.
+fn report_groups(
+    s: &mut Session,
+    groups: &[Group],
+    wake_p999: f64,
+    (t0, t1): (u64, u64),
+) -> Result<(), BenchError> {
+    for g in groups {
         s.series(&g.name, &g.stop);
-        s.interval(&g.name, t0, t1, &g.stop).map_err(err)?;
+        s.interval(&g.name, t0, t1, &g.stop)?;
         let mm = |nm: u64| nm as f64 * 1e-6;
         let ov = Percentiles::of(&g.overshoot);
         let f = &mut s.report.figures;
@@ -200,55 +260,7 @@ pub fn run(m: &HomingMode, common: &Common, out: &mut dyn Write) -> Result<bench
             }
         ));
     }
-    for (name, h) in exact.iter().filter(|(_, h)| !h.is_empty()) {
-        s.series(name, h);
-        s.interval(name, t0, t1, h).map_err(err)?;
-    }
-    if !wakeup.is_empty() {
-        s.series("machine-wakeup", &wakeup);
-        s.interval("machine-wakeup", t0, t1, &wakeup).map_err(err)?;
-    }
-    s.report.figures.insert("timeouts".into(), f64::from(timeouts));
-    if scales.iter().any(|&x| x != 1.0) {
-        s.report.notes.push(
-            "trigger → stop and overshoot are MCU print time, which ran time-scale times faster than \
-             the wall clock (the machine's wake-up is wall time)"
-                .into(),
-        );
-    }
-    s.report.notes.push(
-        "trigger → stop: first step the stop cancelled − the endstop's trigger (an upper bound; MCU time)"
-            .into(),
-    );
-    if !exact.is_empty() {
-        s.report.notes.push(
-            "*-exact: the endstop MCU's trigger record → the steppers' MCU's trsync trigger record (its \
-             steppers stopped), from the simulated MCUs' traces, in system time"
-                .into(),
-        );
-    }
-    s.report.verdict = verdict(&groups, timeouts, wake_p999, s.report.budget_ns);
-    let mut plot: Vec<bench::plot::PlotSeries<'_>> = groups
-        .iter()
-        .map(|g| bench::plot::PlotSeries {
-            name: &g.name,
-            hist: &g.stop,
-        })
-        .collect();
-    plot.extend(
-        exact
-            .iter()
-            .filter(|(_, h)| !h.is_empty())
-            .map(|(name, hist)| bench::plot::PlotSeries { name, hist }),
-    );
-    if !wakeup.is_empty() {
-        plot.push(bench::plot::PlotSeries {
-            name: "machine-wakeup",
-            hist: &wakeup,
-        });
-    }
-    let title = format!("homing trigger → stop, {} cycles", m.cycles);
-    s.finish(&title, &plot, out).map_err(err)
+    Ok(())
 }
 
 /// A scratch folder for one printer's simulated MCU traces, removed when dropped.
