@@ -84,6 +84,7 @@ fn identify_config_steps_and_trace() {
 
     let t = read_trace(&trace).unwrap();
     let _ = std::fs::remove_file(&trace);
+    let _ = std::fs::remove_file(firmware::sim::epoch_path(&trace));
     assert_eq!((t.clock_freq, t.time_scale), (FREQ, 1.0));
     let mut steps = Vec::new();
     let mut queued = Vec::new();
