@@ -322,18 +322,24 @@ fn serve_print(
     let err = |e: rt_core::shm::ShmError| e.to_string();
     let (infos, mut clocks) = open_info_and_clocks(ctx, node)?;
     publish_clocks(mcus, &mut clocks)?;
-    let mut control = ShmSubscriber::<Ipc, IoControl>::open(
+    let control = ShmSubscriber::<Ipc, IoControl>::open(
         node,
         &control_service_name(ctx.instance),
         &ChannelConfig::control(),
     )
     .map_err(err)?;
-    let mut telemetry = ShmPublisher::<Ipc, Telemetry>::open(
+    let telemetry = ShmPublisher::<Ipc, Telemetry>::open(
         node,
         &telemetry_service_name(ctx.instance),
         &ChannelConfig::telemetry(),
     )
     .map_err(err)?;
+    let mut chans = Chans {
+        infos,
+        clocks,
+        control,
+        telemetry,
+    };
     let service = steps_service_name(ctx.instance, &main.name);
     let service = service.as_str();
     let done_flag = AtomicBool::new(false);
@@ -370,99 +376,166 @@ fn serve_print(
         report.send(status, io_state::READY, "")?;
         ctx.log.log(Level::Info, "serve: ready", []);
 
-        let idle_limit =
-            (ctx.args.idle_timeout > 0.0).then(|| Duration::from_secs_f64(ctx.args.idle_timeout));
-        let mut last_activity = Instant::now();
-        let mut last_consumed = 0;
-        let mut last_telemetry = Instant::now();
-        let mut finish: Option<IoControl> = None;
+        let mut watch = Watch::new(ctx.args.idle_timeout, started);
         loop {
             std::thread::sleep(CLOCK_PERIOD);
-            publish_clocks(mcus, &mut clocks)?;
-            // New subscribers get the history (info, status) when the publisher connects.
-            for p in &infos {
-                p.connect().map_err(err)?;
-            }
-            status.connect().map_err(err)?;
-            if last_telemetry.elapsed() >= Duration::from_secs(1) {
-                last_telemetry = Instant::now();
-                hists.publish(
-                    &mut telemetry,
-                    started.elapsed().as_nanos() as u64,
-                    latency::LEAD_SOURCE,
-                );
-            }
-            if let Err(e) = mcus.check() {
-                let _ = stop_io(io);
-                return Err(e.into());
-            }
-            if io.is_finished() {
-                // The IO stage only ends on its own with an error (or after `done`).
-                let r = stop_io(io);
-                return Err(match r {
-                    Err(e) => e,
-                    Ok(_) => "the IO stage stopped unexpectedly".to_string(),
-                });
-            }
-            while let Some(c) = control.try_recv_with(|c| *c).map_err(err)? {
-                last_activity = Instant::now();
-                match c.kind {
-                    control_kind::FINISH => finish = Some(c),
-                    control_kind::ABORT => {
-                        let _ = stop_io(io);
-                        return Err("the planner aborted the print".to_string());
-                    }
-                    _ => {}
-                }
-            }
-            let n = consumed.load(Ordering::Acquire);
-            if n != last_consumed {
-                last_consumed = n;
-                last_activity = Instant::now();
-                report.base.batches = n;
-            }
-            if let Some(f) = finish {
-                if n >= f.batches {
+            let turn = watch.turn(
+                ctx,
+                &mut chans,
+                status,
+                consumed.load(Ordering::Acquire),
+                report,
+                io.is_finished(),
+            );
+            match turn {
+                Ok(Turn::Go) => {}
+                Ok(Turn::Finish(f)) => {
                     let io_report = stop_io(io)?;
                     ctx.log.log(
                         Level::Info,
                         "serve: all batches taken, waiting for the MCU: batches, end clock",
-                        [Arg::U(n), Arg::U(f.end_clock)],
+                        [Arg::U(f.batches), Arg::U(f.end_clock)],
                     );
                     fill_done(ctx, f.end_clock, io_report.batches, report)?;
                     report.send(status, io_state::DONE, "")?;
                     hists.publish(
-                        &mut telemetry,
+                        &mut chans.telemetry,
                         started.elapsed().as_nanos() as u64,
                         latency::LEAD_SOURCE,
                     );
                     ctx.log.log(Level::Info, "serve: print done", []);
                     // Keep the DONE sample alive until the planner has read it.
-                    wait_for_ack(&mut control, ctx.log);
+                    wait_for_ack(&mut chans.control, ctx.log);
                     return Ok(ServedReport {
                         batches: io_report.batches,
                         allocations_after_warmup: io_report.allocations_after_warmup,
                         clock_freq,
                     });
                 }
-            }
-            if let Some(pid) = ctx.args.parent_pid {
-                if !std::path::Path::new(&format!("/proc/{pid}")).exists() {
-                    let _ = stop_io(io);
-                    return Err(format!("the planner process {pid} is gone"));
+                Ok(Turn::IoEnded) => {
+                    // The IO stage only ends on its own with an error (or after `done`).
+                    return Err(match stop_io(io) {
+                        Err(e) => e,
+                        Ok(_) => "the IO stage stopped unexpectedly".to_string(),
+                    });
                 }
-            }
-            if let Some(limit) = idle_limit {
-                if last_activity.elapsed() > limit {
+                // Every other end stops the IO stage first (the scope joins it).
+                Ok(Turn::Stop(e)) | Err(e) => {
                     let _ = stop_io(io);
-                    return Err(format!(
-                        "no step batch or command from a planner for {:.0} s",
-                        limit.as_secs_f64()
-                    ));
+                    return Err(e);
                 }
             }
         }
     })
+}
+
+/// The channels the serve loop keeps up besides the status.
+struct Chans {
+    infos: Vec<ShmPublisher<Ipc, McuInfo>>,
+    clocks: Vec<ShmPublisher<Ipc, ClockSnapshot>>,
+    control: ShmSubscriber<Ipc, IoControl>,
+    telemetry: ShmPublisher<Ipc, Telemetry>,
+}
+
+/// What one turn of the serve loop found.
+enum Turn {
+    /// Nothing ends the print yet.
+    Go,
+    /// The planner's FINISH, and the IO stage has taken all its batches.
+    Finish(IoControl),
+    /// The IO stage thread ended on its own.
+    IoEnded,
+    /// The print must end: the reason.
+    Stop(String),
+}
+
+/// The serve loop's memory between turns.
+struct Watch {
+    idle_limit: Option<Duration>,
+    started: Instant,
+    last_activity: Instant,
+    last_consumed: u64,
+    last_telemetry: Instant,
+    finish: Option<IoControl>,
+}
+
+impl Watch {
+    fn new(idle_timeout: f64, started: Instant) -> Watch {
+        Watch {
+            idle_limit: (idle_timeout > 0.0).then(|| Duration::from_secs_f64(idle_timeout)),
+            started,
+            last_activity: Instant::now(),
+            last_consumed: 0,
+            last_telemetry: Instant::now(),
+            finish: None,
+        }
+    }
+
+    /// One turn: publishes the clocks (and telemetry each second), lets new subscribers
+    /// connect, then checks the MCUs, the IO stage, the planner's commands, its process and
+    /// the idle limit. `consumed`: batches the IO stage has taken so far.
+    fn turn(
+        &mut self,
+        ctx: &ServeCtx<'_>,
+        chans: &mut Chans,
+        status: &mut ShmPublisher<Ipc, IoStatus>,
+        consumed: u64,
+        report: &mut StatusReport,
+        io_finished: bool,
+    ) -> Result<Turn, String> {
+        let err = |e: rt_core::shm::ShmError| e.to_string();
+        publish_clocks(ctx.mcus, &mut chans.clocks)?;
+        // New subscribers get the history (info, status) when the publisher connects.
+        for p in &chans.infos {
+            p.connect().map_err(err)?;
+        }
+        status.connect().map_err(err)?;
+        if self.last_telemetry.elapsed() >= Duration::from_secs(1) {
+            self.last_telemetry = Instant::now();
+            ctx.hists.publish(
+                &mut chans.telemetry,
+                self.started.elapsed().as_nanos() as u64,
+                latency::LEAD_SOURCE,
+            );
+        }
+        if let Err(e) = ctx.mcus.check() {
+            return Ok(Turn::Stop(e.into()));
+        }
+        if io_finished {
+            return Ok(Turn::IoEnded);
+        }
+        while let Some(c) = chans.control.try_recv_with(|c| *c).map_err(err)? {
+            self.last_activity = Instant::now();
+            match c.kind {
+                control_kind::FINISH => self.finish = Some(c),
+                control_kind::ABORT => return Ok(Turn::Stop("the planner aborted the print".to_string())),
+                _ => {}
+            }
+        }
+        if consumed != self.last_consumed {
+            self.last_consumed = consumed;
+            self.last_activity = Instant::now();
+            report.base.batches = consumed;
+        }
+        if let Some(f) = self.finish.filter(|f| consumed >= f.batches) {
+            return Ok(Turn::Finish(IoControl {
+                batches: consumed,
+                ..f
+            }));
+        }
+        if let Some(pid) = ctx.args.parent_pid {
+            if !std::path::Path::new(&format!("/proc/{pid}")).exists() {
+                return Ok(Turn::Stop(format!("the planner process {pid} is gone")));
+            }
+        }
+        if let Some(limit) = self.idle_limit.filter(|l| self.last_activity.elapsed() > *l) {
+            return Ok(Turn::Stop(format!(
+                "no step batch or command from a planner for {:.0} s",
+                limit.as_secs_f64()
+            )));
+        }
+        Ok(Turn::Go)
+    }
 }
 
 /// Waits (bounded) for the planner's `DONE_SEEN`, so the final status outlives this process's
