@@ -268,6 +268,34 @@ pub fn run_figures(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<CycleFi
     })
 }
 
+/// Moves the homed axes `away` mm off their endstops (inside their travel).
+fn move_away(ctx: &mut HomingCtx<'_>, machine: &Machine, axes: [bool; 3], away: f64) -> Result<(), String> {
+    let mut pos = ctx.pipeline.position();
+    for e in machine.endstops.iter().filter(|e| axes[e.axis]) {
+        let dir = if e.homing_positive_dir { 1.0 } else { -1.0 };
+        pos[e.axis] = (e.position_endstop - dir * away).clamp(e.position_min, e.position_max);
+    }
+    let speed = machine.endstops.first().map_or(10.0, |e| e.homing_speed);
+    plain_move(ctx, pos, speed)
+}
+
+/// Once everything executed, the host and the MCU agree on every stepper position.
+fn check_positions(ctx: &mut HomingCtx<'_>, machine: &Machine) -> Result<(), String> {
+    crate::homing::wait_motion_done(ctx)?;
+    let host = ctx.pipeline.stepper_positions();
+    for (i, s) in machine.steppers.iter().enumerate() {
+        let mcu_pos = crate::homing::stepper_position(ctx, i)?;
+        if host.get(i) != Some(&mcu_pos) {
+            return Err(format!(
+                "{}: the MCU reports position {mcu_pos} steps but the host counts {:?}",
+                s.name,
+                host.get(i)
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// Homes `cycles` times and prints the reports and the host-view histograms; returns the
 /// host's timestamps of every successful pass, the host view's p99.9 (ns) of the last
 /// executed step after the trigger, every successful cycle's report and the timeouts.
@@ -314,16 +342,7 @@ fn cycles(
     for cycle in 0..args.cycles {
         // After a failed cycle the axis is not homed: its position is unknown, so no away move.
         if cycle > 0 && !failed_last {
-            let mut pos = ctx.pipeline.position();
-            for e in machine.endstops.iter().filter(|e| axes[e.axis]) {
-                let dir = if e.homing_positive_dir { 1.0 } else { -1.0 };
-                pos[e.axis] = (e.position_endstop - dir * args.away).clamp(e.position_min, e.position_max);
-            }
-            plain_move(
-                &mut ctx,
-                pos,
-                machine.endstops.first().map_or(10.0, |e| e.homing_speed),
-            )?;
+            move_away(&mut ctx, machine, axes, args.away)?;
         }
         // A communication timeout is an outcome to count here, not the end of the bench (the
         // planner was resynced to where the steppers stopped; the next cycle homes again).
@@ -363,19 +382,7 @@ fn cycles(
         o.out("last cycle:".to_string());
         last_report.to_string().lines().for_each(|l| o.out(l.to_string()));
     }
-    // Everything executed, host and MCU agree on every stepper position.
-    crate::homing::wait_motion_done(&mut ctx)?;
-    let host = ctx.pipeline.stepper_positions();
-    for (i, s) in machine.steppers.iter().enumerate() {
-        let mcu_pos = crate::homing::stepper_position(&ctx, i)?;
-        if host.get(i) != Some(&mcu_pos) {
-            return Err(format!(
-                "{}: the MCU reports position {mcu_pos} steps but the host counts {:?}",
-                s.name,
-                host.get(i)
-            ));
-        }
-    }
+    check_positions(&mut ctx, machine)?;
     let pos = ctx.pipeline.position();
     o.out(format!(
         "homed position: x={:.6} y={:.6} z={:.6}",
