@@ -719,7 +719,7 @@ fn macro_step(
 }
 
 /// The `printer` objects a macro sees: `toolhead` and `gcode_move` positions and the homed
-/// axes, as Klipper names them.
+/// axes, and with `[exclude_object]` its objects, as Klipper names them.
 pub(crate) fn macro_status(pipeline: &Pipeline) -> serde_json::Value {
     let [x, y, z, e] = pipeline.position();
     let homed = pipeline.gcode_state().homed();
@@ -730,10 +730,14 @@ pub(crate) fn macro_status(pipeline: &Pipeline) -> serde_json::Value {
         .map(|(a, _)| *a)
         .collect();
     let position = serde_json::json!({"x": x, "y": y, "z": z, "e": e});
-    serde_json::json!({
+    let mut status = serde_json::json!({
         "toolhead": {"position": position.clone(), "homed_axes": homed_axes},
         "gcode_move": {"position": position.clone(), "gcode_position": position},
-    })
+    });
+    if let (Some(objects), Some(map)) = (pipeline.gcode_state().exclude_objects(), status.as_object_mut()) {
+        map.insert("exclude_object".to_string(), objects.status());
+    }
+    status
 }
 
 /// The printer a G28 procedure ([`HomingProcedure`]) runs on: the feed's planner, the printer's

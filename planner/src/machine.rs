@@ -39,9 +39,12 @@ const MAX_ARC_SEGMENTS: f64 = 1e6;
 
 /// The [`Command::Other`] commands [`GcodeState::apply`] implements (besides M117 and, with an
 /// input shaper, SET_INPUT_SHAPER); a test keeps it equal to the commands handled.
-const KNOWN_OTHER: [&str; 21] = [
+const KNOWN_OTHER: [&str; 24] = [
     "G10",
     "G11",
+    "G17",
+    "G18",
+    "G19",
     "G20",
     "G21",
     "M104",
@@ -522,6 +525,13 @@ impl GcodeState {
         let limits = |e: crate::toolhead::ConfigError| PlanErrorKind::BadParameter(format!("{name}: {e}"));
         match name {
             "G21" => {}
+            // Arcs are in the XY plane (`[gcode_arcs]`'s G17, what slicers write).
+            "G17" => {}
+            "G18" | "G19" => {
+                return Err(PlanErrorKind::BadParameter(format!(
+                    "{name}: only G17 (XY plane) arcs are supported"
+                )))
+            }
             "G20" => return Err(PlanErrorKind::Inches),
             "M104" | "M109" | "M140" | "M190" => {
                 // The one extruder is T0 (Klipper refuses a T naming no extruder).
