@@ -2,7 +2,6 @@
 //! stream of each MCU with steppers written to a file, planned on every core. The bytes are the
 //! golden output the reference printers are checked against.
 
-use planner::gcode::macros::Macros;
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
@@ -100,9 +99,7 @@ pub fn run_batch(
         streams: &mut streams,
         sinks: &mut sinks,
     };
-    let mut macros = Macros::new(machine.macros.clone())
-        .map_err(|e| e.to_string())?
-        .with_respond(machine.respond_prefix.clone());
+    let mut macros = machine.macros(pipeline.planned_until())?;
     let lines = plan_file(
         gcode,
         &mut pipeline,

@@ -10,9 +10,10 @@ use std::path::{Path, PathBuf};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender};
 use std::time::Duration;
 
+use planner::gcode::host::{delayed_macro_name, HostAction, IDLE_TIMEOUT_MACRO};
 use planner::gcode::macros::{split_command, Macros, Script};
 use planner::gcode::respond::{is_respond_command, respond};
-use planner::gcode::{parse_line, Command, GcodeError, GcodeLine, GcodeReader};
+use planner::gcode::{parse_line, Command, GcodeError, GcodeLine, GcodeReader, OtherParams};
 use planner::machine::{Applied, PlanErrorKind};
 use planner::pipeline::Pipeline;
 use planner::stepgen::StepCmd;
@@ -264,6 +265,21 @@ pub(crate) fn plan_file(
                     target.idle(true, pipeline);
                 }
                 target.pace(pipeline)?;
+                // The printer's timeline goes on while the session is quiet: timers and the
+                // idle timeout run from it.
+                macros.host_mut().quiet(target.resume_at());
+                if macros.host().due_timer().is_some() || macros.host_mut().idle_timeout_due() {
+                    let mut feed = Feed {
+                        force_move: macros.host().force_move(),
+                        file: &file,
+                        pipeline: &mut *pipeline,
+                        accessories: &mut *accessories,
+                        warnings: &mut warnings,
+                        out: &mut out,
+                    };
+                    let quiet = macros.host().due_timer().is_none();
+                    feed.run_line_idle(&mut idle, quiet, macros, target)?;
+                }
                 if let FeedItem::Barrier(done) = item {
                     // The sender waits for it; a sender that gave up is no error.
                     let _ = done.try_send(());
@@ -273,12 +289,19 @@ pub(crate) fn plan_file(
         };
         lines += 1;
         let mut feed = Feed {
+            force_move: macros.host().force_move(),
             file: &file,
             pipeline: &mut *pipeline,
             accessories: &mut *accessories,
             warnings: &mut warnings,
             out: &mut out,
         };
+        // `[delayed_gcode]` timers that came due on the print timeline run before the line.
+        macros.host_mut().set_now(feed.pipeline.planned_until());
+        if macros.host().due_timer().is_some() {
+            let line_no = line.as_ref().map_or(0, |l| l.line_no);
+            feed.run_due_timers(line_no, None, macros, target)?;
+        }
         let Some(reply) = reply else {
             let line = line.map_err(|e| format!("{}: {e}", file.display()))?;
             feed.run_line(&line, &mut idle, macros, homing, target)?;
@@ -303,6 +326,29 @@ pub(crate) fn plan_file(
             result?;
         }
     }
+    if !macros.host().pending_timers().is_empty() {
+        // Timers due while the last moves run fire; later ones are said not to.
+        pipeline.flush_lookahead();
+        release(pipeline, &mut out, target)?;
+        let end = pipeline.planned_until();
+        macros.host_mut().set_now(end);
+        let mut feed = Feed {
+            force_move: macros.host().force_move(),
+            file: &file,
+            pipeline: &mut *pipeline,
+            accessories: &mut *accessories,
+            warnings: &mut warnings,
+            out: &mut out,
+        };
+        feed.run_due_timers(lines as usize, Some(end), macros, target)?;
+        for (id, due) in macros.host().pending_timers() {
+            target.warn(format!(
+                "{}: [delayed_gcode {id}] was due {:.1} s after the print's last move: not run",
+                file.display(),
+                due - end
+            ));
+        }
+    }
     pipeline.finish(&mut out);
     target.emit(&mut out)?;
     Ok(lines)
@@ -310,6 +356,8 @@ pub(crate) fn plan_file(
 
 /// What one command line is planned with.
 struct Feed<'a> {
+    /// `SET_KINEMATIC_POSITION` is a command (`[force_move]`).
+    force_move: bool,
     file: &'a Path,
     pipeline: &'a mut Pipeline,
     accessories: &'a mut Accessories,
@@ -335,6 +383,10 @@ impl Feed<'_> {
                 .map_err(|e| format!("{}: {e}", self.file.display()))?;
             target.idle(false, self.pipeline);
         }
+        match &line.cmd {
+            Command::Other { name, raw } => macros.host_mut().observe(name, raw),
+            _ => macros.host_mut().observe("", ""),
+        }
         match line.cmd {
             // `[safe_z_home]` / `[homing_override]` (unless a `[gcode_macro G28]` replaces G28).
             Command::Home { x, y, z } if homing.is_custom() && !macros.is_macro("G28") => {
@@ -355,8 +407,110 @@ impl Feed<'_> {
         Ok(())
     }
 
+    /// Runs the `[delayed_gcode]` timers due at or before `until` (default: now), earliest
+    /// first, each script as a macro reported under line `line_no`.
+    fn run_due_timers(
+        &mut self,
+        line_no: usize,
+        until: Option<f64>,
+        macros: &mut Macros,
+        target: &mut impl FeedTarget,
+    ) -> Result<(), String> {
+        loop {
+            let host = macros.host();
+            let due = match until {
+                Some(t) => host.due_before(t),
+                None => host.due_timer(),
+            };
+            let Some(i) = due else {
+                return Ok(());
+            };
+            let name = delayed_macro_name(macros.host().timer_id(i));
+            let fired = macros.host_mut().timer_started(i);
+            let result = self.run_script(&name, "", line_no, macros, target);
+            macros.host_mut().timer_done(i, fired);
+            result?;
+        }
+    }
+
+    /// A quiet session's turn: due timers run, or (`idle_timeout`) the `[idle_timeout]`
+    /// script; the lookahead is flushed after them, as after any command of a session.
+    fn run_line_idle(
+        &mut self,
+        idle: &mut bool,
+        idle_timeout: bool,
+        macros: &mut Macros,
+        target: &mut impl FeedTarget,
+    ) -> Result<(), String> {
+        if *idle {
+            *idle = false;
+            self.pipeline
+                .raise_print_time(target.resume_at())
+                .map_err(|e| format!("{}: {e}", self.file.display()))?;
+            target.idle(false, self.pipeline);
+        }
+        if idle_timeout {
+            self.run_script(IDLE_TIMEOUT_MACRO, "", 0, macros, target)?;
+        } else {
+            self.run_due_timers(0, None, macros, target)?;
+        }
+        self.pipeline.flush_lookahead();
+        release(self.pipeline, self.out, target)?;
+        *idle = true;
+        target.idle(true, self.pipeline);
+        Ok(())
+    }
+
+    /// `SET_KINEMATIC_POSITION [X=] [Y=] [Z=] [SET_HOMED=xyz] [CLEAR_HOMED=]` (`[force_move]
+    /// enable_force_move`): the toolhead is declared at the position, without moving, and the
+    /// axes homed or not, as Klipper's force_move does.
+    fn set_kinematic_position(
+        &mut self,
+        line: &GcodeLine,
+        raw: &str,
+        target: &mut impl FeedTarget,
+    ) -> Result<(), String> {
+        let at = |e: String| {
+            format!(
+                "{}:{}: SET_KINEMATIC_POSITION: {e}",
+                self.file.display(),
+                line.line_no
+            )
+        };
+        let p = OtherParams::parse(raw).map_err(|e| at(e.to_string()))?;
+        let mut pos = self.pipeline.position();
+        for (i, key) in ["X", "Y", "Z"].into_iter().enumerate() {
+            if let Some(v) = p.float(key).map_err(|e| at(e.to_string()))? {
+                pos[i] = v;
+            }
+        }
+        let set = p.get("SET_HOMED").unwrap_or("xyz").to_ascii_lowercase();
+        let clear = p
+            .get("CLEAR_HOMED")
+            .or_else(|| p.get("CLEAR"))
+            .unwrap_or("")
+            .to_ascii_lowercase();
+        let mut homed = self.pipeline.gcode_state().homed();
+        for (i, axis) in ['x', 'y', 'z'].into_iter().enumerate() {
+            if set.contains(axis) {
+                homed[i] = true;
+            }
+            if clear.contains(axis) {
+                homed[i] = false;
+            }
+        }
+        self.pipeline.set_toolhead_position(pos);
+        self.pipeline.set_homed(homed);
+        release(self.pipeline, self.out, target)
+    }
+
     /// Plans one command and hands on what became final.
     fn plan(&mut self, line: &GcodeLine, target: &mut impl FeedTarget) -> Result<(), String> {
+        if let Command::Other { name, raw } = &line.cmd {
+            if name.as_str() == "SET_KINEMATIC_POSITION" && self.force_move {
+                return self.set_kinematic_position(line, raw.as_str(), target);
+            }
+        }
         if plan_line(
             line,
             self.file,
@@ -502,6 +656,9 @@ impl MacroRun {
                     .map_err(|why| at(format!("in macro {}: {why}", self.via)))?;
                 continue;
             }
+            if called == "M117" {
+                macros.host_mut().observe(&called, &next.text);
+            }
             let text = match macros.original_of(&called) {
                 Some(original) => format!("{original} {rest}"),
                 None => next.text,
@@ -541,6 +698,19 @@ fn macro_step(
             return Ok(());
         }
     }
+    if macros.host().handles(name) && !macros.is_macro(name) {
+        match macros
+            .host_mut()
+            .command(name, rawparams)
+            .map_err(|e| e.to_string())?
+        {
+            HostAction::Done => {}
+            HostAction::Respond(text) => say(text),
+            HostAction::Save { path, text } => std::fs::write(&path, text)
+                .map_err(|e| format!("Unable to save variable ({}: {e})", path.display()))?,
+        }
+        return Ok(());
+    }
     let said = script
         .call(macros, name, rawparams, printer)
         .map_err(|e| e.to_string())?;
@@ -549,7 +719,7 @@ fn macro_step(
 }
 
 /// The `printer` objects a macro sees: `toolhead` and `gcode_move` positions and the homed
-/// axes, as Klipper names them.
+/// axes, and with `[exclude_object]` its objects, as Klipper names them.
 pub(crate) fn macro_status(pipeline: &Pipeline) -> serde_json::Value {
     let [x, y, z, e] = pipeline.position();
     let homed = pipeline.gcode_state().homed();
@@ -560,10 +730,14 @@ pub(crate) fn macro_status(pipeline: &Pipeline) -> serde_json::Value {
         .map(|(a, _)| *a)
         .collect();
     let position = serde_json::json!({"x": x, "y": y, "z": z, "e": e});
-    serde_json::json!({
+    let mut status = serde_json::json!({
         "toolhead": {"position": position.clone(), "homed_axes": homed_axes},
         "gcode_move": {"position": position.clone(), "gcode_position": position},
-    })
+    });
+    if let (Some(objects), Some(map)) = (pipeline.gcode_state().exclude_objects(), status.as_object_mut()) {
+        map.insert("exclude_object".to_string(), objects.status());
+    }
+    status
 }
 
 /// The printer a G28 procedure ([`HomingProcedure`]) runs on: the feed's planner, the printer's

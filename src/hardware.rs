@@ -106,6 +106,9 @@ pub struct Machine {
     pub homing: crate::homing::procedure::HomingProcedure,
     /// `[respond]`'s default prefix, when the printer has the section.
     pub respond_prefix: Option<String>,
+    /// `[delayed_gcode]`, `[save_variables]`, `[idle_timeout]`, `[display_status]`,
+    /// `[force_move]` (their scripts are among `macros`).
+    pub host: planner::gcode::host::HostConfig,
 }
 
 /// Why a printer.cfg describes no printer the host can drive; each names the file.
@@ -217,6 +220,7 @@ impl Machine {
                 .macros
                 .iter()
                 .chain(cfg.homing_override.as_ref().map(|o| &o.script))
+                .chain(&cfg.host.scripts)
                 .cloned()
                 .collect(),
             homing: crate::homing::procedure::HomingProcedure {
@@ -225,7 +229,34 @@ impl Machine {
             },
             thermal,
             respond_prefix: cfg.respond.clone(),
+            host: cfg.host.host.clone(),
         })
+    }
+
+    /// The G-code feed's macros and host objects for a print starting at print time `start`:
+    /// `[gcode_macro]`s, `[respond]`, and the `[save_variables]` file read (created empty when
+    /// absent, as Klipper does).
+    pub fn macros(&self, start: f64) -> Result<planner::gcode::macros::Macros, String> {
+        let mut macros = planner::gcode::macros::Macros::new(self.macros.clone())
+            .map_err(|e| e.to_string())?
+            .with_respond(self.respond_prefix.clone())
+            .with_host(&self.host, start);
+        if let Some(path) = macros.host().variables_file().cloned() {
+            let text = match std::fs::read_to_string(&path) {
+                Ok(t) => t,
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                    std::fs::write(&path, "")
+                        .map_err(|e| format!("[save_variables] filename {}: {e}", path.display()))?;
+                    String::new()
+                }
+                Err(e) => return Err(format!("[save_variables] filename {}: {e}", path.display())),
+            };
+            macros
+                .host_mut()
+                .load_variables(&text)
+                .map_err(|e| format!("[save_variables] {}: {e}", path.display()))?;
+        }
+        Ok(macros)
     }
 
     /// The planner configuration for MCU clocks at `clock_freq` ticks per print second.

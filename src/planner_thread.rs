@@ -9,7 +9,6 @@
 //! here; homing works) or in a `cadence serve --role io` process (see [`crate::io_process`]):
 //! then the dictionary, move queue size and clock snapshots come over shared memory.
 
-use planner::gcode::macros::Macros;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
@@ -195,9 +194,7 @@ pub(crate) fn planner_stage(gcode: GcodeInput, st: &PlannerStage<'_>) -> Result<
     // With the heater loop running, heat asked of a real board is real: no warning.
     let mut accessories = Accessories::new(st.machine.real_board && st.heaters.is_none());
     let file = gcode.name.clone();
-    let mut macros = Macros::new(st.machine.macros.clone())
-        .map_err(|e| e.to_string())?
-        .with_respond(st.machine.respond_prefix.clone());
+    let mut macros = st.machine.macros(start)?;
     let lines = plan_file(
         gcode,
         &mut pipeline,

@@ -21,6 +21,7 @@
 //! allocate (their message).
 
 pub mod exclude;
+pub mod host;
 pub mod macros;
 pub mod respond;
 mod text;

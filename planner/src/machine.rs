@@ -16,7 +16,9 @@
 //! speeds 20 and 10 mm/s; SET_RETRACTION changes them). SET_INPUT_SHAPER (only with an
 //! `[input_shaper]` section, as on Klipper) takes SHAPER_TYPE, SHAPER_TYPE_X/Y,
 //! SHAPER_FREQ_X/Y and DAMPING_RATIO_X/Y, and answers with the settings (Klipper's report);
-//! the pipeline applies them from the next move. Heaters, fans, motors off, M114 and
+//! the pipeline applies them from the next move. SAVE_GCODE_STATE / RESTORE_GCODE_STATE
+//! (`NAME`, default `default`; `MOVE=1`, `MOVE_SPEED`) keep and restore the modes, G92
+//! offsets, speed and M220/M221 factors as Klipper's `gcode_move` does. Heaters, fans, motors off, M114 and
 //! M117 are returned to the caller as [`Applied`] values. Unknown commands are
 //! [`Applied::Unsupported`] (the caller warns), or errors with [`GcodeState::set_unknown_is_error`].
 
@@ -37,9 +39,12 @@ const MAX_ARC_SEGMENTS: f64 = 1e6;
 
 /// The [`Command::Other`] commands [`GcodeState::apply`] implements (besides M117 and, with an
 /// input shaper, SET_INPUT_SHAPER); a test keeps it equal to the commands handled.
-const KNOWN_OTHER: [&str; 19] = [
+const KNOWN_OTHER: [&str; 24] = [
     "G10",
     "G11",
+    "G17",
+    "G18",
+    "G19",
     "G20",
     "G21",
     "M104",
@@ -54,6 +59,8 @@ const KNOWN_OTHER: [&str; 19] = [
     "M220",
     "M221",
     "M84",
+    "RESTORE_GCODE_STATE",
+    "SAVE_GCODE_STATE",
     "SET_PRESSURE_ADVANCE",
     "SET_RETRACTION",
     "SET_VELOCITY_LIMIT",
@@ -157,6 +164,20 @@ pub struct GcodeState {
     objects: Option<ExcludeObjects>,
     /// Moves of an excluded object were dropped: the toolhead is not at `last`.
     behind: bool,
+    /// `SAVE_GCODE_STATE` states by name (allocated only when a macro saves one).
+    saved_states: Vec<(String, SavedState)>,
+}
+
+/// What `SAVE_GCODE_STATE` keeps (Klipper's `gcode_move` fields).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct SavedState {
+    absolute_coord: bool,
+    absolute_extrude: bool,
+    base: [f64; 4],
+    last: [f64; 4],
+    speed: f64,
+    speed_factor: f64,
+    extrude_factor: f64,
 }
 
 /// Firmware retraction settings (Klipper's `[firmware_retraction]`).
@@ -200,6 +221,7 @@ impl GcodeState {
             input_shaper: None,
             objects: None,
             behind: false,
+            saved_states: Vec::new(),
         }
     }
 
@@ -503,6 +525,13 @@ impl GcodeState {
         let limits = |e: crate::toolhead::ConfigError| PlanErrorKind::BadParameter(format!("{name}: {e}"));
         match name {
             "G21" => {}
+            // Arcs are in the XY plane (`[gcode_arcs]`'s G17, what slicers write).
+            "G17" => {}
+            "G18" | "G19" => {
+                return Err(PlanErrorKind::BadParameter(format!(
+                    "{name}: only G17 (XY plane) arcs are supported"
+                )))
+            }
             "G20" => return Err(PlanErrorKind::Inches),
             "M104" | "M109" | "M140" | "M190" => {
                 // The one extruder is T0 (Klipper refuses a T naming no extruder).
@@ -654,6 +683,48 @@ impl GcodeState {
                     unretract_speed: positive("UNRETRACT_SPEED")?.unwrap_or(r.unretract_speed),
                 };
                 self.retract = new;
+            }
+            "SAVE_GCODE_STATE" => {
+                let state_name = p.get("NAME").unwrap_or("default");
+                let state = SavedState {
+                    absolute_coord: self.absolute_coord,
+                    absolute_extrude: self.absolute_extrude,
+                    base: self.base,
+                    last: self.last,
+                    speed: self.speed,
+                    speed_factor: self.speed_factor,
+                    extrude_factor: self.extrude_factor,
+                };
+                match self.saved_states.iter_mut().find(|(n, _)| n == state_name) {
+                    Some((_, slot)) => *slot = state,
+                    None => self.saved_states.push((state_name.to_string(), state)),
+                }
+            }
+            "RESTORE_GCODE_STATE" => {
+                // Klipper's gcode_move: the modes, G92 offsets, speed and factors come back; E
+                // keeps reading as it did when saved; MOVE=1 returns to the saved X, Y, Z.
+                let state_name = p.get("NAME").unwrap_or("default");
+                let Some(&(_, state)) = self.saved_states.iter().find(|(n, _)| n == state_name) else {
+                    return Err(PlanErrorKind::BadParameter(format!(
+                        "Unknown g-code state: {state_name}"
+                    )));
+                };
+                let move_back = num("MOVE")?.is_some_and(|m| m != 0.0);
+                let move_speed = positive("MOVE_SPEED")?;
+                self.absolute_coord = state.absolute_coord;
+                self.absolute_extrude = state.absolute_extrude;
+                self.base = state.base;
+                self.base[3] += self.last[3] - state.last[3];
+                self.speed = state.speed;
+                self.speed_factor = state.speed_factor;
+                self.extrude_factor = state.extrude_factor;
+                if move_back {
+                    // MOVE_SPEED is the toolhead's own speed: undo the M220 factor move_to
+                    // applies (the restored G-code speed takes it, as a G1 would).
+                    let speed = move_speed.map_or(self.speed, |v| v / self.speed_factor);
+                    let next = [state.last[0], state.last[1], state.last[2], self.last[3]];
+                    self.move_to(next, speed, th)?;
+                }
             }
             "G10" | "G11" => {
                 let retract = name == "G10";
@@ -1000,6 +1071,39 @@ mod tests {
         // Without the section they are unknown commands, as on Klipper.
         let (_, _, res) = run(&["EXCLUDE_OBJECT_START NAME=a"]);
         assert_eq!(res[0], Ok(Applied::Unsupported("EXCLUDE_OBJECT_START".into())));
+    }
+
+    #[test]
+    fn save_and_restore_gcode_state() {
+        let (st, mut th, res) = run(&[
+            "G28",
+            "G1 X10 Y10 Z1 E1 F600",
+            "SAVE_GCODE_STATE NAME=park",
+            "G91",
+            "M83",
+            "G92 E0",
+            "M220 S50",
+            "G1 X5 E2 F3000",
+            "RESTORE_GCODE_STATE NAME=park MOVE=1 MOVE_SPEED=20",
+            "G1 X20 E3",
+            "RESTORE_GCODE_STATE NAME=other",
+        ]);
+        assert!(res[..10].iter().all(|r| r == &Ok(Applied::Done)), "{res:?}");
+        assert_eq!(
+            res[10],
+            Err(PlanError {
+                line: 11,
+                kind: PlanErrorKind::BadParameter("Unknown g-code state: other".into())
+            })
+        );
+        let m = moves(&mut th);
+        let ends: Vec<[f64; 4]> = m.iter().map(|m| m.end_pos).collect();
+        // Back at X10 (E stays), at MOVE_SPEED; then absolute again at the saved F600.
+        assert_eq!(ends[2], [10.0, 10.0, 1.0, 3.0]);
+        assert!((m[2].cruise_v - 20.0).abs() < 1e-9, "{}", m[2].cruise_v);
+        assert_eq!(ends[3], [20.0, 10.0, 1.0, 5.0]);
+        assert!((m[3].cruise_v - 10.0).abs() < 1e-9);
+        assert_eq!(st.gcode_position(), [20.0, 10.0, 1.0, 3.0]);
     }
 
     #[test]

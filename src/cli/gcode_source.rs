@@ -1,5 +1,7 @@
 //! The G-code file as `cadence print` feeds it to the planner: counts the bytes and lines read
-//! (for the progress display and the "interrupted at line N" note), skips a UTF-8 byte-order
+//! (for the progress display and the "interrupted at line N" note) and the layers begun (the
+//! slicers' layer comments at a line start: `;LAYER_CHANGE` from PrusaSlicer, SuperSlicer and
+//! OrcaSlicer, `;LAYER:N` from Cura), skips a UTF-8 byte-order
 //! mark at the start, and ends at the next line boundary once a stop was asked for: one more
 //! line, `M84` (motors off: the axes are no longer homed), then the end of the input, so the
 //! planner finishes as at the end of a file (what it already planned still moves).
@@ -21,6 +23,8 @@ const AFTER_STOP: &[u8] = b"M84\n";
 pub struct ReadPosition {
     pub bytes: AtomicU64,
     pub lines: AtomicU64,
+    /// Slicer layer comments read (`;LAYER_CHANGE`, `;LAYER:N`).
+    pub layers: AtomicU64,
     /// The reader ended early because of a stop request.
     pub cut: AtomicBool,
 }
@@ -35,7 +39,15 @@ pub struct GcodeSource {
     started: bool,
     /// Bytes of [`AFTER_STOP`] handed out.
     tail: usize,
+    /// The start of the line being read, up to the longest layer comment.
+    prefix: [u8; LAYER_CHANGE.len()],
+    prefix_len: usize,
 }
+
+/// PrusaSlicer's, SuperSlicer's and OrcaSlicer's layer comment.
+const LAYER_CHANGE: &[u8] = b";LAYER_CHANGE";
+/// Cura's (followed by the layer's number).
+const CURA_LAYER: &[u8] = b";LAYER:";
 
 impl GcodeSource {
     /// Opens `path`.
@@ -48,6 +60,8 @@ impl GcodeSource {
             at_line_start: true,
             started: false,
             tail: 0,
+            prefix: [0; LAYER_CHANGE.len()],
+            prefix_len: 0,
         };
         Ok((src, pos))
     }
@@ -99,9 +113,26 @@ impl BufRead for GcodeSource {
         }
         if let Ok(buf) = self.inner.fill_buf() {
             let taken = &buf[..n.min(buf.len())];
-            let newlines = taken.iter().filter(|&&b| b == b'\n').count() as u64;
+            let mut newlines = 0;
+            let mut layers = 0;
+            for &b in taken {
+                if b == b'\n' {
+                    newlines += 1;
+                    self.prefix_len = 0;
+                    continue;
+                }
+                if let Some(slot) = self.prefix.get_mut(self.prefix_len) {
+                    *slot = b;
+                    self.prefix_len += 1;
+                    let start = &self.prefix[..self.prefix_len];
+                    if start == LAYER_CHANGE || start == CURA_LAYER {
+                        layers += 1;
+                    }
+                }
+            }
             self.at_line_start = taken.last() == Some(&b'\n');
             self.pos.lines.fetch_add(newlines, Ordering::Relaxed);
+            self.pos.layers.fetch_add(layers, Ordering::Relaxed);
         }
         self.inner.consume(n);
         self.pos.bytes.fetch_add(n as u64, Ordering::Relaxed);
@@ -147,6 +178,17 @@ mod tests {
         assert_eq!(lines, ["G28", "G1 X1"]);
         assert_eq!(pos.lines.load(Ordering::Relaxed), 2);
         assert_eq!(pos.bytes.load(Ordering::Relaxed), 3 + 10);
+    }
+
+    #[test]
+    fn counts_the_slicers_layer_comments_across_reads() {
+        let text = b";LAYER_COUNT:3\n;LAYER:0\nG1 Z.2\n;LAYER_CHANGE\n;Z:0.4\n G1 ;LAYER:9\n;LAYER:1\n";
+        let (mut src, pos, _stop, _t) = source(text);
+        // Byte by byte: every comment split across reads.
+        let mut one = [0u8; 1];
+        while src.read(&mut one).unwrap() == 1 {}
+        assert_eq!(pos.layers.load(Ordering::Relaxed), 3);
+        assert_eq!(pos.lines.load(Ordering::Relaxed), 7);
     }
 
     #[test]

@@ -4,7 +4,7 @@
 //! what is left, the planned Z, and a health mark: the smallest lead of a step message so far
 //! against the 100 ms the MCUs need, and the MCU links' state:
 //!
-//! `████▌      42 % · line 27,015 · 26 m 40 s printed, ~36 m 50 s left · Z 12.90 · ✓ lead ≥ 1353 ms`
+//! `████▌      42 % · line 27,015 · 26 m 40 s printed, ~36 m 50 s left · layer 65 · Z 12.90 · ✓ lead ≥ 1353 ms`
 //!
 //! The estimate of the remaining print time extrapolates the planner's own print time: the
 //! moves planned so far took `planned` seconds of print time for the share of the file read,
@@ -69,6 +69,7 @@ impl Display {
             self.pos.bytes.load(Ordering::Relaxed),
             self.file_bytes,
             self.pos.lines.load(Ordering::Relaxed),
+            self.pos.layers.load(Ordering::Relaxed),
         );
         match &self.out {
             Out::Bar(bar) => {
@@ -94,8 +95,9 @@ impl Display {
     }
 }
 
-/// The words of one progress report: `bytes` of `file_bytes` read, `lines` lines.
-pub fn describe(p: &Progress, bytes: u64, file_bytes: u64, lines: u64) -> Line {
+/// The words of one progress report: `bytes` of `file_bytes` read, `lines` lines, `layers`
+/// slicer layers begun (not shown when the file has no layer comments).
+pub fn describe(p: &Progress, bytes: u64, file_bytes: u64, lines: u64, layers: u64) -> Line {
     let share = if file_bytes == 0 {
         1.0
     } else {
@@ -113,6 +115,9 @@ pub fn describe(p: &Progress, bytes: u64, file_bytes: u64, lines: u64) -> Line {
         ));
     } else {
         text.push_str(" · starting");
+    }
+    if layers > 0 {
+        text.push_str(&format!(" · layer {layers}"));
     }
     text.push_str(&format!(" · Z {:.2}", p.position[2]));
     let down: Vec<String> = p
@@ -159,29 +164,29 @@ mod tests {
     #[test]
     fn estimates_what_is_left_from_the_share_planned() {
         // A quarter of the file planned 100 s of print time: about 400 s in all, 330 s left.
-        let l = describe(&progress(70.0, 100.0, Some(180.0)), 250, 1000, 12);
+        let l = describe(&progress(70.0, 100.0, Some(180.0)), 250, 1000, 12, 6);
         assert_eq!(l.percent, 25.0);
         assert_eq!(l.line, 12);
         assert_eq!(
             l.text,
-            "25 % · line 12 · 1 m 10 s printed, ~5 m 30 s left · Z 1.20 · ✓ lead ≥ 180 ms"
+            "25 % · line 12 · 1 m 10 s printed, ~5 m 30 s left · layer 6 · Z 1.20 · ✓ lead ≥ 180 ms"
         );
         assert!(!l.warn);
     }
 
     #[test]
     fn health_mark_warns_on_low_lead_and_a_dead_link() {
-        let l = describe(&progress(1.0, 2.0, Some(60.0)), 1, 10, 1);
+        let l = describe(&progress(1.0, 2.0, Some(60.0)), 1, 10, 1, 0);
         assert!(l.warn && l.text.contains("lead only 60 ms"), "{}", l.text);
         let mut p = progress(1.0, 2.0, Some(300.0));
         p.mcus[0].1 = Some("Timer too close".to_string());
-        let l = describe(&p, 1, 10, 1);
+        let l = describe(&p, 1, 10, 1, 0);
         assert!(
             l.warn && l.text.contains("mcu 'mcu' down: Timer too close"),
             "{}",
             l.text
         );
-        let l = describe(&progress(0.0, 0.0, None), 0, 10, 0);
+        let l = describe(&progress(0.0, 0.0, None), 0, 10, 0, 0);
         assert!(l.text.contains("starting") && !l.warn, "{}", l.text);
     }
 }

@@ -107,13 +107,13 @@ fn respond_answers_with_the_section_and_is_unknown_without() {
 #[test]
 fn check_config_lists_every_error_and_the_ignored_sections() {
     let dir = scratch("dialect-check");
-    let good = config(&dir, "[display_status]\n[idle_timeout]\ntimeout: 600");
+    let good = config(&dir, "[display_glyph heart]\n[idle_timeout]\ntimeout: 600");
     let run = cadence(&["check-config", good.to_str().unwrap()], TIMEOUT);
     assert_eq!(run.code, Some(0), "{}\n{}", run.stdout, run.stderr);
     assert!(run.stdout.contains("0 errors"), "{}", run.stdout);
     assert!(
         run.stdout
-            .contains("ignored (accepted, no effect in Cadence):\n  [display_status]"),
+            .contains("ignored (accepted, no effect in Cadence):\n  [display_glyph heart]"),
         "{}",
         run.stdout
     );

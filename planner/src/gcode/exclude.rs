@@ -98,6 +98,21 @@ impl ExcludeObjects {
         Ok(None)
     }
 
+    /// `printer.exclude_object` as Klipper's status object has it: `objects` (each with its
+    /// `name`; center and polygon are not kept), `excluded_objects`, `current_object`.
+    pub fn status(&self) -> serde_json::Value {
+        let objects: Vec<serde_json::Value> = self
+            .objects
+            .iter()
+            .map(|n| serde_json::json!({ "name": n }))
+            .collect();
+        serde_json::json!({
+            "objects": objects,
+            "excluded_objects": self.excluded,
+            "current_object": self.current,
+        })
+    }
+
     fn define(&mut self, name: String) {
         if let Err(i) = self.objects.binary_search(&name) {
             self.objects.insert(i, name);

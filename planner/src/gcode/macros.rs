@@ -27,6 +27,8 @@ use minijinja::syntax::SyntaxConfig;
 use minijinja::value::Value;
 use minijinja::{Environment, Error as JinjaError, ErrorKind, UndefinedBehavior};
 
+use super::host::{HostConfig, HostObjects};
+
 /// Deepest macro nesting accepted (Klipper has no fixed bound; a runaway chain of distinct
 /// macros is stopped here).
 pub const MAX_MACRO_DEPTH: usize = 64;
@@ -121,6 +123,8 @@ pub struct Macros {
     /// `[respond]`'s default prefix when the printer has the section (then `RESPOND` and
     /// `M118` are commands, see [`super::respond`]).
     respond_prefix: Option<String>,
+    /// `[delayed_gcode]`, `[save_variables]`, `[idle_timeout]`, `[display_status]`.
+    host: HostObjects,
 }
 
 #[derive(Debug, Default)]
@@ -218,7 +222,24 @@ impl Macros {
             renamed,
             actions,
             respond_prefix: None,
+            host: HostObjects::default(),
         })
+    }
+
+    /// With the host objects of `cfg` (timers armed from print time `start`).
+    pub fn with_host(mut self, cfg: &HostConfig, start: f64) -> Macros {
+        self.host = HostObjects::new(cfg, start);
+        self
+    }
+
+    /// The host objects (`[delayed_gcode]` timers, saved variables, idle timeout, display).
+    pub fn host(&self) -> &HostObjects {
+        &self.host
+    }
+
+    /// The host objects, to change.
+    pub fn host_mut(&mut self) -> &mut HostObjects {
+        &mut self.host
     }
 
     /// With `[respond]` (its default prefix), `RESPOND` and `M118` answer; without, they are
@@ -238,6 +259,7 @@ impl Macros {
     pub fn is_feed_command(&self, name: &str) -> bool {
         name == "SET_GCODE_VARIABLE"
             || self.is_macro(name)
+            || self.host.handles(name)
             || (self.respond_prefix.is_some() && super::respond::is_respond_command(name))
     }
 
@@ -251,11 +273,13 @@ impl Macros {
         self.renamed.get(name).map(String::as_str)
     }
 
-    /// The macros' names and descriptions, sorted by name (for `HELP`).
+    /// The macros' names and descriptions, sorted by name (for `HELP`; the lower-case
+    /// scripts of other sections left out).
     pub fn descriptions(&self) -> Vec<(&str, &str)> {
         let mut v: Vec<(&str, &str)> = self
             .macros
             .values()
+            .filter(|m| !is_section_script(&m.def.name))
             .map(|m| {
                 (
                     m.def.name.as_str(),
@@ -271,6 +295,7 @@ impl Macros {
     pub fn status(&self) -> BTreeMap<String, Value> {
         self.macros
             .iter()
+            .filter(|(name, _)| !is_section_script(name))
             .map(|(name, m)| (format!("gcode_macro {name}"), Value::from(m.variables.clone())))
             .collect()
     }
@@ -301,6 +326,9 @@ impl Macros {
             _ => BTreeMap::new(),
         };
         printer_obj.extend(self.status());
+        for (k, v) in self.host.status(None) {
+            printer_obj.entry(k).or_insert(v);
+        }
         let mut ctx: BTreeMap<String, Value> = m.variables.clone();
         ctx.insert("params".into(), Value::from(call_params(name, rawparams)));
         ctx.insert("rawparams".into(), Value::from(rawparams));
@@ -367,6 +395,12 @@ impl Macros {
             ))),
         }
     }
+}
+
+/// True for the script of another section run as a macro (`homing_override`,
+/// `delayed_gcode ID`, `idle_timeout`): their names are lower case, which no G-code command is.
+fn is_section_script(name: &str) -> bool {
+    name.starts_with(|c: char| c.is_ascii_lowercase())
 }
 
 /// Marker text of the error `action_raise_error` returns (its message rides in the source).

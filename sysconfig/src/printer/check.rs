@@ -173,14 +173,14 @@ mod tests {
 
     #[test]
     fn a_good_config_has_no_errors_and_lists_its_sections() {
-        let c = run("[display_status]\n[neopixel led]\npin: PA9\n");
+        let c = run("[display_glyph heart]\n[neopixel led]\npin: PA9\n");
         assert!(c.errors.is_empty(), "{:?}", c.errors);
         assert!(c.config.is_some() && !c.stopped_early);
         let ignored: Vec<&str> = c
             .sections_of(|u| *u == SectionUse::Ignored)
             .map(|s| s.name.as_str())
             .collect();
-        assert_eq!(ignored, ["display_status", "neopixel led"]);
+        assert_eq!(ignored, ["display_glyph heart", "neopixel led"]);
         assert!(c
             .sections_of(|u| *u == SectionUse::Read)
             .any(|s| s.name == "printer"));

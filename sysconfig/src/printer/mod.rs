@@ -23,6 +23,7 @@ mod extruder;
 mod gcode;
 mod heater;
 mod homing;
+mod host;
 mod input_shaper;
 mod macros;
 mod mcu;
@@ -45,6 +46,7 @@ pub use extruder::ExtruderSection;
 pub use gcode::{FirmwareRetractionSection, GcodeArcsSection, GcodeSection, UnknownCommands};
 pub use heater::{HeaterControl, HeaterSection, ABSOLUTE_ZERO_C};
 pub use homing::{HomingOverrideSection, SafeZHomeSection, HOMING_OVERRIDE_MACRO};
+pub use host::HostSections;
 pub use input_shaper::InputShaperSection;
 pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
 pub use pins::{is_simulator_pin, PinKind, PinProblem, PinRef, MAIN_MCU};
@@ -114,6 +116,9 @@ pub struct PrinterConfig {
     pub respond: Option<String>,
     /// Whether there is an `[exclude_object]` section (it has no options).
     pub exclude_object: bool,
+    /// `[delayed_gcode]`, `[save_variables]`, `[idle_timeout]`, `[display_status]`,
+    /// `[force_move]`, `[virtual_sdcard]`.
+    pub host: HostSections,
     /// Accepted-but-ignored sections and other things worth telling the user.
     pub warnings: Vec<String>,
 }
@@ -231,10 +236,13 @@ impl PrinterConfig {
             None => None,
         };
 
+        let host = host::read_host(&reader)?;
+
         let mut warnings = reader.finish(is_ignored)?;
         let scripts: Vec<_> = macros
             .iter()
             .chain(homing_override.as_ref().map(|o| &o.script))
+            .chain(&host.scripts)
             .cloned()
             .collect();
         if !scripts.is_empty() {
@@ -271,6 +279,7 @@ impl PrinterConfig {
             macros,
             respond,
             exclude_object,
+            host,
             warnings,
         })
     }
