@@ -240,6 +240,11 @@ impl SessionShared {
         }
     }
 
+    /// True when someone takes the events (a printer session; a plain print has none).
+    pub fn listening(&self) -> bool {
+        self.events.lock().is_ok_and(|e| e.is_some())
+    }
+
     pub fn events_dropped(&self) -> u64 {
         self.events_dropped.load(Ordering::Relaxed)
     }

@@ -106,6 +106,8 @@ pub struct Machine {
     pub homing: crate::homing::procedure::HomingProcedure,
     /// `[respond]`'s default prefix, when the printer has the section.
     pub respond_prefix: Option<String>,
+    /// The printer.cfg it came from (SAVE_CONFIG rewrites it).
+    pub config_path: std::path::PathBuf,
 }
 
 /// Why a printer.cfg describes no printer the host can drive; each names the file.
@@ -225,6 +227,7 @@ impl Machine {
             },
             thermal,
             respond_prefix: cfg.respond.clone(),
+            config_path: cfg.source.clone(),
         })
     }
 

@@ -23,6 +23,8 @@ pub struct Wait {
     pub max: Option<f64>,
     /// The target waited for.
     pub target: f64,
+    /// Until PID_CALIBRATE's relay test ends.
+    pub calibrate: bool,
 }
 
 impl Wait {
@@ -31,6 +33,9 @@ impl Wait {
         let Some(h) = shared.heaters.get(self.heater) else {
             return true;
         };
+        if self.calibrate {
+            return !shared.calibrating();
+        }
         if self.settle {
             return !h.busy.load(Ordering::Acquire);
         }
@@ -61,6 +66,31 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
                 min: None,
                 max: None,
                 target: *target,
+                calibrate: false,
+            }))
+        }
+        HeatCmd::PidCalibrate { heater, target, .. } => {
+            let i = thermal
+                .heater(heater)
+                .ok_or_else(|| format!("Unknown heater '{heater}'"))?;
+            let h = &thermal.heaters[i];
+            if *target < h.min_temp || *target > h.max_temp {
+                return Err(format!(
+                    "Requested temperature ({target:.1}) out of range ({:.1}:{:.1})",
+                    h.min_temp, h.max_temp
+                ));
+            }
+            if !shared.start_calibration(i, *target) {
+                return Err("PID_CALIBRATE is already running".to_string());
+            }
+            Ok(Some(Wait {
+                heater: i,
+                what: "PID_CALIBRATE",
+                settle: false,
+                min: None,
+                max: None,
+                target: *target,
+                calibrate: true,
             }))
         }
         HeatCmd::Wait { sensor, min, max } => {
@@ -74,13 +104,14 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
                 min: *min,
                 max: *max,
                 target: min.or(*max).unwrap_or(0.0),
+                calibrate: false,
             }))
         }
         HeatCmd::TurnOffAll | HeatCmd::EmergencyStop => {
             shared.turn_off_all();
             Ok(None)
         }
-        HeatCmd::Report => Ok(None),
+        HeatCmd::Report | HeatCmd::SaveConfig => Ok(None),
         HeatCmd::Fan { speed } => {
             shared.set_fan("fan", *speed);
             Ok(None)
@@ -124,6 +155,11 @@ impl HeatLog {
             "{} waited {mcu} of printer time ({wall_s:.1} s wall) for {} °C",
             wait.what, wait.target
         ));
+    }
+
+    /// A line for the summary as it is (PID_CALIBRATE's result, SAVE_CONFIG's file).
+    pub fn note(&mut self, text: String) {
+        self.waits.push(text);
     }
 
     /// An M105 report (kept for the summary, the latest few).
@@ -225,6 +261,7 @@ mod tests {
             min: Some(170.0),
             max: None,
             target: 170.0,
+            calibrate: false,
         };
         assert!(w.done(&s));
     }

@@ -20,6 +20,7 @@ use std::time::Duration;
 use links::dict::Dictionary;
 use links::mcu::McuLink;
 
+use super::calibrate::RelayTuner;
 use super::control::{Control, Pid, PidGains, Smoothed, Watermark};
 use super::objects::{
     adc_range, FanRole, Thermal, ThermalObject, MAX_HEAT_TIME, RANGE_CHECK_COUNT, REPORT_TIME, SAMPLE_COUNT,
@@ -76,11 +77,31 @@ pub struct FanCell {
     pub speed: AtomicF64,
 }
 
+/// A PID_CALIBRATE between the G-code and the heater thread.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Calibration {
+    /// Asked for: heater `heater`'s relay test at `target`.
+    Requested { heater: usize, target: f64 },
+    /// The heater thread runs it.
+    Running { heater: usize },
+    /// Over: the gains (`None`: the heater loop ended first) and the samples, as Klipper's
+    /// WRITE_FILE keeps them: (time, power) at each power change, (time, temperature) of
+    /// each report.
+    Done {
+        heater: usize,
+        gains: Option<PidGains>,
+        pwm: Vec<(f64, f64)>,
+        temps: Vec<(f64, f64)>,
+    },
+}
+
 /// What the heater thread shares with the planner thread and the API.
 #[derive(Debug)]
 pub struct HeaterShared {
     pub heaters: Vec<HeaterCell>,
     pub fans: Vec<FanCell>,
+    /// The PID_CALIBRATE in progress, if any.
+    pub calibration: Mutex<Option<Calibration>>,
     fault: Mutex<Option<String>>,
     faulted: AtomicBool,
     /// Ends the heater thread (every heater off first).
@@ -113,6 +134,7 @@ impl HeaterShared {
                     speed: AtomicF64::new(0.0),
                 })
                 .collect(),
+            calibration: Mutex::new(None),
             fault: Mutex::new(None),
             faulted: AtomicBool::new(false),
             stop: AtomicBool::new(false),
@@ -148,6 +170,43 @@ impl HeaterShared {
             // Busy at once: a wait that follows must not see the old settled state.
             h.busy.store(target > 0.0, Ordering::Release);
         }
+    }
+
+    /// Starts PID_CALIBRATE on heater `i` at `target` (its target set at once, as Klipper
+    /// does); false when one is already running.
+    pub fn start_calibration(&self, i: usize, target: f64) -> bool {
+        let Ok(mut c) = self.calibration.lock() else {
+            return false;
+        };
+        if matches!(
+            *c,
+            Some(Calibration::Requested { .. } | Calibration::Running { .. })
+        ) {
+            return false;
+        }
+        *c = Some(Calibration::Requested { heater: i, target });
+        self.set_target(i, target);
+        true
+    }
+
+    /// The finished calibration, taken (`None` while one runs or when there is none).
+    pub fn take_calibration(&self) -> Option<Calibration> {
+        let mut c = self.calibration.lock().ok()?;
+        if matches!(*c, Some(Calibration::Done { .. })) {
+            c.take()
+        } else {
+            None
+        }
+    }
+
+    /// True while a calibration is asked for or running.
+    pub fn calibrating(&self) -> bool {
+        self.calibration.lock().is_ok_and(|c| {
+            matches!(
+                *c,
+                Some(Calibration::Requested { .. } | Calibration::Running { .. })
+            )
+        })
     }
 
     /// Sets the part fan's speed (M106/M107; 0..=1).
@@ -207,6 +266,15 @@ struct Running {
     /// Seconds per sensor fraction: ADC full scale of one report.
     full_scale: f64,
     sensor: super::thermistor::Sensor,
+    /// PID_CALIBRATE's relay in place of the control while it runs.
+    relay: Option<Relay>,
+}
+
+/// A running PID_CALIBRATE: the tuner and its samples.
+struct Relay {
+    tuner: RelayTuner,
+    pwm: Vec<(f64, f64)>,
+    temps: Vec<(f64, f64)>,
 }
 
 struct RunningFan {
@@ -276,6 +344,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                             last_sent: None,
                             full_scale: adc_max * f64::from(SAMPLE_COUNT),
                             sensor: h.sensor,
+                            relay: None,
                         },
                     ));
                     let (lo, hi) = adc_range(&h.sensor, h.min_temp, h.max_temp, adc_max);
@@ -301,6 +370,17 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
         }
     }
     let result = heater_loop(mcus, thermal, shared, &mut heaters, &mut fans);
+    // A calibration cut short ends without gains (the G-code waiting for it goes on).
+    if let Ok(mut c) = shared.calibration.lock() {
+        if let Some(Calibration::Requested { heater, .. } | Calibration::Running { heater }) = *c {
+            *c = Some(Calibration::Done {
+                heater,
+                gains: None,
+                pwm: Vec::new(),
+                temps: Vec::new(),
+            });
+        }
+    }
     // Every heater off, whatever ended the loop (an MCU that shut down has them off already).
     for (_, r) in &heaters {
         let conn = &mcus.list[r.link_index];
@@ -402,6 +482,7 @@ fn heater_loop(
             shared.turn_off_all();
             return Ok(());
         }
+        start_calibration(shared, heaters);
         let now_sys = McuLink::system_now();
         for (i, r) in heaters.iter_mut() {
             let conn = &mcus.list[r.link_index];
@@ -422,7 +503,14 @@ fn heater_loop(
             let cell = &shared.heaters[*i];
             let target = cell.target.get();
             let smoothed = r.smooth.update(time, temp);
-            let power = r.control.update(time, temp, target).clamp(0.0, r.max_power);
+            let power = match r.relay.as_mut() {
+                Some(relay) => relay_update(relay, shared, *i, time, temp, r.max_power),
+                None => r.control.update(time, temp, target),
+            }
+            .clamp(0.0, r.max_power);
+            if r.relay.as_ref().is_some_and(|relay| relay.tuner.done()) {
+                r.relay = None;
+            }
             cell.temp.set(smoothed);
             cell.time.set(time);
             cell.power.set(power);
@@ -518,6 +606,62 @@ fn heater_loop(
             (REPORT_TIME / scale / 4.0).clamp(0.002, 0.05),
         ));
     }
+}
+
+/// Hands a requested PID_CALIBRATE to its heater's loop state.
+fn start_calibration(shared: &HeaterShared, heaters: &mut [(usize, Running)]) {
+    let Ok(mut c) = shared.calibration.try_lock() else {
+        return;
+    };
+    let Some(Calibration::Requested { heater, target }) = *c else {
+        return;
+    };
+    match heaters.iter_mut().find(|(i, _)| *i == heater) {
+        Some((_, r)) => {
+            r.relay = Some(Relay {
+                tuner: RelayTuner::new(target, r.max_power),
+                pwm: Vec::new(),
+                temps: Vec::new(),
+            });
+            *c = Some(Calibration::Running { heater });
+        }
+        None => {
+            *c = Some(Calibration::Done {
+                heater,
+                gains: None,
+                pwm: Vec::new(),
+                temps: Vec::new(),
+            })
+        }
+    }
+}
+
+/// One report through PID_CALIBRATE's relay: the power to apply; once the tuner is done the
+/// result goes to the shared state (the heater keeps its target under its own control).
+fn relay_update(
+    relay: &mut Relay,
+    shared: &HeaterShared,
+    heater: usize,
+    time: f64,
+    temp: f64,
+    max_power: f64,
+) -> f64 {
+    let power = relay.tuner.update(time, temp).min(max_power);
+    relay.temps.push((time, temp));
+    if relay.pwm.last().is_none_or(|(_, p)| *p != power) {
+        relay.pwm.push((time, power));
+    }
+    if relay.tuner.done() {
+        if let Ok(mut c) = shared.calibration.lock() {
+            *c = Some(Calibration::Done {
+                heater,
+                gains: relay.tuner.result(),
+                pwm: std::mem::take(&mut relay.pwm),
+                temps: std::mem::take(&mut relay.temps),
+            });
+        }
+    }
+    power
 }
 
 /// A heater fault: every heater off and every MCU shut down (their outputs fall to off).

@@ -601,6 +601,13 @@ fn gcode_help() -> Value {
         "PAUSE": "Pause the print", "RESUME": "Resume the paused print",
         "CANCEL_PRINT": "Cancel the print", "M73": "Set the progress shown",
         "M117": "Set the message shown",
+        "M104": "Set the extruder temperature", "M109": "Set the extruder temperature and wait",
+        "M140": "Set the bed temperature", "M190": "Set the bed temperature and wait",
+        "M105": "Report the temperatures", "M106": "Set the fan speed", "M107": "Turn the fan off",
+        "SET_HEATER_TEMPERATURE": "Set a heater's target",
+        "TEMPERATURE_WAIT": "Wait for a temperature", "TURN_OFF_HEATERS": "Turn every heater off",
+        "PID_CALIBRATE": "Run PID calibration test",
+        "SAVE_CONFIG": "Overwrite config file and restart",
     })
 }
 

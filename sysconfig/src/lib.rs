@@ -7,12 +7,15 @@
 //!   bounds; every option must be consumed, unknown sections are errors unless listed as
 //!   accepted-and-ignored (then warnings).
 //!
+//! - [`autosave`]: SAVE_CONFIG's rewrite of printer.cfg (the `#*#` autosave block, a backup)
+//!   from the typed [`autosave::Changes`] calibration commands leave pending.
 //! - [`systemd`]: the unit file that runs the IO stage as a service.
 //!
 //! Guarantees: no input makes these parsers panic; every error names the file, the line when
 //! there is one, the section and the option.
 #![deny(unsafe_code)]
 
+pub mod autosave;
 pub mod ini;
 pub mod planning;
 pub mod printer;

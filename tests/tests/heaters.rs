@@ -39,8 +39,15 @@ fn config(dir: &Path) -> PathBuf {
 }
 
 fn print(dir: &Path, gcode: &str, sim_args: Option<&str>) -> (Run, PathBuf) {
+    print_at(dir, gcode, sim_args, SCALE)
+}
+
+fn print_at(dir: &Path, gcode: &str, sim_args: Option<&str>, scale: &str) -> (Run, PathBuf) {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    let cfg = config(dir);
+    let cfg = dir.join("printer.cfg");
+    if !cfg.exists() {
+        config(dir);
+    }
     let g = dir.join("print.gcode");
     std::fs::write(&g, gcode).unwrap();
     let trace = dir.join("mcu.trace");
@@ -51,7 +58,7 @@ fn print(dir: &Path, gcode: &str, sim_args: Option<&str>) -> (Run, PathBuf) {
         "--config",
         cfg.to_str().unwrap(),
         "--time-scale",
-        SCALE,
+        scale,
         "--no-realtime",
         "--trace",
         trace.to_str().unwrap(),
@@ -239,4 +246,60 @@ fn m112_shuts_every_mcu_down_with_the_heater_on() {
         run.stderr
     );
     assert!(shutdown_s(&trace).is_some(), "the MCU did not shut down");
+}
+
+/// PID_CALIBRATE on the simulated hotend answers with Klipper's words; SAVE_CONFIG writes the
+/// gains into printer.cfg's autosave block (the body's PID options commented out, a backup
+/// kept), and the rewritten file loads with them.
+#[test]
+fn pid_calibrate_and_save_config_rewrite_printer_cfg() {
+    let dir = scratch("heat-pid");
+    let cfg = config(&dir);
+    let before = std::fs::read_to_string(&cfg).unwrap();
+    let (run, trace) = print_at(
+        &dir,
+        "PID_CALIBRATE HEATER=extruder TARGET=200\nSAVE_CONFIG\n",
+        None,
+        "10",
+    );
+    assert_eq!(run.code, Some(0), "{}\n{}", run.stdout, run.stderr);
+    assert_eq!(shutdown_s(&trace), None, "the MCU shut down");
+    let line = run
+        .stderr
+        .lines()
+        .find(|l| l.contains("PID parameters: pid_Kp="))
+        .unwrap_or_else(|| panic!("{}", run.stderr));
+    assert!(
+        line.ends_with("The SAVE_CONFIG command will update the printer config file with these parameters and restart the printer."),
+        "{line}"
+    );
+    let kp: f64 = line
+        .split("pid_Kp=")
+        .nth(1)
+        .and_then(|r| r.split(' ').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("{line}"));
+    eprintln!("{line}");
+    assert!((5.0..200.0).contains(&kp), "{kp}");
+    assert!(run.stderr.contains("SAVE_CONFIG: wrote "), "{}", run.stderr);
+    let after = std::fs::read_to_string(&cfg).unwrap();
+    assert!(after.contains("\n#pid_Kp: 22.2\n"), "{after}");
+    assert!(
+        after.contains(&format!(
+            "#*# [extruder]\n#*# control = pid\n#*# pid_kp = {kp:.3}\n"
+        )),
+        "{after}"
+    );
+    let backups: Vec<_> = std::fs::read_dir(&dir)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_name().to_string_lossy().starts_with("printer-"))
+        .collect();
+    assert_eq!(backups.len(), 1);
+    assert_eq!(std::fs::read_to_string(backups[0].path()).unwrap(), before);
+    let loaded = sysconfig::printer::load(&cfg).unwrap();
+    match loaded.extruder.unwrap().heater.control {
+        sysconfig::printer::HeaterControl::Pid { kp: got, .. } => assert!((got - kp).abs() < 1e-3, "{got}"),
+        other => panic!("{other:?}"),
+    }
 }
