@@ -187,6 +187,11 @@ pub(crate) fn planner_stage(gcode: GcodeInput, st: &PlannerStage<'_>) -> Result<
     )
     .map_err(|e| e.to_string())?;
     let mut run = PlannerRun::new(st, main, sinks, streams, params.len());
+    if let Some(h) = st.heaters {
+        // A print's steppers are on from its start ([controller_fan]); a session says when
+        // it goes idle.
+        h.motors_on.store(true, std::sync::atomic::Ordering::Release);
+    }
     st.log.log(
         Level::Info,
         "planner started: start print time s, high water s, step streams",
@@ -631,6 +636,9 @@ impl FeedTarget for PlannerRun<'_, '_> {
 
     fn idle(&mut self, idle: bool, pipeline: &Pipeline) {
         self.busy = !idle;
+        if let Some(h) = self.st.heaters {
+            h.motors_on.store(!idle, std::sync::atomic::Ordering::Release);
+        }
         self.publish_status(pipeline);
         if let Some(s) = self.st.session {
             let state = if idle {

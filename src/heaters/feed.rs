@@ -12,8 +12,10 @@ use std::sync::atomic::Ordering;
 /// A wait the G-code holds for.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Wait {
-    /// The heater's index.
+    /// The heater's index (the sensor's with `sensor`).
     pub heater: usize,
+    /// `heater` is a temperature sensor's index (TEMPERATURE_WAIT on a sensor).
+    pub sensor: bool,
     /// The command, for the log (`M109`, `TEMPERATURE_WAIT`).
     pub what: &'static str,
     /// Until its control settles at the target (M109/M190) …
@@ -30,6 +32,10 @@ pub struct Wait {
 impl Wait {
     /// True once the wait is over.
     pub fn done(&self, shared: &HeaterShared) -> bool {
+        if self.sensor {
+            let t = shared.sensors.get(self.heater).map_or(f64::NAN, |s| s.temp.get());
+            return !t.is_nan() && self.min.is_none_or(|m| t >= m) && self.max.is_none_or(|m| t <= m);
+        }
         let Some(h) = shared.heaters.get(self.heater) else {
             return true;
         };
@@ -61,6 +67,7 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
             shared.set_target(i, *target);
             Ok(wait.then_some(Wait {
                 heater: i,
+                sensor: false,
                 what: if heater == "heater_bed" { "M190" } else { "M109" },
                 settle: true,
                 min: None,
@@ -85,6 +92,7 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
             }
             Ok(Some(Wait {
                 heater: i,
+                sensor: false,
                 what: "PID_CALIBRATE",
                 settle: false,
                 min: None,
@@ -94,11 +102,14 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
             }))
         }
         HeatCmd::Wait { sensor, min, max } => {
-            let i = thermal
-                .heater(sensor)
-                .ok_or_else(|| format!("Unknown sensor '{sensor}' (TEMPERATURE_WAIT waits for heaters)"))?;
+            let (i, is_sensor) = match (thermal.heater(sensor), thermal.sensor(sensor)) {
+                (Some(i), _) => (i, false),
+                (None, Some(i)) => (i, true),
+                (None, None) => return Err(format!("Unknown sensor '{sensor}'")),
+            };
             Ok(Some(Wait {
                 heater: i,
+                sensor: is_sensor,
                 what: "TEMPERATURE_WAIT",
                 settle: false,
                 min: *min,
@@ -114,6 +125,50 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
         HeatCmd::Report | HeatCmd::SaveConfig => Ok(None),
         HeatCmd::Fan { speed } => {
             shared.set_fan("fan", *speed);
+            Ok(None)
+        }
+        HeatCmd::FanSpeed { fan, speed } => {
+            let i = thermal
+                .fan("fan_generic", fan)
+                .ok_or_else(|| format!("The value '{fan}' is not valid for FAN"))?;
+            shared.set_fan_index(i, *speed);
+            Ok(None)
+        }
+        HeatCmd::TemperatureFanTarget {
+            fan,
+            target,
+            min_speed,
+            max_speed,
+        } => {
+            let i = thermal
+                .fan("temperature_fan", fan)
+                .ok_or_else(|| format!("The value '{fan}' is not valid for TEMPERATURE_FAN"))?;
+            let super::objects::FanRole::Temperature {
+                target_temp,
+                min_temp,
+                max_temp,
+                ..
+            } = thermal.fans[i].role
+            else {
+                return Err(format!("The value '{fan}' is not valid for TEMPERATURE_FAN"));
+            };
+            let cell = &shared.fans[i];
+            let target = target.unwrap_or(target_temp);
+            if target != 0.0 && (target < min_temp || target > max_temp) {
+                return Err(format!(
+                    "Requested temperature ({target:.1}) out of range ({min_temp:.1}:{max_temp:.1})"
+                ));
+            }
+            let min = min_speed.unwrap_or(cell.min_speed.get());
+            let max = max_speed.unwrap_or(cell.max_speed.get());
+            if min > max {
+                return Err(format!(
+                    "Requested min speed ({min:.1}) is greater than max speed ({max:.1})"
+                ));
+            }
+            cell.target.set(target);
+            cell.min_speed.set(min.clamp(0.0, 1.0));
+            cell.max_speed.set(max.clamp(0.0, 1.0));
             Ok(None)
         }
     }
@@ -192,8 +247,38 @@ impl HeatLog {
                 h.power.get() * 100.0
             ));
         }
+        for s in shared.sensors.iter().filter(|s| s.kind == "temperature_sensor") {
+            let fmt = |t: f64| {
+                if t.is_nan() {
+                    "no reading".to_string()
+                } else {
+                    format!("{t:.1} °C")
+                }
+            };
+            out.push(format!(
+                "{} {}: {} (lowest {}, highest {})",
+                s.kind,
+                s.name,
+                fmt(s.temp.get()),
+                fmt(s.min_seen.get()),
+                fmt(s.max_seen.get())
+            ));
+        }
         for f in &shared.fans {
-            out.push(format!("fan {}: {:.0} %", f.name, f.speed.get() * 100.0));
+            let target = match f.sensor.and_then(|i| shared.sensors.get(i)) {
+                Some(sensor) => format!(
+                    ", sensor {:.1} °C, target {:.1} °C",
+                    sensor.temp.get(),
+                    f.target.get()
+                ),
+                None => String::new(),
+            };
+            out.push(format!(
+                "{} {}: {:.0} %{target}",
+                f.kind,
+                f.name,
+                f.speed.get() * 100.0
+            ));
         }
         out.extend(self.waits.drain(..).map(|w| format!("heaters: {w}")));
         if let Some(fault) = shared.fault() {
@@ -256,6 +341,7 @@ mod tests {
         assert_eq!(can_extrude(&t, &s), Ok(()));
         let w = Wait {
             heater: 0,
+            sensor: false,
             what: "TEMPERATURE_WAIT",
             settle: false,
             min: Some(170.0),

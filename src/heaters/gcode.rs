@@ -1,7 +1,8 @@
 //! The heater and fan G-code the planner does not see, with Klipper's names and parameters:
 //! `SET_HEATER_TEMPERATURE HEATER= TARGET=`, `TEMPERATURE_WAIT SENSOR= MINIMUM= MAXIMUM=`,
 //! `TURN_OFF_HEATERS`, `M105`, `M112`, `PID_CALIBRATE HEATER= TARGET= [WRITE_FILE=1]`,
-//! `SAVE_CONFIG`; and the commands the planner parses itself (M104/M109/M140/M190,
+//! `SAVE_CONFIG`, `SET_FAN_SPEED FAN= SPEED=`, `SET_TEMPERATURE_FAN_TARGET TEMPERATURE_FAN=
+//! [TARGET=] [MIN_SPEED=] [MAX_SPEED=]`; and the commands the planner parses itself (M104/M109/M140/M190,
 //! M106/M107) as [`HeatCmd`]s. Pure: parsing only, nothing here touches a heater.
 
 use std::borrow::Cow;
@@ -42,6 +43,16 @@ pub enum HeatCmd {
     },
     /// SAVE_CONFIG: the pending calibration results into printer.cfg.
     SaveConfig,
+    /// SET_FAN_SPEED: a `[fan_generic]`'s speed (0..=1).
+    FanSpeed { fan: String, speed: f64 },
+    /// SET_TEMPERATURE_FAN_TARGET: a `[temperature_fan]`'s target (`None`: its configured
+    /// one) and speed range.
+    TemperatureFanTarget {
+        fan: String,
+        target: Option<f64>,
+        min_speed: Option<f64>,
+        max_speed: Option<f64>,
+    },
 }
 
 /// The heater command of an extended/M command line the planner does not know, `None` for any
@@ -60,6 +71,8 @@ pub fn parse(cmd: &Command) -> Option<Result<HeatCmd, String>> {
             | "M112"
             | "PID_CALIBRATE"
             | "SAVE_CONFIG"
+            | "SET_FAN_SPEED"
+            | "SET_TEMPERATURE_FAN_TARGET"
     ) {
         return None;
     }
@@ -98,6 +111,16 @@ fn parse_named(name: &str, raw: &str) -> Result<HeatCmd, String> {
             write_file: num("WRITE_FILE")?.is_some_and(|v| v != 0.0),
         },
         "SAVE_CONFIG" => HeatCmd::SaveConfig,
+        "SET_FAN_SPEED" => HeatCmd::FanSpeed {
+            fan: text("FAN")?,
+            speed: num("SPEED")?.unwrap_or(0.0),
+        },
+        "SET_TEMPERATURE_FAN_TARGET" => HeatCmd::TemperatureFanTarget {
+            fan: text("TEMPERATURE_FAN")?,
+            target: num("TARGET")?,
+            min_speed: num("MIN_SPEED")?,
+            max_speed: num("MAX_SPEED")?,
+        },
         "M112" => HeatCmd::EmergencyStop,
         _ => HeatCmd::Report,
     })
@@ -158,6 +181,23 @@ mod tests {
             }))
         );
         assert_eq!(cmd("SAVE_CONFIG"), Some(Ok(HeatCmd::SaveConfig)));
+        assert_eq!(
+            cmd("SET_FAN_SPEED FAN=aux SPEED=0.5"),
+            Some(Ok(HeatCmd::FanSpeed {
+                fan: "aux".into(),
+                speed: 0.5
+            }))
+        );
+        assert_eq!(
+            cmd("SET_TEMPERATURE_FAN_TARGET TEMPERATURE_FAN=exhaust TARGET=40 MAX_SPEED=0.8"),
+            Some(Ok(HeatCmd::TemperatureFanTarget {
+                fan: "exhaust".into(),
+                target: Some(40.0),
+                min_speed: None,
+                max_speed: Some(0.8)
+            }))
+        );
+        assert!(cmd("SET_FAN_SPEED SPEED=1").unwrap().is_err());
         assert_eq!(cmd("G1 X1"), None);
         assert_eq!(cmd("SET_VELOCITY_LIMIT ACCEL=1"), None);
     }

@@ -344,7 +344,10 @@ impl Server<'_> {
                     _ => Err("Invalid Argument Type [remote_method]".into()),
                 }
             }
-            "objects/list" => Ok(json!({"objects": objects::names(&self.shared.get().mcus)})),
+            "objects/list" => {
+                let published = self.shared.get();
+                Ok(json!({"objects": objects::names(&published.mcus, published.config.as_deref())}))
+            }
             "objects/query" | "objects/subscribe" => self.query(idx, &params, method == "objects/subscribe"),
             "gcode/help" => Ok(gcode_help()),
             "gcode/script" => match params.get("script") {
