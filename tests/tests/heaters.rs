@@ -38,11 +38,8 @@ fn config(dir: &Path) -> PathBuf {
     path
 }
 
+/// `cadence print` of `gcode` on the printer.cfg in `dir` (the test printer when there is none).
 fn print(dir: &Path, gcode: &str, sim_args: Option<&str>) -> (Run, PathBuf) {
-    print_at(dir, gcode, sim_args, SCALE)
-}
-
-fn print_at(dir: &Path, gcode: &str, sim_args: Option<&str>, scale: &str) -> (Run, PathBuf) {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let cfg = dir.join("printer.cfg");
     if !cfg.exists() {
@@ -58,7 +55,7 @@ fn print_at(dir: &Path, gcode: &str, sim_args: Option<&str>, scale: &str) -> (Ru
         "--config",
         cfg.to_str().unwrap(),
         "--time-scale",
-        scale,
+        SCALE,
         "--no-realtime",
         "--trace",
         trace.to_str().unwrap(),
@@ -248,62 +245,6 @@ fn m112_shuts_every_mcu_down_with_the_heater_on() {
     assert!(shutdown_s(&trace).is_some(), "the MCU did not shut down");
 }
 
-/// PID_CALIBRATE on the simulated hotend answers with Klipper's words; SAVE_CONFIG writes the
-/// gains into printer.cfg's autosave block (the body's PID options commented out, a backup
-/// kept), and the rewritten file loads with them.
-#[test]
-fn pid_calibrate_and_save_config_rewrite_printer_cfg() {
-    let dir = scratch("heat-pid");
-    let cfg = config(&dir);
-    let before = std::fs::read_to_string(&cfg).unwrap();
-    let (run, trace) = print_at(
-        &dir,
-        "PID_CALIBRATE HEATER=extruder TARGET=200\nSAVE_CONFIG\n",
-        None,
-        "10",
-    );
-    assert_eq!(run.code, Some(0), "{}\n{}", run.stdout, run.stderr);
-    assert_eq!(shutdown_s(&trace), None, "the MCU shut down");
-    let line = run
-        .stderr
-        .lines()
-        .find(|l| l.contains("PID parameters: pid_Kp="))
-        .unwrap_or_else(|| panic!("{}", run.stderr));
-    assert!(
-        line.ends_with("The SAVE_CONFIG command will update the printer config file with these parameters and restart the printer."),
-        "{line}"
-    );
-    let kp: f64 = line
-        .split("pid_Kp=")
-        .nth(1)
-        .and_then(|r| r.split(' ').next())
-        .and_then(|v| v.parse().ok())
-        .unwrap_or_else(|| panic!("{line}"));
-    eprintln!("{line}");
-    assert!((5.0..200.0).contains(&kp), "{kp}");
-    assert!(run.stderr.contains("SAVE_CONFIG: wrote "), "{}", run.stderr);
-    let after = std::fs::read_to_string(&cfg).unwrap();
-    assert!(after.contains("\n#pid_Kp: 22.2\n"), "{after}");
-    assert!(
-        after.contains(&format!(
-            "#*# [extruder]\n#*# control = pid\n#*# pid_kp = {kp:.3}\n"
-        )),
-        "{after}"
-    );
-    let backups: Vec<_> = std::fs::read_dir(&dir)
-        .unwrap()
-        .filter_map(|e| e.ok())
-        .filter(|e| e.file_name().to_string_lossy().starts_with("printer-"))
-        .collect();
-    assert_eq!(backups.len(), 1);
-    assert_eq!(std::fs::read_to_string(backups[0].path()).unwrap(), before);
-    let loaded = sysconfig::printer::load(&cfg).unwrap();
-    match loaded.extruder.unwrap().heater.control {
-        sysconfig::printer::HeaterControl::Pid { kp: got, .. } => assert!((got - kp).abs() < 1e-3, "{got}"),
-        other => panic!("{other:?}"),
-    }
-}
-
 /// `[temperature_sensor]` (reported by M105 under its gcode_id, waited for, summarised),
 /// `[fan_generic]` (SET_FAN_SPEED), `[temperature_fan]` (SET_TEMPERATURE_FAN_TARGET: at
 /// 25 °C with target 20 it runs at full speed, with target 40 it stops) and
@@ -326,7 +267,7 @@ fn sensors_and_the_other_fans_are_driven() {
     let gcode = "TEMPERATURE_WAIT SENSOR=\"temperature_sensor chamber\" MINIMUM=20 MAXIMUM=30\n\
                  M105\nSET_FAN_SPEED FAN=aux SPEED=0.5\n\
                  SET_TEMPERATURE_FAN_TARGET TEMPERATURE_FAN=exhaust TARGET=40\nM190 S30\nM105\n";
-    let (run, trace) = print_at(&dir, gcode, None, "10");
+    let (run, trace) = print(&dir, gcode, None);
     assert_eq!(run.code, Some(0), "{}\n{}", run.stdout, run.stderr);
     assert_eq!(shutdown_s(&trace), None, "the MCU shut down");
     let out = &run.stdout;
@@ -347,17 +288,16 @@ fn sensors_and_the_other_fans_are_driven() {
         assert!(out.contains(line), "no '{line}' in\n{out}");
     }
     // Refused as Klipper words it.
-    let (run, _) = print_at(&dir, "SET_FAN_SPEED FAN=nope SPEED=1\n", None, "10");
+    let (run, _) = print(&dir, "SET_FAN_SPEED FAN=nope SPEED=1\n", None);
     assert!(
         run.stderr.contains("The value 'nope' is not valid for FAN"),
         "{}",
         run.stderr
     );
-    let (run, _) = print_at(
+    let (run, _) = print(
         &dir,
         "SET_TEMPERATURE_FAN_TARGET TEMPERATURE_FAN=exhaust TARGET=90\n",
         None,
-        "10",
     );
     assert!(
         run.stderr
