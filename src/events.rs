@@ -53,8 +53,11 @@ pub struct Status {
     pub events_dropped: u64,
     /// Each heater (`extruder`, `heater_bed`, `[heater_generic]`s) while a print runs.
     pub heaters: Vec<HeaterStatus>,
-    /// Each fan (`fan`, `[heater_fan]`s) while a print runs.
+    /// Each fan (`fan`, `[heater_fan]`s, `[controller_fan]`s, `[fan_generic]`s,
+    /// `[temperature_fan]`s) while a print runs.
     pub fans: Vec<FanStatus>,
+    /// Each `[temperature_sensor]` while a print runs.
+    pub sensors: Vec<SensorStatus>,
 }
 
 /// One heater in a [`Status`] (Klipper's `extruder`/`heater_bed` status objects).
@@ -73,8 +76,25 @@ pub struct HeaterStatus {
 #[derive(Debug, Clone, PartialEq)]
 pub struct FanStatus {
     pub name: String,
+    /// Klipper's object kind: `fan`, `heater_fan`, `controller_fan`, `fan_generic`,
+    /// `temperature_fan` (the object is `fan` or `KIND NAME`).
+    pub kind: &'static str,
     /// Speed (0..=1).
     pub speed: f64,
+    /// A temperature fan's sensor temperature and target (°C), `None` for other fans.
+    pub temperature: Option<f64>,
+    pub target: Option<f64>,
+}
+
+/// One `[temperature_sensor]` in a [`Status`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct SensorStatus {
+    pub name: String,
+    /// Smoothed temperature (°C; NaN before the first reading).
+    pub temperature: f64,
+    /// Lowest and highest temperature seen.
+    pub measured_min_temp: f64,
+    pub measured_max_temp: f64,
 }
 
 /// What the planner thread publishes about the motion (a `Copy` record: no allocation).
@@ -200,10 +220,11 @@ impl SessionShared {
         }
     }
 
-    /// The heaters' and fans' status (empty before the print started its heater loop).
-    pub fn heater_status(&self) -> (Vec<HeaterStatus>, Vec<FanStatus>) {
+    /// The heaters', fans' and temperature sensors' status (empty before the print started its
+    /// heater loop).
+    pub fn heater_status(&self) -> (Vec<HeaterStatus>, Vec<FanStatus>, Vec<SensorStatus>) {
         let Some(h) = self.heaters.get() else {
-            return (Vec::new(), Vec::new());
+            return (Vec::new(), Vec::new(), Vec::new());
         };
         (
             h.heaters
@@ -217,9 +238,25 @@ impl SessionShared {
                 .collect(),
             h.fans
                 .iter()
-                .map(|f| FanStatus {
-                    name: f.name.clone(),
-                    speed: f.speed.get(),
+                .map(|f| {
+                    let sensor = f.sensor.and_then(|i| h.sensors.get(i));
+                    FanStatus {
+                        name: f.name.clone(),
+                        kind: f.kind,
+                        speed: f.speed.get(),
+                        temperature: sensor.map(|s| s.temp.get()),
+                        target: sensor.map(|_| f.target.get()),
+                    }
+                })
+                .collect(),
+            h.sensors
+                .iter()
+                .filter(|s| s.kind == "temperature_sensor")
+                .map(|s| SensorStatus {
+                    name: s.name.clone(),
+                    temperature: s.temp.get(),
+                    measured_min_temp: s.min_seen.get(),
+                    measured_max_temp: s.max_seen.get(),
                 })
                 .collect(),
         )
@@ -238,6 +275,11 @@ impl SessionShared {
         if !sent {
             self.events_dropped.fetch_add(1, Ordering::Relaxed);
         }
+    }
+
+    /// True when someone takes the events (a printer session; a plain print has none).
+    pub fn listening(&self) -> bool {
+        self.events.lock().is_ok_and(|e| e.is_some())
     }
 
     pub fn events_dropped(&self) -> u64 {

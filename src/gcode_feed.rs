@@ -854,6 +854,14 @@ impl<T: FeedTarget> FeedTarget for Checked<'_, T> {
     fn idle(&mut self, idle: bool, pipeline: &Pipeline) {
         self.target.idle(idle, pipeline);
     }
+    // A heater command's error (a target out of range, a fault met while waiting) fails the
+    // command; a fault also ends the session at the target's next check.
+    fn heat(&mut self, pipeline: &mut Pipeline, cmd: &HeatCmd) -> Result<(), String> {
+        self.target.heat(pipeline, cmd)
+    }
+    fn can_extrude(&self) -> Result<(), String> {
+        self.target.can_extrude()
+    }
 }
 
 /// Hands the step commands that became final to the target, then paces.

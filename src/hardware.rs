@@ -109,6 +109,8 @@ pub struct Machine {
     /// `[delayed_gcode]`, `[save_variables]`, `[idle_timeout]`, `[display_status]`,
     /// `[force_move]` (their scripts are among `macros`).
     pub host: planner::gcode::host::HostConfig,
+    /// The printer.cfg it came from (SAVE_CONFIG rewrites it).
+    pub config_path: std::path::PathBuf,
 }
 
 /// Why a printer.cfg describes no printer the host can drive; each names the file.
@@ -230,6 +232,7 @@ impl Machine {
             thermal,
             respond_prefix: cfg.respond.clone(),
             host: cfg.host.host.clone(),
+            config_path: cfg.source.clone(),
         })
     }
 

@@ -186,6 +186,11 @@ pub(crate) fn planner_stage(gcode: GcodeInput, st: &PlannerStage<'_>) -> Result<
     )
     .map_err(|e| e.to_string())?;
     let mut run = PlannerRun::new(st, main, sinks, streams, params.len());
+    if let Some(h) = st.heaters {
+        // A print's steppers are on from its start ([controller_fan]); a session says when
+        // it goes idle.
+        h.motors_on.store(true, std::sync::atomic::Ordering::Release);
+    }
     st.log.log(
         Level::Info,
         "planner started: start print time s, high water s, step streams",
@@ -302,6 +307,8 @@ struct PlannerRun<'a, 'p> {
     busy: bool,
     /// Heater commands' waits, for the summary.
     heat: crate::heaters::feed::HeatLog,
+    /// Calibration results waiting for SAVE_CONFIG.
+    autosave: sysconfig::autosave::Changes,
 }
 
 /// Sleep between flow-control checks.
@@ -349,6 +356,7 @@ impl<'a, 'p> PlannerRun<'a, 'p> {
             homing_reports: Vec::new(),
             busy: true,
             heat: crate::heaters::feed::HeatLog::default(),
+            autosave: sysconfig::autosave::Changes::default(),
         }
     }
 
@@ -564,6 +572,9 @@ impl FeedTarget for PlannerRun<'_, '_> {
     }
 
     fn heat(&mut self, pipeline: &mut Pipeline, cmd: &crate::heaters::gcode::HeatCmd) -> Result<(), String> {
+        if *cmd == crate::heaters::gcode::HeatCmd::SaveConfig {
+            return self.save_config();
+        }
         let Some(shared) = self.st.heaters else {
             return Ok(());
         };
@@ -604,6 +615,9 @@ impl FeedTarget for PlannerRun<'_, '_> {
         let ended = shared.heaters.get(wait.heater).map(|h| h.time.get());
         self.heat
             .record(&wait, started, ended, wall.elapsed().as_secs_f64());
+        if let crate::heaters::gcode::HeatCmd::PidCalibrate { write_file, .. } = cmd {
+            self.calibrated(shared, *write_file)?;
+        }
         pipeline
             .raise_print_time(self.resume_at())
             .map_err(|e| e.to_string())?;
@@ -619,6 +633,9 @@ impl FeedTarget for PlannerRun<'_, '_> {
 
     fn idle(&mut self, idle: bool, pipeline: &Pipeline) {
         self.busy = !idle;
+        if let Some(h) = self.st.heaters {
+            h.motors_on.store(!idle, std::sync::atomic::Ordering::Release);
+        }
         self.publish_status(pipeline);
         if let Some(s) = self.st.session {
             let state = if idle {
@@ -628,6 +645,75 @@ impl FeedTarget for PlannerRun<'_, '_> {
             };
             s.emit(Event::State(state));
         }
+    }
+}
+
+impl PlannerRun<'_, '_> {
+    /// A G-code answer: the session's response event, or stderr and the summary of a print.
+    fn respond(&mut self, text: String) {
+        match self.st.session {
+            Some(s) if s.listening() => s.emit(Event::Response(text.clone())),
+            _ => eprintln!("cadence: {}", text.replace('\n', " ")),
+        }
+        self.heat.note(text.replace('\n', " "));
+    }
+
+    /// PID_CALIBRATE's end: Klipper's report, the gains pending for SAVE_CONFIG, the samples
+    /// in `/tmp/heattest.txt` with WRITE_FILE=1.
+    fn calibrated(
+        &mut self,
+        shared: &crate::heaters::runtime::HeaterShared,
+        write_file: bool,
+    ) -> Result<(), String> {
+        use crate::heaters::runtime::Calibration;
+        let Some(Calibration::Done {
+            heater,
+            gains,
+            pwm,
+            temps,
+        }) = shared.take_calibration()
+        else {
+            return Err("pid_calibrate interrupted".to_string());
+        };
+        if write_file {
+            let mut text: Vec<String> = pwm.iter().map(|(t, p)| format!("pwm: {t:.3} {p:.3}")).collect();
+            text.extend(temps.iter().map(|(t, c)| format!("{t:.3} {c:.3}")));
+            std::fs::write(crate::heaters::calibrate::WRITE_FILE, text.join("\n"))
+                .map_err(|e| format!("PID_CALIBRATE: {}: {e}", crate::heaters::calibrate::WRITE_FILE))?;
+        }
+        let gains = gains.ok_or("pid_calibrate interrupted")?;
+        let name = shared
+            .heaters
+            .get(heater)
+            .map_or("?", |h| h.name.as_str())
+            .to_string();
+        self.respond(crate::heaters::calibrate::report(&gains));
+        crate::heaters::calibrate::save_changes(&mut self.autosave, &name, &gains);
+        Ok(())
+    }
+
+    /// SAVE_CONFIG: the pending results written into the printer's config file (the service
+    /// restarts the printer after it; a print reports the file and goes on).
+    fn save_config(&mut self) -> Result<(), String> {
+        let path = self.st.machine.config_path.clone();
+        if path.starts_with("<builtin>") {
+            return Err(
+                "SAVE_CONFIG: the built-in simulated printer has no config file to save to (give a printer.cfg)"
+                    .to_string(),
+            );
+        }
+        match sysconfig::autosave::save(&path, &self.autosave).map_err(|e| e.to_string())? {
+            Some(saved) => {
+                self.autosave = sysconfig::autosave::Changes::default();
+                self.respond(format!(
+                    "SAVE_CONFIG: wrote {} (previous version kept as {})",
+                    saved.path.display(),
+                    saved.backup.display()
+                ));
+            }
+            None => self.respond("SAVE_CONFIG: nothing to save".to_string()),
+        }
+        Ok(())
     }
 }
 

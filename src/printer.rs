@@ -582,17 +582,21 @@ impl PrinterHandle {
     pub fn status(&self) -> Status {
         match self.inner.upgrade() {
             Some(inner) => status_of(&inner),
-            None => Status {
-                state: state_of(&self.shared),
-                position: self.shared.motion().position,
-                homed: self.shared.motion().homed,
-                planned_until: self.shared.motion().planned_until,
-                print_time: 0.0,
-                mcus: Vec::new(),
-                events_dropped: self.shared.events_dropped(),
-                heaters: self.shared.heater_status().0,
-                fans: self.shared.heater_status().1,
-            },
+            None => {
+                let (heaters, fans, sensors) = self.shared.heater_status();
+                Status {
+                    state: state_of(&self.shared),
+                    position: self.shared.motion().position,
+                    homed: self.shared.motion().homed,
+                    planned_until: self.shared.motion().planned_until,
+                    print_time: 0.0,
+                    mcus: Vec::new(),
+                    events_dropped: self.shared.events_dropped(),
+                    heaters,
+                    fans,
+                    sensors,
+                }
+            }
         }
     }
 }
@@ -645,6 +649,7 @@ fn state_of(shared: &SessionShared) -> PrinterState {
 
 fn status_of(inner: &Inner) -> Status {
     let motion = inner.shared.motion();
+    let (heaters, fans, sensors) = inner.shared.heater_status();
     Status {
         state: state_of(&inner.shared),
         position: motion.position,
@@ -658,8 +663,9 @@ fn status_of(inner: &Inner) -> Status {
             .map(|m| (m.name.clone(), m.link.stats()))
             .collect(),
         events_dropped: inner.shared.events_dropped(),
-        heaters: inner.shared.heater_status().0,
-        fans: inner.shared.heater_status().1,
+        heaters,
+        fans,
+        sensors,
     }
 }
 

@@ -10,6 +10,28 @@
 
 use super::control::{PidGains, PID_PARAM_BASE};
 
+/// Where `PID_CALIBRATE … WRITE_FILE=1` writes its samples (Klipper's file).
+pub const WRITE_FILE: &str = "/tmp/heattest.txt";
+
+/// Klipper's answer to a finished PID_CALIBRATE.
+pub fn report(g: &PidGains) -> String {
+    format!(
+        "PID parameters: pid_Kp={:.3} pid_Ki={:.3} pid_Kd={:.3}\n\
+         The SAVE_CONFIG command will update the printer config file\n\
+         with these parameters and restart the printer.",
+        g.kp, g.ki, g.kd
+    )
+}
+
+/// The options SAVE_CONFIG keeps for heater `section`: `control: pid` and the gains, as
+/// Klipper writes them (three decimals).
+pub fn save_changes(changes: &mut sysconfig::autosave::Changes, section: &str, g: &PidGains) {
+    changes.set(section, "control", "pid");
+    changes.set(section, "pid_Kp", format!("{:.3}", g.kp));
+    changes.set(section, "pid_Ki", format!("{:.3}", g.ki));
+    changes.set(section, "pid_Kd", format!("{:.3}", g.kd));
+}
+
 /// Degrees below the target at which the relay turns the heater back on.
 pub const TUNE_PID_DELTA: f64 = 5.0;
 /// Peaks recorded before the result is computed.
@@ -158,6 +180,29 @@ mod tests {
         let (temps, _) = run_plant(ThermalModel::HOTEND, &mut pid, 210.0, 900.0);
         let last = &temps[temps.len() - 300..];
         assert!(last.iter().all(|t| (t - 210.0).abs() < 1.0), "{last:?}");
+    }
+
+    #[test]
+    fn the_report_and_the_saved_options_are_klippers() {
+        let g = PidGains {
+            kp: 22.2,
+            ki: 1.08,
+            kd: 114.0,
+        };
+        assert_eq!(
+            report(&g),
+            "PID parameters: pid_Kp=22.200 pid_Ki=1.080 pid_Kd=114.000\n\
+             The SAVE_CONFIG command will update the printer config file\n\
+             with these parameters and restart the printer."
+        );
+        let mut c = sysconfig::autosave::Changes::default();
+        save_changes(&mut c, "heater_bed", &g);
+        let sysconfig::autosave::SectionChange::Set(opts) = &c.items()[0].1 else {
+            panic!("{c:?}");
+        };
+        assert_eq!(c.items()[0].0, "heater_bed");
+        assert_eq!(opts[0], ("control".to_string(), "pid".to_string()));
+        assert_eq!(opts[3], ("pid_kd".to_string(), "114.000".to_string()));
     }
 
     #[test]

@@ -12,8 +12,10 @@ use std::sync::atomic::Ordering;
 /// A wait the G-code holds for.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Wait {
-    /// The heater's index.
+    /// The heater's index (the sensor's with `sensor`).
     pub heater: usize,
+    /// `heater` is a temperature sensor's index (TEMPERATURE_WAIT on a sensor).
+    pub sensor: bool,
     /// The command, for the log (`M109`, `TEMPERATURE_WAIT`).
     pub what: &'static str,
     /// Until its control settles at the target (M109/M190) …
@@ -23,14 +25,23 @@ pub struct Wait {
     pub max: Option<f64>,
     /// The target waited for.
     pub target: f64,
+    /// Until PID_CALIBRATE's relay test ends.
+    pub calibrate: bool,
 }
 
 impl Wait {
     /// True once the wait is over.
     pub fn done(&self, shared: &HeaterShared) -> bool {
+        if self.sensor {
+            let t = shared.sensors.get(self.heater).map_or(f64::NAN, |s| s.temp.get());
+            return !t.is_nan() && self.min.is_none_or(|m| t >= m) && self.max.is_none_or(|m| t <= m);
+        }
         let Some(h) = shared.heaters.get(self.heater) else {
             return true;
         };
+        if self.calibrate {
+            return !shared.calibrating();
+        }
         if self.settle {
             return !h.busy.load(Ordering::Acquire);
         }
@@ -56,33 +67,108 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
             shared.set_target(i, *target);
             Ok(wait.then_some(Wait {
                 heater: i,
+                sensor: false,
                 what: if heater == "heater_bed" { "M190" } else { "M109" },
                 settle: true,
                 min: None,
                 max: None,
                 target: *target,
+                calibrate: false,
+            }))
+        }
+        HeatCmd::PidCalibrate { heater, target, .. } => {
+            let i = thermal
+                .heater(heater)
+                .ok_or_else(|| format!("Unknown heater '{heater}'"))?;
+            let h = &thermal.heaters[i];
+            if *target < h.min_temp || *target > h.max_temp {
+                return Err(format!(
+                    "Requested temperature ({target:.1}) out of range ({:.1}:{:.1})",
+                    h.min_temp, h.max_temp
+                ));
+            }
+            if !shared.start_calibration(i, *target) {
+                return Err("PID_CALIBRATE is already running".to_string());
+            }
+            Ok(Some(Wait {
+                heater: i,
+                sensor: false,
+                what: "PID_CALIBRATE",
+                settle: false,
+                min: None,
+                max: None,
+                target: *target,
+                calibrate: true,
             }))
         }
         HeatCmd::Wait { sensor, min, max } => {
-            let i = thermal
-                .heater(sensor)
-                .ok_or_else(|| format!("Unknown sensor '{sensor}' (TEMPERATURE_WAIT waits for heaters)"))?;
+            let (i, is_sensor) = match (thermal.heater(sensor), thermal.sensor(sensor)) {
+                (Some(i), _) => (i, false),
+                (None, Some(i)) => (i, true),
+                (None, None) => return Err(format!("Unknown sensor '{sensor}'")),
+            };
             Ok(Some(Wait {
                 heater: i,
+                sensor: is_sensor,
                 what: "TEMPERATURE_WAIT",
                 settle: false,
                 min: *min,
                 max: *max,
                 target: min.or(*max).unwrap_or(0.0),
+                calibrate: false,
             }))
         }
         HeatCmd::TurnOffAll | HeatCmd::EmergencyStop => {
             shared.turn_off_all();
             Ok(None)
         }
-        HeatCmd::Report => Ok(None),
+        HeatCmd::Report | HeatCmd::SaveConfig => Ok(None),
         HeatCmd::Fan { speed } => {
             shared.set_fan("fan", *speed);
+            Ok(None)
+        }
+        HeatCmd::FanSpeed { fan, speed } => {
+            let i = thermal
+                .fan("fan_generic", fan)
+                .ok_or_else(|| format!("The value '{fan}' is not valid for FAN"))?;
+            shared.set_fan_index(i, *speed);
+            Ok(None)
+        }
+        HeatCmd::TemperatureFanTarget {
+            fan,
+            target,
+            min_speed,
+            max_speed,
+        } => {
+            let i = thermal
+                .fan("temperature_fan", fan)
+                .ok_or_else(|| format!("The value '{fan}' is not valid for TEMPERATURE_FAN"))?;
+            let super::objects::FanRole::Temperature {
+                target_temp,
+                min_temp,
+                max_temp,
+                ..
+            } = thermal.fans[i].role
+            else {
+                return Err(format!("The value '{fan}' is not valid for TEMPERATURE_FAN"));
+            };
+            let cell = &shared.fans[i];
+            let target = target.unwrap_or(target_temp);
+            if target != 0.0 && (target < min_temp || target > max_temp) {
+                return Err(format!(
+                    "Requested temperature ({target:.1}) out of range ({min_temp:.1}:{max_temp:.1})"
+                ));
+            }
+            let min = min_speed.unwrap_or(cell.min_speed.get());
+            let max = max_speed.unwrap_or(cell.max_speed.get());
+            if min > max {
+                return Err(format!(
+                    "Requested min speed ({min:.1}) is greater than max speed ({max:.1})"
+                ));
+            }
+            cell.target.set(target);
+            cell.min_speed.set(min.clamp(0.0, 1.0));
+            cell.max_speed.set(max.clamp(0.0, 1.0));
             Ok(None)
         }
     }
@@ -126,6 +212,11 @@ impl HeatLog {
         ));
     }
 
+    /// A line for the summary as it is (PID_CALIBRATE's result, SAVE_CONFIG's file).
+    pub fn note(&mut self, text: String) {
+        self.waits.push(text);
+    }
+
     /// An M105 report (kept for the summary, the latest few).
     pub fn report(&mut self, text: String) {
         if self.waits.iter().filter(|w| w.starts_with("M105")).count() < 8 {
@@ -156,8 +247,38 @@ impl HeatLog {
                 h.power.get() * 100.0
             ));
         }
+        for s in shared.sensors.iter().filter(|s| s.kind == "temperature_sensor") {
+            let fmt = |t: f64| {
+                if t.is_nan() {
+                    "no reading".to_string()
+                } else {
+                    format!("{t:.1} °C")
+                }
+            };
+            out.push(format!(
+                "{} {}: {} (lowest {}, highest {})",
+                s.kind,
+                s.name,
+                fmt(s.temp.get()),
+                fmt(s.min_seen.get()),
+                fmt(s.max_seen.get())
+            ));
+        }
         for f in &shared.fans {
-            out.push(format!("fan {}: {:.0} %", f.name, f.speed.get() * 100.0));
+            let target = match f.sensor.and_then(|i| shared.sensors.get(i)) {
+                Some(sensor) => format!(
+                    ", sensor {:.1} °C, target {:.1} °C",
+                    sensor.temp.get(),
+                    f.target.get()
+                ),
+                None => String::new(),
+            };
+            out.push(format!(
+                "{} {}: {:.0} %{target}",
+                f.kind,
+                f.name,
+                f.speed.get() * 100.0
+            ));
         }
         out.extend(self.waits.drain(..).map(|w| format!("heaters: {w}")));
         if let Some(fault) = shared.fault() {
@@ -220,11 +341,13 @@ mod tests {
         assert_eq!(can_extrude(&t, &s), Ok(()));
         let w = Wait {
             heater: 0,
+            sensor: false,
             what: "TEMPERATURE_WAIT",
             settle: false,
             min: Some(170.0),
             max: None,
             target: 170.0,
+            calibrate: false,
         };
         assert!(w.done(&s));
     }

@@ -1,6 +1,8 @@
 //! The heater and fan G-code the planner does not see, with Klipper's names and parameters:
 //! `SET_HEATER_TEMPERATURE HEATER= TARGET=`, `TEMPERATURE_WAIT SENSOR= MINIMUM= MAXIMUM=`,
-//! `TURN_OFF_HEATERS`, `M105`, `M112`; and the commands the planner parses itself (M104/M109/M140/M190,
+//! `TURN_OFF_HEATERS`, `M105`, `M112`, `PID_CALIBRATE HEATER= TARGET= [WRITE_FILE=1]`,
+//! `SAVE_CONFIG`, `SET_FAN_SPEED FAN= SPEED=`, `SET_TEMPERATURE_FAN_TARGET TEMPERATURE_FAN=
+//! [TARGET=] [MIN_SPEED=] [MAX_SPEED=]`; and the commands the planner parses itself (M104/M109/M140/M190,
 //! M106/M107) as [`HeatCmd`]s. Pure: parsing only, nothing here touches a heater.
 
 use std::borrow::Cow;
@@ -32,6 +34,25 @@ pub enum HeatCmd {
     EmergencyStop,
     /// The part fan's speed (0..=1).
     Fan { speed: f64 },
+    /// PID_CALIBRATE: the relay test on `heater` at `target`; `write_file`: its samples to
+    /// `/tmp/heattest.txt`.
+    PidCalibrate {
+        heater: String,
+        target: f64,
+        write_file: bool,
+    },
+    /// SAVE_CONFIG: the pending calibration results into printer.cfg.
+    SaveConfig,
+    /// SET_FAN_SPEED: a `[fan_generic]`'s speed (0..=1).
+    FanSpeed { fan: String, speed: f64 },
+    /// SET_TEMPERATURE_FAN_TARGET: a `[temperature_fan]`'s target (`None`: its configured
+    /// one) and speed range.
+    TemperatureFanTarget {
+        fan: String,
+        target: Option<f64>,
+        min_speed: Option<f64>,
+        max_speed: Option<f64>,
+    },
 }
 
 /// The heater command of an extended/M command line the planner does not know, `None` for any
@@ -43,7 +64,15 @@ pub fn parse(cmd: &Command) -> Option<Result<HeatCmd, String>> {
     let name = name.as_str();
     if !matches!(
         name,
-        "SET_HEATER_TEMPERATURE" | "TEMPERATURE_WAIT" | "TURN_OFF_HEATERS" | "M105" | "M112"
+        "SET_HEATER_TEMPERATURE"
+            | "TEMPERATURE_WAIT"
+            | "TURN_OFF_HEATERS"
+            | "M105"
+            | "M112"
+            | "PID_CALIBRATE"
+            | "SAVE_CONFIG"
+            | "SET_FAN_SPEED"
+            | "SET_TEMPERATURE_FAN_TARGET"
     ) {
         return None;
     }
@@ -76,6 +105,22 @@ fn parse_named(name: &str, raw: &str) -> Result<HeatCmd, String> {
             }
         }
         "TURN_OFF_HEATERS" => HeatCmd::TurnOffAll,
+        "PID_CALIBRATE" => HeatCmd::PidCalibrate {
+            heater: text("HEATER")?,
+            target: num("TARGET")?.ok_or_else(|| format!("Error on '{}': missing TARGET", raw.trim()))?,
+            write_file: num("WRITE_FILE")?.is_some_and(|v| v != 0.0),
+        },
+        "SAVE_CONFIG" => HeatCmd::SaveConfig,
+        "SET_FAN_SPEED" => HeatCmd::FanSpeed {
+            fan: text("FAN")?,
+            speed: num("SPEED")?.unwrap_or(0.0),
+        },
+        "SET_TEMPERATURE_FAN_TARGET" => HeatCmd::TemperatureFanTarget {
+            fan: text("TEMPERATURE_FAN")?,
+            target: num("TARGET")?,
+            min_speed: num("MIN_SPEED")?,
+            max_speed: num("MAX_SPEED")?,
+        },
         "M112" => HeatCmd::EmergencyStop,
         _ => HeatCmd::Report,
     })
@@ -127,6 +172,32 @@ mod tests {
         assert_eq!(cmd("TURN_OFF_HEATERS"), Some(Ok(HeatCmd::TurnOffAll)));
         assert_eq!(cmd("M105"), Some(Ok(HeatCmd::Report)));
         assert_eq!(cmd("M112"), Some(Ok(HeatCmd::EmergencyStop)));
+        assert_eq!(
+            cmd("PID_CALIBRATE HEATER=extruder TARGET=210 WRITE_FILE=1"),
+            Some(Ok(HeatCmd::PidCalibrate {
+                heater: "extruder".into(),
+                target: 210.0,
+                write_file: true
+            }))
+        );
+        assert_eq!(cmd("SAVE_CONFIG"), Some(Ok(HeatCmd::SaveConfig)));
+        assert_eq!(
+            cmd("SET_FAN_SPEED FAN=aux SPEED=0.5"),
+            Some(Ok(HeatCmd::FanSpeed {
+                fan: "aux".into(),
+                speed: 0.5
+            }))
+        );
+        assert_eq!(
+            cmd("SET_TEMPERATURE_FAN_TARGET TEMPERATURE_FAN=exhaust TARGET=40 MAX_SPEED=0.8"),
+            Some(Ok(HeatCmd::TemperatureFanTarget {
+                fan: "exhaust".into(),
+                target: Some(40.0),
+                min_speed: None,
+                max_speed: Some(0.8)
+            }))
+        );
+        assert!(cmd("SET_FAN_SPEED SPEED=1").unwrap().is_err());
         assert_eq!(cmd("G1 X1"), None);
         assert_eq!(cmd("SET_VELOCITY_LIMIT ACCEL=1"), None);
     }
@@ -134,6 +205,8 @@ mod tests {
     #[test]
     fn bad_parameters_are_errors() {
         assert!(cmd("TEMPERATURE_WAIT SENSOR=extruder").unwrap().is_err());
+        let e = cmd("PID_CALIBRATE HEATER=extruder").unwrap().unwrap_err();
+        assert!(e.contains("missing TARGET"), "{e}");
         let e = cmd("SET_HEATER_TEMPERATURE TARGET=60").unwrap().unwrap_err();
         assert!(e.contains("missing HEATER"), "{e}");
         assert!(cmd("SET_HEATER_TEMPERATURE HEATER=extruder TARGET=abc")

@@ -1,6 +1,7 @@
 //! The thermal hardware as the host drives it: each heater (`[extruder]`, `[heater_bed]`,
 //! `[heater_generic]`) with its sensor, control and `[verify_heater]` check, each ADC
-//! `[temperature_sensor]`, and the fans (`[fan]`, `[heater_fan]`), resolved from printer.cfg
+//! `[temperature_sensor]` (and each `[temperature_fan]`'s sensor), and the fans (`[fan]`,
+//! `[heater_fan]`, `[controller_fan]`, `[fan_generic]`, `[temperature_fan]`), resolved from printer.cfg
 //! (sensor types looked up, `[thermistor]` definitions included), with their MCU objects and
 //! Klipper's configuration commands for them (`config_digital_out` + `set_digital_out_pwm_cycle`
 //! for PWM outputs, `config_analog_in` for sensors).
@@ -60,10 +61,14 @@ pub struct HeaterOut {
     pub sim: SimKind,
 }
 
-/// One ADC `[temperature_sensor NAME]`.
+/// One ADC `[temperature_sensor NAME]`, or the sensor of `[temperature_fan NAME]`.
 #[derive(Debug, Clone)]
 pub struct SensorOut {
     pub name: String,
+    /// The index (in [`Thermal::fans`]) of the temperature fan it belongs to.
+    pub fan: Option<usize>,
+    /// `gcode_id`: reported by M105 under it.
+    pub gcode_id: Option<String>,
     pub mcu: String,
     pub pin: PinRef,
     pub sensor: Sensor,
@@ -84,6 +89,40 @@ pub enum FanRole {
         heater_temp: f64,
         fan_speed: f64,
     },
+    /// `[controller_fan NAME]`: `fan_speed` while a stepper is enabled (a print runs) or one of
+    /// `heaters` has a target, then `idle_speed` for `idle_timeout` seconds, then off.
+    Controller {
+        heaters: Vec<String>,
+        fan_speed: f64,
+        idle_speed: f64,
+        idle_timeout: f64,
+    },
+    /// `[fan_generic NAME]`: SET_FAN_SPEED.
+    Generic,
+    /// `[temperature_fan NAME]`: cools sensor `sensor` (index in [`Thermal::sensors`]) to its
+    /// target with its control (more speed when hotter), between `min_speed` and `max_speed`.
+    Temperature {
+        sensor: usize,
+        control: HeaterControl,
+        target_temp: f64,
+        min_speed: f64,
+        max_speed: f64,
+        min_temp: f64,
+        max_temp: f64,
+    },
+}
+
+impl FanRole {
+    /// Klipper's status object kind of the fan (`fan`, `heater_fan`, …).
+    pub fn kind(&self) -> &'static str {
+        match self {
+            FanRole::Part => "fan",
+            FanRole::Heater { .. } => "heater_fan",
+            FanRole::Controller { .. } => "controller_fan",
+            FanRole::Generic => "fan_generic",
+            FanRole::Temperature { .. } => "temperature_fan",
+        }
+    }
 }
 
 /// One fan.
@@ -246,6 +285,8 @@ impl Thermal {
             )?;
             out.sensors.push(SensorOut {
                 name: s.name.clone(),
+                fan: None,
+                gcode_id: s.gcode_id.clone(),
                 mcu: sensor_pin.mcu.clone(),
                 pin: sensor_pin.clone(),
                 sensor,
@@ -282,6 +323,81 @@ impl Thermal {
                 },
             });
         }
+        for f in &th.controller_fans {
+            for h in &f.heaters {
+                if !out.heaters.iter().any(|x| &x.name == h) {
+                    return Err(ThermalError::Invalid {
+                        section: format!("controller_fan {}", f.name),
+                        what: format!("heater: there is no heater '{h}'"),
+                    });
+                }
+            }
+            out.fans.push(FanOut {
+                name: f.name.clone(),
+                mcu: f.fan.pin.mcu.clone(),
+                opts: f.fan.clone(),
+                role: FanRole::Controller {
+                    heaters: f.heaters.clone(),
+                    fan_speed: f.fan_speed,
+                    idle_speed: f.idle_speed,
+                    idle_timeout: f64::from(f.idle_timeout),
+                },
+            });
+        }
+        for (name, opts) in &th.fan_generic {
+            out.fans.push(FanOut {
+                name: name.clone(),
+                mcu: opts.pin.mcu.clone(),
+                opts: opts.clone(),
+                role: FanRole::Generic,
+            });
+        }
+        for f in &th.temperature_fans {
+            let section = format!("temperature_fan {}", f.name);
+            let sysconfig::printer::SensorSource::Adc {
+                sensor_pin,
+                pullup_resistor,
+                inline_resistor,
+            } = &f.sensor.source
+            else {
+                return Err(ThermalError::Invalid {
+                    section,
+                    what: "sensor_type: only ADC sensors can drive a temperature fan".to_string(),
+                });
+            };
+            let sensor = sensor_of(
+                &section,
+                &f.sensor.sensor_type,
+                *pullup_resistor,
+                *inline_resistor,
+                &th.thermistors,
+            )?;
+            out.sensors.push(SensorOut {
+                name: f.name.clone(),
+                fan: Some(out.fans.len()),
+                gcode_id: f.gcode_id.clone(),
+                mcu: sensor_pin.mcu.clone(),
+                pin: sensor_pin.clone(),
+                sensor,
+                smooth_time: f.sensor.smooth_time,
+                min_temp: f.min_temp,
+                max_temp: f.max_temp,
+            });
+            out.fans.push(FanOut {
+                name: f.name.clone(),
+                mcu: f.fan.pin.mcu.clone(),
+                opts: f.fan.clone(),
+                role: FanRole::Temperature {
+                    sensor: out.sensors.len() - 1,
+                    control: f.control,
+                    target_temp: f.target_temp,
+                    min_speed: f.min_speed,
+                    max_speed: f.max_speed,
+                    min_temp: f.min_temp,
+                    max_temp: f.max_temp,
+                },
+            });
+        }
         for f in &out.fans {
             if f.opts.hardware_pwm {
                 return Err(ThermalError::Invalid {
@@ -304,6 +420,26 @@ impl Thermal {
     /// The heater called `name`.
     pub fn heater(&self, name: &str) -> Option<usize> {
         self.heaters.iter().position(|h| h.name == name)
+    }
+
+    /// The `[temperature_sensor]` or `[temperature_fan]` sensor called `name`
+    /// (`temperature_sensor chamber`, `temperature_fan exhaust`, or the bare name).
+    pub fn sensor(&self, name: &str) -> Option<usize> {
+        self.sensors.iter().position(|s| {
+            let kind = if s.fan.is_some() {
+                "temperature_fan "
+            } else {
+                "temperature_sensor "
+            };
+            s.name == name || name.strip_prefix(kind) == Some(s.name.as_str())
+        })
+    }
+
+    /// The fan called `name` with the role kind `kind` (`fan_generic`, `temperature_fan`).
+    pub fn fan(&self, kind: &str, name: &str) -> Option<usize> {
+        self.fans
+            .iter()
+            .position(|f| f.role.kind() == kind && f.name == name)
     }
 
     /// The thermal objects on MCU `mcu`, in oid order.

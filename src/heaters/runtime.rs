@@ -20,6 +20,7 @@ use std::time::Duration;
 use links::dict::Dictionary;
 use links::mcu::McuLink;
 
+use super::calibrate::RelayTuner;
 use super::control::{Control, Pid, PidGains, Smoothed, Watermark};
 use super::objects::{
     adc_range, FanRole, Thermal, ThermalObject, MAX_HEAT_TIME, RANGE_CHECK_COUNT, REPORT_TIME, SAMPLE_COUNT,
@@ -68,12 +69,56 @@ pub struct HeaterCell {
 /// One fan's state.
 #[derive(Debug)]
 pub struct FanCell {
-    /// `fan` or the heater fan's name.
+    /// `fan` or the NAME of its section.
     pub name: String,
-    /// Requested speed (0..=1): M106/M107 for `[fan]`.
+    /// Klipper's object kind: `fan`, `heater_fan`, `controller_fan`, `fan_generic`,
+    /// `temperature_fan`.
+    pub kind: &'static str,
+    /// Requested speed (0..=1): M106/M107 for `[fan]`, SET_FAN_SPEED for `[fan_generic]`.
     pub requested: AtomicF64,
     /// Speed applied (0..=1, before `max_power`).
     pub speed: AtomicF64,
+    /// A temperature fan's target (°C; NaN for other fans) and speed range.
+    pub target: AtomicF64,
+    pub min_speed: AtomicF64,
+    pub max_speed: AtomicF64,
+    /// A temperature fan's sensor (index in [`HeaterShared::sensors`]).
+    pub sensor: Option<usize>,
+}
+
+/// One temperature sensor's state (`[temperature_sensor]`, a `[temperature_fan]`'s sensor).
+#[derive(Debug)]
+pub struct SensorCell {
+    pub name: String,
+    /// `temperature_sensor` or `temperature_fan`.
+    pub kind: &'static str,
+    /// `gcode_id`: its M105 name.
+    pub gcode_id: Option<String>,
+    /// Smoothed temperature (°C; NaN before the first report).
+    pub temp: AtomicF64,
+    /// Lowest and highest temperature seen (Klipper's `measured_min_temp`/`measured_max_temp`).
+    pub min_seen: AtomicF64,
+    pub max_seen: AtomicF64,
+    /// MCU seconds of the latest report.
+    pub time: AtomicF64,
+}
+
+/// A PID_CALIBRATE between the G-code and the heater thread.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Calibration {
+    /// Asked for: heater `heater`'s relay test at `target`.
+    Requested { heater: usize, target: f64 },
+    /// The heater thread runs it.
+    Running { heater: usize },
+    /// Over: the gains (`None`: the heater loop ended first) and the samples, as Klipper's
+    /// WRITE_FILE keeps them: (time, power) at each power change, (time, temperature) of
+    /// each report.
+    Done {
+        heater: usize,
+        gains: Option<PidGains>,
+        pwm: Vec<(f64, f64)>,
+        temps: Vec<(f64, f64)>,
+    },
 }
 
 /// What the heater thread shares with the planner thread and the API.
@@ -81,6 +126,12 @@ pub struct FanCell {
 pub struct HeaterShared {
     pub heaters: Vec<HeaterCell>,
     pub fans: Vec<FanCell>,
+    pub sensors: Vec<SensorCell>,
+    /// Motion is being planned (a print runs, a session is not idle): `[controller_fan]`
+    /// counts the steppers as enabled.
+    pub motors_on: AtomicBool,
+    /// The PID_CALIBRATE in progress, if any.
+    pub calibration: Mutex<Option<Calibration>>,
     fault: Mutex<Option<String>>,
     faulted: AtomicBool,
     /// Ends the heater thread (every heater off first).
@@ -107,12 +158,48 @@ impl HeaterShared {
             fans: thermal
                 .fans
                 .iter()
-                .map(|f| FanCell {
-                    name: f.name.clone(),
-                    requested: AtomicF64::new(0.0),
-                    speed: AtomicF64::new(0.0),
+                .map(|f| {
+                    let (target, min_speed, max_speed, sensor) = match f.role {
+                        FanRole::Temperature {
+                            target_temp,
+                            min_speed,
+                            max_speed,
+                            sensor,
+                            ..
+                        } => (target_temp, min_speed, max_speed, Some(sensor)),
+                        _ => (f64::NAN, 0.0, 1.0, None),
+                    };
+                    FanCell {
+                        name: f.name.clone(),
+                        kind: f.role.kind(),
+                        requested: AtomicF64::new(0.0),
+                        speed: AtomicF64::new(0.0),
+                        target: AtomicF64::new(target),
+                        min_speed: AtomicF64::new(min_speed),
+                        max_speed: AtomicF64::new(max_speed),
+                        sensor,
+                    }
                 })
                 .collect(),
+            sensors: thermal
+                .sensors
+                .iter()
+                .map(|s| SensorCell {
+                    name: s.name.clone(),
+                    kind: if s.fan.is_some() {
+                        "temperature_fan"
+                    } else {
+                        "temperature_sensor"
+                    },
+                    gcode_id: s.gcode_id.clone(),
+                    temp: AtomicF64::new(f64::NAN),
+                    min_seen: AtomicF64::new(f64::NAN),
+                    max_seen: AtomicF64::new(f64::NAN),
+                    time: AtomicF64::new(0.0),
+                })
+                .collect(),
+            motors_on: AtomicBool::new(false),
+            calibration: Mutex::new(None),
             fault: Mutex::new(None),
             faulted: AtomicBool::new(false),
             stop: AtomicBool::new(false),
@@ -150,9 +237,53 @@ impl HeaterShared {
         }
     }
 
+    /// Starts PID_CALIBRATE on heater `i` at `target` (its target set at once, as Klipper
+    /// does); false when one is already running.
+    pub fn start_calibration(&self, i: usize, target: f64) -> bool {
+        let Ok(mut c) = self.calibration.lock() else {
+            return false;
+        };
+        if matches!(
+            *c,
+            Some(Calibration::Requested { .. } | Calibration::Running { .. })
+        ) {
+            return false;
+        }
+        *c = Some(Calibration::Requested { heater: i, target });
+        self.set_target(i, target);
+        true
+    }
+
+    /// The finished calibration, taken (`None` while one runs or when there is none).
+    pub fn take_calibration(&self) -> Option<Calibration> {
+        let mut c = self.calibration.lock().ok()?;
+        if matches!(*c, Some(Calibration::Done { .. })) {
+            c.take()
+        } else {
+            None
+        }
+    }
+
+    /// True while a calibration is asked for or running.
+    pub fn calibrating(&self) -> bool {
+        self.calibration.lock().is_ok_and(|c| {
+            matches!(
+                *c,
+                Some(Calibration::Requested { .. } | Calibration::Running { .. })
+            )
+        })
+    }
+
     /// Sets the part fan's speed (M106/M107; 0..=1).
     pub fn set_fan(&self, name: &str, speed: f64) {
-        if let Some(f) = self.fans.iter().find(|f| f.name == name) {
+        if let Some(f) = self.fans.iter().find(|f| f.name == name && f.kind == "fan") {
+            f.requested.set(speed.clamp(0.0, 1.0));
+        }
+    }
+
+    /// Sets fan `i`'s requested speed (SET_FAN_SPEED; 0..=1).
+    pub fn set_fan_index(&self, i: usize, speed: f64) {
+        if let Some(f) = self.fans.get(i) {
             f.requested.set(speed.clamp(0.0, 1.0));
         }
     }
@@ -168,25 +299,39 @@ impl Drop for StopOnDrop<'_> {
     }
 }
 
-/// Klipper's M105 report: `T:cur /target B:cur /target` (plus each other heater and sensor by
-/// name).
+/// Klipper's M105 report: `ID:current /target` of every heater and sensor with a G-code id
+/// (`T0` the extruder, `B` the bed, a sensor's `gcode_id`), sorted by id; `T:0` when none.
 pub fn m105_text(shared: &HeaterShared) -> String {
-    let mut parts = Vec::new();
+    let shown = |t: f64| if t.is_nan() { 0.0 } else { t };
+    let mut parts: Vec<(String, f64, f64)> = Vec::new();
     for h in &shared.heaters {
         let id = match h.name.as_str() {
-            "extruder" => "T".to_string(),
-            "heater_bed" => "B".to_string(),
-            other => other.to_string(),
+            "extruder" => "T0",
+            "heater_bed" => "B",
+            _ => continue,
         };
-        let t = h.temp.get();
-        let t = if t.is_nan() { 0.0 } else { t };
-        parts.push(format!("{id}:{t:.1} /{:.1}", h.target.get()));
+        parts.push((id.to_string(), shown(h.temp.get()), h.target.get()));
+    }
+    for (i, s) in shared.sensors.iter().enumerate() {
+        let Some(id) = &s.gcode_id else {
+            continue;
+        };
+        let target = shared
+            .fans
+            .iter()
+            .find(|f| f.sensor == Some(i))
+            .map_or(0.0, |f| f.target.get());
+        parts.push((id.clone(), shown(s.temp.get()), target));
     }
     if parts.is_empty() {
-        "T:0".to_string()
-    } else {
-        parts.join(" ")
+        return "T:0".to_string();
     }
+    parts.sort_by(|a, b| a.0.cmp(&b.0));
+    parts
+        .iter()
+        .map(|(id, t, target)| format!("{id}:{t:.1} /{target:.1}"))
+        .collect::<Vec<_>>()
+        .join(" ")
 }
 
 /// One heater's loop state.
@@ -207,6 +352,15 @@ struct Running {
     /// Seconds per sensor fraction: ADC full scale of one report.
     full_scale: f64,
     sensor: super::thermistor::Sensor,
+    /// PID_CALIBRATE's relay in place of the control while it runs.
+    relay: Option<Relay>,
+}
+
+/// A running PID_CALIBRATE: the tuner and its samples.
+struct Relay {
+    tuner: RelayTuner,
+    pwm: Vec<(f64, f64)>,
+    temps: Vec<(f64, f64)>,
 }
 
 struct RunningFan {
@@ -215,6 +369,23 @@ struct RunningFan {
     cycle_ticks: f64,
     invert: bool,
     last: Option<f64>,
+    /// A temperature fan's control (its output is taken from `max_speed`: hotter → faster),
+    /// the time of the last reading it saw, and its speed then.
+    control: Option<Box<dyn Control + Send>>,
+    last_reading: f64,
+    temp_speed: f64,
+    /// MCU seconds a controller fan was last active at.
+    last_active: Option<f64>,
+}
+
+/// One sensor's loop state.
+struct RunningSensor {
+    link_index: usize,
+    oid: u8,
+    smooth: Smoothed,
+    full_scale: f64,
+    sensor: super::thermistor::Sensor,
+    last_count: u16,
 }
 
 /// Seconds of wall time a PWM update is sent ahead of its clock at least (and 0.1 s of MCU
@@ -233,6 +404,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
     }
     let mut heaters = Vec::new();
     let mut fans = Vec::new();
+    let mut sensors = Vec::new();
     for (li, conn) in mcus.list.iter().enumerate() {
         let objects = thermal.objects_on(&conn.name);
         if objects.is_empty() {
@@ -276,6 +448,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                             last_sent: None,
                             full_scale: adc_max * f64::from(SAMPLE_COUNT),
                             sensor: h.sensor,
+                            relay: None,
                         },
                     ));
                     let (lo, hi) = adc_range(&h.sensor, h.min_temp, h.max_temp, adc_max);
@@ -285,6 +458,17 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                     let s = &thermal.sensors[i];
                     let (lo, hi) = adc_range(&s.sensor, s.min_temp.max(-273.0), s.max_temp.min(1e4), adc_max);
                     query_analog(&conn.link, dict, oid, start, freq, lo, hi, 0)?;
+                    sensors.push((
+                        i,
+                        RunningSensor {
+                            link_index: li,
+                            oid,
+                            smooth: Smoothed::new(s.smooth_time),
+                            full_scale: adc_max * f64::from(SAMPLE_COUNT),
+                            sensor: s.sensor,
+                            last_count: 0,
+                        },
+                    ));
                 }
                 ThermalObject::Fan(i) => fans.push((
                     i,
@@ -294,13 +478,33 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                         cycle_ticks: thermal.fans[i].opts.cycle_time * freq,
                         invert: thermal.fans[i].opts.pin.invert,
                         last: None,
+                        control: match thermal.fans[i].role {
+                            FanRole::Temperature {
+                                control, max_speed, ..
+                            } => Some(fan_control(control, max_speed)),
+                            _ => None,
+                        },
+                        last_reading: f64::NEG_INFINITY,
+                        temp_speed: 0.0,
+                        last_active: None,
                     },
                 )),
                 ThermalObject::HeaterAdc(_) => {}
             }
         }
     }
-    let result = heater_loop(mcus, thermal, shared, &mut heaters, &mut fans);
+    let result = heater_loop(mcus, thermal, shared, &mut heaters, &mut sensors, &mut fans);
+    // A calibration cut short ends without gains (the G-code waiting for it goes on).
+    if let Ok(mut c) = shared.calibration.lock() {
+        if let Some(Calibration::Requested { heater, .. } | Calibration::Running { heater }) = *c {
+            *c = Some(Calibration::Done {
+                heater,
+                gains: None,
+                pwm: Vec::new(),
+                temps: Vec::new(),
+            });
+        }
+    }
     // Every heater off, whatever ended the loop (an MCU that shut down has them off already).
     for (_, r) in &heaters {
         let conn = &mcus.list[r.link_index];
@@ -386,11 +590,94 @@ fn on_ticks(power: f64, cycle: f64) -> u32 {
     }
 }
 
+/// A temperature fan's control: Klipper's watermark or PID on the fan's sensor, whose output
+/// (0..=max_speed, "heat wanted") is taken from `max_speed`.
+fn fan_control(control: HeaterControl, max_speed: f64) -> Box<dyn Control + Send> {
+    match control {
+        HeaterControl::Watermark { max_delta } => Box::new(Watermark::new(max_delta, max_speed)),
+        HeaterControl::Pid { kp, ki, kd } => Box::new(Pid::new(PidGains { kp, ki, kd }, max_speed, 2.0)),
+    }
+}
+
+/// The speed a fan wants now (before `off_below`).
+fn fan_speed(
+    spec: &super::objects::FanOut,
+    cell: &FanCell,
+    f: &mut RunningFan,
+    shared: &HeaterShared,
+    now: f64,
+) -> f64 {
+    match &spec.role {
+        FanRole::Part | FanRole::Generic => cell.requested.get(),
+        FanRole::Heater {
+            heaters: names,
+            heater_temp,
+            fan_speed,
+        } => {
+            let hot = shared
+                .heaters
+                .iter()
+                .any(|h| names.contains(&h.name) && (h.target.get() > 0.0 || h.temp.get() > *heater_temp));
+            if hot {
+                *fan_speed
+            } else {
+                0.0
+            }
+        }
+        FanRole::Controller {
+            heaters: names,
+            fan_speed,
+            idle_speed,
+            idle_timeout,
+        } => {
+            let active = shared.motors_on.load(Ordering::Acquire)
+                || shared
+                    .heaters
+                    .iter()
+                    .any(|h| names.contains(&h.name) && h.target.get() > 0.0);
+            if active {
+                f.last_active = Some(now);
+                *fan_speed
+            } else if f.last_active.is_some_and(|t| now - t < *idle_timeout) {
+                *idle_speed
+            } else {
+                0.0
+            }
+        }
+        FanRole::Temperature { sensor, .. } => {
+            let Some(s) = shared.sensors.get(*sensor) else {
+                return 0.0;
+            };
+            let (time, temp) = (s.time.get(), s.temp.get());
+            if time > f.last_reading && !temp.is_nan() {
+                f.last_reading = time;
+                let target = cell.target.get();
+                let max_speed = cell.max_speed.get();
+                let out = f
+                    .control
+                    .as_mut()
+                    .map_or(0.0, |c| c.update(time, temp, target))
+                    .clamp(0.0, max_speed);
+                let mut speed = (max_speed - out).max(0.0);
+                if speed > 0.0 && speed < cell.min_speed.get() {
+                    speed = cell.min_speed.get();
+                }
+                if target <= 0.0 {
+                    speed = 0.0;
+                }
+                f.temp_speed = speed;
+            }
+            f.temp_speed
+        }
+    }
+}
+
 fn heater_loop(
     mcus: &Mcus,
     thermal: &Thermal,
     shared: &HeaterShared,
     heaters: &mut [(usize, Running)],
+    sensors: &mut [(usize, RunningSensor)],
     fans: &mut [(usize, RunningFan)],
 ) -> Result<(), String> {
     loop {
@@ -402,6 +689,7 @@ fn heater_loop(
             shared.turn_off_all();
             return Ok(());
         }
+        start_calibration(shared, heaters);
         let now_sys = McuLink::system_now();
         for (i, r) in heaters.iter_mut() {
             let conn = &mcus.list[r.link_index];
@@ -422,7 +710,14 @@ fn heater_loop(
             let cell = &shared.heaters[*i];
             let target = cell.target.get();
             let smoothed = r.smooth.update(time, temp);
-            let power = r.control.update(time, temp, target).clamp(0.0, r.max_power);
+            let power = match r.relay.as_mut() {
+                Some(relay) => relay_update(relay, shared, *i, time, temp, r.max_power),
+                None => r.control.update(time, temp, target),
+            }
+            .clamp(0.0, r.max_power);
+            if r.relay.as_ref().is_some_and(|relay| relay.tuner.done()) {
+                r.relay = None;
+            }
             cell.temp.set(smoothed);
             cell.time.set(time);
             cell.power.set(power);
@@ -458,26 +753,42 @@ fn heater_loop(
                 r.last_sent = Some((at, on));
             }
         }
+        for (i, r) in sensors.iter_mut() {
+            let conn = &mcus.list[r.link_index];
+            let Some((count, next_clock, value)) = conn.link.analog_report(r.oid) else {
+                continue;
+            };
+            if count == r.last_count {
+                continue;
+            }
+            r.last_count = count;
+            let freq = conn.clock_freq;
+            let read_clock = conn
+                .link
+                .clock()
+                .extend(next_clock, now_sys)
+                .saturating_sub((REPORT_TIME * freq) as u64);
+            let time = read_clock as f64 / freq;
+            let temp = r.sensor.temperature(f64::from(value) / r.full_scale);
+            let smoothed = r.smooth.update(time, temp);
+            let cell = &shared.sensors[*i];
+            cell.temp.set(smoothed);
+            cell.time.set(time);
+            if cell.min_seen.get().is_nan() || smoothed < cell.min_seen.get() {
+                cell.min_seen.set(smoothed);
+            }
+            if cell.max_seen.get().is_nan() || smoothed > cell.max_seen.get() {
+                cell.max_seen.set(smoothed);
+            }
+        }
         for (i, f) in fans.iter_mut() {
             let spec = &thermal.fans[*i];
             let cell = &shared.fans[*i];
-            let want = match &spec.role {
-                FanRole::Part => cell.requested.get(),
-                FanRole::Heater {
-                    heaters: names,
-                    heater_temp,
-                    fan_speed,
-                } => {
-                    let hot = shared.heaters.iter().any(|h| {
-                        names.contains(&h.name) && (h.target.get() > 0.0 || h.temp.get() > *heater_temp)
-                    });
-                    if hot {
-                        *fan_speed
-                    } else {
-                        0.0
-                    }
-                }
+            let now = {
+                let conn = &mcus.list[f.link_index];
+                conn.link.clock().clock_at(now_sys) / conn.clock_freq
             };
+            let want = fan_speed(spec, cell, f, shared, now);
             let speed = if want < spec.opts.off_below { 0.0 } else { want };
             if f.last == Some(speed) {
                 continue;
@@ -520,6 +831,62 @@ fn heater_loop(
     }
 }
 
+/// Hands a requested PID_CALIBRATE to its heater's loop state.
+fn start_calibration(shared: &HeaterShared, heaters: &mut [(usize, Running)]) {
+    let Ok(mut c) = shared.calibration.try_lock() else {
+        return;
+    };
+    let Some(Calibration::Requested { heater, target }) = *c else {
+        return;
+    };
+    match heaters.iter_mut().find(|(i, _)| *i == heater) {
+        Some((_, r)) => {
+            r.relay = Some(Relay {
+                tuner: RelayTuner::new(target, r.max_power),
+                pwm: Vec::new(),
+                temps: Vec::new(),
+            });
+            *c = Some(Calibration::Running { heater });
+        }
+        None => {
+            *c = Some(Calibration::Done {
+                heater,
+                gains: None,
+                pwm: Vec::new(),
+                temps: Vec::new(),
+            })
+        }
+    }
+}
+
+/// One report through PID_CALIBRATE's relay: the power to apply; once the tuner is done the
+/// result goes to the shared state (the heater keeps its target under its own control).
+fn relay_update(
+    relay: &mut Relay,
+    shared: &HeaterShared,
+    heater: usize,
+    time: f64,
+    temp: f64,
+    max_power: f64,
+) -> f64 {
+    let power = relay.tuner.update(time, temp).min(max_power);
+    relay.temps.push((time, temp));
+    if relay.pwm.last().is_none_or(|(_, p)| *p != power) {
+        relay.pwm.push((time, power));
+    }
+    if relay.tuner.done() {
+        if let Ok(mut c) = shared.calibration.lock() {
+            *c = Some(Calibration::Done {
+                heater,
+                gains: relay.tuner.result(),
+                pwm: std::mem::take(&mut relay.pwm),
+                temps: std::mem::take(&mut relay.temps),
+            });
+        }
+    }
+    power
+}
+
 /// A heater fault: every heater off and every MCU shut down (their outputs fall to off).
 fn shutdown(mcus: &Mcus, shared: &HeaterShared, why: &str) {
     shared.set_fault(why.to_string());
@@ -551,7 +918,7 @@ mod tests {
         s.set_target(0, 210.0);
         s.heaters[0].temp.set(25.04);
         s.heaters[1].temp.set(24.96);
-        assert_eq!(m105_text(&s), "T:25.0 /210.0 B:25.0 /0.0");
+        assert_eq!(m105_text(&s), "B:25.0 /0.0 T0:25.0 /210.0");
         s.turn_off_all();
         assert_eq!(s.heaters[0].target.get(), 0.0);
         assert_eq!(s.fault(), None);

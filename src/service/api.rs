@@ -344,7 +344,10 @@ impl Server<'_> {
                     _ => Err("Invalid Argument Type [remote_method]".into()),
                 }
             }
-            "objects/list" => Ok(json!({"objects": objects::names(&self.shared.get().mcus)})),
+            "objects/list" => {
+                let published = self.shared.get();
+                Ok(json!({"objects": objects::names(&published.mcus, published.config.as_deref())}))
+            }
             "objects/query" | "objects/subscribe" => self.query(idx, &params, method == "objects/subscribe"),
             "gcode/help" => Ok(gcode_help()),
             "gcode/script" => match params.get("script") {
@@ -601,6 +604,13 @@ fn gcode_help() -> Value {
         "PAUSE": "Pause the print", "RESUME": "Resume the paused print",
         "CANCEL_PRINT": "Cancel the print", "M73": "Set the progress shown",
         "M117": "Set the message shown",
+        "M104": "Set the extruder temperature", "M109": "Set the extruder temperature and wait",
+        "M140": "Set the bed temperature", "M190": "Set the bed temperature and wait",
+        "M105": "Report the temperatures", "M106": "Set the fan speed", "M107": "Turn the fan off",
+        "SET_HEATER_TEMPERATURE": "Set a heater's target",
+        "TEMPERATURE_WAIT": "Wait for a temperature", "TURN_OFF_HEATERS": "Turn every heater off",
+        "PID_CALIBRATE": "Run PID calibration test",
+        "SAVE_CONFIG": "Overwrite config file and restart",
     })
 }
 

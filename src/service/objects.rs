@@ -30,6 +30,67 @@ pub struct ConfigFacts {
     pub has_extruder: bool,
     /// `[virtual_sdcard] path` (`~` expanded).
     pub sdcard: Option<std::path::PathBuf>,
+    /// The thermal status objects (`extruder`, `heater_bed`, `fan`, `heater_fan NAME`,
+    /// `temperature_sensor NAME`, …) and the `heaters` lists.
+    pub thermal: ThermalFacts,
+}
+
+/// The thermal objects printer.cfg declares (the heater loop fills their values).
+#[derive(Debug, Clone, Default)]
+pub struct ThermalFacts {
+    /// Object names, in `objects/list` order.
+    pub objects: Vec<String>,
+    pub available_heaters: Vec<String>,
+    pub available_sensors: Vec<String>,
+    /// `[extruder] min_extrude_temp` (`can_extrude`).
+    pub min_extrude_temp: f64,
+}
+
+impl ThermalFacts {
+    fn new(cfg: &PrinterConfig) -> ThermalFacts {
+        let th = &cfg.thermal;
+        let mut heaters: Vec<String> = Vec::new();
+        if cfg.extruder.is_some() {
+            heaters.push("extruder".into());
+        }
+        if cfg.heater_bed.is_some() {
+            heaters.push("heater_bed".into());
+        }
+        heaters.extend(
+            th.heater_generic
+                .iter()
+                .map(|h| format!("heater_generic {}", h.name)),
+        );
+        let mut sensors = heaters.clone();
+        sensors.extend(
+            th.temperature_sensors
+                .iter()
+                .map(|s| format!("temperature_sensor {}", s.name)),
+        );
+        sensors.extend(
+            th.temperature_fans
+                .iter()
+                .map(|f| format!("temperature_fan {}", f.name)),
+        );
+        let mut objects = vec!["heaters".to_string()];
+        objects.extend(sensors.iter().cloned());
+        if th.fan.is_some() {
+            objects.push("fan".into());
+        }
+        objects.extend(th.heater_fans.iter().map(|f| format!("heater_fan {}", f.name)));
+        objects.extend(
+            th.controller_fans
+                .iter()
+                .map(|f| format!("controller_fan {}", f.name)),
+        );
+        objects.extend(th.fan_generic.iter().map(|(n, _)| format!("fan_generic {n}")));
+        ThermalFacts {
+            objects,
+            available_heaters: heaters,
+            available_sensors: sensors,
+            min_extrude_temp: cfg.extruder.as_ref().map_or(0.0, |e| e.heater.min_extrude_temp),
+        }
+    }
 }
 
 impl ConfigFacts {
@@ -84,6 +145,7 @@ impl ConfigFacts {
             square_corner_velocity: cfg.printer.square_corner_velocity,
             steppers: cfg.steppers.iter().map(|s| s.name.clone()).collect(),
             has_extruder: cfg.extruder.is_some(),
+            thermal: ThermalFacts::new(cfg),
         }
     }
 }
@@ -145,8 +207,8 @@ impl SystemFacts {
     }
 }
 
-/// The names `objects/list` reports for a printer with these MCUs.
-pub fn names(mcus: &[String]) -> Vec<String> {
+/// The names `objects/list` reports for a printer with these MCUs and configuration.
+pub fn names(mcus: &[String], config: Option<&ConfigFacts>) -> Vec<String> {
     let mut names: Vec<String> = [
         "webhooks",
         "configfile",
@@ -165,6 +227,7 @@ pub fn names(mcus: &[String]) -> Vec<String> {
     .iter()
     .map(|s| s.to_string())
     .collect();
+    names.extend(config.iter().flat_map(|c| c.thermal.objects.iter().cloned()));
     for m in mcus {
         names.push(if m == "mcu" {
             "mcu".to_string()
@@ -286,7 +349,62 @@ pub fn all(s: &Snapshot<'_>) -> Map<String, Value> {
         );
     }
     out.insert("latency".into(), latency(s.latency.as_ref()));
+    if let Some(c) = s.config {
+        thermal(&mut out, &c.thermal, status);
+    }
     out
+}
+
+/// The thermal objects with Klipper's fields: heaters (`temperature`, `target`, `power`; the
+/// extruder's `can_extrude`), fans (`speed`, `rpm`; a temperature fan's `temperature` and
+/// `target`), temperature sensors (`temperature`, `measured_min_temp`, `measured_max_temp`)
+/// and `heaters`. Before the heater loop's first reading the values are 0.
+fn thermal(out: &mut Map<String, Value>, facts: &ThermalFacts, status: Option<&Status>) {
+    let num = |v: f64| if v.is_finite() { v } else { 0.0 };
+    out.insert(
+        "heaters".into(),
+        json!({"available_heaters": facts.available_heaters,
+               "available_sensors": facts.available_sensors, "available_monitors": []}),
+    );
+    for name in &facts.objects {
+        if name == "heaters" {
+            continue;
+        }
+        let (kind, bare) = name.split_once(' ').unwrap_or((name.as_str(), name.as_str()));
+        let value = match kind {
+            "extruder" | "heater_bed" | "heater_generic" => {
+                let h = status.and_then(|st| st.heaters.iter().find(|h| h.name == bare));
+                let (t, target, power) =
+                    h.map_or((0.0, 0.0, 0.0), |h| (num(h.temperature), h.target, h.power));
+                let mut v = json!({"temperature": t, "target": target, "power": power});
+                if kind == "extruder" {
+                    v["can_extrude"] = json!(t >= facts.min_extrude_temp);
+                }
+                v
+            }
+            "temperature_sensor" => {
+                let sensor = status.and_then(|st| st.sensors.iter().find(|x| x.name == bare));
+                let (t, lo, hi) = sensor.map_or((0.0, 0.0, 0.0), |x| {
+                    (
+                        num(x.temperature),
+                        num(x.measured_min_temp),
+                        num(x.measured_max_temp),
+                    )
+                });
+                json!({"temperature": t, "measured_min_temp": lo, "measured_max_temp": hi})
+            }
+            _ => {
+                let fan = status.and_then(|st| st.fans.iter().find(|f| f.kind == kind && f.name == bare));
+                let mut v = json!({"speed": fan.map_or(0.0, |f| f.speed), "rpm": null});
+                if kind == "temperature_fan" {
+                    v["temperature"] = json!(num(fan.and_then(|f| f.temperature).unwrap_or(0.0)));
+                    v["target"] = json!(num(fan.and_then(|f| f.target).unwrap_or(0.0)));
+                }
+                v
+            }
+        };
+        out.insert(name.clone(), value);
+    }
 }
 
 /// Cadence's `latency` object: lead margin (ms) and the hand-off and planner wake-up (µs)
@@ -321,5 +439,96 @@ pub fn select(all: &Map<String, Value>, name: &str, fields: Option<&[String]>) -
             .iter()
             .map(|f| (f.clone(), obj.get(f).cloned().unwrap_or(Value::Null)))
             .collect(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::events::{FanStatus, HeaterStatus, SensorStatus};
+
+    /// The thermal objects carry Klipper's fields, from the config's sections and the status.
+    #[test]
+    fn thermal_objects_have_klippers_fields() {
+        let text = format!(
+            "{}\n[temperature_sensor chamber]\nsensor_type: Generic 3950\nsensor_pin: PF2\n\
+             [temperature_fan exhaust]\npin: PE4\nsensor_type: Generic 3950\nsensor_pin: PF3\n\
+             min_temp: 0\nmax_temp: 80\ncontrol: watermark\n",
+            sysconfig::printer::SIMULATED_PRINTER_CFG
+        );
+        let cfg = sysconfig::parse_str(&text, Path::new("printer.cfg")).unwrap();
+        let facts = ConfigFacts::new(&cfg, None);
+        let names = names(&["mcu".to_string()], Some(&facts));
+        for n in [
+            "heaters",
+            "extruder",
+            "heater_bed",
+            "fan",
+            "heater_fan hotend_fan",
+            "temperature_sensor chamber",
+            "temperature_fan exhaust",
+            "mcu",
+        ] {
+            assert!(names.iter().any(|x| x == n), "{n} not in {names:?}");
+        }
+        let mut status = crate::events::Status {
+            state: PrinterState::Ready,
+            position: [0.0; 4],
+            homed: [false; 3],
+            planned_until: 0.0,
+            print_time: 0.0,
+            mcus: Vec::new(),
+            events_dropped: 0,
+            heaters: vec![HeaterStatus {
+                name: "extruder".into(),
+                temperature: 200.0,
+                target: 210.0,
+                power: 0.5,
+            }],
+            fans: vec![FanStatus {
+                name: "exhaust".into(),
+                kind: "temperature_fan",
+                speed: 1.0,
+                temperature: Some(25.0),
+                target: Some(20.0),
+            }],
+            sensors: vec![SensorStatus {
+                name: "chamber".into(),
+                temperature: 24.0,
+                measured_min_temp: 23.0,
+                measured_max_temp: 26.0,
+            }],
+        };
+        let mut out = Map::new();
+        thermal(&mut out, &facts.thermal, Some(&status));
+        assert_eq!(
+            out["extruder"],
+            json!({"temperature": 200.0, "target": 210.0, "power": 0.5, "can_extrude": true})
+        );
+        assert_eq!(
+            out["heater_bed"],
+            json!({"temperature": 0.0, "target": 0.0, "power": 0.0})
+        );
+        assert_eq!(
+            out["temperature_fan exhaust"],
+            json!({"speed": 1.0, "rpm": null, "temperature": 25.0, "target": 20.0})
+        );
+        assert_eq!(
+            out["temperature_sensor chamber"],
+            json!({"temperature": 24.0, "measured_min_temp": 23.0, "measured_max_temp": 26.0})
+        );
+        assert_eq!(out["fan"], json!({"speed": 0.0, "rpm": null}));
+        assert_eq!(
+            out["heaters"]["available_sensors"],
+            json!([
+                "extruder",
+                "heater_bed",
+                "temperature_sensor chamber",
+                "temperature_fan exhaust"
+            ])
+        );
+        status.heaters[0].temperature = f64::NAN;
+        thermal(&mut out, &facts.thermal, Some(&status));
+        assert_eq!(out["extruder"]["temperature"], json!(0.0));
     }
 }

@@ -1,7 +1,7 @@
 //! The thread that owns the service's [`Printer`]: opens it (after a failed start, again every
 //! [`ServiceOptions::retry_s`] with the reason in the `error` state's message), runs the
 //! G-code scripts the API hands it one command at a time, reopens the printer on `RESTART` /
-//! `FIRMWARE_RESTART`, and stops motion and closes it when the service quits.
+//! `FIRMWARE_RESTART` and after `SAVE_CONFIG` wrote the config, and stops motion and closes it when the service quits.
 
 use std::sync::atomic::Ordering;
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, TryRecvError};
@@ -362,6 +362,15 @@ impl Ctx<'_> {
         };
         match word.as_str() {
             "RESTART" | "FIRMWARE_RESTART" => return Ok(true),
+            "SAVE_CONFIG" => {
+                // The printer writes its config file; then it restarts to read it, as
+                // Klipper's SAVE_CONFIG does.
+                return match self.printer.run_command(line) {
+                    Ok(()) => Ok(true),
+                    Err(PrinterError::Command { message }) => Err(message),
+                    Err(e) => Err(e.to_string()),
+                };
+            }
             "M112" => {
                 self.printer.handle().emergency_stop();
                 return Ok(false);

@@ -7,12 +7,15 @@
 //!   bounds; every option must be consumed, unknown sections are errors unless listed as
 //!   accepted-and-ignored (then warnings).
 //!
+//! - [`autosave`]: SAVE_CONFIG's rewrite of printer.cfg (the `#*#` autosave block, a backup)
+//!   from the typed [`autosave::Changes`] calibration commands leave pending.
 //! - [`systemd`]: the systemd units: the printer service and the IO stage alone.
 //!
 //! Guarantees: no input makes these parsers panic; every error names the file, the line when
 //! there is one, the section and the option.
 #![deny(unsafe_code)]
 
+pub mod autosave;
 pub mod ini;
 pub mod planning;
 pub mod printer;

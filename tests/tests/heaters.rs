@@ -38,9 +38,13 @@ fn config(dir: &Path) -> PathBuf {
     path
 }
 
+/// `cadence print` of `gcode` on the printer.cfg in `dir` (the test printer when there is none).
 fn print(dir: &Path, gcode: &str, sim_args: Option<&str>) -> (Run, PathBuf) {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    let cfg = config(dir);
+    let cfg = dir.join("printer.cfg");
+    if !cfg.exists() {
+        config(dir);
+    }
     let g = dir.join("print.gcode");
     std::fs::write(&g, gcode).unwrap();
     let trace = dir.join("mcu.trace");
@@ -123,16 +127,16 @@ fn a_slicer_start_heats_waits_prints_and_cools() {
     eprintln!("heat-up (MCU time): bed to 50 °C {bed:.1} s, then hotend to 185 °C {hotend:.1} s");
     assert!((40.0..600.0).contains(&bed), "bed {bed}");
     assert!((20.0..300.0).contains(&hotend), "hotend {hotend}");
-    // M105: cold at first; after the waits both at target; at the end the hotend cooled
-    // below 150.
-    let m105: Vec<&str> = out.lines().filter(|l| l.contains("M105: T:")).collect();
+    // M105 (Klipper's `B:cur /target T0:cur /target`): cold at first; after the waits both
+    // at target; at the end the hotend cooled below 150.
+    let m105: Vec<&str> = out.lines().filter(|l| l.contains("M105: B:")).collect();
     assert_eq!(m105.len(), 4, "{out}");
     assert!(
-        m105[0].contains("/0.0 B:") && m105[0].contains("/50.0"),
+        m105[0].contains("/50.0 T0:") && m105[0].ends_with("/0.0"),
         "{m105:?}"
     );
     let t = |l: &str| -> f64 {
-        l.split("T:")
+        l.split("T0:")
             .nth(1)
             .and_then(|r| r.split(' ').next())
             .and_then(|s| s.parse().ok())
@@ -140,10 +144,10 @@ fn a_slicer_start_heats_waits_prints_and_cools() {
     };
     assert!(t(m105[0]) < 40.0, "{m105:?}");
     assert!(
-        (t(m105[2]) - 185.0).abs() < 3.0 && m105[2].contains("/185.0 B:"),
+        (t(m105[2]) - 185.0).abs() < 3.0 && m105[2].ends_with("/185.0"),
         "{m105:?}"
     );
-    assert!(m105[3].contains("/0.0 B:"), "{m105:?}");
+    assert!(m105[3].ends_with("/0.0"), "{m105:?}");
     assert!(t(m105[3]) <= 150.0, "{m105:?}");
     assert!(
         out.contains("heater extruder:") && out.contains("heater heater_bed:"),
@@ -239,4 +243,66 @@ fn m112_shuts_every_mcu_down_with_the_heater_on() {
         run.stderr
     );
     assert!(shutdown_s(&trace).is_some(), "the MCU did not shut down");
+}
+
+/// `[temperature_sensor]` (reported by M105 under its gcode_id, waited for, summarised),
+/// `[fan_generic]` (SET_FAN_SPEED), `[temperature_fan]` (SET_TEMPERATURE_FAN_TARGET: at
+/// 25 °C with target 20 it runs at full speed, with target 40 it stops) and
+/// `[controller_fan]` (on while the print runs) on the simulated printer, whose spare analog
+/// inputs read room temperature.
+#[test]
+fn sensors_and_the_other_fans_are_driven() {
+    let dir = scratch("heat-fans");
+    let cfg = config(&dir);
+    let mut text = std::fs::read_to_string(&cfg).unwrap();
+    text.push_str(
+        "\n[temperature_sensor chamber]\nsensor_type: Generic 3950\nsensor_pin: PF2\ngcode_id: C\n\
+         \n[temperature_fan exhaust]\npin: PE4\nsensor_type: Generic 3950\nsensor_pin: PF3\n\
+         min_temp: 0\nmax_temp: 80\ncontrol: watermark\ntarget_temp: 20\ngcode_id: X\n\
+         \n[controller_fan board]\npin: PE5\n\
+         \n[fan_generic aux]\npin: PE6\n",
+    );
+    std::fs::write(&cfg, text).unwrap();
+    // TEMPERATURE_WAIT holds until the sensor reads; M190 gives the fans time to follow.
+    let gcode = "TEMPERATURE_WAIT SENSOR=\"temperature_sensor chamber\" MINIMUM=20 MAXIMUM=30\n\
+                 M105\nSET_FAN_SPEED FAN=aux SPEED=0.5\n\
+                 SET_TEMPERATURE_FAN_TARGET TEMPERATURE_FAN=exhaust TARGET=40\nM190 S30\nM105\n";
+    let (run, trace) = print(&dir, gcode, None);
+    assert_eq!(run.code, Some(0), "{}\n{}", run.stdout, run.stderr);
+    assert_eq!(shutdown_s(&trace), None, "the MCU shut down");
+    let out = &run.stdout;
+    let m105: Vec<&str> = out.lines().filter(|l| l.contains("M105: B:")).collect();
+    assert_eq!(m105.len(), 2, "{out}");
+    assert!(
+        m105[0].contains(" C:25.0 /0.0 T0:") && m105[0].ends_with(" X:25.0 /20.0"),
+        "{m105:?}"
+    );
+    assert!(m105[1].ends_with(" X:25.0 /40.0"), "{m105:?}");
+    for line in [
+        "temperature_sensor chamber: 25.0 °C",
+        "temperature_fan exhaust: 0 %, sensor 25.0 °C, target 40.0 °C",
+        "fan_generic aux: 50 %",
+        "controller_fan board: 100 %",
+        "heaters: TEMPERATURE_WAIT waited",
+    ] {
+        assert!(out.contains(line), "no '{line}' in\n{out}");
+    }
+    // Refused as Klipper words it.
+    let (run, _) = print(&dir, "SET_FAN_SPEED FAN=nope SPEED=1\n", None);
+    assert!(
+        run.stderr.contains("The value 'nope' is not valid for FAN"),
+        "{}",
+        run.stderr
+    );
+    let (run, _) = print(
+        &dir,
+        "SET_TEMPERATURE_FAN_TARGET TEMPERATURE_FAN=exhaust TARGET=90\n",
+        None,
+    );
+    assert!(
+        run.stderr
+            .contains("Requested temperature (90.0) out of range (0.0:80.0)"),
+        "{}",
+        run.stderr
+    );
 }

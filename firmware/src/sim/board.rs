@@ -187,7 +187,9 @@ impl Board for SimBoard {
         let t = self.seconds(self.now);
         match self.heaters.iter_mut().find(|h| h.sensor_pin == pin) {
             Some(h) => h.adc(t),
-            None => 0,
+            // Any other analog input is a thermistor at room temperature (a chamber or board
+            // sensor).
+            None => super::heater::adc_of(super::heater::AMBIENT_C),
         }
     }
 

@@ -16,8 +16,10 @@
 //! - A section seen again merges into the first: a later option replaces the earlier value and
 //!   its location, in place (the first definition's order is kept).
 //! - In the main file, Klipper's `#*# <--- SAVE_CONFIG --->` marker starts the autosave block:
-//!   every later line must start with `#*#`, which is removed, and is read as more config (so it
-//!   overrides what came before), with its own physical line numbers.
+//!   every later line must start with `#*#`, which is removed, and is read as more config with
+//!   its own physical line numbers. As in Klipper, an option the config above the block (or a
+//!   file it includes) already sets keeps that value: the block's copy is ignored (SAVE_CONFIG,
+//!   [`crate::autosave`], comments the body's copy out when it writes the block).
 
 mod parse;
 mod write;

@@ -36,6 +36,8 @@ pub(super) struct Parser<'r> {
     out: ConfigFile,
     /// Identities of the files being read, outermost first.
     open: Vec<PathBuf>,
+    /// Line of the main file's SAVE_CONFIG marker, once read.
+    autosave_line: Option<usize>,
 }
 
 impl<'r> Parser<'r> {
@@ -48,6 +50,7 @@ impl<'r> Parser<'r> {
             list,
             out: ConfigFile::default(),
             open: Vec::new(),
+            autosave_line: None,
         }
     }
 
@@ -64,6 +67,8 @@ impl<'r> Parser<'r> {
         let mut section: Option<usize> = None;
         let mut value: Option<OpenValue> = None;
         let mut autosave = false;
+        // Indentation of an autosave option being skipped (its continuation lines go too).
+        let mut skipping: Option<usize> = None;
         for (index, raw) in text.lines().enumerate() {
             let at = || Location {
                 file: file.to_path_buf(),
@@ -78,6 +83,7 @@ impl<'r> Parser<'r> {
                 }
             } else if main && is_autosave_marker(raw) {
                 autosave = true;
+                self.autosave_line = Some(index + 1);
                 section = None;
                 value = None;
                 continue;
@@ -98,6 +104,12 @@ impl<'r> Parser<'r> {
             }
 
             let indent = line.chars().take_while(|c| c.is_whitespace()).count();
+            if let Some(skip) = skipping {
+                if indent > skip {
+                    continue;
+                }
+                skipping = None;
+            }
             if let Some(v) = value.as_mut() {
                 if indent > v.indent {
                     self.continue_value(v, trimmed);
@@ -132,6 +144,13 @@ impl<'r> Parser<'r> {
             let Some(sec) = section else {
                 return Err(syntax(SyntaxProblem::OptionOutsideSection(key)));
             };
+            if autosave && self.defined_outside_autosave(sec, &key, file) {
+                // Klipper's rule: the config above the block (and its includes) wins; the
+                // block's copy is ignored (SAVE_CONFIG comments the other out when it writes).
+                value = None;
+                skipping = Some(indent);
+                continue;
+            }
             let option = self.set_option(
                 sec,
                 key,
@@ -148,6 +167,21 @@ impl<'r> Parser<'r> {
             });
         }
         Ok(())
+    }
+
+    /// True when option `key` of section `sec` was set by the config above the SAVE_CONFIG
+    /// block of `main` (the main file's body or an included file).
+    fn defined_outside_autosave(&self, sec: usize, key: &str, main: &Path) -> bool {
+        let Some(section) = self.out.sections.get(sec) else {
+            return false;
+        };
+        let Some(start) = self.autosave_line else {
+            return false;
+        };
+        section
+            .options
+            .iter()
+            .any(|(k, v)| k == key && (v.at.file != main || v.at.line < start))
     }
 
     /// Appends a continuation line (after any blank lines it keeps) to the open value.
@@ -623,8 +657,24 @@ mod tests {
     }
 
     #[test]
+    fn save_config_block_adds_but_the_body_wins() {
+        // Klipper's load: an option the body sets is kept; the block's copy is ignored
+        // (multi-line values too), the block's other options apply.
+        let main = "[extruder]\ncontrol: watermark\n[bed_mesh default]\npoints: 1\n\n\
+            #*# <---------------------- SAVE_CONFIG ---------------------->\n\
+            #*# DO NOT EDIT THIS BLOCK OR BELOW. The contents are auto-generated.\n\
+            #*#\n#*# [extruder]\n#*# control = pid\n#*# pid_kp = 22.2\n\
+            #*#\n#*# [bed_mesh default]\n#*# points =\n#*# \t0.1, 0.2\n#*# x = 1\n";
+        let cfg = parse(main);
+        assert_eq!(text(&cfg, "extruder", "control"), "watermark");
+        assert_eq!(text(&cfg, "extruder", "pid_kp"), "22.2");
+        assert_eq!(text(&cfg, "bed_mesh default", "points"), "1");
+        assert_eq!(text(&cfg, "bed_mesh default", "x"), "1");
+    }
+
+    #[test]
     fn save_config_block_overrides() {
-        let main = "[extruder]\ncontrol: watermark\n\n\
+        let main = "[extruder]\nmax_power: 1\n\n\
             #*# <---------------------- SAVE_CONFIG ---------------------->\n\
             #*# DO NOT EDIT THIS BLOCK OR BELOW. The contents are auto-generated.\n\
             #*#\n#*# [extruder]\n#*# control = pid\n#*# pid_kp = 22.2\n\

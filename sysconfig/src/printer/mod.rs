@@ -210,7 +210,7 @@ impl PrinterConfig {
             Some(s) => Some(heater::read_heater(&s, &mut pins)?),
             None => None,
         };
-        let thermal = thermal::read_thermal(&reader, &mut pins, false)?;
+        let thermal = thermal::read_thermal(&reader, &mut pins, true)?;
         let simulator_section = reader.section("simulator");
         let simulator = match &simulator_section {
             Some(s) => mcu::read_simulator(s)?,

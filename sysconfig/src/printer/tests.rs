@@ -211,11 +211,11 @@ fn unknown_sections_and_options_are_errors_ignored_ones_warnings() {
         Err("printer.cfg:13: Option 'foo' is not valid in section 'stepper_x'".to_string())
     );
     let cfg = ok(&format!(
-        "{MINIMAL}[gcode_macro START]\ngcode:\n  G28\n[controller_fan board]\npin: PA5\n[gcode_macro END]\ngcode: M84\n"
+        "{MINIMAL}[gcode_macro START]\ngcode:\n  G28\n[led status]\nred_pin: PA5\n[gcode_macro END]\ngcode: M84\n"
     ));
     assert_eq!(
         cfg.warnings,
-        ["printer.cfg:28: [controller_fan] is not implemented by Cadence yet; section ignored",]
+        ["printer.cfg:28: [led] is not implemented by Cadence yet; section ignored",]
     );
     let names: Vec<&str> = cfg.macros.iter().map(|m| m.name.as_str()).collect();
     assert_eq!(names, ["START", "END"]);

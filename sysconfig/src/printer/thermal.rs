@@ -3,10 +3,7 @@
 //! `[heater_fan]`, `[controller_fan]`, `[fan_generic]`, `[temperature_fan]`), with Klipper's
 //! options, defaults and bounds.
 //!
-//! The load reads the sections the host drives ([`DRIVEN`]: heaters, `[verify_heater]`,
-//! `[thermistor]`, `[temperature_sensor]`, `[fan]`, `[heater_fan]`); the other fans
-//! (`[controller_fan]`, `[fan_generic]`, `[temperature_fan]`) have typed readers too but stay
-//! accepted and ignored (with a warning) until the host drives them.
+//! The load reads every one of them ([`DRIVEN`]): the host drives them all.
 
 use super::error::{ConfigError, ValueProblem};
 use super::heater::{read_heater_options, HeaterSection, ABSOLUTE_ZERO_C};
@@ -317,9 +314,12 @@ fn read_thermistor(s: &SectionReader<'_>) -> Result<ThermistorSection, ConfigErr
 
 /// The thermal section kinds the host drives (the load reads them; sections.rs lists them read).
 pub const DRIVEN: &[&str] = &[
+    "controller_fan",
     "fan",
+    "fan_generic",
     "heater_fan",
     "heater_generic",
+    "temperature_fan",
     "temperature_sensor",
     "thermistor",
     "verify_heater",
