@@ -4,7 +4,7 @@
 
 use planner::pipeline::{Pipeline, PipelineConfig, PipelineOptions, StepperSpec};
 use planner::toolhead::ToolheadConfig;
-use sysconfig::printer::{MotorSection, PinRef, PrinterConfig, ProbeSection, PROBE_PIN_MCU};
+use sysconfig::printer::{BlTouchSection, MotorSection, PinRef, PrinterConfig, ProbeSection, PROBE_PIN_MCU};
 
 /// One stepper as the host addresses it on its MCU.
 #[derive(Debug, Clone)]
@@ -84,12 +84,26 @@ pub struct ProbeOut {
     pub cfg: ProbeSection,
 }
 
+/// A `[bltouch]`'s servo output (a soft-PWM digital out on its MCU) and its settings; the
+/// probe it is, is the machine's [`ProbeOut`].
+#[derive(Debug, Clone)]
+pub struct BlTouchOut {
+    pub control_pin: PinRef,
+    /// Object id of the control output on its MCU (after that MCU's steppers and endstops).
+    pub oid: u8,
+    pub cfg: BlTouchSection,
+    /// Its command timing and session state, kept across G-code commands.
+    pub state: std::sync::Arc<std::sync::Mutex<crate::homing::bltouch::BlTouchState>>,
+}
+
 /// Everything derived from a printer.cfg that `print` needs.
 #[derive(Debug, Clone)]
 pub struct Machine {
     pub steppers: Vec<StepperOut>,
     pub endstops: Vec<EndstopOut>,
     pub probe: Option<ProbeOut>,
+    /// `[bltouch]`: the probe's servo.
+    pub bltouch: Option<BlTouchOut>,
     /// `[simulator] bed_surface_z`: where simulated probe pins trigger.
     pub sim_bed_surface_z: f64,
     pub toolhead: ToolheadConfig,
@@ -203,6 +217,17 @@ impl Machine {
             Some(p) => Some(probe_out(p, cfg, &endstops, &mut next)?),
             None => None,
         };
+        // The BLTouch's servo output: the next oid on its MCU, after the endstops.
+        let bltouch = cfg.bltouch.as_ref().map(|b| {
+            let n = next.entry(b.control_pin.mcu.clone()).or_insert(0);
+            *n += 1;
+            BlTouchOut {
+                control_pin: b.control_pin.clone(),
+                oid: *n - 1,
+                cfg: b.clone(),
+                state: Default::default(),
+            }
+        });
         let options = sysconfig::planning::pipeline_options(cfg, kinematics);
         let thermal =
             crate::heaters::objects::Thermal::from_config(cfg).map_err(|source| HardwareError::Thermal {
@@ -213,6 +238,7 @@ impl Machine {
             steppers,
             endstops,
             probe,
+            bltouch,
             sim_bed_surface_z: cfg.simulator.bed_surface_z,
             toolhead,
             home_position: home,
@@ -330,6 +356,11 @@ impl Machine {
             .collect()
     }
 
+    /// The BLTouch servo output on MCU `mcu` (its object follows the endstops).
+    pub fn mcu_bltouch(&self, mcu: &str) -> Option<&BlTouchOut> {
+        self.bltouch.as_ref().filter(|b| b.control_pin.mcu == mcu)
+    }
+
     /// The simulated toolhead's start coordinate of axis `axis` (0..=2): 10% of the travel
     /// away from its endstop (homing stays short), mid-travel without one.
     fn sim_start(&self, axis: usize) -> f64 {
@@ -430,6 +461,20 @@ impl Machine {
             args.push(format!("{name}={},{steps_per_mm},{start}", s.step_pin.pin));
         }
         for e in self.mcu_endstops(mcu) {
+            // A BLTouch with its servo on the same MCU: the simulated probe, deployed and
+            // stowed by the servo pulses, its pin touching the bed surface.
+            if let Some(b) = self.mcu_bltouch(mcu).filter(|_| e.probe) {
+                let active_low = if e.pin.invert { "!" } else { "" };
+                args.push("--bltouch".to_string());
+                args.push(format!(
+                    "{active_low}{}={},{},{}",
+                    e.pin.pin,
+                    b.control_pin.pin,
+                    self.sim_coord(e.axis, &rails),
+                    self.sim_trigger(e)
+                ));
+                continue;
+            }
             let side = if e.homing_positive_dir { "max" } else { "min" };
             // `!`: the pin reads 0 when triggered, as the config's inverted endstop expects.
             let active_low = if e.pin.invert { "!" } else { "" };
@@ -535,6 +580,20 @@ mod tests {
         assert_eq!(args, "--endstop PA4=z,0,min --world w");
         let args = m.sim_world_args("mcu", "w").join(" ");
         assert!(args.contains("--axis z=PC0,400,20 "), "{args}");
+    }
+
+    #[test]
+    fn bltouch_servo_follows_the_endstops_and_is_simulated() {
+        let text = include_str!("../examples/simulated-probe.cfg").replace(
+            "[probe]\npin: ^probe_mcu:PA4",
+            "[bltouch]\nsensor_pin: ^probe_mcu:PA4\ncontrol_pin: probe_mcu:PA5",
+        );
+        let m = machine(&text);
+        let b = m.bltouch.as_ref().unwrap();
+        assert_eq!((b.control_pin.mcu.as_str(), b.oid), ("probe_mcu", 1));
+        assert!(m.mcu_bltouch("mcu").is_none());
+        let args = m.sim_world_args("probe_mcu", "w").join(" ");
+        assert_eq!(args, "--bltouch PA4=PA5,z,0 --world w");
     }
 
     #[test]

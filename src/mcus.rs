@@ -395,7 +395,9 @@ pub fn config_commands(
             }
         }
     }
-    let enable_oid0 = steppers.len() + endstops.len();
+    // A BLTouch's servo output right after the endstops (its oid: crate::hardware).
+    let bltouch = machine.mcu_bltouch(mcu).filter(|_| has_outputs);
+    let enable_oid0 = steppers.len() + endstops.len() + usize::from(bltouch.is_some());
     let trsync_oid = u8::try_from(enable_oid0 + enables.len()).map_err(|_| "too many objects".to_string())?;
     // Heaters, sensors and fans (crate::heaters::objects) right after the trsync.
     let thermal_oid0 = usize::from(trsync_oid) + 1;
@@ -465,6 +467,9 @@ pub fn config_commands(
             )
             .map_err(err)?,
         );
+    }
+    if let Some(b) = bltouch {
+        cmds.extend(crate::homing::bltouch::config_commands(dict, b)?);
     }
     cmds.extend(machine.thermal.config_commands(dict, mcu, thermal_oid0)?);
     let mut crc = crc32fast::Hasher::new();

@@ -53,6 +53,7 @@
 //! known from the move profile, so the last executed step and the first cancelled one bound
 //! the moment the stepper MCU stopped, relative to the endstop's trigger.
 
+pub mod bltouch;
 mod halt;
 mod pass;
 pub mod probe;
@@ -117,6 +118,9 @@ pub struct HomingCtx<'a> {
     /// What the last communication timeout was, beyond its exact message (which MCU, MCU
     /// expiry or host-side silence): for logs and `cadence home`.
     pub comm_timeout_detail: Option<String>,
+    /// Lines for the user produced on the way (a BLTouch's retries), drained into the
+    /// command's output.
+    pub messages: Vec<String>,
 }
 
 impl<'a> HomingCtx<'a> {
@@ -140,6 +144,7 @@ impl<'a> HomingCtx<'a> {
             time_scale,
             rt,
             comm_timeout_detail: None,
+            messages: Vec::new(),
         }
     }
 }
@@ -287,14 +292,16 @@ pub(crate) fn run_motion(
     cmd: &MotionCmd<'_>,
     out: &mut Vec<String>,
 ) -> Result<Option<HomingReport>, String> {
-    match cmd {
-        MotionCmd::Home(axes) => {
-            let report = home_axes(ctx, *axes)?;
+    let r = match cmd {
+        MotionCmd::Home(axes) => home_axes(ctx, *axes).map(|report| {
+            out.append(&mut ctx.messages);
             out.extend(report.to_string().lines().map(str::to_string));
-            Ok(Some(report))
-        }
+            Some(report)
+        }),
         MotionCmd::Probe { name, raw } => probe::run(ctx, name, raw, out).map(|()| None),
-    }
+    };
+    out.append(&mut ctx.messages);
+    r
 }
 
 /// Homes the named axes (X, Y, Z order) on a live print: `G28` with motion. On success the
@@ -310,6 +317,8 @@ pub fn home_axes(ctx: &mut HomingCtx<'_>, axes: [bool; 3]) -> Result<HomingRepor
         homed[axis] = false;
         ctx.pipeline.set_homed(homed);
         match ctx.machine.endstops.iter().find(|e| e.axis == axis).cloned() {
+            // On the probe (`probe:z_virtual_endstop`), a BLTouch is deployed for the passes.
+            Some(e) if e.probe => report.axes.push(bltouch::session(ctx, |ctx| home_axis(ctx, &e))?),
             Some(e) => report.axes.push(home_axis(ctx, &e)?),
             None => {
                 // No endstop: the old behaviour, the position is declared.
@@ -332,7 +341,7 @@ fn home_axis(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisReport, Stri
     let dir = if e.homing_positive_dir { 1.0 } else { -1.0 };
     let mut passes = Vec::new();
     let start = e.position_endstop - dir * TRAVEL_FACTOR * travel;
-    let (first, mcus) = homing_pass(ctx, e, PassKind::Home { start }, e.homing_speed)?;
+    let (first, mcus) = probe_pass(ctx, e, PassKind::Home { start }, e.homing_speed)?;
     passes.push(first);
     let retract = e.homing_retract_dist;
     if retract > 0.0 {
@@ -347,7 +356,7 @@ fn home_axis(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisReport, Stri
             ));
         }
         let start = e.position_endstop - dir * 2.0 * retract;
-        let (second, _) = homing_pass(ctx, e, PassKind::Home { start }, e.second_homing_speed)?;
+        let (second, _) = probe_pass(ctx, e, PassKind::Home { start }, e.second_homing_speed)?;
         passes.push(second);
     }
     Ok(AxisReport {
@@ -356,6 +365,19 @@ fn home_axis(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisReport, Stri
         passes,
         position: ctx.pipeline.position()[axis],
     })
+}
+
+/// A homing pass; on the probe, between deploying and stowing a BLTouch.
+fn probe_pass(
+    ctx: &mut HomingCtx<'_>,
+    e: &EndstopOut,
+    kind: PassKind,
+    speed: f64,
+) -> Result<(PassReport, Vec<String>), String> {
+    match e.probe {
+        true => bltouch::sample(ctx, |ctx| homing_pass(ctx, e, kind, speed)),
+        false => homing_pass(ctx, e, kind, speed),
+    }
 }
 
 /// A plain move of the toolhead to `pos` (retract, bench moves), sent at once.

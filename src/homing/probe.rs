@@ -28,7 +28,13 @@ use super::{endstop_state, homing_pass, plain_move, wait_motion_done, HomingCtx,
 use crate::hardware::ProbeOut;
 
 /// The G-code commands this module runs.
-pub const COMMANDS: [&str; 3] = ["PROBE", "PROBE_ACCURACY", "QUERY_PROBE"];
+pub const COMMANDS: [&str; 5] = [
+    "PROBE",
+    "PROBE_ACCURACY",
+    "QUERY_PROBE",
+    "BLTOUCH_DEBUG",
+    "BLTOUCH_STORE",
+];
 
 /// PROBE_ACCURACY's default sample count.
 const ACCURACY_SAMPLES: u32 = 10;
@@ -155,6 +161,9 @@ pub fn accuracy_line(z: &[f64]) -> String {
 /// Runs probe command `name` (one of [`COMMANDS`]) written as `raw`; its output lines go to
 /// `out`.
 pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>) -> Result<(), String> {
+    if name.starts_with("BLTOUCH_") {
+        return super::bltouch::run_command(ctx, name, raw, out);
+    }
     let Some(probe) = ctx.machine.probe.clone() else {
         return Err(format!(
             "Unknown command: {name} (the printer config has no [probe] section)"
@@ -174,18 +183,21 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
                 "PROBE_ACCURACY at X:{:.3} Y:{:.3} Z:{:.3} (samples={} retract={:.3} speed={:.1} lift_speed={:.1})",
                 pos[0], pos[1], pos[2], p.samples, p.sample_retract_dist, p.speed, p.lift_speed
             ));
-            let mut z = Vec::new();
-            while z.len() < p.samples as usize {
-                let at = probe_once(ctx, &probe, p.speed, out)?;
-                z.push(at[2]);
-                lift(ctx, at[2] + p.sample_retract_dist, p.lift_speed)?;
-            }
+            let z = super::bltouch::session(ctx, |ctx| {
+                let mut z = Vec::new();
+                while z.len() < p.samples as usize {
+                    let at = probe_once(ctx, &probe, p.speed, out)?;
+                    z.push(at[2]);
+                    lift(ctx, at[2] + p.sample_retract_dist, p.lift_speed)?;
+                }
+                Ok(z)
+            })?;
             out.push(accuracy_line(&z));
             Ok(())
         }
         _ => {
             let p = ProbeParams::parse(&probe.cfg, raw, probe.cfg.samples)?;
-            let z = run_probe(ctx, &probe, &p, out)?;
+            let z = super::bltouch::session(ctx, |ctx| run_probe(ctx, &probe, &p, out))?;
             out.push(format!("Result is z={z:.6}"));
             Ok(())
         }
@@ -239,11 +251,14 @@ fn probe_once(
         return Err("Must home before probe".to_string());
     }
     wait_motion_done(ctx)?;
-    if endstop_state(ctx, &probe.endstop)?.1 {
-        return Err("Probe triggered prior to movement".to_string());
-    }
     let target = probe.z_position;
-    let (pass, _) = homing_pass(ctx, &probe.endstop, PassKind::Probe { target }, speed)?;
+    // A BLTouch is deployed first (and stowed after, also after a failure).
+    let (pass, _) = super::bltouch::sample(ctx, |ctx| {
+        if endstop_state(ctx, &probe.endstop)?.1 {
+            return Err("Probe triggered prior to movement".to_string());
+        }
+        homing_pass(ctx, &probe.endstop, PassKind::Probe { target }, speed)
+    })?;
     let pos = ctx.pipeline.position();
     let at = [pos[0], pos[1], pass.trigger_position];
     out.push(format!("probe at {:.3},{:.3} is z={:.6}", at[0], at[1], at[2]));

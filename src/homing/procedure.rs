@@ -60,12 +60,17 @@ impl HomingProcedure {
                     }
                 }
                 ops.set_position(pos, homed);
-                let rawparams: Vec<&str> = ["X", "Y", "Z"]
-                    .iter()
-                    .zip(axes)
-                    .filter(|(_, on)| *on)
-                    .map(|(n, _)| *n)
-                    .collect();
+                // The script sees the G28's own parameters, as on Klipper: none for a bare
+                // G28 (which the parser reads as all three axes), else the axes it names.
+                let rawparams: Vec<&str> = match axes {
+                    [true, true, true] => Vec::new(),
+                    _ => ["X", "Y", "Z"]
+                        .iter()
+                        .zip(axes)
+                        .filter(|(_, on)| *on)
+                        .map(|(n, _)| *n)
+                        .collect(),
+                };
                 return ops.run_override(&rawparams.join(" "));
             }
             return ops.home(axes);
@@ -274,10 +279,9 @@ mod tests {
             ..Recorder::default()
         };
         let log = run(&p, &mut r, [true; 3]).unwrap_or_else(|e| panic!("{e}"));
-        assert_eq!(
-            log,
-            ["set [1.0, 2.0, 0.0] [false, false, true]", "script 'X Y Z'"]
-        );
+        assert_eq!(log, ["set [1.0, 2.0, 0.0] [false, false, true]", "script ''"]);
+        let log = run(&p, &mut r, [false, false, true]).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(log, ["set [1.0, 2.0, 0.0] [false, false, true]", "script 'Z'"]);
         let log = run(&p, &mut r, [true, false, false]).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(log, ["home [true, false, false]"]);
     }

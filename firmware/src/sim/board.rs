@@ -10,6 +10,7 @@
 //! world); endstop inputs read the world; heater outputs drive [`Heater`]s whose thermistors
 //! are the ADC inputs. Triggers go to the trace as kind-3 records.
 
+use super::bltouch::{BlTouch, BlTouchSpec};
 use super::cli::{HeaterFaultSpec, HeaterSpec};
 use super::heater::Heater;
 use super::world::World;
@@ -57,6 +58,8 @@ pub struct SimBoard {
     /// Simulated axes and endstops.
     pub world: World,
     heaters: Vec<Heater>,
+    /// Simulated BLTouch probes (their sensor pins read them, their control pins drive them).
+    pub bltouch: Vec<BlTouch>,
 }
 
 impl SimBoard {
@@ -78,6 +81,7 @@ impl SimBoard {
             queue_steps: 0,
             world: World::local(Vec::new(), Vec::new()),
             heaters: Vec::new(),
+            bltouch: Vec::new(),
         })
     }
 
@@ -99,6 +103,17 @@ impl SimBoard {
                     .fold(heater, |heater, f| heater.with_fault(f.fault, f.from_s))
             })
             .collect();
+        self
+    }
+
+    /// Adds BLTouch probes; a later one on the same sensor pin replaces the earlier (extra
+    /// arguments can so inject a fault into the host's probe).
+    pub fn with_bltouch(mut self, probes: &[BlTouchSpec]) -> SimBoard {
+        let freq = self.clock_freq;
+        for p in probes {
+            self.bltouch.retain(|b| b.spec.sensor_pin != p.sensor_pin);
+            self.bltouch.push(BlTouch::new(p.clone(), freq));
+        }
         self
     }
 
@@ -180,6 +195,10 @@ impl Board for SimBoard {
 
     fn read_pin(&mut self, pin: u8, at: WireClock) -> bool {
         let at = self.extend(at);
+        if let Some(b) = self.bltouch.iter_mut().find(|b| b.spec.sensor_pin == pin) {
+            let z = self.world.coord_at_clock(&b.spec.coord, at);
+            return b.sense(at, z) != b.spec.active_low;
+        }
         self.world.read_endstop(pin, at).unwrap_or(false)
     }
 
@@ -194,7 +213,11 @@ impl Board for SimBoard {
     }
 
     fn set_pin(&mut self, pin: u8, value: bool, clock: WireClock) {
-        let t = self.seconds(self.extend(clock));
+        let at = self.extend(clock);
+        for b in self.bltouch.iter_mut().filter(|b| b.spec.control_pin == pin) {
+            b.control(value, at);
+        }
+        let t = self.seconds(at);
         for h in self.heaters.iter_mut().filter(|h| h.heater_pin == pin) {
             h.set(value, t);
         }

@@ -1,5 +1,6 @@
 //! The `cadence-mcu` command line (docs/contract.md).
 
+use super::bltouch::{BlTouchSpec, Fault as BlTouchFault};
 use super::heater::{HeaterFault, ThermalModel};
 use super::world::{AxisSpec, Coord, EndstopSpec};
 use crate::trace::TraceFormat;
@@ -68,6 +69,12 @@ pub struct Cli {
     /// TRIGGER_MM; COORD is an axis (`x`) or a linear combination of axes (`0.5*a+0.5*b`).
     #[arg(long = "endstop", value_name = "PIN=COORD,TRIGGER_MM,min|max", value_parser = parse_endstop)]
     pub endstops: Vec<EndstopSpec>,
+    /// A BLTouch: its sensor output on SENSOR_PIN (`!`: reads 0 when triggered), its servo
+    /// input on CONTROL_PIN, its pin touching the bed where COORD (the toolhead's Z) reaches
+    /// SURFACE_MM; optionally a fault: `stuck` (never raises) or `mute` (never reports).
+    #[arg(long = "bltouch", value_name = "[!]SENSOR_PIN=CONTROL_PIN,COORD,SURFACE_MM[,stuck|mute]",
+          value_parser = parse_bltouch)]
+    pub bltouch: Vec<BlTouchSpec>,
     /// A heater output and the thermistor ADC input it warms (100K NTC beta 3950, 4.7k pull-up),
     /// with the thermal model of a 40 W hotend (default) or a 150 W bed.
     #[arg(long = "heater", value_name = "HEATER_PIN=SENSOR_PIN[,hotend|bed]", value_parser = parse_heater)]
@@ -221,6 +228,35 @@ fn parse_endstop(s: &str) -> Result<EndstopSpec, String> {
     })
 }
 
+fn parse_bltouch(s: &str) -> Result<BlTouchSpec, String> {
+    const FORM: &str = "expected [!]SENSOR_PIN=CONTROL_PIN,COORD,SURFACE_MM[,stuck|mute]";
+    let (pin, rest) = s.split_once('=').ok_or(FORM)?;
+    let f: Vec<&str> = rest.split(',').collect();
+    let (control, coord, surface, fault) = match f.as_slice() {
+        [c, z, s] => (c, z, s, None),
+        [c, z, s, f] => (c, z, s, Some(*f)),
+        _ => return Err(FORM.into()),
+    };
+    let (active_low, pin) = match pin.trim().strip_prefix('!') {
+        Some(p) => (true, p),
+        None => (false, pin),
+    };
+    let fault = match fault.map(str::trim) {
+        None => None,
+        Some("stuck") => Some(BlTouchFault::Stuck),
+        Some("mute") => Some(BlTouchFault::Mute),
+        Some(other) => return Err(format!("`{other}` is neither stuck nor mute")),
+    };
+    Ok(BlTouchSpec {
+        sensor_pin: parse_pin(pin)?,
+        control_pin: parse_pin(control)?,
+        coord: Coord::parse(coord).map_err(|e| e.to_string())?,
+        surface_mm: parse_f64(surface, "surface position")?,
+        active_low,
+        fault,
+    })
+}
+
 /// `--heater`: pins and thermal model.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct HeaterSpec {
@@ -304,6 +340,18 @@ mod tests {
     use proptest::prelude::*;
 
     proptest! {
+        /// `--bltouch` reads its pins, coordinate, surface and fault.
+        #[test]
+        fn bltouch_spec(z in -10.0f64..10.0) {
+            let b = parse_bltouch(&format!("!PA4=PA5,z,{z},stuck")).map_err(TestCaseError::fail)?;
+            prop_assert_eq!((b.sensor_pin, b.control_pin, b.active_low), (4, 5, true));
+            prop_assert_eq!((b.surface_mm, b.fault), (z, Some(BlTouchFault::Stuck)));
+            let b = parse_bltouch("PA4=PA5,z,0").map_err(TestCaseError::fail)?;
+            prop_assert_eq!((b.active_low, b.fault), (false, None));
+            prop_assert!(parse_bltouch("PA4=PA5,z,0,wobbly").is_err());
+            prop_assert!(parse_bltouch("PA4=PA5,z").is_err());
+        }
+
         /// Pin names round-trip; no input makes a parser panic.
         #[test]
         fn parsers_never_panic(s in ".{0,40}", pin in 0u8..96) {
@@ -313,6 +361,7 @@ mod tests {
             let _ = parse_pin(&s);
             let _ = parse_axis(&s);
             let _ = parse_endstop(&s);
+            let _ = parse_bltouch(&s);
             let _ = parse_heater(&s);
             let _ = parse_rate(&s);
         }

@@ -15,6 +15,7 @@
 //! loop runs on a thread with a generous stack (a debug build may copy the value through the
 //! stack while boxing it).
 
+pub mod bltouch;
 pub mod board;
 pub mod cli;
 pub mod clock;
@@ -171,7 +172,8 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
     let world = world::World::new(cli.world.as_deref(), cli.axes.clone(), cli.endstops.clone())?;
     let board = SimBoard::new(cli.clock_freq, trace)?
         .with_world(world)
-        .with_heaters(&cli.heaters, &cli.heater_faults);
+        .with_heaters(&cli.heaters, &cli.heater_faults)
+        .with_bltouch(&cli.bltouch);
     let dictionary: &'static [u8] = Box::leak(crate::dictionary_bytes(cli.clock_freq).into_boxed_slice());
     let config = McuConfig {
         clock_freq: cli.clock_freq,

@@ -522,6 +522,14 @@ impl World {
         })
     }
 
+    /// Value of coordinate `c` at MCU clock `clock` (refreshes remote positions first; with a
+    /// time base the other processes' axes as they were then), `None` while an axis is unknown.
+    pub fn coord_at_clock(&mut self, c: &Coord, clock: u64) -> Option<f64> {
+        self.refresh();
+        let at = self.time.map(|t| t.ns(clock));
+        self.coord_at(c, at)
+    }
+
     /// Level of input `pin`, sampled at MCU clock `clock`, if it is a simulated endstop
     /// (refreshes remote positions first). With a time base the other processes' axes are
     /// read as they were at `clock`, as a real MCU sampling on time would see them.

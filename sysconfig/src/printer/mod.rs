@@ -8,13 +8,14 @@
 //! warning). Sections [`SECTIONS`] refuses fail the load first, naming the missing feature.
 //!
 //! Build order (it decides which error is reported first): MCUs (pins are checked against
-//! them), `[printer]`, `[probe]` (its `z_offset` is Z's endstop position with
+//! them), `[printer]`, `[probe]` or `[bltouch]` (its `z_offset` is Z's endstop position with
 //! `probe:z_virtual_endstop`), the steppers the kinematics needs, their further motors
 //! (`[stepper_z1]`…), `[extruder]`, `[heater_bed]`, the thermal sections (`thermal`),
 //! `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`,
 //! `[input_shaper]`, `[gcode_macro]`s, `[safe_z_home]` / `[homing_override]`, then the
 //! unused-option/section check.
 
+mod bltouch;
 mod board_pins;
 pub mod check;
 mod delta;
@@ -40,6 +41,7 @@ use std::path::{Path, PathBuf};
 
 use crate::ini::{self, ConfigFile};
 
+pub use bltouch::{BlTouchSection, OutputMode as BlTouchOutputMode, OUTPUT_MODES as BLTOUCH_OUTPUT_MODES};
 pub use delta::{DeltaSection, DEFAULT_ANGLES};
 pub use error::{ConfigError, ValueProblem};
 pub use extruder::ExtruderSection;
@@ -88,8 +90,10 @@ pub struct PrinterConfig {
     /// `[mcu]` first, then each `[mcu NAME]` in file order.
     pub mcus: Vec<McuSection>,
     pub heater_bed: Option<HeaterSection>,
-    /// `[probe]`.
+    /// `[probe]`, or the probe a `[bltouch]` is.
     pub probe: Option<ProbeSection>,
+    /// `[bltouch]`'s own options (its probe options are in `probe`).
+    pub bltouch: Option<BlTouchSection>,
     /// `[simulator]`, or its defaults.
     pub simulator: SimulatorSection,
     /// `[realtime]`, or its defaults.
@@ -156,14 +160,25 @@ impl PrinterConfig {
             false => None,
         };
 
-        let probe = match reader.section("probe") {
-            Some(s) => {
-                let p = probe::read_probe(&s, &mut pins)?;
-                pins.set_probe();
-                Some(p)
+        let (probe, bltouch) = match (reader.section("probe"), reader.section("bltouch")) {
+            (Some(_), Some(b)) => {
+                return Err(ConfigError::BadSection {
+                    at: b.at().clone(),
+                    section: "bltouch".to_string(),
+                    reason: "is a probe, and there is a [probe] section already: keep one of them"
+                        .to_string(),
+                })
             }
-            None => None,
+            (Some(s), None) => (Some(probe::read_probe(&s, &mut pins)?), None),
+            (None, Some(s)) => {
+                let (p, b) = bltouch::read_bltouch(&s, &mut pins)?;
+                (Some(p), Some(b))
+            }
+            (None, None) => (None, None),
         };
+        if probe.is_some() {
+            pins.set_probe();
+        }
 
         let mut steppers = Vec::new();
         let mut towers = Vec::new();
@@ -267,6 +282,7 @@ impl PrinterConfig {
             mcus,
             heater_bed,
             probe,
+            bltouch,
             simulator,
             realtime,
             gcode,

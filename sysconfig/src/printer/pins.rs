@@ -248,7 +248,7 @@ impl PinRegistry {
     /// probe's pin was claimed by `[probe]`.
     fn check_probe_pin(&self, pin: &PinRef, section: &str, option: &str) -> Result<(), ValueProblem> {
         let invalid = |why: String| Err(ValueProblem::Invalid(format!("pin '{pin}': {why}")));
-        if section == "probe" {
+        if matches!(section, "probe" | "bltouch") {
             return Err(ValueProblem::Invalid(format!(
                 "pin '{pin}' is the probe's own virtual endstop (only for [stepper_z] endstop_pin)"
             )));

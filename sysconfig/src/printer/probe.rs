@@ -74,6 +74,11 @@ pub struct ProbeSection {
 
 pub(crate) fn read_probe(s: &SectionReader<'_>, pins: &mut PinRegistry) -> Result<ProbeSection, ConfigError> {
     let pin = s.pin("pin", PinKind::Input, pins, Share::Exclusive)?;
+    read_probe_options(s, pin)
+}
+
+/// The options every probe section shares (`[probe]`, `[bltouch]`…), around its input `pin`.
+pub(crate) fn read_probe_options(s: &SectionReader<'_>, pin: PinRef) -> Result<ProbeSection, ConfigError> {
     let x_offset = s.float_or("x_offset", 0.0, Bounds::ANY)?;
     let y_offset = s.float_or("y_offset", 0.0, Bounds::ANY)?;
     let z_offset = s.float("z_offset", Bounds::ANY)?;

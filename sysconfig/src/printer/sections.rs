@@ -38,7 +38,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("bed_mesh", Ignored),
     ("bed_screws", Ignored),
     ("bed_tilt", Ignored),
-    ("bltouch", Refused("BLTouch probe")),
+    ("bltouch", Read),
     ("bmi160", Ignored),
     ("board_pins", Read),
     ("controller_fan", Read),
@@ -232,7 +232,8 @@ mod tests {
         assert_eq!(support("stepper_y12"), Some(Read));
         assert_eq!(support("extruder1"), Some(Refused("more than one extruder")));
         assert_eq!(support("extruder"), Some(Read));
-        assert_eq!(support("bltouch"), Some(Refused("BLTouch probe")));
+        assert_eq!(support("bltouch"), Some(Read));
+        assert_eq!(support("smart_effector"), Some(Refused("Smart Effector probe")));
         for unknown in [
             "stepper_z01",
             "stepper_",

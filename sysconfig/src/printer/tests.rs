@@ -193,14 +193,17 @@ fn unknown_sections_and_options_are_errors_ignored_ones_warnings() {
     // A refused section is the first error, before the pins that depend on it.
     assert_eq!(
         parse(&format!(
-            "{}[bltouch]\nsensor_pin: PD0\n",
+            "{}[smart_effector]\npin: PD0\n",
             MINIMAL.replace(
                 "rotation_distance: 8\n",
                 "rotation_distance: 8\nendstop_pin: probe:z_virtual_endstop\n"
             )
         ))
         .map(|_| ()),
-        Err("printer.cfg:26: [bltouch] is not supported by Cadence yet (BLTouch probe)".to_string())
+        Err(
+            "printer.cfg:26: [smart_effector] is not supported by Cadence yet (Smart Effector probe)"
+                .to_string()
+        )
     );
     assert_eq!(
         parse(&MINIMAL.replace(
