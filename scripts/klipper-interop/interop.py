@@ -634,6 +634,12 @@ def main():
     ap.add_argument("--klippy-fifo", type=int, default=60,
                     help="SCHED_FIFO priority of klippy (0: ordinary); above the simulated "
                          "MCUs', which on a real printer would not share the host's CPUs")
+    ap.add_argument("--simulavr", default=os.environ.get("CADENCE_SIMULAVR"),
+                    help="a simulavr tree built with its Python module (--enable-python): "
+                         "c2k-avr-home-print runs Klipper's ATmega644p build in it")
+    ap.add_argument("--avr-freq", type=int, default=16000000,
+                    choices=[8000000, 16000000, 20000000],
+                    help="clock of the simulated ATmega644p (simulavr must keep up with it)")
     ap.add_argument("--trace-dir", default="/dev/shm",
                     help="where the simulated MCUs write their step traces (default: /dev/shm, "
                          "a tmpfs, so that no trace write waits for the disk)")
@@ -654,6 +660,8 @@ def main():
     heaters.scenarios(results, args, klipper, bins)
     import batch  # noqa: E402  (the batch and Cadence-host scenarios)
     batch.scenarios(results, args, klipper, bins)
+    import avr  # noqa: E402  (Cadence's host on Klipper's AVR build under simulavr)
+    avr.scenarios(results, args, klipper, bins)
     print_table(results, klipper)
     return 1 if any(r[1] == "FAIL" for r in results) else 0
 
