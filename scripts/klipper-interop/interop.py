@@ -13,7 +13,9 @@ Scenarios (--only NAME,NAME to pick):
            klippy's API socket: startup to ready, STATUS, FIRMWARE_RESTART, G28 in cycles
            (second pass and retract), moves and M400, a whole G-code print from virtual_sdcard,
            multi-MCU homing (Z endstop on a second cadence-mcu), and at the end every stepper's
-           position as the MCU executed it (the step trace) against klippy's.
+           position as the MCU executed it (the step trace) against klippy's; and klippy's
+           heater control on the simulated thermal models (heaters.py): M104/M109, M140/M190,
+           M106/M107, verify_heater catching a dead heater, an open thermistor shutting down.
   batch-*  The same G-code and printer through both hosts' batch modes (Klipper's dictionary),
            each stream decoded by both decoders: steps per stepper and final positions equal,
            and `cadence decode --check` proving Klipper's stream.
@@ -25,6 +27,7 @@ Prints a table: scenario, result (PASS / FAIL / BLOCKED), detail. Exit status 1 
 """
 
 import argparse
+import atexit
 import hashlib
 import json
 import os
@@ -240,6 +243,7 @@ def k2c_printer_cfg(run_dir, z_mcu=None):
         "pid_Kp: 22.2", "pid_Ki: 1.08", "pid_Kd: 114", "min_temp: 0", "max_temp: 300", "",
         "[heater_bed]", "heater_pin: PE1", "sensor_type: Generic 3950", "sensor_pin: PF1",
         "control: watermark", "min_temp: 0", "max_temp: 130", "",
+        "[fan]", "pin: PE2", "",
         "[gcode_macro PRINT_START]", "gcode:", "  G28", "",
         "[gcode_macro PRINT_END]", "gcode:", "  M400", "",
     ]
@@ -252,12 +256,13 @@ def k2c_printer_cfg(run_dir, z_mcu=None):
 class Rig:
     """cadence-mcu processes in one simulated world, and klippy driving them."""
 
-    def __init__(self, name, args, klipper, bins, z_mcu=None):
+    def __init__(self, name, args, klipper, bins, z_mcu=None, mcu_extra=()):
         self.name = name
         self.args = args
         self.klipper = klipper
         self.bins = bins
         self.z_mcu = z_mcu
+        self.mcu_extra = list(mcu_extra)
         self.dir = os.path.join(args.work, "run-" + name)
         shutil.rmtree(self.dir, ignore_errors=True)
         os.makedirs(os.path.join(self.dir, "gcodes"))
@@ -275,14 +280,15 @@ class Rig:
                 a += ["--axis", "%s=%s,%s,%s" % (axis, step, STEPS_PER_MM[name], pmax / 10)]
                 if not (self.z_mcu and axis == "z"):
                     a += ["--endstop", "%s=%s,0,min" % (endstop, axis)]
-            a += ["--heater", "PE0=PF0", "--heater", "PE1=PF1"]
+            # The simulated thermal models: a 40 W hotend and a 150 W bed (cadence-mcu --heater).
+            a += ["--heater", "PE0=PF0,hotend", "--heater", "PE1=PF1,bed"] + self.mcu_extra
         else:
             a += ["--endstop", "PC3=z,0,min"]
         return a + ["--world", self.world]
 
     def start(self):
         for mcu in ["mcu"] + ([self.z_mcu] if self.z_mcu else []):
-            trace = os.path.join(self.dir, "trace-%s.csv" % mcu)
+            trace = os.path.join(trace_dir(self.args, self.name), "trace-%s.csv" % mcu)
             # SCHED_FIFO when the OS allows it (a board runs its timers in real time; on a
             # loaded VM an ordinary process stalls for tens of ms, longer than the 25 ms
             # multi-MCU homing budget); refused, cadence-mcu says so once and runs anyway.
@@ -343,6 +349,20 @@ class Rig:
         return {k: int(v) for k, v in (kv.split(":") for kv in lines[-1][5:].split())}
 
 
+def trace_dir(args, rig_name):
+    """Where a rig's cadence-mcu processes write their step traces: under --trace-dir (default
+    /dev/shm, a tmpfs), removed when the harness exits. The simulator writes its trace from its
+    loop thread; on a disk busy with other builds a write can block for over 100 ms (seen:
+    steps 166 ms late, then a queue_step that had waited in the pty taken as too late: 'Timer
+    too close'), far longer than homing's 25 ms budget."""
+    base = args.trace_dir if os.access(args.trace_dir, os.W_OK) else args.work
+    d = os.path.join(base, "cadence-interop-%d" % os.getpid(), rig_name)
+    os.makedirs(d, exist_ok=True)
+    if base != args.work:
+        atexit.register(shutil.rmtree, os.path.dirname(d), True)
+    return d
+
+
 def chrt(priority):
     """`chrt -f PRIORITY` when SCHED_FIFO is allowed here (klippy's serial thread relays
     multi-MCU homing reports within a 25 ms budget, which other builds on a small loaded VM
@@ -372,7 +392,9 @@ def oid_map(rig, mcu):
     dict_path = os.path.join(d, "cadence-mcu.dict")
     with open(dict_path, "w") as f:
         f.write(text)
-    pins = {v: k for k, v in expand_pins(json.loads(text)).items()}
+    # Pin names -> numbers: the dictionary names every board family's pins and the families
+    # share numbers (P1.0 and PE0 are both 32), so compare numbers, not names.
+    pin_numbers = expand_pins(json.loads(text))
     out = os.path.join(d, "config.bin")
     empty = os.path.join(d, "empty.gcode")
     open(empty, "w").close()
@@ -386,14 +408,18 @@ def oid_map(rig, mcu):
     run(rig.klipper.klippy(batch_cfg, *args), cwd=d, timeout=300)
     dump = run([rig.klipper.python, os.path.join(rig.klipper.dir, "klippy", "parsedump.py"),
                 dict_path, out], timeout=120).stdout
-    step_pins = {s[1]: s[0] for s in STEPPERS}
-    step_pins["PD0"] = "extruder"
+    step_pins = {pin_numbers[s[1]]: s[0] for s in STEPPERS}
+    step_pins[pin_numbers["PD0"]] = "extruder"
     oids = {}
-    for m in re.finditer(r"config_stepper oid=(\d+) step_pin=(\w+)", dump):
+    for m in re.finditer(r"config_stepper oid=(\d+) step_pin=([\w./]+)", dump):
         pin = m.group(2)
-        pin = pins.get(int(pin), pin) if pin.isdigit() else pin
-        if pin in step_pins:
-            oids[int(m.group(1))] = step_pins[pin]
+        number = int(pin) if pin.isdigit() else pin_numbers.get(pin)
+        if number in step_pins:
+            oids[int(m.group(1))] = step_pins[number]
+    missing = set(step_pins.values()) - set(oids.values())
+    if missing:
+        raise Fail("no config_stepper for %s in klippy's configuration of '%s'" % (
+            ", ".join(sorted(missing)), mcu))
     return oids
 
 
@@ -608,6 +634,15 @@ def main():
     ap.add_argument("--klippy-fifo", type=int, default=60,
                     help="SCHED_FIFO priority of klippy (0: ordinary); above the simulated "
                          "MCUs', which on a real printer would not share the host's CPUs")
+    ap.add_argument("--simulavr", default=os.environ.get("CADENCE_SIMULAVR"),
+                    help="a simulavr tree built with its Python module (--enable-python): "
+                         "c2k-avr-home-print runs Klipper's ATmega644p build in it")
+    ap.add_argument("--avr-freq", type=int, default=16000000,
+                    choices=[8000000, 16000000, 20000000],
+                    help="clock of the simulated ATmega644p (simulavr must keep up with it)")
+    ap.add_argument("--trace-dir", default="/dev/shm",
+                    help="where the simulated MCUs write their step traces (default: /dev/shm, "
+                         "a tmpfs, so that no trace write waits for the disk)")
     ap.add_argument("--mcu-fifo", type=int, default=50,
                     help="SCHED_FIFO priority of the cadence-mcu processes (0: ordinary)")
     args = ap.parse_args()
@@ -621,8 +656,12 @@ def main():
     results = []
     scenario_k2c(results, args, klipper, bins)
     scenario_k2c_multi(results, args, klipper, bins)
+    import heaters  # noqa: E402  (klippy driving the simulated heaters and fan)
+    heaters.scenarios(results, args, klipper, bins)
     import batch  # noqa: E402  (the batch and Cadence-host scenarios)
     batch.scenarios(results, args, klipper, bins)
+    import avr  # noqa: E402  (Cadence's host on Klipper's AVR build under simulavr)
+    avr.scenarios(results, args, klipper, bins)
     print_table(results, klipper)
     return 1 if any(r[1] == "FAIL" for r in results) else 0
 

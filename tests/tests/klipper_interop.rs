@@ -252,7 +252,8 @@ fn libc_o_noctty() -> i32 {
 }
 
 /// Opt-in: the conformance harness against a real Klipper tree named by
-/// `CADENCE_KLIPPER_SRC` (`CADENCE_KLIPPER_ONLY` picks scenarios, as its `--only`). Skipped,
+/// `CADENCE_KLIPPER_SRC` (`CADENCE_KLIPPER_ONLY` picks scenarios, as its `--only`;
+/// `CADENCE_SIMULAVR`, a simulavr tree with its Python module, for the AVR one). Skipped,
 /// saying so, when the variable is unset: the normal suite never needs Klipper. Every row of
 /// the harness's table must be PASS or BLOCKED.
 #[test]

@@ -178,10 +178,15 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
         }
     }
 
-    /// Feeds bytes from the host received at `now`: runs due timers, then dispatches every
-    /// complete block, answering and acking.
+    /// Feeds bytes from the host received at `now`: dispatches every complete block, answering
+    /// and acking. Timers already due are left to the next [`Mcu::run_timers`], after the
+    /// commands: a platform loop that ran late (a stalled process, a long interrupt) cannot
+    /// tell when during its delay the bytes came, and a board's UART takes them in while its
+    /// timers wait, so a `trsync_set_timeout` sent in time must renew the trsync before the
+    /// expiry it was sent to prevent (a simulated MCU stalled under Klipper's host expired
+    /// trsyncs whose renewal was waiting: "Communication timeout during homing").
     pub fn receive(&mut self, now: WireClock, mut data: &[u8]) {
-        self.run_due(now);
+        self.observe(now);
         let mut payload = [0u8; MESSAGE_PAYLOAD_MAX];
         while !data.is_empty() {
             let n = self.link.push_rx(data);

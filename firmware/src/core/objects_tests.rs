@@ -161,6 +161,32 @@ fn renewed_timeout_does_not_expire_and_host_trigger_reports() {
     assert_eq!(named(&msgs, "trsync_state"), [&[1, 0, 4, 40_000][..]]);
 }
 
+/// A platform loop that comes back late (a stalled simulator process) hands the bytes that
+/// waited to the MCU before its overdue timers: a renewal the host sent before the expiry
+/// renews it although the loop only reads it after the expiry clock. Before, `receive` ran
+/// the due timers first and the trsync expired with reason 4 ("Communication timeout during
+/// homing" under Klipper's host, whose renewals sat in the pty of a stalled cadence-mcu).
+#[test]
+fn renewal_read_after_a_stall_is_applied_before_the_overdue_expiry() {
+    let mut host = homing_host(1_000_000);
+    host.exchange(&[
+        ("trsync_start", &[1, 0, 0, 4]),
+        ("trsync_set_timeout", &[1, 10_000]),
+    ]);
+    host.advance(9_000);
+    // The loop stalls from 9 000 to 12 000; the renewal waited in its input meanwhile.
+    host.now = 12_000;
+    let msgs = all_msgs(&host.exchange(&[("trsync_set_timeout", &[1, 30_000])]));
+    assert!(named(&msgs, "trsync_state").is_empty(), "{msgs:?}");
+    let msgs = all_msgs(&host.advance(29_000));
+    assert!(
+        named(&msgs, "trsync_state").is_empty(),
+        "the renewal came first: no expiry at 10 000"
+    );
+    let msgs = all_msgs(&host.advance(30_000));
+    assert_eq!(named(&msgs, "trsync_state"), [&[1, 0, 4, 30_000][..]]);
+}
+
 /// Klipper's host takes any `trsync_state can_trigger=0` as the trigger of the pass it waits
 /// for: after its `trsync_trigger` (end of a homing pass) the MCU must stay silent until the
 /// next `trsync_start`, or a stale report ends the next pass early ("No trigger on stepper_z

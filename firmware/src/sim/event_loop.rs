@@ -15,7 +15,13 @@
 //!   dense steps from turning into an endless busy loop that starves the host on a small
 //!   machine.
 //!
-//! Each chunk the host sent is fed to the core at the clock of its arrival.
+//! Each chunk the host sent is fed to the core at the clock of its arrival. When the loop comes
+//! back after more than [`INPUT_POLL`] away from the pty (preempted, or stalled by the machine),
+//! it takes the waiting input before the timers that fell due meanwhile: a board's UART
+//! receives while its timers wait, so a `trsync_set_timeout` the host sent in time renews the
+//! trsync before the expiry it was sent to prevent, and a `queue_step` joins its stepper's
+//! queue before the stepper runs dry (it was refused as "Timer too close" after a 166 ms stall
+//! of a cadence-mcu under Klipper's host).
 //!
 //! Hang-up: the master reports POLLHUP once the host has opened and closed the slave — but also
 //! if anything else opened and closed it before the host came. So a hang-up counts only after
@@ -154,6 +160,19 @@ impl<'a> EventLoop<'a> {
                     self.freeze = None;
                 }
             }
+            if self.last_input_poll.elapsed() >= INPUT_POLL && !self.hangup_wait {
+                // The loop was away longer than an input check's period (the process was
+                // preempted or stalled, e.g. while spinning): what the host sent meanwhile is
+                // taken before the timers that fell due, as a board's UART would have received
+                // it while they waited (a trsync renewal before its expiry, a queue_step before
+                // its stepper's queue ran dry).
+                if self.take_waiting_input(mcu, &mut buf)? {
+                    if self.host_seen && self.host_closed() {
+                        return Ok(Exit::HostClosed);
+                    }
+                    self.hangup_wait = true;
+                }
+            }
             let now = self.clock.now();
             mcu.board_mut().now = now;
             mcu.run_timers(WireClock(now as u32));
@@ -270,6 +289,23 @@ impl<'a> EventLoop<'a> {
             self.hangup_wait = false;
         }
         Ok(r)
+    }
+
+    /// Checks the pty without waiting and feeds what is there to the core; returns true on a
+    /// hang-up.
+    fn take_waiting_input(&mut self, mcu: &mut SimMcu, buf: &mut [u8]) -> Result<bool, SimError> {
+        let mut fds = [PollFd::new(self.pty.fd(), PollFlags::POLLIN)];
+        match poll(&mut fds, PollTimeout::ZERO) {
+            Ok(_) | Err(Errno::EINTR) => {}
+            Err(e) => return Err(super::sys("poll")(e)),
+        }
+        self.last_input_poll = Instant::now();
+        let r = fds[0].revents().unwrap_or(PollFlags::empty());
+        let hung_up = r.intersects(PollFlags::POLLHUP | PollFlags::POLLERR);
+        if r.contains(PollFlags::POLLIN) || hung_up {
+            return Ok(self.read_input(mcu, buf)? | hung_up);
+        }
+        Ok(false)
     }
 
     /// Reads everything available and feeds it to the core; returns true on a hang-up.
