@@ -121,7 +121,7 @@ fn check_config_lists_every_error_and_the_ignored_sections() {
 
     let bad = dir.join("bad.cfg");
     let text = format!(
-        "{}\n[bltouch]\nsensor_pin: PA9\n[stepper_yy]\n[gcode_arcs]\nresolution: -1\n[neopixel x]\npin: PA9\n",
+        "{}\n[smart_effector]\npin: PA9\n[stepper_yy]\n[gcode_arcs]\nresolution: -1\n[neopixel x]\npin: PA9\n",
         sysconfig::printer::SIMULATED_PRINTER_CFG
     );
     std::fs::write(&bad, &text).unwrap();
@@ -130,8 +130,10 @@ fn check_config_lists_every_error_and_the_ignored_sections() {
     assert_eq!(run.code, Some(1), "{}\n{}", run.stdout, run.stderr);
     let at = |needle: &str| format!("bad.cfg:{}", line_of(needle));
     assert!(
-        run.stdout
-            .contains(&format!("{}: [bltouch] is not supported", at("[bltouch]"))),
+        run.stdout.contains(&format!(
+            "{}: [smart_effector] is not supported",
+            at("[smart_effector]")
+        )),
         "{}",
         run.stdout
     );
@@ -150,7 +152,7 @@ fn check_config_lists_every_error_and_the_ignored_sections() {
     assert!(run.stdout.contains("3 errors"), "{}", run.stdout);
     assert!(
         run.stdout
-            .contains("refused (not supported by Cadence yet):\n  [bltouch]"),
+            .contains("refused (not supported by Cadence yet):\n  [smart_effector]"),
         "{}",
         run.stdout
     );
