@@ -147,6 +147,10 @@ pub fn run_with(
         None => GcodeInput::open(&args.file).map_err(|e| format!("{}: {e}", args.file.display()))?,
     };
     let mut cfg = crate::hardware::load_config(args.config.as_deref())?;
+    // The run's time scale is the simulated printer's (heater safety windows follow it).
+    if let Some(scale) = args.time_scale {
+        cfg.simulator.time_scale = scale;
+    }
     if args.strict {
         cfg.gcode.unknown_commands = sysconfig::printer::UnknownCommands::Error;
     }

@@ -252,7 +252,7 @@ impl Printer {
     /// Loads the printer, connects and configures its MCUs (starting simulated ones) and
     /// starts the pipeline threads, ready for G-code.
     pub fn open(source: PrinterSource, opts: PrinterOptions) -> Result<Printer, OpenError> {
-        let cfg = match source {
+        let mut cfg = match source {
             PrinterSource::Simulated => crate::hardware::load_config(None)?,
             PrinterSource::ConfigFile(p) => crate::hardware::load_config(Some(&p))?,
             PrinterSource::Config(c) => *c,
@@ -280,6 +280,8 @@ impl Printer {
                 why: "must be in (0, 50]",
             });
         }
+        // The run's time scale is the simulated printer's (heater safety windows follow it).
+        cfg.simulator.time_scale = time_scale;
         let machine = Machine::from_config(&cfg)?;
         let logging = Logging::start_with(opts.log_level, opts.log_file.clone(), opts.log_to_stderr)
             .map_err(|why| OpenError::Thread { what: "logger", why })?;

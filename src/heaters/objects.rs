@@ -21,6 +21,9 @@ use super::verify::VerifyConfig;
 /// Klipper's longest time a heater PWM value may stay in force without a refresh (s): the
 /// MCU's `max_duration` of every heater output.
 pub const MAX_HEAT_TIME: f64 = 3.0;
+/// The longest `max_duration` (s of MCU time) a time-scaled simulated MCU gets: see
+/// [`Thermal::max_heat_time`].
+pub const SIM_MAX_HEAT_TIME: f64 = 30.0;
 /// ADC readings summed per report (Klipper's thermistor oversampling).
 pub const SAMPLE_COUNT: u8 = 8;
 /// Seconds between the readings of one report.
@@ -141,6 +144,9 @@ pub struct Thermal {
     pub heaters: Vec<HeaterOut>,
     pub sensors: Vec<SensorOut>,
     pub fans: Vec<FanOut>,
+    /// MCU seconds per wall second of a simulated printer (`[simulator] time_scale`, or the
+    /// run's `--time-scale` written there); 0 or 1 = real time.
+    pub sim_time_scale: f64,
 }
 
 /// Why the thermal sections describe nothing the host can drive; each names the section.
@@ -196,10 +202,23 @@ fn sensor_of(
 }
 
 impl Thermal {
+    /// The longest time (s of MCU time) a heater's PWM value stays in force without a refresh:
+    /// the `max_duration` of every heater output. Klipper's 3 s on a real board. A simulated MCU
+    /// running N times faster than the wall clock gets the same 3 s of wall time, at most
+    /// [`SIM_MAX_HEAT_TIME`] of its own: the host's heater loop lives in wall time, and a 3 s
+    /// window of MCU time would be 60 ms of wall time at 50×, less than this VM's pauses (a
+    /// simulated heater whose host is gone still turns itself off, 0.6 s of wall time later).
+    pub fn max_heat_time(&self) -> f64 {
+        (MAX_HEAT_TIME * self.sim_time_scale.max(1.0)).min(SIM_MAX_HEAT_TIME)
+    }
+
     /// The thermal objects of `cfg`.
     pub fn from_config(cfg: &PrinterConfig) -> Result<Thermal, ThermalError> {
         let th = &cfg.thermal;
         let mut out = Thermal::default();
+        if cfg.mcus.iter().any(|m| m.is_simulated()) {
+            out.sim_time_scale = cfg.simulator.time_scale;
+        }
         let sections: Vec<(&HeaterSection, bool)> = cfg
             .extruder
             .iter()
@@ -531,7 +550,7 @@ impl Thermal {
                         &h.heater_pin,
                         &format!("[{}] heater_pin", h.name),
                         h.pwm_cycle_time,
-                        MAX_HEAT_TIME,
+                        self.max_heat_time(),
                     )?;
                 }
                 ThermalObject::Fan(i) => {

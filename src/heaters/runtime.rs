@@ -23,8 +23,7 @@ use links::mcu::McuLink;
 use super::calibrate::RelayTuner;
 use super::control::{Control, Pid, PidGains, Smoothed, Watermark};
 use super::objects::{
-    adc_range, FanRole, Thermal, ThermalObject, MAX_HEAT_TIME, RANGE_CHECK_COUNT, REPORT_TIME, SAMPLE_COUNT,
-    SAMPLE_TIME,
+    adc_range, FanRole, Thermal, ThermalObject, RANGE_CHECK_COUNT, REPORT_TIME, SAMPLE_COUNT, SAMPLE_TIME,
 };
 use super::verify::{VerifyHeater, CHECK_INTERVAL_S};
 use crate::mcus::Mcus;
@@ -391,10 +390,9 @@ struct RunningSensor {
 /// Seconds of wall time a PWM update is sent ahead of its clock at least (and 0.1 s of MCU
 /// time): host pauses of this VM's kind (~10–100 ms) must not make an update late, which the
 /// MCU would take as a missed update and shut down. On a time-scaled simulator this is more MCU
-/// time, capped at [`MAX_LEAD_S`].
+/// time, capped at half the heaters' `max_duration` ([`Thermal::max_heat_time`]), so refreshes
+/// keep within it.
 const WALL_LEAD_S: f64 = 0.25;
-/// Longest lead in MCU seconds: half the heaters' `max_duration`, so refreshes keep within it.
-const MAX_LEAD_S: f64 = 0.5 * MAX_HEAT_TIME;
 
 /// Runs the heater loop until `shared.stop` (then every heater off) or an MCU shutdown. Errors
 /// (a missing command, a dead link) end the loop and are returned after every heater is off.
@@ -417,7 +415,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
         let adc_max = dict.config_f64("ADC_MAX").unwrap_or(4095.0);
         // The first round starts once the query has surely arrived (0.1 s of MCU time past
         // the update lead).
-        let start = lead_clock(&conn.link, freq) as f64 + 0.1 * freq;
+        let start = lead_clock(&conn.link, freq, thermal.max_heat_time()) as f64 + 0.1 * freq;
         for (k, obj) in objects.iter().enumerate() {
             let oid = u8::try_from(oid0 + k).map_err(|_| "too many objects".to_string())?;
             match *obj {
@@ -508,7 +506,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
     // Every heater off, whatever ended the loop (an MCU that shut down has them off already).
     for (_, r) in &heaters {
         let conn = &mcus.list[r.link_index];
-        let at = lead_clock(&conn.link, conn.clock_freq);
+        let at = lead_clock(&conn.link, conn.clock_freq, thermal.max_heat_time());
         let _ = send_pwm(&conn.link, r.pwm_oid, at, 0, r.invert, r.cycle_ticks);
     }
     result
@@ -544,16 +542,16 @@ fn query_analog(
 }
 
 /// The lead (MCU ticks) of an update sent now.
-fn lead_ticks(link: &McuLink, nominal: f64) -> f64 {
+fn lead_ticks(link: &McuLink, nominal: f64, max_heat_time: f64) -> f64 {
     (0.1 * nominal)
         .max(WALL_LEAD_S * link.clock().freq())
-        .min(MAX_LEAD_S * nominal)
+        .min(0.5 * max_heat_time * nominal)
 }
 
 /// The earliest MCU clock an update sent now may be scheduled at.
-fn lead_clock(link: &McuLink, nominal: f64) -> u64 {
+fn lead_clock(link: &McuLink, nominal: f64, max_heat_time: f64) -> u64 {
     let now = link.clock().clock_at(McuLink::system_now());
-    (now + lead_ticks(link, nominal)) as u64
+    (now + lead_ticks(link, nominal, max_heat_time)) as u64
 }
 
 fn send_pwm(
@@ -737,13 +735,17 @@ fn heater_loop(
                 }
             }
             let on = on_ticks(power / 1.0, r.cycle_ticks);
-            let at = ((read_clock as f64 + REPORT_TIME * freq) as u64).max(lead_clock(&conn.link, freq));
+            let at = ((read_clock as f64 + REPORT_TIME * freq) as u64).max(lead_clock(
+                &conn.link,
+                freq,
+                thermal.max_heat_time(),
+            ));
             // The MCU queues few updates (8): with a long lead (a time-scaled simulator) a new
             // value waits until a fifth of the lead has passed since the last one.
-            let min_gap = (lead_ticks(&conn.link, freq) / 5.0) as u64;
+            let min_gap = (lead_ticks(&conn.link, freq, thermal.max_heat_time()) / 5.0) as u64;
             let send = r.last_sent.is_none_or(|(c, o)| {
                 let gap = at.saturating_sub(c);
-                (o != on && gap >= min_gap) || gap as f64 > 0.25 * MAX_HEAT_TIME * freq
+                (o != on && gap >= min_gap) || gap as f64 > 0.25 * thermal.max_heat_time() * freq
             });
             if send {
                 if send_pwm(&conn.link, r.pwm_oid, at, on, r.invert, r.cycle_ticks).is_err() {
@@ -794,7 +796,7 @@ fn heater_loop(
                 continue;
             }
             let conn = &mcus.list[f.link_index];
-            let at = lead_clock(&conn.link, conn.clock_freq);
+            let at = lead_clock(&conn.link, conn.clock_freq, thermal.max_heat_time());
             let value = on_ticks(speed * spec.opts.max_power, f.cycle_ticks);
             let kick = spec.opts.kick_start_time;
             let from_off = f.last.is_none_or(|l| l == 0.0);

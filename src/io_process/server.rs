@@ -78,7 +78,7 @@ pub struct ServeOutcome {
 /// FINISH, publishes DONE. `warn` gets the printer.cfg's warnings. Errors before the MCUs are
 /// connected come back as `Err`; later ones in [`ServeOutcome::result`] after the report.
 pub fn run(args: &ServeOptions, warn: &mut dyn FnMut(&str)) -> Result<ServeOutcome, String> {
-    let cfg = crate::hardware::load_config(args.config.as_deref())?;
+    let mut cfg = crate::hardware::load_config(args.config.as_deref())?;
     for w in &cfg.warnings {
         warn(w);
     }
@@ -90,6 +90,8 @@ pub fn run(args: &ServeOptions, warn: &mut dyn FnMut(&str)) -> Result<ServeOutco
     if !(time_scale > 0.0 && time_scale <= 50.0) {
         return Err(format!("--time-scale {time_scale}: must be in (0, 50]"));
     }
+    // The run's time scale is the simulated printer's (heater safety windows follow it).
+    cfg.simulator.time_scale = time_scale;
     let machine = Machine::from_config(&cfg)?;
     super::planner_side::check_single_mcu(&machine)?;
     let instance = args
