@@ -138,7 +138,7 @@ impl Accessories {
         }
         if self.motors_off > 0 {
             out.push(format!(
-                "M84/M18: {} times (axes unhomed; the drivers' enable pins stay on)",
+                "M84/M18: {} times (axes unhomed, stepper drivers turned off)",
                 self.motors_off
             ));
         }

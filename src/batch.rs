@@ -162,4 +162,12 @@ impl<W: std::io::Write> FeedTarget for BatchTarget<'_, W> {
     fn warn(&mut self, text: String) {
         eprintln!("cadence: warning: {text}");
     }
+
+    fn motors_off(&mut self, pipeline: &mut Pipeline) -> Result<(), String> {
+        let mut out = Vec::new();
+        pipeline.flush_lookahead();
+        pipeline.generate(&mut out);
+        self.emit(&mut out)?;
+        self.streams.motors_off(&[], self.sinks)
+    }
 }

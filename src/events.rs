@@ -58,6 +58,9 @@ pub struct Status {
     pub fans: Vec<FanStatus>,
     /// Each `[temperature_sensor]` while a print runs.
     pub sensors: Vec<SensorStatus>,
+    /// What SAVE_CONFIG would write now (PID_CALIBRATE results…; empty when nothing is
+    /// pending): Klipper's `configfile` `save_config_pending` and its items.
+    pub save_config_pending: sysconfig::autosave::Changes,
 }
 
 /// One heater in a [`Status`] (Klipper's `extruder`/`heater_bed` status objects).
@@ -205,6 +208,10 @@ pub(crate) struct SessionShared {
     events_dropped: AtomicU64,
     /// The heater loop's state, once the session's print started it.
     pub heaters: std::sync::OnceLock<std::sync::Arc<crate::heaters::runtime::HeaterShared>>,
+    /// Set by the print's owner to end a wait in progress (see `LiveOptions::interrupt`).
+    interrupt: Option<std::sync::Arc<AtomicBool>>,
+    /// The planner's pending SAVE_CONFIG changes, as last published.
+    save_pending: Mutex<sysconfig::autosave::Changes>,
 }
 
 impl SessionShared {
@@ -217,7 +224,32 @@ impl SessionShared {
             events: Mutex::new(events),
             events_dropped: AtomicU64::new(0),
             heaters: std::sync::OnceLock::new(),
+            interrupt: None,
+            save_pending: Mutex::new(sysconfig::autosave::Changes::default()),
         }
+    }
+
+    /// Publishes the pending SAVE_CONFIG changes (the planner, after each change).
+    pub fn publish_save_pending(&self, changes: &sysconfig::autosave::Changes) {
+        if let Ok(mut p) = self.save_pending.lock() {
+            p.clone_from(changes);
+        }
+    }
+
+    /// The pending SAVE_CONFIG changes last published.
+    pub fn save_pending(&self) -> sysconfig::autosave::Changes {
+        self.save_pending.lock().map(|p| p.clone()).unwrap_or_default()
+    }
+
+    /// With `interrupt`: once it is set, waits end (see [`SessionShared::interrupted`]).
+    pub fn with_interrupt(mut self, interrupt: Option<std::sync::Arc<AtomicBool>>) -> SessionShared {
+        self.interrupt = interrupt;
+        self
+    }
+
+    /// True once the print's owner asked a wait in progress to end.
+    pub fn interrupted(&self) -> bool {
+        self.interrupt.as_ref().is_some_and(|i| i.load(Ordering::Acquire))
     }
 
     /// The heaters', fans' and temperature sensors' status (empty before the print started its

@@ -190,6 +190,10 @@ pub(crate) trait FeedTarget {
     fn can_extrude(&self) -> Result<(), String> {
         Ok(())
     }
+    /// M84/M18 after the moves before it were planned: the drivers go off once they ran.
+    fn motors_off(&mut self, _pipeline: &mut Pipeline) -> Result<(), String> {
+        Ok(())
+    }
 }
 
 /// Reports G-code commands the planner does not know, once per name, in Klipper's words.
@@ -931,6 +935,11 @@ fn plan_line(
     }
     if let Some(w) = accessories.record(line.line_no, &applied) {
         target.warn(format!("{}: {w}", file.display()));
+    }
+    if applied == Applied::MotorsOff {
+        target
+            .motors_off(pipeline)
+            .map_err(|e| format!("{}:{}: {e}", file.display(), line.line_no))?;
     }
     if extrudes && pipeline.position()[3] != e_before {
         target

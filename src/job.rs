@@ -4,6 +4,7 @@
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::Instant;
 
 use rt_core::logger::Level;
@@ -62,6 +63,9 @@ pub struct LiveOptions {
     pub io_process: bool,
     /// Like --io-process, but attach to a running `cadence serve --role io --instance NAME`.
     pub io_attach: Option<String>,
+    /// Once set (by a Ctrl-C, say), a wait in progress (M109/M190/TEMPERATURE_WAIT) ends at
+    /// once and the print goes on with what its G-code source still gives.
+    pub interrupt: Option<Arc<AtomicBool>>,
 }
 
 impl LiveOptions {
@@ -192,7 +196,7 @@ fn run_live(
     let _idle_hold = rt.hold_idle_latency();
     let (hists, mut mcus) = live::connect_mcus(cfg, machine, time_scale, args.trace.clone(), &rt, &logging)?;
     let log = logging.handle("main");
-    let shared = SessionShared::new(None);
+    let shared = SessionShared::new(None).with_interrupt(args.live.interrupt.clone());
     let run = live::LiveRun {
         max_error_s: args.max_error_us * 1e-6,
         started,

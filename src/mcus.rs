@@ -371,6 +371,31 @@ fn sim_env_args(name: &str) -> Vec<String> {
         .unwrap_or_default()
 }
 
+/// The driver enable pins of MCU `mcu`, once each (several steppers often share one), and the
+/// oid of the first: they follow the steppers, endstops and BLTouch servo. None on a firmware
+/// built without digital outputs (a stripped test build; `configure` warns about that).
+pub fn enable_pins<'m>(
+    dict: &Dictionary,
+    machine: &'m Machine,
+    mcu: &str,
+) -> (usize, Vec<&'m sysconfig::printer::PinRef>) {
+    let has_outputs = dict.command("config_digital_out").is_ok();
+    let mut enables: Vec<&sysconfig::printer::PinRef> = Vec::new();
+    let steppers = machine.steppers.iter().filter(|s| s.mcu == mcu);
+    for s in steppers.filter(|_| has_outputs) {
+        if let Some(p) = &s.enable_pin {
+            if p.mcu == mcu && !enables.iter().any(|e| e.pin == p.pin) {
+                enables.push(p);
+            }
+        }
+    }
+    let bltouch = machine.mcu_bltouch(mcu).filter(|_| has_outputs);
+    let oid0 = machine.steppers.iter().filter(|s| s.mcu == mcu).count()
+        + machine.mcu_endstops(mcu).len()
+        + usize::from(bltouch.is_some());
+    (oid0, enables)
+}
+
 /// Encodes one MCU's configuration: oids, endstops, trsync, steppers, enable pins, finalize
 /// with the config CRC (CRC-32 of the configuration messages). Returns the commands and the
 /// trsync oid. Endstops come before steppers as Klipper's host sends them: Klipper's
@@ -383,21 +408,10 @@ pub fn config_commands(
 ) -> Result<(Vec<Cmd>, u8, u32), String> {
     let steppers: Vec<_> = machine.steppers.iter().filter(|s| s.mcu == mcu).collect();
     let endstops = machine.mcu_endstops(mcu);
-    // Driver enable pins, once each (several steppers often share one), after the endstops.
-    let mut enables: Vec<&sysconfig::printer::PinRef> = Vec::new();
-    // A firmware built without digital outputs (a stripped test build) cannot drive them;
-    // `configure` warns about that.
     let has_outputs = dict.command("config_digital_out").is_ok();
-    for s in steppers.iter().filter(|_| has_outputs) {
-        if let Some(p) = &s.enable_pin {
-            if p.mcu == mcu && !enables.iter().any(|e| e.pin == p.pin) {
-                enables.push(p);
-            }
-        }
-    }
     // A BLTouch's servo output right after the endstops (its oid: crate::hardware).
     let bltouch = machine.mcu_bltouch(mcu).filter(|_| has_outputs);
-    let enable_oid0 = steppers.len() + endstops.len() + usize::from(bltouch.is_some());
+    let (enable_oid0, enables) = enable_pins(dict, machine, mcu);
     let trsync_oid = u8::try_from(enable_oid0 + enables.len()).map_err(|_| "too many objects".to_string())?;
     // Heaters, sensors and fans (crate::heaters::objects) right after the trsync.
     let thermal_oid0 = usize::from(trsync_oid) + 1;
@@ -454,16 +468,18 @@ pub fn config_commands(
         );
     }
     for (i, p) in enables.iter().enumerate() {
-        // Drivers on from configuration on (value = active), off when the MCU shuts down
-        // (default_value = inactive); `!` pins are active low.
+        // Drivers off from configuration on and when the MCU shuts down (value and
+        // default_value inactive; `!` pins are active low), as Klipper's host configures them:
+        // the step stream turns them on before a stepper's first step and M84 off
+        // (crate::step_stream::sink).
         let pin = dict
             .pin(&p.pin)
             .map_err(|x| format!("enable_pin {}: {x}", p.pin))?;
-        let on = !p.invert as i64;
+        let off = p.invert as i64;
         cmds.push(
             dict.encode(
                 "config_digital_out",
-                &[(enable_oid0 + i) as i64, pin as i64, on, 1 - on, 0],
+                &[(enable_oid0 + i) as i64, pin as i64, off, off, 0],
             )
             .map_err(err)?,
         );

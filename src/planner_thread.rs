@@ -607,21 +607,44 @@ impl FeedTarget for PlannerRun<'_, '_> {
         self.emit(&mut out)?;
         let started = shared.heaters.get(wait.heater).map(|h| h.time.get());
         let wall = Instant::now();
+        let mut interrupted = false;
         while !wait.done(shared) {
             self.check()?;
+            if self.st.session.is_some_and(SessionShared::interrupted) {
+                self.respond(format!("{} interrupted: the wait ends here", wait.what));
+                interrupted = true;
+                break;
+            }
             self.publish_status(pipeline);
             std::thread::sleep(PACE);
         }
         let ended = shared.heaters.get(wait.heater).map(|h| h.time.get());
         self.heat
             .record(&wait, started, ended, wall.elapsed().as_secs_f64());
-        if let crate::heaters::gcode::HeatCmd::PidCalibrate { write_file, .. } = cmd {
-            self.calibrated(shared, *write_file)?;
+        match cmd {
+            crate::heaters::gcode::HeatCmd::PidCalibrate { write_file, .. } if !interrupted => {
+                self.calibrated(shared, *write_file)?;
+            }
+            _ => {}
         }
         pipeline
             .raise_print_time(self.resume_at())
             .map_err(|e| e.to_string())?;
         Ok(())
+    }
+
+    fn motors_off(&mut self, pipeline: &mut Pipeline) -> Result<(), String> {
+        let mut out = Vec::new();
+        pipeline.flush_lookahead();
+        pipeline.generate(&mut out);
+        self.emit(&mut out)?;
+        // Not before a move planned now could start (the lead a message sent now needs).
+        let ahead = self.resume_at() - self.print_now();
+        let floors: Vec<u64> = (self.now_clocks.iter().zip(&self.streams.mcus))
+            .map(|(c, m)| (c + ahead * m.clock_freq) as u64)
+            .collect();
+        self.streams.motors_off(&floors, &mut self.sinks[..])?;
+        self.sinks.iter_mut().try_for_each(ShmSink::flush)
     }
 
     fn can_extrude(&self) -> Result<(), String> {
@@ -689,7 +712,15 @@ impl PlannerRun<'_, '_> {
             .to_string();
         self.respond(crate::heaters::calibrate::report(&gains));
         crate::heaters::calibrate::save_changes(&mut self.autosave, &name, &gains);
+        self.publish_save_pending();
         Ok(())
+    }
+
+    /// Makes the pending SAVE_CONFIG changes visible (the `configfile` status object).
+    fn publish_save_pending(&self) {
+        if let Some(s) = self.st.session {
+            s.publish_save_pending(&self.autosave);
+        }
     }
 
     /// SAVE_CONFIG: the pending results written into the printer's config file (the service
@@ -705,6 +736,7 @@ impl PlannerRun<'_, '_> {
         match sysconfig::autosave::save(&path, &self.autosave).map_err(|e| e.to_string())? {
             Some(saved) => {
                 self.autosave = sysconfig::autosave::Changes::default();
+                self.publish_save_pending();
                 self.respond(format!(
                     "SAVE_CONFIG: wrote {} (previous version kept as {})",
                     saved.path.display(),

@@ -597,6 +597,7 @@ impl PrinterHandle {
                     heaters,
                     fans,
                     sensors,
+                    save_config_pending: self.shared.save_pending(),
                 }
             }
         }
@@ -668,6 +669,7 @@ fn status_of(inner: &Inner) -> Status {
         heaters,
         fans,
         sensors,
+        save_config_pending: inner.shared.save_pending(),
     }
 }
 

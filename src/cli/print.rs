@@ -4,7 +4,8 @@
 //! the summary follows an "interrupted at line N" note and the exit status is 130 or 143.
 
 use std::path::PathBuf;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 
 use cadence::batch::BatchReport;
 use cadence::gcode_feed::GcodeInput;
@@ -93,6 +94,7 @@ impl PrintArgs {
                 log_level: self.live.log_level,
                 io_process: self.live.io_process,
                 io_attach: self.live.io_attach.clone(),
+                interrupt: None,
             },
         }
     }
@@ -110,11 +112,14 @@ pub fn run(args: &PrintArgs) -> Result<u8, String> {
         );
         return Ok(0);
     }
-    let job = args.job();
+    let mut job = args.job();
     let mut warn = |w: &str| eprintln!("cadence: warning: {w}");
     let stop = StopRequest::default();
     if job.batch.is_none() {
-        signals::install(&stop, |sig| {
+        let interrupt = Arc::new(AtomicBool::new(false));
+        job.live.interrupt = Some(interrupt.clone());
+        signals::install(&stop, move |sig| {
+            interrupt.store(true, Ordering::Release);
             eprintln!("\ncadence: {sig}: stopping after the moves already planned (again to exit at once)");
         })?;
     }

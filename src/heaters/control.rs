@@ -187,6 +187,35 @@ impl Control for Pid {
     }
 }
 
+/// Makes up for the time a PWM update waits before it takes effect beyond Klipper's usual
+/// report-to-update delay: the reading extrapolated along its recent slope to when the update
+/// will act. Used only on a time-scaled simulated MCU, whose updates must be sent seconds of
+/// MCU time ahead (a wall-clock margin against host pauses) — a dead time in which a PID tuned
+/// for a real board would oscillate around its target instead of settling (M109 would wait
+/// forever). On a real board the delay is Klipper's and readings go to the control unchanged.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct DeadTime {
+    last: Option<(f64, f64)>,
+    slope: f64,
+}
+
+impl DeadTime {
+    /// Weight of the newest reading's slope in the running estimate.
+    const WEIGHT: f64 = 0.3;
+
+    /// Takes the reading `temp` at `time` (s) and returns it extrapolated by `extra` seconds.
+    pub fn predict(&mut self, time: f64, temp: f64, extra: f64) -> f64 {
+        if let Some((t0, temp0)) = self.last {
+            if time > t0 {
+                let slope = (temp - temp0) / (time - t0);
+                self.slope += (slope - self.slope) * Self::WEIGHT;
+            }
+        }
+        self.last = Some((time, temp));
+        temp + self.slope * extra.max(0.0)
+    }
+}
+
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
@@ -313,5 +342,60 @@ pub(crate) mod tests {
         // The bed's lag carries it a little past the band.
         assert!(settled.iter().all(|t| (55.0..65.0).contains(t)), "{settled:?}");
         assert!(!w.busy(58.5, 60.0));
+    }
+
+    /// Runs Klipper-style PID gains on the simulated hotend with the update applied `lead`
+    /// seconds after its reading (and `predict` making up for all but Klipper's 0.3 s):
+    /// whether M109's settle check ends, and the last minute's worst distance from target.
+    fn with_dead_time(lead: f64, predict: bool) -> (bool, f64) {
+        let mut pid = Pid::new(
+            PidGains {
+                kp: 22.2,
+                ki: 1.08,
+                kd: 114.0,
+            },
+            1.0,
+            1.0,
+        );
+        let mut dead = DeadTime::default();
+        let mut h = Heater::new(0, 0, ThermalModel::HOTEND);
+        let mut pending = std::collections::VecDeque::new();
+        let (mut settled, mut worst, mut t) = (false, 0.0_f64, 0.0);
+        while t < 600.0 {
+            let temp = h.sensor_temperature(t);
+            let seen = if predict {
+                dead.predict(t, temp, lead - 0.3)
+            } else {
+                temp
+            };
+            pending.push_back((t + lead, pid.update(t, seen, 200.0)));
+            while let Some(&(at, power)) = pending.front().filter(|(at, _)| *at <= t + 0.3) {
+                pending.pop_front();
+                for c in 0..3 {
+                    let s = at + 0.1 * f64::from(c);
+                    h.set(power > 0.0, s);
+                    if power > 0.0 && power < 1.0 {
+                        h.set(false, s + 0.1 * power);
+                    }
+                }
+            }
+            settled |= !pid.busy(temp, 200.0);
+            if t > 540.0 {
+                worst = worst.max((temp - 200.0).abs());
+            }
+            t += 0.3;
+        }
+        (settled, worst)
+    }
+
+    #[test]
+    fn a_long_update_lead_is_made_up_for_by_extrapolating() {
+        assert!(with_dead_time(0.3, false).0, "Klipper's own delay settles");
+        let (_, worst) = with_dead_time(8.0, false);
+        assert!(worst > 5.0, "8 s of dead time keeps swinging: {worst}");
+        for lead in [2.0, 3.0, 4.0] {
+            let (settled, worst) = with_dead_time(lead, true);
+            assert!(settled && worst < 3.0, "lead {lead}: {settled} {worst}");
+        }
     }
 }

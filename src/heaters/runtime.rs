@@ -21,7 +21,7 @@ use links::dict::Dictionary;
 use links::mcu::McuLink;
 
 use super::calibrate::RelayTuner;
-use super::control::{Control, Pid, PidGains, Smoothed, Watermark};
+use super::control::{Control, DeadTime, Pid, PidGains, Smoothed, Watermark};
 use super::objects::{
     adc_range, FanRole, Thermal, ThermalObject, RANGE_CHECK_COUNT, REPORT_TIME, SAMPLE_COUNT, SAMPLE_TIME,
 };
@@ -353,6 +353,8 @@ struct Running {
     sensor: super::thermistor::Sensor,
     /// PID_CALIBRATE's relay in place of the control while it runs.
     relay: Option<Relay>,
+    /// On a time-scaled simulated MCU: the reading extrapolated over the update's extra lead.
+    dead_time: Option<DeadTime>,
 }
 
 /// A running PID_CALIBRATE: the tuner and its samples.
@@ -391,8 +393,14 @@ struct RunningSensor {
 /// time): host pauses of this VM's kind (~10–100 ms) must not make an update late, which the
 /// MCU would take as a missed update and shut down. On a time-scaled simulator this is more MCU
 /// time, capped at half the heaters' `max_duration` ([`Thermal::max_heat_time`]), so refreshes
-/// keep within it.
+/// keep within it, and at most [`MAX_LEAD_S`].
 const WALL_LEAD_S: f64 = 0.25;
+
+/// The longest lead (s of MCU time) of a PWM update: beyond it even the extrapolated reading
+/// ([`DeadTime`]) leaves a PID tuned for a real board swinging around its target (a 40 W
+/// hotend at 200 °C: ±2.3 °C with 4 s, ±7.6 °C with 8 s; see the control's tests). Reached
+/// only above 16× (0.25 s of wall time); at 50× it leaves 80 ms of wall time.
+const MAX_LEAD_S: f64 = 4.0;
 
 /// Runs the heater loop until `shared.stop` (then every heater off) or an MCU shutdown. Errors
 /// (a missing command, a dead link) end the loop and are returned after every heater is off.
@@ -447,6 +455,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                             full_scale: adc_max * f64::from(SAMPLE_COUNT),
                             sensor: h.sensor,
                             relay: None,
+                            dead_time: (thermal.sim_time_scale > 1.0).then(DeadTime::default),
                         },
                     ));
                     let (lo, hi) = adc_range(&h.sensor, h.min_temp, h.max_temp, adc_max);
@@ -545,7 +554,7 @@ fn query_analog(
 fn lead_ticks(link: &McuLink, nominal: f64, max_heat_time: f64) -> f64 {
     (0.1 * nominal)
         .max(WALL_LEAD_S * link.clock().freq())
-        .min(0.5 * max_heat_time * nominal)
+        .min(MAX_LEAD_S.min(0.5 * max_heat_time) * nominal)
 }
 
 /// The earliest MCU clock an update sent now may be scheduled at.
@@ -708,9 +717,20 @@ fn heater_loop(
             let cell = &shared.heaters[*i];
             let target = cell.target.get();
             let smoothed = r.smooth.update(time, temp);
+            let at = ((read_clock as f64 + REPORT_TIME * freq) as u64).max(lead_clock(
+                &conn.link,
+                freq,
+                thermal.max_heat_time(),
+            ));
+            // Beyond Klipper's report-to-update delay, the update acts later than the reading.
+            let extra = at.saturating_sub(read_clock) as f64 / freq - REPORT_TIME;
+            let seen = r
+                .dead_time
+                .as_mut()
+                .map_or(temp, |d| d.predict(time, temp, extra));
             let power = match r.relay.as_mut() {
                 Some(relay) => relay_update(relay, shared, *i, time, temp, r.max_power),
-                None => r.control.update(time, temp, target),
+                None => r.control.update(time, seen, target),
             }
             .clamp(0.0, r.max_power);
             if r.relay.as_ref().is_some_and(|relay| relay.tuner.done()) {
@@ -735,11 +755,6 @@ fn heater_loop(
                 }
             }
             let on = on_ticks(power / 1.0, r.cycle_ticks);
-            let at = ((read_clock as f64 + REPORT_TIME * freq) as u64).max(lead_clock(
-                &conn.link,
-                freq,
-                thermal.max_heat_time(),
-            ));
             // The MCU queues few updates (8): with a long lead (a time-scaled simulator) a new
             // value waits until a fifth of the lead has passed since the last one.
             let min_gap = (lead_ticks(&conn.link, freq, thermal.max_heat_time()) / 5.0) as u64;

@@ -238,6 +238,22 @@ pub fn names(mcus: &[String], config: Option<&ConfigFacts>) -> Vec<String> {
     names
 }
 
+/// Klipper's `save_config_pending` and `save_config_pending_items` (section → option → value;
+/// a section SAVE_CONFIG will remove has no items).
+fn pending_items(changes: &sysconfig::autosave::Changes) -> (bool, Map<String, Value>) {
+    let mut items = Map::new();
+    for (section, change) in changes.items() {
+        if let sysconfig::autosave::SectionChange::Set(opts) = change {
+            let opts: Map<String, Value> = opts
+                .iter()
+                .map(|(k, v)| (k.clone(), Value::String(v.clone())))
+                .collect();
+            items.insert(section.clone(), Value::Object(opts));
+        }
+    }
+    (!changes.is_empty(), items)
+}
+
 /// Every object's status at this snapshot, by name.
 pub fn all(s: &Snapshot<'_>) -> Map<String, Value> {
     let mut out = Map::new();
@@ -249,12 +265,13 @@ pub fn all(s: &Snapshot<'_>) -> Map<String, Value> {
         Some(c) => (c.config.clone(), c.settings.clone()),
         None => (json!({}), json!({})),
     };
+    let status = s.status.as_ref();
+    let (pending, items) = status.map_or((false, Map::new()), |st| pending_items(&st.save_config_pending));
     out.insert(
         "configfile".into(),
-        json!({"config": config, "settings": settings, "save_config_pending": false,
-               "save_config_pending_items": {}, "warnings": []}),
+        json!({"config": config, "settings": settings, "save_config_pending": pending,
+               "save_config_pending_items": items, "warnings": []}),
     );
-    let status = s.status.as_ref();
     let position = status.map(|st| st.position).unwrap_or([0.0; 4]);
     let homed_axes: String = status
         .map(|st| {
@@ -479,6 +496,7 @@ mod tests {
             print_time: 0.0,
             mcus: Vec::new(),
             events_dropped: 0,
+            save_config_pending: Default::default(),
             heaters: vec![HeaterStatus {
                 name: "extruder".into(),
                 temperature: 200.0,
@@ -530,5 +548,20 @@ mod tests {
         status.heaters[0].temperature = f64::NAN;
         thermal(&mut out, &facts.thermal, Some(&status));
         assert_eq!(out["extruder"]["temperature"], json!(0.0));
+    }
+
+    #[test]
+    fn pending_save_config_items_are_klippers_shape() {
+        let mut changes = sysconfig::autosave::Changes::default();
+        assert_eq!(pending_items(&changes), (false, Map::new()));
+        changes.set("extruder", "pid_Kp", "22.200");
+        changes.set("extruder", "control", "pid");
+        changes.remove_section("bed_mesh default");
+        let (pending, items) = pending_items(&changes);
+        assert!(pending);
+        assert_eq!(
+            Value::Object(items),
+            json!({"extruder": {"pid_kp": "22.200", "control": "pid"}})
+        );
     }
 }

@@ -25,7 +25,10 @@ use planner::pipeline::{ClockMap, Pipeline};
 use planner::stepgen::StepCmd;
 
 use crate::hardware::Machine;
-use sink::{Sink, StepStreamer};
+use sink::{EnableOut, Sink, StepStreamer};
+
+/// How long after the last step M84 turns the drivers off (s; Klipper's stall time).
+pub const MOTORS_OFF_STALL_S: f64 = 0.1;
 
 /// What a stream needs to know of its MCU.
 #[derive(Debug, Clone, Copy)]
@@ -84,7 +87,20 @@ impl StepStreams {
             for (local, &i) in steppers.iter().enumerate() {
                 route[i] = (k, local);
             }
-            let streamer = StepStreamer::new(m.dict, &outs, m.move_count)
+            let (oid0, pins) = crate::mcus::enable_pins(m.dict, machine, m.name);
+            let enables: Vec<EnableOut> = pins
+                .iter()
+                .enumerate()
+                .map(|(i, p)| {
+                    Ok(EnableOut {
+                        oid: u8::try_from(oid0 + i)
+                            .map_err(|_| format!("mcu '{}': too many objects", m.name))?,
+                        pin: p.pin.clone(),
+                        invert: p.invert,
+                    })
+                })
+                .collect::<Result<_, String>>()?;
+            let streamer = StepStreamer::new(m.dict, &outs, &enables, m.move_count)
                 .map_err(|e| format!("mcu '{}': {e}", m.name))?;
             out.push(McuStream {
                 name: m.name.to_string(),
@@ -102,6 +118,18 @@ impl StepStreams {
             ));
         }
         Ok(StepStreams { mcus: out, route })
+    }
+
+    /// Klipper's M84/M18 on every MCU: each driver that is on goes off
+    /// [`MOTORS_OFF_STALL_S`] after its MCU's last step sent, and not before `floors[k]`
+    /// (stream k's earliest clock a message sent now may carry; `sinks[k]`: its sink).
+    pub fn motors_off<S: Sink>(&mut self, floors: &[u64], sinks: &mut [S]) -> Result<(), String> {
+        for (k, (m, sink)) in self.mcus.iter_mut().zip(sinks.iter_mut()).enumerate() {
+            let stall = (MOTORS_OFF_STALL_S * m.clock_freq) as u64;
+            let floor = floors.get(k).copied().unwrap_or(0);
+            m.streamer.motors_off(stall, floor, sink)?;
+        }
+        Ok(())
     }
 
     /// The stream of stepper `idx`.
@@ -251,5 +279,98 @@ mod tests {
         assert_eq!((s.stream_of(x), s.stream_of(z)), (Some(0), Some(1)));
         let err = StepStreams::new(&m, &[p("mcu", 0)]).unwrap_err();
         assert!(err.contains("'toolboard'"), "{err}");
+    }
+
+    /// Every message a stream sends, decoded: (name, fields, req_clock).
+    #[derive(Default)]
+    struct Recorder(Vec<(String, Vec<i64>, u64)>, Option<Dictionary>);
+
+    impl Sink for Recorder {
+        fn send(&mut self, cmd: links::dict::Cmd) -> Result<(), String> {
+            self.send_clocked(cmd, 0, 0)
+        }
+        fn send_clocked(&mut self, cmd: links::dict::Cmd, _: u64, req: u64) -> Result<(), String> {
+            let dict = self.1.as_ref().ok_or("no dictionary")?;
+            for m in dict.decode_command(cmd.as_bytes()).map_err(|e| e.to_string())? {
+                let fields = m.fields.iter().filter_map(|(n, _)| m.get(n)).collect();
+                self.0.push((m.name, fields, req));
+            }
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn drivers_go_on_before_the_first_step_and_off_after_m84() {
+        let text = include_str!("../../examples/simulated-cartesian.cfg");
+        let cfg = sysconfig::parse_str(text, std::path::Path::new("printer.cfg")).unwrap();
+        let m = Machine::from_config(&cfg).unwrap();
+        let dict = crate::wire_check::load_dictionary(None).unwrap();
+        let params = McuParams {
+            name: "mcu",
+            mcu_index: 0,
+            dict: &dict,
+            clock_freq: 50e6,
+            move_count: 1024,
+        };
+        let mut s = StepStreams::new(&m, &[params]).unwrap();
+        let mut sink = [Recorder(Vec::new(), Some(dict.clone()))];
+        let (oid0, pins) = crate::mcus::enable_pins(&dict, &m, "mcu");
+        assert_eq!(pins.len(), 4, "one enable pin per stepper in this config");
+        let x = m.steppers.iter().position(|s| s.name == "stepper_x").unwrap();
+        let step = |first_clock| StepCmd::QueueStep {
+            interval: 1000,
+            count: 10,
+            add: 0,
+            first_clock,
+            last_clock: first_clock + 9000,
+        };
+        s.push(x, StepCmd::ResetClock { clock: 1_000_000 }, &mut sink)
+            .unwrap();
+        s.push(x, step(1_001_000), &mut sink).unwrap();
+        s.push(x, step(1_011_000), &mut sink).unwrap();
+        s.motors_off(&[], &mut sink).unwrap();
+        s.push(x, StepCmd::ResetClock { clock: 9_000_000 }, &mut sink)
+            .unwrap();
+        s.push(x, step(9_001_000), &mut sink).unwrap();
+        // A stop right after a move: off no earlier than a message sent now may be scheduled.
+        s.motors_off(&[20_000_000], &mut sink).unwrap();
+        let outs: Vec<_> = sink[0]
+            .0
+            .iter()
+            .filter(|(n, _, _)| n == "queue_digital_out")
+            .map(|(_, f, req)| (f.clone(), *req))
+            .collect();
+        // `enable_pin: !PA2` is active low: on is 0. On at the reset clock (before the first
+        // step), off 0.1 s (5e6 ticks) after the last step, on again for the next move, off again.
+        let oid = i64::try_from(oid0 + pins.iter().position(|p| p.pin == "PA2").unwrap()).unwrap();
+        assert_eq!(
+            outs,
+            [
+                (vec![oid, 1_000_000, 0], 1_000_000),
+                (vec![oid, 6_020_000, 1], 6_020_000),
+                (vec![oid, 9_000_000, 0], 9_000_000),
+                (vec![oid, 20_000_000, 1], 20_000_000),
+            ]
+        );
+        // The enable precedes its stepper's first queue_step.
+        let first_step = sink[0].0.iter().position(|(n, _, _)| n == "queue_step").unwrap();
+        let first_enable = sink[0]
+            .0
+            .iter()
+            .position(|(n, _, _)| n == "queue_digital_out")
+            .unwrap();
+        assert!(first_enable < first_step);
+        // Configured off: value and default_value inactive (1 on an active-low pin).
+        let (cmds, _, _) = crate::mcus::config_commands(&dict, &m, "mcu").unwrap();
+        let mut config = Recorder(Vec::new(), Some(dict.clone()));
+        for c in cmds {
+            config.send(c).unwrap();
+        }
+        let enable = config
+            .0
+            .iter()
+            .find(|(n, f, _)| n == "config_digital_out" && f[0] == oid)
+            .unwrap();
+        assert_eq!(enable.1[2..], [1, 1, 0]);
     }
 }

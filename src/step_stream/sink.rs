@@ -43,11 +43,33 @@ struct StepperState {
     steps_sent: u64,
 }
 
+/// A driver enable pin on this MCU (configured off: see `crate::mcus::config_commands`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct EnableOut {
+    pub oid: u8,
+    /// The pin's name, as the steppers' `enable_pin` gives it.
+    pub pin: String,
+    /// Active low (`!`).
+    pub invert: bool,
+}
+
+/// An enable pin's state as the messages sent so far leave it.
+#[derive(Debug, Clone)]
+struct EnableState {
+    out: EnableOut,
+    on: bool,
+    /// Clock of the last turn-off (a turn-on is scheduled after it).
+    off_clock: u64,
+}
+
 /// Encodes step commands for one MCU.
 #[derive(Debug)]
 pub struct StepStreamer {
     steppers: Vec<StepperOut>,
     state: Vec<StepperState>,
+    /// Driver enable pins, and per stepper the index of its own among them.
+    enables: Vec<EnableState>,
+    enable_of: Vec<Option<usize>>,
     /// First-step clocks of the last `pool` queue_step messages (a ring).
     ring: Vec<u64>,
     ring_pos: usize,
@@ -63,20 +85,40 @@ struct Encoders {
     queue_step: CmdEncoder,
     set_dir: CmdEncoder,
     reset: CmdEncoder,
+    /// `queue_digital_out` (absent from a firmware without outputs, which has no enables).
+    digital_out: Option<CmdEncoder>,
 }
 
 impl StepStreamer {
-    /// A streamer for `steppers` on an MCU whose move pool holds `move_count` entries.
+    /// A streamer for `steppers` (driven through `enables`) on an MCU whose move pool holds
+    /// `move_count` entries.
     pub fn new(
         dict: &Dictionary,
         steppers: &[StepperOut],
+        enables: &[EnableOut],
         move_count: usize,
     ) -> Result<StepStreamer, String> {
         let enc = |name: &str| dict.encoder(name).map_err(|e| e.to_string());
         let pool = move_count.saturating_sub(POOL_MARGIN).max(1);
+        let enable_of = steppers
+            .iter()
+            .map(|s| {
+                let pin = s.enable_pin.as_ref()?;
+                enables.iter().position(|e| e.pin == pin.pin)
+            })
+            .collect();
         Ok(StepStreamer {
             steppers: steppers.to_vec(),
             state: vec![StepperState::default(); steppers.len()],
+            enables: enables
+                .iter()
+                .map(|out| EnableState {
+                    out: out.clone(),
+                    on: false,
+                    off_clock: 0,
+                })
+                .collect(),
+            enable_of,
             ring: vec![0; pool],
             ring_pos: 0,
             queue_steps: 0,
@@ -85,6 +127,7 @@ impl StepStreamer {
                 queue_step: enc("queue_step")?,
                 set_dir: enc("set_next_step_dir")?,
                 reset: enc("reset_step_clock")?,
+                digital_out: dict.encoder("queue_digital_out").ok(),
             },
         })
     }
@@ -114,8 +157,50 @@ impl StepStreamer {
         self.last_step_clock = self.state.iter().map(|s| s.last_clock).max().unwrap_or(0);
     }
 
+    /// Sets enable pin `e` to `on` at `clock` (sent in step order, as if a step at `clock`).
+    fn set_enable(&mut self, e: usize, on: bool, clock: u64, sink: &mut dyn Sink) -> Result<(), String> {
+        let (Some(enc), Some(pin)) = (&self.enc.digital_out, self.enables.get_mut(e)) else {
+            return Ok(());
+        };
+        let m = enc
+            .encode(&[
+                i64::from(pin.out.oid),
+                clock as u32 as i64,
+                i64::from(on != pin.out.invert),
+            ])
+            .map_err(|e| e.to_string())?;
+        sink.send_clocked(m, 0, clock)?;
+        pin.on = on;
+        if !on {
+            pin.off_clock = clock;
+        }
+        Ok(())
+    }
+
+    /// Klipper's M84/M18: every enable pin that is on goes off `stall_ticks` after the last
+    /// step sent (the motors settle first), at `floor` at the earliest (the lead a message
+    /// sent now needs); a later step turns its pin on again.
+    pub fn motors_off(&mut self, stall_ticks: u64, floor: u64, sink: &mut dyn Sink) -> Result<(), String> {
+        let clock = (self.last_step_clock + stall_ticks).max(floor);
+        for e in 0..self.enables.len() {
+            if self.enables[e].on {
+                self.set_enable(e, false, clock, sink)?;
+            }
+        }
+        Ok(())
+    }
+
     /// Encodes and sends one planner command for stepper `idx`.
     pub fn push(&mut self, idx: usize, cmd: StepCmd, sink: &mut dyn Sink) -> Result<(), String> {
+        // A stepper's driver is turned on before its first step (at its step clock's base).
+        if let (StepCmd::QueueStep { first_clock, .. }, Some(Some(e))) = (&cmd, self.enable_of.get(idx)) {
+            let e = *e;
+            if !self.enables[e].on {
+                let base = self.state[idx].pending_reset.unwrap_or(*first_clock);
+                let clock = base.max(self.enables[e].off_clock + 1);
+                self.set_enable(e, true, clock, sink)?;
+            }
+        }
         let Some(stepper) = self.steppers.get(idx) else {
             return Err(format!(
                 "internal error: step command for unknown stepper index {idx}"

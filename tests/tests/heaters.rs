@@ -491,6 +491,15 @@ fn a_service_session_heats_calibrates_and_saves_its_config() {
         let _ = api.ok("info", json!({}));
         std::thread::sleep(Duration::from_millis(50));
     }
+    // The result waits for SAVE_CONFIG, as the configfile object says.
+    let q = api.ok("objects/query", json!({"objects": {"configfile": null}}));
+    let configfile = &q["status"]["configfile"];
+    assert_eq!(configfile["save_config_pending"], json!(true), "{configfile}");
+    assert_eq!(
+        configfile["save_config_pending_items"]["extruder"]["control"],
+        json!("pid"),
+        "{configfile}"
+    );
     api.ok("gcode/script", json!({"script": "SAVE_CONFIG"}));
     let text = std::fs::read_to_string(&cfg).expect("config");
     assert!(

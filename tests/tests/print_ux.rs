@@ -190,3 +190,24 @@ fn a_byte_order_mark_is_skipped_and_control_bytes_are_escaped() {
     );
     assert!(run.stderr.contains("\\x1b"), "{}", run.stderr);
 }
+
+#[test]
+fn sigint_during_a_heater_wait_ends_the_wait_and_the_print() {
+    let dir = scratch("ux-sigint-m109");
+    // At --time-scale 1 the built-in hotend needs well over a minute to reach 200 °C.
+    let gcode = dir.join("heat.gcode");
+    std::fs::write(&gcode, "M109 S200\nG28\nG1 X50 F3000\n").expect("write G-code");
+    let mut cmd = Command::new(bin("cadence"));
+    cmd.arg("print").arg(&gcode);
+    let run = signalled(&mut cmd, Signal::SIGINT, Duration::from_secs(4));
+    assert_exit(&run, 130);
+    assert!(
+        run.stderr
+            .contains("cadence: M109 interrupted: the wait ends here"),
+        "{}",
+        run.stderr
+    );
+    assert_eq!(interrupted_line(&run, "SIGINT"), 1, "{}", run.stderr);
+    assert!(run.stdout.contains("Details:"), "{}", run.stdout);
+    assert!(!run.stdout.contains("homing x"), "G28 never ran: {}", run.stdout);
+}
