@@ -132,6 +132,18 @@ impl Sink for ShmSink {
 /// batches published per stream.
 pub(crate) type Planned = (Summary, Pipeline, StepStreams, Option<AfterWarmup>, Vec<u64>);
 
+/// True when `cmd` would turn a heater or fan on or wait on a temperature (where no heater
+/// loop runs, it cannot be carried out; turning things off and reports can).
+fn drives_output(cmd: &crate::heaters::gcode::HeatCmd) -> bool {
+    use crate::heaters::gcode::HeatCmd;
+    match cmd {
+        HeatCmd::Set { target, .. } => *target > 0.0,
+        HeatCmd::Fan { speed } | HeatCmd::FanSpeed { speed, .. } => *speed > 0.0,
+        HeatCmd::Wait { .. } | HeatCmd::PidCalibrate { .. } | HeatCmd::TemperatureFanTarget { .. } => true,
+        _ => false,
+    }
+}
+
 /// What the planner thread works with besides its G-code.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct PlannerStage<'a> {
@@ -576,6 +588,14 @@ impl FeedTarget for PlannerRun<'_, '_> {
             return self.save_config();
         }
         let Some(shared) = self.st.heaters else {
+            if matches!(self.st.side, McuSide::Remote(..)) && drives_output(cmd) {
+                return Err(
+                    "heaters and fans are driven only with the IO stage in this process (the heater loop \
+                     reads and drives their MCU objects over the MCU link): print without \
+                     --io-process/--io-attach"
+                        .to_string(),
+                );
+            }
             return Ok(());
         };
         let thermal = &self.st.machine.thermal;

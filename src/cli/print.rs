@@ -67,7 +67,8 @@ pub struct LiveArgs {
     #[arg(long, default_value = "info", value_name = "LEVEL")]
     pub log_level: Level,
     /// Run the IO stage (the MCU connections) in a separate `cadence serve --role io` process
-    /// started for this print. G28 with endstops is refused in this mode.
+    /// started for this print. G28 with endstops and heater/fan commands that turn something on
+    /// are refused in this mode.
     #[arg(long)]
     pub io_process: bool,
     /// Like --io-process, but attach to a running `cadence serve --role io --instance NAME`.

@@ -127,6 +127,23 @@ fn io_process_refuses_homing_clearly() {
 }
 
 #[test]
+fn io_process_refuses_heating_clearly() {
+    let dir = scratch("serve-io-heat");
+    let gcode = dir.join("heat.gcode");
+    // Turning off and reporting pass; a target would never be driven, so it is refused.
+    std::fs::write(&gcode, "M104 S0\nM105\nM109 S200\n").expect("write G-code");
+    let run = cadence(&["print", gcode.to_str().unwrap(), "--io-process"], TIMEOUT);
+    assert_exit(&run, 1);
+    assert!(
+        run.stderr
+            .contains("heat.gcode:3: heaters and fans are driven only with the IO stage in this process"),
+        "{}",
+        run.stderr
+    );
+    assert!(!run.stderr.contains("panicked"), "{}", run.stderr);
+}
+
+#[test]
 fn print_attaches_to_a_running_io_process() {
     let dir = scratch("serve-attach");
     let cfg = printer_without_endstops(&dir);
