@@ -10,6 +10,8 @@
 //! 0.1 °C/s. Watermark: full `max_power` below `target − max_delta`, off above
 //! `target + max_delta`, unchanged in between.
 
+use firmware::sim::heater::{ThermalModel, AMBIENT_C};
+
 /// Power of 1.0 in Klipper's PID units.
 pub const PID_PARAM_BASE: f64 = 255.0;
 /// A PID heater is settled within this many °C of its target ...
@@ -187,32 +189,113 @@ impl Control for Pid {
     }
 }
 
-/// Makes up for the time a PWM update waits before it takes effect beyond Klipper's usual
-/// report-to-update delay: the reading extrapolated along its recent slope to when the update
-/// will act. Used only on a time-scaled simulated MCU, whose updates must be sent seconds of
-/// MCU time ahead (a wall-clock margin against host pauses) — a dead time in which a PID tuned
-/// for a real board would oscillate around its target instead of settling (M109 would wait
-/// forever). On a real board the delay is Klipper's and readings go to the control unchanged.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct DeadTime {
-    last: Option<(f64, f64)>,
-    slope: f64,
+/// Makes up for the time a PWM update waits before it takes effect, on a time-scaled simulated
+/// MCU only: its updates must be sent seconds of MCU time ahead (a wall-clock margin against
+/// host pauses: 0.25 s of wall time is 12.5 s of MCU time at 50×), a dead time in which a PID
+/// tuned for a real board's 0.3 s would swing around its target and never settle (M109 would
+/// wait forever). A Smith predictor: the simulated heater's own thermal model (which the host
+/// chose for it, [`super::objects::SimKind`]) runs twice on the powers sent, once as if each
+/// acted when it was decided and once when it really acts; their difference added to the
+/// reading is what the sensor would show without the delay. On a real board the delay is
+/// Klipper's and readings go to the control unchanged. `verify_heater` always judges the
+/// reading itself.
+#[derive(Debug, Clone)]
+pub struct SmithPredictor {
+    undelayed: Plant,
+    delayed: Plant,
+    /// Powers sent and not yet acting on `delayed`: (MCU time it acts from, power 0..=1).
+    pending: std::collections::VecDeque<(f64, f64)>,
 }
 
-impl DeadTime {
-    /// Weight of the newest reading's slope in the running estimate.
-    const WEIGHT: f64 = 0.3;
+impl SmithPredictor {
+    /// For a heater simulated with `model`, cold (ambient, off) at time 0.
+    pub fn new(model: ThermalModel) -> SmithPredictor {
+        SmithPredictor {
+            undelayed: Plant::new(model),
+            delayed: Plant::new(model),
+            pending: std::collections::VecDeque::with_capacity(64),
+        }
+    }
 
-    /// Takes the reading `temp` at `time` (s) and returns it extrapolated by `extra` seconds.
-    pub fn predict(&mut self, time: f64, temp: f64, extra: f64) -> f64 {
-        if let Some((t0, temp0)) = self.last {
-            if time > t0 {
-                let slope = (temp - temp0) / (time - t0);
-                self.slope += (slope - self.slope) * Self::WEIGHT;
+    /// The reading `temp` at `time` (s) as the sensor would show it without the delay.
+    pub fn predict(&mut self, time: f64, temp: f64) -> f64 {
+        while let Some(&(at, power)) = self.pending.front().filter(|(at, _)| *at <= time) {
+            self.delayed.set(power, at);
+            self.pending.pop_front();
+        }
+        temp + self.undelayed.sensor_at(time) - self.delayed.sensor_at(time)
+    }
+
+    /// The control decided `power` (0..=1 of the heater's full power) at `time`.
+    pub fn decided(&mut self, power: f64, time: f64) {
+        self.undelayed.set(power, time);
+    }
+
+    /// `power` was sent to act from `at` (the MCU queues few updates, so what is sent may be
+    /// the mean of several decisions: the prediction follows what the heater really gets).
+    pub fn sent(&mut self, power: f64, at: f64) {
+        if self.pending.len() == self.pending.capacity() {
+            // Never reached with the loop's send spacing; keeps the queue bounded regardless.
+            if let Some((at, power)) = self.pending.pop_front() {
+                self.delayed.set(power, at);
             }
         }
-        self.last = Some((time, temp));
-        temp + self.slope * extra.max(0.0)
+        self.pending.push_back((at, power));
+    }
+}
+
+/// The simulated heater's two temperatures (the heated mass, the thermistor lagging it),
+/// driven by an average power: the exact solution between power changes.
+#[derive(Debug, Clone, Copy)]
+struct Plant {
+    model: ThermalModel,
+    mass: f64,
+    sensor: f64,
+    power: f64,
+    at: f64,
+}
+
+impl Plant {
+    fn new(model: ThermalModel) -> Plant {
+        Plant {
+            model,
+            mass: AMBIENT_C,
+            sensor: AMBIENT_C,
+            power: 0.0,
+            at: 0.0,
+        }
+    }
+
+    fn advance(&mut self, t: f64) {
+        let dt = t - self.at;
+        if dt <= 0.0 {
+            return;
+        }
+        let m = &self.model;
+        let eq = AMBIENT_C + self.power * m.power_w / m.loss_w_per_k;
+        let tau = m.tau_s();
+        let e1 = (-dt / tau).exp();
+        let (t0, s0, lag) = (self.mass - eq, self.sensor - eq, m.sensor_lag_s);
+        self.sensor = if lag <= 0.0 {
+            eq + t0 * e1
+        } else if (tau - lag).abs() < 1e-9 {
+            eq + (s0 + t0 * dt / tau) * e1
+        } else {
+            let a = t0 * tau / (tau - lag);
+            eq + a * e1 + (s0 - a) * (-dt / lag).exp()
+        };
+        self.mass = eq + t0 * e1;
+        self.at = t;
+    }
+
+    fn set(&mut self, power: f64, t: f64) {
+        self.advance(t);
+        self.power = power.clamp(0.0, 1.0);
+    }
+
+    fn sensor_at(&mut self, t: f64) -> f64 {
+        self.advance(t);
+        self.sensor
     }
 }
 
@@ -344,10 +427,10 @@ pub(crate) mod tests {
         assert!(!w.busy(58.5, 60.0));
     }
 
-    /// Runs Klipper-style PID gains on the simulated hotend with the update applied `lead`
-    /// seconds after its reading (and `predict` making up for all but Klipper's 0.3 s):
-    /// whether M109's settle check ends, and the last minute's worst distance from target.
-    fn with_dead_time(lead: f64, predict: bool) -> (bool, f64) {
+    /// Runs Klipper-style PID gains on `model` with each update acting `lead` seconds after
+    /// its reading (with `predict`, through the Smith predictor): whether M109's settle check
+    /// ends, and the last minute's worst distance from target.
+    fn with_dead_time(model: ThermalModel, target: f64, lead: f64, predict: bool) -> (bool, f64) {
         let mut pid = Pid::new(
             PidGains {
                 kp: 22.2,
@@ -357,31 +440,43 @@ pub(crate) mod tests {
             1.0,
             1.0,
         );
-        let mut dead = DeadTime::default();
-        let mut h = Heater::new(0, 0, ThermalModel::HOTEND);
+        let mut smith = SmithPredictor::new(model);
+        let mut h = Heater::new(0, 0, model);
         let mut pending = std::collections::VecDeque::new();
         let (mut settled, mut worst, mut t) = (false, 0.0_f64, 0.0);
-        while t < 600.0 {
+        let mut last_sent: Option<f64> = None;
+        let (mut sum, mut n, mut in_force) = (0.0, 0.0, 0.0);
+        while t < 1200.0 {
             let temp = h.sensor_temperature(t);
-            let seen = if predict {
-                dead.predict(t, temp, lead - 0.3)
-            } else {
-                temp
-            };
-            pending.push_back((t + lead, pid.update(t, seen, 200.0)));
-            while let Some(&(at, power)) = pending.front().filter(|(at, _)| *at <= t + 0.3) {
-                pending.pop_front();
-                for c in 0..3 {
-                    let s = at + 0.1 * f64::from(c);
-                    h.set(power > 0.0, s);
-                    if power > 0.0 && power < 1.0 {
-                        h.set(false, s + 0.1 * power);
-                    }
+            let seen = if predict { smith.predict(t, temp) } else { temp };
+            let power = pid.update(t, seen, target);
+            smith.decided(power, t);
+            sum += power;
+            n += 1.0;
+            // As the heater loop sends: the mean of the decisions since the last update once a
+            // fifth of the lead has passed (the MCU queues few updates).
+            if last_sent.is_none_or(|at| t + lead - at >= lead / 5.0 - 1e-9) {
+                let mean = sum / n;
+                smith.sent(mean, t + lead);
+                pending.push_back((t + lead, mean));
+                last_sent = Some(t + lead);
+                (sum, n) = (0.0, 0.0);
+            }
+            // The MCU's PWM over the next 0.3 s: 0.1 s cycles of the value in force.
+            for c in 0..3 {
+                let start = t + 0.1 * f64::from(c);
+                while let Some(&(_, power)) = pending.front().filter(|(at, _)| *at <= start) {
+                    in_force = power;
+                    pending.pop_front();
+                }
+                h.set(in_force > 0.0, start);
+                if in_force > 0.0 && in_force < 1.0 {
+                    h.set(false, start + 0.1 * in_force);
                 }
             }
-            settled |= !pid.busy(temp, 200.0);
-            if t > 540.0 {
-                worst = worst.max((temp - 200.0).abs());
+            settled |= !pid.busy(temp, target);
+            if t > 1140.0 {
+                worst = worst.max((temp - target).abs());
             }
             t += 0.3;
         }
@@ -389,13 +484,20 @@ pub(crate) mod tests {
     }
 
     #[test]
-    fn a_long_update_lead_is_made_up_for_by_extrapolating() {
-        assert!(with_dead_time(0.3, false).0, "Klipper's own delay settles");
-        let (_, worst) = with_dead_time(8.0, false);
+    fn a_long_update_lead_is_made_up_for_by_the_smith_predictor() {
+        let hotend = ThermalModel::HOTEND;
+        assert!(
+            with_dead_time(hotend, 200.0, 0.3, false).0,
+            "Klipper's own delay settles"
+        );
+        let (_, worst) = with_dead_time(hotend, 200.0, 8.0, false);
         assert!(worst > 5.0, "8 s of dead time keeps swinging: {worst}");
-        for lead in [2.0, 3.0, 4.0] {
-            let (settled, worst) = with_dead_time(lead, true);
-            assert!(settled && worst < 3.0, "lead {lead}: {settled} {worst}");
+        // 0.25 s of wall time at 50× is 12.5 s of MCU time.
+        for lead in [2.0, 4.0, 12.5, 15.0] {
+            let (settled, worst) = with_dead_time(hotend, 200.0, lead, true);
+            assert!(settled && worst < 0.5, "lead {lead}: {settled} {worst}");
         }
+        let (settled, worst) = with_dead_time(ThermalModel::BED, 60.0, 12.5, true);
+        assert!(settled && worst < 0.5, "bed: {settled} {worst}");
     }
 }

@@ -33,6 +33,16 @@ pub const REPORT_TIME: f64 = 0.300;
 /// Consecutive out-of-range reports after which the MCU shuts itself down.
 pub const RANGE_CHECK_COUNT: u8 = 4;
 
+impl SimKind {
+    /// Its thermal constants (as `cadence-mcu --heater PIN=PIN,hotend|bed` simulates them).
+    pub fn model(self) -> firmware::sim::heater::ThermalModel {
+        match self {
+            SimKind::Hotend => firmware::sim::heater::ThermalModel::HOTEND,
+            SimKind::Bed => firmware::sim::heater::ThermalModel::BED,
+        }
+    }
+}
+
 /// The simulated thermal model a heater gets on the simulated printer.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SimKind {

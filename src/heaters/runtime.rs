@@ -21,7 +21,7 @@ use links::dict::Dictionary;
 use links::mcu::McuLink;
 
 use super::calibrate::RelayTuner;
-use super::control::{Control, DeadTime, Pid, PidGains, Smoothed, Watermark};
+use super::control::{Control, Pid, PidGains, SmithPredictor, Smoothed, Watermark};
 use super::objects::{
     adc_range, FanRole, Thermal, ThermalObject, RANGE_CHECK_COUNT, REPORT_TIME, SAMPLE_COUNT, SAMPLE_TIME,
 };
@@ -353,8 +353,10 @@ struct Running {
     sensor: super::thermistor::Sensor,
     /// PID_CALIBRATE's relay in place of the control while it runs.
     relay: Option<Relay>,
-    /// On a time-scaled simulated MCU: the reading extrapolated over the update's extra lead.
-    dead_time: Option<DeadTime>,
+    /// On a time-scaled simulated MCU: the reading as it would be without the update's lead,
+    /// and the sum and count of the powers decided since the last update (it sends their mean).
+    smith: Option<SmithPredictor>,
+    decided: (f64, f64),
 }
 
 /// A running PID_CALIBRATE: the tuner and its samples.
@@ -393,14 +395,8 @@ struct RunningSensor {
 /// time): host pauses of this VM's kind (~10–100 ms) must not make an update late, which the
 /// MCU would take as a missed update and shut down. On a time-scaled simulator this is more MCU
 /// time, capped at half the heaters' `max_duration` ([`Thermal::max_heat_time`]), so refreshes
-/// keep within it, and at most [`MAX_LEAD_S`].
+/// keep within it; the control makes up for the long lead ([`SmithPredictor`]).
 const WALL_LEAD_S: f64 = 0.25;
-
-/// The longest lead (s of MCU time) of a PWM update: beyond it even the extrapolated reading
-/// ([`DeadTime`]) leaves a PID tuned for a real board swinging around its target (a 40 W
-/// hotend at 200 °C: ±2.3 °C with 4 s, ±7.6 °C with 8 s; see the control's tests). Reached
-/// only above 16× (0.25 s of wall time); at 50× it leaves 80 ms of wall time.
-const MAX_LEAD_S: f64 = 4.0;
 
 /// Runs the heater loop until `shared.stop` (then every heater off) or an MCU shutdown. Errors
 /// (a missing command, a dead link) end the loop and are returned after every heater is off.
@@ -455,7 +451,8 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                             full_scale: adc_max * f64::from(SAMPLE_COUNT),
                             sensor: h.sensor,
                             relay: None,
-                            dead_time: (thermal.sim_time_scale > 1.0).then(DeadTime::default),
+                            smith: (thermal.sim_time_scale > 1.0).then(|| SmithPredictor::new(h.sim.model())),
+                            decided: (0.0, 0.0),
                         },
                     ));
                     let (lo, hi) = adc_range(&h.sensor, h.min_temp, h.max_temp, adc_max);
@@ -554,7 +551,7 @@ fn query_analog(
 fn lead_ticks(link: &McuLink, nominal: f64, max_heat_time: f64) -> f64 {
     (0.1 * nominal)
         .max(WALL_LEAD_S * link.clock().freq())
-        .min(MAX_LEAD_S.min(0.5 * max_heat_time) * nominal)
+        .min(0.5 * max_heat_time * nominal)
 }
 
 /// The earliest MCU clock an update sent now may be scheduled at.
@@ -722,12 +719,7 @@ fn heater_loop(
                 freq,
                 thermal.max_heat_time(),
             ));
-            // Beyond Klipper's report-to-update delay, the update acts later than the reading.
-            let extra = at.saturating_sub(read_clock) as f64 / freq - REPORT_TIME;
-            let seen = r
-                .dead_time
-                .as_mut()
-                .map_or(temp, |d| d.predict(time, temp, extra));
+            let seen = r.smith.as_mut().map_or(temp, |s| s.predict(time, temp));
             let power = match r.relay.as_mut() {
                 Some(relay) => relay_update(relay, shared, *i, time, temp, r.max_power),
                 None => r.control.update(time, seen, target),
@@ -754,13 +746,24 @@ fn heater_loop(
                     return Ok(());
                 }
             }
-            let on = on_ticks(power / 1.0, r.cycle_ticks);
             // The MCU queues few updates (8): with a long lead (a time-scaled simulator) a new
-            // value waits until a fifth of the lead has passed since the last one.
+            // value waits until a fifth of the lead has passed since the last one, and is the
+            // mean of the powers decided meanwhile.
+            let sent_power = match r.smith.as_mut() {
+                Some(s) => {
+                    s.decided(power, time);
+                    r.decided.0 += power;
+                    r.decided.1 += 1.0;
+                    r.decided.0 / r.decided.1
+                }
+                None => power,
+            };
+            let on = on_ticks(sent_power, r.cycle_ticks);
             let min_gap = (lead_ticks(&conn.link, freq, thermal.max_heat_time()) / 5.0) as u64;
             let send = r.last_sent.is_none_or(|(c, o)| {
                 let gap = at.saturating_sub(c);
-                (o != on && gap >= min_gap) || gap as f64 > 0.25 * thermal.max_heat_time() * freq
+                ((o != on || r.smith.is_some()) && gap >= min_gap)
+                    || gap as f64 > 0.25 * thermal.max_heat_time() * freq
             });
             if send {
                 if send_pwm(&conn.link, r.pwm_oid, at, on, r.invert, r.cycle_ticks).is_err() {
@@ -768,6 +771,10 @@ fn heater_loop(
                     continue;
                 }
                 r.last_sent = Some((at, on));
+                if let Some(s) = r.smith.as_mut() {
+                    s.sent(f64::from(on) / r.cycle_ticks, at as f64 / freq);
+                    r.decided = (0.0, 0.0);
+                }
             }
         }
         for (i, r) in sensors.iter_mut() {
