@@ -218,6 +218,16 @@ pub struct AxisReport {
     pub position: f64,
 }
 
+/// `s` seconds after the trigger in words: `208 us after the trigger`, `42 us before it`.
+fn relative_to_trigger(s: f64) -> String {
+    let us = (s * 1e6).round();
+    if us < 0.0 {
+        format!("{:.0} us before the trigger", -us)
+    } else {
+        format!("{us:.0} us after the trigger")
+    }
+}
+
 /// What [`home_axes`] did.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct HomingReport {
@@ -232,13 +242,13 @@ impl fmt::Display for HomingReport {
             for (i, p) in a.passes.iter().enumerate() {
                 write!(
                     f,
-                    "; pass {} at {} mm/s: trigger on '{}', overshoot {:.4} mm, stop {:.0}..{:.0} us after trigger",
+                    "; pass {} at {} mm/s: trigger on '{}', overshoot {:.4} mm, last step {}, first cancelled {}",
                     i + 1,
                     p.speed,
                     p.trigger_mcu,
                     p.overshoot_mm,
-                    p.last_step_after_s * 1e6,
-                    p.next_step_after_s * 1e6
+                    relative_to_trigger(p.last_step_after_s),
+                    relative_to_trigger(p.next_step_after_s)
                 )?;
             }
             writeln!(f, "; position {:.6}", a.position)?;

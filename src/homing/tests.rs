@@ -277,7 +277,7 @@ fn report_names_axis_overshoot_and_position() {
                 overshoot_mm: 0.0125,
                 trigger_position: 0.0,
                 steps: -4000,
-                last_step_after_s: 0.0004,
+                last_step_after_s: -0.0000421,
                 next_step_after_s: 0.00065,
                 trigger_received_at: 2.0,
                 relay_written_at: Some(2.0001),
@@ -292,7 +292,7 @@ fn report_names_axis_overshoot_and_position() {
     );
     assert!(
         s.contains("overshoot 0.0125 mm")
-            && s.contains("stop 400..650 us")
+            && s.contains("last step 42 us before the trigger, first cancelled 650 us after the trigger")
             && s.ends_with("position 0.012500\n"),
         "{s}"
     );
