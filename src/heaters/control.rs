@@ -268,24 +268,10 @@ impl Plant {
 
     fn advance(&mut self, t: f64) {
         let dt = t - self.at;
-        if dt <= 0.0 {
-            return;
+        if dt > 0.0 {
+            (self.mass, self.sensor) = self.model.solve((self.mass, self.sensor), self.power, dt);
+            self.at = t;
         }
-        let m = &self.model;
-        let eq = AMBIENT_C + self.power * m.power_w / m.loss_w_per_k;
-        let tau = m.tau_s();
-        let e1 = (-dt / tau).exp();
-        let (t0, s0, lag) = (self.mass - eq, self.sensor - eq, m.sensor_lag_s);
-        self.sensor = if lag <= 0.0 {
-            eq + t0 * e1
-        } else if (tau - lag).abs() < 1e-9 {
-            eq + (s0 + t0 * dt / tau) * e1
-        } else {
-            let a = t0 * tau / (tau - lag);
-            eq + a * e1 + (s0 - a) * (-dt / lag).exp()
-        };
-        self.mass = eq + t0 * e1;
-        self.at = t;
     }
 
     fn set(&mut self, power: f64, t: f64) {

@@ -62,6 +62,25 @@ impl ThermalModel {
         self.capacity_j_per_k / self.loss_w_per_k
     }
 
+    /// The mass's and the sensor's temperatures (°C) `dt` seconds after `(mass, sensor)` with
+    /// `power` (0..=1 of the heater's) applied throughout: the exact solution.
+    pub fn solve(&self, (mass, sensor): (f64, f64), power: f64, dt: f64) -> (f64, f64) {
+        let eq = AMBIENT_C + power * self.power_w / self.loss_w_per_k;
+        let tau = self.tau_s();
+        let e1 = (-dt / tau).exp();
+        let (t0, s0, lag) = (mass - eq, sensor - eq, self.sensor_lag_s);
+        let sensor = if lag <= 0.0 {
+            t0 * e1 + eq
+        } else if (tau - lag).abs() < 1e-9 {
+            // Equal time constants: S = eq + (s0 + t0·dt/τ)·e^(−dt/τ).
+            eq + (s0 + t0 * dt / tau) * e1
+        } else {
+            let a = t0 * tau / (tau - lag);
+            eq + a * e1 + (s0 - a) * (-dt / lag).exp()
+        };
+        (eq + t0 * e1, sensor)
+    }
+
     /// Temperature the mass settles at with the heater always on (°C).
     pub fn full_power_c(&self) -> f64 {
         AMBIENT_C + self.power_w / self.loss_w_per_k
@@ -142,23 +161,8 @@ impl Heater {
         if dt <= 0.0 {
             return;
         }
-        let m = &self.model;
-        let eq = AMBIENT_C + if self.on { m.power_w / m.loss_w_per_k } else { 0.0 };
-        let tau = m.tau_s();
-        let e1 = (-dt / tau).exp();
-        let t0 = self.temp_c - eq;
-        let s0 = self.sensor_c - eq;
-        let lag = m.sensor_lag_s;
-        self.sensor_c = if lag <= 0.0 {
-            t0 * e1 + eq
-        } else if (tau - lag).abs() < 1e-9 {
-            // Equal time constants: S = eq + (s0 + t0·dt/τ)·e^(−dt/τ).
-            eq + (s0 + t0 * dt / tau) * e1
-        } else {
-            let a = t0 * tau / (tau - lag);
-            eq + a * e1 + (s0 - a) * (-dt / lag).exp()
-        };
-        self.temp_c = eq + t0 * e1;
+        let power = if self.on { 1.0 } else { 0.0 };
+        (self.temp_c, self.sensor_c) = self.model.solve((self.temp_c, self.sensor_c), power, dt);
         self.at_s = t_s;
     }
 
