@@ -92,7 +92,9 @@ pub fn run_batch(
     let mut streams = StepStreams::new(machine, &params)?;
     // Batch mode runs flat out: step generation and compression on every core.
     let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-    let mut pipeline = machine.batch_pipeline(clock_freq, job.max_error_us * 1e-6, threads)?;
+    let mut pipeline = machine
+        .batch_pipeline(clock_freq, job.max_error_us * 1e-6, threads)
+        .map_err(|e| e.to_string())?;
     let mut accessories = Accessories::new(false);
     let file = gcode.name.clone();
     let mut target = BatchTarget {

@@ -751,6 +751,8 @@ struct FeedHoming<'f, 'a, T> {
 }
 
 impl<T: FeedTarget> HomeOps for FeedHoming<'_, '_, T> {
+    type Error = String;
+
     fn homed(&self) -> [bool; 3] {
         self.feed.pipeline.gcode_state().homed()
     }

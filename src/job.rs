@@ -179,7 +179,7 @@ fn run_live(
     observer: Option<ProgressObserver<'_>>,
 ) -> Result<LiveOutcome, String> {
     if args.live.remote() {
-        return crate::io_process::planner_side::run(args, cfg, machine, gcode);
+        return Ok(crate::io_process::planner_side::run(args, cfg, machine, gcode)?);
     }
     let started = Instant::now();
     let simulated = cfg.mcus.iter().any(|m| m.is_simulated());
@@ -187,7 +187,8 @@ fn run_live(
         return Err("--time-scale only applies to a simulated printer".to_string());
     }
     let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
-    let logging = Logging::start(args.live.log_level, args.live.log_file.clone())?;
+    let logging =
+        Logging::start(args.live.log_level, args.live.log_file.clone()).map_err(|e| e.to_string())?;
     let rt = RtConfig::from_section(&cfg.realtime, args.no_realtime);
     let _idle_hold = rt.hold_idle_latency();
     let (hists, mut mcus) = live::connect_mcus(cfg, machine, time_scale, args.trace.clone(), &rt, &logging)?;

@@ -284,7 +284,10 @@ impl Printer {
         cfg.simulator.time_scale = time_scale;
         let machine = Machine::from_config(&cfg)?;
         let logging = Logging::start_with(opts.log_level, opts.log_file.clone(), opts.log_to_stderr)
-            .map_err(|why| OpenError::Thread { what: "logger", why })?;
+            .map_err(|e| OpenError::Thread {
+                what: "logger",
+                why: e.to_string(),
+            })?;
         let rt = RtConfig::from_section(&cfg.realtime, !opts.realtime);
         let idle_hold = rt.hold_idle_latency();
         let (hists, mcus) =
@@ -615,7 +618,7 @@ fn run_session(inner: &Inner, input: GcodeInput) -> Result<Summary, String> {
         session: Some(&inner.shared),
         instance: &inner.instance,
     };
-    let result = live::print_on(input, &inner.machine, &inner.mcus, &run);
+    let result = live::print_on(input, &inner.machine, &inner.mcus, &run).map_err(String::from);
     let reason = match &result {
         Ok(_) => "closed".to_string(),
         Err(e) => e.clone(),

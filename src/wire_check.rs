@@ -160,7 +160,9 @@ pub fn run(
         ));
     }
     let clock_freq = dict.clock_freq().map_err(|e| e.to_string())?;
-    let mut pipeline = machine.batch_pipeline(clock_freq, spec.max_error_us * 1e-6, 0)?;
+    let mut pipeline = machine
+        .batch_pipeline(clock_freq, spec.max_error_us * 1e-6, 0)
+        .map_err(|e| e.to_string())?;
     pipeline.set_record_ideal(true);
     let max_ticks = pipeline.max_error_ticks();
     let mut checked = Vec::new();

@@ -303,7 +303,9 @@ fn home_in_thread(opts: HomeOptions) -> Result<(CycleFigures, Vec<String>), Stri
         .name("bench-homing".into())
         .spawn(move || {
             let mut o = Collect::default();
-            cadence::home_cycles::run_figures(&opts, &mut o).map(|f| (f, o.notes))
+            cadence::home_cycles::run_figures(&opts, &mut o)
+                .map(|f| (f, o.notes))
+                .map_err(String::from)
         })
         .map_err(|e| format!("cannot start the homing thread: {e}"))?
         .join()

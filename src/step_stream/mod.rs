@@ -16,7 +16,10 @@
 //! The planner gets the maps at start and again between batches ([`StepStreams::refresh_clocks`]),
 //! so each MCU's crystal drift is followed (the fits are `links::clocksync`'s).
 
+mod error;
 pub mod sink;
+
+pub use error::StreamError;
 
 use links::clocksync::ClockEstimate;
 use links::dict::Dictionary;
@@ -73,7 +76,7 @@ pub fn stream_mcus(machine: &Machine, names: &[&str]) -> Vec<usize> {
 impl StepStreams {
     /// Streams for `mcus` (from [`stream_mcus`], the main MCU first); every stepper's MCU must
     /// be among them.
-    pub fn new(machine: &Machine, mcus: &[McuParams<'_>]) -> Result<StepStreams, String> {
+    pub fn new(machine: &Machine, mcus: &[McuParams<'_>]) -> Result<StepStreams, StreamError> {
         let mut route = vec![(usize::MAX, 0); machine.steppers.len()];
         let mut out = Vec::with_capacity(mcus.len());
         for (k, m) in mcus.iter().enumerate() {
@@ -84,8 +87,12 @@ impl StepStreams {
             for (local, &i) in steppers.iter().enumerate() {
                 route[i] = (k, local);
             }
-            let streamer = StepStreamer::new(m.dict, &outs, m.move_count)
-                .map_err(|e| format!("mcu '{}': {e}", m.name))?;
+            let streamer = StepStreamer::new(m.dict, &outs, m.move_count).map_err(|source| {
+                StreamError::McuDictionary {
+                    mcu: m.name.to_string(),
+                    source,
+                }
+            })?;
             out.push(McuStream {
                 name: m.name.to_string(),
                 mcu_index: m.mcu_index,
@@ -96,10 +103,10 @@ impl StepStreams {
         }
         if let Some(i) = route.iter().position(|r| r.0 == usize::MAX) {
             let s = &machine.steppers[i];
-            return Err(format!(
-                "[{}]: its MCU '{}' is not connected for this print",
-                s.name, s.mcu
-            ));
+            return Err(StreamError::NotConnected {
+                stepper: s.name.clone(),
+                mcu: s.mcu.clone(),
+            });
         }
         Ok(StepStreams { mcus: out, route })
     }
@@ -111,14 +118,12 @@ impl StepStreams {
 
     /// Encodes one planner command for stepper `idx` into its MCU's sink (`sinks[k]` is
     /// stream k's).
-    pub fn push<S: Sink>(&mut self, idx: usize, cmd: StepCmd, sinks: &mut [S]) -> Result<(), String> {
+    pub fn push<S: Sink>(&mut self, idx: usize, cmd: StepCmd, sinks: &mut [S]) -> Result<(), StreamError> {
         let Some(&(k, local)) = self.route.get(idx) else {
-            return Err(format!(
-                "internal error: step command for unknown stepper index {idx}"
-            ));
+            return Err(StreamError::UnknownStepper(idx));
         };
         let (Some(stream), Some(sink)) = (self.mcus.get_mut(k), sinks.get_mut(k)) else {
-            return Err(format!("internal error: no sink for step stream {k}"));
+            return Err(StreamError::NoSink(k));
         };
         stream.streamer.push(local, cmd, sink)
     }
@@ -154,14 +159,14 @@ impl StepStreams {
 
     /// Every stepper's clock map now, in machine order; `clock(mcu_index)` is that MCU's
     /// clock-sync fit. Fails when another MCU has no valid fit.
-    pub fn clock_maps(&self, clock: impl Fn(usize) -> ClockEstimate) -> Result<Vec<ClockMap>, String> {
+    pub fn clock_maps(&self, clock: impl Fn(usize) -> ClockEstimate) -> Result<Vec<ClockMap>, StreamError> {
         let main = &self.mcus[0];
         let main_est = clock(main.mcu_index);
         let now = McuLink::system_now();
         let mut maps = vec![ClockMap::identity(main.clock_freq); self.route.len()];
         for m in &self.mcus[1..] {
             let map = clock_map(&main_est, main.clock_freq, &clock(m.mcu_index), now)
-                .ok_or_else(|| format!("mcu '{}': no clock estimate yet", m.name))?;
+                .ok_or_else(|| StreamError::NoClock { mcu: m.name.clone() })?;
             for &i in &m.steppers {
                 maps[i] = map;
             }
@@ -176,7 +181,7 @@ impl StepStreams {
         &self,
         pipeline: &mut Pipeline,
         clock: impl Fn(usize) -> ClockEstimate,
-    ) -> Result<(), String> {
+    ) -> Result<(), StreamError> {
         let Some((main, others)) = self.mcus.split_first() else {
             return Ok(());
         };
@@ -190,7 +195,7 @@ impl StepStreams {
                 continue;
             };
             for &i in &m.steppers {
-                pipeline.set_clock_map(i, map).map_err(|e| e.to_string())?;
+                pipeline.set_clock_map(i, map)?;
             }
         }
         Ok(())
@@ -250,6 +255,10 @@ mod tests {
         let x = m.steppers.iter().position(|s| s.name == "stepper_x").unwrap();
         assert_eq!((s.stream_of(x), s.stream_of(z)), (Some(0), Some(1)));
         let err = StepStreams::new(&m, &[p("mcu", 0)]).unwrap_err();
-        assert!(err.contains("'toolboard'"), "{err}");
+        assert!(
+            matches!(&err, StreamError::NotConnected { mcu, .. } if mcu == "toolboard"),
+            "{err:?}"
+        );
+        assert!(err.to_string().contains("'toolboard'"), "{err}");
     }
 }
