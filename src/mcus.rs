@@ -61,8 +61,12 @@ impl std::fmt::Debug for ConnectOptions {
 #[derive(Debug, thiserror::Error)]
 pub enum McuError {
     /// The simulated MCU process did not start.
-    #[error("{why}")]
-    Start { mcu: String, why: String },
+    #[error("{source}")]
+    Start {
+        mcu: String,
+        #[source]
+        source: crate::sim_mcu::SimError,
+    },
     /// The serial port or pty did not open.
     #[error("mcu '{mcu}': {port}: {why}")]
     Open { mcu: String, port: String, why: String },
@@ -203,9 +207,9 @@ impl Mcus {
                         extra
                     },
                 };
-                let s = SimMcu::spawn(&name, &sim_opts).map_err(|why| McuError::Start {
+                let s = SimMcu::spawn(&name, &sim_opts).map_err(|source| McuError::Start {
                     mcu: name.clone(),
-                    why,
+                    source,
                 })?;
                 let t = PtyTransport::open(&s.pty).map_err(|e| McuError::Open {
                     mcu: name.clone(),

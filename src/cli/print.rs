@@ -12,10 +12,10 @@ use cadence::job::{LiveOptions, PrintJob, PrintOutcome, Progress};
 use cadence::summary::human_duration;
 use clap::Args;
 
-use super::gcode_source::GcodeSource;
 use super::progress::Display;
 use super::signals::{self, StopRequest};
 use super::MotionArgs;
+use cadence::gcode_source::GcodeSource;
 use rt_core::logger::Level;
 
 /// Arguments of `cadence print`.
