@@ -482,8 +482,9 @@ impl<'a, 'p> PlannerRun<'a, 'p> {
     fn check(&self) -> Result<(), PlannerError> {
         // A stop first: an emergency stop also shuts the MCUs down, and is the cause.
         if let Some(s) = self.st.session {
-            s.check_stop()
-                .map_err(|reason| PlannerError::Stopped { reason })?;
+            if let Some(reason) = s.stop_reason() {
+                return Err(PlannerError::Stopped { reason });
+            }
         }
         // A thermal runaway also shuts the MCUs down, and is the cause.
         if let Some(reason) = self.st.heaters.and_then(|h| h.fault()) {

@@ -137,7 +137,7 @@ pub fn run(args: &PrintArgs) -> Result<u8, String> {
     if let Some(d) = &display {
         d.finish();
     }
-    let outcome = result.map_err(|e| explain(&e, args.motion.time_scale))?;
+    let outcome = result.map_err(|e| explain(&e.to_string(), args.motion.time_scale))?;
     let code = match stop.signal() {
         Some(sig) if pos.cut.load(Ordering::Acquire) => {
             let bytes = pos.bytes.load(Ordering::Relaxed);

@@ -2,8 +2,6 @@
 //! hand-shake (READY, the MCU info, the config CRC, FINISH/DONE), the channels, or the other
 //! process failing or exiting.
 
-use std::path::PathBuf;
-
 use rt_core::shm::ShmError;
 
 use crate::hardware::HardwareError;
@@ -140,16 +138,9 @@ pub enum IoProcessError {
     /// The end of the print: positions, leads.
     #[error(transparent)]
     Live(#[from] LiveError),
-    /// The histograms file could not be written, or another error of the print's report.
-    #[error("{0}")]
-    Report(String),
-    /// A trace or histogram path.
-    #[error("{}: {source}", .path.display())]
-    File {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
+    /// The histograms file could not be written.
+    #[error(transparent)]
+    Histograms(#[from] crate::latency::HistogramsError),
 }
 
 /// The CLI's view (the message as shown).

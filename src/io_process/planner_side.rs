@@ -100,7 +100,7 @@ impl RemoteMcu {
 
     /// The IO process's failure reason, once it failed.
     pub fn failure(&self) -> Option<String> {
-        self.failed.check("the IO process failed").err()
+        self.failed.reason("the IO process failed")
     }
 
     /// The IO process's failure, as an error.
@@ -277,7 +277,7 @@ pub(crate) fn run(
         logging,
         Vec::new(),
     )
-    .map_err(IoProcessError::Report)
+    .map_err(IoProcessError::from)
 }
 
 /// What the print against an IO process works with.
