@@ -70,7 +70,7 @@ pub enum BatchError {
     Configure {
         mcu: String,
         #[source]
-        source: crate::mcus::ConfigureError,
+        source: Box<crate::mcus::ConfigureError>,
     },
     /// The step streams could not be set up or written.
     #[error(transparent)]
@@ -123,7 +123,7 @@ pub fn run_batch(
         for c in crate::mcus::config_commands(&dict, machine, m.name)
             .map_err(|source| BatchError::Configure {
                 mcu: m.name.to_string(),
-                source,
+                source: Box::new(source),
             })?
             .0
         {

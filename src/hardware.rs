@@ -151,12 +151,21 @@ pub enum HardwareError {
     },
 }
 
+/// A pin an MCU's dictionary does not have (`what`: the section and option, or the pin).
+#[derive(Debug, thiserror::Error)]
+#[error("{what}: {source}")]
+pub struct PinError {
+    pub what: String,
+    #[source]
+    pub source: links::dict::DictError,
+}
+
 /// Why the G-code feed's macros and host objects could not be set up.
 #[derive(Debug, thiserror::Error)]
 pub enum MacrosError {
     /// A `[gcode_macro]` does not compile.
     #[error(transparent)]
-    Macro(#[from] planner::gcode::macros::MacroError),
+    Macro(Box<planner::gcode::macros::MacroError>),
     /// The `[save_variables]` file could not be read or created.
     #[error("[save_variables] filename {}: {source}", .path.display())]
     VariablesFile {
@@ -172,6 +181,8 @@ pub enum MacrosError {
         source: planner::gcode::host::HostError,
     },
 }
+
+from_boxed!(MacrosError, Macro, planner::gcode::macros::MacroError);
 
 impl From<MacrosError> for String {
     fn from(e: MacrosError) -> String {

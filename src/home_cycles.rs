@@ -82,7 +82,7 @@ pub enum HomeCyclesError {
     Plan(#[from] planner::machine::PlanError),
     /// A homing pass or move failed (the wiring check too).
     #[error(transparent)]
-    Homing(#[from] HomingError),
+    Homing(Box<HomingError>),
     /// After the cycles the MCU and the host disagree on a stepper's position.
     #[error("{stepper}: the MCU reports position {mcu} steps but the host counts {host:?}")]
     Position {
@@ -98,6 +98,8 @@ pub enum HomeCyclesError {
         source: std::io::Error,
     },
 }
+
+from_boxed!(HomeCyclesError, Homing, HomingError);
 
 /// The CLI's view (the message as shown).
 impl From<HomeCyclesError> for String {

@@ -140,10 +140,10 @@ pub enum JobError {
     Config(#[from] crate::hardware::HardwareError),
     /// The batch print failed.
     #[error(transparent)]
-    Batch(#[from] crate::batch::BatchError),
+    Batch(Box<crate::batch::BatchError>),
     /// The print with the IO stage in another process failed.
     #[error(transparent)]
-    IoProcess(#[from] crate::io_process::IoProcessError),
+    IoProcess(Box<crate::io_process::IoProcessError>),
     /// The logger thread did not start.
     #[error(transparent)]
     Logger(#[from] rt_core::logger::LoggerError),
@@ -152,11 +152,15 @@ pub enum JobError {
     Mcu(#[from] crate::mcus::McuError),
     /// The live print failed.
     #[error(transparent)]
-    Live(#[from] crate::live::LiveError),
+    Live(Box<crate::live::LiveError>),
     /// The histograms file.
     #[error(transparent)]
     Histograms(#[from] crate::latency::HistogramsError),
 }
+
+from_boxed!(JobError, Batch, crate::batch::BatchError);
+from_boxed!(JobError, IoProcess, crate::io_process::IoProcessError);
+from_boxed!(JobError, Live, crate::live::LiveError);
 
 /// The CLI's view (the message as shown).
 impl From<JobError> for String {

@@ -29,6 +29,18 @@
 //! not allocate after warm-up; threads are pinned and SCHED_FIFO where the OS allows it, and
 //! run anyway (reported once) where it does not.
 
+/// `From<$inner>` for the error enum `$outer` through its boxed variant `$variant`: large
+/// errors are boxed inside the enums that carry them, so every `Result` stays small.
+macro_rules! from_boxed {
+    ($outer:ty, $variant:ident, $inner:ty) => {
+        impl From<$inner> for $outer {
+            fn from(e: $inner) -> Self {
+                Self::$variant(Box::new(e))
+            }
+        }
+    };
+}
+
 pub mod accessories;
 pub mod allocsites;
 pub mod batch;

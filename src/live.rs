@@ -94,7 +94,7 @@ pub enum LiveError {
     IoStage(#[from] IoStageError),
     /// The planner thread stopped the print.
     #[error(transparent)]
-    Planner(#[from] PlannerError),
+    Planner(Box<PlannerError>),
     /// An MCU shut down.
     #[error(transparent)]
     Mcu(#[from] McuError),
@@ -141,6 +141,8 @@ pub enum LiveError {
     #[error("a step command reached mcu '{mcu}' with only {lead_ms:.1} ms lead (at least {min_ms:.0} ms required)")]
     LowLead { mcu: String, lead_ms: f64, min_ms: f64 },
 }
+
+from_boxed!(LiveError, Planner, PlannerError);
 
 /// The older string-typed layers' view (the message as shown).
 impl From<LiveError> for String {

@@ -85,7 +85,7 @@ pub enum McuError {
     Configure {
         mcu: String,
         #[source]
-        source: ConfigureError,
+        source: Box<ConfigureError>,
     },
     /// The MCU shut down (its reason, as it reported it).
     #[error("mcu '{mcu}' shut down: {reason}")]
@@ -118,16 +118,12 @@ pub enum ConfigureError {
     /// Endstops on an MCU whose firmware has no endstop or trsync commands.
     #[error("the MCU has no endstop/trsync support in its dictionary")]
     NoEndstopSupport,
-    /// A pin the MCU does not have (`what`: the section and option, or the pin).
-    #[error("{what}: {source}")]
-    Pin {
-        what: String,
-        #[source]
-        source: links::dict::DictError,
-    },
+    /// A pin the MCU does not have.
+    #[error(transparent)]
+    Pin(#[from] crate::hardware::PinError),
     /// Heaters, sensors or fans of this MCU.
-    #[error("{0}")]
-    Thermal(String),
+    #[error(transparent)]
+    Thermal(#[from] crate::heaters::objects::ObjectsError),
     /// The link failed while configuring.
     #[error(transparent)]
     Link(#[from] links::mcu::LinkError),
@@ -279,7 +275,10 @@ impl Mcus {
             if let Err(source) = mcus.configure(i, machine) {
                 let mcu = mcus.list[i].name.clone();
                 mcus.close();
-                return Err(McuError::Configure { mcu, source });
+                return Err(McuError::Configure {
+                    mcu,
+                    source: Box::new(source),
+                });
             }
         }
         Ok(mcus)
@@ -516,12 +515,7 @@ pub fn config_commands(
     if let Some(b) = bltouch {
         cmds.extend(crate::homing::bltouch::config_commands(dict, b)?);
     }
-    cmds.extend(
-        machine
-            .thermal
-            .config_commands(dict, mcu, thermal_oid0)
-            .map_err(ConfigureError::Thermal)?,
-    );
+    cmds.extend(machine.thermal.config_commands(dict, mcu, thermal_oid0)?);
     let mut crc = crc32fast::Hasher::new();
     for c in &cmds {
         crc.update(c.as_bytes());
@@ -532,7 +526,7 @@ pub fn config_commands(
 }
 
 fn pin_error(what: String, source: links::dict::DictError) -> ConfigureError {
-    ConfigureError::Pin { what, source }
+    crate::hardware::PinError { what, source }.into()
 }
 
 /// `get_config` → `config`, retried: MCU → host traffic is not retransmitted, so on a noisy line

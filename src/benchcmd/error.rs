@@ -70,7 +70,7 @@ pub enum BenchCmdError {
     },
     /// The homing cycles failed.
     #[error(transparent)]
-    Homing(#[from] cadence::home_cycles::HomeCyclesError),
+    Homing(Box<cadence::home_cycles::HomeCyclesError>),
     /// The homing thread did not start.
     #[error("cannot start the homing thread: {0}")]
     HomingThread(#[source] std::io::Error),
@@ -79,7 +79,19 @@ pub enum BenchCmdError {
     HomingPanicked,
     /// The benched print failed.
     #[error(transparent)]
-    Print(#[from] PrintFailure),
+    Print(Box<PrintFailure>),
+}
+
+impl From<cadence::home_cycles::HomeCyclesError> for BenchCmdError {
+    fn from(e: cadence::home_cycles::HomeCyclesError) -> Self {
+        Self::Homing(Box::new(e))
+    }
+}
+
+impl From<PrintFailure> for BenchCmdError {
+    fn from(e: PrintFailure) -> Self {
+        Self::Print(Box::new(e))
+    }
 }
 
 /// The CLI's view (the message as shown).

@@ -126,22 +126,7 @@ pub fn run(
     let mut exact: Vec<(String, Histogram<u64>)> = Vec::new();
     let t0 = mono_ns().map_err(err)?;
     for (name, config, axes) in &printers {
-        let traces = TraceDir::new(name).map_err(|source| BenchCmdError::TraceDir {
-            mode: "homing",
-            source,
-        })?;
-        let opts = HomeOptions {
-            config: config.clone(),
-            axes: *axes,
-            cycles: m.cycles,
-            away: m.away,
-            cpu_load: false,
-            time_scale: m.time_scale,
-            trace: Some(traces.base()),
-            max_error_us: 25.0,
-            no_realtime: !m.realtime,
-        };
-        let (figures, notes) = home_in_thread(opts)?;
+        let (figures, notes) = home_printer(name, config, *axes, m)?;
         s.report
             .notes
             .extend(notes.into_iter().map(|n| format!("{name}: {n}")));
@@ -152,7 +137,6 @@ pub fn run(
             let axis = AXIS_NAMES[t.axis.min(2)].to_ascii_lowercase();
             exact.push((format!("{name}-{axis}-exact"), to_ns(&t.stop).map_err(err)?));
         }
-        drop(traces);
         merge(&mut wakeup, figures.noise.hist.histogram()).map_err(err)?;
         s.progress(Duration::from_secs_f64(
             (mono_ns().map_err(err)?.saturating_sub(t0)) as f64 * 1e-9,
@@ -306,6 +290,32 @@ fn to_ns(h: &rt_core::hist::LatencyHist) -> Result<Histogram<u64>, BenchError> {
         );
     }
     Ok(out)
+}
+
+/// Homes printer `name` `m.cycles` times, its simulated MCUs tracing into a scratch directory
+/// (removed after).
+fn home_printer(
+    name: &str,
+    config: &Option<PathBuf>,
+    axes: [bool; 3],
+    m: &HomingMode,
+) -> Result<(CycleFigures, Vec<String>), BenchCmdError> {
+    let traces = TraceDir::new(name).map_err(|source| BenchCmdError::TraceDir {
+        mode: "homing",
+        source,
+    })?;
+    let opts = HomeOptions {
+        config: config.clone(),
+        axes,
+        cycles: m.cycles,
+        away: m.away,
+        cpu_load: false,
+        time_scale: m.time_scale,
+        trace: Some(traces.base()),
+        max_error_us: 25.0,
+        no_realtime: !m.realtime,
+    };
+    home_in_thread(opts)
 }
 
 /// Runs the cycles on a thread of their own: they pin their thread and give it SCHED_FIFO,

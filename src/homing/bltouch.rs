@@ -98,7 +98,7 @@ pub struct BlTouchState {
 pub fn config_commands(dict: &Dictionary, b: &BlTouchOut) -> Result<Vec<Cmd>, crate::mcus::ConfigureError> {
     let pin = dict
         .pin(&b.control_pin.pin)
-        .map_err(|source| crate::mcus::ConfigureError::Pin {
+        .map_err(|source| crate::hardware::PinError {
             what: "[bltouch] control_pin".to_string(),
             source,
         })?;

@@ -19,20 +19,8 @@ pub enum HomingError {
     #[error("G28: homing needs the inline planner without pressure advance")]
     NeedsInlinePlanner,
     /// The steppers of one axis on several MCUs, its endstop on yet another.
-    #[error(
-        "[{section}] {option} '{pin}': the steppers of axis {axis} are on MCUs '{}' while its endstop is on \
-         yet another MCU '{endstop_mcu}': put the endstop on one of the steppers' MCUs or all steppers of the \
-         axis on one MCU",
-        .mcus.join("', '")
-    )]
-    Wiring {
-        section: String,
-        option: &'static str,
-        pin: String,
-        axis: char,
-        mcus: Vec<String>,
-        endstop_mcu: String,
-    },
+    #[error(transparent)]
+    Wiring(Box<WiringError>),
     /// Delta: its towers home together.
     #[error(
         "homing {axis}: {kinematics} kinematics is not supported: its towers home together, \
@@ -156,6 +144,24 @@ pub enum HomingError {
     /// The main MCU's clock did not reach the end of a BLTouch command.
     #[error("bltouch: the main MCU's clock did not reach the end of the probe's command")]
     BlTouchClock,
+}
+
+/// The steppers of one axis on several MCUs while its endstop is on yet another: the trigger
+/// relay cannot serve that.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error(
+    "[{section}] {option} '{pin}': the steppers of axis {axis} are on MCUs '{}' while its endstop is on \
+     yet another MCU '{endstop_mcu}': put the endstop on one of the steppers' MCUs or all steppers of the \
+     axis on one MCU",
+    .mcus.join("', '")
+)]
+pub struct WiringError {
+    pub section: String,
+    pub option: &'static str,
+    pub pin: String,
+    pub axis: char,
+    pub mcus: Vec<String>,
+    pub endstop_mcu: String,
 }
 
 /// What is wrong with a probe command's parameter.

@@ -60,7 +60,7 @@ mod pass;
 pub mod probe;
 pub mod procedure;
 
-pub use error::{HomingError, ParamProblem};
+pub use error::{HomingError, ParamProblem, WiringError};
 pub(crate) use pass::homing_pass;
 
 use std::fmt;
@@ -266,7 +266,7 @@ pub fn check_config(machine: &Machine) -> Result<(), HomingError> {
             }
         }
         if mcus.len() > 1 && !mcus.contains(&e.pin.mcu.as_str()) {
-            return Err(HomingError::Wiring {
+            return Err(HomingError::Wiring(Box::new(WiringError {
                 section: e.stepper.clone(),
                 option: if e.stepper == "probe" {
                     "pin"
@@ -277,7 +277,7 @@ pub fn check_config(machine: &Machine) -> Result<(), HomingError> {
                 axis: AXIS_NAMES[e.axis.min(2)],
                 mcus: mcus.iter().map(|m| m.to_string()).collect(),
                 endstop_mcu: e.pin.mcu.clone(),
-            });
+            })));
         }
     }
     Ok(())

@@ -100,7 +100,7 @@ pub enum IoProcessError {
     Configure {
         mcu: String,
         #[source]
-        source: ConfigureError,
+        source: Box<ConfigureError>,
     },
     /// The two processes read different printer configs.
     #[error(
@@ -134,14 +134,17 @@ pub enum IoProcessError {
     Mcu(#[from] McuError),
     /// The planner thread stopped the print.
     #[error(transparent)]
-    Planner(#[from] PlannerError),
+    Planner(Box<PlannerError>),
     /// The end of the print: positions, leads.
     #[error(transparent)]
-    Live(#[from] LiveError),
+    Live(Box<LiveError>),
     /// The histograms file could not be written.
     #[error(transparent)]
     Histograms(#[from] crate::latency::HistogramsError),
 }
+
+from_boxed!(IoProcessError, Planner, PlannerError);
+from_boxed!(IoProcessError, Live, LiveError);
 
 /// The CLI's view (the message as shown).
 impl From<IoProcessError> for String {

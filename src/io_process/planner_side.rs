@@ -56,7 +56,7 @@ pub(crate) fn config_crc(dict: &Dictionary, machine: &Machine, mcu: &str) -> Res
     let (_, _, crc) =
         crate::mcus::config_commands(dict, machine, mcu).map_err(|source| IoProcessError::Configure {
             mcu: mcu.to_string(),
-            source,
+            source: Box::new(source),
         })?;
     Ok(crc)
 }

@@ -316,24 +316,7 @@ fn serve_print(
     let mcus = ctx.mcus;
     let main = mcus.main();
     let clock_freq = main.clock_freq;
-    let (infos, mut clocks) = open_info_and_clocks(ctx, node)?;
-    publish_clocks(mcus, &mut clocks)?;
-    let control = ShmSubscriber::<Ipc, IoControl>::open(
-        node,
-        &control_service_name(ctx.instance),
-        &ChannelConfig::control(),
-    )?;
-    let telemetry = ShmPublisher::<Ipc, Telemetry>::open(
-        node,
-        &telemetry_service_name(ctx.instance),
-        &ChannelConfig::telemetry(),
-    )?;
-    let mut chans = Chans {
-        infos,
-        clocks,
-        control,
-        telemetry,
-    };
+    let mut chans = open_chans(ctx, node)?;
     let service = steps_service_name(ctx.instance, &main.name);
     let service = service.as_str();
     let done_flag = AtomicBool::new(false);
@@ -427,6 +410,28 @@ fn serve_print(
                 }
             }
         }
+    })
+}
+
+/// Publishes the MCU info and the first clocks, opens the control and telemetry channels.
+fn open_chans(ctx: &ServeCtx<'_>, node: &iceoryx2::node::Node<Ipc>) -> Result<Chans, IoProcessError> {
+    let (infos, mut clocks) = open_info_and_clocks(ctx, node)?;
+    publish_clocks(ctx.mcus, &mut clocks)?;
+    let control = ShmSubscriber::<Ipc, IoControl>::open(
+        node,
+        &control_service_name(ctx.instance),
+        &ChannelConfig::control(),
+    )?;
+    let telemetry = ShmPublisher::<Ipc, Telemetry>::open(
+        node,
+        &telemetry_service_name(ctx.instance),
+        &ChannelConfig::telemetry(),
+    )?;
+    Ok(Chans {
+        infos,
+        clocks,
+        control,
+        telemetry,
     })
 }
 
