@@ -49,6 +49,43 @@ pub struct BatchReport {
     pub accessories: Vec<String>,
 }
 
+/// Why a batch print failed.
+#[derive(Debug, thiserror::Error)]
+pub enum BatchError {
+    /// The dictionary could not be loaded.
+    #[error(transparent)]
+    Dictionary(#[from] crate::wire_check::DictionaryError),
+    /// The dictionary lacks its clock frequency.
+    #[error(transparent)]
+    Dict(#[from] links::dict::DictError),
+    /// An output file could not be created.
+    #[error("{}: {source}", .path.display())]
+    Create {
+        path: std::path::PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// An MCU's configuration does not encode with the dictionary.
+    #[error("mcu '{mcu}': {source}")]
+    Configure {
+        mcu: String,
+        #[source]
+        source: Box<crate::mcus::ConfigureError>,
+    },
+    /// The step streams could not be set up or written.
+    #[error(transparent)]
+    Stream(#[from] crate::step_stream::StreamError),
+    /// The planner could not be set up.
+    #[error(transparent)]
+    Plan(#[from] planner::machine::PlanError),
+    /// The printer's macros.
+    #[error(transparent)]
+    Macros(#[from] crate::hardware::MacrosError),
+    /// The G-code feed stopped (its error, located at its file and line).
+    #[error("{0}")]
+    Feed(String),
+}
+
 /// Batch mode: the wire stream of each MCU with steppers (the main one to `out`, another one
 /// to `out` with `-NAME` inserted, as for traces), every MCU encoded with the one dictionary and
 /// its clock counted from print time 0.
@@ -57,11 +94,11 @@ pub fn run_batch(
     cfg: &PrinterConfig,
     machine: &Machine,
     gcode: GcodeInput,
-) -> Result<BatchReport, String> {
+) -> Result<BatchReport, BatchError> {
     let started = Instant::now();
     let out = job.out;
     let dict = crate::wire_check::load_dictionary(job.dictionary)?;
-    let clock_freq = dict.clock_freq().map_err(|e| e.to_string())?;
+    let clock_freq = dict.clock_freq()?;
     let names: Vec<&str> = cfg.mcus.iter().map(|m| m.name.as_str()).collect();
     let move_count = 16384;
     let params: Vec<McuParams<'_>> = crate::step_stream::stream_mcus(machine, &names)
@@ -78,10 +115,16 @@ pub fn run_batch(
     let mut paths = Vec::with_capacity(params.len());
     for (k, m) in params.iter().enumerate() {
         let path = crate::mcus::trace_path(out, m.name, k == 0);
-        let file = File::create(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let file = File::create(&path).map_err(|source| BatchError::Create {
+            path: path.clone(),
+            source,
+        })?;
         let mut sink = BatchSink::new(BufWriter::with_capacity(1 << 16, file));
         for c in crate::mcus::config_commands(&dict, machine, m.name)
-            .map_err(|e| format!("mcu '{}': {e}", m.name))?
+            .map_err(|source| BatchError::Configure {
+                mcu: m.name.to_string(),
+                source: Box::new(source),
+            })?
             .0
         {
             sink.send(c)?;
@@ -107,7 +150,8 @@ pub fn run_batch(
         &mut macros,
         &machine.homing,
         &mut target,
-    )?;
+    )
+    .map_err(BatchError::Feed)?;
     for s in &mut sinks {
         s.finish()?;
     }
@@ -168,6 +212,6 @@ impl<W: std::io::Write> FeedTarget for BatchTarget<'_, W> {
         pipeline.flush_lookahead();
         pipeline.generate(&mut out);
         self.emit(&mut out)?;
-        self.streams.motors_off(&[], self.sinks)
+        Ok(self.streams.motors_off(&[], self.sinks)?)
     }
 }

@@ -180,17 +180,18 @@ impl Latch {
         self.set.store(true, Ordering::Release);
     }
 
-    /// `Err(reason)` once set (`default` when the reason cannot be read).
-    pub fn check(&self, default: &str) -> Result<(), String> {
+    /// The reason once set (`default` when the reason cannot be read).
+    pub fn reason(&self, default: &str) -> Option<String> {
         if !self.set.load(Ordering::Acquire) {
-            return Ok(());
+            return None;
         }
-        Err(self
-            .reason
-            .lock()
-            .ok()
-            .and_then(|r| r.clone())
-            .unwrap_or_else(|| default.to_string()))
+        Some(
+            self.reason
+                .lock()
+                .ok()
+                .and_then(|r| r.clone())
+                .unwrap_or_else(|| default.to_string()),
+        )
     }
 }
 
@@ -323,9 +324,9 @@ impl SessionShared {
         self.stop.set(reason.to_string());
     }
 
-    /// `Err(reason)` once a stop was requested.
-    pub fn check_stop(&self) -> Result<(), String> {
-        self.stop.check("stopped by the host")
+    /// The reason once a stop was requested.
+    pub fn stop_reason(&self) -> Option<String> {
+        self.stop.reason("stopped by the host")
     }
 
     /// Updates the motion record (lock-free: readers retry, the planner never waits).

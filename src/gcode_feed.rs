@@ -755,6 +755,8 @@ struct FeedHoming<'f, 'a, T> {
 }
 
 impl<T: FeedTarget> HomeOps for FeedHoming<'_, '_, T> {
+    type Error = String;
+
     fn homed(&self) -> [bool; 3] {
         self.feed.pipeline.gcode_state().homed()
     }
@@ -904,7 +906,7 @@ fn plan_line(
     };
     if let Some(heat) = heat_gcode::parse(&line.cmd) {
         let at = |e: String| format!("{}:{}: {e}", file.display(), line.line_no);
-        let heat = heat.map_err(at)?;
+        let heat = heat.map_err(|e| at(e.to_string()))?;
         target.heat(pipeline, &heat).map_err(at)?;
         return Ok(true);
     }

@@ -151,6 +151,45 @@ pub enum HardwareError {
     },
 }
 
+/// A pin an MCU's dictionary does not have (`what`: the section and option, or the pin).
+#[derive(Debug, thiserror::Error)]
+#[error("{what}: {source}")]
+pub struct PinError {
+    pub what: String,
+    #[source]
+    pub source: links::dict::DictError,
+}
+
+/// Why the G-code feed's macros and host objects could not be set up.
+#[derive(Debug, thiserror::Error)]
+pub enum MacrosError {
+    /// A `[gcode_macro]` does not compile.
+    #[error(transparent)]
+    Macro(Box<planner::gcode::macros::MacroError>),
+    /// The `[save_variables]` file could not be read or created.
+    #[error("[save_variables] filename {}: {source}", .path.display())]
+    VariablesFile {
+        path: std::path::PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The `[save_variables]` file's contents.
+    #[error("[save_variables] {}: {source}", .path.display())]
+    Variables {
+        path: std::path::PathBuf,
+        #[source]
+        source: planner::gcode::host::HostError,
+    },
+}
+
+from_boxed!(MacrosError, Macro, planner::gcode::macros::MacroError);
+
+impl From<MacrosError> for String {
+    fn from(e: MacrosError) -> String {
+        e.to_string()
+    }
+}
+
 impl From<HardwareError> for String {
     fn from(e: HardwareError) -> String {
         e.to_string()
@@ -265,25 +304,26 @@ impl Machine {
     /// The G-code feed's macros and host objects for a print starting at print time `start`:
     /// `[gcode_macro]`s, `[respond]`, and the `[save_variables]` file read (created empty when
     /// absent, as Klipper does).
-    pub fn macros(&self, start: f64) -> Result<planner::gcode::macros::Macros, String> {
-        let mut macros = planner::gcode::macros::Macros::new(self.macros.clone())
-            .map_err(|e| e.to_string())?
+    pub fn macros(&self, start: f64) -> Result<planner::gcode::macros::Macros, MacrosError> {
+        let mut macros = planner::gcode::macros::Macros::new(self.macros.clone())?
             .with_respond(self.respond_prefix.clone())
             .with_host(&self.host, start);
         if let Some(path) = macros.host().variables_file().cloned() {
             let text = match std::fs::read_to_string(&path) {
                 Ok(t) => t,
                 Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-                    std::fs::write(&path, "")
-                        .map_err(|e| format!("[save_variables] filename {}: {e}", path.display()))?;
+                    std::fs::write(&path, "").map_err(|source| MacrosError::VariablesFile {
+                        path: path.clone(),
+                        source,
+                    })?;
                     String::new()
                 }
-                Err(e) => return Err(format!("[save_variables] filename {}: {e}", path.display())),
+                Err(source) => return Err(MacrosError::VariablesFile { path, source }),
             };
             macros
                 .host_mut()
                 .load_variables(&text)
-                .map_err(|e| format!("[save_variables] {}: {e}", path.display()))?;
+                .map_err(|source| MacrosError::Variables { path, source })?;
         }
         Ok(macros)
     }
@@ -328,7 +368,7 @@ impl Machine {
         clock_freq: f64,
         max_error_s: f64,
         threads: usize,
-    ) -> Result<Pipeline, String> {
+    ) -> Result<Pipeline, planner::machine::PlanError> {
         let options = PipelineOptions {
             threads,
             ..self.options
@@ -338,7 +378,6 @@ impl Machine {
             BATCH_START_S,
             options,
         )
-        .map_err(|e| e.to_string())
     }
 
     /// The endstop objects on MCU `mcu`, in oid order: the axis endstops, then the probe

@@ -43,16 +43,70 @@ use std::thread::JoinHandle;
 use std::time::Instant;
 
 use links::clocksync::ClockEstimate;
-use links::trsync::COMM_TIMEOUT_MSG;
 use planner::pipeline::{Pipeline, PipelineOptions};
 use rt_core::hist::LatencyHist;
 use rt_core::wakeup::{WakeupProbe, WakeupReport};
 
-use crate::hardware::Machine;
-use crate::homing::{plain_move, print_now, HomingCtx, HomingReport, AXIS_NAMES};
-use crate::mcus::{trace_path, ConnectOptions, Mcus};
+use crate::hardware::{HardwareError, Machine};
+use crate::homing::{plain_move, print_now, HomingCtx, HomingError, HomingReport, AXIS_NAMES};
+use crate::mcus::{trace_path, ConnectOptions, McuError, Mcus};
 use crate::realtime::RtConfig;
-use crate::step_stream::StepStreams;
+use crate::step_stream::{StepStreams, StreamError};
+
+/// Why `cadence home` stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum HomeCyclesError {
+    /// `--away` is not a positive distance.
+    #[error("--away {0}: must be > 0")]
+    Away(f64),
+    /// `--time-scale` is out of range.
+    #[error("--time-scale {0}: must be in (0, 50]")]
+    TimeScale(f64),
+    /// printer.cfg could not be read or describes no printer Cadence can home.
+    #[error(transparent)]
+    Config(#[from] HardwareError),
+    /// A `--cpu-load` thread did not start.
+    #[error("--cpu-load: cannot start a hog thread: {0}")]
+    HogThread(#[source] std::io::Error),
+    /// The wake-up latency probe did not start.
+    #[error("cannot start the wake-up probe thread: {0}")]
+    ProbeThread(#[source] std::io::Error),
+    /// An MCU did not connect, configure or keep running.
+    #[error(transparent)]
+    Mcu(#[from] McuError),
+    /// The step streams could not be set up.
+    #[error(transparent)]
+    Stream(#[from] StreamError),
+    /// The planner could not be set up.
+    #[error(transparent)]
+    Plan(#[from] planner::machine::PlanError),
+    /// A homing pass or move failed (the wiring check too).
+    #[error(transparent)]
+    Homing(Box<HomingError>),
+    /// After the cycles the MCU and the host disagree on a stepper's position.
+    #[error("{stepper}: the MCU reports position {mcu} steps but the host counts {host:?}")]
+    Position {
+        stepper: String,
+        mcu: i64,
+        host: Option<i64>,
+    },
+    /// A simulated MCU's trace could not be read.
+    #[error("{}: {source}", .path.display())]
+    Trace {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+from_boxed!(HomeCyclesError, Homing, HomingError);
+
+/// The CLI's view (the message as shown).
+impl From<HomeCyclesError> for String {
+    fn from(e: HomeCyclesError) -> String {
+        e.to_string()
+    }
+}
 
 /// What `cadence home` runs.
 #[derive(Debug, Clone)]
@@ -93,7 +147,7 @@ struct CpuHogs {
 
 impl CpuHogs {
     /// Must run before this thread gets any real-time setting: new threads inherit it.
-    fn start(n: usize) -> Result<CpuHogs, String> {
+    fn start(n: usize) -> Result<CpuHogs, HomeCyclesError> {
         let stop = Arc::new(AtomicBool::new(false));
         let mut hogs = CpuHogs {
             stop: stop.clone(),
@@ -108,7 +162,7 @@ impl CpuHogs {
                         std::hint::spin_loop();
                     }
                 })
-                .map_err(|e| format!("--cpu-load: cannot start a hog thread: {e}"))?;
+                .map_err(HomeCyclesError::HogThread)?;
             hogs.threads.push(t);
         }
         Ok(hogs)
@@ -159,19 +213,19 @@ pub struct CycleFigures {
 }
 
 /// Homes `cycles` times and reports as it goes (see the module docs).
-pub fn run(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<(), String> {
+pub fn run(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<(), HomeCyclesError> {
     run_figures(args, o).map(|_| ())
 }
 
 /// [`run`], returning what it measured.
-pub fn run_figures(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<CycleFigures, String> {
+pub fn run_figures(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<CycleFigures, HomeCyclesError> {
     let axes = args.axes;
     if !(args.away.is_finite() && args.away > 0.0) {
-        return Err(format!("--away {}: must be > 0", args.away));
+        return Err(HomeCyclesError::Away(args.away));
     }
     if let Some(scale) = args.time_scale {
         if !(scale > 0.0 && scale <= 50.0) {
-            return Err(format!("--time-scale {scale}: must be in (0, 50]"));
+            return Err(HomeCyclesError::TimeScale(scale));
         }
     }
     let cfg = crate::hardware::load_config(args.config.as_deref())?;
@@ -200,8 +254,8 @@ pub fn run_figures(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<CycleFi
     let mut mcus = Mcus::connect(&cfg, &machine, opts)?;
     // The machine's noise floor meanwhile, at the IO threads' priority; started before this
     // thread is pinned, so the sleeper may run on any core.
-    let probe = WakeupProbe::start(WAKEUP_PERIOD, link_spec.fifo_priority)
-        .map_err(|e| format!("cannot start the wake-up probe thread: {e}"))?;
+    let probe =
+        WakeupProbe::start(WAKEUP_PERIOD, link_spec.fifo_priority).map_err(HomeCyclesError::ProbeThread)?;
     // After the simulated MCUs were spawned (they would inherit this thread's core).
     let got = rt_core::os::apply_rt(&rt.planner_spec());
     o.out(format!(
@@ -269,7 +323,12 @@ pub fn run_figures(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<CycleFi
 }
 
 /// Moves the homed axes `away` mm off their endstops (inside their travel).
-fn move_away(ctx: &mut HomingCtx<'_>, machine: &Machine, axes: [bool; 3], away: f64) -> Result<(), String> {
+fn move_away(
+    ctx: &mut HomingCtx<'_>,
+    machine: &Machine,
+    axes: [bool; 3],
+    away: f64,
+) -> Result<(), HomingError> {
     let mut pos = ctx.pipeline.position();
     for e in machine.endstops.iter().filter(|e| axes[e.axis]) {
         let dir = if e.homing_positive_dir { 1.0 } else { -1.0 };
@@ -280,17 +339,17 @@ fn move_away(ctx: &mut HomingCtx<'_>, machine: &Machine, axes: [bool; 3], away: 
 }
 
 /// Once everything executed, the host and the MCU agree on every stepper position.
-fn check_positions(ctx: &mut HomingCtx<'_>, machine: &Machine) -> Result<(), String> {
+fn check_positions(ctx: &mut HomingCtx<'_>, machine: &Machine) -> Result<(), HomeCyclesError> {
     crate::homing::wait_motion_done(ctx)?;
     let host = ctx.pipeline.stepper_positions();
     for (i, s) in machine.steppers.iter().enumerate() {
         let mcu_pos = crate::homing::stepper_position(ctx, i)?;
         if host.get(i) != Some(&mcu_pos) {
-            return Err(format!(
-                "{}: the MCU reports position {mcu_pos} steps but the host counts {:?}",
-                s.name,
-                host.get(i)
-            ));
+            return Err(HomeCyclesError::Position {
+                stepper: s.name.clone(),
+                mcu: mcu_pos,
+                host: host.get(i).copied(),
+            });
         }
     }
     Ok(())
@@ -307,7 +366,7 @@ fn cycles(
     axes: [bool; 3],
     scale: f64,
     rt: &RtConfig,
-) -> Result<(Vec<PassTiming>, f64, Vec<HomingReport>, u32), String> {
+) -> Result<(Vec<PassTiming>, f64, Vec<HomingReport>, u32), HomeCyclesError> {
     let main = mcus.main();
     let start = print_now(mcus) + (0.5f64).max(0.25 * scale);
     let mut streams = StepStreams::new(machine, &mcus.stream_params(machine))?;
@@ -326,8 +385,7 @@ fn cycles(
             ..PipelineOptions::default()
         },
         &maps,
-    )
-    .map_err(|e| e.to_string())?;
+    )?;
     let mut sinks = crate::homing::direct_sinks(&streams, mcus);
     let mut ctx = HomingCtx::new(mcus, machine, &mut pipeline, &mut streams, &mut sinks, scale, rt);
     let mut last_step = LatencyHist::new();
@@ -348,14 +406,14 @@ fn cycles(
         // planner was resynced to where the steppers stopped; the next cycle homes again).
         let report = match crate::homing::home_axes(&mut ctx, axes) {
             Ok(r) => r,
-            Err(e) if e == COMM_TIMEOUT_MSG && args.cycles > 1 => {
+            Err(e @ HomingError::CommTimeout) if args.cycles > 1 => {
                 timeouts += 1;
                 failed_last = true;
                 let detail = ctx.comm_timeout_detail.take().unwrap_or_default();
                 o.err(format!("cycle {}: {e} ({detail})", cycle + 1));
                 continue;
             }
-            Err(e) => return Err(e),
+            Err(e) => return Err(e.into()),
         };
         failed_last = false;
         for a in &report.axes {
@@ -535,7 +593,7 @@ fn trace_latency(
     timings: &[PassTiming],
     noise: &WakeupReport,
     o: &mut dyn HomeOutput,
-) -> Result<Vec<TraceStops>, String> {
+) -> Result<Vec<TraceStops>, HomeCyclesError> {
     let mut all = Vec::new();
     for e in machine.endstops.iter().filter(|e| axes[e.axis]) {
         let Some(t) = trace_stops(machine, e, base, mcus, o)? else {
@@ -630,7 +688,7 @@ fn trace_stops(
     base: &Path,
     mcus: &TraceMcus,
     o: &mut dyn HomeOutput,
-) -> Result<Option<TraceStops>, String> {
+) -> Result<Option<TraceStops>, HomeCyclesError> {
     let TraceMcus {
         main,
         trsyncs,
@@ -640,7 +698,7 @@ fn trace_stops(
     let est = |name: &str| clocks.iter().find(|(n, _)| n == name).map(|&(_, e)| e);
     let read = |name: &str| {
         let path = trace_path(base, name, name == main);
-        firmware::trace::read_trace(&path).map_err(|e| format!("{}: {e}", path.display()))
+        firmware::trace::read_trace(&path).map_err(|source| HomeCyclesError::Trace { path, source })
     };
     // Exact when both simulators wrote their clock epoch (they count CLOCK_MONOTONIC).
     let to_sys = |name: &str, trace: &firmware::trace::TraceFile| -> Option<TimeBase> {

@@ -59,24 +59,48 @@ impl std::fmt::Display for AfterWarmup {
 /// Batches after which a stage counts as warmed up (allocation accounting starts).
 pub(crate) const WARMUP_BATCHES: u64 = 64;
 
+/// Why an IO stage stopped, or did not start.
+#[derive(Debug, thiserror::Error)]
+pub enum IoStageError {
+    /// Its shared-memory node or step channel could not be opened.
+    #[error(transparent)]
+    Shm(#[from] rt_core::shm::ShmError),
+    /// Receiving from the step channel failed.
+    #[error("io stage: {0}")]
+    Receive(#[source] rt_core::shm::ShmError),
+    /// It did not start (the reason went to whoever waited for it to be ready).
+    #[error("io stage: it did not start")]
+    NotStarted,
+    /// A step message came with less than the minimum lead.
+    #[error(
+        "the IO stage fell behind: a step message for clock {clock} reached it {ahead_ms:.1} ms before it is due \
+         (at least {min_ms:.0} ms required); print stopped before sending it"
+    )]
+    FellBehind { clock: u64, ahead_ms: f64, min_ms: f64 },
+    /// A message in a batch is not an encoded command.
+    #[error("io stage: malformed message in a step batch")]
+    Malformed,
+    /// The MCU link refused the message.
+    #[error(transparent)]
+    Link(#[from] links::mcu::LinkError),
+}
+
 /// The IO stage: shared memory → lead check → the MCU link. Runs until `done` is set and no
 /// batch is pending; `consumed` counts the batches taken.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn io_stage(
     link: &McuLink,
     service: &str,
-    ready: mpsc::Sender<Result<(), String>>,
+    ready: mpsc::Sender<Result<(), IoStageError>>,
     done: &AtomicBool,
     consumed: &AtomicU64,
     hists: &Hists,
     clock_freq: f64,
     log: &LoggerHandle,
-) -> Result<IoReport, String> {
-    let setup = || -> Result<_, String> {
-        let (node, _) =
-            open_node::<Ipc>(&format!("cadence-io-{}", std::process::id())).map_err(|e| e.to_string())?;
-        let sub = ShmSubscriber::<Ipc, StepBatch>::open(&node, service, &ChannelConfig::steps())
-            .map_err(|e| e.to_string())?;
+) -> Result<IoReport, IoStageError> {
+    let setup = || -> Result<_, IoStageError> {
+        let (node, _) = open_node::<Ipc>(&format!("cadence-io-{}", std::process::id()))?;
+        let sub = ShmSubscriber::<Ipc, StepBatch>::open(&node, service, &ChannelConfig::steps())?;
         Ok((node, sub))
     };
     // The node stays alive as long as its port.
@@ -86,8 +110,8 @@ pub(crate) fn io_stage(
             s
         }
         Err(e) => {
-            let _ = ready.send(Err(e.clone()));
-            return Err(e);
+            let _ = ready.send(Err(e));
+            return Err(IoStageError::NotStarted);
         }
     };
     log.log(Level::Info, "io stage subscribed to its step channel", []);
@@ -99,7 +123,7 @@ pub(crate) fn io_stage(
         let was_done = done.load(Ordering::Acquire);
         let got = sub
             .recv_timeout_with(idle_wait, |b| *b)
-            .map_err(|e| format!("io stage: {e}"))?;
+            .map_err(IoStageError::Receive)?;
         let Some(batch) = got else {
             if was_done {
                 break;
@@ -120,20 +144,17 @@ pub(crate) fn io_stage(
                         Arg::F((m.req_clock as f64 - now_clock) / clock_freq * 1e3),
                     ],
                 );
-                return Err(format!(
-                    "the IO stage fell behind: a step message for clock {} reached it {:.1} ms before it is due \
-                     (at least {:.0} ms required); print stopped before sending it",
-                    m.req_clock,
-                    (m.req_clock as f64 - now_clock) / clock_freq * 1e3,
-                    MIN_LEAD_S * 1e3
-                ));
+                return Err(IoStageError::FellBehind {
+                    clock: m.req_clock,
+                    ahead_ms: (m.req_clock as f64 - now_clock) / clock_freq * 1e3,
+                    min_ms: MIN_LEAD_S * 1e3,
+                });
             }
-            let cmd = Cmd::from_bytes(m.bytes()).ok_or("io stage: malformed message in a step batch")?;
+            let cmd = Cmd::from_bytes(m.bytes()).ok_or(IoStageError::Malformed)?;
             if m.req_clock == 0 && m.min_clock == 0 {
-                link.send(cmd).map_err(|e| e.to_string())?;
+                link.send(cmd)?;
             } else {
-                link.send_clocked(cmd, m.min_clock, m.req_clock)
-                    .map_err(|e| e.to_string())?;
+                link.send_clocked(cmd, m.min_clock, m.req_clock)?;
             }
         }
         report.batches += 1;

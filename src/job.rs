@@ -120,8 +120,61 @@ const PROGRESS_PERIOD: std::time::Duration = std::time::Duration::from_millis(25
 /// Most time scale the simulator's 32-bit clock allows (it wraps every 86 s / scale at 50 MHz).
 const MAX_TIME_SCALE: f64 = 50.0;
 
+/// Why a print job failed.
+#[derive(Debug, thiserror::Error)]
+pub enum JobError {
+    /// `--max-error-us` out of range.
+    #[error("--max-error-us {0}: must be in (0, 1000]")]
+    MaxError(f64),
+    /// `--time-scale` out of range.
+    #[error("--time-scale {scale}: must be in (0, {max}]")]
+    TimeScale { scale: f64, max: f64 },
+    /// `--time-scale` given for real MCUs.
+    #[error("--time-scale only applies to a simulated printer")]
+    TimeScaleNotSimulated,
+    /// The G-code file could not be opened.
+    #[error("{}: {source}", .path.display())]
+    Open {
+        path: std::path::PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// printer.cfg could not be read or describes no printer Cadence can drive.
+    #[error(transparent)]
+    Config(#[from] crate::hardware::HardwareError),
+    /// The batch print failed.
+    #[error(transparent)]
+    Batch(Box<crate::batch::BatchError>),
+    /// The print with the IO stage in another process failed.
+    #[error(transparent)]
+    IoProcess(Box<crate::io_process::IoProcessError>),
+    /// The logger thread did not start.
+    #[error(transparent)]
+    Logger(#[from] rt_core::logger::LoggerError),
+    /// An MCU did not start, connect or configure.
+    #[error(transparent)]
+    Mcu(#[from] crate::mcus::McuError),
+    /// The live print failed.
+    #[error(transparent)]
+    Live(Box<crate::live::LiveError>),
+    /// The histograms file.
+    #[error(transparent)]
+    Histograms(#[from] crate::latency::HistogramsError),
+}
+
+from_boxed!(JobError, Batch, crate::batch::BatchError);
+from_boxed!(JobError, IoProcess, crate::io_process::IoProcessError);
+from_boxed!(JobError, Live, crate::live::LiveError);
+
+/// The CLI's view (the message as shown).
+impl From<JobError> for String {
+    fn from(e: JobError) -> String {
+        e.to_string()
+    }
+}
+
 /// Runs a print job; `warn` gets the printer.cfg's warnings.
-pub fn run(args: &PrintJob, warn: &mut dyn FnMut(&str)) -> Result<PrintOutcome, String> {
+pub fn run(args: &PrintJob, warn: &mut dyn FnMut(&str)) -> Result<PrintOutcome, JobError> {
     run_with(args, None, warn, None)
 }
 
@@ -133,22 +186,25 @@ pub fn run_with(
     gcode: Option<GcodeInput>,
     warn: &mut dyn FnMut(&str),
     observer: Option<ProgressObserver<'_>>,
-) -> Result<PrintOutcome, String> {
+) -> Result<PrintOutcome, JobError> {
     if !(args.max_error_us > 0.0 && args.max_error_us <= 1000.0) {
-        return Err(format!(
-            "--max-error-us {}: must be in (0, 1000]",
-            args.max_error_us
-        ));
+        return Err(JobError::MaxError(args.max_error_us));
     }
     if let Some(scale) = args.time_scale {
         if !(scale > 0.0 && scale <= MAX_TIME_SCALE) {
-            return Err(format!("--time-scale {scale}: must be in (0, {MAX_TIME_SCALE}]"));
+            return Err(JobError::TimeScale {
+                scale,
+                max: MAX_TIME_SCALE,
+            });
         }
     }
     // Open the G-code first: a missing file must not start any MCU.
     let gcode = match gcode {
         Some(g) => g,
-        None => GcodeInput::open(&args.file).map_err(|e| format!("{}: {e}", args.file.display()))?,
+        None => GcodeInput::open(&args.file).map_err(|source| JobError::Open {
+            path: args.file.clone(),
+            source,
+        })?,
     };
     let mut cfg = crate::hardware::load_config(args.config.as_deref())?;
     // The run's time scale is the simulated printer's (heater safety windows follow it).
@@ -169,7 +225,7 @@ pub fn run_with(
                 dictionary: args.dictionary.as_deref(),
                 max_error_us: args.max_error_us,
             };
-            run_batch(&job, &cfg, &machine, gcode).map(PrintOutcome::Batch)
+            Ok(run_batch(&job, &cfg, &machine, gcode).map(PrintOutcome::Batch)?)
         }
         None => run_live(args, &cfg, &machine, gcode, observer).map(PrintOutcome::Live),
     }
@@ -181,14 +237,14 @@ fn run_live(
     machine: &Machine,
     gcode: GcodeInput,
     observer: Option<ProgressObserver<'_>>,
-) -> Result<LiveOutcome, String> {
+) -> Result<LiveOutcome, JobError> {
     if args.live.remote() {
-        return crate::io_process::planner_side::run(args, cfg, machine, gcode);
+        return Ok(crate::io_process::planner_side::run(args, cfg, machine, gcode)?);
     }
     let started = Instant::now();
     let simulated = cfg.mcus.iter().any(|m| m.is_simulated());
     if args.time_scale.is_some() && !simulated {
-        return Err("--time-scale only applies to a simulated printer".to_string());
+        return Err(JobError::TimeScaleNotSimulated);
     }
     let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
     let logging = Logging::start(args.live.log_level, args.live.log_file.clone())?;
@@ -237,14 +293,14 @@ fn run_live(
         }
     };
     let stats = mcus.close();
-    live_outcome(
+    Ok(live_outcome(
         result?,
         started,
         args.histograms.as_deref(),
         &hists,
         logging,
         stats,
-    )
+    )?)
 }
 
 /// What the progress thread reads.
@@ -303,7 +359,7 @@ pub(crate) fn live_outcome(
     hists: &Hists,
     logging: Logging,
     link_stats: Vec<(String, links::mcu::LinkStats)>,
-) -> Result<LiveOutcome, String> {
+) -> Result<LiveOutcome, crate::latency::HistogramsError> {
     summary.wall = started.elapsed().as_secs_f64();
     if let Some(path) = histograms {
         hists.save(path, summary.wall)?;

@@ -203,9 +203,15 @@ impl Hists {
     }
 
     /// Saves every histogram as an HdrHistogram V2 interval log.
-    pub fn save(&self, path: &std::path::Path, wall_s: f64) -> Result<(), String> {
-        let file = File::create(path).map_err(|e| format!("{}: {e}", path.display()))?;
-        let err = |e: rt_core::hist::HistError| format!("{}: {e}", path.display());
+    pub fn save(&self, path: &std::path::Path, wall_s: f64) -> Result<(), HistogramsError> {
+        let file = File::create(path).map_err(|source| HistogramsError::Create {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let err = |source: rt_core::hist::HistError| HistogramsError::Write {
+            path: path.to_path_buf(),
+            source,
+        };
         let mut log = rt_core::hist::IntervalLog::begin(
             std::io::BufWriter::new(file),
             "cadence print latency histograms",
@@ -224,6 +230,25 @@ impl Hists {
         log.finish().map_err(err)?;
         Ok(())
     }
+}
+
+/// Why the histograms file (`--histograms`) could not be written.
+#[derive(Debug, thiserror::Error)]
+pub enum HistogramsError {
+    /// The file could not be created.
+    #[error("{}: {source}", .path.display())]
+    Create {
+        path: std::path::PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// A histogram could not be written.
+    #[error("{}: {source}", .path.display())]
+    Write {
+        path: std::path::PathBuf,
+        #[source]
+        source: rt_core::hist::HistError,
+    },
 }
 
 /// Telemetry sources of [`Hists::publish`].

@@ -6,7 +6,8 @@
 //! - the printer's description: [`hardware`] (printer.cfg → steppers, endstops, probe);
 //! - the MCUs: [`sim_mcu`] (simulated MCU processes), [`mcus`] (links, identify, configure);
 //! - the step stream: [`step_stream`] (step commands → per-MCU encoded messages and sinks);
-//! - the G-code loop: [`gcode_feed`], [`accessories`];
+//! - the G-code loop: [`gcode_feed`], [`accessories`]; [`gcode_source`] (a G-code file read with
+//!   progress counts and a stop at a line boundary);
 //! - the pipeline threads: [`planner_thread`], [`io_stage`], [`telemetry`], with
 //!   [`latency`], [`realtime`] and [`logging`];
 //! - homing and probing: [`homing`]; [`home_cycles`] (`cadence home`: cycles with latency
@@ -28,11 +29,24 @@
 //! not allocate after warm-up; threads are pinned and SCHED_FIFO where the OS allows it, and
 //! run anyway (reported once) where it does not.
 
+/// `From<$inner>` for the error enum `$outer` through its boxed variant `$variant`: large
+/// errors are boxed inside the enums that carry them, so every `Result` stays small.
+macro_rules! from_boxed {
+    ($outer:ty, $variant:ident, $inner:ty) => {
+        impl From<$inner> for $outer {
+            fn from(e: $inner) -> Self {
+                Self::$variant(Box::new(e))
+            }
+        }
+    };
+}
+
 pub mod accessories;
 pub mod allocsites;
 pub mod batch;
 pub mod events;
 pub mod gcode_feed;
+pub mod gcode_source;
 pub mod hardware;
 pub mod heaters;
 pub mod home_cycles;

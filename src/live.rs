@@ -38,10 +38,10 @@ use rt_core::shm::steps_service_name;
 use crate::events::SessionShared;
 use crate::gcode_feed::GcodeInput;
 use crate::hardware::Machine;
-use crate::io_stage::{io_stage, AfterWarmup, IoReport, WARMUP_BATCHES};
+use crate::io_stage::{io_stage, AfterWarmup, IoReport, IoStageError, WARMUP_BATCHES};
 use crate::latency::{Hists, ALL_SOURCES};
-use crate::mcus::Mcus;
-use crate::planner_thread::{planner_stage, McuSide, PlannerStage};
+use crate::mcus::{McuConn, McuError, Mcus};
+use crate::planner_thread::{planner_stage, McuSide, Planned, PlannerError, PlannerStage};
 use crate::realtime::RtConfig;
 use crate::step_stream::StepStreams;
 use crate::summary::Summary;
@@ -50,7 +50,7 @@ use crate::MIN_LEAD_S;
 
 /// How a live print runs: when it started, the simulator's time scale, thread placement and
 /// where its histograms go.
-#[derive(Debug)]
+#[derive(Debug, Clone, Copy)]
 pub(crate) struct LiveRun<'a> {
     pub started: Instant,
     pub scale: f64,
@@ -66,6 +66,106 @@ pub(crate) struct LiveRun<'a> {
     pub instance: &'a str,
 }
 
+/// Why a live print failed.
+#[derive(Debug, thiserror::Error)]
+pub enum LiveError {
+    /// A thread of the print did not start (`what`: which one).
+    #[error("cannot start the {what}: {source}")]
+    Spawn {
+        what: String,
+        #[source]
+        source: std::io::Error,
+    },
+    /// A thread of the print panicked (`what`: which one).
+    #[error("{what} panicked")]
+    Panicked { what: &'static str },
+    /// An MCU's IO stage did not subscribe to its step channel.
+    #[error("io stage of mcu '{mcu}': {source}")]
+    IoStageStart {
+        mcu: String,
+        #[source]
+        source: IoStageError,
+    },
+    /// An MCU's IO stage did not report ready in time.
+    #[error("io stage of mcu '{mcu}' did not start within 10 s")]
+    IoStageTimeout { mcu: String },
+    /// An IO stage stopped the print.
+    #[error(transparent)]
+    IoStage(#[from] IoStageError),
+    /// The planner thread stopped the print.
+    #[error(transparent)]
+    Planner(Box<PlannerError>),
+    /// An MCU shut down.
+    #[error(transparent)]
+    Mcu(#[from] McuError),
+    /// An MCU's link failed while the print's end was awaited.
+    #[error("mcu '{mcu}': {source}")]
+    Link {
+        mcu: String,
+        #[source]
+        source: links::mcu::LinkError,
+    },
+    /// An MCU's clock did not reach the print's last step.
+    #[error("mcu '{mcu}': its clock did not reach the end of the print in time")]
+    ClockStalled { mcu: String },
+    /// A stepper's MCU is not connected.
+    #[error("[{stepper}]: mcu '{mcu}' is not connected")]
+    NotConnected { stepper: String, mcu: String },
+    /// An MCU's dictionary cannot encode the position query.
+    #[error("mcu '{mcu}': {source}")]
+    Encode {
+        mcu: String,
+        #[source]
+        source: links::dict::DictError,
+    },
+    /// A stepper's position could not be read back.
+    #[error("mcu '{mcu}': [{stepper}] position: {source}")]
+    PositionQuery {
+        mcu: String,
+        stepper: String,
+        #[source]
+        source: links::mcu::LinkError,
+    },
+    /// No position was read back for a stepper.
+    #[error("{stepper}: no position read back from the MCU")]
+    NoPosition { stepper: String },
+    /// An MCU's step count differs from the host's.
+    #[error("{stepper}: mcu '{mcu}' reports position {mcu_pos} steps but the host sent {host_pos}")]
+    PositionMismatch {
+        stepper: String,
+        mcu: String,
+        mcu_pos: i64,
+        host_pos: i64,
+    },
+    /// A step command reached its MCU with less than the minimum lead.
+    #[error("a step command reached mcu '{mcu}' with only {lead_ms:.1} ms lead (at least {min_ms:.0} ms required)")]
+    LowLead { mcu: String, lead_ms: f64, min_ms: f64 },
+}
+
+from_boxed!(LiveError, Planner, PlannerError);
+
+/// The older string-typed layers' view (the message as shown).
+impl From<LiveError> for String {
+    fn from(e: LiveError) -> String {
+        e.to_string()
+    }
+}
+
+/// What the print's threads share besides the run settings.
+#[derive(Debug, Clone, Copy)]
+struct PrintParts<'a> {
+    machine: &'a Machine,
+    mcus: &'a Mcus,
+    /// `consumed[k]`: the batches stream k's IO stage took.
+    consumed: &'a [AtomicU64],
+    heaters: &'a crate::heaters::runtime::HeaterShared,
+    /// Set when the planner is done (or the print fails): the IO stages drain and stop.
+    done: &'a AtomicBool,
+}
+
+/// An IO stage thread.
+type IoHandle<'scope> = std::thread::ScopedJoinHandle<'scope, Result<IoReport, IoStageError>>;
+
 /// Runs the live print of `gcode` on the connected MCUs: one IO stage thread per MCU with
 /// steppers (each subscribed to its own step channel), the planner thread feeding them all.
 pub(crate) fn print_on(
@@ -73,147 +173,198 @@ pub(crate) fn print_on(
     machine: &Machine,
     mcus: &Mcus,
     run: &LiveRun<'_>,
-) -> Result<Summary, String> {
-    let LiveRun {
-        started,
-        scale,
-        max_error_s,
-        rt,
-        hists,
-        log,
-        session,
-        instance,
-    } = *run;
+) -> Result<Summary, LiveError> {
+    let run = *run;
     // (MCU index, step channel) of each MCU with steppers, the main one first.
     let streams: Vec<(usize, String)> = mcus
         .stream_params(machine)
         .iter()
-        .map(|m| (m.mcu_index, steps_service_name(instance, m.name)))
+        .map(|m| (m.mcu_index, steps_service_name(run.instance, m.name)))
         .collect();
     let done_flag = AtomicBool::new(false);
-    let done = &done_flag;
     let consumed_counts: Vec<AtomicU64> = streams.iter().map(|_| AtomicU64::new(0)).collect();
-    let consumed = consumed_counts.as_slice();
     let heater_state = Arc::new(crate::heaters::runtime::HeaterShared::new(&machine.thermal));
-    if let Some(s) = session {
+    if let Some(s) = run.session {
         // A session's status reads the heaters (its first print's loop: one per session).
         let _ = s.heaters.set(heater_state.clone());
     }
-    let heaters = &*heater_state;
+    let parts = PrintParts {
+        machine,
+        mcus,
+        consumed: &consumed_counts,
+        heaters: &heater_state,
+        done: &done_flag,
+    };
 
     std::thread::scope(|scope| {
         // The heater loop runs for the whole print (every heater off when it ends).
         let heater_thread = std::thread::Builder::new()
             .name("heaters".to_string())
             .spawn_scoped(scope, move || {
-                crate::heaters::runtime::run(mcus, &machine.thermal, heaters)
+                crate::heaters::runtime::run(mcus, &machine.thermal, parts.heaters)
             })
-            .map_err(|e| format!("cannot start the heater thread: {e}"))?;
+            .map_err(|source| spawn_error("heater thread", source))?;
         // Whatever way this closure returns, the heater loop ends (before the scope joins it).
-        let _stop_heaters = crate::heaters::runtime::StopOnDrop(heaters);
-        let stop_heaters = || heaters.stop.store(true, Ordering::Release);
+        let _stop_heaters = crate::heaters::runtime::StopOnDrop(parts.heaters);
+        let stop = || {
+            parts.done.store(true, Ordering::Release);
+            parts.heaters.stop.store(true, Ordering::Release);
+        };
         let mut ios = Vec::with_capacity(streams.len());
-        for (k, (mcu_index, service)) in streams.iter().enumerate() {
-            let conn = &mcus.list[*mcu_index];
-            let (link, clock_freq) = (&conn.link, conn.clock_freq);
-            let (ready_tx, ready_rx) = mpsc::channel();
-            let io_spec = rt.io_spec(&conn.name);
-            let counter = &consumed[k];
-            let io = std::thread::Builder::new()
-                .name(io_spec.name.clone())
-                .spawn_scoped(scope, move || {
-                    apply_rt(&io_spec);
-                    let log = log.with_tag("io");
-                    io_stage(link, service, ready_tx, done, counter, hists, clock_freq, &log)
-                })
-                .map_err(|e| format!("cannot start the IO stage thread of mcu '{}': {e}", conn.name))?;
-            let ready = match ready_rx.recv_timeout(Duration::from_secs(10)) {
-                Ok(Ok(())) => Ok(()),
-                Ok(Err(e)) => Err(format!("io stage of mcu '{}': {e}", conn.name)),
-                Err(_) => Err(format!(
-                    "io stage of mcu '{}' did not start within 10 s",
-                    conn.name
-                )),
-            };
-            ios.push(io);
-            if let Err(e) = ready {
-                done.store(true, Ordering::Release);
-                stop_heaters();
-                return Err(e);
+        for ((mcu_index, service), counter) in streams.iter().zip(parts.consumed) {
+            match start_io_stage(scope, &mcus.list[*mcu_index], service, counter, run, parts.done) {
+                Ok(io) => ios.push(io),
+                Err(e) => {
+                    stop();
+                    return Err(e);
+                }
             }
         }
-        let planner_spec = rt.planner_spec();
-        let planner = std::thread::Builder::new()
-            .name("planner".to_string())
-            .spawn_scoped(scope, move || {
-                apply_rt(&planner_spec);
-                let log = log.with_tag("planner");
-                let side = McuSide::Local(mcus);
-                let stage = PlannerStage {
-                    machine,
-                    side,
-                    scale,
-                    max_error_s,
-                    instance,
-                    consumed,
-                    hists,
-                    log: &log,
-                    rt,
-                    session,
-                    heaters: Some(heaters),
-                };
-                let r = planner_stage(gcode, &stage);
-                done.store(true, Ordering::Release);
-                r
-            })
-            .map_err(|e| format!("cannot start the planner thread: {e}"));
-        let planner = match planner {
+        let planner = match start_planner(scope, gcode, parts, run) {
             Ok(p) => p,
             Err(e) => {
-                done.store(true, Ordering::Release);
-                stop_heaters();
+                stop();
                 return Err(e);
             }
         };
+        let (instance, hists, started, done) = (run.instance, run.hists, run.started, parts.done);
         let telemetry = std::thread::Builder::new()
             .name("telemetry".to_string())
             .spawn_scoped(scope, move || {
                 telemetry_thread(instance, hists, started, ALL_SOURCES, done)
             })
-            .map_err(|e| format!("cannot start the telemetry thread: {e}"))?;
+            .map_err(|source| spawn_error("telemetry thread", source))?;
         let planned = planner.join();
-        done.store(true, Ordering::Release);
-        stop_heaters();
+        stop();
         let heater_result = heater_thread.join();
-        let planned = planned.map_err(|_| "the planner thread panicked".to_string())?;
+        let planned = planned.map_err(|_| LiveError::Panicked {
+            what: "the planner thread",
+        })?;
         match heater_result {
             Ok(Ok(())) => {}
             Ok(Err(e)) => {
-                log.log(Level::Warn, "heater loop failed (see stderr)", []);
+                run.log.log(Level::Warn, "heater loop failed (see stderr)", []);
                 eprintln!("cadence: heaters: {e}");
             }
-            Err(_) => return Err("the heater thread panicked".to_string()),
+            Err(_) => {
+                return Err(LiveError::Panicked {
+                    what: "the heater thread",
+                })
+            }
         }
         if let Ok(Err(e)) = telemetry.join() {
-            log.log(Level::Warn, "telemetry failed (see stderr)", []);
+            run.log.log(Level::Warn, "telemetry failed (see stderr)", []);
             eprintln!("cadence: telemetry: {e}");
         }
-        let (io_total, io_allocs, io_error) = join_io_stages(ios);
-        // A failed IO stage is the root cause of a planner hand-off error: report it first.
-        if let Some(e) = io_error {
-            return Err(e);
-        }
-        let (mut summary, pipeline, streams, planner_allocs, _) = planned?;
-        finish_print(mcus, machine, &pipeline, &streams, &mut summary, scale)?;
-        summary.extra.extend(hists.report(summary.clock_freq));
-        summary.extra.push(allocation_line(
-            planner_allocs,
-            streams.mcus.len(),
-            &io_total,
-            io_allocs,
-        ));
-        Ok(summary)
+        conclude(planned, ios, parts, run.hists, run.scale)
     })
+}
+
+fn spawn_error(what: &str, source: std::io::Error) -> LiveError {
+    LiveError::Spawn {
+        what: what.to_string(),
+        source,
+    }
+}
+
+/// Starts the IO stage thread of MCU `conn` on step channel `service` and waits (bounded)
+/// until it subscribed.
+fn start_io_stage<'scope, 'env: 'scope>(
+    scope: &'scope std::thread::Scope<'scope, 'env>,
+    conn: &'env McuConn,
+    service: &'env str,
+    counter: &'env AtomicU64,
+    run: LiveRun<'env>,
+    done: &'env AtomicBool,
+) -> Result<IoHandle<'scope>, LiveError> {
+    let (link, clock_freq) = (&conn.link, conn.clock_freq);
+    let (ready_tx, ready_rx) = mpsc::channel();
+    let io_spec = run.rt.io_spec(&conn.name);
+    let (hists, log) = (run.hists, run.log);
+    let io = std::thread::Builder::new()
+        .name(io_spec.name.clone())
+        .spawn_scoped(scope, move || {
+            apply_rt(&io_spec);
+            let log = log.with_tag("io");
+            io_stage(link, service, ready_tx, done, counter, hists, clock_freq, &log)
+        })
+        .map_err(|source| spawn_error(&format!("IO stage thread of mcu '{}'", conn.name), source))?;
+    match ready_rx.recv_timeout(Duration::from_secs(10)) {
+        Ok(Ok(())) => Ok(io),
+        Ok(Err(source)) => Err(LiveError::IoStageStart {
+            mcu: conn.name.clone(),
+            source,
+        }),
+        Err(_) => Err(LiveError::IoStageTimeout {
+            mcu: conn.name.clone(),
+        }),
+    }
+}
+
+/// Starts the planner thread; its end sets `done` (the IO stages drain and stop).
+fn start_planner<'scope, 'env: 'scope>(
+    scope: &'scope std::thread::Scope<'scope, 'env>,
+    gcode: GcodeInput,
+    parts: PrintParts<'env>,
+    run: LiveRun<'env>,
+) -> Result<std::thread::ScopedJoinHandle<'scope, Result<Planned, PlannerError>>, LiveError> {
+    let planner_spec = run.rt.planner_spec();
+    std::thread::Builder::new()
+        .name("planner".to_string())
+        .spawn_scoped(scope, move || {
+            apply_rt(&planner_spec);
+            let log = run.log.with_tag("planner");
+            let stage = PlannerStage {
+                machine: parts.machine,
+                side: McuSide::Local(parts.mcus),
+                scale: run.scale,
+                max_error_s: run.max_error_s,
+                instance: run.instance,
+                consumed: parts.consumed,
+                hists: run.hists,
+                log: &log,
+                rt: run.rt,
+                session: run.session,
+                heaters: Some(parts.heaters),
+            };
+            let r = planner_stage(gcode, &stage);
+            parts.done.store(true, Ordering::Release);
+            r
+        })
+        .map_err(|source| spawn_error("planner thread", source))
+}
+
+/// The print's end: the IO stages joined (a failed one is the root cause of a planner
+/// hand-off error: reported first), the planner's result, the positions and leads checked, the
+/// summary completed.
+fn conclude(
+    planned: Result<Planned, PlannerError>,
+    ios: Vec<IoHandle<'_>>,
+    parts: PrintParts<'_>,
+    hists: &Hists,
+    scale: f64,
+) -> Result<Summary, LiveError> {
+    let (io_total, io_allocs, io_error) = join_io_stages(ios);
+    if let Some(e) = io_error {
+        return Err(e);
+    }
+    let (mut summary, pipeline, streams, planner_allocs, _) = planned?;
+    finish_print(
+        parts.mcus,
+        parts.machine,
+        &pipeline,
+        &streams,
+        &mut summary,
+        scale,
+    )?;
+    summary.extra.extend(hists.report(summary.clock_freq));
+    summary.extra.push(allocation_line(
+        planner_allocs,
+        streams.mcus.len(),
+        &io_total,
+        io_allocs,
+    ));
+    Ok(summary)
 }
 
 /// Connects and configures the MCUs for a live print: each link's lead-margin hook records
@@ -241,17 +392,17 @@ pub(crate) fn connect_mcus(
 
 /// Joins the IO stage threads: their batches in all, their allocations after warm-up (`None`
 /// when one of them could not count) and the first error.
-fn join_io_stages(
-    ios: Vec<std::thread::ScopedJoinHandle<'_, Result<IoReport, String>>>,
-) -> (IoReport, Option<u64>, Option<String>) {
+fn join_io_stages(ios: Vec<IoHandle<'_>>) -> (IoReport, Option<u64>, Option<LiveError>) {
     let mut io_total = IoReport::default();
     let mut io_allocs = Some(0u64);
     let mut io_error = None;
     for io in ios {
         let r = io
             .join()
-            .map_err(|_| "an IO stage thread panicked".to_string())
-            .and_then(|r| r);
+            .map_err(|_| LiveError::Panicked {
+                what: "an IO stage thread",
+            })
+            .and_then(|r| r.map_err(LiveError::from));
         match r {
             Ok(r) => {
                 io_total.batches += r.batches;
@@ -303,7 +454,7 @@ fn finish_print(
     streams: &StepStreams,
     summary: &mut Summary,
     scale: f64,
-) -> Result<(), String> {
+) -> Result<(), LiveError> {
     let mcu_positions = read_final_positions(mcus, machine, &streams.end_clocks(), scale)?;
     check_positions(machine, pipeline, &streams.steps_sent(), &mcu_positions, summary)?;
     for m in &mcus.list {
@@ -320,7 +471,7 @@ pub(crate) fn read_final_positions(
     machine: &Machine,
     ends: &[(usize, u64)],
     scale: f64,
-) -> Result<Vec<i64>, String> {
+) -> Result<Vec<i64>, LiveError> {
     for &(i, end_clock) in ends {
         let Some(m) = mcus.list.get(i) else {
             continue;
@@ -331,14 +482,14 @@ pub(crate) fn read_final_positions(
         let wait_s = (end_clock as f64 / clock_freq - now_s()).max(0.0) / scale + 5.0;
         let deadline = Instant::now() + Duration::from_secs_f64(wait_s);
         link.wait_idle(Duration::from_secs_f64(wait_s))
-            .map_err(|e| format!("mcu '{}': {e}", m.name))?;
+            .map_err(|source| LiveError::Link {
+                mcu: m.name.clone(),
+                source,
+            })?;
         while now_s() * clock_freq < end_clock as f64 + 0.01 * clock_freq {
             mcus.check()?;
             if Instant::now() > deadline {
-                return Err(format!(
-                    "mcu '{}': its clock did not reach the end of the print in time",
-                    m.name
-                ));
+                return Err(LiveError::ClockStalled { mcu: m.name.clone() });
             }
             std::thread::sleep(Duration::from_millis(5));
         }
@@ -346,14 +497,18 @@ pub(crate) fn read_final_positions(
     mcus.check()?;
     let mut out = Vec::with_capacity(machine.steppers.len());
     for s in &machine.steppers {
-        let m = mcus
-            .get(&s.mcu)
-            .ok_or_else(|| format!("[{}]: mcu '{}' is not connected", s.name, s.mcu))?;
+        let m = mcus.get(&s.mcu).ok_or_else(|| LiveError::NotConnected {
+            stepper: s.name.clone(),
+            mcu: s.mcu.clone(),
+        })?;
         let link = &m.link;
         let q = link
             .dictionary()
             .encode("stepper_get_position", &[s.oid as i64])
-            .map_err(|e| format!("mcu '{}': {e}", m.name))?;
+            .map_err(|source| LiveError::Encode {
+                mcu: m.name.clone(),
+                source,
+            })?;
         // Retried: an answer lost on a noisy line is not retransmitted (the query is idempotent).
         let ask = || {
             link.query(
@@ -370,7 +525,11 @@ pub(crate) fn read_final_positions(
             }
             reply = ask();
         }
-        let reply = reply.map_err(|e| format!("mcu '{}': [{}] position: {e}", m.name, s.name))?;
+        let reply = reply.map_err(|source| LiveError::PositionQuery {
+            mcu: m.name.clone(),
+            stepper: s.name.clone(),
+            source,
+        })?;
         let raw = reply.get("pos").unwrap_or(0);
         out.push(if s.dir_pin.invert { -raw } else { raw });
     }
@@ -385,12 +544,14 @@ pub(crate) fn check_positions(
     steps_sent: &[u64],
     mcu_positions: &[i64],
     summary: &mut Summary,
-) -> Result<(), String> {
+) -> Result<(), LiveError> {
     let host_positions = pipeline.stepper_positions();
     let commanded = pipeline.position();
     for (i, s) in machine.steppers.iter().enumerate() {
         let Some(&mcu_pos) = mcu_positions.get(i) else {
-            return Err(format!("{}: no position read back from the MCU", s.name));
+            return Err(LiveError::NoPosition {
+                stepper: s.name.clone(),
+            });
         };
         let host_pos = host_positions.get(i).copied().unwrap_or(0);
         summary.rows.push((
@@ -407,9 +568,12 @@ pub(crate) fn check_positions(
             .iter()
             .find(|s| &s.name == name)
             .map_or("?", |s| s.mcu.as_str());
-        return Err(format!(
-            "{name}: mcu '{mcu}' reports position {m} steps but the host sent {h}"
-        ));
+        return Err(LiveError::PositionMismatch {
+            stepper: name.clone(),
+            mcu: mcu.to_string(),
+            mcu_pos: *m,
+            host_pos: *h,
+        });
     }
     Ok(())
 }
@@ -420,14 +584,14 @@ pub(crate) fn check_min_lead(
     mcu: &str,
     min_margin_ticks: Option<i64>,
     clock_freq: f64,
-) -> Result<(), String> {
+) -> Result<(), LiveError> {
     if let Some(margin) = min_margin_ticks {
         if (margin as f64) < MIN_LEAD_S * clock_freq {
-            return Err(format!(
-                "a step command reached mcu '{mcu}' with only {:.1} ms lead (at least {:.0} ms required)",
-                margin as f64 / clock_freq * 1e3,
-                MIN_LEAD_S * 1e3
-            ));
+            return Err(LiveError::LowLead {
+                mcu: mcu.to_string(),
+                lead_ms: margin as f64 / clock_freq * 1e3,
+                min_ms: MIN_LEAD_S * 1e3,
+            });
         }
     }
     Ok(())

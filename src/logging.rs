@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 use std::thread::JoinHandle;
 
-use rt_core::logger::{Level, Logger, LoggerConfig, LoggerHandle};
+use rt_core::logger::{Level, Logger, LoggerConfig, LoggerError, LoggerHandle};
 
 /// The print's logger thread: the only thread that formats or writes log text during a print.
 #[derive(Debug)]
@@ -15,19 +15,18 @@ pub struct Logging {
 
 impl Logging {
     /// Starts the logger thread (stderr, plus `file` if given).
-    pub fn start(level: Level, file: Option<PathBuf>) -> Result<Logging, String> {
+    pub fn start(level: Level, file: Option<PathBuf>) -> Result<Logging, LoggerError> {
         Logging::start_with(level, file, true)
     }
 
     /// Starts the logger thread writing to `file` if given, and to stderr if `stderr`.
-    pub fn start_with(level: Level, file: Option<PathBuf>, stderr: bool) -> Result<Logging, String> {
+    pub fn start_with(level: Level, file: Option<PathBuf>, stderr: bool) -> Result<Logging, LoggerError> {
         let (handle, join) = Logger::start(LoggerConfig {
             level,
             file,
             stderr,
             ..LoggerConfig::default()
-        })
-        .map_err(|e| e.to_string())?;
+        })?;
         Ok(Logging {
             handle,
             join: Some(join),

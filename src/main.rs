@@ -101,7 +101,7 @@ fn main() -> ExitCode {
         Cmd::Doctor(args) => doctor::run(&args),
         Cmd::Serve(args) => serve::run(&args),
         Cmd::Service(args) => service::run(&args),
-        Cmd::Bench(args) => benchcmd::run(&args),
+        Cmd::Bench(args) => benchcmd::run(&args).map_err(String::from),
         Cmd::Home(args) => home::run(&args),
         Cmd::Mcu { args } => {
             let argv = std::iter::once("cadence-mcu".to_string()).chain(args);

@@ -28,11 +28,53 @@ pub enum DictSource<'a> {
     Serial { path: &'a str, baud: u32 },
 }
 
+/// Why a dictionary could not be had or written out.
+#[derive(Debug, thiserror::Error)]
+pub enum FetchError {
+    /// The built-in dictionary or a dictionary file.
+    #[error(transparent)]
+    Load(#[from] crate::wire_check::DictionaryError),
+    /// The simulated MCU did not start.
+    #[error(transparent)]
+    Simulator(#[from] crate::sim_mcu::SimError),
+    /// The device (`what`: the simulated MCU or the serial path) did not open.
+    #[error("{what}: {source}")]
+    Open {
+        what: String,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The MCU did not answer `identify`.
+    #[error("{what}: {source}")]
+    Identify {
+        what: String,
+        #[source]
+        source: links::mcu::LinkError,
+    },
+    /// The dictionary it served does not parse.
+    #[error("{what}: {source}")]
+    Dictionary {
+        what: String,
+        #[source]
+        source: links::dict::DictError,
+    },
+    /// The dictionary's JSON.
+    #[error("dictionary JSON: {0}")]
+    Json(#[from] serde_json::Error),
+}
+
+/// The CLI's view (the message as shown).
+impl From<FetchError> for String {
+    fn from(e: FetchError) -> String {
+        e.to_string()
+    }
+}
+
 /// The dictionary from `source`.
-pub fn fetch(source: DictSource<'_>) -> Result<Dictionary, String> {
+pub fn fetch(source: DictSource<'_>) -> Result<Dictionary, FetchError> {
     match source {
-        DictSource::Builtin => crate::wire_check::load_dictionary(None),
-        DictSource::File(p) => crate::wire_check::load_dictionary(Some(p)),
+        DictSource::Builtin => Ok(crate::wire_check::load_dictionary(None)?),
+        DictSource::File(p) => Ok(crate::wire_check::load_dictionary(Some(p))?),
         DictSource::Simulator { clock_freq } => {
             let opts = SimOptions {
                 clock_freq,
@@ -42,37 +84,51 @@ pub fn fetch(source: DictSource<'_>) -> Result<Dictionary, String> {
             };
             let sim = SimMcu::spawn("mcu", &opts)?;
             let result = PtyTransport::open(&sim.pty)
-                .map_err(|e| format!("simulated MCU: {e}"))
+                .map_err(|source| FetchError::Open {
+                    what: "simulated MCU".to_string(),
+                    source,
+                })
                 .and_then(|t| identify(Box::new(t), "simulated MCU"));
             sim.finish(Duration::from_secs(2));
             result
         }
         DictSource::Serial { path, baud } => {
-            let t = SerialTransport::open(path, baud).map_err(|e| format!("{path}: {e}"))?;
+            let t = SerialTransport::open(path, baud).map_err(|source| FetchError::Open {
+                what: path.to_string(),
+                source,
+            })?;
             identify(Box::new(t), path)
         }
     }
 }
 
 /// Connects (identify, clock sync), keeps the dictionary and closes the link.
-fn identify(transport: Box<dyn Transport>, what: &str) -> Result<Dictionary, String> {
-    let link = McuLink::connect(transport, LinkOptions::default()).map_err(|e| format!("{what}: {e}"))?;
-    let dict =
-        Dictionary::from_compressed(link.dictionary().compressed()).map_err(|e| format!("{what}: {e}"));
+fn identify(transport: Box<dyn Transport>, what: &str) -> Result<Dictionary, FetchError> {
+    let link =
+        McuLink::connect(transport, LinkOptions::default()).map_err(|source| FetchError::Identify {
+            what: what.to_string(),
+            source,
+        })?;
+    let dict = Dictionary::from_compressed(link.dictionary().compressed()).map_err(|source| {
+        FetchError::Dictionary {
+            what: what.to_string(),
+            source,
+        }
+    });
     link.close();
     dict
 }
 
 /// The dictionary as indented JSON (the MCU's own text re-indented; keys as served).
-pub fn to_json(dict: &Dictionary) -> Result<String, String> {
-    let v: Value = serde_json::from_str(dict.json()).map_err(|e| format!("dictionary JSON: {e}"))?;
-    serde_json::to_string_pretty(&v).map_err(|e| format!("dictionary JSON: {e}"))
+pub fn to_json(dict: &Dictionary) -> Result<String, FetchError> {
+    let v: Value = serde_json::from_str(dict.json())?;
+    Ok(serde_json::to_string_pretty(&v)?)
 }
 
 /// A readable listing: version, constants, commands and responses by id, enumerations with
 /// ranges shown as `PA0..PA15`.
-pub fn to_table(dict: &Dictionary) -> Result<String, String> {
-    let v: Value = serde_json::from_str(dict.json()).map_err(|e| format!("dictionary JSON: {e}"))?;
+pub fn to_table(dict: &Dictionary) -> Result<String, FetchError> {
+    let v: Value = serde_json::from_str(dict.json())?;
     let mut out = String::new();
     for key in ["app", "version", "build_versions", "license"] {
         if let Some(s) = v.get(key).and_then(Value::as_str) {

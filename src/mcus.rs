@@ -61,8 +61,12 @@ impl std::fmt::Debug for ConnectOptions {
 #[derive(Debug, thiserror::Error)]
 pub enum McuError {
     /// The simulated MCU process did not start.
-    #[error("{why}")]
-    Start { mcu: String, why: String },
+    #[error("{source}")]
+    Start {
+        mcu: String,
+        #[source]
+        source: crate::sim_mcu::SimError,
+    },
     /// The serial port or pty did not open.
     #[error("mcu '{mcu}': {port}: {why}")]
     Open { mcu: String, port: String, why: String },
@@ -77,8 +81,12 @@ pub enum McuError {
     #[error("mcu '{mcu}': {why}")]
     Dictionary { mcu: String, why: String },
     /// The MCU refused or did not take the configuration.
-    #[error("mcu '{mcu}': {why}")]
-    Configure { mcu: String, why: String },
+    #[error("mcu '{mcu}': {source}")]
+    Configure {
+        mcu: String,
+        #[source]
+        source: Box<ConfigureError>,
+    },
     /// The MCU shut down (its reason, as it reported it).
     #[error("mcu '{mcu}' shut down: {reason}")]
     Shutdown { mcu: String, reason: String },
@@ -96,6 +104,48 @@ impl McuError {
             | McuError::Shutdown { mcu, .. } => mcu,
         }
     }
+}
+
+/// Why an MCU's configuration could not be built, sent or taken.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigureError {
+    /// More objects than a u8 oid can number.
+    #[error("too many objects")]
+    TooManyObjects,
+    /// The dictionary lacks a configuration command (or an argument does not fit it).
+    #[error(transparent)]
+    Dictionary(#[from] links::dict::DictError),
+    /// Endstops on an MCU whose firmware has no endstop or trsync commands.
+    #[error("the MCU has no endstop/trsync support in its dictionary")]
+    NoEndstopSupport,
+    /// A pin the MCU does not have.
+    #[error(transparent)]
+    Pin(#[from] crate::hardware::PinError),
+    /// Heaters, sensors or fans of this MCU.
+    #[error(transparent)]
+    Thermal(#[from] crate::heaters::objects::ObjectsError),
+    /// The link failed while configuring.
+    #[error(transparent)]
+    Link(#[from] links::mcu::LinkError),
+    /// The MCU kept a configuration from an earlier run.
+    #[error(
+        "already configured with {same} (crc {theirs:#010x}, this printer.cfg gives \
+         {ours:#010x}) by an earlier run: restart the MCU before printing"
+    )]
+    AlreadyConfigured {
+        same: &'static str,
+        theirs: u32,
+        ours: u32,
+    },
+    /// The MCU shut down while configuring (its reason).
+    #[error("shut down: {reason} (the configuration was not accepted; restart the MCU)")]
+    ShutDown { reason: String },
+    /// The MCU answered but is not configured.
+    #[error("did not accept the configuration ({reply})")]
+    NotAccepted { reply: String },
+    /// Too few move queue entries for the step streams.
+    #[error("its move queue is too small ({0} entries)")]
+    MoveQueueTooSmall(usize),
 }
 
 /// The CLI's and the older string-typed layers' view (the message as shown).
@@ -153,9 +203,9 @@ impl Mcus {
                         extra
                     },
                 };
-                let s = SimMcu::spawn(&name, &sim_opts).map_err(|why| McuError::Start {
+                let s = SimMcu::spawn(&name, &sim_opts).map_err(|source| McuError::Start {
                     mcu: name.clone(),
-                    why,
+                    source,
                 })?;
                 let t = PtyTransport::open(&s.pty).map_err(|e| McuError::Open {
                     mcu: name.clone(),
@@ -222,23 +272,26 @@ impl Mcus {
             });
         }
         for i in 0..mcus.list.len() {
-            if let Err(why) = mcus.configure(i, machine) {
+            if let Err(source) = mcus.configure(i, machine) {
                 let mcu = mcus.list[i].name.clone();
                 mcus.close();
-                return Err(McuError::Configure { mcu, why });
+                return Err(McuError::Configure {
+                    mcu,
+                    source: Box::new(source),
+                });
             }
         }
         Ok(mcus)
     }
 
     /// Sends one MCU its configuration and checks that it took it.
-    fn configure(&mut self, i: usize, machine: &Machine) -> Result<(), String> {
+    fn configure(&mut self, i: usize, machine: &Machine) -> Result<(), ConfigureError> {
         let conn = &self.list[i];
         let name = conn.name.clone();
         let dict = conn.link.dictionary();
-        let get_config = dict.encode("get_config", &[]).map_err(|e| e.to_string())?;
+        let get_config = dict.encode("get_config", &[])?;
         let reply = query_config(&conn.link, get_config)?;
-        let (cmds, trsync_oid, crc) = config_commands(dict, machine, &name).map_err(|e| e.to_string())?;
+        let (cmds, trsync_oid, crc) = config_commands(dict, machine, &name)?;
         if dict.command("config_digital_out").is_err()
             && machine
                 .steppers
@@ -260,14 +313,15 @@ impl Mcus {
             } else {
                 "another configuration"
             };
-            return Err(format!(
-                "already configured with {same} (crc {theirs:#010x}, this printer.cfg gives \
-                 {crc:#010x}) by an earlier run: restart the MCU before printing"
-            ));
+            return Err(ConfigureError::AlreadyConfigured {
+                same,
+                theirs,
+                ours: crc,
+            });
         }
         let reply = {
             for c in cmds {
-                conn.link.send(c).map_err(|e| e.to_string())?;
+                conn.link.send(c)?;
             }
             query_config(&conn.link, get_config)?
         };
@@ -276,15 +330,15 @@ impl Mcus {
             // reason (Klipper's Linux MCU without GPIO: "GPIO chip device not found"): say it
             // as the MCU did.
             if let Some(reason) = conn.link.shutdown_reason() {
-                return Err(format!(
-                    "shut down: {reason} (the configuration was not accepted; restart the MCU)"
-                ));
+                return Err(ConfigureError::ShutDown { reason });
             }
-            return Err(format!("did not accept the configuration ({reply})"));
+            return Err(ConfigureError::NotAccepted {
+                reply: reply.to_string(),
+            });
         }
         let move_count = reply.get("move_count").unwrap_or(0).max(0) as usize;
         if move_count < 64 {
-            return Err(format!("its move queue is too small ({move_count} entries)"));
+            return Err(ConfigureError::MoveQueueTooSmall(move_count));
         }
         let conn = &mut self.list[i];
         conn.move_count = move_count;
@@ -405,67 +459,60 @@ pub fn config_commands(
     dict: &Dictionary,
     machine: &Machine,
     mcu: &str,
-) -> Result<(Vec<Cmd>, u8, u32), String> {
+) -> Result<(Vec<Cmd>, u8, u32), ConfigureError> {
     let steppers: Vec<_> = machine.steppers.iter().filter(|s| s.mcu == mcu).collect();
     let endstops = machine.mcu_endstops(mcu);
     let has_outputs = dict.command("config_digital_out").is_ok();
     // A BLTouch's servo output right after the endstops (its oid: crate::hardware).
     let bltouch = machine.mcu_bltouch(mcu).filter(|_| has_outputs);
     let (enable_oid0, enables) = enable_pins(dict, machine, mcu);
-    let trsync_oid = u8::try_from(enable_oid0 + enables.len()).map_err(|_| "too many objects".to_string())?;
+    let trsync_oid = u8::try_from(enable_oid0 + enables.len()).map_err(|_| ConfigureError::TooManyObjects)?;
     // Heaters, sensors and fans (crate::heaters::objects) right after the trsync.
     let thermal_oid0 = usize::from(trsync_oid) + 1;
     let count = thermal_oid0 + machine.thermal.objects_on(mcu).len();
     if count > 255 {
-        return Err("too many objects".to_string());
+        return Err(ConfigureError::TooManyObjects);
     }
-    let err = |e: links::dict::DictError| e.to_string();
-    let clock_freq = dict.clock_freq().map_err(err)?;
-    let mut cmds = vec![dict.encode("allocate_oids", &[count as i64]).map_err(err)?];
+    let clock_freq = dict.clock_freq()?;
+    let mut cmds = vec![dict.encode("allocate_oids", &[count as i64])?];
     let has_endstops = dict.command("config_endstop").is_ok() && dict.command("config_trsync").is_ok();
     if !endstops.is_empty() && !has_endstops {
-        return Err("the MCU has no endstop/trsync support in its dictionary".to_string());
+        return Err(ConfigureError::NoEndstopSupport);
     }
     for e in &endstops {
-        let pin = dict.pin(&e.pin.pin).map_err(|x| {
+        let pin = dict.pin(&e.pin.pin).map_err(|source| {
             let option = if e.stepper == "probe" {
                 "pin"
             } else {
                 "endstop_pin"
             };
-            format!("[{}] {option}: {x}", e.stepper)
+            pin_error(format!("[{}] {option}", e.stepper), source)
         })?;
-        cmds.push(
-            dict.encode("config_endstop", &[e.oid as i64, pin as i64, e.pin.pullup as i64])
-                .map_err(err)?,
-        );
+        cmds.push(dict.encode("config_endstop", &[e.oid as i64, pin as i64, e.pin.pullup as i64])?);
     }
     if has_endstops {
-        cmds.push(dict.encode("config_trsync", &[trsync_oid as i64]).map_err(err)?);
+        cmds.push(dict.encode("config_trsync", &[trsync_oid as i64])?);
     } else {
         // Without trsync support the last oid is simply unused.
     }
     for s in &steppers {
         let step_pin = dict
             .pin(&s.step_pin.pin)
-            .map_err(|e| format!("[{}] step_pin: {e}", s.name))?;
+            .map_err(|e| pin_error(format!("[{}] step_pin", s.name), e))?;
         let dir_pin = dict
             .pin(&s.dir_pin.pin)
-            .map_err(|e| format!("[{}] dir_pin: {e}", s.name))?;
+            .map_err(|e| pin_error(format!("[{}] dir_pin", s.name), e))?;
         let pulse_ticks = (s.step_pulse_duration * clock_freq).round().max(0.0) as i64;
-        cmds.push(
-            dict.encode(
-                "config_stepper",
-                &[
-                    s.oid as i64,
-                    step_pin as i64,
-                    dir_pin as i64,
-                    s.step_pin.invert as i64,
-                    pulse_ticks,
-                ],
-            )
-            .map_err(err)?,
-        );
+        cmds.push(dict.encode(
+            "config_stepper",
+            &[
+                s.oid as i64,
+                step_pin as i64,
+                dir_pin as i64,
+                s.step_pin.invert as i64,
+                pulse_ticks,
+            ],
+        )?);
     }
     for (i, p) in enables.iter().enumerate() {
         // Drivers off from configuration on and when the MCU shuts down (value and
@@ -474,15 +521,12 @@ pub fn config_commands(
         // (crate::step_stream::sink).
         let pin = dict
             .pin(&p.pin)
-            .map_err(|x| format!("enable_pin {}: {x}", p.pin))?;
+            .map_err(|x| pin_error(format!("enable_pin {}", p.pin), x))?;
         let off = p.invert as i64;
-        cmds.push(
-            dict.encode(
-                "config_digital_out",
-                &[(enable_oid0 + i) as i64, pin as i64, off, off, 0],
-            )
-            .map_err(err)?,
-        );
+        cmds.push(dict.encode(
+            "config_digital_out",
+            &[(enable_oid0 + i) as i64, pin as i64, off, off, 0],
+        )?);
     }
     if let Some(b) = bltouch {
         cmds.extend(crate::homing::bltouch::config_commands(dict, b)?);
@@ -493,20 +537,23 @@ pub fn config_commands(
         crc.update(c.as_bytes());
     }
     let crc = crc.finalize();
-    cmds.push(dict.encode("finalize_config", &[crc as i64]).map_err(err)?);
+    cmds.push(dict.encode("finalize_config", &[crc as i64])?);
     Ok((cmds, trsync_oid, crc))
+}
+
+fn pin_error(what: String, source: links::dict::DictError) -> ConfigureError {
+    crate::hardware::PinError { what, source }.into()
 }
 
 /// `get_config` → `config`, retried: MCU → host traffic is not retransmitted, so on a noisy line
 /// an answer can be lost; the query itself is idempotent. Bounded: 4 tries of 1 s.
-fn query_config(link: &McuLink, get_config: Cmd) -> Result<links::dict::Message, String> {
-    let mut last = String::new();
-    for _ in 0..4 {
+fn query_config(link: &McuLink, get_config: Cmd) -> Result<links::dict::Message, links::mcu::LinkError> {
+    let mut tries = 1;
+    loop {
         match link.query(get_config, "config", None, Duration::from_secs(1)) {
             Ok(reply) => return Ok(reply),
-            Err(e) if link.error().is_none() && link.shutdown_reason().is_none() => last = e.to_string(),
-            Err(e) => return Err(e.to_string()),
+            Err(_) if tries < 4 && link.error().is_none() && link.shutdown_reason().is_none() => tries += 1,
+            Err(e) => return Err(e),
         }
     }
-    Err(last)
 }

@@ -31,9 +31,111 @@ use crate::latency::{mono_ns, Hists};
 use crate::mcus::Mcus;
 use crate::realtime::RtConfig;
 use crate::step_stream::sink::Sink;
-use crate::step_stream::{McuParams, StepStreams};
+use crate::step_stream::{McuParams, StepStreams, StreamError};
 use crate::summary::Summary;
 use crate::MIN_LEAD_S;
+
+/// Why the planner thread stopped, or could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum PlannerError {
+    /// printer.cfg has no `[mcu]`.
+    #[error("the printer has no MCU")]
+    NoMcu,
+    /// Fewer or more IO stages than step streams (a bug).
+    #[error("internal error: {stages} IO stages for {streams} step streams")]
+    StageCount { stages: usize, streams: usize },
+    /// The shared-memory node or a channel port failed.
+    #[error(transparent)]
+    Shm(#[from] rt_core::shm::ShmError),
+    /// The step channel to an MCU's IO stage could not be opened.
+    #[error("planner → io hand-off of mcu '{mcu}': {source}")]
+    Channel {
+        mcu: String,
+        #[source]
+        source: rt_core::shm::ShmError,
+    },
+    /// An IO stage did not subscribe to its step channel in time.
+    #[error("planner → io hand-off: the IO stage of mcu '{mcu}' never subscribed")]
+    NeverSubscribed { mcu: String },
+    /// The IO stages did not take the planned steps before homing.
+    #[error("the IO stages did not take the planned steps before homing")]
+    HandoffNotDrained,
+    /// The step streams could not be set up or fed.
+    #[error(transparent)]
+    Stream(#[from] StreamError),
+    /// The planner could not be set up or refused a time.
+    #[error(transparent)]
+    Plan(#[from] planner::machine::PlanError),
+    /// The printer's `[gcode_macro]`s or `[save_variables]` file.
+    #[error(transparent)]
+    Macros(#[from] crate::hardware::MacrosError),
+    /// An MCU shut down or its link failed.
+    #[error(transparent)]
+    Mcu(#[from] crate::mcus::McuError),
+    /// The IO process refuses this printer (steppers off the main MCU).
+    #[error(transparent)]
+    OffMainMcu(#[from] crate::io_process::OffMainMcu),
+    /// The IO process failed or exited (its reason).
+    #[error("{reason}")]
+    IoProcess { reason: String },
+    /// The session was stopped (its reason).
+    #[error("{reason}")]
+    Stopped { reason: String },
+    /// A heater fault shut the printer down (its reason).
+    #[error("{reason}")]
+    ThermalFault { reason: String },
+    /// The G-code feed stopped: a line refused, a failed homing, a shutdown (located at its
+    /// file and line by the feed).
+    #[error("{0}")]
+    Feed(String),
+    /// A step command would have reached its MCU with less than the minimum lead.
+    #[error(
+        "the planner fell behind: a step for {stepper} on mcu '{mcu}' at its clock {clock} was \
+         ready only {ahead_ms:.1} ms before it is due (at least {min_ms:.0} ms required); print \
+         stopped before sending it"
+    )]
+    FellBehind {
+        stepper: String,
+        mcu: String,
+        clock: u64,
+        ahead_ms: f64,
+        min_ms: f64,
+    },
+    /// Homing or probing on a print whose IO stage is in another process.
+    #[error(
+        "{what} the in-process IO stage (triggers are relayed through the MCU link): \
+         print without --io-process/--io-attach"
+    )]
+    MotionNeedsLocalIo { what: &'static str },
+    /// M112.
+    #[error("Shutdown due to M112 command")]
+    EmergencyStop,
+    /// PID_CALIBRATE ended without a result.
+    #[error("pid_calibrate interrupted")]
+    CalibrationInterrupted,
+    /// PID_CALIBRATE WRITE_FILE=1 could not write its samples.
+    #[error("PID_CALIBRATE: {path}: {source}")]
+    CalibrationFile {
+        path: &'static str,
+        #[source]
+        source: std::io::Error,
+    },
+    /// SAVE_CONFIG on the built-in printer.
+    #[error(
+        "SAVE_CONFIG: the built-in simulated printer has no config file to save to (give a printer.cfg)"
+    )]
+    NoConfigFile,
+    /// SAVE_CONFIG could not write printer.cfg.
+    #[error(transparent)]
+    Save(#[from] sysconfig::autosave::SaveError),
+}
+
+/// The G-code feed's view (its errors are text located at a line).
+impl From<PlannerError> for String {
+    fn from(e: PlannerError) -> String {
+        e.to_string()
+    }
+}
 
 /// `ipc::Service` with pooled per-loan state: a loan allocates nothing after warm-up (see
 /// rt-core's `shm::pooled`); it talks to `ipc::Service` ports of other processes unchanged.
@@ -50,7 +152,7 @@ pub(crate) enum McuSide<'a> {
 
 impl<'a> McuSide<'a> {
     /// What the step streams need of each MCU that gets one (the main MCU first).
-    fn stream_params(&self, machine: &Machine) -> Result<Vec<McuParams<'a>>, String> {
+    fn stream_params(&self, machine: &Machine) -> Result<Vec<McuParams<'a>>, PlannerError> {
         match *self {
             McuSide::Local(m) => Ok(m.stream_params(machine)),
             McuSide::Remote(r) => {
@@ -78,10 +180,13 @@ impl<'a> McuSide<'a> {
     }
 
     /// An MCU shutdown or a failed IO process, as an error.
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), PlannerError> {
         match self {
             McuSide::Local(m) => Ok(m.check()?),
-            McuSide::Remote(r) => r.check(),
+            McuSide::Remote(r) => match r.failure() {
+                Some(reason) => Err(PlannerError::IoProcess { reason }),
+                None => Ok(()),
+            },
         }
     }
 }
@@ -93,7 +198,7 @@ pub(crate) struct ShmSink {
 }
 
 impl ShmSink {
-    fn push(&mut self, m: WireMsg) -> Result<(), String> {
+    fn push(&mut self, m: WireMsg) -> Result<(), StreamError> {
         if !self.batch.push(m) {
             self.flush()?;
             self.batch.push(m);
@@ -102,7 +207,7 @@ impl ShmSink {
     }
 
     /// Publishes the pending batch (if any).
-    fn flush(&mut self) -> Result<(), String> {
+    fn flush(&mut self) -> Result<(), StreamError> {
         if self.batch.count == 0 {
             return Ok(());
         }
@@ -112,17 +217,17 @@ impl ShmSink {
                 *b = batch;
                 b.t_ns = mono_ns();
             })
-            .map_err(|e| format!("planner → io hand-off: {e}"))?;
+            .map_err(StreamError::Handoff)?;
         self.batch.count = 0;
         Ok(())
     }
 }
 
 impl Sink for ShmSink {
-    fn send(&mut self, cmd: Cmd) -> Result<(), String> {
+    fn send(&mut self, cmd: Cmd) -> Result<(), StreamError> {
         self.push(WireMsg::new(0, 0, cmd.as_bytes()).unwrap_or_default())
     }
-    fn send_clocked(&mut self, cmd: Cmd, min_clock: u64, req_clock: u64) -> Result<(), String> {
+    fn send_clocked(&mut self, cmd: Cmd, min_clock: u64, req_clock: u64) -> Result<(), StreamError> {
         self.push(WireMsg::new(min_clock, req_clock, cmd.as_bytes()).unwrap_or_default())
     }
 }
@@ -168,20 +273,18 @@ pub(crate) struct PlannerStage<'a> {
 
 /// The planner thread: G-code → pipeline → step messages into shared memory (one channel per
 /// MCU with steppers: `cadence/<instance>/mcu/<mcu>/steps`), paced.
-pub(crate) fn planner_stage(gcode: GcodeInput, st: &PlannerStage<'_>) -> Result<Planned, String> {
+pub(crate) fn planner_stage(gcode: GcodeInput, st: &PlannerStage<'_>) -> Result<Planned, PlannerError> {
     let params = st.side.stream_params(st.machine)?;
     let Some(main) = params.first().copied() else {
-        return Err("the printer has no MCU".to_string());
+        return Err(PlannerError::NoMcu);
     };
     if st.consumed.len() != params.len() {
-        return Err(format!(
-            "internal error: {} IO stages for {} step streams",
-            st.consumed.len(),
-            params.len()
-        ));
+        return Err(PlannerError::StageCount {
+            stages: st.consumed.len(),
+            streams: params.len(),
+        });
     }
-    let (node, _) =
-        open_node::<Ipc>(&format!("cadence-planner-{}", std::process::id())).map_err(|e| e.to_string())?;
+    let (node, _) = open_node::<Ipc>(&format!("cadence-planner-{}", std::process::id()))?;
     let sinks = open_sinks(&node, st.instance, &params)?;
     let clock_freq = main.clock_freq;
     let side = st.side;
@@ -195,8 +298,7 @@ pub(crate) fn planner_stage(gcode: GcodeInput, st: &PlannerStage<'_>) -> Result<
         start,
         st.machine.options,
         &maps,
-    )
-    .map_err(|e| e.to_string())?;
+    )?;
     let mut run = PlannerRun::new(st, main, sinks, streams, params.len());
     if let Some(h) = st.heaters {
         // A print's steppers are on from its start ([controller_fan]); a session says when
@@ -219,7 +321,8 @@ pub(crate) fn planner_stage(gcode: GcodeInput, st: &PlannerStage<'_>) -> Result<
         &mut macros,
         &st.machine.homing,
         &mut run,
-    )?;
+    )
+    .map_err(PlannerError::Feed)?;
     run.sinks.iter_mut().try_for_each(ShmSink::flush)?;
     let total = run.published();
     // Counted before anything below allocates (the report's own vectors).
@@ -272,19 +375,21 @@ fn open_sinks(
     node: &iceoryx2::node::Node<Ipc>,
     instance: &str,
     params: &[McuParams<'_>],
-) -> Result<Vec<ShmSink>, String> {
+) -> Result<Vec<ShmSink>, PlannerError> {
     let mut sinks = Vec::with_capacity(params.len());
     for m in params {
         let service = steps_service_name(instance, m.name);
         let publisher = ShmPublisher::<Ipc, StepBatch>::open(node, &service, &ChannelConfig::steps())
-            .map_err(|e| format!("planner → io hand-off of mcu '{}': {e}", m.name))?;
+            .map_err(|source| PlannerError::Channel {
+                mcu: m.name.to_string(),
+                source,
+            })?;
         let deadline = Instant::now() + Duration::from_secs(5);
-        while publisher.connect().map_err(|e| e.to_string())? < 1 {
+        while publisher.connect()? < 1 {
             if Instant::now() > deadline {
-                return Err(format!(
-                    "planner → io hand-off: the IO stage of mcu '{}' never subscribed",
-                    m.name
-                ));
+                return Err(PlannerError::NeverSubscribed {
+                    mcu: m.name.to_string(),
+                });
             }
             std::thread::sleep(Duration::from_millis(1));
         }
@@ -386,20 +491,22 @@ impl<'a, 'p> PlannerRun<'a, 'p> {
     }
 
     /// An MCU shutdown, a failed IO process or a stop request, as an error.
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), PlannerError> {
         // A stop first: an emergency stop also shuts the MCUs down, and is the cause.
         if let Some(s) = self.st.session {
-            s.check_stop()?;
+            if let Some(reason) = s.stop_reason() {
+                return Err(PlannerError::Stopped { reason });
+            }
         }
         // A thermal runaway also shuts the MCUs down, and is the cause.
-        if let Some(fault) = self.st.heaters.and_then(|h| h.fault()) {
-            return Err(fault);
+        if let Some(reason) = self.st.heaters.and_then(|h| h.fault()) {
+            return Err(PlannerError::ThermalFault { reason });
         }
         self.st.side.check()
     }
 
     /// Refuses a step command that would reach its MCU with less than [`MIN_LEAD_S`].
-    fn check_lead(&self, idx: usize, cmd: &StepCmd) -> Result<(), String> {
+    fn check_lead(&self, idx: usize, cmd: &StepCmd) -> Result<(), PlannerError> {
         let StepCmd::QueueStep { first_clock, .. } = *cmd else {
             return Ok(());
         };
@@ -415,14 +522,13 @@ impl<'a, 'p> PlannerRun<'a, 'p> {
             "planner fell behind: stepper index, ms before due",
             [Arg::U(idx as u64), Arg::F(ahead_ms)],
         );
-        Err(format!(
-            "the planner fell behind: a step for {} on mcu '{}' at its clock {first_clock} was \
-             ready only {ahead_ms:.1} ms before it is due (at least {:.0} ms required); print \
-             stopped before sending it",
-            self.st.machine.steppers[idx].name,
-            self.streams.mcus[k].name,
-            MIN_LEAD_S * 1e3
-        ))
+        Err(PlannerError::FellBehind {
+            stepper: self.st.machine.steppers[idx].name.clone(),
+            mcu: self.streams.mcus[k].name.clone(),
+            clock: first_clock,
+            ahead_ms,
+            min_ms: MIN_LEAD_S * 1e3,
+        })
     }
 
     /// Publishes the motion status of a session (no allocation).
@@ -439,7 +545,7 @@ impl<'a, 'p> PlannerRun<'a, 'p> {
 
     /// Drains the shared-memory hand-offs: everything planned so far must be in the links
     /// before homing talks to the MCUs directly.
-    fn drain_handoff(&mut self, mcus: &Mcus) -> Result<(), String> {
+    fn drain_handoff(&mut self, mcus: &Mcus) -> Result<(), PlannerError> {
         self.sinks.iter_mut().try_for_each(ShmSink::flush)?;
         let targets: Vec<u64> = self.sinks.iter().map(|s| s.publisher.next_seq()).collect();
         let deadline = Instant::now() + Duration::from_secs(10);
@@ -451,7 +557,7 @@ impl<'a, 'p> PlannerRun<'a, 'p> {
             .any(|(c, &t)| c.load(Ordering::Acquire) < t)
         {
             if Instant::now() > deadline {
-                return Err("the IO stages did not take the planned steps before homing".to_string());
+                return Err(PlannerError::HandoffNotDrained);
             }
             mcus.check()?;
             std::thread::sleep(Duration::from_millis(1));
@@ -470,7 +576,7 @@ impl FeedTarget for PlannerRun<'_, '_> {
             self.check_lead(idx, &cmd)?;
             self.streams.push(idx, cmd, &mut self.sinks[..])?;
         }
-        self.sinks.iter_mut().try_for_each(ShmSink::flush)
+        Ok(self.sinks.iter_mut().try_for_each(ShmSink::flush)?)
     }
 
     fn pace(&mut self, p: &mut Pipeline) -> Result<(), String> {
@@ -501,7 +607,7 @@ impl FeedTarget for PlannerRun<'_, '_> {
                 }
             }
         }
-        self.check()
+        Ok(self.check()?)
     }
 
     fn motion(&mut self, pipeline: &mut Pipeline, cmd: &MotionCmd<'_>) -> Result<bool, String> {
@@ -514,10 +620,7 @@ impl FeedTarget for PlannerRun<'_, '_> {
                 MotionCmd::Home(_) => "homing needs",
                 MotionCmd::Probe { .. } => "probing needs",
             };
-            return Err(format!(
-                "{what} the in-process IO stage (triggers are relayed through the MCU link): \
-                 print without --io-process/--io-attach"
-            ));
+            return Err(PlannerError::MotionNeedsLocalIo { what }.into());
         };
         let motion_start = AllocCounter::snapshot();
         self.drain_handoff(mcus)?;
@@ -585,7 +688,7 @@ impl FeedTarget for PlannerRun<'_, '_> {
 
     fn heat(&mut self, pipeline: &mut Pipeline, cmd: &crate::heaters::gcode::HeatCmd) -> Result<(), String> {
         if *cmd == crate::heaters::gcode::HeatCmd::SaveConfig {
-            return self.save_config();
+            return Ok(self.save_config()?);
         }
         let Some(shared) = self.st.heaters else {
             if matches!(self.st.side, McuSide::Remote(..)) && drives_output(cmd) {
@@ -609,7 +712,7 @@ impl FeedTarget for PlannerRun<'_, '_> {
                         }
                     }
                 }
-                return Err("Shutdown due to M112 command".to_string());
+                return Err(PlannerError::EmergencyStop.into());
             }
             if *cmd == crate::heaters::gcode::HeatCmd::Report {
                 let text = crate::heaters::runtime::m105_text(shared);
@@ -649,7 +752,7 @@ impl FeedTarget for PlannerRun<'_, '_> {
         }
         pipeline
             .raise_print_time(self.resume_at())
-            .map_err(|e| e.to_string())?;
+            .map_err(PlannerError::from)?;
         Ok(())
     }
 
@@ -664,7 +767,7 @@ impl FeedTarget for PlannerRun<'_, '_> {
             .map(|(c, m)| (c + ahead * m.clock_freq) as u64)
             .collect();
         self.streams.motors_off(&floors, &mut self.sinks[..])?;
-        self.sinks.iter_mut().try_for_each(ShmSink::flush)
+        Ok(self.sinks.iter_mut().try_for_each(ShmSink::flush)?)
     }
 
     fn can_extrude(&self) -> Result<(), String> {
@@ -707,7 +810,7 @@ impl PlannerRun<'_, '_> {
         &mut self,
         shared: &crate::heaters::runtime::HeaterShared,
         write_file: bool,
-    ) -> Result<(), String> {
+    ) -> Result<(), PlannerError> {
         use crate::heaters::runtime::Calibration;
         let Some(Calibration::Done {
             heater,
@@ -716,15 +819,19 @@ impl PlannerRun<'_, '_> {
             temps,
         }) = shared.take_calibration()
         else {
-            return Err("pid_calibrate interrupted".to_string());
+            return Err(PlannerError::CalibrationInterrupted);
         };
         if write_file {
             let mut text: Vec<String> = pwm.iter().map(|(t, p)| format!("pwm: {t:.3} {p:.3}")).collect();
             text.extend(temps.iter().map(|(t, c)| format!("{t:.3} {c:.3}")));
-            std::fs::write(crate::heaters::calibrate::WRITE_FILE, text.join("\n"))
-                .map_err(|e| format!("PID_CALIBRATE: {}: {e}", crate::heaters::calibrate::WRITE_FILE))?;
+            std::fs::write(crate::heaters::calibrate::WRITE_FILE, text.join("\n")).map_err(|source| {
+                PlannerError::CalibrationFile {
+                    path: crate::heaters::calibrate::WRITE_FILE,
+                    source,
+                }
+            })?;
         }
-        let gains = gains.ok_or("pid_calibrate interrupted")?;
+        let gains = gains.ok_or(PlannerError::CalibrationInterrupted)?;
         let name = shared
             .heaters
             .get(heater)
@@ -745,15 +852,12 @@ impl PlannerRun<'_, '_> {
 
     /// SAVE_CONFIG: the pending results written into the printer's config file (the service
     /// restarts the printer after it; a print reports the file and goes on).
-    fn save_config(&mut self) -> Result<(), String> {
+    fn save_config(&mut self) -> Result<(), PlannerError> {
         let path = self.st.machine.config_path.clone();
         if path.starts_with("<builtin>") {
-            return Err(
-                "SAVE_CONFIG: the built-in simulated printer has no config file to save to (give a printer.cfg)"
-                    .to_string(),
-            );
+            return Err(PlannerError::NoConfigFile);
         }
-        match sysconfig::autosave::save(&path, &self.autosave).map_err(|e| e.to_string())? {
+        match sysconfig::autosave::save(&path, &self.autosave)? {
             Some(saved) => {
                 self.autosave = sysconfig::autosave::Changes::default();
                 self.publish_save_pending();

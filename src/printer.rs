@@ -212,22 +212,39 @@ pub struct Printer {
     _idle_hold: Option<rt_core::os::DmaLatencyHold>,
 }
 
+/// Why a session ended without its summary.
+#[derive(Debug, thiserror::Error)]
+enum SessionError {
+    /// The live print failed.
+    #[error(transparent)]
+    Print(#[from] crate::live::LiveError),
+    /// The session thread panicked.
+    #[error("the session thread panicked")]
+    Panicked,
+    /// `finish` came twice.
+    #[error("the session was already closed")]
+    Closed,
+    /// A handle still holds the printer.
+    #[error("the printer is still in use by a handle")]
+    InUse,
+}
+
 /// The session thread and its feed; a printer dropped without `close` stops and joins it.
 #[derive(Debug)]
 struct Session {
     feed: Option<SyncSender<FeedMsg>>,
-    thread: Option<JoinHandle<Result<Summary, String>>>,
+    thread: Option<JoinHandle<Result<Summary, crate::live::LiveError>>>,
     shared: Arc<SessionShared>,
 }
 
 impl Session {
     /// Ends the feed (the planner finishes what was sent) and waits for the session's result.
-    fn finish(&mut self) -> Result<Summary, String> {
+    fn finish(&mut self) -> Result<Summary, SessionError> {
         self.feed = None;
         match self.thread.take().map(JoinHandle::join) {
-            Some(Ok(r)) => r,
-            Some(Err(_)) => Err("the session thread panicked".to_string()),
-            None => Err("the session was already closed".to_string()),
+            Some(Ok(r)) => Ok(r?),
+            Some(Err(_)) => Err(SessionError::Panicked),
+            None => Err(SessionError::Closed),
         }
     }
 }
@@ -284,7 +301,10 @@ impl Printer {
         cfg.simulator.time_scale = time_scale;
         let machine = Machine::from_config(&cfg)?;
         let logging = Logging::start_with(opts.log_level, opts.log_file.clone(), opts.log_to_stderr)
-            .map_err(|why| OpenError::Thread { what: "logger", why })?;
+            .map_err(|e| OpenError::Thread {
+                what: "logger",
+                why: e.to_string(),
+            })?;
         let rt = RtConfig::from_section(&cfg.realtime, !opts.realtime);
         let idle_hold = rt.hold_idle_latency();
         let (hists, mcus) =
@@ -465,14 +485,14 @@ impl Printer {
         let result = self.session.finish();
         let reason = match &result {
             Ok(_) => "closed".to_string(),
-            Err(e) => e.clone(),
+            Err(e) => e.to_string(),
         };
         self.inner.shared.set_shutdown(reason);
         let inner = match take_inner(self.inner) {
             Ok(inner) => inner,
-            Err(reason) => {
+            Err(e) => {
                 return Err(CloseError {
-                    reason,
+                    reason: e.to_string(),
                     link_stats: Vec::new(),
                 })
             }
@@ -483,7 +503,12 @@ impl Printer {
         let link_stats = mcus.close();
         let mut summary = match result {
             Ok(s) => s,
-            Err(reason) => return Err(CloseError { reason, link_stats }),
+            Err(e) => {
+                return Err(CloseError {
+                    reason: e.to_string(),
+                    link_stats,
+                })
+            }
         };
         summary.wall = started.elapsed().as_secs_f64();
         summary.extra.push(self.logging.finish());
@@ -605,7 +630,7 @@ impl PrinterHandle {
 }
 
 /// The session thread: the live print of the session's feed, on the printer's MCUs.
-fn run_session(inner: &Inner, input: GcodeInput) -> Result<Summary, String> {
+fn run_session(inner: &Inner, input: GcodeInput) -> Result<Summary, crate::live::LiveError> {
     let run = LiveRun {
         started: inner.started,
         scale: inner.time_scale,
@@ -619,14 +644,14 @@ fn run_session(inner: &Inner, input: GcodeInput) -> Result<Summary, String> {
     let result = live::print_on(input, &inner.machine, &inner.mcus, &run);
     let reason = match &result {
         Ok(_) => "closed".to_string(),
-        Err(e) => e.clone(),
+        Err(e) => e.to_string(),
     };
     inner.shared.set_shutdown(reason);
     result
 }
 
 /// The only reference left once the session thread ended (a handle may hold one briefly).
-fn take_inner(mut inner: Arc<Inner>) -> Result<Inner, String> {
+fn take_inner(mut inner: Arc<Inner>) -> Result<Inner, SessionError> {
     for _ in 0..200 {
         match Arc::try_unwrap(inner) {
             Ok(i) => return Ok(i),
@@ -634,7 +659,7 @@ fn take_inner(mut inner: Arc<Inner>) -> Result<Inner, String> {
         }
         std::thread::sleep(Duration::from_millis(5));
     }
-    Err("the printer is still in use by a handle".to_string())
+    Err(SessionError::InUse)
 }
 
 fn print_time_of(inner: &Inner) -> f64 {

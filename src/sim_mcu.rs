@@ -33,8 +33,58 @@ pub struct SimOptions {
     pub extra: Vec<String>,
 }
 
-fn mcu_command() -> Result<Command, String> {
-    let exe = std::env::current_exe().map_err(|e| format!("cannot locate the running executable: {e}"))?;
+/// Why a simulated MCU did not start; each names the MCU but the first two.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    /// The running executable cannot be found.
+    #[error("cannot locate the running executable: {0}")]
+    Executable(#[source] std::io::Error),
+    /// Neither `cadence-mcu` nor `cadence mcu` is at hand.
+    #[error(
+        "cannot find the simulated MCU executable 'cadence-mcu' next to {}: build it with `cargo build --workspace`",
+        .exe.display()
+    )]
+    NotFound { exe: PathBuf },
+    /// The process did not start.
+    #[error("mcu '{mcu}': cannot start the simulated MCU: {source}")]
+    Spawn {
+        mcu: String,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The process has no stdout to read its pty from.
+    #[error("mcu '{mcu}': simulated MCU has no stdout")]
+    NoStdout { mcu: String },
+    /// The thread that reads its stdout did not start.
+    #[error("mcu '{mcu}': cannot start a reader thread: {source}")]
+    Reader {
+        mcu: String,
+        #[source]
+        source: std::io::Error,
+    },
+    /// Its first output line could not be read.
+    #[error("mcu '{mcu}': reading the simulated MCU's output failed: {source}")]
+    Read {
+        mcu: String,
+        #[source]
+        source: std::io::Error,
+    },
+    /// It did not announce its pty in time.
+    #[error("mcu '{mcu}': the simulated MCU did not announce its pty within {secs} s")]
+    Timeout { mcu: String, secs: u64 },
+    /// It exited before opening its pty.
+    #[error("mcu '{mcu}': the simulated MCU exited ({status}) before opening its pty")]
+    Exited {
+        mcu: String,
+        status: std::process::ExitStatus,
+    },
+    /// Its first line is not the pty announcement.
+    #[error("mcu '{mcu}': unexpected output from the simulated MCU: {line:?}")]
+    Unexpected { mcu: String, line: String },
+}
+
+fn mcu_command() -> Result<Command, SimError> {
+    let exe = std::env::current_exe().map_err(SimError::Executable)?;
     let dirs: Vec<&Path> = exe
         .parent()
         .into_iter()
@@ -57,15 +107,13 @@ fn mcu_command() -> Result<Command, String> {
         cmd.arg("mcu");
         return Ok(cmd);
     }
-    Err(format!(
-        "cannot find the simulated MCU executable 'cadence-mcu' next to {}: build it with `cargo build --workspace`",
-        exe.display()
-    ))
+    Err(SimError::NotFound { exe })
 }
 
 impl SimMcu {
     /// Spawns the simulated MCU and waits (bounded) for it to announce its pty.
-    pub fn spawn(name: &str, opts: &SimOptions) -> Result<SimMcu, String> {
+    pub fn spawn(name: &str, opts: &SimOptions) -> Result<SimMcu, SimError> {
+        let mcu = || name.to_string();
         let mut cmd = mcu_command()?;
         // Extra arguments may give this MCU a clock of its own (e.g. a 16 MHz toolhead board
         // next to a 50 MHz main board, through `CADENCE_SIM_ARGS_<NAME>`).
@@ -85,10 +133,10 @@ impl SimMcu {
             .stderr(Stdio::inherit());
         let mut child = cmd
             .spawn()
-            .map_err(|e| format!("mcu '{name}': cannot start the simulated MCU: {e}"))?;
+            .map_err(|source| SimError::Spawn { mcu: mcu(), source })?;
         let Some(stdout) = child.stdout.take() else {
             let _ = child.kill();
-            return Err(format!("mcu '{name}': simulated MCU has no stdout"));
+            return Err(SimError::NoStdout { mcu: mcu() });
         };
         let (tx, rx) = mpsc::channel();
         std::thread::Builder::new()
@@ -104,23 +152,21 @@ impl SimMcu {
                     sink.clear();
                 }
             })
-            .map_err(|e| format!("mcu '{name}': cannot start a reader thread: {e}"))?;
+            .map_err(|source| SimError::Reader { mcu: mcu(), source })?;
         let line = match rx.recv_timeout(START_TIMEOUT) {
             Ok(Ok(line)) => line,
-            Ok(Err(e)) => {
+            Ok(Err(source)) => {
                 let _ = child.kill();
                 let _ = child.wait();
-                return Err(format!(
-                    "mcu '{name}': reading the simulated MCU's output failed: {e}"
-                ));
+                return Err(SimError::Read { mcu: mcu(), source });
             }
             Err(_) => {
                 let _ = child.kill();
                 let _ = child.wait();
-                return Err(format!(
-                    "mcu '{name}': the simulated MCU did not announce its pty within {} s",
-                    START_TIMEOUT.as_secs()
-                ));
+                return Err(SimError::Timeout {
+                    mcu: mcu(),
+                    secs: START_TIMEOUT.as_secs(),
+                });
             }
         };
         let Some(path) = line.trim().strip_prefix("cadence-mcu: pty ") else {
@@ -128,11 +174,11 @@ impl SimMcu {
             let _ = child.kill();
             let _ = child.wait();
             return Err(match status {
-                Some(s) => format!("mcu '{name}': the simulated MCU exited ({s}) before opening its pty"),
-                None => format!(
-                    "mcu '{name}': unexpected output from the simulated MCU: {:?}",
-                    line.trim()
-                ),
+                Some(status) => SimError::Exited { mcu: mcu(), status },
+                None => SimError::Unexpected {
+                    mcu: mcu(),
+                    line: line.trim().to_string(),
+                },
             });
         };
         Ok(SimMcu {

@@ -18,15 +18,13 @@ pub(crate) fn telemetry_thread(
     started: Instant,
     sources: u32,
     stop: &AtomicBool,
-) -> Result<(), String> {
-    let (node, _) =
-        open_node::<Ipc>(&format!("cadence-telemetry-{}", std::process::id())).map_err(|e| e.to_string())?;
+) -> Result<(), rt_core::shm::ShmError> {
+    let (node, _) = open_node::<Ipc>(&format!("cadence-telemetry-{}", std::process::id()))?;
     let mut publisher = ShmPublisher::<Ipc, Telemetry>::open(
         &node,
         &telemetry_service_name(instance),
         &ChannelConfig::telemetry(),
-    )
-    .map_err(|e| e.to_string())?;
+    )?;
     let mut last = Instant::now();
     // Acquire pairs with the Release store of whoever stops the print.
     while !stop.load(Ordering::Acquire) {

@@ -19,7 +19,7 @@
 
 use std::fs::File;
 use std::io::BufReader;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use links::dict::{Dictionary, Message};
 use links::proto::{block::block_payload, find_block, Frame};
@@ -29,18 +29,167 @@ use planner::gcode::GcodeReader;
 use planner::pipeline::Pipeline;
 
 use crate::gcode_feed::{macro_status, MacroRun};
-use crate::hardware::Machine;
+use crate::hardware::{HardwareError, Machine};
+
+/// Why a data dictionary could not be loaded.
+#[derive(Debug, thiserror::Error)]
+pub enum DictionaryError {
+    /// The file could not be read.
+    #[error("{}: {source}", .path.display())]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The file is not a dictionary.
+    #[error("{}: {source}", .path.display())]
+    Parse {
+        path: PathBuf,
+        #[source]
+        source: links::dict::DictError,
+    },
+    /// The built-in firmware's dictionary (a bug).
+    #[error("firmware dictionary: {0}")]
+    Firmware(#[source] links::dict::DictError),
+}
+
+/// The older string-typed layers' view (the message as shown).
+impl From<DictionaryError> for String {
+    fn from(e: DictionaryError) -> String {
+        e.to_string()
+    }
+}
+
+/// Why a wire stream could not be checked, or is wrong.
+#[derive(Debug, thiserror::Error)]
+pub enum WireCheckError {
+    /// `--max-error-us` out of range.
+    #[error("--max-error-us {0}: must be in (0, 1000]")]
+    MaxError(f64),
+    /// The G-code file could not be opened.
+    #[error("{}: {source}", .path.display())]
+    Open {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// printer.cfg could not be read or describes no printer Cadence can drive.
+    #[error(transparent)]
+    Config(#[from] HardwareError),
+    /// `--mcu` names an MCU without steppers.
+    #[error("--mcu {mcu}: no stepper of the printer config is on that MCU")]
+    NoStepperOnMcu { mcu: String },
+    /// The dictionary lacks what the check needs.
+    #[error(transparent)]
+    Dictionary(#[from] links::dict::DictError),
+    /// A stepper's step pin is not in the dictionary.
+    #[error("[{stepper}] step_pin: {source}")]
+    StepPin {
+        stepper: String,
+        #[source]
+        source: links::dict::DictError,
+    },
+    /// The planner could not be set up.
+    #[error(transparent)]
+    Plan(#[from] planner::machine::PlanError),
+    /// A `[gcode_macro]` does not compile.
+    #[error(transparent)]
+    Macro(#[from] planner::gcode::macros::MacroError),
+    /// A macro call failed while planning (located by the G-code feed).
+    #[error("{0}")]
+    MacroRun(String),
+    /// A G-code line could not be read.
+    #[error("{}: {source}", .file.display())]
+    Read {
+        file: PathBuf,
+        #[source]
+        source: planner::gcode::GcodeError,
+    },
+    /// The planner refused a G-code line (`via`: the macro it came from).
+    #[error("{}: {source}{}", .file.display(), .via.as_ref().map(|v| format!(" (in macro {v})")).unwrap_or_default())]
+    Line {
+        file: PathBuf,
+        via: Option<String>,
+        #[source]
+        source: planner::machine::PlanError,
+    },
+    /// A block of the stream does not decode or replay.
+    #[error("{}: block at byte {pos}: {source}", .stream.display())]
+    Block {
+        stream: PathBuf,
+        pos: usize,
+        #[source]
+        source: Box<ReplayError>,
+    },
+    /// Bytes that are not a block.
+    #[error("{}: block at byte {pos}: not a valid block", .stream.display())]
+    BadBlock { stream: PathBuf, pos: usize },
+    /// The stream ends inside a block.
+    #[error("{}: block at byte {pos}: truncated block", .stream.display())]
+    Truncated { stream: PathBuf, pos: usize },
+    /// A stepper's steps differ from the G-code's motion.
+    #[error("{stepper}: {source}{}", if *.configured { "" } else { " (the stream never configures this stepper)" })]
+    Steps {
+        stepper: String,
+        configured: bool,
+        #[source]
+        source: planner::checker::CheckError,
+    },
+}
+
+/// The CLI's view (the message as shown).
+impl From<WireCheckError> for String {
+    fn from(e: WireCheckError) -> String {
+        e.to_string()
+    }
+}
+
+/// Why one message of the stream does not replay.
+#[derive(Debug, thiserror::Error)]
+pub enum ReplayError {
+    /// The block does not decode.
+    #[error(transparent)]
+    Decode(#[from] links::dict::DictError),
+    /// A message without a field it must have.
+    #[error("{name}: no field '{field}'")]
+    NoField { name: String, field: String },
+    /// A step command for an oid no `config_stepper` named.
+    #[error("{msg}: oid {oid} is not a configured stepper")]
+    NotConfigured { msg: String, oid: i64 },
+    /// A `config_stepper` whose step pin no stepper of the MCU has.
+    #[error("{msg}: no stepper on this MCU in printer.cfg has that step pin")]
+    UnknownStepPin { msg: String },
+    /// A field out of its range (`field`: `oid`, `count`, `interval`, `add`).
+    #[error("{msg}: bad {field}")]
+    BadField { msg: String, field: &'static str },
+    /// The step command is wrong against the G-code's motion.
+    #[error("{stepper}: {source}")]
+    Steps {
+        stepper: String,
+        #[source]
+        source: planner::checker::CheckError,
+    },
+    /// Planning further failed.
+    #[error(transparent)]
+    Planning(Box<WireCheckError>),
+}
 
 /// The data dictionary in `path` (zlib-compressed JSON as served by identify, or plain JSON as
 /// Klipper's build writes `out/klipper.dict`), or the Cadence firmware's own when none is given.
-pub fn load_dictionary(path: Option<&std::path::Path>) -> Result<Dictionary, String> {
+pub fn load_dictionary(path: Option<&std::path::Path>) -> Result<Dictionary, DictionaryError> {
     match path {
         Some(p) => {
-            let bytes = std::fs::read(p).map_err(|e| format!("{}: {e}", p.display()))?;
-            Dictionary::from_file_bytes(&bytes).map_err(|e| format!("{}: {e}", p.display()))
+            let bytes = std::fs::read(p).map_err(|source| DictionaryError::Read {
+                path: p.to_path_buf(),
+                source,
+            })?;
+            Dictionary::from_file_bytes(&bytes).map_err(|source| DictionaryError::Parse {
+                path: p.to_path_buf(),
+                source,
+            })
         }
         None => Dictionary::from_compressed(&firmware::dictionary_bytes(50_000_000))
-            .map_err(|e| format!("firmware dictionary: {e}")),
+            .map_err(DictionaryError::Firmware),
     }
 }
 
@@ -83,7 +232,7 @@ struct Planner {
 
 impl Planner {
     /// Plans one more G-code line (or finishes at the end); false once everything is planned.
-    fn more(&mut self, checked: &mut [Checked], file: &Path) -> Result<bool, String> {
+    fn more(&mut self, checked: &mut [Checked], file: &Path) -> Result<bool, WireCheckError> {
         if self.done {
             return Ok(false);
         }
@@ -92,11 +241,16 @@ impl Planner {
         loop {
             if let Some(run) = self.run.as_mut() {
                 let status = macro_status(&self.pipeline);
-                match run.next(&mut self.macros, &status, file, say)? {
+                match run
+                    .next(&mut self.macros, &status, file, say)
+                    .map_err(WireCheckError::MacroRun)?
+                {
                     Some(sub) => {
-                        self.pipeline
-                            .apply(&sub)
-                            .map_err(|e| format!("{}: {e} (in macro {})", file.display(), run.via()))?;
+                        self.pipeline.apply(&sub).map_err(|source| WireCheckError::Line {
+                            file: file.to_path_buf(),
+                            via: Some(run.via().to_string()),
+                            source,
+                        })?;
                         self.pipeline.generate(&mut self.out);
                         break;
                     }
@@ -106,16 +260,23 @@ impl Planner {
             }
             match self.lines.next() {
                 Some(line) => {
-                    let line = line.map_err(|e| format!("{}: {e}", file.display()))?;
+                    let line = line.map_err(|source| WireCheckError::Read {
+                        file: file.to_path_buf(),
+                        source,
+                    })?;
                     let pipeline = &self.pipeline;
-                    self.run =
-                        MacroRun::start(&line, &mut self.macros, || macro_status(pipeline), file, say)?;
+                    self.run = MacroRun::start(&line, &mut self.macros, || macro_status(pipeline), file, say)
+                        .map_err(WireCheckError::MacroRun)?;
                     if self.run.is_some() {
                         continue;
                     }
                     self.pipeline
                         .apply(&line)
-                        .map_err(|e| format!("{}: {e}", file.display()))?;
+                        .map_err(|source| WireCheckError::Line {
+                            file: file.to_path_buf(),
+                            via: None,
+                            source,
+                        })?;
                     self.pipeline.generate(&mut self.out);
                 }
                 None => {
@@ -143,23 +304,22 @@ pub fn run(
     dict: &Dictionary,
     spec: &CheckSpec<'_>,
     out: &mut dyn FnMut(String),
-) -> Result<(), String> {
+) -> Result<(), WireCheckError> {
     if !(spec.max_error_us > 0.0 && spec.max_error_us <= 1000.0) {
-        return Err(format!(
-            "--max-error-us {}: must be in (0, 1000]",
-            spec.max_error_us
-        ));
+        return Err(WireCheckError::MaxError(spec.max_error_us));
     }
-    let gcode = File::open(spec.gcode).map_err(|e| format!("{}: {e}", spec.gcode.display()))?;
+    let gcode = File::open(spec.gcode).map_err(|source| WireCheckError::Open {
+        path: spec.gcode.to_path_buf(),
+        source,
+    })?;
     let cfg = crate::hardware::load_config(spec.config)?;
     let machine = Machine::from_config(&cfg)?;
     if !machine.steppers.iter().any(|s| s.mcu == spec.mcu) {
-        return Err(format!(
-            "--mcu {}: no stepper of the printer config is on that MCU",
-            spec.mcu
-        ));
+        return Err(WireCheckError::NoStepperOnMcu {
+            mcu: spec.mcu.to_string(),
+        });
     }
-    let clock_freq = dict.clock_freq().map_err(|e| e.to_string())?;
+    let clock_freq = dict.clock_freq()?;
     let mut pipeline = machine.batch_pipeline(clock_freq, spec.max_error_us * 1e-6, 0)?;
     pipeline.set_record_ideal(true);
     let max_ticks = pipeline.max_error_ticks();
@@ -170,7 +330,10 @@ pub fn run(
         }
         let step_pin = dict
             .pin(&s.step_pin.pin)
-            .map_err(|e| format!("[{}] step_pin: {e}", s.name))?;
+            .map_err(|source| WireCheckError::StepPin {
+                stepper: s.name.clone(),
+                source,
+            })?;
         checked.push(Checked {
             name: s.name.clone(),
             idx,
@@ -183,9 +346,7 @@ pub fn run(
     let mut planner = Planner {
         pipeline,
         lines: GcodeReader::new(BufReader::with_capacity(1 << 16, gcode)),
-        macros: Macros::new(machine.macros.clone())
-            .map_err(|e| e.to_string())?
-            .with_respond(machine.respond_prefix.clone()),
+        macros: Macros::new(machine.macros.clone())?.with_respond(machine.respond_prefix.clone()),
         run: None,
         done: false,
         out: Vec::with_capacity(4096),
@@ -193,23 +354,37 @@ pub fn run(
     };
     // Object id → index in `checked`.
     let mut by_oid: [Option<usize>; 256] = [None; 256];
-    let at = |pos: usize| format!("{}: block at byte {pos}", stream.display());
+    let stream_path = stream.to_path_buf();
+    let at = |pos: usize, e: ReplayError| WireCheckError::Block {
+        stream: stream_path.clone(),
+        pos,
+        source: Box::new(e),
+    };
     let mut pos = 0usize;
     while pos < data.len() {
         match find_block(&data[pos..]) {
             Frame::Block { len, .. } => {
                 let msgs = dict
                     .decode(block_payload(&data[pos..pos + len]))
-                    .map_err(|e| format!("{}: {e}", at(pos)))?;
+                    .map_err(|e| at(pos, e.into()))?;
                 for m in &msgs {
-                    replay(m, &mut checked, &mut by_oid, &mut planner, spec.gcode)
-                        .map_err(|e| format!("{}: {e}", at(pos)))?;
+                    replay(m, &mut checked, &mut by_oid, &mut planner, spec.gcode).map_err(|e| at(pos, e))?;
                 }
                 pos += len;
             }
             Frame::Skip(n) => pos += n,
-            Frame::Bad(_) => return Err(format!("{}: not a valid block", at(pos))),
-            Frame::Incomplete => return Err(format!("{}: truncated block", at(pos))),
+            Frame::Bad(_) => {
+                return Err(WireCheckError::BadBlock {
+                    stream: stream_path,
+                    pos,
+                })
+            }
+            Frame::Incomplete => {
+                return Err(WireCheckError::Truncated {
+                    stream: stream_path,
+                    pos,
+                })
+            }
         }
     }
     while planner.more(&mut checked, spec.gcode)? {}
@@ -221,13 +396,10 @@ pub fn run(
         spec.max_error_us
     ));
     for c in &checked {
-        let stats: CheckStats = c.checker.finish().map_err(|e| {
-            let note = if c.configured {
-                ""
-            } else {
-                " (the stream never configures this stepper)"
-            };
-            format!("{}: {e}{note}", c.name)
+        let stats: CheckStats = c.checker.finish().map_err(|source| WireCheckError::Steps {
+            stepper: c.name.clone(),
+            configured: c.configured,
+            source,
         })?;
         out(format!(
             "  {:<10} {} steps in {} queue_step, {} direction changes, position {}, max early {:.2} µs: ok",
@@ -249,17 +421,35 @@ fn replay(
     by_oid: &mut [Option<usize>; 256],
     planner: &mut Planner,
     gcode: &Path,
-) -> Result<(), String> {
+) -> Result<(), ReplayError> {
     let field = |name: &str| {
-        m.get(name)
-            .ok_or_else(|| format!("{}: no field '{name}'", m.name))
+        m.get(name).ok_or_else(|| ReplayError::NoField {
+            name: m.name.clone(),
+            field: name.to_string(),
+        })
     };
-    let target = |by_oid: &[Option<usize>; 256]| -> Result<usize, String> {
+    let target = |by_oid: &[Option<usize>; 256]| -> Result<usize, ReplayError> {
         let oid = field("oid")?;
         usize::try_from(oid)
             .ok()
             .and_then(|o| by_oid.get(o).copied().flatten())
-            .ok_or_else(|| format!("{m}: oid {oid} is not a configured stepper"))
+            .ok_or_else(|| ReplayError::NotConfigured {
+                msg: m.to_string(),
+                oid,
+            })
+    };
+    let bad = |field: &'static str| ReplayError::BadField {
+        msg: m.to_string(),
+        field,
+    };
+    let steps = |c: &Checked, source| ReplayError::Steps {
+        stepper: c.name.clone(),
+        source,
+    };
+    let more = |checked: &mut [Checked], planner: &mut Planner| {
+        planner
+            .more(checked, gcode)
+            .map_err(|e| ReplayError::Planning(Box::new(e)))
     };
     match m.name.as_str() {
         "config_stepper" => {
@@ -267,7 +457,7 @@ fn replay(
             let i = checked
                 .iter()
                 .position(|c| i64::from(c.step_pin) == pin)
-                .ok_or_else(|| format!("{m}: no stepper on this MCU in printer.cfg has that step pin"))?;
+                .ok_or_else(|| ReplayError::UnknownStepPin { msg: m.to_string() })?;
             checked[i].configured = true;
             // config_stepper starts the stepper's step clock at 0 on the MCU (Klipper's and
             // Cadence's), so a first queue_step before any reset_step_clock counts from 0:
@@ -275,11 +465,11 @@ fn replay(
             checked[i]
                 .checker
                 .check_cmd(&StepCmd::ResetClock { clock: 0 })
-                .map_err(|e| format!("{}: {e}", checked[i].name))?;
+                .map_err(|e| steps(&checked[i], e))?;
             let slot = usize::try_from(oid)
                 .ok()
                 .and_then(|o| by_oid.get_mut(o))
-                .ok_or_else(|| format!("{m}: bad oid"))?;
+                .ok_or_else(|| bad("oid"))?;
             *slot = Some(i);
         }
         "set_next_step_dir" => {
@@ -287,38 +477,34 @@ fn replay(
             let c = &mut checked[i];
             let dir = (field("dir")? != 0) != c.dir_invert;
             let cmd = StepCmd::SetDir { dir };
-            c.checker
-                .check_cmd(&cmd)
-                .map_err(|e| format!("{}: {e}", c.name))?;
+            c.checker.check_cmd(&cmd).map_err(|e| steps(c, e))?;
         }
         "reset_step_clock" => {
             let i = target(by_oid)?;
             // The full clock from its low 32 bits: nearest the next planned step.
-            while checked[i].checker.outstanding() == 0 && planner.more(checked, gcode)? {}
+            while checked[i].checker.outstanding() == 0 && more(checked, planner)? {}
             let c = &mut checked[i];
             let low = field("clock")? as u64 & 0xffff_ffff;
             let near = c.checker.next_ideal_clock().unwrap_or(0.0).max(0.0) as u64;
             let clock = unwrap_clock(low, near);
             c.checker
                 .check_cmd(&StepCmd::ResetClock { clock })
-                .map_err(|e| format!("{}: {e}", c.name))?;
+                .map_err(|e| steps(c, e))?;
         }
         "queue_step" => {
             let i = target(by_oid)?;
             let count = field("count")?;
-            let count = u16::try_from(count).map_err(|_| format!("{m}: bad count"))?;
-            while checked[i].checker.outstanding() < usize::from(count) && planner.more(checked, gcode)? {}
+            let count = u16::try_from(count).map_err(|_| bad("count"))?;
+            while checked[i].checker.outstanding() < usize::from(count) && more(checked, planner)? {}
             let c = &mut checked[i];
             let cmd = StepCmd::QueueStep {
-                interval: u32::try_from(field("interval")?).map_err(|_| format!("{m}: bad interval"))?,
+                interval: u32::try_from(field("interval")?).map_err(|_| bad("interval"))?,
                 count,
-                add: i16::try_from(field("add")?).map_err(|_| format!("{m}: bad add"))?,
+                add: i16::try_from(field("add")?).map_err(|_| bad("add"))?,
                 first_clock: 0,
                 last_clock: 0,
             };
-            c.checker
-                .check_cmd(&cmd)
-                .map_err(|e| format!("{}: {e}", c.name))?;
+            c.checker.check_cmd(&cmd).map_err(|e| steps(c, e))?;
         }
         _ => {}
     }

@@ -25,6 +25,8 @@ use bench::run::{Common, Session};
 use bench::stats::{merge, new_hist, Percentiles};
 use bench::wakeup::mono_ns;
 use bench::BenchError;
+
+use super::BenchCmdError;
 use cadence::home_cycles::{CycleFigures, HomeOptions, HomeOutput};
 use cadence::homing::{HomingReport, AXIS_NAMES};
 
@@ -81,11 +83,15 @@ struct Group {
 }
 
 /// Homes and reports (see the module docs).
-pub fn run(m: &HomingMode, common: &Common, out: &mut dyn Write) -> Result<bench::report::Report, String> {
+pub fn run(
+    m: &HomingMode,
+    common: &Common,
+    out: &mut dyn Write,
+) -> Result<bench::report::Report, BenchCmdError> {
     if m.cycles == 0 {
-        return Err("--cycles must be at least 1".into());
+        return Err(BenchCmdError::NoCycles);
     }
-    let err = |e: BenchError| e.to_string();
+    let err = BenchCmdError::Bench;
     let printers = printers_of(m)?;
     let names: Vec<String> = printers
         .iter()
@@ -120,19 +126,7 @@ pub fn run(m: &HomingMode, common: &Common, out: &mut dyn Write) -> Result<bench
     let mut exact: Vec<(String, Histogram<u64>)> = Vec::new();
     let t0 = mono_ns().map_err(err)?;
     for (name, config, axes) in &printers {
-        let traces = TraceDir::new(name).map_err(|e| format!("bench homing: {e}"))?;
-        let opts = HomeOptions {
-            config: config.clone(),
-            axes: *axes,
-            cycles: m.cycles,
-            away: m.away,
-            cpu_load: false,
-            time_scale: m.time_scale,
-            trace: Some(traces.base()),
-            max_error_us: 25.0,
-            no_realtime: !m.realtime,
-        };
-        let (figures, notes) = home_in_thread(opts)?;
+        let (figures, notes) = home_printer(name, config, *axes, m)?;
         s.report
             .notes
             .extend(notes.into_iter().map(|n| format!("{name}: {n}")));
@@ -143,7 +137,6 @@ pub fn run(m: &HomingMode, common: &Common, out: &mut dyn Write) -> Result<bench
             let axis = AXIS_NAMES[t.axis.min(2)].to_ascii_lowercase();
             exact.push((format!("{name}-{axis}-exact"), to_ns(&t.stop).map_err(err)?));
         }
-        drop(traces);
         merge(&mut wakeup, figures.noise.hist.histogram()).map_err(err)?;
         s.progress(Duration::from_secs_f64(
             (mono_ns().map_err(err)?.saturating_sub(t0)) as f64 * 1e-9,
@@ -206,12 +199,15 @@ type PrinterRun = (String, Option<PathBuf>, [bool; 3]);
 
 /// The printers to home. The
 /// multi-MCU printer's config is written to a temporary file (removed after its cycles).
-fn printers_of(m: &HomingMode) -> Result<Vec<PrinterRun>, String> {
+fn printers_of(m: &HomingMode) -> Result<Vec<PrinterRun>, BenchCmdError> {
     let all = [true; 3];
     let z = [false, false, true];
-    let multi = || -> Result<PathBuf, String> {
+    let multi = || -> Result<PathBuf, BenchCmdError> {
         let p = std::env::temp_dir().join(format!("cadence-bench-multi-mcu-{}.cfg", std::process::id()));
-        std::fs::write(&p, MULTI_MCU_CFG).map_err(|e| format!("{}: {e}", p.display()))?;
+        std::fs::write(&p, MULTI_MCU_CFG).map_err(|source| BenchCmdError::File {
+            path: p.clone(),
+            source,
+        })?;
         Ok(p)
     };
     Ok(match &m.printers {
@@ -296,18 +292,45 @@ fn to_ns(h: &rt_core::hist::LatencyHist) -> Result<Histogram<u64>, BenchError> {
     Ok(out)
 }
 
+/// Homes printer `name` `m.cycles` times, its simulated MCUs tracing into a scratch directory
+/// (removed after).
+fn home_printer(
+    name: &str,
+    config: &Option<PathBuf>,
+    axes: [bool; 3],
+    m: &HomingMode,
+) -> Result<(CycleFigures, Vec<String>), BenchCmdError> {
+    let traces = TraceDir::new(name).map_err(|source| BenchCmdError::TraceDir {
+        mode: "homing",
+        source,
+    })?;
+    let opts = HomeOptions {
+        config: config.clone(),
+        axes,
+        cycles: m.cycles,
+        away: m.away,
+        cpu_load: false,
+        time_scale: m.time_scale,
+        trace: Some(traces.base()),
+        max_error_us: 25.0,
+        no_realtime: !m.realtime,
+    };
+    home_in_thread(opts)
+}
+
 /// Runs the cycles on a thread of their own: they pin their thread and give it SCHED_FIFO,
 /// which the next printer's simulated MCUs and sleeper must not inherit.
-fn home_in_thread(opts: HomeOptions) -> Result<(CycleFigures, Vec<String>), String> {
+fn home_in_thread(opts: HomeOptions) -> Result<(CycleFigures, Vec<String>), BenchCmdError> {
     std::thread::Builder::new()
         .name("bench-homing".into())
         .spawn(move || {
             let mut o = Collect::default();
             cadence::home_cycles::run_figures(&opts, &mut o).map(|f| (f, o.notes))
         })
-        .map_err(|e| format!("cannot start the homing thread: {e}"))?
+        .map_err(BenchCmdError::HomingThread)?
         .join()
-        .map_err(|_| "the homing thread panicked".to_string())?
+        .map_err(|_| BenchCmdError::HomingPanicked)?
+        .map_err(BenchCmdError::from)
 }
 
 /// Adds every pass of `reports` to the group of its printer and axis.

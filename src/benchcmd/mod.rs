@@ -5,6 +5,7 @@
 //! through `bench`'s session (same schema, logs and plots). Every mode takes the common
 //! options (`--json`, `--hlog`, `--plot`, `--load`, `--budget-us`, `--no-progress`).
 
+mod error;
 mod homing;
 mod pipeline;
 
@@ -17,6 +18,8 @@ use bench::modes::wakeup::WakeupMode;
 use bench::run::Common;
 use bench::wakeup::{Stop, Wait, WakeupOptions};
 use clap::{Args, Subcommand};
+
+pub use error::{BenchCmdError, McuTraceError, PrintFailure};
 
 /// Arguments of `cadence bench`.
 #[derive(Debug, Args)]
@@ -212,12 +215,12 @@ pub enum BenchWhat {
     },
 }
 
-pub fn run(args: &BenchArgs) -> Result<(), String> {
+pub fn run(args: &BenchArgs) -> Result<(), BenchCmdError> {
     let mut out = std::io::stdout().lock();
     match &args.what {
         BenchWhat::Wakeup { common, .. } => {
             let mode = wakeup_mode(&args.what)?;
-            bench::modes::wakeup::run(&mode, &common_options(common), &mut out).map_err(|e| e.to_string())?;
+            bench::modes::wakeup::run(&mode, &common_options(common), &mut out)?;
         }
         BenchWhat::Handoff {
             samples,
@@ -228,9 +231,7 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
             common,
         } => {
             let &[producer, consumer] = cores.as_slice() else {
-                return Err(format!(
-                    "--cores takes two CPUs, producer,consumer (got {cores:?})"
-                ));
+                return Err(BenchCmdError::Cores(cores.clone()));
             };
             let o = HandoffOpts {
                 samples: *samples,
@@ -239,15 +240,13 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
                 cores: (producer, consumer),
                 ..HandoffOpts::default()
             };
-            let exe =
-                std::env::current_exe().map_err(|e| format!("cannot find the cadence executable: {e}"))?;
+            let exe = std::env::current_exe().map_err(BenchCmdError::Executable)?;
             let child = ChildCommand {
                 exe,
                 args: vec!["bench".into(), "handoff-child".into()],
             };
             let child = (!no_process).then_some(&child);
-            bench::modes::handoff::run(&o, child, &common_options(common), &mut out)
-                .map_err(|e| e.to_string())?;
+            bench::modes::handoff::run(&o, child, &common_options(common), &mut out)?;
         }
         BenchWhat::HandoffChild {
             service,
@@ -258,9 +257,11 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
             let poll = match mode.as_str() {
                 "poll" => true,
                 "event" => false,
-                other => return Err(format!("handoff-child mode {other:?}: expected poll or event")),
+                other => return Err(BenchCmdError::ChildMode(other.to_string())),
             };
-            println!("{}", bench::handoff::child_main(service, *samples, poll, *core)?);
+            let line =
+                bench::handoff::child_main(service, *samples, poll, *core).map_err(BenchCmdError::Harness)?;
+            println!("{line}");
         }
         BenchWhat::Pipeline { common, .. } => {
             pipeline::run(&pipeline_mode(&args.what)?, &common_options(common), &mut out)?;
@@ -286,7 +287,8 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
                 max_error_s: max_error_us * 1e-6,
                 ..Default::default()
             }
-            .with_dictionary(&dict)?;
+            .with_dictionary(&dict)
+            .map_err(BenchCmdError::Harness)?;
             let opts = bench::plan::PlanOptions {
                 clock_freq: clock_freq.unwrap_or(opts.clock_freq),
                 ..opts
@@ -304,8 +306,7 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
                 counted.as_ref(),
                 &common_options(common),
                 &mut out,
-            )
-            .map_err(|e| e.to_string())?;
+            )?;
         }
     }
     Ok(())
@@ -317,8 +318,8 @@ fn plan_child(
     file: &std::path::Path,
     config: Option<&std::path::Path>,
     opts: &bench::plan::PlanOptions,
-) -> Result<ChildCommand, String> {
-    let exe = std::env::current_exe().map_err(|e| format!("cannot find the cadence executable: {e}"))?;
+) -> Result<ChildCommand, BenchCmdError> {
+    let exe = std::env::current_exe().map_err(BenchCmdError::Executable)?;
     let mut args: Vec<String> = vec!["bench".into(), "plan".into(), file.display().to_string()];
     if let Some(c) = config {
         args.extend(["--config".into(), c.display().to_string()]);
@@ -350,7 +351,7 @@ fn common_options(a: &CommonArgs) -> Common {
 }
 
 /// The pipeline mode of `bench pipeline` arguments.
-fn pipeline_mode(what: &BenchWhat) -> Result<pipeline::PipelineMode, String> {
+fn pipeline_mode(what: &BenchWhat) -> Result<pipeline::PipelineMode, BenchCmdError> {
     let BenchWhat::Pipeline {
         file,
         config,
@@ -360,10 +361,10 @@ fn pipeline_mode(what: &BenchWhat) -> Result<pipeline::PipelineMode, String> {
         ..
     } = what
     else {
-        return Err("not a pipeline command".into());
+        return Err(BenchCmdError::NotMode("pipeline"));
     };
     if !(*max_error_us > 0.0 && *max_error_us <= 1000.0) {
-        return Err(format!("--max-error-us {max_error_us}: must be in (0, 1000]"));
+        return Err(BenchCmdError::MaxError(*max_error_us));
     }
     Ok(pipeline::PipelineMode {
         file: file.clone(),
@@ -375,7 +376,7 @@ fn pipeline_mode(what: &BenchWhat) -> Result<pipeline::PipelineMode, String> {
 }
 
 /// The homing mode of `bench homing` arguments.
-fn homing_mode(what: &BenchWhat) -> Result<homing::HomingMode, String> {
+fn homing_mode(what: &BenchWhat) -> Result<homing::HomingMode, BenchCmdError> {
     let BenchWhat::Homing {
         printer,
         config,
@@ -387,7 +388,7 @@ fn homing_mode(what: &BenchWhat) -> Result<homing::HomingMode, String> {
         ..
     } = what
     else {
-        return Err("not a homing command".into());
+        return Err(BenchCmdError::NotMode("homing"));
     };
     let printers = match (config, printer.as_str()) {
         (Some(c), _) => homing::Printers::Config(c.clone()),
@@ -405,17 +406,22 @@ fn homing_mode(what: &BenchWhat) -> Result<homing::HomingMode, String> {
                     .position(|&n| n == c.to_ascii_lowercase())
                 {
                     Some(i) => a[i] = true,
-                    None => return Err(format!("--axes {text}: '{c}' is not x, y or z")),
+                    None => {
+                        return Err(BenchCmdError::Axis {
+                            text: text.clone(),
+                            letter: c,
+                        })
+                    }
                 }
             }
             if a == [false; 3] {
-                return Err("--axes: give at least one of x, y, z".into());
+                return Err(BenchCmdError::NoAxes);
             }
             Some(a)
         }
     };
     if !(away.is_finite() && *away > 0.0) {
-        return Err(format!("--away {away}: must be more than 0 mm"));
+        return Err(BenchCmdError::Away(*away));
     }
     Ok(homing::HomingMode {
         printers,
@@ -428,7 +434,7 @@ fn homing_mode(what: &BenchWhat) -> Result<homing::HomingMode, String> {
 }
 
 /// The wakeup mode of `bench wakeup` arguments.
-fn wakeup_mode(what: &BenchWhat) -> Result<WakeupMode, String> {
+fn wakeup_mode(what: &BenchWhat) -> Result<WakeupMode, BenchCmdError> {
     let BenchWhat::Wakeup {
         cpus,
         priority,
@@ -442,7 +448,7 @@ fn wakeup_mode(what: &BenchWhat) -> Result<WakeupMode, String> {
         ..
     } = what
     else {
-        return Err("not a wakeup command".into());
+        return Err(BenchCmdError::NotMode("wakeup"));
     };
     let online = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
     let cpus = if cpus.is_empty() {
@@ -451,13 +457,13 @@ fn wakeup_mode(what: &BenchWhat) -> Result<WakeupMode, String> {
         cpus.clone()
     };
     if let Some((_, c)) = cpus.iter().enumerate().find(|(i, c)| cpus[..*i].contains(c)) {
-        return Err(format!("--cpus: CPU {c} is given twice (one thread per CPU)"));
+        return Err(BenchCmdError::CpuTwice(*c));
     }
-    if let Some(c) = cpus.iter().find(|&&c| c >= online) {
-        return Err(format!(
-            "--cpus: CPU {c} does not exist (this machine has CPUs 0..={})",
-            online - 1
-        ));
+    if let Some(&cpu) = cpus.iter().find(|&&c| c >= online) {
+        return Err(BenchCmdError::NoSuchCpu {
+            cpu,
+            last: online - 1,
+        });
     }
     Ok(WakeupMode {
         measure: WakeupOptions {
@@ -622,9 +628,14 @@ mod tests {
             assert!(e.contains(want), "{args:?}: {e}");
         }
         let w = parse(&["wakeup", "--cpus", "4096"]).unwrap();
-        assert!(wakeup_mode(&w).unwrap_err().contains("CPU 4096 does not exist"));
+        let e = wakeup_mode(&w).unwrap_err();
+        assert!(matches!(e, BenchCmdError::NoSuchCpu { cpu: 4096, .. }), "{e:?}");
+        assert!(e.to_string().contains("CPU 4096 does not exist"));
         let w = parse(&["wakeup", "--cpus", "0,0"]).unwrap();
-        assert!(wakeup_mode(&w).unwrap_err().contains("CPU 0 is given twice"));
+        assert!(wakeup_mode(&w)
+            .unwrap_err()
+            .to_string()
+            .contains("CPU 0 is given twice"));
     }
 
     #[test]
@@ -692,11 +703,12 @@ mod tests {
             assert!(e.contains(want), "{args:?}: {e}");
         }
         let e = homing_mode(&parse(&["homing", "--axes", "xw"]).unwrap()).unwrap_err();
-        assert!(e.contains("'w' is not x, y or z"), "{e}");
+        assert!(matches!(e, BenchCmdError::Axis { letter: 'w', .. }), "{e:?}");
+        assert!(e.to_string().contains("'w' is not x, y or z"), "{e}");
         let e = homing_mode(&parse(&["homing", "--away", "0"]).unwrap()).unwrap_err();
-        assert!(e.contains("more than 0"), "{e}");
+        assert!(e.to_string().contains("more than 0"), "{e}");
         let e = pipeline_mode(&parse(&["pipeline", "--max-error-us", "0"]).unwrap()).unwrap_err();
-        assert!(e.contains("(0, 1000]"), "{e}");
+        assert!(e.to_string().contains("(0, 1000]"), "{e}");
     }
 
     #[test]

@@ -17,6 +17,8 @@ use bench::run::{Common, Session};
 use bench::stats::new_hist;
 use bench::wakeup::mono_ns;
 use bench::BenchError;
+
+use super::{BenchCmdError, McuTraceError, PrintFailure};
 use cadence::latency::HistSnapshot;
 use cadence::printer::{PrinterOptions, PrinterSource};
 use cadence::{Printer, MIN_LEAD_S};
@@ -48,7 +50,11 @@ pub const MCU_SERIES: [&str; 2] = ["mcu-lead", "mcu-step-late"];
 
 /// Prints the file and reports (see the module docs). A print that failed still writes its
 /// report (with the reason as verdict) before the error is returned.
-pub fn run(m: &PipelineMode, common: &Common, out: &mut dyn Write) -> Result<bench::report::Report, String> {
+pub fn run(
+    m: &PipelineMode,
+    common: &Common,
+    out: &mut dyn Write,
+) -> Result<bench::report::Report, BenchCmdError> {
     let file_name = m
         .file
         .as_ref()
@@ -68,7 +74,7 @@ pub fn run(m: &PipelineMode, common: &Common, out: &mut dyn Write) -> Result<ben
         if m.realtime { "on" } else { "off" }
     );
     let budget = Some((MIN_LEAD_S * 1e9) as u64);
-    let err = |e: BenchError| e.to_string();
+    let err = BenchCmdError::Bench;
     let mut s = Session::start("pipeline", &describe, common, budget, Duration::ZERO, out).map_err(err)?;
     s.report.set("file", file_name.clone());
     s.report
@@ -76,11 +82,14 @@ pub fn run(m: &PipelineMode, common: &Common, out: &mut dyn Write) -> Result<ben
     s.report.set("time_scale", m.time_scale);
     s.report.set("max_error_us", m.max_error_us);
     s.report.set("realtime", m.realtime);
-    let traces = TraceDir::new().map_err(|e| format!("bench pipeline: {e}"))?;
+    let traces = TraceDir::new().map_err(|source| BenchCmdError::TraceDir {
+        mode: "pipeline",
+        source,
+    })?;
     let t0 = mono_ns().map_err(err)?;
     let (hists, outcome) = print(m, traces.base(), &mut s.report.figures);
     let t1 = mono_ns().map_err(err)?;
-    let mcu = mcu_view(&traces).map_err(|e| format!("bench pipeline: reading the MCU traces: {e}"))?;
+    let mcu = mcu_view(&traces).map_err(BenchCmdError::McuTraces)?;
     drop(traces);
     let lead = lead_ns(&hists.lead, hists.clock_freq).map_err(err)?;
     let mut series: Vec<(&str, Histogram<u64>)> = vec![
@@ -126,7 +135,8 @@ pub fn run(m: &PipelineMode, common: &Common, out: &mut dyn Write) -> Result<ben
     s.report
         .figures
         .insert("lead_under_100ms_messages".into(), under as f64);
-    let mut v = verdict(&series[0].1, lead_summary.negative, under, outcome.as_ref().err());
+    let failed = outcome.as_ref().err().map(|e| e as &dyn std::fmt::Display);
+    let mut v = verdict(&series[0].1, lead_summary.negative, under, failed);
     if let Some(m) = mcu.as_ref().filter(|m| !m.lead.is_empty()) {
         v.push_str(&format!(
             "; at the MCU: min lead {:.1} ms on arrival over {} queue_step, steps late max {}",
@@ -152,7 +162,7 @@ pub fn run(m: &PipelineMode, common: &Common, out: &mut dyn Write) -> Result<ben
         .collect();
     let title = format!("live print of {file_name}: lead margin and stage latencies");
     let report = s.finish(&title, &plot, out).map_err(err)?;
-    outcome.map(|()| report)
+    Ok(outcome.map(|()| report)?)
 }
 
 /// Runs the print; returns the histograms (whatever happened) and the outcome. Figures of the
@@ -161,7 +171,7 @@ fn print(
     m: &PipelineMode,
     trace: PathBuf,
     figures: &mut std::collections::BTreeMap<String, f64>,
-) -> (HistSnapshot, Result<(), String>) {
+) -> (HistSnapshot, Result<(), PrintFailure>) {
     let empty = HistSnapshot {
         lead: LatencyHist::new(),
         handoff: LatencyHist::new(),
@@ -181,19 +191,19 @@ fn print(
     };
     let printer = match Printer::open(source, opts) {
         Ok(p) => p,
-        Err(e) => return (empty, Err(e.to_string())),
+        Err(e) => return (empty, Err(e.into())),
     };
     let ran = match &m.file {
         Some(f) => printer.run_gcode_file(f),
         None => printer.run_gcode_stream(REFERENCE_NAME, REFERENCE.as_bytes()),
     }
     .and_then(|()| printer.wait_moves())
-    .map_err(|e| e.to_string());
+    .map_err(PrintFailure::from);
     let hists = printer.latency_histograms();
     let closed = printer.close();
     let outcome = match (ran, closed) {
         (Err(e), _) => Err(e),
-        (Ok(()), Err(e)) => Err(e.reason),
+        (Ok(()), Err(e)) => Err(e.into()),
         (Ok(()), Ok(r)) => {
             let sm = &r.summary;
             figures.insert("lines".into(), sm.lines as f64);
@@ -247,10 +257,13 @@ struct McuView {
 }
 
 /// Reads every trace the simulated MCUs wrote; `None` when there is none (real MCUs only).
-fn mcu_view(dir: &TraceDir) -> Result<Option<McuView>, String> {
+fn mcu_view(dir: &TraceDir) -> Result<Option<McuView>, McuTraceError> {
     use firmware::trace::{for_each_record, TraceRecord};
     let mut paths: Vec<PathBuf> = std::fs::read_dir(&dir.0)
-        .map_err(|e| format!("{}: {e}", dir.0.display()))?
+        .map_err(|source| McuTraceError::Read {
+            path: dir.0.clone(),
+            source,
+        })?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| p.extension().is_some_and(|x| x == "trace"))
         .collect();
@@ -260,9 +273,9 @@ fn mcu_view(dir: &TraceDir) -> Result<Option<McuView>, String> {
     }
     let mut view = McuView {
         traces: paths.len(),
-        lead: new_hist().map_err(|e| e.to_string())?,
+        lead: new_hist()?,
         late_on_arrival: 0,
-        step_late: new_hist().map_err(|e| e.to_string())?,
+        step_late: new_hist()?,
     };
     for path in &paths {
         // The frequency is known once the file is read: collect ticks, scale after.
@@ -283,7 +296,10 @@ fn mcu_view(dir: &TraceDir) -> Result<Option<McuView>, String> {
             }
             TraceRecord::Shutdown { .. } => {}
         })
-        .map_err(|e| format!("{}: {e}", path.display()))?;
+        .map_err(|source| McuTraceError::Read {
+            path: path.clone(),
+            source,
+        })?;
         let ns_per_tick = 1e9 / freq.max(1) as f64;
         for ticks in leads {
             view.lead
@@ -317,7 +333,12 @@ fn under_budget(lead_ns: &Histogram<u64>) -> u64 {
 }
 
 /// "100 ms lead held: min margin X ms over N step messages", or what broke it and where.
-fn verdict(lead_ns: &Histogram<u64>, late: u64, under: u64, failed: Option<&String>) -> String {
+fn verdict(
+    lead_ns: &Histogram<u64>,
+    late: u64,
+    under: u64,
+    failed: Option<&dyn std::fmt::Display>,
+) -> String {
     let ms = |ns: u64| ns as f64 / 1e6;
     let lead_ms = MIN_LEAD_S * 1e3;
     if let Some(reason) = failed {

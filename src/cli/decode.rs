@@ -44,7 +44,9 @@ pub fn run(args: &DecodeArgs) -> Result<(), String> {
             mcu: &args.mcu,
             max_error_us: args.max_error_us,
         };
-        return check::run(&args.file, &data, &dict, &spec, &mut |line| println!("{line}"));
+        return Ok(check::run(&args.file, &data, &dict, &spec, &mut |line| {
+            println!("{line}")
+        })?);
     }
     let stdout = std::io::stdout();
     let mut out = std::io::BufWriter::new(stdout.lock());

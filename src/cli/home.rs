@@ -65,5 +65,5 @@ pub fn run(args: &HomeArgs) -> Result<(), String> {
         max_error_us: args.motion.max_error_us,
         no_realtime: args.motion.no_realtime,
     };
-    cadence::home_cycles::run(&opts, &mut Console)
+    Ok(cadence::home_cycles::run(&opts, &mut Console)?)
 }

@@ -5,7 +5,6 @@ pub mod check_config;
 pub mod decode;
 pub mod dictionary;
 pub mod doctor;
-pub mod gcode_source;
 pub mod home;
 pub mod print;
 pub mod progress;

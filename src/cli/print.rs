@@ -13,10 +13,10 @@ use cadence::job::{LiveOptions, PrintJob, PrintOutcome, Progress};
 use cadence::summary::human_duration;
 use clap::Args;
 
-use super::gcode_source::GcodeSource;
 use super::progress::Display;
 use super::signals::{self, StopRequest};
 use super::MotionArgs;
+use cadence::gcode_source::GcodeSource;
 use rt_core::logger::Level;
 
 /// Arguments of `cadence print`.
@@ -143,7 +143,7 @@ pub fn run(args: &PrintArgs) -> Result<u8, String> {
     if let Some(d) = &display {
         d.finish();
     }
-    let outcome = result.map_err(|e| explain(&e, args.motion.time_scale))?;
+    let outcome = result.map_err(|e| explain(&e.to_string(), args.motion.time_scale))?;
     let code = match stop.signal() {
         Some(sig) if pos.cut.load(Ordering::Acquire) => {
             let bytes = pos.bytes.load(Ordering::Relaxed);

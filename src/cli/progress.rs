@@ -19,7 +19,7 @@ use cadence::job::Progress;
 use cadence::summary::human_duration;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
-use super::gcode_source::ReadPosition;
+use cadence::gcode_source::ReadPosition;
 
 /// Period of the plain progress lines.
 pub const PLAIN_PERIOD: Duration = Duration::from_secs(10);

@@ -147,5 +147,5 @@ fn run_io(args: &ServeArgs) -> Result<(), String> {
     for line in &outcome.rt_report {
         eprintln!("cadence serve: {line}");
     }
-    outcome.result
+    Ok(outcome.result?)
 }

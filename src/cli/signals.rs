@@ -6,33 +6,8 @@
 //! leaves SIGINT): Linux never discards a signal the target blocks, so `sigwait` sees it
 //! either way (`tests/tests/print_ux.rs` checks this with an inherited ignored SIGINT).
 
-use std::sync::atomic::{AtomicI32, Ordering};
-use std::sync::Arc;
-
+pub use cadence::gcode_source::StopRequest;
 use nix::sys::signal::{SigSet, Signal};
-
-/// The signal that asked the print to stop (0: none yet), shared with the G-code reader.
-#[derive(Debug, Clone, Default)]
-pub struct StopRequest(Arc<AtomicI32>);
-
-impl StopRequest {
-    /// The signal received, if any.
-    pub fn signal(&self) -> Option<Signal> {
-        match self.0.load(Ordering::Acquire) {
-            0 => None,
-            n => Signal::try_from(n).ok(),
-        }
-    }
-
-    /// True once a stop was asked for.
-    pub fn is_set(&self) -> bool {
-        self.0.load(Ordering::Acquire) != 0
-    }
-
-    pub fn set(&self, sig: Signal) {
-        self.0.store(sig as i32, Ordering::Release);
-    }
-}
 
 /// Exit status of a print ended by `sig` (128 + its number: 130 for SIGINT, 143 for SIGTERM).
 pub fn exit_code(sig: Signal) -> u8 {

@@ -55,9 +55,27 @@ pub enum HeatCmd {
     },
 }
 
+/// A malformed heater command; each names the command or its missing parameter.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum HeatCmdError {
+    /// A parameter that does not parse.
+    #[error("{name}: {source}")]
+    Param {
+        name: String,
+        #[source]
+        source: planner::gcode::GcodeErrorKind,
+    },
+    /// A required parameter is missing (`raw`: the command as written).
+    #[error("Error on '{raw}': missing {key}")]
+    Missing { raw: String, key: String },
+    /// TEMPERATURE_WAIT without either bound.
+    #[error("Error on 'TEMPERATURE_WAIT': missing MINIMUM or MAXIMUM.")]
+    NoBounds,
+}
+
 /// The heater command of an extended/M command line the planner does not know, `None` for any
 /// other command; a malformed one is an error naming the parameter.
-pub fn parse(cmd: &Command) -> Option<Result<HeatCmd, String>> {
+pub fn parse(cmd: &Command) -> Option<Result<HeatCmd, HeatCmdError>> {
     let Command::Other { name, raw } = cmd else {
         return None;
     };
@@ -79,14 +97,19 @@ pub fn parse(cmd: &Command) -> Option<Result<HeatCmd, String>> {
     Some(parse_named(name, raw.as_str()))
 }
 
-fn parse_named(name: &str, raw: &str) -> Result<HeatCmd, String> {
-    let p = OtherParams::parse(raw).map_err(|e| format!("{name}: {e}"))?;
-    let num = |k: &str| p.float(k).map_err(|e| format!("{name}: {e}"));
-    let text = |k: &str| -> Result<String, String> {
-        p.get(k)
-            .map(str::to_string)
-            .ok_or_else(|| format!("Error on '{}': missing {k}", raw.trim()))
+fn parse_named(name: &str, raw: &str) -> Result<HeatCmd, HeatCmdError> {
+    let param = |source| HeatCmdError::Param {
+        name: name.to_string(),
+        source,
     };
+    let missing = |key: &str| HeatCmdError::Missing {
+        raw: raw.trim().to_string(),
+        key: key.to_string(),
+    };
+    let p = OtherParams::parse(raw).map_err(param)?;
+    let num = |k: &str| p.float(k).map_err(param);
+    let text =
+        |k: &str| -> Result<String, HeatCmdError> { p.get(k).map(str::to_string).ok_or_else(|| missing(k)) };
     Ok(match name {
         "SET_HEATER_TEMPERATURE" => HeatCmd::Set {
             heater: Cow::Owned(text("HEATER")?),
@@ -96,7 +119,7 @@ fn parse_named(name: &str, raw: &str) -> Result<HeatCmd, String> {
         "TEMPERATURE_WAIT" => {
             let (min, max) = (num("MINIMUM")?, num("MAXIMUM")?);
             if min.is_none() && max.is_none() {
-                return Err("Error on 'TEMPERATURE_WAIT': missing MINIMUM or MAXIMUM.".to_string());
+                return Err(HeatCmdError::NoBounds);
             }
             HeatCmd::Wait {
                 sensor: text("SENSOR")?,
@@ -107,7 +130,7 @@ fn parse_named(name: &str, raw: &str) -> Result<HeatCmd, String> {
         "TURN_OFF_HEATERS" => HeatCmd::TurnOffAll,
         "PID_CALIBRATE" => HeatCmd::PidCalibrate {
             heater: text("HEATER")?,
-            target: num("TARGET")?.ok_or_else(|| format!("Error on '{}': missing TARGET", raw.trim()))?,
+            target: num("TARGET")?.ok_or_else(|| missing("TARGET"))?,
             write_file: num("WRITE_FILE")?.is_some_and(|v| v != 0.0),
         },
         "SAVE_CONFIG" => HeatCmd::SaveConfig,
@@ -147,7 +170,7 @@ mod tests {
     use super::*;
     use planner::gcode::parse_line;
 
-    fn cmd(text: &str) -> Option<Result<HeatCmd, String>> {
+    fn cmd(text: &str) -> Option<Result<HeatCmd, HeatCmdError>> {
         parse(&parse_line(1, text.as_bytes()).unwrap().unwrap())
     }
 
@@ -206,9 +229,13 @@ mod tests {
     fn bad_parameters_are_errors() {
         assert!(cmd("TEMPERATURE_WAIT SENSOR=extruder").unwrap().is_err());
         let e = cmd("PID_CALIBRATE HEATER=extruder").unwrap().unwrap_err();
-        assert!(e.contains("missing TARGET"), "{e}");
+        assert!(
+            matches!(&e, HeatCmdError::Missing { key, .. } if key == "TARGET"),
+            "{e:?}"
+        );
+        assert!(e.to_string().contains("missing TARGET"), "{e}");
         let e = cmd("SET_HEATER_TEMPERATURE TARGET=60").unwrap().unwrap_err();
-        assert!(e.contains("missing HEATER"), "{e}");
+        assert!(e.to_string().contains("missing HEATER"), "{e}");
         assert!(cmd("SET_HEATER_TEMPERATURE HEATER=extruder TARGET=abc")
             .unwrap()
             .is_err());

@@ -172,6 +172,20 @@ pub enum ThermalError {
     Invalid { section: String, what: String },
 }
 
+/// Why an MCU's heater, sensor and fan objects cannot be configured.
+#[derive(Debug, thiserror::Error)]
+pub enum ObjectsError {
+    /// The firmware lacks a command the objects need.
+    #[error("the MCU has no {0} in its dictionary: it cannot drive heaters, sensors or fans")]
+    MissingCommand(&'static str),
+    /// A pin the MCU does not have.
+    #[error(transparent)]
+    Pin(#[from] crate::hardware::PinError),
+    /// A command does not encode.
+    #[error(transparent)]
+    Dictionary(#[from] links::dict::DictError),
+}
+
 /// The object of one MCU's thermal list.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ThermalObject {
@@ -224,11 +238,22 @@ impl Thermal {
 
     /// The thermal objects of `cfg`.
     pub fn from_config(cfg: &PrinterConfig) -> Result<Thermal, ThermalError> {
-        let th = &cfg.thermal;
         let mut out = Thermal::default();
         if cfg.mcus.iter().any(|m| m.is_simulated()) {
             out.sim_time_scale = cfg.simulator.time_scale;
         }
+        out.add_heaters(cfg)?;
+        out.add_sensors(cfg)?;
+        out.add_fans(cfg)?;
+        out.add_temperature_fans(cfg)?;
+        out.check_fans()?;
+        Ok(out)
+    }
+
+    /// The extruder's, the bed's and every `[heater_generic]`, each with its
+    /// `[verify_heater]` (every one of which must name a heater).
+    fn add_heaters(&mut self, cfg: &PrinterConfig) -> Result<(), ThermalError> {
+        let th = &cfg.thermal;
         let sections: Vec<(&HeaterSection, bool)> = cfg
             .extruder
             .iter()
@@ -269,7 +294,7 @@ impl Thermal {
                     heating_gain: v.heating_gain,
                 })
                 .unwrap_or_else(|| VerifyConfig::defaults_for(&h.name));
-            out.heaters.push(HeaterOut {
+            self.heaters.push(HeaterOut {
                 name: h.name.clone(),
                 mcu: h.heater_pin.mcu.clone(),
                 heater_pin: h.heater_pin.clone(),
@@ -287,13 +312,19 @@ impl Thermal {
             });
         }
         for (name, _) in &th.verify_heater {
-            if !out.heaters.iter().any(|h| &h.name == name) {
+            if !self.heaters.iter().any(|h| &h.name == name) {
                 return Err(ThermalError::Invalid {
                     section: format!("verify_heater {name}"),
                     what: format!("there is no heater '{name}'"),
                 });
             }
         }
+        Ok(())
+    }
+
+    /// The `[temperature_sensor]`s read through an MCU's ADC.
+    fn add_sensors(&mut self, cfg: &PrinterConfig) -> Result<(), ThermalError> {
+        let th = &cfg.thermal;
         for s in &th.temperature_sensors {
             let section = format!("temperature_sensor {}", s.name);
             let sysconfig::printer::SensorSource::Adc {
@@ -312,7 +343,7 @@ impl Thermal {
                 *inline_resistor,
                 &th.thermistors,
             )?;
-            out.sensors.push(SensorOut {
+            self.sensors.push(SensorOut {
                 name: s.name.clone(),
                 fan: None,
                 gcode_id: s.gcode_id.clone(),
@@ -324,8 +355,15 @@ impl Thermal {
                 max_temp: s.max_temp,
             });
         }
+        Ok(())
+    }
+
+    /// `[fan]`, `[heater_fan]`s, `[controller_fan]`s (their heaters must exist) and
+    /// `[fan_generic]`s.
+    fn add_fans(&mut self, cfg: &PrinterConfig) -> Result<(), ThermalError> {
+        let th = &cfg.thermal;
         if let Some(f) = &th.fan {
-            out.fans.push(FanOut {
+            self.fans.push(FanOut {
                 name: "fan".to_string(),
                 mcu: f.pin.mcu.clone(),
                 opts: f.clone(),
@@ -334,14 +372,14 @@ impl Thermal {
         }
         for f in &th.heater_fans {
             for h in &f.heaters {
-                if !out.heaters.iter().any(|x| &x.name == h) {
+                if !self.heaters.iter().any(|x| &x.name == h) {
                     return Err(ThermalError::Invalid {
                         section: format!("heater_fan {}", f.name),
                         what: format!("heater: there is no heater '{h}'"),
                     });
                 }
             }
-            out.fans.push(FanOut {
+            self.fans.push(FanOut {
                 name: f.name.clone(),
                 mcu: f.fan.pin.mcu.clone(),
                 opts: f.fan.clone(),
@@ -354,14 +392,14 @@ impl Thermal {
         }
         for f in &th.controller_fans {
             for h in &f.heaters {
-                if !out.heaters.iter().any(|x| &x.name == h) {
+                if !self.heaters.iter().any(|x| &x.name == h) {
                     return Err(ThermalError::Invalid {
                         section: format!("controller_fan {}", f.name),
                         what: format!("heater: there is no heater '{h}'"),
                     });
                 }
             }
-            out.fans.push(FanOut {
+            self.fans.push(FanOut {
                 name: f.name.clone(),
                 mcu: f.fan.pin.mcu.clone(),
                 opts: f.fan.clone(),
@@ -374,13 +412,19 @@ impl Thermal {
             });
         }
         for (name, opts) in &th.fan_generic {
-            out.fans.push(FanOut {
+            self.fans.push(FanOut {
                 name: name.clone(),
                 mcu: opts.pin.mcu.clone(),
                 opts: opts.clone(),
                 role: FanRole::Generic,
             });
         }
+        Ok(())
+    }
+
+    /// `[temperature_fan]`s: a sensor and the fan it drives.
+    fn add_temperature_fans(&mut self, cfg: &PrinterConfig) -> Result<(), ThermalError> {
+        let th = &cfg.thermal;
         for f in &th.temperature_fans {
             let section = format!("temperature_fan {}", f.name);
             let sysconfig::printer::SensorSource::Adc {
@@ -401,9 +445,9 @@ impl Thermal {
                 *inline_resistor,
                 &th.thermistors,
             )?;
-            out.sensors.push(SensorOut {
+            self.sensors.push(SensorOut {
                 name: f.name.clone(),
-                fan: Some(out.fans.len()),
+                fan: Some(self.fans.len()),
                 gcode_id: f.gcode_id.clone(),
                 mcu: sensor_pin.mcu.clone(),
                 pin: sensor_pin.clone(),
@@ -412,12 +456,12 @@ impl Thermal {
                 min_temp: f.min_temp,
                 max_temp: f.max_temp,
             });
-            out.fans.push(FanOut {
+            self.fans.push(FanOut {
                 name: f.name.clone(),
                 mcu: f.fan.pin.mcu.clone(),
                 opts: f.fan.clone(),
                 role: FanRole::Temperature {
-                    sensor: out.sensors.len() - 1,
+                    sensor: self.sensors.len() - 1,
                     control: f.control,
                     target_temp: f.target_temp,
                     min_speed: f.min_speed,
@@ -427,7 +471,12 @@ impl Thermal {
                 },
             });
         }
-        for f in &out.fans {
+        Ok(())
+    }
+
+    /// Refuses the fan options the MCUs cannot serve.
+    fn check_fans(&self) -> Result<(), ThermalError> {
+        for f in &self.fans {
             if f.opts.hardware_pwm {
                 return Err(ThermalError::Invalid {
                     section: f.name.clone(),
@@ -443,7 +492,7 @@ impl Thermal {
                 });
             }
         }
-        Ok(out)
+        Ok(())
     }
 
     /// The heater called `name`.
@@ -512,7 +561,12 @@ impl Thermal {
     }
 
     /// The configuration commands of MCU `mcu`'s thermal objects, oids from `oid0`.
-    pub fn config_commands(&self, dict: &Dictionary, mcu: &str, oid0: usize) -> Result<Vec<Cmd>, String> {
+    pub fn config_commands(
+        &self,
+        dict: &Dictionary,
+        mcu: &str,
+        oid0: usize,
+    ) -> Result<Vec<Cmd>, ObjectsError> {
         let objects = self.objects_on(mcu);
         if objects.is_empty() {
             return Ok(Vec::new());
@@ -523,36 +577,31 @@ impl Thermal {
             "config_analog_in",
         ] {
             if dict.command(needed).is_err() {
-                return Err(format!(
-                    "the MCU has no {needed} in its dictionary: it cannot drive heaters, sensors or fans"
-                ));
+                return Err(ObjectsError::MissingCommand(needed));
             }
         }
-        let err = |e: links::dict::DictError| e.to_string();
-        let clock_freq = dict.clock_freq().map_err(err)?;
+        let clock_freq = dict.clock_freq()?;
         let mut cmds = Vec::new();
         for (k, obj) in objects.iter().enumerate() {
             let oid = (oid0 + k) as i64;
             let pin_of = |p: &PinRef, what: &str| {
                 dict.pin(&p.pin)
                     .map(i64::from)
-                    .map_err(|e| format!("{what}: {e}"))
+                    .map_err(|source| crate::hardware::PinError {
+                        what: what.to_string(),
+                        source,
+                    })
             };
-            let mut pwm = |pin: &PinRef, what: &str, cycle: f64, max_duration: f64| -> Result<(), String> {
-                let off = i64::from(pin.invert);
-                let pin = pin_of(pin, what)?;
-                let max_ticks = (max_duration * clock_freq).round() as i64;
-                cmds.push(
-                    dict.encode("config_digital_out", &[oid, pin, off, off, max_ticks])
-                        .map_err(err)?,
-                );
-                let cycle_ticks = (cycle * clock_freq).round().max(1.0) as i64;
-                cmds.push(
-                    dict.encode("set_digital_out_pwm_cycle", &[oid, cycle_ticks])
-                        .map_err(err)?,
-                );
-                Ok(())
-            };
+            let mut pwm =
+                |pin: &PinRef, what: &str, cycle: f64, max_duration: f64| -> Result<(), ObjectsError> {
+                    let off = i64::from(pin.invert);
+                    let pin = pin_of(pin, what)?;
+                    let max_ticks = (max_duration * clock_freq).round() as i64;
+                    cmds.push(dict.encode("config_digital_out", &[oid, pin, off, off, max_ticks])?);
+                    let cycle_ticks = (cycle * clock_freq).round().max(1.0) as i64;
+                    cmds.push(dict.encode("set_digital_out_pwm_cycle", &[oid, cycle_ticks])?);
+                    Ok(())
+                };
             match *obj {
                 ThermalObject::HeaterPwm(i) => {
                     let h = &self.heaters[i];
@@ -570,12 +619,12 @@ impl Thermal {
                 ThermalObject::HeaterAdc(i) => {
                     let h = &self.heaters[i];
                     let pin = pin_of(&h.sensor_pin, &format!("[{}] sensor_pin", h.name))?;
-                    cmds.push(dict.encode("config_analog_in", &[oid, pin]).map_err(err)?);
+                    cmds.push(dict.encode("config_analog_in", &[oid, pin])?);
                 }
                 ThermalObject::SensorAdc(i) => {
                     let s = &self.sensors[i];
                     let pin = pin_of(&s.pin, &format!("[temperature_sensor {}] sensor_pin", s.name))?;
-                    cmds.push(dict.encode("config_analog_in", &[oid, pin]).map_err(err)?);
+                    cmds.push(dict.encode("config_analog_in", &[oid, pin])?);
                 }
             }
         }

@@ -398,9 +398,23 @@ struct RunningSensor {
 /// keep within it; the control makes up for the long lead ([`SmithPredictor`]).
 const WALL_LEAD_S: f64 = 0.25;
 
+/// Why the heater loop stopped (every heater is off by then).
+#[derive(Debug, thiserror::Error)]
+pub enum HeaterLoopError {
+    /// More objects than a u8 oid can number.
+    #[error("too many objects")]
+    TooManyObjects,
+    /// A command does not encode.
+    #[error(transparent)]
+    Dictionary(#[from] links::dict::DictError),
+    /// The MCU link refused a message.
+    #[error(transparent)]
+    Link(#[from] links::mcu::LinkError),
+}
+
 /// Runs the heater loop until `shared.stop` (then every heater off) or an MCU shutdown. Errors
 /// (a missing command, a dead link) end the loop and are returned after every heater is off.
-pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), String> {
+pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), HeaterLoopError> {
     if thermal.heaters.is_empty() && thermal.fans.is_empty() && thermal.sensors.is_empty() {
         return Ok(());
     }
@@ -421,7 +435,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
         // the update lead).
         let start = lead_clock(&conn.link, freq, thermal.max_heat_time()) as f64 + 0.1 * freq;
         for (k, obj) in objects.iter().enumerate() {
-            let oid = u8::try_from(oid0 + k).map_err(|_| "too many objects".to_string())?;
+            let oid = u8::try_from(oid0 + k).map_err(|_| HeaterLoopError::TooManyObjects)?;
             match *obj {
                 ThermalObject::HeaterPwm(i) => {
                     let h = &thermal.heaters[i];
@@ -528,23 +542,21 @@ fn query_analog(
     min: u16,
     max: u16,
     range_check: u8,
-) -> Result<(), String> {
-    let cmd = dict
-        .encode(
-            "query_analog_in",
-            &[
-                i64::from(oid),
-                (start as u64 & 0xFFFF_FFFF) as i64,
-                (SAMPLE_TIME * freq).round() as i64,
-                i64::from(SAMPLE_COUNT),
-                (REPORT_TIME * freq).round() as i64,
-                i64::from(min),
-                i64::from(max),
-                i64::from(range_check),
-            ],
-        )
-        .map_err(|e| e.to_string())?;
-    link.send(cmd).map_err(|e| e.to_string())
+) -> Result<(), HeaterLoopError> {
+    let cmd = dict.encode(
+        "query_analog_in",
+        &[
+            i64::from(oid),
+            (start as u64 & 0xFFFF_FFFF) as i64,
+            (SAMPLE_TIME * freq).round() as i64,
+            i64::from(SAMPLE_COUNT),
+            (REPORT_TIME * freq).round() as i64,
+            i64::from(min),
+            i64::from(max),
+            i64::from(range_check),
+        ],
+    )?;
+    Ok(link.send(cmd)?)
 }
 
 /// The lead (MCU ticks) of an update sent now.
@@ -567,20 +579,18 @@ fn send_pwm(
     on_ticks: u32,
     invert: bool,
     cycle: f64,
-) -> Result<(), String> {
+) -> Result<(), HeaterLoopError> {
     let dict = link.dictionary();
     let on = if invert {
         (cycle.round() as u32).saturating_sub(on_ticks)
     } else {
         on_ticks
     };
-    let cmd = dict
-        .encode(
-            "queue_digital_out",
-            &[i64::from(oid), (clock & 0xFFFF_FFFF) as i64, i64::from(on)],
-        )
-        .map_err(|e| e.to_string())?;
-    link.send_clocked(cmd, 0, clock).map_err(|e| e.to_string())
+    let cmd = dict.encode(
+        "queue_digital_out",
+        &[i64::from(oid), (clock & 0xFFFF_FFFF) as i64, i64::from(on)],
+    )?;
+    Ok(link.send_clocked(cmd, 0, clock)?)
 }
 
 /// On ticks of `power` (0..=1) in a cycle of `cycle` ticks: 0 off, the whole cycle on.
@@ -683,7 +693,7 @@ fn heater_loop(
     heaters: &mut [(usize, Running)],
     sensors: &mut [(usize, RunningSensor)],
     fans: &mut [(usize, RunningFan)],
-) -> Result<(), String> {
+) -> Result<(), HeaterLoopError> {
     loop {
         if shared.stop.load(Ordering::Acquire) {
             return Ok(());
@@ -696,151 +706,15 @@ fn heater_loop(
         start_calibration(shared, heaters);
         let now_sys = McuLink::system_now();
         for (i, r) in heaters.iter_mut() {
-            let conn = &mcus.list[r.link_index];
-            let Some((count, next_clock, value)) = conn.link.analog_report(r.adc_oid) else {
-                continue;
-            };
-            if count == r.last_count {
-                continue;
-            }
-            r.last_count = count;
-            let est = conn.link.clock();
-            let freq = conn.clock_freq;
-            let read_clock = est
-                .extend(next_clock, now_sys)
-                .saturating_sub((REPORT_TIME * freq) as u64);
-            let time = read_clock as f64 / freq;
-            let temp = r.sensor.temperature(f64::from(value) / r.full_scale);
-            let cell = &shared.heaters[*i];
-            let target = cell.target.get();
-            let smoothed = r.smooth.update(time, temp);
-            let at = ((read_clock as f64 + REPORT_TIME * freq) as u64).max(lead_clock(
-                &conn.link,
-                freq,
-                thermal.max_heat_time(),
-            ));
-            let seen = r.smith.as_mut().map_or(temp, |s| s.predict(time, temp));
-            let power = match r.relay.as_mut() {
-                Some(relay) => relay_update(relay, shared, *i, time, temp, r.max_power),
-                None => r.control.update(time, seen, target),
-            }
-            .clamp(0.0, r.max_power);
-            if r.relay.as_ref().is_some_and(|relay| relay.tuner.done()) {
-                r.relay = None;
-            }
-            cell.temp.set(smoothed);
-            cell.time.set(time);
-            cell.power.set(power);
-            let seen = cell.max_seen.get();
-            if seen.is_nan() || smoothed > seen {
-                cell.max_seen.set(smoothed);
-            }
-            cell.busy.store(
-                target > 0.0 && r.control.busy(smoothed, target),
-                Ordering::Release,
-            );
-            if time >= r.next_check {
-                r.next_check = time + CHECK_INTERVAL_S;
-                if let Err(fault) = r.verify.check(time, temp, target) {
-                    shutdown(mcus, shared, &fault.to_string());
-                    return Ok(());
-                }
-            }
-            // The MCU queues few updates (8): with a long lead (a time-scaled simulator) a new
-            // value waits until a fifth of the lead has passed since the last one, and is the
-            // mean of the powers decided meanwhile.
-            let sent_power = match r.smith.as_mut() {
-                Some(s) => {
-                    s.decided(power, time);
-                    r.decided.0 += power;
-                    r.decided.1 += 1.0;
-                    r.decided.0 / r.decided.1
-                }
-                None => power,
-            };
-            let on = on_ticks(sent_power, r.cycle_ticks);
-            let min_gap = (lead_ticks(&conn.link, freq, thermal.max_heat_time()) / 5.0) as u64;
-            let send = r.last_sent.is_none_or(|(c, o)| {
-                let gap = at.saturating_sub(c);
-                ((o != on || r.smith.is_some()) && gap >= min_gap)
-                    || gap as f64 > 0.25 * thermal.max_heat_time() * freq
-            });
-            if send {
-                if send_pwm(&conn.link, r.pwm_oid, at, on, r.invert, r.cycle_ticks).is_err() {
-                    // The MCU shut down or the link died: the check above ends the loop.
-                    continue;
-                }
-                r.last_sent = Some((at, on));
-                if let Some(s) = r.smith.as_mut() {
-                    s.sent(f64::from(on) / r.cycle_ticks, at as f64 / freq);
-                    r.decided = (0.0, 0.0);
-                }
+            if !update_heater(mcus, thermal, shared, *i, r, now_sys) {
+                return Ok(());
             }
         }
         for (i, r) in sensors.iter_mut() {
-            let conn = &mcus.list[r.link_index];
-            let Some((count, next_clock, value)) = conn.link.analog_report(r.oid) else {
-                continue;
-            };
-            if count == r.last_count {
-                continue;
-            }
-            r.last_count = count;
-            let freq = conn.clock_freq;
-            let read_clock = conn
-                .link
-                .clock()
-                .extend(next_clock, now_sys)
-                .saturating_sub((REPORT_TIME * freq) as u64);
-            let time = read_clock as f64 / freq;
-            let temp = r.sensor.temperature(f64::from(value) / r.full_scale);
-            let smoothed = r.smooth.update(time, temp);
-            let cell = &shared.sensors[*i];
-            cell.temp.set(smoothed);
-            cell.time.set(time);
-            if cell.min_seen.get().is_nan() || smoothed < cell.min_seen.get() {
-                cell.min_seen.set(smoothed);
-            }
-            if cell.max_seen.get().is_nan() || smoothed > cell.max_seen.get() {
-                cell.max_seen.set(smoothed);
-            }
+            update_sensor(mcus, shared, *i, r, now_sys);
         }
         for (i, f) in fans.iter_mut() {
-            let spec = &thermal.fans[*i];
-            let cell = &shared.fans[*i];
-            let now = {
-                let conn = &mcus.list[f.link_index];
-                conn.link.clock().clock_at(now_sys) / conn.clock_freq
-            };
-            let want = fan_speed(spec, cell, f, shared, now);
-            let speed = if want < spec.opts.off_below { 0.0 } else { want };
-            if f.last == Some(speed) {
-                continue;
-            }
-            let conn = &mcus.list[f.link_index];
-            let at = lead_clock(&conn.link, conn.clock_freq, thermal.max_heat_time());
-            let value = on_ticks(speed * spec.opts.max_power, f.cycle_ticks);
-            let kick = spec.opts.kick_start_time;
-            let from_off = f.last.is_none_or(|l| l == 0.0);
-            let ok = if kick > 0.0 && from_off && speed > 0.0 && speed < 1.0 {
-                let full = on_ticks(spec.opts.max_power, f.cycle_ticks);
-                send_pwm(&conn.link, f.oid, at, full, f.invert, f.cycle_ticks).is_ok()
-                    && send_pwm(
-                        &conn.link,
-                        f.oid,
-                        at + (kick * conn.clock_freq) as u64,
-                        value,
-                        f.invert,
-                        f.cycle_ticks,
-                    )
-                    .is_ok()
-            } else {
-                send_pwm(&conn.link, f.oid, at, value, f.invert, f.cycle_ticks).is_ok()
-            };
-            if ok {
-                f.last = Some(speed);
-                cell.speed.set(speed);
-            }
+            update_fan(mcus, thermal, shared, *i, f, now_sys);
         }
         // Reports come every 0.3 s of MCU time: look four times per report (every 50 ms at
         // most; every 2 ms at least, on a fast time-scaled simulator).
@@ -852,6 +726,175 @@ fn heater_loop(
         std::thread::sleep(Duration::from_secs_f64(
             (REPORT_TIME / scale / 4.0).clamp(0.002, 0.05),
         ));
+    }
+}
+
+/// Heater `i`'s new reading, if any: temperature, control output, verify_heater's check and
+/// the PWM update. False once the check shut the printer down.
+fn update_heater(
+    mcus: &Mcus,
+    thermal: &Thermal,
+    shared: &HeaterShared,
+    i: usize,
+    r: &mut Running,
+    now_sys: f64,
+) -> bool {
+    let conn = &mcus.list[r.link_index];
+    let Some((count, next_clock, value)) = conn.link.analog_report(r.adc_oid) else {
+        return true;
+    };
+    if count == r.last_count {
+        return true;
+    }
+    r.last_count = count;
+    let est = conn.link.clock();
+    let freq = conn.clock_freq;
+    let read_clock = est
+        .extend(next_clock, now_sys)
+        .saturating_sub((REPORT_TIME * freq) as u64);
+    let time = read_clock as f64 / freq;
+    let temp = r.sensor.temperature(f64::from(value) / r.full_scale);
+    let cell = &shared.heaters[i];
+    let target = cell.target.get();
+    let smoothed = r.smooth.update(time, temp);
+    let at = ((read_clock as f64 + REPORT_TIME * freq) as u64).max(lead_clock(
+        &conn.link,
+        freq,
+        thermal.max_heat_time(),
+    ));
+    let seen = r.smith.as_mut().map_or(temp, |s| s.predict(time, temp));
+    let power = match r.relay.as_mut() {
+        Some(relay) => relay_update(relay, shared, i, time, temp, r.max_power),
+        None => r.control.update(time, seen, target),
+    }
+    .clamp(0.0, r.max_power);
+    if r.relay.as_ref().is_some_and(|relay| relay.tuner.done()) {
+        r.relay = None;
+    }
+    cell.temp.set(smoothed);
+    cell.time.set(time);
+    cell.power.set(power);
+    let seen = cell.max_seen.get();
+    if seen.is_nan() || smoothed > seen {
+        cell.max_seen.set(smoothed);
+    }
+    cell.busy.store(
+        target > 0.0 && r.control.busy(smoothed, target),
+        Ordering::Release,
+    );
+    if time >= r.next_check {
+        r.next_check = time + CHECK_INTERVAL_S;
+        if let Err(fault) = r.verify.check(time, temp, target) {
+            shutdown(mcus, shared, &fault.to_string());
+            return false;
+        }
+    }
+    // The MCU queues few updates (8): with a long lead (a time-scaled simulator) a new
+    // value waits until a fifth of the lead has passed since the last one, and is the
+    // mean of the powers decided meanwhile.
+    let sent_power = match r.smith.as_mut() {
+        Some(s) => {
+            s.decided(power, time);
+            r.decided.0 += power;
+            r.decided.1 += 1.0;
+            r.decided.0 / r.decided.1
+        }
+        None => power,
+    };
+    let on = on_ticks(sent_power, r.cycle_ticks);
+    let min_gap = (lead_ticks(&conn.link, freq, thermal.max_heat_time()) / 5.0) as u64;
+    let send = r.last_sent.is_none_or(|(c, o)| {
+        let gap = at.saturating_sub(c);
+        ((o != on || r.smith.is_some()) && gap >= min_gap)
+            || gap as f64 > 0.25 * thermal.max_heat_time() * freq
+    });
+    if send {
+        if send_pwm(&conn.link, r.pwm_oid, at, on, r.invert, r.cycle_ticks).is_err() {
+            // The MCU shut down or the link died: the check above ends the loop.
+            return true;
+        }
+        if let Some(s) = r.smith.as_mut() {
+            s.sent(f64::from(on) / r.cycle_ticks, at as f64 / freq);
+            r.decided = (0.0, 0.0);
+        }
+        r.last_sent = Some((at, on));
+    }
+    true
+}
+
+/// Sensor `i`'s new reading, if any, into its shared cell.
+fn update_sensor(mcus: &Mcus, shared: &HeaterShared, i: usize, r: &mut RunningSensor, now_sys: f64) {
+    let conn = &mcus.list[r.link_index];
+    let Some((count, next_clock, value)) = conn.link.analog_report(r.oid) else {
+        return;
+    };
+    if count == r.last_count {
+        return;
+    }
+    r.last_count = count;
+    let freq = conn.clock_freq;
+    let read_clock = conn
+        .link
+        .clock()
+        .extend(next_clock, now_sys)
+        .saturating_sub((REPORT_TIME * freq) as u64);
+    let time = read_clock as f64 / freq;
+    let temp = r.sensor.temperature(f64::from(value) / r.full_scale);
+    let smoothed = r.smooth.update(time, temp);
+    let cell = &shared.sensors[i];
+    cell.temp.set(smoothed);
+    cell.time.set(time);
+    if cell.min_seen.get().is_nan() || smoothed < cell.min_seen.get() {
+        cell.min_seen.set(smoothed);
+    }
+    if cell.max_seen.get().is_nan() || smoothed > cell.max_seen.get() {
+        cell.max_seen.set(smoothed);
+    }
+}
+
+/// Fan `i`'s speed now, sent when it changed (with a kick start from off).
+fn update_fan(
+    mcus: &Mcus,
+    thermal: &Thermal,
+    shared: &HeaterShared,
+    i: usize,
+    f: &mut RunningFan,
+    now_sys: f64,
+) {
+    let spec = &thermal.fans[i];
+    let cell = &shared.fans[i];
+    let now = {
+        let conn = &mcus.list[f.link_index];
+        conn.link.clock().clock_at(now_sys) / conn.clock_freq
+    };
+    let want = fan_speed(spec, cell, f, shared, now);
+    let speed = if want < spec.opts.off_below { 0.0 } else { want };
+    if f.last == Some(speed) {
+        return;
+    }
+    let conn = &mcus.list[f.link_index];
+    let at = lead_clock(&conn.link, conn.clock_freq, thermal.max_heat_time());
+    let value = on_ticks(speed * spec.opts.max_power, f.cycle_ticks);
+    let kick = spec.opts.kick_start_time;
+    let from_off = f.last.is_none_or(|l| l == 0.0);
+    let ok = if kick > 0.0 && from_off && speed > 0.0 && speed < 1.0 {
+        let full = on_ticks(spec.opts.max_power, f.cycle_ticks);
+        send_pwm(&conn.link, f.oid, at, full, f.invert, f.cycle_ticks).is_ok()
+            && send_pwm(
+                &conn.link,
+                f.oid,
+                at + (kick * conn.clock_freq) as u64,
+                value,
+                f.invert,
+                f.cycle_ticks,
+            )
+            .is_ok()
+    } else {
+        send_pwm(&conn.link, f.oid, at, value, f.invert, f.cycle_ticks).is_ok()
+    };
+    if ok {
+        f.last = Some(speed);
+        cell.speed.set(speed);
     }
 }
 

@@ -30,7 +30,9 @@ use std::time::{Duration, Instant};
 use links::dict::{Cmd, Dictionary};
 use sysconfig::printer::BlTouchOutputMode;
 
-use super::{clock_at_print_time, endstop_state, mcu, print_now, print_time_of_clock, HomingCtx};
+use super::{
+    clock_at_print_time, endstop_state, mcu, print_now, print_time_of_clock, HomingCtx, HomingError,
+};
 use crate::hardware::{BlTouchOut, ProbeOut};
 
 /// Servo signal period (s).
@@ -93,21 +95,21 @@ pub struct BlTouchState {
 
 /// `config_digital_out` + `set_digital_out_pwm_cycle` of the servo output (off; an inverted
 /// `!` pin idles high).
-pub fn config_commands(dict: &Dictionary, b: &BlTouchOut) -> Result<Vec<Cmd>, String> {
-    let err = |e: links::dict::DictError| e.to_string();
+pub fn config_commands(dict: &Dictionary, b: &BlTouchOut) -> Result<Vec<Cmd>, crate::mcus::ConfigureError> {
     let pin = dict
         .pin(&b.control_pin.pin)
-        .map_err(|e| format!("[bltouch] control_pin: {e}"))?;
+        .map_err(|source| crate::hardware::PinError {
+            what: "[bltouch] control_pin".to_string(),
+            source,
+        })?;
     let idle = i64::from(b.control_pin.invert);
-    let cycle = (SIGNAL_PERIOD * dict.clock_freq().map_err(err)?).round() as i64;
+    let cycle = (SIGNAL_PERIOD * dict.clock_freq()?).round() as i64;
     Ok(vec![
         dict.encode(
             "config_digital_out",
             &[i64::from(b.oid), i64::from(pin), idle, idle, 0],
-        )
-        .map_err(err)?,
-        dict.encode("set_digital_out_pwm_cycle", &[i64::from(b.oid), cycle])
-            .map_err(err)?,
+        )?,
+        dict.encode("set_digital_out_pwm_cycle", &[i64::from(b.oid), cycle])?,
     ])
 }
 
@@ -140,7 +142,7 @@ impl<'c, 'a> Op<'c, 'a> {
 
     /// Every move planned so far is sent and done: the probe's commands and waits come after
     /// them, and the planner continues from a fresh print time ([`Op::settle`]).
-    fn idle(&mut self) -> Result<(), String> {
+    fn idle(&mut self) -> Result<(), HomingError> {
         super::wait_motion_done(self.ctx)
     }
 
@@ -161,17 +163,14 @@ impl<'c, 'a> Op<'c, 'a> {
 
     /// The toolhead dwells until the next command slot, or the next command waits for the
     /// toolhead's last move.
-    fn sync_print_time(&mut self) -> Result<(), String> {
+    fn sync_print_time(&mut self) -> Result<(), HomingError> {
         let print_time = self
             .ctx
             .pipeline
             .toolhead_print_time()
             .max(self.ctx.earliest_start());
         if self.st.next_cmd_time > print_time {
-            self.ctx
-                .pipeline
-                .raise_print_time(self.st.next_cmd_time)
-                .map_err(|e| e.to_string())
+            Ok(self.ctx.pipeline.raise_print_time(self.st.next_cmd_time)?)
         } else {
             self.st.next_cmd_time = print_time;
             Ok(())
@@ -179,8 +178,10 @@ impl<'c, 'a> Op<'c, 'a> {
     }
 
     /// Sends command `name` for `duration` s from the next command slot.
-    fn send_cmd(&mut self, name: &str, duration: f64) -> Result<(), String> {
-        let w = width(name).ok_or_else(|| format!("bltouch: unknown command '{name}'"))?;
+    fn send_cmd(&mut self, name: &str, duration: f64) -> Result<(), HomingError> {
+        let w = width(name).ok_or_else(|| HomingError::BlTouchUnknownCommand {
+            name: name.to_string(),
+        })?;
         let conn = mcu(self.ctx.mcus, &self.b.control_pin.mcu)?;
         // Room in the MCU's update queue: wait for the oldest updates to be applied.
         self.st.pending.retain(|&t| t > print_now(self.ctx.mcus));
@@ -205,7 +206,13 @@ impl<'c, 'a> Op<'c, 'a> {
         Ok(())
     }
 
-    fn queue_pwm(&self, conn: &crate::mcus::McuConn, clock: u64, on: f64, cycle: f64) -> Result<(), String> {
+    fn queue_pwm(
+        &self,
+        conn: &crate::mcus::McuConn,
+        clock: u64,
+        on: f64,
+        cycle: f64,
+    ) -> Result<(), HomingError> {
         let on = if self.b.control_pin.invert { cycle - on } else { on };
         let dict = conn.link.dictionary();
         let cmd = dict
@@ -217,14 +224,20 @@ impl<'c, 'a> Op<'c, 'a> {
                     on.round() as i64,
                 ],
             )
-            .map_err(|e| format!("mcu '{}': {e}", conn.name))?;
+            .map_err(|source| HomingError::Encode {
+                mcu: conn.name.clone(),
+                source,
+            })?;
         conn.link
             .send_clocked(cmd, 0, clock)
-            .map_err(|e| format!("mcu '{}': {e}", conn.name))
+            .map_err(|source| HomingError::McuLink {
+                mcu: conn.name.clone(),
+                source,
+            })
     }
 
     /// Whether the sensor shows `triggered` within [`VERIFY_WINDOW`] of the last action's end.
-    fn verify_state(&mut self, triggered: bool) -> Result<bool, String> {
+    fn verify_state(&mut self, triggered: bool) -> Result<bool, HomingError> {
         let end = self.st.action_end_time;
         wait_print_time(self.ctx, end)?;
         loop {
@@ -238,7 +251,7 @@ impl<'c, 'a> Op<'c, 'a> {
         }
     }
 
-    fn raise_probe(&mut self) -> Result<(), String> {
+    fn raise_probe(&mut self) -> Result<(), HomingError> {
         self.sync_mcu_print_time();
         if !self.b.cfg.pin_up_reports_not_triggered {
             self.send_cmd("reset", MIN_CMD_TIME)?;
@@ -246,7 +259,7 @@ impl<'c, 'a> Op<'c, 'a> {
         self.send_cmd("pin_up", self.b.cfg.pin_move_time)
     }
 
-    fn verify_raise_probe(&mut self) -> Result<(), String> {
+    fn verify_raise_probe(&mut self) -> Result<(), HomingError> {
         if !self.b.cfg.pin_up_reports_not_triggered {
             // No way to tell.
             return Ok(());
@@ -256,7 +269,7 @@ impl<'c, 'a> Op<'c, 'a> {
                 return Ok(());
             }
             if retry >= 2 {
-                return Err("BLTouch failed to raise probe".to_string());
+                return Err(HomingError::BlTouchRaise);
             }
             self.say("Failed to verify BLTouch probe is raised; retrying.".to_string());
             self.sync_mcu_print_time();
@@ -266,7 +279,7 @@ impl<'c, 'a> Op<'c, 'a> {
         Ok(())
     }
 
-    fn test_sensor(&mut self) -> Result<(), String> {
+    fn test_sensor(&mut self) -> Result<(), HomingError> {
         if !self.b.cfg.pin_up_touch_mode_reports_triggered {
             return Ok(());
         }
@@ -285,17 +298,16 @@ impl<'c, 'a> Op<'c, 'a> {
                 self.st.next_test_time = print_time + TEST_TIME;
                 return Ok(());
             }
-            let msg = "BLTouch failed to verify sensor state";
             if retry >= 2 {
-                return Err(msg.to_string());
+                return Err(HomingError::BlTouchSensor);
             }
-            self.say(format!("{msg}; retrying."));
+            self.say(format!("{}; retrying.", HomingError::BlTouchSensor));
             self.send_cmd("reset", RETRY_RESET_TIME)?;
         }
         Ok(())
     }
 
-    fn lower_probe(&mut self) -> Result<(), String> {
+    fn lower_probe(&mut self) -> Result<(), HomingError> {
         self.test_sensor()?;
         self.sync_print_time()?;
         self.send_cmd("pin_down", self.b.cfg.pin_move_time)?;
@@ -306,7 +318,7 @@ impl<'c, 'a> Op<'c, 'a> {
     }
 
     /// The connect-time set-up, on first use: the output mode, and the probe stowed.
-    fn start(&mut self) -> Result<(), String> {
+    fn start(&mut self) -> Result<(), HomingError> {
         if self.st.started {
             return Ok(());
         }
@@ -326,15 +338,12 @@ impl<'c, 'a> Op<'c, 'a> {
 
     /// Waits (wall time) until the probe is ready for the toolhead (the last command's slot);
     /// the toolhead's next move then starts no earlier than a move planned now can.
-    fn settle(&mut self) -> Result<(), String> {
+    fn settle(&mut self) -> Result<(), HomingError> {
         self.sync_print_time()?;
         let t = self.st.next_cmd_time;
         wait_print_time(self.ctx, t)?;
         let start = self.ctx.earliest_start();
-        self.ctx
-            .pipeline
-            .raise_print_time(start)
-            .map_err(|e| e.to_string())
+        Ok(self.ctx.pipeline.raise_print_time(start)?)
     }
 }
 
@@ -346,15 +355,13 @@ fn output_mode_cmd(mode: BlTouchOutputMode) -> &'static str {
 }
 
 /// Waits (bounded, wall time) until the main MCU's print time reaches `t`.
-fn wait_print_time(ctx: &HomingCtx<'_>, t: f64) -> Result<(), String> {
+fn wait_print_time(ctx: &HomingCtx<'_>, t: f64) -> Result<(), HomingError> {
     let ahead = (t - print_now(ctx.mcus)).max(0.0);
     let deadline = Instant::now() + Duration::from_secs_f64(ahead / ctx.time_scale.max(1e-3) + 5.0);
     while print_now(ctx.mcus) < t {
         ctx.mcus.check()?;
         if Instant::now() > deadline {
-            return Err(
-                "bltouch: the main MCU's clock did not reach the end of the probe's command".to_string(),
-            );
+            return Err(HomingError::BlTouchClock);
         }
         std::thread::sleep(Duration::from_millis(1));
     }
@@ -363,7 +370,7 @@ fn wait_print_time(ctx: &HomingCtx<'_>, t: f64) -> Result<(), String> {
 
 /// Starts a probing session (PROBE, PROBE_ACCURACY, G28 Z on the probe); nothing without a
 /// BLTouch.
-pub(crate) fn start_session(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
+pub(crate) fn start_session(ctx: &mut HomingCtx<'_>) -> Result<(), HomingError> {
     let Some(mut op) = Op::new(ctx) else {
         return Ok(());
     };
@@ -376,7 +383,7 @@ pub(crate) fn start_session(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
 }
 
 /// Before one probing move: deployed (after the self-test when due) and settled.
-pub(crate) fn prepare(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
+pub(crate) fn prepare(ctx: &mut HomingCtx<'_>) -> Result<(), HomingError> {
     let Some(mut op) = Op::new(ctx) else {
         return Ok(());
     };
@@ -396,7 +403,7 @@ pub(crate) fn prepare(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
 
 /// After one probing move (successful or not): stowed and checked, unless the session keeps it
 /// deployed.
-pub(crate) fn finish(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
+pub(crate) fn finish(ctx: &mut HomingCtx<'_>) -> Result<(), HomingError> {
     let Some(mut op) = Op::new(ctx) else {
         return Ok(());
     };
@@ -413,7 +420,7 @@ pub(crate) fn finish(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
 }
 
 /// Ends the session: stowed and checked if it was kept deployed.
-pub(crate) fn end_session(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
+pub(crate) fn end_session(ctx: &mut HomingCtx<'_>) -> Result<(), HomingError> {
     let Some(mut op) = Op::new(ctx) else {
         return Ok(());
     };
@@ -437,8 +444,8 @@ pub(crate) fn end_session(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
 /// is the one reported).
 pub(crate) fn session<T>(
     ctx: &mut HomingCtx<'_>,
-    body: impl FnOnce(&mut HomingCtx<'_>) -> Result<T, String>,
-) -> Result<T, String> {
+    body: impl FnOnce(&mut HomingCtx<'_>) -> Result<T, HomingError>,
+) -> Result<T, HomingError> {
     start_session(ctx)?;
     let r = body(ctx);
     let end = end_session(ctx);
@@ -450,8 +457,8 @@ pub(crate) fn session<T>(
 /// when the move failed (its error is the one reported).
 pub(crate) fn sample<T>(
     ctx: &mut HomingCtx<'_>,
-    body: impl FnOnce(&mut HomingCtx<'_>) -> Result<T, String>,
-) -> Result<T, String> {
+    body: impl FnOnce(&mut HomingCtx<'_>) -> Result<T, HomingError>,
+) -> Result<T, HomingError> {
     prepare(ctx)?;
     let r = body(ctx);
     let fin = finish(ctx);
@@ -465,11 +472,12 @@ pub fn run_command(
     name: &str,
     raw: &str,
     out: &mut Vec<String>,
-) -> Result<(), String> {
+) -> Result<(), HomingError> {
     let Some(mut op) = Op::new(ctx) else {
-        return Err(format!(
-            "Unknown command: {name} (the printer config has no [bltouch] section)"
-        ));
+        return Err(HomingError::NoSection {
+            name: name.to_string(),
+            section: "bltouch",
+        });
     };
     let value = |key: &str| {
         raw.split_whitespace()

@@ -54,11 +54,13 @@
 //! the moment the stepper MCU stopped, relative to the endstop's trigger.
 
 pub mod bltouch;
+mod error;
 mod halt;
 mod pass;
 pub mod probe;
 pub mod procedure;
 
+pub use error::{HomingError, ParamProblem, WiringError};
 pub(crate) use pass::homing_pass;
 
 use std::fmt;
@@ -261,7 +263,7 @@ impl fmt::Display for HomingReport {
 /// endstop is on one of them... and Klipper refuses even that; Cadence refuses the case the
 /// trigger relay cannot serve: steppers of one axis on different MCUs while the endstop is on
 /// yet another.
-pub fn check_config(machine: &Machine) -> Result<(), String> {
+pub fn check_config(machine: &Machine) -> Result<(), HomingError> {
     let probe = machine.probe.as_ref().map(|p| &p.endstop);
     for e in machine.endstops.iter().chain(probe) {
         let mut mcus: Vec<&str> = Vec::new();
@@ -274,21 +276,18 @@ pub fn check_config(machine: &Machine) -> Result<(), String> {
             }
         }
         if mcus.len() > 1 && !mcus.contains(&e.pin.mcu.as_str()) {
-            return Err(format!(
-                "[{}] {} '{}': the steppers of axis {} are on MCUs '{}' while its endstop is on \
-                 yet another MCU '{}': put the endstop on one of the steppers' MCUs or all steppers of the \
-                 axis on one MCU",
-                e.stepper,
-                if e.stepper == "probe" {
+            return Err(HomingError::Wiring(Box::new(WiringError {
+                section: e.stepper.clone(),
+                option: if e.stepper == "probe" {
                     "pin"
                 } else {
                     "endstop_pin"
                 },
-                e.pin,
-                AXIS_NAMES[e.axis.min(2)],
-                mcus.join("', '"),
-                e.pin.mcu
-            ));
+                pin: e.pin.to_string(),
+                axis: AXIS_NAMES[e.axis.min(2)],
+                mcus: mcus.iter().map(|m| m.to_string()).collect(),
+                endstop_mcu: e.pin.mcu.clone(),
+            })));
         }
     }
     Ok(())
@@ -301,7 +300,7 @@ pub(crate) fn run_motion(
     ctx: &mut HomingCtx<'_>,
     cmd: &MotionCmd<'_>,
     out: &mut Vec<String>,
-) -> Result<Option<HomingReport>, String> {
+) -> Result<Option<HomingReport>, HomingError> {
     let r = match cmd {
         MotionCmd::Home(axes) => home_axes(ctx, *axes).map(|report| {
             out.append(&mut ctx.messages);
@@ -316,9 +315,9 @@ pub(crate) fn run_motion(
 
 /// Homes the named axes (X, Y, Z order) on a live print: `G28` with motion. On success the
 /// axes are homed in the G-code state and the planner continues from the homed position.
-pub fn home_axes(ctx: &mut HomingCtx<'_>, axes: [bool; 3]) -> Result<HomingReport, String> {
+pub fn home_axes(ctx: &mut HomingCtx<'_>, axes: [bool; 3]) -> Result<HomingReport, HomingError> {
     if !ctx.pipeline.supports_homing() {
-        return Err("G28: homing needs the inline planner without pressure advance".to_string());
+        return Err(HomingError::NeedsInlinePlanner);
     }
     check_config(ctx.machine)?;
     let mut report = HomingReport::default();
@@ -345,7 +344,7 @@ pub fn home_axes(ctx: &mut HomingCtx<'_>, axes: [bool; 3]) -> Result<HomingRepor
 }
 
 /// Both passes of one axis.
-fn home_axis(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisReport, String> {
+fn home_axis(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisReport, HomingError> {
     let axis = e.axis;
     let travel = e.position_max - e.position_min;
     let dir = if e.homing_positive_dir { 1.0 } else { -1.0 };
@@ -360,10 +359,9 @@ fn home_axis(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisReport, Stri
         plain_move(ctx, pos, e.homing_speed)?;
         wait_motion_done(ctx)?;
         if endstop_state(ctx, e)?.1 {
-            return Err(format!(
-                "Endstop {} still triggered after retract",
-                AXIS_NAMES[axis]
-            ));
+            return Err(HomingError::StillTriggered {
+                axis: AXIS_NAMES[axis],
+            });
         }
         let start = e.position_endstop - dir * 2.0 * retract;
         let (second, _) = probe_pass(ctx, e, PassKind::Home { start }, e.second_homing_speed)?;
@@ -383,7 +381,7 @@ fn probe_pass(
     e: &EndstopOut,
     kind: PassKind,
     speed: f64,
-) -> Result<(PassReport, Vec<String>), String> {
+) -> Result<(PassReport, Vec<String>), HomingError> {
     match e.probe {
         true => bltouch::sample(ctx, |ctx| homing_pass(ctx, e, kind, speed)),
         false => homing_pass(ctx, e, kind, speed),
@@ -391,10 +389,10 @@ fn probe_pass(
 }
 
 /// A plain move of the toolhead to `pos` (retract, bench moves), sent at once.
-pub fn plain_move(ctx: &mut HomingCtx<'_>, pos: [f64; 4], speed: f64) -> Result<(), String> {
+pub fn plain_move(ctx: &mut HomingCtx<'_>, pos: [f64; 4], speed: f64) -> Result<(), HomingError> {
     let t0 = ctx.earliest_start();
-    ctx.pipeline.raise_print_time(t0).map_err(|e| e.to_string())?;
-    ctx.pipeline.home_move(pos, speed).map_err(|e| e.to_string())?;
+    ctx.pipeline.raise_print_time(t0)?;
+    ctx.pipeline.home_move(pos, speed)?;
     let mut out = Vec::new();
     generate(ctx, &mut out)?;
     push_cmds(ctx, &out)
@@ -402,7 +400,7 @@ pub fn plain_move(ctx: &mut HomingCtx<'_>, pos: [f64; 4], speed: f64) -> Result<
 
 /// Releases the planned step commands, each stepper's in its MCU's clock as the clock fits
 /// stand now.
-fn generate(ctx: &mut HomingCtx<'_>, out: &mut Vec<(usize, StepCmd)>) -> Result<(), String> {
+fn generate(ctx: &mut HomingCtx<'_>, out: &mut Vec<(usize, StepCmd)>) -> Result<(), HomingError> {
     let mcus = ctx.mcus;
     ctx.streams.refresh_clocks(ctx.pipeline, |i| {
         mcus.list
@@ -448,7 +446,7 @@ fn print_time_of_clock(mcus: &Mcus, m: &McuConn, clock: u64) -> f64 {
 
 /// Hands released step commands to their MCUs' sinks, refusing any that would reach its MCU
 /// late.
-fn push_cmds(ctx: &mut HomingCtx<'_>, out: &[(usize, StepCmd)]) -> Result<(), String> {
+fn push_cmds(ctx: &mut HomingCtx<'_>, out: &[(usize, StepCmd)]) -> Result<(), HomingError> {
     let now: Vec<f64> = ctx
         .streams
         .mcus
@@ -460,23 +458,26 @@ fn push_cmds(ctx: &mut HomingCtx<'_>, out: &[(usize, StepCmd)]) -> Result<(), St
             let k = ctx.streams.stream_of(idx).unwrap_or(0);
             let m = &ctx.streams.mcus[k];
             if (first_clock as f64) < now[k] + MIN_LEAD_S * m.clock_freq {
-                return Err(format!(
-                    "homing: a step for {} on mcu '{}' was ready only {:.1} ms before it is due (at least {:.0} ms \
-                     required)",
-                    ctx.machine.steppers.get(idx).map_or("?", |s| s.name.as_str()),
-                    m.name,
-                    (first_clock as f64 - now[k]) / m.clock_freq * 1e3,
-                    MIN_LEAD_S * 1e3
-                ));
+                return Err(HomingError::LateStep {
+                    stepper: ctx
+                        .machine
+                        .steppers
+                        .get(idx)
+                        .map_or("?", |s| s.name.as_str())
+                        .to_string(),
+                    mcu: m.name.clone(),
+                    ready_ms: (first_clock as f64 - now[k]) / m.clock_freq * 1e3,
+                    min_ms: MIN_LEAD_S * 1e3,
+                });
             }
         }
         ctx.streams.push(idx, cmd, ctx.sinks)?;
     }
-    ctx.sinks.iter_mut().try_for_each(|s| s.flush())
+    Ok(ctx.sinks.iter_mut().try_for_each(|s| s.flush())?)
 }
 
 /// Sends everything planned so far and waits (bounded) until every MCU executed it.
-pub fn wait_motion_done(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
+pub fn wait_motion_done(ctx: &mut HomingCtx<'_>) -> Result<(), HomingError> {
     ctx.pipeline.flush_lookahead();
     let mut out = Vec::new();
     generate(ctx, &mut out)?;
@@ -492,13 +493,15 @@ pub fn wait_motion_done(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
         while now() < end {
             ctx.mcus.check()?;
             if let Some(e) = conn.link.error() {
-                return Err(format!("mcu '{}': {e}", conn.name));
+                return Err(HomingError::McuLink {
+                    mcu: conn.name.clone(),
+                    source: e,
+                });
             }
             if Instant::now() > deadline {
-                return Err(format!(
-                    "homing: the clock of mcu '{}' did not reach the end of the planned moves in time",
-                    conn.name
-                ));
+                return Err(HomingError::ClockStalled {
+                    mcu: conn.name.clone(),
+                });
             }
             std::thread::sleep(Duration::from_millis(1));
         }
@@ -513,35 +516,38 @@ fn query<'m>(
     name: &str,
     oid: u8,
     response: &str,
-) -> Result<(&'m McuConn, links::dict::Message), String> {
+) -> Result<(&'m McuConn, links::dict::Message), HomingError> {
     let conn = mcu(mcus, mcu_name)?;
     let cmd = conn
         .link
         .dictionary()
         .encode(name, &[oid as i64])
-        .map_err(|e| format!("mcu '{}': {e}", conn.name))?;
-    let mut last = String::new();
-    for _ in 0..QUERY_TRIES {
+        .map_err(|source| HomingError::Encode {
+            mcu: conn.name.clone(),
+            source,
+        })?;
+    let mut tries = 1;
+    loop {
         match conn
             .link
             .query(cmd, response, Some(("oid", oid as i64)), QUERY_TIMEOUT)
         {
             Ok(m) => return Ok((conn, m)),
-            Err(e @ links::mcu::LinkError::Timeout { .. }) => last = e.to_string(),
-            Err(e) => return Err(e.to_string()),
+            Err(links::mcu::LinkError::Timeout { .. }) if tries < QUERY_TRIES => tries += 1,
+            Err(e) => return Err(e.into()),
         }
     }
-    Err(last)
 }
 
-fn mcu<'m>(mcus: &'m Mcus, name: &str) -> Result<&'m McuConn, String> {
-    mcus.get(name)
-        .ok_or_else(|| format!("homing: no MCU called '{name}'"))
+fn mcu<'m>(mcus: &'m Mcus, name: &str) -> Result<&'m McuConn, HomingError> {
+    mcus.get(name).ok_or_else(|| HomingError::NoMcu {
+        name: name.to_string(),
+    })
 }
 
 /// Net steps of stepper `idx` as the host counts them (the MCU's count, sign-corrected for an
 /// inverted dir pin).
-pub fn stepper_position(ctx: &HomingCtx<'_>, idx: usize) -> Result<i64, String> {
+pub fn stepper_position(ctx: &HomingCtx<'_>, idx: usize) -> Result<i64, HomingError> {
     let s = &ctx.machine.steppers[idx];
     let (_, reply) = query(
         ctx.mcus,
@@ -550,12 +556,15 @@ pub fn stepper_position(ctx: &HomingCtx<'_>, idx: usize) -> Result<i64, String> 
         s.oid,
         "stepper_position",
     )?;
-    let raw = reply.get("pos").ok_or("stepper_position without pos")?;
+    let raw = reply.get("pos").ok_or(HomingError::MissingField {
+        response: "stepper_position",
+        field: "pos",
+    })?;
     Ok(if s.dir_pin.invert { -raw } else { raw })
 }
 
 /// (`next_clock` extended to 64 bits, the pin reads triggered, still homing) of endstop `e`.
-pub(crate) fn endstop_state(ctx: &HomingCtx<'_>, e: &EndstopOut) -> Result<(u64, bool, bool), String> {
+pub(crate) fn endstop_state(ctx: &HomingCtx<'_>, e: &EndstopOut) -> Result<(u64, bool, bool), HomingError> {
     let (conn, reply) = query(
         ctx.mcus,
         &e.pin.mcu,

@@ -7,8 +7,7 @@ use std::time::{Duration, Instant};
 
 use links::mcu::McuLink;
 use links::trsync::{
-    TriggerGroup, TrsyncError, COMM_TIMEOUT_MSG, REASON_ENDSTOP_HIT, REASON_HOST_REQUEST,
-    REASON_PAST_END_TIME,
+    TriggerGroup, TrsyncError, REASON_ENDSTOP_HIT, REASON_HOST_REQUEST, REASON_PAST_END_TIME,
 };
 use planner::kinematics::{Kinematics, StepperKin};
 use planner::toolhead::Move;
@@ -25,15 +24,14 @@ pub(crate) fn homing_pass(
     e: &EndstopOut,
     kind: PassKind,
     speed: f64,
-) -> Result<(PassReport, Vec<String>), String> {
+) -> Result<(PassReport, Vec<String>), HomingError> {
     let axis = e.axis;
     let axis_name = AXIS_NAMES[axis];
-    let kinematics = ctx.machine.options.kinematics;
-    if let Some(kin) = unsupported_kinematics(&kinematics) {
-        return Err(format!(
-            "homing {axis_name}: {kin} kinematics is not supported: its towers home together, \
-             which Cadence does not do yet (cartesian, corexy and corexz axes can be homed)"
-        ));
+    if let Some(kinematics) = unsupported_kinematics(&ctx.machine.options.kinematics) {
+        return Err(HomingError::UnsupportedKinematics {
+            axis: axis_name,
+            kinematics,
+        });
     }
     // From before the move is queued until the stop is read back: no CPU halts meanwhile.
     let _idle_poll = ctx.rt.start_idle_poll();
@@ -45,47 +43,13 @@ pub(crate) fn homing_pass(
         .iter()
         .map(|&i| stepper_position(ctx, i))
         .collect::<Result<_, _>>()?;
-
-    let mut pos = ctx.pipeline.position();
-    let mut target = pos;
-    match kind {
-        PassKind::Home { start } => {
-            pos[axis] = start;
-            ctx.pipeline.set_toolhead_position(pos);
-            target = pos;
-            target[axis] = e.position_endstop;
-        }
-        PassKind::Probe { target: to } => target[axis] = to,
-    }
+    let target = pass_target(ctx, e, kind);
 
     let (group, t0, rest_ticks) = arm_pass(ctx, &g, e, speed)?;
     let sent = send_homing_move(ctx, target, speed, axis_name);
-    let outcome = match &sent {
-        Ok(mv) => {
-            let main = ctx.mcus.main();
-            let end_sys = main.link.clock().system_time_at(mv.end_time() * main.clock_freq);
-            let wait = (end_sys - McuLink::system_now()).clamp(0.0, 1e6);
-            group.wait(Instant::now() + Duration::from_secs_f64(wait) + END_GRACE)
-        }
-        Err(_) => Err(TrsyncError::NotTriggered),
-    };
+    let outcome = await_trigger(ctx, &group, &sent);
     let received_at = outcome.as_ref().map_or(0.0, |o| o.received_at);
-    // Whatever happened: every member stops, the endstop stops sampling.
-    let reason = match &outcome {
-        Err(TrsyncError::NotTriggered) => REASON_PAST_END_TIME,
-        _ => REASON_HOST_REQUEST,
-    };
-    group.trigger_all(reason);
-    restop(ctx, &g.conns, &g.idxs);
-    let cancel = endstop_conn
-        .link
-        .dictionary()
-        .encode(
-            "endstop_home",
-            &[e.oid as i64, 0, 0, 0, 0, 0, endstop_conn.trsync_oid as i64, 0],
-        )
-        .map_err(|x| x.to_string())
-        .and_then(|c| endstop_conn.link.send(c).map_err(|x| x.to_string()));
+    let cancel = stop_pass(ctx, &g, e, &group, &outcome);
     let mv = match sent {
         Ok(mv) => mv,
         Err(err) => {
@@ -101,7 +65,7 @@ pub(crate) fn homing_pass(
         }
         _ => Ok(None),
     };
-    let after: Result<Vec<i64>, String> = g.idxs.iter().map(|&i| stepper_position(ctx, i)).collect();
+    let after: Result<Vec<i64>, HomingError> = g.idxs.iter().map(|&i| stepper_position(ctx, i)).collect();
     // The relay to the axis steppers' MCU (written by now: `restop` waited for its link).
     let stepper_mcu = &ctx.machine.steppers[g.idxs[0]].mcu;
     let relay_written_at = g
@@ -117,18 +81,13 @@ pub(crate) fn homing_pass(
         Err(err) => return Err(primary_error.unwrap_or(err)),
     };
     let stopped = Stopped::new(ctx, &g, &before, &after);
-    let (trig, error) = match (primary_error, trig) {
-        (Some(err), _) => (None, Some(err)),
-        (None, Ok(Some(t))) => (Some(t), None),
-        (None, Ok(None)) => (None, Some(format!("homing {axis_name}: no trigger clock"))),
-        (None, Err(err)) => (None, Some(err)),
-    };
-    let (Some((trigger_mcu, trigger_clock)), None) = (trig, error.clone()) else {
-        // Keep host and MCU in agreement (positions in the pretended frame; axis not homed).
-        if let Ok(halt) = stopped.halt_at(&mv, mv.print_time, axis_name) {
-            let _ = stopped.resync(ctx, halt.halted_at(ctx.pipeline.position()));
+    let (trigger_mcu, trigger_clock) = match (primary_error, trig) {
+        (None, Ok(Some(t))) => t,
+        (Some(err), _) | (None, Err(err)) => return Err(stopped.give_up(ctx, &mv, axis_name, err)),
+        (None, Ok(None)) => {
+            let err = HomingError::NoTriggerClock { axis: axis_name };
+            return Err(stopped.give_up(ctx, &mv, axis_name, err));
         }
-        return Err(error.unwrap_or_else(|| format!("homing {axis_name}: failed")));
     };
     cancel?;
     let trig_conn = mcu(ctx.mcus, &trigger_mcu)?;
@@ -163,6 +122,64 @@ pub(crate) fn homing_pass(
     ))
 }
 
+/// Where the pass's move heads: G28 pretends the toolhead starts at `start` (and sets it
+/// there) and heads for `position_endstop`; PROBE heads for its target from where it is.
+fn pass_target(ctx: &mut HomingCtx<'_>, e: &EndstopOut, kind: PassKind) -> [f64; 4] {
+    let mut pos = ctx.pipeline.position();
+    let mut target = pos;
+    match kind {
+        PassKind::Home { start } => {
+            pos[e.axis] = start;
+            ctx.pipeline.set_toolhead_position(pos);
+            target = pos;
+            target[e.axis] = e.position_endstop;
+        }
+        PassKind::Probe { target: to } => target[e.axis] = to,
+    }
+    target
+}
+
+/// Waits for the trigger until the move's end (plus a grace); a move that was not sent never
+/// triggers.
+fn await_trigger(
+    ctx: &HomingCtx<'_>,
+    group: &TriggerGroup,
+    sent: &Result<Move, HomingError>,
+) -> Result<links::trsync::TriggerOutcome, TrsyncError> {
+    match sent {
+        Ok(mv) => {
+            let main = ctx.mcus.main();
+            let end_sys = main.link.clock().system_time_at(mv.end_time() * main.clock_freq);
+            let wait = (end_sys - McuLink::system_now()).clamp(0.0, 1e6);
+            group.wait(Instant::now() + Duration::from_secs_f64(wait) + END_GRACE)
+        }
+        Err(_) => Err(TrsyncError::NotTriggered),
+    }
+}
+
+/// Whatever happened: every member stops, the endstop stops sampling. Returns the result of
+/// cancelling the endstop (an error there matters only after a good trigger).
+fn stop_pass(
+    ctx: &HomingCtx<'_>,
+    g: &PassGroup<'_>,
+    e: &EndstopOut,
+    group: &TriggerGroup,
+    outcome: &Result<links::trsync::TriggerOutcome, TrsyncError>,
+) -> Result<(), HomingError> {
+    let reason = match outcome {
+        Err(TrsyncError::NotTriggered) => REASON_PAST_END_TIME,
+        _ => REASON_HOST_REQUEST,
+    };
+    group.trigger_all(reason);
+    restop(ctx, &g.conns, &g.idxs);
+    let endstop_conn = g.conns[0];
+    let cancel = endstop_conn.link.dictionary().encode(
+        "endstop_home",
+        &[e.oid as i64, 0, 0, 0, 0, 0, endstop_conn.trsync_oid as i64, 0],
+    )?;
+    Ok(endstop_conn.link.send(cancel)?)
+}
+
 /// The steppers and MCUs of one pass: every stepper that moves the axis stops on the trigger
 /// (corexy X: A and B); the trsync group is the endstop's MCU first, then the steppers'.
 pub(super) struct PassGroup<'m> {
@@ -178,11 +195,11 @@ pub(super) struct PassGroup<'m> {
 }
 
 impl<'m> PassGroup<'m> {
-    fn new(mcus: &'m Mcus, machine: &Machine, e: &EndstopOut) -> Result<PassGroup<'m>, String> {
+    fn new(mcus: &'m Mcus, machine: &Machine, e: &EndstopOut) -> Result<PassGroup<'m>, HomingError> {
         let axis_name = AXIS_NAMES[e.axis];
         let idxs = axis_steppers(machine, e.axis);
         if idxs.is_empty() {
-            return Err(format!("homing {axis_name}: the axis has no stepper"));
+            return Err(HomingError::NoStepper { axis: axis_name });
         }
         let mut kins = Vec::with_capacity(idxs.len());
         for &i in &idxs {
@@ -192,7 +209,11 @@ impl<'m> PassGroup<'m> {
                     .options
                     .kinematics
                     .stepper(s.axis, s.step_dist)
-                    .map_err(|err| format!("homing {axis_name}: {}: {err}", s.name))?,
+                    .map_err(|source| HomingError::StepperKinematics {
+                        axis: axis_name,
+                        stepper: s.name.clone(),
+                        source,
+                    })?,
             );
         }
         let axis_coeff = kins[0].linear_coeffs().map_or(1.0, |c| c[e.axis].abs()).max(1e-9);
@@ -226,7 +247,7 @@ pub(super) fn arm_pass(
     g: &PassGroup<'_>,
     e: &EndstopOut,
     speed: f64,
-) -> Result<(TriggerGroup, f64, u64), String> {
+) -> Result<(TriggerGroup, f64, u64), HomingError> {
     let timeout = TriggerGroup::default_timeout(g.conns.len());
     let members: Vec<(&McuLink, u8)> = g.conns.iter().map(|c| (&c.link, c.trsync_oid)).collect();
     let t_arm = ctx.earliest_start();
@@ -234,13 +255,13 @@ pub(super) fn arm_pass(
         quiet(&g.conns);
         return Err(err);
     }
-    let group = TriggerGroup::new(&members, timeout).map_err(|e| e.to_string())?;
+    let group = TriggerGroup::new(&members, timeout)?;
     let t0 = ctx.earliest_start().max(ctx.pipeline.toolhead_print_time());
     let sample_dist = ctx.machine.steppers[g.idxs[0]].step_dist / g.axis_coeff;
     let setup = ctx
         .pipeline
         .raise_print_time(t0)
-        .map_err(|e| e.to_string())
+        .map_err(HomingError::from)
         .and_then(|()| arm_endstop(ctx, e, g.conns[0], sample_dist, t0, speed));
     match setup {
         Ok(rest_ticks) => Ok((group, t0, rest_ticks)),
@@ -259,9 +280,9 @@ pub(super) fn send_homing_move(
     target: [f64; 4],
     speed: f64,
     axis_name: char,
-) -> Result<Move, String> {
-    let Some(mv) = ctx.pipeline.home_move(target, speed).map_err(|e| e.to_string())? else {
-        return Err(format!("homing {axis_name}: the homing move has no length"));
+) -> Result<Move, HomingError> {
+    let Some(mv) = ctx.pipeline.home_move(target, speed)? else {
+        return Err(HomingError::NoMoveLength { axis: axis_name });
     };
     let mut out = Vec::new();
     generate(ctx, &mut out)?;
@@ -278,14 +299,14 @@ pub(super) fn trigger_clock(
     reporter: &str,
     t0: f64,
     rest_ticks: u64,
-) -> Result<(String, u64), String> {
+) -> Result<(String, u64), HomingError> {
     let (next, _, homing) = endstop_state(ctx, e)?;
     let c = next.saturating_sub(rest_ticks);
     if homing || c < clock_at_print_time(ctx.mcus, endstop_conn, t0) {
-        return Err(format!(
-            "homing {}: '{reporter}' reported a trigger but the endstop did not trigger",
-            AXIS_NAMES[e.axis]
-        ));
+        return Err(HomingError::FalseTrigger {
+            axis: AXIS_NAMES[e.axis],
+            reporter: reporter.to_string(),
+        });
     }
     Ok((e.pin.mcu.clone(), c))
 }
@@ -296,25 +317,25 @@ pub(super) fn pass_error(
     outcome: Result<links::trsync::TriggerOutcome, TrsyncError>,
     axis_name: char,
     kind: PassKind,
-) -> Option<String> {
+) -> Option<HomingError> {
     match outcome {
         Ok(o) if o.reason == REASON_ENDSTOP_HIT => None,
-        Ok(o) => Some(format!(
-            "homing {axis_name}: the move stopped with trigger reason {}",
-            o.reason
-        )),
+        Ok(o) => Some(HomingError::StoppedWithReason {
+            axis: axis_name,
+            reason: o.reason,
+        }),
         Err(TrsyncError::CommTimeout { detail, .. }) => {
             ctx.comm_timeout_detail = Some(detail);
-            Some(COMM_TIMEOUT_MSG.to_string())
+            Some(HomingError::CommTimeout)
         }
         Err(TrsyncError::NotTriggered) => {
-            let trigger_name = match kind {
+            let what = match kind {
                 PassKind::Home { .. } => axis_name.to_string(),
                 PassKind::Probe { .. } => "probe".to_string(),
             };
-            Some(format!("No trigger on {trigger_name} after full movement"))
+            Some(HomingError::NoTrigger { what })
         }
-        Err(other) => Some(other.to_string()),
+        Err(other) => Some(other.into()),
     }
 }
 
@@ -362,16 +383,23 @@ impl Stopped {
     }
 
     /// Where the steppers halted and where the trigger at `t_trig` found them.
-    fn halt_at(&self, mv: &Move, t_trig: f64, axis_name: char) -> Result<Halt, String> {
+    fn halt_at(&self, mv: &Move, t_trig: f64, axis_name: char) -> Result<Halt, HomingError> {
         halt_position(&self.kinematics, mv, &self.group, t_trig)
-            .ok_or_else(|| format!("homing {axis_name}: the kinematics is not linear"))
+            .ok_or(HomingError::NotLinear { axis: axis_name })
+    }
+
+    /// After a failed pass: keeps host and MCU in agreement (positions in the pretended frame;
+    /// axis not homed) and hands `err` back.
+    fn give_up(&self, ctx: &mut HomingCtx<'_>, mv: &Move, axis_name: char, err: HomingError) -> HomingError {
+        if let Ok(halt) = self.halt_at(mv, mv.print_time, axis_name) {
+            let _ = self.resync(ctx, halt.halted_at(ctx.pipeline.position()));
+        }
+        err
     }
 
     /// The planner and the step streams continue from `p`, where the steppers stopped.
-    fn resync(&self, ctx: &mut HomingCtx<'_>, p: [f64; 4]) -> Result<(), String> {
-        ctx.pipeline
-            .resync_after_stop(self.resume, p, &self.positions)
-            .map_err(|e| e.to_string())?;
+    fn resync(&self, ctx: &mut HomingCtx<'_>, p: [f64; 4]) -> Result<(), HomingError> {
+        ctx.pipeline.resync_after_stop(self.resume, p, &self.positions)?;
         for (&(i, _), &now_clock) in self.positions.iter().zip(&self.now_clocks) {
             ctx.streams.note_stopped(i, now_clock);
         }
@@ -409,13 +437,16 @@ pub(super) fn restop(ctx: &HomingCtx<'_>, conns: &[&McuConn], idxs: &[usize]) {
 }
 
 /// One `get_clock` round trip per MCU: everything each sent before it has been received.
-pub(super) fn barrier(conns: &[&McuConn]) -> Result<(), String> {
+pub(super) fn barrier(conns: &[&McuConn]) -> Result<(), HomingError> {
     for c in conns {
         let cmd = c
             .link
             .dictionary()
             .encode("get_clock", &[])
-            .map_err(|x| format!("mcu '{}': {x}", c.name))?;
+            .map_err(|source| HomingError::Encode {
+                mcu: c.name.clone(),
+                source,
+            })?;
         let mut result = Ok(());
         for _ in 0..QUERY_TRIES {
             result = c.link.query(cmd, "clock", None, QUERY_TIMEOUT).map(|_| ());
@@ -423,7 +454,7 @@ pub(super) fn barrier(conns: &[&McuConn]) -> Result<(), String> {
                 break;
             }
         }
-        result.map_err(|x| x.to_string())?;
+        result?;
     }
     Ok(())
 }
@@ -450,7 +481,7 @@ pub(super) fn arm(
     idxs: &[usize],
     t_arm: f64,
     timeout: f64,
-) -> Result<(), String> {
+) -> Result<(), HomingError> {
     let now = McuLink::system_now();
     for c in conns {
         let dict = c.link.dictionary();
@@ -464,8 +495,10 @@ pub(super) fn arm(
         let expire = clock_at_print_time(ctx.mcus, c, t_arm).max(report_clock) + (timeout * freq) as u64;
         let oid = c.trsync_oid as i64;
         let enc = |name: &str, args: &[i64]| {
-            dict.encode(name, args)
-                .map_err(|x| format!("mcu '{}': {x}", c.name))
+            dict.encode(name, args).map_err(|source| HomingError::Encode {
+                mcu: c.name.clone(),
+                source,
+            })
         };
         let mut cmds = vec![
             enc(
@@ -486,7 +519,7 @@ pub(super) fn arm(
             }
         }
         for cmd in cmds {
-            c.link.send(cmd).map_err(|x| x.to_string())?;
+            c.link.send(cmd)?;
         }
     }
     Ok(())
@@ -502,7 +535,7 @@ pub(super) fn arm_endstop(
     step_dist: f64,
     t0: f64,
     speed: f64,
-) -> Result<u64, String> {
+) -> Result<u64, HomingError> {
     let rest_time = (step_dist / speed.max(1e-6)).clamp(MIN_REST_TIME, MAX_REST_TIME);
     let rest_ticks = (rest_time * c.clock_freq).round().max(1.0) as u64;
     let clock = clock_at_print_time(ctx.mcus, c, t0);
@@ -522,7 +555,10 @@ pub(super) fn arm_endstop(
                 REASON_ENDSTOP_HIT as i64,
             ],
         )
-        .map_err(|x| format!("mcu '{}': {x}", c.name))?;
-    c.link.send(cmd).map_err(|x| x.to_string())?;
+        .map_err(|source| HomingError::Encode {
+            mcu: c.name.clone(),
+            source,
+        })?;
+    c.link.send(cmd)?;
     Ok(rest_ticks)
 }

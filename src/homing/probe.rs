@@ -24,7 +24,9 @@
 
 use sysconfig::printer::{ProbeSection, SamplesResult, SAMPLES_RESULTS};
 
-use super::{endstop_state, homing_pass, plain_move, wait_motion_done, HomingCtx, PassKind};
+use super::{
+    endstop_state, homing_pass, plain_move, wait_motion_done, HomingCtx, HomingError, ParamProblem, PassKind,
+};
 use crate::hardware::ProbeOut;
 
 /// The G-code commands this module runs.
@@ -57,14 +59,25 @@ pub struct ProbeParams {
     pub samples_tolerance_retries: u32,
 }
 
+/// Parameter `problem` of command `raw`.
+fn bad(raw: &str, problem: ParamProblem) -> HomingError {
+    HomingError::BadParameter {
+        raw: raw.to_string(),
+        problem,
+    }
+}
+
 /// `NAME KEY=VALUE …` → the (upper-cased key, value) pairs.
-fn params(raw: &str) -> Result<Vec<(String, String)>, String> {
+fn params(raw: &str) -> Result<Vec<(String, String)>, HomingError> {
     raw.split_whitespace()
         .skip(1)
         .map(|word| match word.split_once('=') {
             Some((k, v)) if !k.is_empty() => Ok((k.to_ascii_uppercase(), v.to_string())),
-            _ => Err(format!(
-                "Error on '{raw}': malformed parameter '{word}' (expected KEY=VALUE)"
+            _ => Err(bad(
+                raw,
+                ParamProblem::Malformed {
+                    word: word.to_string(),
+                },
             )),
         })
         .collect()
@@ -74,31 +87,36 @@ impl ProbeParams {
     /// Parses the parameters of `raw` (`SAMPLES`, `SAMPLE_RETRACT_DIST`, `PROBE_SPEED`,
     /// `LIFT_SPEED`, `SAMPLES_RESULT`, `SAMPLES_TOLERANCE`, `SAMPLES_TOLERANCE_RETRIES`; others
     /// are ignored, as Klipper does) over `cfg`; `samples`: the default sample count.
-    pub fn parse(cfg: &ProbeSection, raw: &str, samples: u32) -> Result<ProbeParams, String> {
+    pub fn parse(cfg: &ProbeSection, raw: &str, samples: u32) -> Result<ProbeParams, HomingError> {
         let ps = params(raw)?;
         let get = |key: &str| ps.iter().rev().find(|(k, _)| k == key).map(|(_, v)| v.as_str());
-        let float = |key: &str, default: f64, min: f64, strict: bool| -> Result<f64, String> {
+        let unparsable = |v: &str, key: &str| {
+            let (value, key) = (v.to_string(), key.to_string());
+            bad(raw, ParamProblem::Unparsable { value, key })
+        };
+        let float = |key: &str, default: f64, min: f64, strict: bool| -> Result<f64, HomingError> {
             let Some(v) = get(key) else { return Ok(default) };
             let x: f64 = v
                 .parse()
                 .ok()
                 .filter(|x: &f64| x.is_finite())
-                .ok_or_else(|| format!("Error on '{raw}': unable to parse '{v}' for {key}"))?;
+                .ok_or_else(|| unparsable(v, key))?;
+            let key = key.to_string();
             match (strict, x) {
-                (true, x) if x <= min => Err(format!("Error on '{raw}': {key} must be above {min}")),
-                (false, x) if x < min => Err(format!("Error on '{raw}': {key} must have minimum of {min}")),
+                (true, x) if x <= min => Err(bad(raw, ParamProblem::NotAbove { key, min })),
+                (false, x) if x < min => Err(bad(raw, ParamProblem::BelowMinimum { key, min })),
                 _ => Ok(x),
             }
         };
-        let int = |key: &str, default: u32, min: u32| -> Result<u32, String> {
+        let int = |key: &str, default: u32, min: u32| -> Result<u32, HomingError> {
             let Some(v) = get(key) else { return Ok(default) };
-            let x: i64 = v
-                .parse()
-                .map_err(|_| format!("Error on '{raw}': unable to parse '{v}' for {key}"))?;
+            let x: i64 = v.parse().map_err(|_| unparsable(v, key))?;
+            let key = key.to_string();
             if x < i64::from(min) {
-                return Err(format!("Error on '{raw}': {key} must have minimum of {min}"));
+                let min = f64::from(min);
+                return Err(bad(raw, ParamProblem::BelowMinimum { key, min }));
             }
-            u32::try_from(x).map_err(|_| format!("Error on '{raw}': {key} is too large"))
+            u32::try_from(x).map_err(|_| bad(raw, ParamProblem::TooLarge { key }))
         };
         let samples_result = match get("SAMPLES_RESULT") {
             None => cfg.samples_result,
@@ -106,9 +124,7 @@ impl ProbeParams {
                 .iter()
                 .find(|(name, _)| name.eq_ignore_ascii_case(v))
                 .map(|&(_, r)| r)
-                .ok_or_else(|| {
-                    format!("Error on '{raw}': SAMPLES_RESULT must be median or average, got '{v}'")
-                })?,
+                .ok_or_else(|| bad(raw, ParamProblem::SamplesResult { value: v.to_string() }))?,
         };
         let speed = float("PROBE_SPEED", cfg.speed, 0.0, true)?;
         Ok(ProbeParams {
@@ -160,14 +176,15 @@ pub fn accuracy_line(z: &[f64]) -> String {
 
 /// Runs probe command `name` (one of [`COMMANDS`]) written as `raw`; its output lines go to
 /// `out`.
-pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>) -> Result<(), String> {
+pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>) -> Result<(), HomingError> {
     if name.starts_with("BLTOUCH_") {
         return super::bltouch::run_command(ctx, name, raw, out);
     }
     let Some(probe) = ctx.machine.probe.clone() else {
-        return Err(format!(
-            "Unknown command: {name} (the printer config has no [probe] section)"
-        ));
+        return Err(HomingError::NoSection {
+            name: name.to_string(),
+            section: "probe",
+        });
     };
     match name {
         "QUERY_PROBE" => {
@@ -210,7 +227,7 @@ fn run_probe(
     probe: &ProbeOut,
     p: &ProbeParams,
     out: &mut Vec<String>,
-) -> Result<f64, String> {
+) -> Result<f64, HomingError> {
     let mut retries = 0;
     let mut z: Vec<f64> = Vec::new();
     while z.len() < p.samples as usize {
@@ -220,7 +237,7 @@ fn run_probe(
         let min = z.iter().copied().fold(f64::INFINITY, f64::min);
         if max - min > p.samples_tolerance {
             if retries >= p.samples_tolerance_retries {
-                return Err("Probe samples exceed samples_tolerance".to_string());
+                return Err(HomingError::SamplesOutOfTolerance);
             }
             out.push("Probe samples exceed tolerance. Retrying...".to_string());
             retries += 1;
@@ -234,7 +251,7 @@ fn run_probe(
 }
 
 /// Z up (or down) to `z` at `speed`.
-fn lift(ctx: &mut HomingCtx<'_>, z: f64, speed: f64) -> Result<(), String> {
+fn lift(ctx: &mut HomingCtx<'_>, z: f64, speed: f64) -> Result<(), HomingError> {
     let mut pos = ctx.pipeline.position();
     pos[2] = z;
     plain_move(ctx, pos, speed)
@@ -246,16 +263,16 @@ fn probe_once(
     probe: &ProbeOut,
     speed: f64,
     out: &mut Vec<String>,
-) -> Result<[f64; 3], String> {
+) -> Result<[f64; 3], HomingError> {
     if !ctx.pipeline.gcode_state().homed()[2] {
-        return Err("Must home before probe".to_string());
+        return Err(HomingError::NotHomed);
     }
     wait_motion_done(ctx)?;
     let target = probe.z_position;
     // A BLTouch is deployed first (and stowed after, also after a failure).
     let (pass, _) = super::bltouch::sample(ctx, |ctx| {
         if endstop_state(ctx, &probe.endstop)?.1 {
-            return Err("Probe triggered prior to movement".to_string());
+            return Err(HomingError::TriggeredBeforeMove);
         }
         homing_pass(ctx, &probe.endstop, PassKind::Probe { target }, speed)
     })?;
@@ -323,7 +340,12 @@ mod tests {
     #[test]
     fn bad_parameters_are_named() {
         let c = cfg();
-        let err = |raw: &str| ProbeParams::parse(&c, raw, 1).err().unwrap_or_default();
+        let err = |raw: &str| {
+            ProbeParams::parse(&c, raw, 1)
+                .err()
+                .map(|e| e.to_string())
+                .unwrap_or_default()
+        };
         assert_eq!(
             err("PROBE SAMPLES=0"),
             "Error on 'PROBE SAMPLES=0': SAMPLES must have minimum of 1"

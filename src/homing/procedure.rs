@@ -24,6 +24,8 @@ pub struct HomingProcedure {
 
 /// What the procedure needs of the printer.
 pub(crate) trait HomeOps {
+    /// Why one of the printer's operations failed (the procedure's own errors too).
+    type Error;
     /// Homed X, Y, Z.
     fn homed(&self) -> [bool; 3];
     /// Toolhead X, Y, Z, E.
@@ -31,13 +33,13 @@ pub(crate) trait HomeOps {
     /// Redefines the toolhead position and the homed axes without moving.
     fn set_position(&mut self, pos: [f64; 4], homed: [bool; 3]);
     /// The printer's own G28 of `axes`.
-    fn home(&mut self, axes: [bool; 3]) -> Result<(), String>;
+    fn home(&mut self, axes: [bool; 3]) -> Result<(), Self::Error>;
     /// A toolhead move (toolhead coordinates, not G-code ones) to `pos` at `speed` mm/s.
-    fn move_to(&mut self, pos: [f64; 4], speed: f64) -> Result<(), String>;
+    fn move_to(&mut self, pos: [f64; 4], speed: f64) -> Result<(), Self::Error>;
     /// Runs the `[homing_override]` script with the G28's raw parameters.
-    fn run_override(&mut self, rawparams: &str) -> Result<(), String>;
+    fn run_override(&mut self, rawparams: &str) -> Result<(), Self::Error>;
     /// The procedure's own error `why`, located as the printer reports errors.
-    fn fail(&self, why: &str) -> String;
+    fn fail(&self, why: &str) -> Self::Error;
 }
 
 impl HomingProcedure {
@@ -47,7 +49,7 @@ impl HomingProcedure {
     }
 
     /// A G28 naming `axes` (X, Y, Z; a bare G28 names all three).
-    pub(crate) fn g28(&self, axes: [bool; 3], ops: &mut impl HomeOps) -> Result<(), String> {
+    pub(crate) fn g28<O: HomeOps>(&self, axes: [bool; 3], ops: &mut O) -> Result<(), O::Error> {
         if let Some(o) = &self.homing_override {
             let overridden = !axes.iter().any(|&a| a) || (0..3).any(|a| axes[a] && o.axes[a]);
             if overridden {
@@ -82,7 +84,7 @@ impl HomingProcedure {
     }
 }
 
-fn safe_z_home(s: &SafeZHomeSection, axes: [bool; 3], ops: &mut impl HomeOps) -> Result<(), String> {
+fn safe_z_home<O: HomeOps>(s: &SafeZHomeSection, axes: [bool; 3], ops: &mut O) -> Result<(), O::Error> {
     if s.z_hop != 0.0 {
         let mut pos = ops.position();
         let mut homed = ops.homed();
@@ -130,7 +132,7 @@ fn safe_z_home(s: &SafeZHomeSection, axes: [bool; 3], ops: &mut impl HomeOps) ->
 }
 
 /// Moves Z to `z_hop` from `pos` at `z_hop_speed`.
-fn lift(s: &SafeZHomeSection, ops: &mut impl HomeOps, mut pos: [f64; 4]) -> Result<(), String> {
+fn lift<O: HomeOps>(s: &SafeZHomeSection, ops: &mut O, mut pos: [f64; 4]) -> Result<(), O::Error> {
     pos[2] = s.z_hop;
     ops.move_to(pos, s.z_hop_speed)
 }
@@ -150,6 +152,7 @@ mod tests {
     }
 
     impl HomeOps for Recorder {
+        type Error = String;
         fn homed(&self) -> [bool; 3] {
             self.homed
         }
@@ -161,7 +164,7 @@ mod tests {
             self.pos = pos;
             self.homed = homed;
         }
-        fn home(&mut self, axes: [bool; 3]) -> Result<(), String> {
+        fn home(&mut self, axes: [bool; 3]) -> Result<(), Self::Error> {
             self.log.push(format!("home {axes:?}"));
             for (a, at) in [0.0, 0.0, 0.5].into_iter().enumerate() {
                 if axes[a] {
@@ -171,12 +174,12 @@ mod tests {
             }
             Ok(())
         }
-        fn move_to(&mut self, pos: [f64; 4], speed: f64) -> Result<(), String> {
+        fn move_to(&mut self, pos: [f64; 4], speed: f64) -> Result<(), Self::Error> {
             self.log.push(format!("move {:?} at {speed}", &pos[..3]));
             self.pos = pos;
             Ok(())
         }
-        fn run_override(&mut self, rawparams: &str) -> Result<(), String> {
+        fn run_override(&mut self, rawparams: &str) -> Result<(), Self::Error> {
             self.log.push(format!("script '{rawparams}'"));
             Ok(())
         }

@@ -44,6 +44,8 @@ fn axis_steppers_split_over_mcus_need_the_endstop_on_one_of_them() {
     assert!(check_config(&machine(&["mcu", "mcu"], "probe_mcu")).is_ok());
     assert!(check_config(&machine(&["mcu", "z2"], "z2")).is_ok());
     let err = check_config(&machine(&["mcu", "z2"], "probe_mcu")).unwrap_err();
+    assert!(matches!(&err, HomingError::Wiring(w) if w.axis == 'z'), "{err:?}");
+    let err = err.to_string();
     assert!(
         err.contains("[stepper_z]") && err.contains("'probe_mcu'"),
         "{err}"
@@ -69,7 +71,7 @@ fn a_probe_on_yet_another_mcu_is_refused_too() {
         z_position: 0.0,
         cfg: cfg.probe.unwrap(),
     });
-    let err = check_config(&m).unwrap_err();
+    let err = check_config(&m).unwrap_err().to_string();
     assert!(
         err.starts_with("[probe] pin 'probe_mcu:PA4': the steppers of axis z are on MCUs 'mcu', 'z2'"),
         "{err}"

@@ -3,6 +3,9 @@
 //! (`print --io-process` / `--io-attach NAME`). What crosses between them besides the step
 //! channels is in [`payloads`] (MCU info, clock snapshots, status, control).
 
+mod error;
 pub mod payloads;
 pub mod planner_side;
 pub mod server;
+
+pub use error::{IoProcessError, OffMainMcu};

@@ -24,13 +24,14 @@ use links::dict::Dictionary;
 use links::mcu::McuLink;
 use rt_core::logger::{Arg, Level};
 use rt_core::os::apply_rt;
-use rt_core::shm::{open_node, ChannelConfig, ShmPublisher, ShmSubscriber};
+use rt_core::shm::{open_node, ChannelConfig, ShmError, ShmPublisher, ShmSubscriber};
 use sysconfig::printer::PrinterConfig;
 
 use super::payloads::{
     clock_service_name, control_kind, control_service_name, info_service_name, io_state, status_service_name,
     ClockSnapshot, IoControl, IoStatus, McuInfo,
 };
+use super::{IoProcessError, OffMainMcu};
 use crate::events::Latch;
 use crate::gcode_feed::GcodeInput;
 use crate::hardware::Machine;
@@ -38,7 +39,7 @@ use crate::job::{LiveOutcome, PrintJob};
 use crate::latency::{Hists, PLANNER_SOURCES};
 use crate::live;
 use crate::logging::Logging;
-use crate::planner_thread::{McuSide, PlannerStage};
+use crate::planner_thread::{McuSide, Planned, PlannerError, PlannerStage};
 use crate::realtime::RtConfig;
 
 type Ipc = iceoryx2::prelude::ipc::Service;
@@ -51,25 +52,27 @@ const RELAY_PERIOD: Duration = Duration::from_millis(5);
 /// CRC-32 of the configuration commands for MCU `mcu` (the `finalize_config` value): both
 /// processes compute it, so a planner and an IO process with different printer configs (other
 /// oids or pins) refuse to work together.
-pub(crate) fn config_crc(dict: &Dictionary, machine: &Machine, mcu: &str) -> Result<u32, String> {
+pub(crate) fn config_crc(dict: &Dictionary, machine: &Machine, mcu: &str) -> Result<u32, IoProcessError> {
     let (_, _, crc) =
-        crate::mcus::config_commands(dict, machine, mcu).map_err(|e| format!("mcu '{mcu}': {e}"))?;
+        crate::mcus::config_commands(dict, machine, mcu).map_err(|source| IoProcessError::Configure {
+            mcu: mcu.to_string(),
+            source: Box::new(source),
+        })?;
     Ok(crc)
 }
 
 /// Refuses a printer with steppers on other MCUs than the main one: the IO process serves the
 /// main MCU's step stream only.
-pub(crate) fn check_single_mcu(machine: &Machine) -> Result<(), String> {
+pub(crate) fn check_single_mcu(machine: &Machine) -> Result<(), OffMainMcu> {
     match machine
         .steppers
         .iter()
         .find(|s| s.mcu != sysconfig::printer::MAIN_MCU)
     {
-        Some(s) => Err(format!(
-            "[{}] is driven by mcu '{}': the IO stage in another process (serve, --io-process, \
-             --io-attach) streams steps to the main [mcu] only; print without --io-process/--io-attach",
-            s.name, s.mcu
-        )),
+        Some(s) => Err(OffMainMcu {
+            stepper: s.name.clone(),
+            mcu: s.mcu.clone(),
+        }),
         None => Ok(()),
     }
 }
@@ -95,9 +98,17 @@ impl RemoteMcu {
         self.clock.load()
     }
 
+    /// The IO process's failure reason, once it failed.
+    pub fn failure(&self) -> Option<String> {
+        self.failed.reason("the IO process failed")
+    }
+
     /// The IO process's failure, as an error.
-    pub fn check(&self) -> Result<(), String> {
-        self.failed.check("the IO process failed")
+    fn failed(&self) -> Result<(), IoProcessError> {
+        match self.failure() {
+            Some(reason) => Err(IoProcessError::Failed { reason }),
+            None => Ok(()),
+        }
     }
 
     fn fail(&self, msg: String) {
@@ -105,13 +116,13 @@ impl RemoteMcu {
     }
 
     /// Waits (bounded) until the relay stored a valid clock snapshot.
-    fn wait_clock(&self) -> Result<(), String> {
+    fn wait_clock(&self) -> Result<(), IoProcessError> {
         let deadline = Instant::now() + Duration::from_secs(10);
         // Acquire pairs with the relay's Release store after the snapshot.
         while !self.clock_valid.load(Ordering::Acquire) {
-            self.check()?;
+            self.failed()?;
             if Instant::now() > deadline {
-                return Err("the IO process published no valid clock within 10 s".to_string());
+                return Err(IoProcessError::NoClock);
             }
             std::thread::sleep(Duration::from_millis(5));
         }
@@ -171,8 +182,8 @@ impl Drop for IoChild {
 }
 
 /// Starts `cadence serve --role io` for this print, with this print's settings.
-fn spawn_io(args: &PrintJob, instance: &str, time_scale: f64) -> Result<Child, String> {
-    let exe = std::env::current_exe().map_err(|e| format!("cannot locate the running executable: {e}"))?;
+fn spawn_io(args: &PrintJob, instance: &str, time_scale: f64) -> Result<Child, IoProcessError> {
+    let exe = std::env::current_exe().map_err(IoProcessError::Executable)?;
     let mut cmd = Command::new(exe);
     cmd.args(["serve", "--role", "io", "--instance", instance]);
     cmd.arg("--parent-pid").arg(std::process::id().to_string());
@@ -195,8 +206,7 @@ fn spawn_io(args: &PrintJob, instance: &str, time_scale: f64) -> Result<Child, S
     cmd.stdin(Stdio::null())
         .stdout(Stdio::inherit())
         .stderr(Stdio::inherit());
-    cmd.spawn()
-        .map_err(|e| format!("cannot start the IO process (cadence serve --role io): {e}"))
+    cmd.spawn().map_err(IoProcessError::Spawn)
 }
 
 /// Runs a live print with the IO stage in another process; prints the summary.
@@ -205,12 +215,12 @@ pub(crate) fn run(
     cfg: &PrinterConfig,
     machine: &Machine,
     gcode: GcodeInput,
-) -> Result<LiveOutcome, String> {
+) -> Result<LiveOutcome, IoProcessError> {
     let started = Instant::now();
     check_single_mcu(machine)?;
     let simulated = cfg.mcus.iter().any(|m| m.is_simulated());
     if args.time_scale.is_some() && !simulated {
-        return Err("--time-scale only applies to a simulated printer".to_string());
+        return Err(IoProcessError::TimeScaleNotSimulated);
     }
     let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
     let logging = Logging::start(args.live.log_level, args.live.log_file.clone())?;
@@ -230,29 +240,84 @@ pub(crate) fn run(
         .mcus
         .first()
         .map(|m| m.name.clone())
-        .ok_or("the printer config has no [mcu]")?;
-    let (node, _) =
-        open_node::<Ipc>(&format!("cadence-print-{}", std::process::id())).map_err(|e| e.to_string())?;
-    let err = |e: rt_core::shm::ShmError| e.to_string();
+        .ok_or(IoProcessError::NoMcu)?;
+    let (node, _) = open_node::<Ipc>(&format!("cadence-print-{}", std::process::id()))?;
     let mut control = ShmPublisher::<Ipc, IoControl>::open(
         &node,
         &control_service_name(&instance),
         &ChannelConfig::control(),
-    )
-    .map_err(err)?;
+    )?;
     log.log(Level::Info, "waiting for the IO process", []);
     let remote = attach(&node, &instance, &child, machine, &main_name)?;
-    let clock_freq = remote.clock_freq;
+    let run = RemoteRun {
+        machine,
+        remote: &remote,
+        child: &child,
+        instance: &instance,
+        rt: &rt,
+        hists: &hists,
+        log: &log,
+        time_scale,
+        max_error_s: args.max_error_us * 1e-6,
+        started,
+    };
+    let result = print_remote(&run, gcode, &mut control);
+    let exit = child.finish(Duration::from_secs(30));
+    let summary = result?;
+    if let Some(status) = exit {
+        if !status.success() {
+            return Err(IoProcessError::Exited(status));
+        }
+    }
+    crate::job::live_outcome(
+        summary,
+        started,
+        args.histograms.as_deref(),
+        &hists,
+        logging,
+        Vec::new(),
+    )
+    .map_err(IoProcessError::from)
+}
+
+/// What the print against an IO process works with.
+#[derive(Debug, Clone, Copy)]
+struct RemoteRun<'a> {
+    machine: &'a Machine,
+    remote: &'a RemoteMcu,
+    child: &'a IoChild,
+    instance: &'a str,
+    rt: &'a RtConfig,
+    hists: &'a Hists,
+    log: &'a rt_core::logger::LoggerHandle,
+    time_scale: f64,
+    /// Maximum step time error of the compression (s).
+    max_error_s: f64,
+    started: Instant,
+}
+
+/// The print proper: the relay thread, the planner thread against the IO process's clock and
+/// telemetry, then the FINISH/DONE hand-shake and the checks of what the IO process read back.
+fn print_remote(
+    r: &RemoteRun<'_>,
+    gcode: GcodeInput,
+    control: &mut ShmPublisher<Ipc, IoControl>,
+) -> Result<crate::summary::Summary, IoProcessError> {
     let stop_relay = AtomicBool::new(false);
     let telemetry_stop = AtomicBool::new(false);
     // The planner watches what the IO process took only before homing, which is refused here.
     let consumed = [AtomicU64::new(0)];
-
-    let result = std::thread::scope(|scope| {
+    let r = *r;
+    std::thread::scope(|scope| {
+        let (remote, instance, child) = (r.remote, r.instance, r.child);
+        let stop_flag = &stop_relay;
         let relay = std::thread::Builder::new()
             .name("io-relay".to_string())
-            .spawn_scoped(scope, || relay(&remote, &instance, &child, &stop_relay))
-            .map_err(|e| format!("cannot start the relay thread: {e}"))?;
+            .spawn_scoped(scope, move || relay(remote, instance, child, stop_flag))
+            .map_err(|source| IoProcessError::Thread {
+                what: "relay thread",
+                source,
+            })?;
         let stop = || {
             stop_relay.store(true, Ordering::Release);
             let _ = relay.join();
@@ -261,43 +326,20 @@ pub(crate) fn run(
             stop();
             return Err(e);
         }
-        let planner_spec = rt.planner_spec();
-        let (remote, rt) = (&remote, &rt);
-        let (hists, instance_name, consumed) = (&hists, instance.as_str(), &consumed[..]);
-        let planner_log = log.with_tag("planner");
-        let planner = std::thread::Builder::new()
-            .name("planner".to_string())
-            .spawn_scoped(scope, move || {
-                apply_rt(&planner_spec);
-                let stage = PlannerStage {
-                    machine,
-                    side: McuSide::Remote(remote),
-                    scale: time_scale,
-                    max_error_s: args.max_error_us * 1e-6,
-                    instance: instance_name,
-                    consumed,
-                    hists,
-                    log: &planner_log,
-                    rt,
-                    session: None,
-                    heaters: None,
-                };
-                crate::planner_thread::planner_stage(gcode, &stage)
-            })
-            .map_err(|e| format!("cannot start the planner thread: {e}"));
+        let planner = spawn_planner(scope, r, gcode, &consumed);
         let telemetry_stop = &telemetry_stop;
+        let (hists, started) = (r.hists, r.started);
         let telemetry = std::thread::Builder::new()
             .name("telemetry".to_string())
-            .spawn_scoped(scope, || {
-                crate::telemetry::telemetry_thread(&instance, hists, started, PLANNER_SOURCES, telemetry_stop)
+            .spawn_scoped(scope, move || {
+                crate::telemetry::telemetry_thread(instance, hists, started, PLANNER_SOURCES, telemetry_stop)
             });
-        let planned = match planner {
-            Ok(p) => p
-                .join()
-                .map_err(|_| "the planner thread panicked".to_string())
-                .and_then(|r| r),
-            Err(e) => Err(e),
-        };
+        let planned = planner.and_then(|p| match p.join() {
+            Ok(result) => result.map_err(IoProcessError::from),
+            Err(_) => Err(IoProcessError::Panicked {
+                what: "planner thread",
+            }),
+        });
         telemetry_stop.store(true, Ordering::Release);
         if let Ok(t) = telemetry {
             if let Ok(Err(e)) = t.join() {
@@ -310,16 +352,16 @@ pub(crate) fn run(
                 let _ = control.send_with(|c| c.kind = control_kind::ABORT);
                 stop();
                 // The IO process's own failure explains a failed hand-off best.
-                return Err(remote.check().err().unwrap_or(e));
+                return Err(remote.failed().err().unwrap_or(e));
             }
         };
         let batches = batches.first().copied().unwrap_or(0);
-        let done = finish_handshake(&mut control, remote, &streams, batches, time_scale, &log);
+        let done = finish_handshake(control, remote, &streams, batches, r.time_scale, r.log);
         stop();
         let done = done?;
         let _ = control.send_with(|c| c.kind = control_kind::DONE_SEEN);
-        check_done(machine, &pipeline, &streams, &done, remote, &mut summary)?;
-        summary.extra.extend(hists.report(clock_freq));
+        check_done(r.machine, &pipeline, &streams, &done, remote, &mut summary)?;
+        summary.extra.extend(hists.report(remote.clock_freq));
         summary.extra.push(format!(
             "allocations after warm-up: planner {}; io stage in process {} ({} batches)",
             allocs.map_or("n/a".to_string(), |n| n.to_string()),
@@ -327,22 +369,41 @@ pub(crate) fn run(
             done.batches
         ));
         Ok(summary)
-    });
-    let exit = child.finish(Duration::from_secs(30));
-    let summary = result?;
-    if let Some(status) = exit {
-        if !status.success() {
-            return Err(format!("the IO process exited with {status}"));
-        }
-    }
-    crate::job::live_outcome(
-        summary,
-        started,
-        args.histograms.as_deref(),
-        &hists,
-        logging,
-        Vec::new(),
-    )
+    })
+}
+
+/// Starts the planner thread against the IO process's MCU.
+fn spawn_planner<'scope, 'env: 'scope>(
+    scope: &'scope std::thread::Scope<'scope, 'env>,
+    r: RemoteRun<'env>,
+    gcode: GcodeInput,
+    consumed: &'env [AtomicU64],
+) -> Result<std::thread::ScopedJoinHandle<'scope, Result<Planned, PlannerError>>, IoProcessError> {
+    let planner_spec = r.rt.planner_spec();
+    let planner_log = r.log.with_tag("planner");
+    std::thread::Builder::new()
+        .name("planner".to_string())
+        .spawn_scoped(scope, move || {
+            apply_rt(&planner_spec);
+            let stage = PlannerStage {
+                machine: r.machine,
+                side: McuSide::Remote(r.remote),
+                scale: r.time_scale,
+                max_error_s: r.max_error_s,
+                instance: r.instance,
+                consumed,
+                hists: r.hists,
+                log: &planner_log,
+                rt: r.rt,
+                session: None,
+                heaters: None,
+            };
+            crate::planner_thread::planner_stage(gcode, &stage)
+        })
+        .map_err(|source| IoProcessError::Thread {
+            what: "planner thread",
+            source,
+        })
 }
 
 /// Waits for the IO process's `READY` and its main MCU's info, and checks that it configured
@@ -353,18 +414,20 @@ fn attach(
     child: &IoChild,
     machine: &Machine,
     main_name: &str,
-) -> Result<RemoteMcu, String> {
+) -> Result<RemoteMcu, IoProcessError> {
     wait_ready(node, instance, child)?;
     let info = wait_info(node, instance, main_name, child)?;
-    let dict = Dictionary::from_compressed(info.dict())
-        .map_err(|e| format!("mcu '{main_name}': the IO process sent a bad data dictionary: {e}"))?;
+    let dict = Dictionary::from_compressed(info.dict()).map_err(|source| IoProcessError::BadDictionary {
+        mcu: main_name.to_string(),
+        source,
+    })?;
     let ours = config_crc(&dict, machine, main_name)?;
     if ours != info.config_crc {
-        return Err(format!(
-            "mcu '{main_name}': the IO process configured the MCU differently (config CRC {:08x}, this \
-             printer config gives {ours:08x}): start both with the same printer.cfg",
-            info.config_crc
-        ));
+        return Err(IoProcessError::ConfigMismatch {
+            mcu: main_name.to_string(),
+            theirs: info.config_crc,
+            ours,
+        });
     }
     Ok(RemoteMcu {
         name: main_name.to_string(),
@@ -386,7 +449,7 @@ fn finish_handshake(
     batches: u64,
     time_scale: f64,
     log: &rt_core::logger::LoggerHandle,
-) -> Result<IoStatus, String> {
+) -> Result<IoStatus, IoProcessError> {
     let end_clock = streams.mcus.first().map_or(0, |m| m.streamer.last_step_clock);
     control
         .send_with(|c| {
@@ -394,7 +457,7 @@ fn finish_handshake(
             c.batches = batches;
             c.end_clock = end_clock;
         })
-        .map_err(|e| format!("io control: {e}"))?;
+        .map_err(IoProcessError::Control)?;
     log.log(
         Level::Info,
         "sent FINISH: batches, end clock",
@@ -405,7 +468,7 @@ fn finish_handshake(
 
 /// Waits (bounded: the rest of the print at the simulator's speed, plus slack) for the IO
 /// process's `DONE`, which carries the stepper positions it read back.
-fn wait_done(remote: &RemoteMcu, end_clock: u64, time_scale: f64) -> Result<IoStatus, String> {
+fn wait_done(remote: &RemoteMcu, end_clock: u64, time_scale: f64) -> Result<IoStatus, IoProcessError> {
     let clock_freq = remote.clock_freq;
     let now_s = remote.clock().clock_at(McuLink::system_now()) / clock_freq;
     let wait = (end_clock as f64 / clock_freq - now_s).max(0.0) / time_scale + 30.0;
@@ -415,11 +478,9 @@ fn wait_done(remote: &RemoteMcu, end_clock: u64, time_scale: f64) -> Result<IoSt
         if s.state == io_state::DONE {
             return Ok(s);
         }
-        remote.check()?;
+        remote.failed()?;
         if Instant::now() > deadline {
-            return Err(format!(
-                "the IO process did not finish the print within {wait:.0} s"
-            ));
+            return Err(IoProcessError::NotFinished { secs: wait });
         }
         std::thread::sleep(Duration::from_millis(5));
     }
@@ -434,7 +495,7 @@ fn check_done(
     done: &IoStatus,
     remote: &RemoteMcu,
     summary: &mut crate::summary::Summary,
-) -> Result<(), String> {
+) -> Result<(), IoProcessError> {
     let clock_freq = remote.clock_freq;
     live::check_positions(
         machine,
@@ -454,32 +515,38 @@ fn check_done(
             crate::MIN_LEAD_S * 1e3
         ));
     }
-    live::check_min_lead(&remote.name, min_lead, clock_freq)
+    Ok(live::check_min_lead(&remote.name, min_lead, clock_freq)?)
 }
 
 /// Waits (bounded) for the IO process's `READY`.
-fn wait_ready(node: &iceoryx2::node::Node<Ipc>, instance: &str, child: &IoChild) -> Result<(), String> {
+fn wait_ready(
+    node: &iceoryx2::node::Node<Ipc>,
+    instance: &str,
+    child: &IoChild,
+) -> Result<(), IoProcessError> {
     let mut status =
-        ShmSubscriber::<Ipc, IoStatus>::open(node, &status_service_name(instance), &ChannelConfig::latest())
-            .map_err(|e| e.to_string())?
+        ShmSubscriber::<Ipc, IoStatus>::open(node, &status_service_name(instance), &ChannelConfig::latest())?
             .accept_any_start();
     let deadline = Instant::now() + READY_TIMEOUT;
     loop {
-        if let Some(s) = status.latest().map_err(|e| e.to_string())? {
+        if let Some(s) = status.latest()? {
             match s.state {
                 io_state::READY => return Ok(()),
-                io_state::FAILED => return Err(format!("the IO process failed: {}", s.msg())),
+                io_state::FAILED => {
+                    return Err(IoProcessError::FailedAtStart {
+                        reason: s.msg().to_string(),
+                    })
+                }
                 _ => {}
             }
         }
-        if let Some(e) = child.exited() {
-            return Err(e);
+        if let Some(reason) = child.exited() {
+            return Err(IoProcessError::Failed { reason });
         }
         if Instant::now() > deadline {
-            return Err(format!(
-                "the IO process was not ready within {} s",
-                READY_TIMEOUT.as_secs()
-            ));
+            return Err(IoProcessError::NotReady {
+                secs: READY_TIMEOUT.as_secs(),
+            });
         }
         let _ = status.wait(Duration::from_millis(20));
     }
@@ -491,23 +558,20 @@ fn wait_info(
     instance: &str,
     mcu: &str,
     child: &IoChild,
-) -> Result<Box<McuInfo>, String> {
+) -> Result<Box<McuInfo>, IoProcessError> {
     let mut sub =
-        ShmSubscriber::<Ipc, McuInfo>::open(node, &info_service_name(instance, mcu), &ChannelConfig::info())
-            .map_err(|e| e.to_string())?
+        ShmSubscriber::<Ipc, McuInfo>::open(node, &info_service_name(instance, mcu), &ChannelConfig::info())?
             .accept_any_start();
     let deadline = Instant::now() + Duration::from_secs(10);
     loop {
-        if let Some(info) = sub.latest().map_err(|e| e.to_string())? {
+        if let Some(info) = sub.latest()? {
             return Ok(Box::new(info));
         }
-        if let Some(e) = child.exited() {
-            return Err(e);
+        if let Some(reason) = child.exited() {
+            return Err(IoProcessError::Failed { reason });
         }
         if Instant::now() > deadline {
-            return Err(format!(
-                "mcu '{mcu}': the IO process published no MCU info within 10 s"
-            ));
+            return Err(IoProcessError::NoInfo { mcu: mcu.to_string() });
         }
         let _ = sub.wait(Duration::from_millis(20));
     }
@@ -516,22 +580,19 @@ fn wait_info(
 /// The relay thread: newest clock snapshot → seqlock, newest status → `remote`, IO process
 /// failure or exit → `remote.fail`.
 fn relay(remote: &RemoteMcu, instance: &str, child: &IoChild, stop: &AtomicBool) {
-    let setup = || -> Result<_, String> {
-        let (node, _) =
-            open_node::<Ipc>(&format!("cadence-relay-{}", std::process::id())).map_err(|e| e.to_string())?;
+    let setup = || -> Result<_, ShmError> {
+        let (node, _) = open_node::<Ipc>(&format!("cadence-relay-{}", std::process::id()))?;
         let clock = ShmSubscriber::<Ipc, ClockSnapshot>::open(
             &node,
             &clock_service_name(instance, &remote.name),
             &ChannelConfig::latest(),
-        )
-        .map_err(|e| e.to_string())?
+        )?
         .accept_any_start();
         let status = ShmSubscriber::<Ipc, IoStatus>::open(
             &node,
             &status_service_name(instance),
             &ChannelConfig::latest(),
-        )
-        .map_err(|e| e.to_string())?
+        )?
         .accept_any_start();
         Ok((node, clock, status))
     };
@@ -598,7 +659,7 @@ mod tests {
     #[test]
     fn steppers_on_another_mcu_are_refused_by_the_io_process() {
         let m = machine(include_str!("../../examples/simulated-toolboard.cfg"));
-        let err = check_single_mcu(&m).unwrap_err();
+        let err = check_single_mcu(&m).unwrap_err().to_string();
         assert!(err.contains("[stepper_z] is driven by mcu 'toolboard'"), "{err}");
         let m = machine(include_str!("../../examples/simulated-multi-mcu.cfg"));
         assert!(check_single_mcu(&m).is_ok());

@@ -20,14 +20,15 @@ use links::mcu::McuLink;
 use rt_core::logger::{Arg, Level, LoggerHandle};
 use rt_core::os::{apply_rt, RtSpec};
 use rt_core::shm::{
-    open_node, steps_service_name, telemetry_service_name, ChannelConfig, ShmPublisher, ShmSubscriber,
-    Telemetry,
+    open_node, steps_service_name, telemetry_service_name, ChannelConfig, ShmError, ShmPublisher,
+    ShmSubscriber, Telemetry,
 };
 
 use super::payloads::{
     clock_service_name, control_kind, control_service_name, info_service_name, io_state, status_service_name,
     ClockSnapshot, IoControl, IoStatus, McuInfo, STATUS_POSITIONS,
 };
+use super::IoProcessError;
 use crate::hardware::Machine;
 use crate::io_stage;
 use crate::latency::{self, Hists};
@@ -71,24 +72,24 @@ pub struct ServeOptions {
 pub struct ServeOutcome {
     pub report: Vec<String>,
     pub rt_report: Vec<String>,
-    pub result: Result<(), String>,
+    pub result: Result<(), IoProcessError>,
 }
 
 /// Serves one print: connects and configures the MCUs, runs the IO stage until the planner's
 /// FINISH, publishes DONE. `warn` gets the printer.cfg's warnings. Errors before the MCUs are
 /// connected come back as `Err`; later ones in [`ServeOutcome::result`] after the report.
-pub fn run(args: &ServeOptions, warn: &mut dyn FnMut(&str)) -> Result<ServeOutcome, String> {
+pub fn run(args: &ServeOptions, warn: &mut dyn FnMut(&str)) -> Result<ServeOutcome, IoProcessError> {
     let mut cfg = crate::hardware::load_config(args.config.as_deref())?;
     for w in &cfg.warnings {
         warn(w);
     }
     let simulated = cfg.mcus.iter().any(|m| m.is_simulated());
     if args.time_scale.is_some() && !simulated {
-        return Err("--time-scale only applies to a simulated printer".to_string());
+        return Err(IoProcessError::TimeScaleNotSimulated);
     }
     let time_scale = args.time_scale.unwrap_or(cfg.simulator.time_scale);
     if !(time_scale > 0.0 && time_scale <= 50.0) {
-        return Err(format!("--time-scale {time_scale}: must be in (0, 50]"));
+        return Err(IoProcessError::TimeScale(time_scale));
     }
     // The run's time scale is the simulated printer's (heater safety windows follow it).
     cfg.simulator.time_scale = time_scale;
@@ -100,11 +101,12 @@ pub fn run(args: &ServeOptions, warn: &mut dyn FnMut(&str)) -> Result<ServeOutco
         .unwrap_or_else(|| format!("p{}", std::process::id()));
     let logging = Logging::start(args.log_level, args.log_file.clone())?;
     let log = logging.handle("serve");
-    let (node, _) =
-        open_node::<Ipc>(&format!("cadence-serve-{}", std::process::id())).map_err(|e| e.to_string())?;
-    let mut status =
-        ShmPublisher::<Ipc, IoStatus>::open(&node, &status_service_name(&instance), &ChannelConfig::latest())
-            .map_err(|e| e.to_string())?;
+    let (node, _) = open_node::<Ipc>(&format!("cadence-serve-{}", std::process::id()))?;
+    let mut status = ShmPublisher::<Ipc, IoStatus>::open(
+        &node,
+        &status_service_name(&instance),
+        &ChannelConfig::latest(),
+    )?;
     let mut report = StatusReport {
         base: IoStatus {
             pid: std::process::id(),
@@ -119,9 +121,8 @@ pub fn run(args: &ServeOptions, warn: &mut dyn FnMut(&str)) -> Result<ServeOutco
     let (hists, mut mcus) = match connected {
         Ok(c) => c,
         Err(e) => {
-            let e = e.to_string();
-            let _ = report.send(&mut status, io_state::FAILED, &e);
-            return Err(e);
+            let _ = report.send(&mut status, io_state::FAILED, &e.to_string());
+            return Err(e.into());
         }
     };
     let ctx = ServeCtx {
@@ -137,7 +138,7 @@ pub fn run(args: &ServeOptions, warn: &mut dyn FnMut(&str)) -> Result<ServeOutco
     let result = serve_print(&ctx, &node, &mut status, &mut report);
     if let Err(e) = &result {
         log.log(Level::Error, "serve: the print failed", []);
-        let _ = report.send(&mut status, io_state::FAILED, e);
+        let _ = report.send(&mut status, io_state::FAILED, &e.to_string());
     }
     let stats = mcus.close();
     // The report: this process's histograms and link statistics.
@@ -167,7 +168,7 @@ pub fn run(args: &ServeOptions, warn: &mut dyn FnMut(&str)) -> Result<ServeOutco
 }
 
 /// The clock frequency the served print used (for the report's ms figures).
-fn machine_clock_freq(result: &Result<ServedReport, String>) -> f64 {
+fn machine_clock_freq(result: &Result<ServedReport, IoProcessError>) -> f64 {
     match result {
         Ok(r) => r.clock_freq,
         Err(_) => 50e6,
@@ -194,7 +195,7 @@ impl StatusReport {
         publisher: &mut ShmPublisher<Ipc, IoStatus>,
         state: u32,
         msg: &str,
-    ) -> Result<(), String> {
+    ) -> Result<(), IoProcessError> {
         self.base.state = state;
         self.base.set_msg(msg);
         let s = self.base;
@@ -205,7 +206,7 @@ impl StatusReport {
                 p.seq = seq;
             })
             .map(|_| ())
-            .map_err(|e| format!("io status: {e}"))
+            .map_err(IoProcessError::Status)
     }
 }
 
@@ -221,8 +222,10 @@ struct ServeCtx<'a> {
 }
 
 /// Publishes each MCU's info (kept as history) and opens its clock publisher.
-fn open_info_and_clocks(ctx: &ServeCtx<'_>, node: &iceoryx2::node::Node<Ipc>) -> Result<Publishers, String> {
-    let err = |e: rt_core::shm::ShmError| e.to_string();
+fn open_info_and_clocks(
+    ctx: &ServeCtx<'_>,
+    node: &iceoryx2::node::Node<Ipc>,
+) -> Result<Publishers, IoProcessError> {
     let mut infos = Vec::new();
     let mut clocks = Vec::new();
     for (i, m) in ctx.mcus.list.iter().enumerate() {
@@ -232,8 +235,7 @@ fn open_info_and_clocks(ctx: &ServeCtx<'_>, node: &iceoryx2::node::Node<Ipc>) ->
             node,
             &info_service_name(ctx.instance, &m.name),
             &ChannelConfig::info(),
-        )
-        .map_err(err)?;
+        )?;
         let compressed = dict.compressed();
         let mut fits = true;
         p.send_with(|info| {
@@ -242,22 +244,19 @@ fn open_info_and_clocks(ctx: &ServeCtx<'_>, node: &iceoryx2::node::Node<Ipc>) ->
             info.config_crc = crc;
             info.mcu_index = i as u32;
             fits = info.set_dict(compressed);
-        })
-        .map_err(err)?;
+        })?;
         if !fits {
-            return Err(format!(
-                "mcu '{}': its data dictionary ({} bytes) is larger than an McuInfo carries",
-                m.name,
-                compressed.len()
-            ));
+            return Err(IoProcessError::DictionaryTooLarge {
+                mcu: m.name.clone(),
+                bytes: compressed.len(),
+            });
         }
         infos.push(p);
         let c = ShmPublisher::<Ipc, ClockSnapshot>::open(
             node,
             &clock_service_name(ctx.instance, &m.name),
             &ChannelConfig::latest(),
-        )
-        .map_err(err)?;
+        )?;
         clocks.push(c);
     }
     Ok((infos, clocks))
@@ -270,7 +269,7 @@ type Publishers = (
 );
 
 /// Publishes every MCU's clock fit now.
-fn publish_clocks(mcus: &Mcus, clocks: &mut [ShmPublisher<Ipc, ClockSnapshot>]) -> Result<(), String> {
+fn publish_clocks(mcus: &Mcus, clocks: &mut [ShmPublisher<Ipc, ClockSnapshot>]) -> Result<(), ShmError> {
     let now = McuLink::system_now();
     for (m, p) in mcus.list.iter().zip(clocks.iter_mut()) {
         let est = m.link.clock();
@@ -280,8 +279,7 @@ fn publish_clocks(mcus: &Mcus, clocks: &mut [ShmPublisher<Ipc, ClockSnapshot>]) 
             c.freq = est.freq();
             c.residual_us = est.residual_us();
             c.valid = est.is_valid() as u32;
-        })
-        .map_err(|e| e.to_string())?;
+        })?;
     }
     Ok(())
 }
@@ -293,13 +291,10 @@ fn fill_done(
     end_clock: u64,
     batches: u64,
     report: &mut StatusReport,
-) -> Result<(), String> {
+) -> Result<(), IoProcessError> {
     let positions = crate::live::read_final_positions(ctx.mcus, ctx.machine, &[(0, end_clock)], ctx.scale)?;
     if positions.len() > STATUS_POSITIONS {
-        return Err(format!(
-            "{} steppers: an IoStatus carries at most {STATUS_POSITIONS} positions",
-            positions.len()
-        ));
+        return Err(IoProcessError::TooManySteppers(positions.len()));
     }
     let stats = ctx.mcus.main().link.stats();
     report.base.batches = batches;
@@ -317,31 +312,11 @@ fn serve_print(
     node: &iceoryx2::node::Node<Ipc>,
     status: &mut ShmPublisher<Ipc, IoStatus>,
     report: &mut StatusReport,
-) -> Result<ServedReport, String> {
+) -> Result<ServedReport, IoProcessError> {
     let mcus = ctx.mcus;
     let main = mcus.main();
     let clock_freq = main.clock_freq;
-    let err = |e: rt_core::shm::ShmError| e.to_string();
-    let (infos, mut clocks) = open_info_and_clocks(ctx, node)?;
-    publish_clocks(mcus, &mut clocks)?;
-    let control = ShmSubscriber::<Ipc, IoControl>::open(
-        node,
-        &control_service_name(ctx.instance),
-        &ChannelConfig::control(),
-    )
-    .map_err(err)?;
-    let telemetry = ShmPublisher::<Ipc, Telemetry>::open(
-        node,
-        &telemetry_service_name(ctx.instance),
-        &ChannelConfig::telemetry(),
-    )
-    .map_err(err)?;
-    let mut chans = Chans {
-        infos,
-        clocks,
-        control,
-        telemetry,
-    };
+    let mut chans = open_chans(ctx, node)?;
     let service = steps_service_name(ctx.instance, &main.name);
     let service = service.as_str();
     let done_flag = AtomicBool::new(false);
@@ -363,17 +338,24 @@ fn serve_print(
                     link, service, ready_tx, done, consumed, hists, clock_freq, &io_log,
                 )
             })
-            .map_err(|e| format!("cannot start the IO stage thread: {e}"))?;
-        let stop_io = |io: std::thread::ScopedJoinHandle<'_, Result<io_stage::IoReport, String>>| {
-            done.store(true, Ordering::Release);
-            io.join()
-                .map_err(|_| "the IO stage thread panicked".to_string())
-                .and_then(|r| r)
-        };
+            .map_err(|source| IoProcessError::Thread {
+                what: "IO stage thread",
+                source,
+            })?;
+        let stop_io =
+            |io: std::thread::ScopedJoinHandle<'_, Result<io_stage::IoReport, io_stage::IoStageError>>| {
+                done.store(true, Ordering::Release);
+                match io.join() {
+                    Ok(r) => r.map_err(IoProcessError::from),
+                    Err(_) => Err(IoProcessError::Panicked {
+                        what: "IO stage thread",
+                    }),
+                }
+            };
         match ready_rx.recv_timeout(Duration::from_secs(10)) {
             Ok(Ok(())) => {}
-            Ok(Err(e)) => return Err(format!("io stage: {e}")),
-            Err(_) => return Err("io stage did not start within 10 s".to_string()),
+            Ok(Err(e)) => return Err(IoProcessError::IoStageStart(e)),
+            Err(_) => return Err(IoProcessError::IoStageTimeout),
         }
         report.send(status, io_state::READY, "")?;
         ctx.log.log(Level::Info, "serve: ready", []);
@@ -418,7 +400,7 @@ fn serve_print(
                     // The IO stage only ends on its own with an error (or after `done`).
                     return Err(match stop_io(io) {
                         Err(e) => e,
-                        Ok(_) => "the IO stage stopped unexpectedly".to_string(),
+                        Ok(_) => IoProcessError::IoStageEnded,
                     });
                 }
                 // Every other end stops the IO stage first (the scope joins it).
@@ -428,6 +410,28 @@ fn serve_print(
                 }
             }
         }
+    })
+}
+
+/// Publishes the MCU info and the first clocks, opens the control and telemetry channels.
+fn open_chans(ctx: &ServeCtx<'_>, node: &iceoryx2::node::Node<Ipc>) -> Result<Chans, IoProcessError> {
+    let (infos, mut clocks) = open_info_and_clocks(ctx, node)?;
+    publish_clocks(ctx.mcus, &mut clocks)?;
+    let control = ShmSubscriber::<Ipc, IoControl>::open(
+        node,
+        &control_service_name(ctx.instance),
+        &ChannelConfig::control(),
+    )?;
+    let telemetry = ShmPublisher::<Ipc, Telemetry>::open(
+        node,
+        &telemetry_service_name(ctx.instance),
+        &ChannelConfig::telemetry(),
+    )?;
+    Ok(Chans {
+        infos,
+        clocks,
+        control,
+        telemetry,
     })
 }
 
@@ -448,7 +452,7 @@ enum Turn {
     /// The IO stage thread ended on its own.
     IoEnded,
     /// The print must end: the reason.
-    Stop(String),
+    Stop(IoProcessError),
 }
 
 /// The serve loop's memory between turns.
@@ -484,14 +488,13 @@ impl Watch {
         consumed: u64,
         report: &mut StatusReport,
         io_finished: bool,
-    ) -> Result<Turn, String> {
-        let err = |e: rt_core::shm::ShmError| e.to_string();
+    ) -> Result<Turn, IoProcessError> {
         publish_clocks(ctx.mcus, &mut chans.clocks)?;
         // New subscribers get the history (info, status) when the publisher connects.
         for p in &chans.infos {
-            p.connect().map_err(err)?;
+            p.connect()?;
         }
-        status.connect().map_err(err)?;
+        status.connect()?;
         if self.last_telemetry.elapsed() >= Duration::from_secs(1) {
             self.last_telemetry = Instant::now();
             ctx.hists.publish(
@@ -506,11 +509,11 @@ impl Watch {
         if io_finished {
             return Ok(Turn::IoEnded);
         }
-        while let Some(c) = chans.control.try_recv_with(|c| *c).map_err(err)? {
+        while let Some(c) = chans.control.try_recv_with(|c| *c)? {
             self.last_activity = Instant::now();
             match c.kind {
                 control_kind::FINISH => self.finish = Some(c),
-                control_kind::ABORT => return Ok(Turn::Stop("the planner aborted the print".to_string())),
+                control_kind::ABORT => return Ok(stop("the planner aborted the print".to_string())),
                 _ => {}
             }
         }
@@ -527,17 +530,22 @@ impl Watch {
         }
         if let Some(pid) = ctx.args.parent_pid {
             if !std::path::Path::new(&format!("/proc/{pid}")).exists() {
-                return Ok(Turn::Stop(format!("the planner process {pid} is gone")));
+                return Ok(stop(format!("the planner process {pid} is gone")));
             }
         }
         if let Some(limit) = self.idle_limit.filter(|l| self.last_activity.elapsed() > *l) {
-            return Ok(Turn::Stop(format!(
+            return Ok(stop(format!(
                 "no step batch or command from a planner for {:.0} s",
                 limit.as_secs_f64()
             )));
         }
         Ok(Turn::Go)
     }
+}
+
+/// The serve loop's end for `reason`.
+fn stop(reason: String) -> Turn {
+    Turn::Stop(IoProcessError::Stop { reason })
 }
 
 /// Waits (bounded) for the planner's `DONE_SEEN`, so the final status outlives this process's

@@ -17,6 +17,30 @@ use nix::sys::termios::{cfmakeraw, tcgetattr, tcsetattr, SetArg};
 use super::worker::{Asker, Job};
 use super::Shared;
 
+/// Why the G-code terminal could not be set up (`what`: the step that failed).
+#[derive(Debug, thiserror::Error)]
+#[error("G-code terminal {}: {what}: {why}", .path.display())]
+pub struct PtyError {
+    pub path: std::path::PathBuf,
+    pub what: &'static str,
+    #[source]
+    pub why: PtyFailure,
+}
+
+/// What failed under a [`PtyError`].
+#[derive(Debug, thiserror::Error)]
+pub enum PtyFailure {
+    /// A pty or termios call.
+    #[error(transparent)]
+    Os(#[from] nix::Error),
+    /// A file-system call.
+    #[error(transparent)]
+    Io(#[from] std::io::Error),
+    /// Something that is not a link is in the way.
+    #[error("refusing to replace it")]
+    NotALink,
+}
+
 /// An open G-code terminal: the link at `path` names its other end.
 #[derive(Debug)]
 pub struct GcodePty {
@@ -27,23 +51,27 @@ pub struct GcodePty {
 
 impl GcodePty {
     /// Opens a raw pty and links `path` to its other end (replacing an old link).
-    pub fn open(path: &Path) -> Result<GcodePty, String> {
-        let err = |what: &str, e: &dyn std::fmt::Display| {
-            format!("G-code terminal {}: {what}: {e}", path.display())
+    pub fn open(path: &Path) -> Result<GcodePty, PtyError> {
+        let err = |what: &'static str| {
+            move |why: PtyFailure| PtyError {
+                path: path.to_path_buf(),
+                what,
+                why,
+            }
         };
-        let pty = nix::pty::openpty(None, None).map_err(|e| err("cannot open a pty", &e))?;
-        let mut t = tcgetattr(&pty.slave).map_err(|e| err("termios", &e))?;
+        let pty = nix::pty::openpty(None, None).map_err(|e| err("cannot open a pty")(e.into()))?;
+        let mut t = tcgetattr(&pty.slave).map_err(|e| err("termios")(e.into()))?;
         cfmakeraw(&mut t);
-        tcsetattr(&pty.slave, SetArg::TCSANOW, &t).map_err(|e| err("termios", &e))?;
+        tcsetattr(&pty.slave, SetArg::TCSANOW, &t).map_err(|e| err("termios")(e.into()))?;
         let name = std::fs::read_link(format!("/proc/self/fd/{}", pty.slave.as_raw_fd()))
-            .map_err(|e| err("cannot name the pty", &e))?;
+            .map_err(|e| err("cannot name the pty")(e.into()))?;
         if let Ok(meta) = std::fs::symlink_metadata(path) {
             if !meta.file_type().is_symlink() {
-                return Err(err("exists and is not a link", &"refusing to replace it"));
+                return Err(err("exists and is not a link")(PtyFailure::NotALink));
             }
-            std::fs::remove_file(path).map_err(|e| err("cannot remove the old link", &e))?;
+            std::fs::remove_file(path).map_err(|e| err("cannot remove the old link")(e.into()))?;
         }
-        std::os::unix::fs::symlink(&name, path).map_err(|e| err("cannot link it", &e))?;
+        std::os::unix::fs::symlink(&name, path).map_err(|e| err("cannot link it")(e.into()))?;
         Ok(GcodePty {
             master: pty.master,
             _slave: pty.slave,
@@ -52,9 +80,9 @@ impl GcodePty {
 
     /// Serves the terminal on a thread of its own until the service quits (the thread ends
     /// with the process).
-    pub fn serve(self, jobs: Sender<Job>, shared: Arc<Shared>) -> Result<(), String> {
-        let reader = File::from(self.master.try_clone().map_err(|e| e.to_string())?);
-        let writer = File::from(self.master.try_clone().map_err(|e| e.to_string())?);
+    pub fn serve(self, jobs: Sender<Job>, shared: Arc<Shared>) -> Result<(), super::ServiceError> {
+        let reader = File::from(self.master.try_clone()?);
+        let writer = File::from(self.master.try_clone()?);
         std::thread::Builder::new()
             .name("serve-pty".to_string())
             .spawn(move || {
@@ -62,7 +90,10 @@ impl GcodePty {
                 serve_lines(BufReader::new(reader), writer, &jobs, &shared);
             })
             .map(|_| ())
-            .map_err(|e| format!("cannot start the G-code terminal thread: {e}"))
+            .map_err(|source| super::ServiceError::Thread {
+                what: "G-code terminal thread",
+                source,
+            })
     }
 }
 

@@ -137,12 +137,43 @@ pub struct ServiceOptions {
     pub retry_s: f64,
 }
 
+/// Why the service could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    /// The API socket could not be bound.
+    #[error(transparent)]
+    Api(#[from] api::ApiError),
+    /// The G-code terminal could not be set up.
+    #[error(transparent)]
+    Pty(#[from] gcode_pty::PtyError),
+    /// The G-code terminal's descriptor could not be duplicated.
+    #[error(transparent)]
+    Io(#[from] std::io::Error),
+    /// A thread of the service did not start (`what`: which one).
+    #[error("cannot start the {what}: {source}")]
+    Thread {
+        what: &'static str,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The printer thread panicked.
+    #[error("the printer thread panicked")]
+    Panicked,
+}
+
+/// The CLI's view (the message as shown).
+impl From<ServiceError> for String {
+    fn from(e: ServiceError) -> String {
+        e.to_string()
+    }
+}
+
 /// Runs the service until `quit` is set (SIGTERM/SIGINT in `cadence serve`): the worker on
 /// its own thread, the API server (when a socket is given) on this one. Stops motion and
 /// closes the printer before returning.
-pub fn run(opts: &ServiceOptions, quit: Arc<AtomicBool>, api_group: Option<u32>) -> Result<(), String> {
+pub fn run(opts: &ServiceOptions, quit: Arc<AtomicBool>, api_group: Option<u32>) -> Result<(), ServiceError> {
     let listener = match &opts.api_socket {
-        Some(path) => Some(api::bind(path, api_group).map_err(|e| e.to_string())?),
+        Some(path) => Some(api::bind(path, api_group)?),
         None => None,
     };
     let shared = Arc::new(Shared::new(quit));
@@ -156,7 +187,10 @@ pub fn run(opts: &ServiceOptions, quit: Arc<AtomicBool>, api_group: Option<u32>)
         let worker = std::thread::Builder::new()
             .name("serve-printer".to_string())
             .spawn_scoped(scope, move || worker::run(opts, shared_ref, &jobs_rx, &to_api_tx))
-            .map_err(|e| format!("cannot start the printer thread: {e}"))?;
+            .map_err(|source| ServiceError::Thread {
+                what: "printer thread",
+                source,
+            })?;
         match &listener {
             Some(l) => api::serve(
                 l,
@@ -176,9 +210,7 @@ pub fn run(opts: &ServiceOptions, quit: Arc<AtomicBool>, api_group: Option<u32>)
             }
         }
         drop(jobs_tx);
-        worker
-            .join()
-            .map_err(|_| "the printer thread panicked".to_string())
+        worker.join().map_err(|_| ServiceError::Panicked)
     })?;
     for path in opts.api_socket.iter().chain(&opts.gcode_pty) {
         let _ = std::fs::remove_file(path);

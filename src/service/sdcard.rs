@@ -101,6 +101,56 @@ pub struct SdCard {
     line: String,
 }
 
+/// Why an sdcard command was refused (the messages are Klipper's where it has one).
+#[derive(Debug, thiserror::Error)]
+pub enum SdError {
+    /// A file is printing.
+    #[error("SD busy")]
+    Busy,
+    /// The service has no sdcard directory.
+    #[error("no [virtual_sdcard] path in the config (or --virtual-sdcard DIR)")]
+    NoDirectory,
+    /// A name with `..` or an absolute part.
+    #[error("Unable to open file \"{name}\": not a file name inside the sdcard")]
+    NotInside { name: String },
+    /// The file does not open.
+    #[error("Unable to open file \"{name}\": {source}")]
+    Open {
+        name: String,
+        #[source]
+        source: std::io::Error,
+    },
+    /// `M24` without a loaded file.
+    #[error("No file selected to print (M23 or SDCARD_PRINT_FILE first)")]
+    NoFileToPrint,
+    /// `M26` without a loaded file.
+    #[error("No file selected (M23 first)")]
+    NoFile,
+    /// `M25` while paused.
+    #[error("Print already paused")]
+    AlreadyPaused,
+    /// `M25` with nothing printing.
+    #[error("No print in progress to pause")]
+    NotPrinting,
+    /// `M26`'s seek failed.
+    #[error("M26: {0}")]
+    Seek(#[source] std::io::Error),
+    /// Reading the printing file failed.
+    #[error("reading {name}: {source}")]
+    Read {
+        name: String,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+/// The G-code terminal's and the API's view (the message as shown).
+impl From<SdError> for String {
+    fn from(e: SdError) -> String {
+        e.to_string()
+    }
+}
+
 impl SdCard {
     pub fn new(dir: Option<PathBuf>) -> SdCard {
         SdCard {
@@ -113,23 +163,23 @@ impl SdCard {
 
     /// Loads `name` (relative to the sdcard directory; quotes and a leading `/` allowed, `..`
     /// refused) at its start. Returns Klipper's `File opened` line.
-    pub fn load(&mut self, name: &str) -> Result<String, String> {
+    pub fn load(&mut self, name: &str) -> Result<String, SdError> {
         if self.info.state == PrintState::Printing {
-            return Err("SD busy".into());
+            return Err(SdError::Busy);
         }
-        let dir = self
-            .dir
-            .as_ref()
-            .ok_or("no [virtual_sdcard] path in the config (or --virtual-sdcard DIR)")?;
+        let dir = self.dir.as_ref().ok_or(SdError::NoDirectory)?;
         let name = name.trim().trim_matches('"').trim_start_matches('/');
         let rel = Path::new(name);
         if name.is_empty() || rel.components().any(|c| !matches!(c, Component::Normal(_))) {
-            return Err(format!(
-                "Unable to open file \"{name}\": not a file name inside the sdcard"
-            ));
+            return Err(SdError::NotInside {
+                name: name.to_string(),
+            });
         }
         let path = dir.join(rel);
-        let file = File::open(&path).map_err(|e| format!("Unable to open file \"{name}\": {e}"))?;
+        let file = File::open(&path).map_err(|source| SdError::Open {
+            name: name.to_string(),
+            source,
+        })?;
         let size = file.metadata().map(|m| m.len()).unwrap_or(0);
         self.file = Some(BufReader::with_capacity(1 << 16, file));
         self.info = PrintInfo {
@@ -143,9 +193,9 @@ impl SdCard {
     }
 
     /// Starts or resumes the loaded file (`M24`, `RESUME`).
-    pub fn start(&mut self) -> Result<(), String> {
+    pub fn start(&mut self) -> Result<(), SdError> {
         if self.file.is_none() {
-            return Err("No file selected to print (M23 or SDCARD_PRINT_FILE first)".into());
+            return Err(SdError::NoFileToPrint);
         }
         let now = Instant::now();
         match self.info.state {
@@ -167,25 +217,25 @@ impl SdCard {
     }
 
     /// Pauses at the current line (`M25`, `PAUSE`).
-    pub fn pause(&mut self) -> Result<(), String> {
+    pub fn pause(&mut self) -> Result<(), SdError> {
         match self.info.state {
             PrintState::Printing => {
                 self.info.state = PrintState::Paused;
                 self.info.paused_since = Some(Instant::now());
                 Ok(())
             }
-            PrintState::Paused => Err("Print already paused".into()),
-            _ => Err("No print in progress to pause".into()),
+            PrintState::Paused => Err(SdError::AlreadyPaused),
+            _ => Err(SdError::NotPrinting),
         }
     }
 
     /// `M26 S`: where the next line is read from.
-    pub fn set_position(&mut self, pos: u64) -> Result<(), String> {
+    pub fn set_position(&mut self, pos: u64) -> Result<(), SdError> {
         if self.info.state == PrintState::Printing {
-            return Err("SD busy".into());
+            return Err(SdError::Busy);
         }
-        let f = self.file.as_mut().ok_or("No file selected (M23 first)")?;
-        f.seek(SeekFrom::Start(pos)).map_err(|e| format!("M26: {e}"))?;
+        let f = self.file.as_mut().ok_or(SdError::NoFile)?;
+        f.seek(SeekFrom::Start(pos)).map_err(SdError::Seek)?;
         self.info.file_position = pos;
         Ok(())
     }
@@ -221,7 +271,7 @@ impl SdCard {
 
     /// The next line of a printing file (`None` at its end or when not printing); the byte
     /// position moves past it.
-    pub fn next_line(&mut self) -> Option<Result<&str, String>> {
+    pub fn next_line(&mut self) -> Option<Result<&str, SdError>> {
         if self.info.state != PrintState::Printing {
             return None;
         }
@@ -233,7 +283,10 @@ impl SdCard {
                 self.info.file_position += n as u64;
                 Some(Ok(self.line.as_str()))
             }
-            Err(e) => Some(Err(format!("reading {}: {e}", self.info.filename))),
+            Err(source) => Some(Err(SdError::Read {
+                name: self.info.filename.clone(),
+                source,
+            })),
         }
     }
 }

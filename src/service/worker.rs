@@ -110,16 +110,15 @@ pub fn run(opts: &ServiceOptions, shared: &Shared, jobs: &Receiver<Job>, to_api:
 }
 
 /// Loads the config and opens the printer.
-fn open(opts: &ServiceOptions) -> Result<(Printer, ConfigFacts), String> {
+fn open(opts: &ServiceOptions) -> Result<(Printer, ConfigFacts), crate::printer::OpenError> {
     let (cfg, ini) = match &opts.source {
         PrinterSource::Simulated => (crate::hardware::load_config(None), None),
         PrinterSource::ConfigFile(p) => (crate::hardware::load_config(Some(p)), Some(p.clone())),
         PrinterSource::Config(c) => (Ok((**c).clone()), None),
     };
-    let cfg = cfg.map_err(|e| format!("printer config: {e}"))?;
+    let cfg = cfg?;
     let facts = ConfigFacts::new(&cfg, ini.as_deref());
-    let printer = Printer::open(PrinterSource::Config(Box::new(cfg)), opts.printer.clone())
-        .map_err(|e| e.to_string())?;
+    let printer = Printer::open(PrinterSource::Config(Box::new(cfg)), opts.printer.clone())?;
     Ok((printer, facts))
 }
 
@@ -330,6 +329,7 @@ impl Ctx<'_> {
                     return None;
                 }
                 Some(Err(e)) => {
+                    let e = e.to_string();
                     self.say(format!("!! {e}"));
                     self.sd.end(PrintState::Error, &e);
                     return None;
@@ -388,12 +388,12 @@ impl Ctx<'_> {
                 self.say("File selected".into());
                 return Ok(false);
             }
-            "M24" => return self.sd.start().map(|()| false),
+            "M24" => return Ok(self.sd.start().map(|()| false)?),
             "RESUME" => {
                 if self.sd.info.state != PrintState::Paused {
                     return Err("Print is not paused, resume aborted".into());
                 }
-                return self.sd.start().map(|()| false);
+                return Ok(self.sd.start().map(|()| false)?);
             }
             "M25" | "PAUSE" => {
                 self.sd.pause()?;
@@ -419,7 +419,7 @@ impl Ctx<'_> {
                 let pos = param(rest, "S")
                     .and_then(|v| v.parse::<u64>().ok())
                     .ok_or("M26: S<byte position> expected")?;
-                return self.sd.set_position(pos).map(|()| false);
+                return Ok(self.sd.set_position(pos).map(|()| false)?);
             }
             "M27" => {
                 self.say(self.sd.report());

@@ -16,7 +16,10 @@
 //! The planner gets the maps at start and again between batches ([`StepStreams::refresh_clocks`]),
 //! so each MCU's crystal drift is followed (the fits are `links::clocksync`'s).
 
+mod error;
 pub mod sink;
+
+pub use error::StreamError;
 
 use links::clocksync::ClockEstimate;
 use links::dict::Dictionary;
@@ -76,7 +79,7 @@ pub fn stream_mcus(machine: &Machine, names: &[&str]) -> Vec<usize> {
 impl StepStreams {
     /// Streams for `mcus` (from [`stream_mcus`], the main MCU first); every stepper's MCU must
     /// be among them.
-    pub fn new(machine: &Machine, mcus: &[McuParams<'_>]) -> Result<StepStreams, String> {
+    pub fn new(machine: &Machine, mcus: &[McuParams<'_>]) -> Result<StepStreams, StreamError> {
         let mut route = vec![(usize::MAX, 0); machine.steppers.len()];
         let mut out = Vec::with_capacity(mcus.len());
         for (k, m) in mcus.iter().enumerate() {
@@ -88,20 +91,22 @@ impl StepStreams {
                 route[i] = (k, local);
             }
             let (oid0, pins) = crate::mcus::enable_pins(m.dict, machine, m.name);
-            let enables: Vec<EnableOut> = pins
-                .iter()
-                .enumerate()
-                .map(|(i, p)| {
-                    Ok(EnableOut {
-                        oid: u8::try_from(oid0 + i)
-                            .map_err(|_| format!("mcu '{}': too many objects", m.name))?,
-                        pin: p.pin.clone(),
-                        invert: p.invert,
-                    })
-                })
-                .collect::<Result<_, String>>()?;
-            let streamer = StepStreamer::new(m.dict, &outs, &enables, m.move_count)
-                .map_err(|e| format!("mcu '{}': {e}", m.name))?;
+            let mut enables = Vec::with_capacity(pins.len());
+            for (i, p) in pins.iter().enumerate() {
+                enables.push(EnableOut {
+                    oid: u8::try_from(oid0 + i).map_err(|_| StreamError::TooManyObjects {
+                        mcu: m.name.to_string(),
+                    })?,
+                    pin: p.pin.clone(),
+                    invert: p.invert,
+                });
+            }
+            let streamer = StepStreamer::new(m.dict, &outs, &enables, m.move_count).map_err(|source| {
+                StreamError::McuDictionary {
+                    mcu: m.name.to_string(),
+                    source,
+                }
+            })?;
             out.push(McuStream {
                 name: m.name.to_string(),
                 mcu_index: m.mcu_index,
@@ -112,10 +117,10 @@ impl StepStreams {
         }
         if let Some(i) = route.iter().position(|r| r.0 == usize::MAX) {
             let s = &machine.steppers[i];
-            return Err(format!(
-                "[{}]: its MCU '{}' is not connected for this print",
-                s.name, s.mcu
-            ));
+            return Err(StreamError::NotConnected {
+                stepper: s.name.clone(),
+                mcu: s.mcu.clone(),
+            });
         }
         Ok(StepStreams { mcus: out, route })
     }
@@ -123,7 +128,7 @@ impl StepStreams {
     /// Klipper's M84/M18 on every MCU: each driver that is on goes off
     /// [`MOTORS_OFF_STALL_S`] after its MCU's last step sent, and not before `floors[k]`
     /// (stream k's earliest clock a message sent now may carry; `sinks[k]`: its sink).
-    pub fn motors_off<S: Sink>(&mut self, floors: &[u64], sinks: &mut [S]) -> Result<(), String> {
+    pub fn motors_off<S: Sink>(&mut self, floors: &[u64], sinks: &mut [S]) -> Result<(), StreamError> {
         for (k, (m, sink)) in self.mcus.iter_mut().zip(sinks.iter_mut()).enumerate() {
             let stall = (MOTORS_OFF_STALL_S * m.clock_freq) as u64;
             let floor = floors.get(k).copied().unwrap_or(0);
@@ -139,14 +144,12 @@ impl StepStreams {
 
     /// Encodes one planner command for stepper `idx` into its MCU's sink (`sinks[k]` is
     /// stream k's).
-    pub fn push<S: Sink>(&mut self, idx: usize, cmd: StepCmd, sinks: &mut [S]) -> Result<(), String> {
+    pub fn push<S: Sink>(&mut self, idx: usize, cmd: StepCmd, sinks: &mut [S]) -> Result<(), StreamError> {
         let Some(&(k, local)) = self.route.get(idx) else {
-            return Err(format!(
-                "internal error: step command for unknown stepper index {idx}"
-            ));
+            return Err(StreamError::UnknownStepper(idx));
         };
         let (Some(stream), Some(sink)) = (self.mcus.get_mut(k), sinks.get_mut(k)) else {
-            return Err(format!("internal error: no sink for step stream {k}"));
+            return Err(StreamError::NoSink(k));
         };
         stream.streamer.push(local, cmd, sink)
     }
@@ -182,14 +185,14 @@ impl StepStreams {
 
     /// Every stepper's clock map now, in machine order; `clock(mcu_index)` is that MCU's
     /// clock-sync fit. Fails when another MCU has no valid fit.
-    pub fn clock_maps(&self, clock: impl Fn(usize) -> ClockEstimate) -> Result<Vec<ClockMap>, String> {
+    pub fn clock_maps(&self, clock: impl Fn(usize) -> ClockEstimate) -> Result<Vec<ClockMap>, StreamError> {
         let main = &self.mcus[0];
         let main_est = clock(main.mcu_index);
         let now = McuLink::system_now();
         let mut maps = vec![ClockMap::identity(main.clock_freq); self.route.len()];
         for m in &self.mcus[1..] {
             let map = clock_map(&main_est, main.clock_freq, &clock(m.mcu_index), now)
-                .ok_or_else(|| format!("mcu '{}': no clock estimate yet", m.name))?;
+                .ok_or_else(|| StreamError::NoClock { mcu: m.name.clone() })?;
             for &i in &m.steppers {
                 maps[i] = map;
             }
@@ -204,7 +207,7 @@ impl StepStreams {
         &self,
         pipeline: &mut Pipeline,
         clock: impl Fn(usize) -> ClockEstimate,
-    ) -> Result<(), String> {
+    ) -> Result<(), StreamError> {
         let Some((main, others)) = self.mcus.split_first() else {
             return Ok(());
         };
@@ -218,7 +221,7 @@ impl StepStreams {
                 continue;
             };
             for &i in &m.steppers {
-                pipeline.set_clock_map(i, map).map_err(|e| e.to_string())?;
+                pipeline.set_clock_map(i, map)?;
             }
         }
         Ok(())
@@ -278,20 +281,22 @@ mod tests {
         let x = m.steppers.iter().position(|s| s.name == "stepper_x").unwrap();
         assert_eq!((s.stream_of(x), s.stream_of(z)), (Some(0), Some(1)));
         let err = StepStreams::new(&m, &[p("mcu", 0)]).unwrap_err();
-        assert!(err.contains("'toolboard'"), "{err}");
+        assert!(
+            matches!(&err, StreamError::NotConnected { mcu, .. } if mcu == "toolboard"),
+            "{err:?}"
+        );
+        assert!(err.to_string().contains("'toolboard'"), "{err}");
     }
 
     /// Every message a stream sends, decoded: (name, fields, req_clock).
-    #[derive(Default)]
-    struct Recorder(Vec<(String, Vec<i64>, u64)>, Option<Dictionary>);
+    struct Recorder(Vec<(String, Vec<i64>, u64)>, Dictionary);
 
     impl Sink for Recorder {
-        fn send(&mut self, cmd: links::dict::Cmd) -> Result<(), String> {
+        fn send(&mut self, cmd: links::dict::Cmd) -> Result<(), StreamError> {
             self.send_clocked(cmd, 0, 0)
         }
-        fn send_clocked(&mut self, cmd: links::dict::Cmd, _: u64, req: u64) -> Result<(), String> {
-            let dict = self.1.as_ref().ok_or("no dictionary")?;
-            for m in dict.decode_command(cmd.as_bytes()).map_err(|e| e.to_string())? {
+        fn send_clocked(&mut self, cmd: links::dict::Cmd, _: u64, req: u64) -> Result<(), StreamError> {
+            for m in self.1.decode_command(cmd.as_bytes())? {
                 let fields = m.fields.iter().filter_map(|(n, _)| m.get(n)).collect();
                 self.0.push((m.name, fields, req));
             }
@@ -313,7 +318,7 @@ mod tests {
             move_count: 1024,
         };
         let mut s = StepStreams::new(&m, &[params]).unwrap();
-        let mut sink = [Recorder(Vec::new(), Some(dict.clone()))];
+        let mut sink = [Recorder(Vec::new(), dict.clone())];
         let (oid0, pins) = crate::mcus::enable_pins(&dict, &m, "mcu");
         assert_eq!(pins.len(), 4, "one enable pin per stepper in this config");
         let x = m.steppers.iter().position(|s| s.name == "stepper_x").unwrap();
@@ -362,7 +367,7 @@ mod tests {
         assert!(first_enable < first_step);
         // Configured off: value and default_value inactive (1 on an active-low pin).
         let (cmds, _, _) = crate::mcus::config_commands(&dict, &m, "mcu").unwrap();
-        let mut config = Recorder(Vec::new(), Some(dict.clone()));
+        let mut config = Recorder(Vec::new(), dict.clone());
         for c in cmds {
             config.send(c).unwrap();
         }

@@ -14,15 +14,17 @@ use planner::stepgen::StepCmd;
 
 use crate::hardware::StepperOut;
 
+use super::StreamError;
+
 /// Where encoded messages go.
 pub trait Sink {
     /// A message with no timing constraint (configuration, queries).
-    fn send(&mut self, cmd: Cmd) -> Result<(), String>;
+    fn send(&mut self, cmd: Cmd) -> Result<(), StreamError>;
     /// A message not to be sent before `min_clock`, ordered and lead-checked by `req_clock`.
-    fn send_clocked(&mut self, cmd: Cmd, min_clock: u64, req_clock: u64) -> Result<(), String>;
+    fn send_clocked(&mut self, cmd: Cmd, min_clock: u64, req_clock: u64) -> Result<(), StreamError>;
     // homing: a sink that batches must hand its batch on when homing waits for the MCUs.
     /// Hands on whatever the sink holds back (default: it holds nothing back).
-    fn flush(&mut self) -> Result<(), String> {
+    fn flush(&mut self) -> Result<(), StreamError> {
         Ok(())
     }
 }
@@ -97,8 +99,8 @@ impl StepStreamer {
         steppers: &[StepperOut],
         enables: &[EnableOut],
         move_count: usize,
-    ) -> Result<StepStreamer, String> {
-        let enc = |name: &str| dict.encoder(name).map_err(|e| e.to_string());
+    ) -> Result<StepStreamer, links::dict::DictError> {
+        let enc = |name: &str| dict.encoder(name);
         let pool = move_count.saturating_sub(POOL_MARGIN).max(1);
         let enable_of = steppers
             .iter()
@@ -158,17 +160,15 @@ impl StepStreamer {
     }
 
     /// Sets enable pin `e` to `on` at `clock` (sent in step order, as if a step at `clock`).
-    fn set_enable(&mut self, e: usize, on: bool, clock: u64, sink: &mut dyn Sink) -> Result<(), String> {
+    fn set_enable(&mut self, e: usize, on: bool, clock: u64, sink: &mut dyn Sink) -> Result<(), StreamError> {
         let (Some(enc), Some(pin)) = (&self.enc.digital_out, self.enables.get_mut(e)) else {
             return Ok(());
         };
-        let m = enc
-            .encode(&[
-                i64::from(pin.out.oid),
-                clock as u32 as i64,
-                i64::from(on != pin.out.invert),
-            ])
-            .map_err(|e| e.to_string())?;
+        let m = enc.encode(&[
+            i64::from(pin.out.oid),
+            clock as u32 as i64,
+            i64::from(on != pin.out.invert),
+        ])?;
         sink.send_clocked(m, 0, clock)?;
         pin.on = on;
         if !on {
@@ -180,7 +180,12 @@ impl StepStreamer {
     /// Klipper's M84/M18: every enable pin that is on goes off `stall_ticks` after the last
     /// step sent (the motors settle first), at `floor` at the earliest (the lead a message
     /// sent now needs); a later step turns its pin on again.
-    pub fn motors_off(&mut self, stall_ticks: u64, floor: u64, sink: &mut dyn Sink) -> Result<(), String> {
+    pub fn motors_off(
+        &mut self,
+        stall_ticks: u64,
+        floor: u64,
+        sink: &mut dyn Sink,
+    ) -> Result<(), StreamError> {
         let clock = (self.last_step_clock + stall_ticks).max(floor);
         for e in 0..self.enables.len() {
             if self.enables[e].on {
@@ -191,7 +196,7 @@ impl StepStreamer {
     }
 
     /// Encodes and sends one planner command for stepper `idx`.
-    pub fn push(&mut self, idx: usize, cmd: StepCmd, sink: &mut dyn Sink) -> Result<(), String> {
+    pub fn push(&mut self, idx: usize, cmd: StepCmd, sink: &mut dyn Sink) -> Result<(), StreamError> {
         // A stepper's driver is turned on before its first step (at its step clock's base).
         if let (StepCmd::QueueStep { first_clock, .. }, Some(Some(e))) = (&cmd, self.enable_of.get(idx)) {
             let e = *e;
@@ -202,9 +207,7 @@ impl StepStreamer {
             }
         }
         let Some(stepper) = self.steppers.get(idx) else {
-            return Err(format!(
-                "internal error: step command for unknown stepper index {idx}"
-            ));
+            return Err(StreamError::UnknownStepper(idx));
         };
         let oid = stepper.oid as i64;
         let invert = stepper.dir_pin.invert;
@@ -226,26 +229,17 @@ impl StepStreamer {
                     // The stepper must be idle when the reset arrives.
                     min_clock = min_clock.max(st.last_clock + 1);
                     st.min_clock = min_clock;
-                    let m = self
-                        .enc
-                        .reset
-                        .encode(&[oid, clock as u32 as i64])
-                        .map_err(|e| e.to_string())?;
+                    let m = self.enc.reset.encode(&[oid, clock as u32 as i64])?;
                     sink.send_clocked(m, min_clock, first_clock)?;
                 }
                 if let Some(dir) = st.pending_dir.take() {
-                    let m = self
-                        .enc
-                        .set_dir
-                        .encode(&[oid, dir as i64])
-                        .map_err(|e| e.to_string())?;
+                    let m = self.enc.set_dir.encode(&[oid, dir as i64])?;
                     sink.send_clocked(m, min_clock, first_clock)?;
                 }
                 let m = self
                     .enc
                     .queue_step
-                    .encode(&[oid, interval as i64, count as i64, add as i64])
-                    .map_err(|e| e.to_string())?;
+                    .encode(&[oid, interval as i64, count as i64, add as i64])?;
                 sink.send_clocked(m, min_clock, first_clock)?;
                 st.min_clock = min_clock;
                 st.last_clock = last_clock;
@@ -282,7 +276,7 @@ impl<W: std::io::Write> BatchSink<W> {
         }
     }
 
-    fn push_msg(&mut self, cmd: &Cmd) -> Result<(), String> {
+    fn push_msg(&mut self, cmd: &Cmd) -> Result<(), StreamError> {
         let bytes = cmd.as_bytes();
         if self.payload.len() + bytes.len() > links::proto::MESSAGE_PAYLOAD_MAX {
             self.flush_block()?;
@@ -291,16 +285,14 @@ impl<W: std::io::Write> BatchSink<W> {
         Ok(())
     }
 
-    fn flush_block(&mut self) -> Result<(), String> {
+    fn flush_block(&mut self) -> Result<(), StreamError> {
         if self.payload.is_empty() {
             return Ok(());
         }
         let mut block = [0u8; links::proto::MESSAGE_MAX];
         let n = links::proto::encode_block(self.seq as u8, &self.payload, &mut block)
-            .ok_or_else(|| "internal error: message too long for a block".to_string())?;
-        self.out
-            .write_all(&block[..n])
-            .map_err(|e| format!("writing the batch output: {e}"))?;
+            .ok_or(StreamError::BlockTooLong)?;
+        self.out.write_all(&block[..n]).map_err(StreamError::Write)?;
         self.seq += 1;
         self.bytes += n as u64;
         self.blocks += 1;
@@ -309,19 +301,17 @@ impl<W: std::io::Write> BatchSink<W> {
     }
 
     /// Flushes the last block and the writer.
-    pub fn finish(&mut self) -> Result<(), String> {
+    pub fn finish(&mut self) -> Result<(), StreamError> {
         self.flush_block()?;
-        self.out
-            .flush()
-            .map_err(|e| format!("writing the batch output: {e}"))
+        self.out.flush().map_err(StreamError::Write)
     }
 }
 
 impl<W: std::io::Write> Sink for BatchSink<W> {
-    fn send(&mut self, cmd: Cmd) -> Result<(), String> {
+    fn send(&mut self, cmd: Cmd) -> Result<(), StreamError> {
         self.push_msg(&cmd)
     }
-    fn send_clocked(&mut self, cmd: Cmd, _min_clock: u64, _req_clock: u64) -> Result<(), String> {
+    fn send_clocked(&mut self, cmd: Cmd, _min_clock: u64, _req_clock: u64) -> Result<(), StreamError> {
         self.push_msg(&cmd)
     }
 }
@@ -334,12 +324,10 @@ pub struct LinkSink<'a> {
 }
 
 impl Sink for LinkSink<'_> {
-    fn send(&mut self, cmd: Cmd) -> Result<(), String> {
-        self.link.send(cmd).map_err(|e| e.to_string())
+    fn send(&mut self, cmd: Cmd) -> Result<(), StreamError> {
+        Ok(self.link.send(cmd)?)
     }
-    fn send_clocked(&mut self, cmd: Cmd, min_clock: u64, req_clock: u64) -> Result<(), String> {
-        self.link
-            .send_clocked(cmd, min_clock, req_clock)
-            .map_err(|e| e.to_string())
+    fn send_clocked(&mut self, cmd: Cmd, min_clock: u64, req_clock: u64) -> Result<(), StreamError> {
+        Ok(self.link.send_clocked(cmd, min_clock, req_clock)?)
     }
 }

@@ -9,10 +9,35 @@
 use std::fs::File;
 use std::io::{BufRead, BufReader, Read};
 use std::path::Path;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI32, AtomicU64, Ordering};
 use std::sync::Arc;
 
-use super::signals::StopRequest;
+use nix::sys::signal::Signal;
+
+/// The signal that asked the print to stop (0: none yet), shared between whoever takes the
+/// signals and the G-code reader.
+#[derive(Debug, Clone, Default)]
+pub struct StopRequest(Arc<AtomicI32>);
+
+impl StopRequest {
+    /// The signal received, if any.
+    pub fn signal(&self) -> Option<Signal> {
+        match self.0.load(Ordering::Acquire) {
+            0 => None,
+            n => Signal::try_from(n).ok(),
+        }
+    }
+
+    /// True once a stop was asked for.
+    pub fn is_set(&self) -> bool {
+        self.0.load(Ordering::Acquire) != 0
+    }
+
+    /// Asks for a stop because of `sig`.
+    pub fn set(&self, sig: Signal) {
+        self.0.store(sig as i32, Ordering::Release);
+    }
+}
 
 const BOM: &[u8] = b"\xEF\xBB\xBF";
 /// The line fed after a stop.
@@ -30,6 +55,7 @@ pub struct ReadPosition {
 }
 
 /// A buffered file reader that counts, skips a BOM and stops at a line boundary on request.
+#[derive(Debug)]
 pub struct GcodeSource {
     inner: BufReader<File>,
     pos: Arc<ReadPosition>,
