@@ -177,10 +177,7 @@ fn explain(error: &str, time_scale: Option<f64>) -> String {
         Some(scale)
             if scale > 1.0 && (error.contains("Timer too close") || error.contains("fell behind")) =>
         {
-            let load = std::fs::read_to_string("/proc/loadavg")
-                .ok()
-                .and_then(|l| l.split_whitespace().next().map(str::to_string))
-                .unwrap_or_else(|| "?".to_string());
+            let load = super::progress::load_average();
             let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
             let lower = (scale / 2.5).floor().max(1.0);
             format!(

@@ -21,6 +21,10 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
 use cadence::gcode_source::ReadPosition;
 
+/// On a time-scaled simulator, a lead below this many times the 100 ms minimum means the
+/// simulation is falling behind (the buffer of planned motion is nearly spent).
+const FALLING_BEHIND: f64 = 1.5;
+
 /// Period of the plain progress lines.
 pub const PLAIN_PERIOD: Duration = Duration::from_secs(10);
 
@@ -29,6 +33,8 @@ pub struct Display {
     pos: Arc<ReadPosition>,
     file_bytes: u64,
     out: Out,
+    /// The falling-behind warning was printed.
+    warned: std::sync::atomic::AtomicBool,
 }
 
 enum Out {
@@ -59,7 +65,12 @@ impl Display {
         } else {
             Out::Plain(Mutex::new(None))
         };
-        Display { pos, file_bytes, out }
+        Display {
+            pos,
+            file_bytes,
+            out,
+            warned: std::sync::atomic::AtomicBool::new(false),
+        }
     }
 
     /// Shows `p`.
@@ -71,6 +82,14 @@ impl Display {
             self.pos.lines.load(Ordering::Relaxed),
             self.pos.layers.load(Ordering::Relaxed),
         );
+        if let Some(text) = falling_behind(p) {
+            if !self.warned.swap(true, Ordering::Relaxed) {
+                match &self.out {
+                    Out::Bar(bar) => bar.println(&text),
+                    Out::Plain(_) => eprintln!("{text}"),
+                }
+            }
+        }
         match &self.out {
             Out::Bar(bar) => {
                 bar.set_position((line.percent * 10.0) as u64);
@@ -93,6 +112,32 @@ impl Display {
             bar.finish_and_clear();
         }
     }
+}
+
+/// The warning, once, that a time-scaled simulation is falling behind (its lead is nearly spent:
+/// the simulated MCU will shut down with `Timer too close` if it goes on), with a lower scale to
+/// try; `None` while it keeps up.
+pub fn falling_behind(p: &Progress) -> Option<String> {
+    let ms = p.min_lead_ms?;
+    if p.time_scale <= 1.0 || ms >= FALLING_BEHIND * cadence::MIN_LEAD_S * 1e3 {
+        return None;
+    }
+    let lower = (p.time_scale / 2.5).floor().max(1.0);
+    Some(format!(
+        "cadence: warning: the simulation is falling behind at --time-scale {}: step commands reached \
+         the simulated MCU only {ms:.0} ms ahead (it needs 100 ms; the host or the simulator did not \
+         get the CPU in time, load average {}); if it stops with 'Timer too close', try --time-scale {lower}",
+        p.time_scale,
+        load_average()
+    ))
+}
+
+/// The 1-minute load average, as /proc says it (`?` where it cannot be read).
+pub fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()
+        .and_then(|l| l.split_whitespace().next().map(str::to_string))
+        .unwrap_or_else(|| "?".to_string())
 }
 
 /// The words of one progress report: `bytes` of `file_bytes` read, `lines` lines, `layers`
@@ -132,6 +177,10 @@ pub fn describe(p: &Progress, bytes: u64, file_bytes: u64, lines: u64, layers: u
             Some(ms) if ms < cadence::MIN_LEAD_S * 1e3 => {
                 (format!("⚠ lead only {ms:.0} ms (< 100 ms)"), true)
             }
+            Some(ms) if p.time_scale > 1.0 && ms < FALLING_BEHIND * cadence::MIN_LEAD_S * 1e3 => (
+                format!("⚠ falling behind at {}×: lead {ms:.0} ms", p.time_scale),
+                true,
+            ),
             Some(ms) => (format!("✓ lead ≥ {ms:.0} ms"), false),
             None => ("✓ link up".to_string(), false),
         }
@@ -188,5 +237,27 @@ mod tests {
         );
         let l = describe(&progress(0.0, 0.0, None), 0, 10, 0, 0);
         assert!(l.text.contains("starting") && !l.warn, "{}", l.text);
+    }
+
+    #[test]
+    fn a_time_scaled_simulation_running_out_of_lead_is_named() {
+        let mut p = progress(1.0, 2.0, Some(120.0));
+        assert!(!describe(&p, 1, 10, 1, 0).warn, "at 1x 120 ms is fine");
+        assert_eq!(falling_behind(&p), None);
+        p.time_scale = 50.0;
+        let l = describe(&p, 1, 10, 1, 0);
+        assert!(
+            l.warn && l.text.ends_with("⚠ falling behind at 50×: lead 120 ms"),
+            "{}",
+            l.text
+        );
+        let w = falling_behind(&p).unwrap();
+        assert!(
+            w.contains("falling behind at --time-scale 50: step commands reached the simulated MCU only 120 ms ahead")
+                && w.ends_with("try --time-scale 20"),
+            "{w}"
+        );
+        p.min_lead_ms = Some(281.0);
+        assert_eq!(falling_behind(&p), None, "the usual lead at 50×");
     }
 }
