@@ -361,10 +361,13 @@ fn read_extra_steppers(
 }
 
 /// Pin providers among the ignored sections: `[adc_scaled NAME]` and `[sx1509 NAME]` provide
-/// chip `NAME`, `[replicape]` chip `replicape` (Klipper's names), as (chip, section name).
+/// chip `NAME`, `[replicape]` chip `replicape`, `[multi_pin NAME]` chip `multi_pin` (Klipper's
+/// names), as (chip, section name).
 fn unsupported_chips(file: &ConfigFile) -> Vec<(String, String)> {
     let chip = |s: &ini::Section| match (s.kind(), s.name().split_whitespace().nth(1)) {
         ("adc_scaled" | "sx1509", Some(name)) => Some(name.to_string()),
+        // `multi_pin:NAME` names the section's pin group.
+        ("multi_pin", Some(_)) => Some("multi_pin".to_string()),
         ("replicape", _) => Some("replicape".to_string()),
         _ => None,
     };
