@@ -90,7 +90,10 @@ impl Accessories {
             Applied::Message(text) => self.messages.push(line, text.clone()),
             Applied::Report(text) => self.reports.push(line, text.clone()),
             Applied::MotorsOff => self.motors_off += 1,
-            Applied::Done | Applied::Unsupported(_) | Applied::PressureAdvance { .. } | Applied::Extruder { .. } => {}
+            Applied::Done
+            | Applied::Unsupported(_)
+            | Applied::PressureAdvance { .. }
+            | Applied::Extruder { .. } => {}
         }
         None
     }

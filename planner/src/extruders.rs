@@ -128,7 +128,11 @@ impl Extruders {
     /// ACTIVATE_EXTRUDER: `current_e` is the toolhead's E now (the old extruder's position).
     /// Returns the new E position and the event, or `None` when `name` is active already;
     /// the text Klipper answers with comes with it.
-    pub fn activate(&mut self, name: &str, current_e: f64) -> Result<(Option<(f64, ExtruderEvent)>, String), String> {
+    pub fn activate(
+        &mut self,
+        name: &str,
+        current_e: f64,
+    ) -> Result<(Option<(f64, ExtruderEvent)>, String), String> {
         let index = extruder_index(name)
             .filter(|&i| i < self.count())
             .ok_or_else(|| format!("The value '{name}' is not valid for EXTRUDER"))?;
@@ -138,11 +142,18 @@ impl Extruders {
         self.last_e[self.active] = current_e;
         self.active = index;
         let e = self.last_e[index];
-        Ok((Some((e, ExtruderEvent::Activate(index))), format!("Activating extruder {name}")))
+        Ok((
+            Some((e, ExtruderEvent::Activate(index))),
+            format!("Activating extruder {name}"),
+        ))
     }
 
     /// One of the stepper commands (`name`, parameters `p`): the event and Klipper's answer.
-    pub fn command(&mut self, name: &str, p: &OtherParams<'_>) -> Result<(Option<ExtruderEvent>, String), String> {
+    pub fn command(
+        &mut self,
+        name: &str,
+        p: &OtherParams<'_>,
+    ) -> Result<(Option<ExtruderEvent>, String), String> {
         let num = |k: &str| p.float(k).map_err(|e| e.to_string());
         match name {
             "SYNC_EXTRUDER_MOTION" => {
@@ -179,15 +190,16 @@ impl Extruders {
                 let s = &mut self.steppers[stepper];
                 let advance = num("ADVANCE")?.unwrap_or(s.pressure_advance.0);
                 let smooth_time = num("SMOOTH_TIME")?.unwrap_or(s.pressure_advance.1);
-                if !(advance >= 0.0 && advance < 10.0) {
+                if !(0.0..10.0).contains(&advance) {
                     return Err(format!("ADVANCE={advance} must be in 0 .. 10"));
                 }
                 if !(smooth_time > 0.0 && smooth_time <= 0.2) {
-                    return Err(format!("SMOOTH_TIME={smooth_time} must be above 0 and at most 0.2"));
+                    return Err(format!(
+                        "SMOOTH_TIME={smooth_time} must be above 0 and at most 0.2"
+                    ));
                 }
-                let said = format!(
-                    "pressure_advance: {advance:.6}\npressure_advance_smooth_time: {smooth_time:.6}"
-                );
+                let said =
+                    format!("pressure_advance: {advance:.6}\npressure_advance_smooth_time: {smooth_time:.6}");
                 if (advance, smooth_time) == s.pressure_advance {
                     return Ok((None, said));
                 }
@@ -234,7 +246,10 @@ mod tests {
             pressure_advance: (0.0, 0.04),
             rotation_distance: 33.5,
         };
-        Extruders::new(2, vec![st("extruder", Some(0)), st("extruder1", Some(1)), st("e2", None)])
+        Extruders::new(
+            2,
+            vec![st("extruder", Some(0)), st("extruder1", Some(1)), st("e2", None)],
+        )
     }
 
     fn cmd(x: &mut Extruders, text: &str) -> Result<(Option<ExtruderEvent>, String), String> {
@@ -249,7 +264,10 @@ mod tests {
         let (got, said) = x.activate("extruder1", 12.5).unwrap();
         assert_eq!(got, Some((0.0, ExtruderEvent::Activate(1))));
         assert_eq!(said, "Activating extruder extruder1");
-        assert_eq!(x.activate("extruder1", 3.0).unwrap().1, "Extruder extruder1 already active");
+        assert_eq!(
+            x.activate("extruder1", 3.0).unwrap().1,
+            "Extruder extruder1 already active"
+        );
         let (got, _) = x.activate("extruder", 3.0).unwrap();
         assert_eq!(got, Some((12.5, ExtruderEvent::Activate(0))));
         assert!(x.activate("extruder2", 0.0).is_err());
@@ -260,7 +278,13 @@ mod tests {
     fn sync_and_advance() {
         let mut x = two();
         let (ev, said) = cmd(&mut x, "SYNC_EXTRUDER_MOTION EXTRUDER=e2 MOTION_QUEUE=extruder1").unwrap();
-        assert_eq!(ev, Some(ExtruderEvent::Sync { stepper: 2, queue: Some(1) }));
+        assert_eq!(
+            ev,
+            Some(ExtruderEvent::Sync {
+                stepper: 2,
+                queue: Some(1)
+            })
+        );
         assert_eq!(said, "Extruder 'e2' now syncing with 'extruder1'");
         assert!(cmd(&mut x, "SYNC_EXTRUDER_MOTION EXTRUDER=e2 MOTION_QUEUE=extruder7").is_err());
         assert!(cmd(&mut x, "SYNC_EXTRUDER_MOTION EXTRUDER=nope MOTION_QUEUE=extruder").is_err());
@@ -278,7 +302,13 @@ mod tests {
         assert!(matches!(ev, Some(ExtruderEvent::Advance { stepper: 0, .. })));
         assert!(cmd(&mut x, "SET_PRESSURE_ADVANCE ADVANCE=0.02 SMOOTH_TIME=0.5").is_err());
         let (ev, said) = cmd(&mut x, "SET_EXTRUDER_ROTATION_DISTANCE EXTRUDER=e2 DISTANCE=-20").unwrap();
-        assert_eq!(ev, Some(ExtruderEvent::RotationDistance { stepper: 2, distance: -20.0 }));
+        assert_eq!(
+            ev,
+            Some(ExtruderEvent::RotationDistance {
+                stepper: 2,
+                distance: -20.0
+            })
+        );
         assert_eq!(said, "Extruder 'e2' rotation distance set to -20.000000");
         assert!(cmd(&mut x, "SET_EXTRUDER_ROTATION_DISTANCE EXTRUDER=e2 DISTANCE=0").is_err());
     }

@@ -1104,7 +1104,9 @@ mod tests {
         );
         assert_eq!(
             res[8],
-            Ok(Applied::Report(CommandText::new("Extruder extruder already active")))
+            Ok(Applied::Report(CommandText::new(
+                "Extruder extruder already active"
+            )))
         );
     }
 

@@ -34,6 +34,8 @@ use std::collections::{BinaryHeap, VecDeque};
 use std::sync::Arc;
 
 use crate::compress::StepCompressor;
+use crate::extruders::{ExtruderEvent, ExtruderStepper, Extruders};
+use crate::gcode::CommandText;
 use crate::gcode::GcodeLine;
 use crate::kinematics::Kinematics;
 use crate::machine::{Applied, GcodeState, PlanError, PlanErrorKind, Retraction, ARC_RESOLUTION};
@@ -42,9 +44,9 @@ use crate::shaped::{shapes, ShapedGen};
 use crate::shaper::InputShaper;
 use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::{Move, Toolhead, ToolheadConfig};
-use crate::extruders::{ExtruderEvent, ExtruderStepper, Extruders};
-use crate::gcode::CommandText;
-use lanes::{place, LaneClock, LaneEvent, LaneOut, LaneState, Msg, PaChange, ShaperChange, Workers, CMDS_CAPACITY};
+use lanes::{
+    place, LaneClock, LaneEvent, LaneOut, LaneState, Msg, PaChange, ShaperChange, Workers, CMDS_CAPACITY,
+};
 
 /// An extruder stepper's lane index, configured step distance and rotation distance.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -440,7 +442,8 @@ impl Pipeline {
                 .map(|s| ExtruderStepper {
                     name: s.name.clone(),
                     queue: s.extruder.map_or(Some(0), |l| l.queue),
-                    pressure_advance: lane_pa(s).map_or((0.0, DEFAULT_SMOOTH_TIME), |p| (p.advance, p.smooth_time)),
+                    pressure_advance: lane_pa(s)
+                        .map_or((0.0, DEFAULT_SMOOTH_TIME), |p| (p.advance, p.smooth_time)),
                     rotation_distance: s.extruder.map_or(0.0, |l| l.rotation_distance),
                 })
                 .collect(),
@@ -516,7 +519,8 @@ impl Pipeline {
             // from the toolhead and those still in its lookahead.
             self.th.take_moves(&mut self.moves);
             let at = self.dispatched + self.moves.len() as u64 + self.th.queued_moves() as u64;
-            self.pa_pending.push_back((at, LaneEvent::Advance(self.pa_lane.take(), advance, smooth_time)));
+            self.pa_pending
+                .push_back((at, LaneEvent::Advance(self.pa_lane.take(), advance, smooth_time)));
             if advance > 0.0 {
                 self.settle = self.settle.max(0.5 * smooth_time);
             }
@@ -550,11 +554,16 @@ impl Pipeline {
                     return Err(PlanError {
                         line: 0,
                         kind: PlanErrorKind::BadParameter(
-                            "SET_EXTRUDER_ROTATION_DISTANCE: this stepper's rotation_distance is not known".into(),
+                            "SET_EXTRUDER_ROTATION_DISTANCE: this stepper's rotation_distance is not known"
+                                .into(),
                         ),
                     });
                 }
-                Some(LaneEvent::StepDist(l, step_dist * distance.abs() / rotation, distance < 0.0))
+                Some(LaneEvent::StepDist(
+                    l,
+                    step_dist * distance.abs() / rotation,
+                    distance < 0.0,
+                ))
             }
         };
         if let Some(ev) = lane {

@@ -106,7 +106,11 @@ fn only_the_active_extruders_stepper_moves() {
         // extruder: 4 mm, then 1.5 mm after it is active again (its E resumes at 4).
         assert_eq!(pos[3], steps(5.5), "advance {advance} threads {threads}: {pos:?}");
         // Absolute E on extruder1: 0 → 2 → 3 → −1 (G1 E-1 is absolute): net −1 mm.
-        assert_eq!(pos[4], steps(-1.0), "advance {advance} threads {threads}: {pos:?}");
+        assert_eq!(
+            pos[4],
+            steps(-1.0),
+            "advance {advance} threads {threads}: {pos:?}"
+        );
         assert_eq!(pos[5], 0, "the unsynced extruder_stepper moved: {pos:?}");
         assert_eq!(
             reports,
@@ -156,7 +160,10 @@ fn a_new_rotation_distance_scales_and_a_negative_one_inverts() {
     );
     // 2 mm at 33.5, 4 mm at 67 (half the steps), then 1 mm backwards.
     assert_eq!(pos[3], steps(2.0) + steps(2.0) - steps(1.0), "{pos:?}");
-    assert_eq!(reports[1], "Extruder 'extruder' rotation distance set to -33.500000");
+    assert_eq!(
+        reports[1],
+        "Extruder 'extruder' rotation distance set to -33.500000"
+    );
 }
 
 #[test]
@@ -191,8 +198,10 @@ fn per_extruder_pressure_advance_and_heater_commands() {
 fn force_move_and_buzz_step_the_named_stepper_alone() {
     let mut p = printer(0.0, 0);
     let mut out = Vec::new();
-    p.force_move("stepper_y", 10.0, 20.0, 0.0, &mut out).unwrap_or_else(|e| panic!("{e}"));
-    p.force_move("extruder1", -5.0, 10.0, 500.0, &mut out).unwrap_or_else(|e| panic!("{e}"));
+    p.force_move("stepper_y", 10.0, 20.0, 0.0, &mut out)
+        .unwrap_or_else(|e| panic!("{e}"));
+    p.force_move("extruder1", -5.0, 10.0, 500.0, &mut out)
+        .unwrap_or_else(|e| panic!("{e}"));
     let pos = net(&out, 6);
     assert_eq!(pos, vec![0, 800, 0, 0, steps(-5.0), 0]);
     assert!(p.force_move("stepper_q", 1.0, 1.0, 0.0, &mut out).is_err());
@@ -200,7 +209,8 @@ fn force_move_and_buzz_step_the_named_stepper_alone() {
     // The toolhead's next move starts after the forced ones and moves from where it was.
     let mut all = out.clone();
     let mut q = Vec::new();
-    p.stepper_buzz("stepper_x", &mut q).unwrap_or_else(|e| panic!("{e}"));
+    p.stepper_buzz("stepper_x", &mut q)
+        .unwrap_or_else(|e| panic!("{e}"));
     let buzz = net(&q, 6);
     assert_eq!(buzz[0], 0, "{buzz:?}");
     let moved: u64 = q

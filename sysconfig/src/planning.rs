@@ -122,12 +122,22 @@ pub fn extruder_steppers(cfg: &PrinterConfig) -> Vec<(String, &MotorSection, Opt
         })
     };
     let own = cfg.extruders().enumerate().map(|(i, e)| {
-        let l = link(Some(i), e.pressure_advance, e.pressure_advance_smooth_time, &e.motor);
+        let l = link(
+            Some(i),
+            e.pressure_advance,
+            e.pressure_advance_smooth_time,
+            &e.motor,
+        );
         (e.name.clone(), &e.motor, l)
     });
     let extra = cfg.extruder_steppers.iter().map(|s| {
         let queue = s.extruder.as_deref().and_then(planner::extruders::extruder_index);
-        let l = link(queue, s.pressure_advance, s.pressure_advance_smooth_time, &s.motor);
+        let l = link(
+            queue,
+            s.pressure_advance,
+            s.pressure_advance_smooth_time,
+            &s.motor,
+        );
         (s.name.clone(), &s.motor, l)
     });
     own.chain(extra).collect()

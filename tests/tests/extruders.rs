@@ -81,13 +81,21 @@ fn live_print_steps_only_the_active_extruder_and_forced_steppers() {
     assert_eq!(net.get(&2).copied().unwrap_or(0), 0, "{net:?}");
     // extruder: E 0 → 2 while active, then 2 → 3 after T0 (it did not move meanwhile).
     assert_eq!(net.get(&3), Some(&span(0.0, 3.0)), "{net:?}");
-    assert_eq!(total.get(&3).map(|&t| t as i64), Some(span(0.0, 3.0)), "{total:?}");
+    assert_eq!(
+        total.get(&3).map(|&t| t as i64),
+        Some(span(0.0, 3.0)),
+        "{total:?}"
+    );
     // extruder1: 0 → 4 while active.
     assert_eq!(net.get(&4), Some(&span(0.0, 4.0)), "{net:?}");
     // e2: extruder1's 3 → 4, then ten buzz cycles of 1 mm out and back.
     assert_eq!(net.get(&5), Some(&span(3.0, 4.0)), "{net:?}");
     let buzz = 2 * 10 * span(4.0, 5.0);
-    assert_eq!(total.get(&5).map(|&t| t as i64), Some(span(3.0, 4.0) + buzz), "{total:?}");
+    assert_eq!(
+        total.get(&5).map(|&t| t as i64),
+        Some(span(3.0, 4.0) + buzz),
+        "{total:?}"
+    );
 }
 
 #[test]
@@ -123,6 +131,14 @@ fn batch_stream_of_several_extruders_checks() {
             .unwrap_or_else(|| panic!("no {name} line:\n{}", r.stdout))
             .to_string()
     };
-    assert!(line("extruder1").contains(&format!("{} steps", span(0.0, 4.0))), "{}", r.stdout);
-    assert!(line("e2").contains(&format!("{} steps", span(3.0, 4.0))), "{}", r.stdout);
+    assert!(
+        line("extruder1").contains(&format!("{} steps", span(0.0, 4.0))),
+        "{}",
+        r.stdout
+    );
+    assert!(
+        line("e2").contains(&format!("{} steps", span(3.0, 4.0))),
+        "{}",
+        r.stdout
+    );
 }

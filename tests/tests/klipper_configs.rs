@@ -19,9 +19,10 @@ use std::time::Duration;
 
 use cadence_tests::scratch;
 
-/// The small print: home, heat the nozzle to a temperature every example extruder allows,
-/// an extruded square at Z 1 (inside a delta's print radius too), wait for the moves.
-const GCODE: &str = "G28\nM109 S200\nG90\nM83\nG1 Z1 F600\nG1 X10 Y10 F3000\n\
+/// The small print: start heating the nozzle to a temperature every example extruder allows,
+/// home meanwhile, wait for the temperature, an extruded square at Z 1 (inside a delta's
+/// print radius too), wait for the moves.
+const GCODE: &str = "M104 S200\nG28\nM109 S200\nG90\nM83\nG1 Z1 F600\nG1 X10 Y10 F3000\n\
 G1 X20 Y10 E0.5 F1200\nG1 X20 Y20 E0.5\nG1 X10 Y20 E0.5\nG1 X10 Y10 E0.5\nM400\n";
 
 /// Live prints run the simulated MCUs this much faster than the wall clock (heating 25 → 200 °C
@@ -31,7 +32,7 @@ const LIVE_TIME_SCALE: &str = "10";
 /// A live print that failed on time (a step not ready 100 ms ahead, or a homing
 /// communication timeout: this loaded VM's pauses at a fast time scale) runs once more at this
 /// scale; the table shows the second run's result.
-const RETRY_TIME_SCALE: &str = "2";
+const RETRY_TIME_SCALE: &str = "4";
 
 /// `text` with every `[mcu]`/`[mcu NAME]` section's `serial:` (or `canbus_uuid:`) line set to
 /// the simulator; nothing else changes.
@@ -130,7 +131,8 @@ fn timing_failure(o: &Outcome) -> bool {
 }
 
 fn run_one(dir: &Path, cfg: &Path, live: bool) -> Outcome {
-    let scale = std::env::var("CADENCE_KLIPPER_CONFIGS_TIME_SCALE").unwrap_or_else(|_| LIVE_TIME_SCALE.into());
+    let scale =
+        std::env::var("CADENCE_KLIPPER_CONFIGS_TIME_SCALE").unwrap_or_else(|_| LIVE_TIME_SCALE.into());
     let o = run_at(dir, cfg, live.then_some(scale.as_str()));
     if live && timing_failure(&o) {
         return run_at(dir, cfg, Some(RETRY_TIME_SCALE));
@@ -141,7 +143,11 @@ fn run_one(dir: &Path, cfg: &Path, live: bool) -> Outcome {
 /// One config in batch mode (`scale` None) or live at time scale `scale`.
 fn run_at(dir: &Path, cfg: &Path, scale: Option<&str>) -> Outcome {
     let live = scale.is_some();
-    let name = cfg.file_name().and_then(|n| n.to_str()).unwrap_or("?").to_string();
+    let name = cfg
+        .file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or("?")
+        .to_string();
     let text = std::fs::read_to_string(cfg).unwrap_or_else(|e| panic!("{}: {e}", cfg.display()));
     let copy = dir.join(&name);
     std::fs::write(&copy, on_simulator(&text)).unwrap_or_else(|e| panic!("{e}"));
@@ -237,7 +243,10 @@ fn klipper_example_configs_print_on_the_simulator() {
         .ok()
         .and_then(|v| v.parse().ok());
     let configs = example_configs(Path::new(&src));
-    assert!(!configs.is_empty(), "no printer-*.cfg/generic-*.cfg under {src}/config");
+    assert!(
+        !configs.is_empty(),
+        "no printer-*.cfg/generic-*.cfg under {src}/config"
+    );
     let dir = scratch("klipper-configs");
     std::fs::write(dir.join("square.gcode"), GCODE).unwrap_or_else(|e| panic!("{e}"));
     println!("configs and outputs in {}", dir.display());

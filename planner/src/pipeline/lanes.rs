@@ -259,7 +259,8 @@ impl LaneState {
             true => mv,
             false => self.clock.carry(&mv),
         };
-        self.comp.push_move(&mv, &StepperKin::axis(0, self.comp.step_dist()));
+        self.comp
+            .push_move(&mv, &StepperKin::axis(0, self.comp.step_dist()));
     }
 
     /// An extruder lane's view of `mv`: as it is while the lane follows the active extruder,

@@ -156,7 +156,10 @@ pub(crate) fn read_extruder_steppers(
             "" => None,
             e if extruders.contains(&e) => Some(e.to_string()),
             e => {
-                let why = format!("'{e}' is not a valid extruder (there are: {})", extruders.join(", "));
+                let why = format!(
+                    "'{e}' is not a valid extruder (there are: {})",
+                    extruders.join(", ")
+                );
                 return Err(s.bad("extruder", v, super::error::ValueProblem::Invalid(why)));
             }
         };

@@ -237,9 +237,9 @@ fn read_sensor(s: &SectionReader<'_>, pins: &mut PinRegistry) -> Result<SensorSe
         _ => {
             super::heater::refuse_unsupported_sensor(s, &sensor_type)?;
             SensorSource::Adc {
-            sensor_pin: s.pin("sensor_pin", PinKind::Analog, pins, Share::Exclusive)?,
-            pullup_resistor: s.float_or("pullup_resistor", 4700.0, Bounds::ANY.above(0.0))?,
-            inline_resistor: s.float_or("inline_resistor", 0.0, Bounds::ANY.min(0.0))?,
+                sensor_pin: s.pin("sensor_pin", PinKind::Analog, pins, Share::Exclusive)?,
+                pullup_resistor: s.float_or("pullup_resistor", 4700.0, Bounds::ANY.above(0.0))?,
+                inline_resistor: s.float_or("inline_resistor", 0.0, Bounds::ANY.min(0.0))?,
             }
         }
     };
