@@ -7,6 +7,9 @@
 //! kept in the scratch directory. Skipped, saying so, without the variable: Klipper's files
 //! are not part of this repository.
 //!
+//! `CADENCE_KLIPPER_CONFIGS_JOBS=N` runs N configs at a time, `CADENCE_KLIPPER_CONFIGS_ONLY=a.cfg,…`
+//! only those, `CADENCE_KLIPPER_CONFIGS_TIME_SCALE` sets the live prints' time scale.
+//!
 //! What it asserts: no run hangs or crashes (a signal, or a panic's message), and each config
 //! that fails says why on stderr. `CADENCE_KLIPPER_CONFIGS_MIN=N` also requires at least N
 //! configs to print in each mode run.
@@ -242,7 +245,16 @@ fn klipper_example_configs_print_on_the_simulator() {
     let min: Option<usize> = std::env::var("CADENCE_KLIPPER_CONFIGS_MIN")
         .ok()
         .and_then(|v| v.parse().ok());
-    let configs = example_configs(Path::new(&src));
+    let mut configs = example_configs(Path::new(&src));
+    // `CADENCE_KLIPPER_CONFIGS_ONLY=a.cfg,b.cfg`: those configs alone.
+    if let Ok(only) = std::env::var("CADENCE_KLIPPER_CONFIGS_ONLY") {
+        let names: Vec<&str> = only.split(',').map(str::trim).collect();
+        configs.retain(|c| {
+            c.file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| names.contains(&n))
+        });
+    }
     assert!(
         !configs.is_empty(),
         "no printer-*.cfg/generic-*.cfg under {src}/config"
