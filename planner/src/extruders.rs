@@ -46,7 +46,7 @@ pub const EXTRUDER_COMMANDS: [&str; 4] = [
 /// the next move).
 #[derive(Debug, Clone, PartialEq)]
 pub enum ExtruderEvent {
-    /// Extruder `0` is active from the next move on (the toolhead was brought to rest).
+    /// Extruder `.0` is active from the next move on (the toolhead was brought to rest).
     Activate(usize),
     /// Stepper `stepper` (an index into [`Extruders::stepper_names`]) follows extruder
     /// `queue`'s motion (or none) from the next move on.

@@ -140,7 +140,7 @@ pub(crate) enum LaneEvent {
     /// A new pressure advance (advance, smooth_time) for lane `Some(i)`, or every extruder
     /// lane (`None`).
     Advance(Option<usize>, f64, f64),
-    /// Extruder `0` is the active one: the toolhead's E moves go to its motion.
+    /// Extruder `.0` is the active one: the toolhead's E moves go to its motion.
     Active(usize),
     /// Lane `.0` follows extruder `.1`'s motion (or none).
     Follow(usize, Option<usize>),
