@@ -90,7 +90,10 @@ impl Accessories {
             Applied::Message(text) => self.messages.push(line, text.clone()),
             Applied::Report(text) => self.reports.push(line, text.clone()),
             Applied::MotorsOff => self.motors_off += 1,
-            Applied::Done | Applied::Unsupported(_) | Applied::PressureAdvance { .. } => {}
+            Applied::Done
+            | Applied::Unsupported(_)
+            | Applied::PressureAdvance { .. }
+            | Applied::Extruder { .. } => {}
         }
         None
     }
@@ -98,7 +101,7 @@ impl Accessories {
     /// The summary's lines (none when the G-code asked nothing of these).
     pub fn lines(&self) -> Vec<String> {
         let mut out = Vec::new();
-        let used: Vec<String> = [HeaterId::Extruder, HeaterId::Bed]
+        let used: Vec<String> = [HeaterId::Extruder(0), HeaterId::Bed]
             .into_iter()
             .zip(self.heaters)
             .filter(|(_, h)| h.commands > 0)
@@ -147,10 +150,7 @@ impl Accessories {
 }
 
 fn heater_name(id: HeaterId) -> &'static str {
-    match id {
-        HeaterId::Extruder => "extruder",
-        HeaterId::Bed => "heater_bed",
-    }
+    id.name()
 }
 
 #[cfg(test)]
@@ -161,7 +161,7 @@ mod tests {
     fn records_and_reports() {
         let mut a = Accessories::new(false);
         let heat = |target, wait| Applied::Heater {
-            heater: HeaterId::Extruder,
+            heater: HeaterId::Extruder(0),
             target,
             wait,
         };

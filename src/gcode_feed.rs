@@ -186,8 +186,9 @@ pub(crate) trait FeedTarget {
     fn heat(&mut self, _pipeline: &mut Pipeline, _cmd: &HeatCmd) -> Result<(), String> {
         Ok(())
     }
-    /// An extruding move is allowed (the extruder is at `min_extrude_temp` or above).
-    fn can_extrude(&self) -> Result<(), String> {
+    /// An extruding move of extruder `extruder` (its heater's name) is allowed (it is at
+    /// `min_extrude_temp` or above).
+    fn can_extrude(&self, _extruder: &str) -> Result<(), String> {
         Ok(())
     }
     /// M84/M18 after the moves before it were planned: the drivers go off once they ran.
@@ -508,11 +509,50 @@ impl Feed<'_> {
         release(self.pipeline, self.out, target)
     }
 
+    /// `FORCE_MOVE STEPPER= DISTANCE= VELOCITY= [ACCEL=]` or `STEPPER_BUZZ STEPPER=`: one
+    /// stepper moved on its own (Klipper's `[force_move]`), its steps sent at once.
+    fn forced_move(
+        &mut self,
+        line: &GcodeLine,
+        name: &str,
+        raw: &str,
+        target: &mut impl FeedTarget,
+    ) -> Result<(), String> {
+        let at = |e: String| format!("{}:{}: {name}: {e}", self.file.display(), line.line_no);
+        let p = OtherParams::parse(raw).map_err(|e| at(e.to_string()))?;
+        let stepper = p.get("STEPPER").ok_or_else(|| at("missing STEPPER".into()))?;
+        let num = |k: &str| p.float(k).map_err(|e| at(e.to_string()));
+        // Everything planned so far goes out first.
+        self.pipeline.flush_lookahead();
+        release(self.pipeline, self.out, target)?;
+        let done = if name == "STEPPER_BUZZ" {
+            self.pipeline.stepper_buzz(stepper, self.out)
+        } else {
+            let distance = num("DISTANCE")?.ok_or_else(|| at("missing DISTANCE".into()))?;
+            let velocity = num("VELOCITY")?.ok_or_else(|| at("missing VELOCITY".into()))?;
+            let accel = num("ACCEL")?.unwrap_or(0.0);
+            self.pipeline
+                .force_move(stepper, distance, velocity, accel, self.out)
+        };
+        done.map_err(|e| at(e.kind.to_string()))?;
+        if !self.out.is_empty() {
+            target.emit(self.out)?;
+            self.out.clear();
+            target.pace(self.pipeline)?;
+        }
+        Ok(())
+    }
+
     /// Plans one command and hands on what became final.
     fn plan(&mut self, line: &GcodeLine, target: &mut impl FeedTarget) -> Result<(), String> {
         if let Command::Other { name, raw } = &line.cmd {
             if name.as_str() == "SET_KINEMATIC_POSITION" && self.force_move {
                 return self.set_kinematic_position(line, raw.as_str(), target);
+            }
+            // FORCE_MOVE only with `enable_force_move: True` (otherwise an unknown command, as
+            // Klipper registers it only then); STEPPER_BUZZ always.
+            if (name.as_str() == "FORCE_MOVE" && self.force_move) || name.as_str() == "STEPPER_BUZZ" {
+                return self.forced_move(line, name.as_str(), raw.as_str(), target);
             }
         }
         if plan_line(
@@ -865,8 +905,8 @@ impl<T: FeedTarget> FeedTarget for Checked<'_, T> {
     fn heat(&mut self, pipeline: &mut Pipeline, cmd: &HeatCmd) -> Result<(), String> {
         self.target.heat(pipeline, cmd)
     }
-    fn can_extrude(&self) -> Result<(), String> {
-        self.target.can_extrude()
+    fn can_extrude(&self, extruder: &str) -> Result<(), String> {
+        self.target.can_extrude(extruder)
     }
 }
 
@@ -944,8 +984,9 @@ fn plan_line(
             .map_err(|e| format!("{}:{}: {e}", file.display(), line.line_no))?;
     }
     if extrudes && pipeline.position()[3] != e_before {
+        let active = pipeline.gcode_state().extruders().active();
         target
-            .can_extrude()
+            .can_extrude(planner::extruders::EXTRUDER_NAMES[active])
             .map_err(|e| format!("{}:{}: {e}", file.display(), line.line_no))?;
     }
     if let Some(heat) = heat_gcode::of_applied(&applied) {

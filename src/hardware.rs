@@ -2,7 +2,7 @@
 //! G-code state machine): which steppers exist, on which MCU and oid, with which pins, and the
 //! planner configuration derived from printer.cfg.
 
-use planner::pipeline::{Pipeline, PipelineConfig, PipelineOptions, StepperSpec};
+use planner::pipeline::{ExtruderLink, Pipeline, PipelineConfig, PipelineOptions, StepperSpec};
 use planner::toolhead::ToolheadConfig;
 use sysconfig::printer::{BlTouchSection, MotorSection, PinRef, PrinterConfig, ProbeSection, PROBE_PIN_MCU};
 
@@ -24,6 +24,8 @@ pub struct StepperOut {
     /// Minimum step pulse width in seconds (Klipper's default: 2 µs).
     pub step_pulse_duration: f64,
     pub step_dist: f64,
+    /// An extruder stepper's start (see [`planner::pipeline::ExtruderLink`]).
+    pub extruder: Option<ExtruderLink>,
 }
 
 impl StepperOut {
@@ -40,6 +42,7 @@ impl StepperOut {
             enable_pin: motor.enable_pin.clone(),
             step_pulse_duration: motor.step_pulse_duration.unwrap_or(DEFAULT_STEP_PULSE_DURATION),
             step_dist: motor.step_dist(),
+            extruder: None,
         }
     }
 }
@@ -235,8 +238,10 @@ impl Machine {
         }
         let toolhead = planning.toolhead;
         let home = planning.home_position;
-        if let Some(e) = &cfg.extruder {
-            steppers.push(StepperOut::new("extruder".to_string(), 3, &e.motor));
+        for (name, motor, link) in sysconfig::planning::extruder_steppers(cfg) {
+            let mut s = StepperOut::new(name, 3, motor);
+            s.extruder = link;
+            steppers.push(s);
         }
         // A stepper lives on its step pin's MCU, any configured one (sysconfig checked that
         // the MCU exists and that the dir pin is on the same one).
@@ -339,6 +344,7 @@ impl Machine {
                     name: s.name.clone(),
                     axis: s.axis,
                     step_dist: s.step_dist,
+                    extruder: s.extruder,
                 })
                 .collect(),
             clock_freq,

@@ -770,9 +770,9 @@ impl FeedTarget for PlannerRun<'_, '_> {
         Ok(self.sinks.iter_mut().try_for_each(ShmSink::flush)?)
     }
 
-    fn can_extrude(&self) -> Result<(), String> {
+    fn can_extrude(&self, extruder: &str) -> Result<(), String> {
         match self.st.heaters {
-            Some(shared) => crate::heaters::feed::can_extrude(&self.st.machine.thermal, shared),
+            Some(shared) => crate::heaters::feed::can_extrude(&self.st.machine.thermal, shared, extruder),
             None => Ok(()),
         }
     }

@@ -395,6 +395,16 @@ pub fn run(
         spec.mcu,
         spec.max_error_us
     ));
+    if !machine.host.delayed.is_empty() {
+        // The check plans the G-code lines and the macros they call; the live and batch
+        // prints also fire timers, which this replay does not (said, not guessed).
+        let ids: Vec<&str> = machine.host.delayed.iter().map(|(id, _)| id.as_str()).collect();
+        out(format!(
+            "  note: [delayed_gcode] timers ({}) are not run by the check (initial_duration and \
+             UPDATE_DELAYED_GCODE): steps their scripts moved are not planned here",
+            ids.join(", ")
+        ));
+    }
     for c in &checked {
         let stats: CheckStats = c.checker.finish().map_err(|source| WireCheckError::Steps {
             stepper: c.name.clone(),

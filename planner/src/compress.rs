@@ -155,6 +155,18 @@ impl StepCompressor {
         self.next = None;
     }
 
+    /// A new step distance from the next move on: the stepper stays where it is and counts
+    /// steps of the new size from there.
+    pub fn set_step_dist(&mut self, step_dist: f64) {
+        self.step_dist = step_dist;
+        self.gen.set_step_dist(step_dist);
+    }
+
+    /// The stepper position (mm, in its own coordinate) after the last move generated.
+    pub fn commanded_position(&self) -> f64 {
+        self.gen.last_pos()
+    }
+
     /// mm per step.
     pub fn step_dist(&self) -> f64 {
         self.step_dist

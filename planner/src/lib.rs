@@ -27,6 +27,8 @@
 
 pub mod checker;
 pub mod compress;
+pub mod extruders;
+pub mod force_move;
 pub mod gcode;
 pub mod kinematics;
 pub mod machine;

@@ -22,6 +22,7 @@
 //! M117 are returned to the caller as [`Applied`] values. Unknown commands are
 //! [`Applied::Unsupported`] (the caller warns), or errors with [`GcodeState::set_unknown_is_error`].
 
+use crate::extruders::{ExtruderEvent, Extruders};
 use crate::gcode::exclude::{ExcludeObjects, EXCLUDE_COMMANDS};
 use crate::gcode::{Command, CommandName, CommandText, GcodeErrorKind, GcodeLine, OtherParams, TextBuilder};
 use crate::shaper::{InputShaper, ShaperType};
@@ -39,7 +40,8 @@ const MAX_ARC_SEGMENTS: f64 = 1e6;
 
 /// The [`Command::Other`] commands [`GcodeState::apply`] implements (besides M117 and, with an
 /// input shaper, SET_INPUT_SHAPER); a test keeps it equal to the commands handled.
-const KNOWN_OTHER: [&str; 24] = [
+const KNOWN_OTHER: [&str; 27] = [
+    "ACTIVATE_EXTRUDER",
     "G10",
     "G11",
     "G17",
@@ -61,16 +63,32 @@ const KNOWN_OTHER: [&str; 24] = [
     "M84",
     "RESTORE_GCODE_STATE",
     "SAVE_GCODE_STATE",
+    "SET_EXTRUDER_ROTATION_DISTANCE",
     "SET_PRESSURE_ADVANCE",
     "SET_RETRACTION",
     "SET_VELOCITY_LIMIT",
+    "SYNC_EXTRUDER_MOTION",
 ];
 
 /// Which heater a temperature command addresses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum HeaterId {
-    Extruder,
+    /// Extruder k's heater (`extruder`, `extruder1`…).
+    Extruder(usize),
     Bed,
+}
+
+impl HeaterId {
+    /// The heater's name (`extruder`, `extruder1`…, `heater_bed`).
+    pub fn name(self) -> &'static str {
+        match self {
+            HeaterId::Extruder(k) => crate::extruders::EXTRUDER_NAMES
+                .get(k)
+                .copied()
+                .unwrap_or("extruder"),
+            HeaterId::Bed => "heater_bed",
+        }
+    }
 }
 
 /// What [`GcodeState::apply`] did with a line.
@@ -97,6 +115,13 @@ pub enum Applied {
     PressureAdvance {
         advance: f64,
         smooth_time: f64,
+    },
+    /// ACTIVATE_EXTRUDER, SYNC_EXTRUDER_MOTION, SET_PRESSURE_ADVANCE,
+    /// SET_EXTRUDER_ROTATION_DISTANCE: what changes in step generation (the pipeline applies
+    /// it from the next move and answers with `said`, Klipper's text, as a report).
+    Extruder {
+        event: ExtruderEvent,
+        said: CommandText,
     },
     /// M84/M18: steppers off; every axis must be homed again before moving.
     MotorsOff,
@@ -155,7 +180,9 @@ pub struct GcodeState {
     unknown_is_error: bool,
     retract: Retraction,
     retracted: bool,
-    pressure_advance: (f64, f64),
+    /// The extruders: the active one, their E positions, the steppers' motion queues and
+    /// pressure advance.
+    extruders: Extruders,
     /// Arc chord length (mm).
     arc_resolution: f64,
     /// `[input_shaper]` settings (`None`: no such section, SET_INPUT_SHAPER is unknown).
@@ -216,7 +243,7 @@ impl GcodeState {
             unknown_is_error: false,
             retract: Retraction::default(),
             retracted: false,
-            pressure_advance: (0.0, 0.04),
+            extruders: Extruders::default(),
             arc_resolution: ARC_RESOLUTION,
             input_shaper: None,
             objects: None,
@@ -266,14 +293,25 @@ impl GcodeState {
         };
     }
 
-    /// The pressure advance the steps are generated with (from the configuration).
-    pub fn set_pressure_advance(&mut self, advance: f64, smooth_time: f64) {
-        self.pressure_advance = (advance, smooth_time);
+    /// The printer's extruders and extruder steppers (default: one extruder, no stepper).
+    pub fn set_extruders(&mut self, extruders: Extruders) {
+        self.extruders = extruders;
     }
 
-    /// Pressure advance and its smooth time as last set (SET_PRESSURE_ADVANCE).
+    /// The extruders as the commands left them.
+    pub fn extruders(&self) -> &Extruders {
+        &self.extruders
+    }
+
+    /// The active extruder's stepper's pressure advance and smooth time (0 and 0.04 s
+    /// without one).
     pub fn pressure_advance(&self) -> (f64, f64) {
-        self.pressure_advance
+        let own = crate::extruders::EXTRUDER_NAMES[self.extruders.active()];
+        self.extruders
+            .steppers()
+            .iter()
+            .find(|s| s.name == own)
+            .map_or((0.0, 0.04), |s| s.pressure_advance)
     }
 
     /// Axes homed so far (X, Y, Z).
@@ -534,14 +572,21 @@ impl GcodeState {
             }
             "G20" => return Err(PlanErrorKind::Inches),
             "M104" | "M109" | "M140" | "M190" => {
-                // The one extruder is T0 (Klipper refuses a T naming no extruder).
+                // T names an extruder (T1 = extruder1); without it the active one. Klipper
+                // ignores turning off an extruder it does not have, and refuses heating one.
+                let mut index = self.extruders.active();
                 if matches!(name, "M104" | "M109") {
                     if let Some(t) = num("T")? {
-                        if t != 0.0 {
+                        let k = t as usize;
+                        if t < 0.0 || t.fract() != 0.0 || k >= self.extruders.count() {
+                            if non_neg("S")?.unwrap_or(0.0) <= 0.0 {
+                                return Ok(Applied::Done);
+                            }
                             return Err(PlanErrorKind::BadParameter(format!(
-                                "{name}: T{t}: this printer has one extruder (T0)"
+                                "{name}: T{t}: Extruder not configured"
                             )));
                         }
+                        index = k;
                     }
                 }
                 let target = non_neg("S")?.unwrap_or(0.0);
@@ -553,7 +598,7 @@ impl GcodeState {
                 let heater = if matches!(name, "M140" | "M190") {
                     HeaterId::Bed
                 } else {
-                    HeaterId::Extruder
+                    HeaterId::Extruder(index)
                 };
                 if matches!(name, "M109" | "M190") {
                     // The caller waits for the heater: moves queued so far run first.
@@ -618,38 +663,47 @@ impl GcodeState {
                 )
                 .map_err(limits)?;
             }
-            "SET_PRESSURE_ADVANCE" => {
-                if let Some(e) = p.get("EXTRUDER") {
-                    if e != "extruder" {
-                        return Err(PlanErrorKind::BadParameter(format!(
-                            "{name}: EXTRUDER={e}: this printer has one extruder, 'extruder'"
-                        )));
+            "ACTIVATE_EXTRUDER" => {
+                let Some(extruder) = p.get("EXTRUDER") else {
+                    return Err(PlanErrorKind::BadParameter(format!("{name}: missing EXTRUDER")));
+                };
+                // Klipper flushes step generation, keeps the old extruder's E and continues
+                // from the new one's; gcode_move then reads E as 0 with no M221 factor.
+                th.flush();
+                let (change, said) = self
+                    .extruders
+                    .activate(extruder, self.last[3])
+                    .map_err(|e| PlanErrorKind::BadParameter(format!("{name}: {e}")))?;
+                let Some((e, event)) = change else {
+                    return Ok(Applied::Report(CommandText::new(&said)));
+                };
+                let mut pos = th.position();
+                pos[3] = e;
+                th.set_position(pos);
+                self.last = th.position();
+                self.base[3] = self.last[3];
+                self.extrude_factor = 1.0;
+                return Ok(Applied::Extruder {
+                    event,
+                    said: CommandText::new(&said),
+                });
+            }
+            "SYNC_EXTRUDER_MOTION" | "SET_PRESSURE_ADVANCE" | "SET_EXTRUDER_ROTATION_DISTANCE" => {
+                let (event, said) = self
+                    .extruders
+                    .command(name, &p)
+                    .map_err(|e| PlanErrorKind::BadParameter(format!("{name}: {e}")))?;
+                let said = CommandText::new(&said);
+                return Ok(match event {
+                    Some(event) => {
+                        if name != "SET_PRESSURE_ADVANCE" {
+                            // Klipper flushes step generation first.
+                            th.flush();
+                        }
+                        Applied::Extruder { event, said }
                     }
-                }
-                let advance = non_neg("ADVANCE")?.unwrap_or(self.pressure_advance.0);
-                let smooth = non_neg("SMOOTH_TIME")?.unwrap_or(self.pressure_advance.1);
-                if smooth > 0.2 {
-                    return Err(PlanErrorKind::BadParameter(format!(
-                        "{name}: SMOOTH_TIME={smooth} must be ≤ 0.2"
-                    )));
-                }
-                if advance >= 10.0 {
-                    return Err(PlanErrorKind::BadParameter(format!(
-                        "{name}: ADVANCE={advance} must be < 10"
-                    )));
-                }
-                if smooth <= 0.0 {
-                    return Err(PlanErrorKind::BadParameter(format!(
-                        "{name}: SMOOTH_TIME={smooth} must be > 0"
-                    )));
-                }
-                if (advance, smooth) != self.pressure_advance {
-                    self.pressure_advance = (advance, smooth);
-                    return Ok(Applied::PressureAdvance {
-                        advance,
-                        smooth_time: smooth,
-                    });
-                }
+                    None => Applied::Report(said),
+                });
             }
             "SET_INPUT_SHAPER" if self.input_shaper.is_some() => {
                 let mut s = self.input_shaper.unwrap_or_default();
@@ -768,6 +822,15 @@ mod tests {
 
     fn run(lines: &[&str]) -> (GcodeState, Toolhead, Vec<Result<Applied, PlanError>>) {
         let mut st = GcodeState::new([0.0, 0.0, 0.5]);
+        st.set_extruders(Extruders::new(
+            1,
+            vec![crate::extruders::ExtruderStepper {
+                name: "extruder".into(),
+                queue: Some(0),
+                pressure_advance: (0.0, 0.04),
+                rotation_distance: 33.5,
+            }],
+        ));
         let mut th = Toolhead::new(ToolheadConfig::default(), 0.0);
         let mut results = Vec::new();
         for (i, l) in lines.iter().enumerate() {
@@ -852,7 +915,7 @@ mod tests {
         assert_eq!(
             res[4],
             Ok(Applied::Heater {
-                heater: HeaterId::Extruder,
+                heater: HeaterId::Extruder(0),
                 target: 200.0,
                 wait: false
             })
@@ -994,7 +1057,7 @@ mod tests {
         let heater = |heater, target, wait| Ok(Applied::Heater { heater, target, wait });
         assert_eq!(res[0], heater(HeaterId::Bed, 60.0, false));
         assert_eq!(res[1], heater(HeaterId::Bed, 60.0, true));
-        assert_eq!(res[2], heater(HeaterId::Extruder, 215.0, true));
+        assert_eq!(res[2], heater(HeaterId::Extruder(0), 215.0, true));
         assert_eq!(res[3], Ok(Applied::Fan { speed: 0.5 }));
         assert_eq!(res[4], Ok(Applied::Fan { speed: 0.0 }));
         assert_eq!(
@@ -1022,14 +1085,29 @@ mod tests {
             "M104 S200 T0",
             "M109 S200 T1",
             "M140 S60",
+            "M104 S0 T1",
+            "ACTIVATE_EXTRUDER EXTRUDER=extruder1",
+            "ACTIVATE_EXTRUDER EXTRUDER=extruder",
         ]);
         assert!(res[1].is_ok() && res[3].is_ok() && res[5].is_ok(), "{res:?}");
         let err = |i: usize| res[i].as_ref().map(|_| ()).unwrap_err().to_string();
         assert_eq!(
             err(2),
-            "line 3: SET_PRESSURE_ADVANCE: EXTRUDER=extruder1: this printer has one extruder, 'extruder'"
+            "line 3: SET_PRESSURE_ADVANCE: 'extruder1' is not a valid extruder stepper"
         );
-        assert_eq!(err(4), "line 5: M109: T1: this printer has one extruder (T0)");
+        assert_eq!(err(4), "line 5: M109: T1: Extruder not configured");
+        // Turning off an extruder the printer lacks is ignored, as on Klipper.
+        assert_eq!(res[6], Ok(Applied::Done));
+        assert_eq!(
+            err(7),
+            "line 8: ACTIVATE_EXTRUDER: The value 'extruder1' is not valid for EXTRUDER"
+        );
+        assert_eq!(
+            res[8],
+            Ok(Applied::Report(CommandText::new(
+                "Extruder extruder already active"
+            )))
+        );
     }
 
     #[test]

@@ -25,6 +25,7 @@
 //! [`Pipeline::set_clock_map`]) carries each move into that clock before its steps are
 //! generated, and its commands' keys back into print ticks for the merge (see `lanes`).
 
+mod forced; // FORCE_MOVE, STEPPER_BUZZ
 mod homing; // homing: stop part-way through a homing move, resync
 mod lanes;
 
@@ -33,6 +34,8 @@ use std::collections::{BinaryHeap, VecDeque};
 use std::sync::Arc;
 
 use crate::compress::StepCompressor;
+use crate::extruders::{ExtruderEvent, ExtruderStepper, Extruders};
+use crate::gcode::CommandText;
 use crate::gcode::GcodeLine;
 use crate::kinematics::Kinematics;
 use crate::machine::{Applied, GcodeState, PlanError, PlanErrorKind, Retraction, ARC_RESOLUTION};
@@ -41,7 +44,13 @@ use crate::shaped::{shapes, ShapedGen};
 use crate::shaper::InputShaper;
 use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::{Move, Toolhead, ToolheadConfig};
-use lanes::{place, LaneClock, LaneOut, LaneState, Msg, PaChange, ShaperChange, Workers, CMDS_CAPACITY};
+use lanes::{
+    place, LaneClock, LaneEvent, LaneOut, LaneState, Msg, PaChange, ShaperChange, Workers, CMDS_CAPACITY,
+};
+
+/// An extruder stepper's lane index, configured step distance and rotation distance.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct ExtruderLane(usize, f64, f64);
 
 /// Klipper's default `pressure_advance_smooth_time` (s), for SET_PRESSURE_ADVANCE when the
 /// configuration has no pressure advance.
@@ -58,6 +67,22 @@ pub struct StepperSpec {
     /// B), 3 = the extruder.
     pub axis: usize,
     pub step_dist: f64,
+    /// For an extruder stepper (axis 3) of a printer with several extruders or extruder
+    /// steppers; `None`: the one extruder's stepper (follows extruder 0, the options'
+    /// pressure advance).
+    pub extruder: Option<ExtruderLink>,
+}
+
+/// How an extruder stepper starts (see [`crate::extruders`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ExtruderLink {
+    /// The extruder whose motion it follows (`None`: it stands still until synced).
+    pub queue: Option<usize>,
+    /// Its pressure advance (advance 0: off).
+    pub pressure_advance: PressureAdvance,
+    /// Its configured rotation distance (mm), which SET_EXTRUDER_ROTATION_DISTANCE scales
+    /// the step distance against.
+    pub rotation_distance: f64,
 }
 
 /// Where one stepper's MCU clock stands against print time: `clock = offset + freq ·
@@ -145,6 +170,8 @@ pub struct PipelineOptions {
     /// `[exclude_object]`: the EXCLUDE_OBJECT commands are known and an excluded object's moves
     /// dropped (without it they are unknown commands, as on Klipper).
     pub exclude_object: bool,
+    /// How many extruders (`[extruder]`, `[extruder1]`…) the printer has, at least 1.
+    pub extruders: usize,
 }
 
 impl Default for PipelineOptions {
@@ -160,6 +187,7 @@ impl Default for PipelineOptions {
             arc_resolution: ARC_RESOLUTION,
             input_shaper: None,
             exclude_object: false,
+            extruders: 1,
         }
     }
 }
@@ -239,7 +267,14 @@ pub struct Pipeline {
     settle: f64,
     /// Pressure advance changes not handed to the lanes yet: (index of the first move they
     /// apply to, counting every final move since the start; advance; smooth_time).
-    pa_pending: VecDeque<(u64, f64, f64)>,
+    pa_pending: VecDeque<(u64, LaneEvent)>,
+    /// The lane the next pressure advance change is for (`None`: every extruder lane).
+    pa_lane: Option<usize>,
+    /// Each extruder stepper (in [`Extruders`]' order): its lane, configured step distance
+    /// and rotation distance.
+    extruder_lanes: Vec<ExtruderLane>,
+    /// Each stepper's name, in stepper order.
+    names: Vec<String>,
     /// The pressure advance smoothing time in force (s).
     smooth_time: f64,
     /// Final moves handed to the lanes so far.
@@ -313,8 +348,17 @@ impl Pipeline {
             g.validate().map_err(bad)?;
             th.set_xy_radius_limit(Some(g.max_xy_radius()));
         }
-        let pa = opts.pressure_advance.filter(|p| p.advance > 0.0);
-        if let Some(p) = &pa {
+        // Each extruder stepper's pressure advance: its own, or the options' for the one
+        // extruder's stepper.
+        let lane_pa = |s: &StepperSpec| match s.extruder {
+            Some(link) => Some(link.pressure_advance),
+            None => opts.pressure_advance,
+        };
+        let extruder_pa = || cfg.steppers.iter().filter(|s| s.axis == 3).filter_map(lane_pa);
+        let pa = extruder_pa()
+            .filter(|p| p.advance > 0.0)
+            .max_by(|a, b| a.smooth_time.total_cmp(&b.smooth_time));
+        for p in extruder_pa().filter(|p| p.advance > 0.0) {
             p.validate().map_err(bad)?;
         }
         let shaper = opts.input_shaper.unwrap_or_default();
@@ -358,8 +402,8 @@ impl Pipeline {
                 .kinematics
                 .stepper(s.axis, s.step_dist)
                 .map_err(|e| bad(format!("stepper '{}': {e}", s.name)))?;
-            let pa_gen = pa
-                .filter(|_| s.axis == 3)
+            let pa_gen = lane_pa(s)
+                .filter(|p| s.axis == 3 && p.advance > 0.0)
                 .map(|p| PaGen::new(p, s.step_dist, lane_freq));
             let mut lane = LaneState::new(
                 kin,
@@ -372,29 +416,38 @@ impl Pipeline {
                     lane.shaped = Some(ShapedGen::new(c, &shaper, s.step_dist, lane_freq));
                 }
             }
+            lane.index = i;
             if s.axis == 3 {
-                let smooth = opts
-                    .pressure_advance
-                    .map_or(DEFAULT_SMOOTH_TIME, |p| p.smooth_time);
+                let smooth = lane_pa(s).map_or(DEFAULT_SMOOTH_TIME, |p| p.smooth_time);
                 lane.extruder = Some((smooth, lane_freq));
+                lane.queue = s.extruder.map_or(Some(0), |l| l.queue);
             }
             lanes.push(lane);
         }
         let n = lanes.len();
         // Shaped steps start `span` before a motion and settle `span` after it.
         let settle = pa.map_or(0.0, |p| 0.5 * p.smooth_time).max(shaper.span());
-        let smooth_time = opts
-            .pressure_advance
-            .map_or(DEFAULT_SMOOTH_TIME, |p| p.smooth_time);
+        let smooth_time = pa.map_or(DEFAULT_SMOOTH_TIME, |p| p.smooth_time);
         let mut state = GcodeState::new(cfg.home_position);
         state.set_unknown_is_error(opts.unknown_commands_are_errors);
         state.set_retraction(opts.retraction);
         state.set_arc_resolution(opts.arc_resolution);
         state.set_input_shaper(opts.input_shaper);
         state.set_exclude_object(opts.exclude_object);
-        if let Some(p) = opts.pressure_advance {
-            state.set_pressure_advance(p.advance, p.smooth_time);
-        }
+        state.set_extruders(Extruders::new(
+            opts.extruders,
+            cfg.steppers
+                .iter()
+                .filter(|s| s.axis == 3)
+                .map(|s| ExtruderStepper {
+                    name: s.name.clone(),
+                    queue: s.extruder.map_or(Some(0), |l| l.queue),
+                    pressure_advance: lane_pa(s)
+                        .map_or((0.0, DEFAULT_SMOOTH_TIME), |p| (p.advance, p.smooth_time)),
+                    rotation_distance: s.extruder.map_or(0.0, |l| l.rotation_distance),
+                })
+                .collect(),
+        ));
         let (backend, workers) = if opts.threads == 0 || n == 0 {
             let outs = (0..n).map(|_| LaneOut::with_capacity()).collect();
             (Backend::Inline(lanes, outs), 1)
@@ -423,6 +476,15 @@ impl Pipeline {
             worker_error: None,
             settle,
             pa_pending: VecDeque::new(),
+            pa_lane: None,
+            names: cfg.steppers.iter().map(|s| s.name.clone()).collect(),
+            extruder_lanes: cfg
+                .steppers
+                .iter()
+                .enumerate()
+                .filter(|(_, s)| s.axis == 3)
+                .map(|(i, s)| ExtruderLane(i, s.step_dist, s.extruder.map_or(0.0, |l| l.rotation_distance)))
+                .collect(),
             smooth_time,
             dispatched: 0,
             shaper_pending: VecDeque::new(),
@@ -437,6 +499,10 @@ impl Pipeline {
         if self.state.input_shaper() != shaper_before {
             self.change_shaper(line.line_no, shaper_before)?;
         }
+        let applied = match applied {
+            Applied::Extruder { event, said } => self.extruder_event(event, said)?,
+            other => other,
+        };
         if let Applied::PressureAdvance { advance, smooth_time } = applied {
             if smooth_time != self.smooth_time {
                 // The extruder's position at t depends on the moves within half the window
@@ -453,12 +519,59 @@ impl Pipeline {
             // from the toolhead and those still in its lookahead.
             self.th.take_moves(&mut self.moves);
             let at = self.dispatched + self.moves.len() as u64 + self.th.queued_moves() as u64;
-            self.pa_pending.push_back((at, advance, smooth_time));
+            self.pa_pending
+                .push_back((at, LaneEvent::Advance(self.pa_lane.take(), advance, smooth_time)));
             if advance > 0.0 {
                 self.settle = self.settle.max(0.5 * smooth_time);
             }
         }
         Ok(applied)
+    }
+
+    /// An extruder command's change, handed to the lanes from the next move on; what the
+    /// caller sees (Klipper's answer, or the pressure advance to apply).
+    fn extruder_event(&mut self, event: ExtruderEvent, said: CommandText) -> Result<Applied, PlanError> {
+        let lane_of = |stepper: usize, views: &[ExtruderLane]| views.get(stepper).map(|v| v.0);
+        let lane = match event {
+            ExtruderEvent::Activate(q) => Some(LaneEvent::Active(q)),
+            ExtruderEvent::Sync { stepper, queue } => {
+                lane_of(stepper, &self.extruder_lanes).map(|l| LaneEvent::Follow(l, queue))
+            }
+            ExtruderEvent::Advance {
+                stepper,
+                advance,
+                smooth_time,
+            } => {
+                // Through the pressure advance path (smooth time changes stop the toolhead).
+                self.pa_lane = lane_of(stepper, &self.extruder_lanes);
+                return Ok(Applied::PressureAdvance { advance, smooth_time });
+            }
+            ExtruderEvent::RotationDistance { stepper, distance } => {
+                let Some(&ExtruderLane(l, step_dist, rotation)) = self.extruder_lanes.get(stepper) else {
+                    return Ok(Applied::Report(said));
+                };
+                if rotation <= 0.0 {
+                    return Err(PlanError {
+                        line: 0,
+                        kind: PlanErrorKind::BadParameter(
+                            "SET_EXTRUDER_ROTATION_DISTANCE: this stepper's rotation_distance is not known"
+                                .into(),
+                        ),
+                    });
+                }
+                Some(LaneEvent::StepDist(
+                    l,
+                    step_dist * distance.abs() / rotation,
+                    distance < 0.0,
+                ))
+            }
+        };
+        if let Some(ev) = lane {
+            self.th.take_moves(&mut self.moves);
+            let at = self.dispatched + self.moves.len() as u64 + self.th.queued_moves() as u64;
+            self.pa_pending.push_back((at, ev));
+        }
+        Ok(Applied::Report(said))
     }
 
     /// SET_INPUT_SHAPER changed the settings (they were `before`): the toolhead comes to rest
@@ -682,11 +795,11 @@ impl Pipeline {
         // The pressure advance changes whose first move is in this job (all at the end).
         let end = self.dispatched + self.moves.len() as u64;
         let mut pa: Vec<PaChange> = Vec::new();
-        while let Some(&(at, advance, smooth)) = self.pa_pending.front() {
+        while let Some(&(at, ev)) = self.pa_pending.front() {
             if at >= end && !all {
                 break;
             }
-            pa.push((at.saturating_sub(self.dispatched) as usize, advance, smooth));
+            pa.push((at.saturating_sub(self.dispatched) as usize, ev));
             self.pa_pending.pop_front();
         }
         let mut shaper: Vec<ShaperChange> = Vec::new();

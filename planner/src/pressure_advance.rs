@@ -74,6 +74,8 @@ pub struct PaGen {
     cur_n: i64,
     last_clock: f64,
     started: bool,
+    /// −1 when the stepper's direction is inverted (SET_EXTRUDER_ROTATION_DISTANCE < 0).
+    sign: f64,
 }
 
 impl PaGen {
@@ -89,6 +91,7 @@ impl PaGen {
             cur_n: 0,
             last_clock: 0.0,
             started: false,
+            sign: 1.0,
         }
     }
 
@@ -129,7 +132,7 @@ impl PaGen {
                 k.mv.end_pos[3] += shift;
             }
             self.end_e = mv.start_pos[3];
-            let now = self.position(self.t_done);
+            let now = self.stepper_position(self.t_done);
             self.cur_n = self.step_index(now);
         }
         let p_before = self.end_p;
@@ -169,6 +172,19 @@ impl PaGen {
         let (_, p_hi) = self.nominal(t + h);
         let (_, p_lo) = self.nominal(t - h);
         e + (p_hi - p_lo) / self.pa.smooth_time
+    }
+
+    /// The stepper's position (mm, its direction) at print time t.
+    fn stepper_position(&self, t: f64) -> f64 {
+        self.sign * self.position(t)
+    }
+
+    /// A new step distance and direction (`sign` −1: inverted) from here on, with the steps
+    /// up to now generated: the stepper stays where it is and counts steps of the new size.
+    pub fn set_step_dist(&mut self, step_dist: f64, sign: f64) {
+        self.step_dist = step_dist;
+        self.sign = if sign < 0.0 { -1.0 } else { 1.0 };
+        self.cur_n = self.step_index(self.stepper_position(self.t_done));
     }
 
     /// Generates steps up to the last known move's end − T/2, or through its end + T/2 when
@@ -216,14 +232,14 @@ impl PaGen {
             } else {
                 t0 + span * s as f64 / slices as f64
             };
-            let nb = self.step_index(self.position(tb));
+            let nb = self.step_index(self.stepper_position(tb));
             while self.cur_n != nb {
                 let up = nb > self.cur_n;
                 let boundary = (self.cur_n as f64 + if up { 0.5 } else { -0.5 }) * self.step_dist;
                 let (mut lo, mut hi) = (ta, tb);
                 for _ in 0..BISECT_ROUNDS {
                     let mid = 0.5 * (lo + hi);
-                    let x = self.position(mid);
+                    let x = self.stepper_position(mid);
                     if (up && x >= boundary) || (!up && x < boundary) {
                         hi = mid;
                     } else {

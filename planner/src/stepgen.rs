@@ -150,6 +150,19 @@ impl StepGen {
         self.step_index(kin.position(&mv.end_pos)).abs_diff(from) as usize
     }
 
+    /// A new step distance: the stepper stays at its position, whose step index is counted in
+    /// steps of the new size.
+    pub fn set_step_dist(&mut self, step_dist: f64) {
+        self.step_dist = step_dist;
+        self.inv_step_dist = 1.0 / step_dist;
+        self.cur_n = self.step_index(self.last_pos);
+    }
+
+    /// The stepper position (mm) at the end of the last move.
+    pub fn last_pos(&self) -> f64 {
+        self.last_pos
+    }
+
     /// Ideal clock of the last step generated (later steps never come before it).
     pub fn last_clock(&self) -> f64 {
         self.last_clock

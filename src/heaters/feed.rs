@@ -174,10 +174,11 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
     }
 }
 
-/// Klipper's refusal of an extruding move while the extruder is below `min_extrude_temp`.
-pub fn can_extrude(thermal: &Thermal, shared: &HeaterShared) -> Result<(), String> {
+/// Klipper's refusal of an extruding move while the extruder `extruder` (its heater's name)
+/// is below `min_extrude_temp`.
+pub fn can_extrude(thermal: &Thermal, shared: &HeaterShared, extruder: &str) -> Result<(), String> {
     for (h, cell) in thermal.heaters.iter().zip(&shared.heaters) {
-        let Some(min) = h.min_extrude_temp else {
+        let Some(min) = h.min_extrude_temp.filter(|_| h.name == extruder) else {
             continue;
         };
         let t = cell.temp.get();
@@ -335,10 +336,10 @@ mod tests {
         .unwrap();
         let t = Thermal::from_config(&cfg).unwrap();
         let s = HeaterShared::new(&t);
-        let e = can_extrude(&t, &s).unwrap_err();
+        let e = can_extrude(&t, &s, "extruder").unwrap_err();
         assert!(e.starts_with("Extrude below minimum temp"), "{e}");
         s.heaters[0].temp.set(171.0);
-        assert_eq!(can_extrude(&t, &s), Ok(()));
+        assert_eq!(can_extrude(&t, &s, "extruder"), Ok(()));
         let w = Wait {
             heater: 0,
             sensor: false,

@@ -8,7 +8,7 @@
 use std::borrow::Cow;
 
 use planner::gcode::{Command, OtherParams};
-use planner::machine::{Applied, HeaterId};
+use planner::machine::Applied;
 
 /// A heater or fan command.
 #[derive(Debug, Clone, PartialEq)]
@@ -153,10 +153,7 @@ fn parse_named(name: &str, raw: &str) -> Result<HeatCmd, HeatCmdError> {
 pub fn of_applied(applied: &Applied) -> Option<HeatCmd> {
     match *applied {
         Applied::Heater { heater, target, wait } => Some(HeatCmd::Set {
-            heater: Cow::Borrowed(match heater {
-                HeaterId::Extruder => "extruder",
-                HeaterId::Bed => "heater_bed",
-            }),
+            heater: Cow::Borrowed(heater.name()),
             target,
             wait,
         }),

@@ -255,14 +255,13 @@ impl Thermal {
     fn add_heaters(&mut self, cfg: &PrinterConfig) -> Result<(), ThermalError> {
         let th = &cfg.thermal;
         let sections: Vec<(&HeaterSection, bool)> = cfg
-            .extruder
-            .iter()
+            .extruders()
             .map(|e| (&e.heater, true))
             .chain(cfg.heater_bed.iter().map(|h| (h, false)))
             .chain(th.heater_generic.iter().map(|h| (h, false)))
             .collect();
         for (h, extruder) in sections {
-            let section = if h.name == "extruder" || h.name == "heater_bed" {
+            let section = if extruder || h.name == "heater_bed" {
                 h.name.clone()
             } else {
                 format!("heater_generic {}", h.name)

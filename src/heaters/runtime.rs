@@ -305,11 +305,13 @@ pub fn m105_text(shared: &HeaterShared) -> String {
     let mut parts: Vec<(String, f64, f64)> = Vec::new();
     for h in &shared.heaters {
         let id = match h.name.as_str() {
-            "extruder" => "T0",
-            "heater_bed" => "B",
-            _ => continue,
+            "heater_bed" => "B".to_string(),
+            name => match planner::extruders::extruder_index(name) {
+                Some(k) => format!("T{k}"),
+                None => continue,
+            },
         };
-        parts.push((id.to_string(), shown(h.temp.get()), h.target.get()));
+        parts.push((id, shown(h.temp.get()), h.target.get()));
     }
     for (i, s) in shared.sensors.iter().enumerate() {
         let Some(id) = &s.gcode_id else {

@@ -30,6 +30,7 @@ fn machine(z_mcus: &[&str], endstop_mcu: &str) -> Machine {
             enable_pin: None,
             step_pulse_duration: crate::hardware::DEFAULT_STEP_PULSE_DURATION,
             step_dist: 0.0025,
+            extruder: None,
         });
     }
     for e in m.endstops.iter_mut().filter(|e| e.axis == 2) {

@@ -42,17 +42,15 @@ pub struct ThermalFacts {
     pub objects: Vec<String>,
     pub available_heaters: Vec<String>,
     pub available_sensors: Vec<String>,
-    /// `[extruder] min_extrude_temp` (`can_extrude`).
-    pub min_extrude_temp: f64,
+    /// Each extruder's `min_extrude_temp` (`can_extrude`), by name.
+    pub min_extrude_temp: Vec<(String, f64)>,
 }
 
 impl ThermalFacts {
     fn new(cfg: &PrinterConfig) -> ThermalFacts {
         let th = &cfg.thermal;
         let mut heaters: Vec<String> = Vec::new();
-        if cfg.extruder.is_some() {
-            heaters.push("extruder".into());
-        }
+        heaters.extend(cfg.extruders().map(|e| e.name.clone()));
         if cfg.heater_bed.is_some() {
             heaters.push("heater_bed".into());
         }
@@ -88,7 +86,10 @@ impl ThermalFacts {
             objects,
             available_heaters: heaters,
             available_sensors: sensors,
-            min_extrude_temp: cfg.extruder.as_ref().map_or(0.0, |e| e.heater.min_extrude_temp),
+            min_extrude_temp: cfg
+                .extruders()
+                .map(|e| (e.name.clone(), e.heater.min_extrude_temp))
+                .collect(),
         }
     }
 }
@@ -388,14 +389,15 @@ fn thermal(out: &mut Map<String, Value>, facts: &ThermalFacts, status: Option<&S
             continue;
         }
         let (kind, bare) = name.split_once(' ').unwrap_or((name.as_str(), name.as_str()));
+        let is_extruder = planner::extruders::extruder_index(kind).is_some();
         let value = match kind {
-            "extruder" | "heater_bed" | "heater_generic" => {
+            _ if is_extruder || kind == "heater_bed" || kind == "heater_generic" => {
                 let h = status.and_then(|st| st.heaters.iter().find(|h| h.name == bare));
                 let (t, target, power) =
                     h.map_or((0.0, 0.0, 0.0), |h| (num(h.temperature), h.target, h.power));
                 let mut v = json!({"temperature": t, "target": target, "power": power});
-                if kind == "extruder" {
-                    v["can_extrude"] = json!(t >= facts.min_extrude_temp);
+                if let Some((_, min)) = facts.min_extrude_temp.iter().find(|(n, _)| n == kind) {
+                    v["can_extrude"] = json!(t >= *min);
                 }
                 v
             }

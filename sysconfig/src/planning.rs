@@ -2,11 +2,11 @@
 //! advance). One place, used by the host and the benchmarks.
 
 use planner::kinematics::{DeltaGeometry, Kinematics};
-use planner::pipeline::{PipelineConfig, PipelineOptions, StepperSpec};
+use planner::pipeline::{ExtruderLink, PipelineConfig, PipelineOptions, StepperSpec};
 use planner::pressure_advance::PressureAdvance;
 use planner::toolhead::ToolheadConfig;
 
-use crate::printer::{PrinterConfig, UnknownCommands};
+use crate::printer::{MotorSection, PrinterConfig, UnknownCommands};
 
 /// The planner configuration of a validated printer config: kinematics, steppers in the
 /// kinematics' order (then the rails' further motors, then the extruder), limits, home position; for MCU clocks at `clock_freq`
@@ -44,6 +44,7 @@ pub fn pipeline_config(
             name: s.name.clone(),
             axis,
             step_dist: s.step_dist(),
+            extruder: None,
         });
     }
     // Further motors of a rail follow its motion (`[stepper_z1]` moves as `[stepper_z]`).
@@ -52,6 +53,7 @@ pub fn pipeline_config(
             name: s.name.clone(),
             axis: s.rail,
             step_dist: s.motor.step_dist(),
+            extruder: None,
         });
     }
     if let (Kinematics::Delta(g), Some(d)) = (kin, &cfg.delta) {
@@ -88,10 +90,13 @@ pub fn pipeline_config(
         toolhead.max_extrude_only_velocity = e.max_extrude_only_velocity;
         toolhead.max_extrude_only_accel = e.max_extrude_only_accel;
         toolhead.max_extrude_only_distance = e.max_extrude_only_distance;
+    }
+    for (name, motor, link) in extruder_steppers(cfg) {
         steppers.push(StepperSpec {
-            name: "extruder".to_string(),
+            name,
             axis: 3,
-            step_dist: e.step_dist(),
+            step_dist: motor.step_dist(),
+            extruder: link,
         });
     }
     let pc = PipelineConfig {
@@ -102,6 +107,40 @@ pub fn pipeline_config(
         home_position: home,
     };
     Ok((pc, kin))
+}
+
+/// Every extruder stepper in the planner's order: `[extruder]`, `[extruder1]`…, then each
+/// `[extruder_stepper NAME]` (named NAME): its name, motor, and how it starts (`None` for the
+/// one extruder of a printer without further extruders or extruder steppers).
+pub fn extruder_steppers(cfg: &PrinterConfig) -> Vec<(String, &MotorSection, Option<ExtruderLink>)> {
+    let several = !cfg.extra_extruders.is_empty() || !cfg.extruder_steppers.is_empty();
+    let link = |queue, advance, smooth_time, motor: &MotorSection| {
+        several.then_some(ExtruderLink {
+            queue,
+            pressure_advance: PressureAdvance { advance, smooth_time },
+            rotation_distance: motor.rotation_distance,
+        })
+    };
+    let own = cfg.extruders().enumerate().map(|(i, e)| {
+        let l = link(
+            Some(i),
+            e.pressure_advance,
+            e.pressure_advance_smooth_time,
+            &e.motor,
+        );
+        (e.name.clone(), &e.motor, l)
+    });
+    let extra = cfg.extruder_steppers.iter().map(|s| {
+        let queue = s.extruder.as_deref().and_then(planner::extruders::extruder_index);
+        let l = link(
+            queue,
+            s.pressure_advance,
+            s.pressure_advance_smooth_time,
+            &s.motor,
+        );
+        (s.name.clone(), &s.motor, l)
+    });
+    own.chain(extra).collect()
 }
 
 /// Pipeline options derived from the config: kinematics, the extruder's pressure advance, what
@@ -125,6 +164,7 @@ pub fn pipeline_options(cfg: &PrinterConfig, kinematics: Kinematics) -> Pipeline
         arc_resolution: cfg.gcode_arcs.resolution,
         input_shaper: cfg.input_shaper,
         exclude_object: cfg.exclude_object,
+        extruders: cfg.extruders().count().max(1),
         ..PipelineOptions::default()
     }
 }

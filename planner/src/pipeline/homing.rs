@@ -176,6 +176,7 @@ mod tests {
                     name: format!("stepper_{axis}"),
                     axis,
                     step_dist: 0.0125,
+                    extruder: None,
                 })
                 .collect(),
             clock_freq: 1e6,

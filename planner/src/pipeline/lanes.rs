@@ -119,12 +119,38 @@ pub(crate) struct LaneState {
     pub extruder: Option<(f64, f64)>,
     /// This stepper's MCU clock (the print clock unless its MCU is another one).
     pub clock: LaneClock,
+    /// This lane's stepper index (the one [`LaneEvent`]s name).
+    pub index: usize,
+    /// For an extruder lane: the extruder whose motion it follows (`None`: it stands still).
+    pub queue: Option<usize>,
+    /// The active extruder (whose motion the toolhead's E moves are).
+    active: usize,
+    /// The E position this lane last followed (toolhead coordinates of its extruder): it
+    /// holds it while its extruder is not active.
+    held_e: f64,
     fresh: Vec<StepCmd>,
 }
 
-/// A new pressure advance for the extruder, from move `at` of a job on: (at, advance,
-/// smooth_time).
-pub(crate) type PaChange = (usize, f64, f64);
+/// A change to extruder lanes from move `at` of a job on: (at, change).
+pub(crate) type PaChange = (usize, LaneEvent);
+
+/// What changes in extruder lanes between two moves (see [`crate::extruders`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum LaneEvent {
+    /// A new pressure advance (advance, smooth_time) for lane `Some(i)`, or every extruder
+    /// lane (`None`).
+    Advance(Option<usize>, f64, f64),
+    /// Extruder `.0` is the active one: the toolhead's E moves go to its motion.
+    Active(usize),
+    /// Lane `.0` follows extruder `.1`'s motion (or none).
+    Follow(usize, Option<usize>),
+    /// Lane `.0`'s step distance (mm) and whether its direction is inverted against the
+    /// config (the toolhead is at rest).
+    StepDist(usize, f64, bool),
+    /// FORCE_MOVE of lane `.0`: from print time `.1`, distance `.2` mm at velocity `.3` with
+    /// acceleration `.4` (see [`crate::force_move`]; the toolhead is at rest meanwhile).
+    ForceMove(usize, f64, f64, f64, f64),
+}
 
 /// New input shaper settings from move `at` of a job on, the toolhead at rest before it:
 /// (at, settings).
@@ -160,6 +186,10 @@ impl LaneState {
             shaped: None,
             extruder: None,
             clock: LaneClock::new(ClockMap::identity(1.0), 1.0),
+            index: 0,
+            queue: None,
+            active: 0,
+            held_e: 0.0,
             fresh: Vec::with_capacity(1024),
         }
     }
@@ -193,6 +223,77 @@ impl LaneState {
             }
             None => {}
         }
+    }
+
+    /// An extruder change for the moves from now on (lanes it does not name ignore it).
+    fn event(&mut self, ev: LaneEvent) {
+        match ev {
+            LaneEvent::Advance(lane, advance, smooth) if lane.is_none_or(|l| l == self.index) => {
+                self.set_advance(advance, smooth)
+            }
+            LaneEvent::Active(q) => self.active = q,
+            LaneEvent::Follow(lane, q) if lane == self.index => self.queue = q,
+            LaneEvent::StepDist(lane, step_dist, inverted) if lane == self.index => {
+                self.set_step_dist(step_dist, inverted)
+            }
+            LaneEvent::ForceMove(lane, t0, distance, velocity, accel) if lane == self.index => {
+                self.force_move(t0, distance, velocity, accel)
+            }
+            _ => {}
+        }
+    }
+
+    /// FORCE_MOVE: the generators finish what they hold, then the stepper alone moves
+    /// `distance` from where it is (its commanded position is left as it was).
+    fn force_move(&mut self, t0: f64, distance: f64, velocity: f64, accel: f64) {
+        let comp = &mut self.comp;
+        if let Some(g) = &mut self.pa {
+            g.generate(true, |clock, dir| comp.push_step(clock, dir));
+        }
+        if let Some(g) = &mut self.shaped {
+            g.generate(true, CompressorSink(comp));
+        }
+        let from = self.comp.commanded_position();
+        let mv = crate::force_move::forced_move(t0, from, distance, velocity, accel);
+        let mv = match self.clock.is_print_clock() {
+            true => mv,
+            false => self.clock.carry(&mv),
+        };
+        self.comp
+            .push_move(&mv, &StepperKin::axis(0, self.comp.step_dist()));
+    }
+
+    /// An extruder lane's view of `mv`: as it is while the lane follows the active extruder,
+    /// else with E standing still at the position the lane last followed.
+    fn follow(&mut self, mv: &Move) -> Move {
+        let mut m = *mv;
+        if self.queue == Some(self.active) {
+            self.held_e = mv.end_pos[3];
+        } else {
+            m.start_pos[3] = self.held_e;
+            m.end_pos[3] = self.held_e;
+            m.axes_r[3] = 0.0;
+        }
+        m
+    }
+
+    /// A new step distance (the toolhead is at rest): the generators keep the stepper where
+    /// it is and count steps of the new size from there; `inverted` turns its direction.
+    fn set_step_dist(&mut self, step_dist: f64, inverted: bool) {
+        if !(step_dist.is_finite() && step_dist > 1e-9) {
+            return;
+        }
+        let sign = if inverted { -1.0 } else { 1.0 };
+        self.kin = StepperKin::axis(3, step_dist);
+        if let crate::kinematics::StepperMap::Linear(c) = &mut self.kin.map {
+            c[3] = sign;
+        }
+        let comp = &mut self.comp;
+        if let Some(g) = &mut self.pa {
+            g.generate(true, |clock, dir| comp.push_step(clock, dir));
+            g.set_step_dist(step_dist, sign);
+        }
+        self.comp.set_step_dist(step_dist);
     }
 
     /// Input shaper settings for the moves from now on (the toolhead is at rest): the shaped
@@ -235,12 +336,20 @@ impl LaneState {
         let mut shaper_changes = shaper.iter().peekable();
         let print_clock = self.clock.is_print_clock();
         for (i, mv) in moves.iter().enumerate() {
-            while let Some(&(_, advance, smooth)) = changes.next_if(|c| c.0 <= i) {
-                self.set_advance(advance, smooth);
+            while let Some(&(_, ev)) = changes.next_if(|c| c.0 <= i) {
+                self.event(ev);
             }
             while let Some((_, s)) = shaper_changes.next_if(|c| c.0 <= i) {
                 self.set_shaper(s);
             }
+            let held;
+            let mv = match self.extruder.is_some() {
+                true => {
+                    held = self.follow(mv);
+                    &held
+                }
+                false => mv,
+            };
             let carried;
             let mv = if print_clock {
                 mv
@@ -254,8 +363,8 @@ impl LaneState {
                 (None, None) => self.comp.push_move(mv, &self.kin),
             }
         }
-        for &(_, advance, smooth) in changes {
-            self.set_advance(advance, smooth);
+        for &(_, ev) in changes {
+            self.event(ev);
         }
         for (_, s) in shaper_changes {
             self.set_shaper(s);

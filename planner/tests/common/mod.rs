@@ -19,6 +19,7 @@ pub fn benchy_cartesian() -> PipelineConfig {
         name: name.into(),
         axis,
         step_dist,
+        extruder: None,
     };
     PipelineConfig {
         toolhead: ToolheadConfig {

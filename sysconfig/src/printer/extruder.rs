@@ -1,4 +1,6 @@
-//! `[extruder]`: the filament motor, extrusion limits, pressure advance and its heater.
+//! `[extruder]`, `[extruder1]`…: the filament motor, extrusion limits, pressure advance and
+//! the heater of each extruder; `[extruder_stepper NAME]`: a further filament motor that
+//! follows an extruder's motion (or none: `extruder:` empty).
 //!
 //! Extrude-only moves are limited in filament space. With filament area
 //! `A = π·(filament_diameter/2)²` and `r = 4·nozzle_diameter² / A` (how much faster the filament
@@ -12,13 +14,15 @@ use std::f64::consts::PI;
 use super::error::ConfigError;
 use super::heater::{read_heater, HeaterSection};
 use super::pins::PinRegistry;
-use super::reader::{Bounds, SectionReader};
+use super::reader::{Bounds, Reader, SectionReader};
 use super::stepper::{read_motor, MotorSection};
 use super::toolhead::PrinterSection;
 
-/// `[extruder]`.
+/// `[extruder]` or `[extruderN]`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ExtruderSection {
+    /// `extruder`, `extruder1`…
+    pub name: String,
     /// Pins, microstepping and gearing (`rotation_distance` in mm of filament).
     pub motor: MotorSection,
     /// mm, > 0.
@@ -89,6 +93,7 @@ pub(crate) fn read_extruder(
     )?;
     let heater = read_heater(s, pins)?;
     Ok(ExtruderSection {
+        name: s.name().to_string(),
         motor: m,
         nozzle_diameter,
         filament_diameter,
@@ -101,6 +106,78 @@ pub(crate) fn read_extruder(
         pressure_advance_smooth_time,
         heater,
     })
+}
+
+/// `[extruder_stepper NAME]`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ExtruderStepperSection {
+    /// NAME, as SYNC_EXTRUDER_MOTION and SET_PRESSURE_ADVANCE name it.
+    pub name: String,
+    pub motor: MotorSection,
+    /// The extruder whose motion it follows (`extruder`, `extruder1`…); `None` when the
+    /// option is empty (it stands still until SYNC_EXTRUDER_MOTION).
+    pub extruder: Option<String>,
+    /// Seconds, ≥ 0; default 0.
+    pub pressure_advance: f64,
+    /// Seconds, in (0, 0.2]; default 0.04.
+    pub pressure_advance_smooth_time: f64,
+}
+
+/// The further extruders `[extruder1]`, `[extruder2]`… up to the first missing index (as
+/// Klipper looks them up; a later one is then an unread section), at most
+/// [`planner::extruders::MAX_EXTRUDERS`] in all.
+pub(crate) fn read_extra_extruders(
+    reader: &Reader<'_>,
+    printer: &PrinterSection,
+    pins: &mut PinRegistry,
+) -> Result<Vec<ExtruderSection>, ConfigError> {
+    let mut out = Vec::new();
+    for name in planner::extruders::EXTRUDER_NAMES.iter().skip(1) {
+        let Some(s) = reader.section(name) else {
+            break;
+        };
+        out.push(read_extruder(&s, printer, pins)?);
+    }
+    Ok(out)
+}
+
+/// Every `[extruder_stepper NAME]`; `extruders` names the extruders there are.
+pub(crate) fn read_extruder_steppers(
+    reader: &Reader<'_>,
+    extruders: &[&str],
+    pins: &mut PinRegistry,
+) -> Result<Vec<ExtruderStepperSection>, ConfigError> {
+    let mut out = Vec::new();
+    for s in reader.sections_with_arg("extruder_stepper") {
+        let name = s.arg().unwrap_or_default().to_string();
+        let motor = read_motor(&s, pins)?;
+        let v = s.required("extruder")?;
+        let extruder = match v.text.trim() {
+            "" => None,
+            e if extruders.contains(&e) => Some(e.to_string()),
+            e => {
+                let why = format!(
+                    "'{e}' is not a valid extruder (there are: {})",
+                    extruders.join(", ")
+                );
+                return Err(s.bad("extruder", v, super::error::ValueProblem::Invalid(why)));
+            }
+        };
+        let pressure_advance = s.float_or("pressure_advance", 0.0, Bounds::ANY.min(0.0))?;
+        let pressure_advance_smooth_time = s.float_or(
+            "pressure_advance_smooth_time",
+            0.040,
+            Bounds::ANY.above(0.0).max(0.200),
+        )?;
+        out.push(ExtruderStepperSection {
+            name,
+            motor,
+            extruder,
+            pressure_advance,
+            pressure_advance_smooth_time,
+        });
+    }
+    Ok(out)
 }
 
 #[cfg(test)]

@@ -6,7 +6,7 @@
 //! config loads and a later version can use them. Only sensors read through `sensor_pin` (with
 //! `pullup_resistor` / `inline_resistor`) are accepted; SPI/I2C sensor options are not.
 
-use super::error::ConfigError;
+use super::error::{ConfigError, ValueProblem};
 use super::pins::{PinKind, PinRef, PinRegistry, Share};
 use super::reader::{Bounds, SectionReader};
 
@@ -63,6 +63,43 @@ pub(crate) fn read_heater(
     read_heater_options(s, pins, true)
 }
 
+/// Klipper's sensor types that are not read through an analog pin (the MCU's own sensor,
+/// amplifiers on SPI, sensors on I2C or 1-wire), with what they are: Cadence's MCUs do not
+/// read them yet.
+const UNSUPPORTED_SENSORS: [(&str, &str); 17] = [
+    ("temperature_mcu", "the MCU's own sensor"),
+    ("MAX6675", "a thermocouple amplifier on SPI"),
+    ("MAX31855", "a thermocouple amplifier on SPI"),
+    ("MAX31856", "a thermocouple amplifier on SPI"),
+    ("MAX31865", "an RTD amplifier on SPI"),
+    ("BME280", "an I2C sensor"),
+    ("BMP280", "an I2C sensor"),
+    ("BME680", "an I2C sensor"),
+    ("BMP180", "an I2C sensor"),
+    ("AHT10", "an I2C sensor"),
+    ("AHT20", "an I2C sensor"),
+    ("AHT21", "an I2C sensor"),
+    ("HTU21D", "an I2C sensor"),
+    ("SHT3X", "an I2C sensor"),
+    ("LM75", "an I2C sensor"),
+    ("SI7013", "an I2C sensor"),
+    ("DS18B20", "a 1-wire sensor"),
+];
+
+/// A sensor type of [`UNSUPPORTED_SENSORS`] as the error naming it (before its bus options
+/// would be reported as unknown options).
+pub(crate) fn refuse_unsupported_sensor(s: &SectionReader<'_>, sensor_type: &str) -> Result<(), ConfigError> {
+    let Some((name, what)) = UNSUPPORTED_SENSORS.iter().find(|(n, _)| *n == sensor_type) else {
+        return Ok(());
+    };
+    let v = s.required("sensor_type")?;
+    Err(s.bad(
+        "sensor_type",
+        v,
+        ValueProblem::Invalid(format!("{name} ({what}) is not supported")),
+    ))
+}
+
 /// The heater options of section `s`; `min_extrude_temp` only if `with_extrude_temp` (not in
 /// `[heater_generic]`, where it stays at its default and may not be written).
 pub(crate) fn read_heater_options(
@@ -71,6 +108,7 @@ pub(crate) fn read_heater_options(
     with_extrude_temp: bool,
 ) -> Result<HeaterSection, ConfigError> {
     let sensor_type = s.string("sensor_type")?;
+    refuse_unsupported_sensor(s, &sensor_type)?;
     let sensor_pin = s.pin("sensor_pin", PinKind::Analog, pins, Share::Exclusive)?;
     let pullup_resistor = s.float_or("pullup_resistor", 4700.0, Bounds::ANY.above(0.0))?;
     let inline_resistor = s.float_or("inline_resistor", 0.0, Bounds::ANY.min(0.0))?;

@@ -44,7 +44,7 @@ use crate::ini::{self, ConfigFile};
 pub use bltouch::{BlTouchSection, OutputMode as BlTouchOutputMode, OUTPUT_MODES as BLTOUCH_OUTPUT_MODES};
 pub use delta::{DeltaSection, DEFAULT_ANGLES};
 pub use error::{ConfigError, ValueProblem};
-pub use extruder::ExtruderSection;
+pub use extruder::{ExtruderSection, ExtruderStepperSection};
 pub use gcode::{FirmwareRetractionSection, GcodeArcsSection, GcodeSection, UnknownCommands};
 pub use heater::{HeaterControl, HeaterSection, ABSOLUTE_ZERO_C};
 pub use homing::{HomingOverrideSection, SafeZHomeSection, HOMING_OVERRIDE_MACRO};
@@ -87,6 +87,10 @@ pub struct PrinterConfig {
     /// The geometry, for delta kinematics.
     pub delta: Option<DeltaSection>,
     pub extruder: Option<ExtruderSection>,
+    /// `[extruder1]`, `[extruder2]`…, in index order (only with an `[extruder]`).
+    pub extra_extruders: Vec<ExtruderSection>,
+    /// `[extruder_stepper NAME]` sections, in file order.
+    pub extruder_steppers: Vec<ExtruderStepperSection>,
     /// `[mcu]` first, then each `[mcu NAME]` in file order.
     pub mcus: Vec<McuSection>,
     pub heater_bed: Option<HeaterSection>,
@@ -221,6 +225,16 @@ impl PrinterConfig {
             Some(s) => Some(extruder::read_extruder(&s, &printer, &mut pins)?),
             None => None,
         };
+        let extra_extruders = match extruder {
+            Some(_) => extruder::read_extra_extruders(&reader, &printer, &mut pins)?,
+            None => Vec::new(),
+        };
+        let extruder_names: Vec<&str> = extruder
+            .iter()
+            .chain(&extra_extruders)
+            .map(|e| e.name.as_str())
+            .collect();
+        let extruder_steppers = extruder::read_extruder_steppers(&reader, &extruder_names, &mut pins)?;
         let heater_bed = match reader.section("heater_bed") {
             Some(s) => Some(heater::read_heater(&s, &mut pins)?),
             None => None,
@@ -279,6 +293,8 @@ impl PrinterConfig {
             extra_steppers,
             delta,
             extruder,
+            extra_extruders,
+            extruder_steppers,
             mcus,
             heater_bed,
             probe,
@@ -303,6 +319,11 @@ impl PrinterConfig {
     /// The stepper section named `name` (`stepper_x` …).
     pub fn stepper(&self, name: &str) -> Option<&StepperSection> {
         self.steppers.iter().find(|s| s.name == name)
+    }
+
+    /// Every extruder: `[extruder]`, then `[extruder1]`….
+    pub fn extruders(&self) -> impl Iterator<Item = &ExtruderSection> {
+        self.extruder.iter().chain(&self.extra_extruders)
     }
 
     /// The MCU named `name` (`mcu` for the main one).
@@ -340,10 +361,13 @@ fn read_extra_steppers(
 }
 
 /// Pin providers among the ignored sections: `[adc_scaled NAME]` and `[sx1509 NAME]` provide
-/// chip `NAME`, `[replicape]` chip `replicape` (Klipper's names), as (chip, section name).
+/// chip `NAME`, `[replicape]` chip `replicape`, `[multi_pin NAME]` chip `multi_pin` (Klipper's
+/// names), as (chip, section name).
 fn unsupported_chips(file: &ConfigFile) -> Vec<(String, String)> {
     let chip = |s: &ini::Section| match (s.kind(), s.name().split_whitespace().nth(1)) {
         ("adc_scaled" | "sx1509", Some(name)) => Some(name.to_string()),
+        // `multi_pin:NAME` names the section's pin group.
+        ("multi_pin", Some(_)) => Some("multi_pin".to_string()),
         ("replicape", _) => Some("replicape".to_string()),
         _ => None,
     };

@@ -318,7 +318,15 @@ impl PinRegistry {
                      by Cadence yet"
                 )));
             }
-            if let Some((_, section)) = self.unsupported_chips.iter().find(|(chip, _)| *chip == pin.mcu) {
+            // `multi_pin:NAME` is the pin group of `[multi_pin NAME]`.
+            let names = |chip: &str, section: &str| {
+                chip != "multi_pin" || section.split_whitespace().nth(1) == Some(&pin.pin)
+            };
+            let unsupported = self
+                .unsupported_chips
+                .iter()
+                .find(|(chip, section)| *chip == pin.mcu && names(chip, section));
+            if let Some((_, section)) = unsupported {
                 return Err(ValueProblem::Invalid(format!(
                     "pin '{pin}' is on [{section}], whose pins Cadence does not support yet"
                 )));

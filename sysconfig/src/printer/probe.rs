@@ -73,6 +73,14 @@ pub struct ProbeSection {
 }
 
 pub(crate) fn read_probe(s: &SectionReader<'_>, pins: &mut PinRegistry) -> Result<ProbeSection, ConfigError> {
+    // Klipper runs these scripts around every probing move; probing without them would
+    // probe with the probe stowed.
+    for option in ["activate_gcode", "deactivate_gcode"] {
+        if let Some(v) = s.value(option) {
+            let why = "is not supported by Cadence yet (probe activate/deactivate scripts)".to_string();
+            return Err(s.bad(option, v, super::error::ValueProblem::Invalid(why)));
+        }
+    }
     let pin = s.pin("pin", PinKind::Input, pins, Share::Exclusive)?;
     read_probe_options(s, pin)
 }
@@ -195,6 +203,11 @@ mod tests {
             (
                 "pin: PA4\nz_offset: 1\nsamples_tolerance_retries: -1\n",
                 "printer.cfg:4: [probe] samples_tolerance_retries: must have minimum of 0, got -1",
+            ),
+            (
+                "pin: PA4\nz_offset: 1\nactivate_gcode:\n  G1 Z5\n",
+                "printer.cfg:4: [probe] activate_gcode: is not supported by Cadence yet (probe activate/deactivate \
+                 scripts)",
             ),
             (
                 "pin: nope:PA4\nz_offset: 1\n",

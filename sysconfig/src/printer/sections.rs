@@ -57,7 +57,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("exclude_object", Read),
     ("extra_carriage", Refused("dual carriage")),
     ("extruder", Read),
-    ("extruder_stepper", Refused("extra extruder steppers")),
+    ("extruder_stepper", Read),
     ("fan", Read),
     ("fan_generic", Read),
     ("filament_motion_sensor", Ignored),
@@ -138,8 +138,8 @@ pub const SECTIONS: &[(&str, Support)] = &[
 
 /// What Cadence does with sections of `kind`; `None` for a kind Klipper does not have either
 /// (then "is not a valid config section"). The kinematics' rails (`stepper_x`, `stepper_a`…)
-/// and their further motors (`stepper_z1`, `stepper_x2`) are read; further extruders
-/// (`extruder1`) are refused.
+/// and their further motors (`stepper_z1`, `stepper_x2`) are read; so are further extruders
+/// up to `extruder9` (more are refused).
 pub fn support(kind: &str) -> Option<Support> {
     if let Some(axis) = kind.strip_prefix("stepper_") {
         return match axis.as_bytes() {
@@ -150,7 +150,10 @@ pub fn support(kind: &str) -> Option<Support> {
     }
     if let Some(n) = kind.strip_prefix("extruder") {
         if is_index(n.as_bytes()) {
-            return Some(Refused("more than one extruder"));
+            return Some(match n.parse::<usize>() {
+                Ok(i) if i < planner::extruders::MAX_EXTRUDERS => Read,
+                _ => Refused("more than 10 extruders"),
+            });
         }
     }
     SECTIONS
@@ -230,7 +233,9 @@ mod tests {
         assert_eq!(support("stepper_a"), Some(Read));
         assert_eq!(support("stepper_z1"), Some(Read));
         assert_eq!(support("stepper_y12"), Some(Read));
-        assert_eq!(support("extruder1"), Some(Refused("more than one extruder")));
+        assert_eq!(support("extruder1"), Some(Read));
+        assert_eq!(support("extruder_stepper"), Some(Read));
+        assert_eq!(support("extruder10"), Some(Refused("more than 10 extruders")));
         assert_eq!(support("extruder"), Some(Read));
         assert_eq!(support("bltouch"), Some(Read));
         assert_eq!(support("smart_effector"), Some(Refused("Smart Effector probe")));

@@ -184,9 +184,9 @@ fn unknown_sections_and_options_are_errors_ignored_ones_warnings() {
         Err("printer.cfg:25: Section 'frobnicator' is not a valid config section".to_string())
     );
     assert_eq!(
-        parse(&format!("{MINIMAL}[extruder1]\nstep_pin: PD0\n")).map(|_| ()),
+        parse(&format!("{MINIMAL}[extruder10]\nstep_pin: PD0\n")).map(|_| ()),
         Err(
-            "printer.cfg:25: [extruder1] is not supported by Cadence yet (more than one extruder)"
+            "printer.cfg:25: [extruder10] is not supported by Cadence yet (more than 10 extruders)"
                 .to_string()
         )
     );

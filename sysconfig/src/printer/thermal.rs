@@ -5,7 +5,7 @@
 //!
 //! The load reads every one of them ([`DRIVEN`]): the host drives them all.
 
-use super::error::{ConfigError, ValueProblem};
+use super::error::ConfigError;
 use super::heater::{read_heater_options, HeaterSection, ABSOLUTE_ZERO_C};
 use super::pins::{PinKind, PinRef, PinRegistry, Share};
 use super::reader::{Bounds, Reader, SectionReader};
@@ -234,19 +234,14 @@ fn read_sensor(s: &SectionReader<'_>, pins: &mut PinRegistry) -> Result<SensorSe
                 .map(|v| v.text.clone())
                 .unwrap_or_else(|| "/sys/class/thermal/thermal_zone0/temp".into()),
         },
-        "temperature_mcu" => {
-            let v = s.required("sensor_type")?;
-            return Err(s.bad(
-                "sensor_type",
-                v,
-                ValueProblem::Invalid("temperature_mcu (the MCU's own sensor) is not supported".into()),
-            ));
+        _ => {
+            super::heater::refuse_unsupported_sensor(s, &sensor_type)?;
+            SensorSource::Adc {
+                sensor_pin: s.pin("sensor_pin", PinKind::Analog, pins, Share::Exclusive)?,
+                pullup_resistor: s.float_or("pullup_resistor", 4700.0, Bounds::ANY.above(0.0))?,
+                inline_resistor: s.float_or("inline_resistor", 0.0, Bounds::ANY.min(0.0))?,
+            }
         }
-        _ => SensorSource::Adc {
-            sensor_pin: s.pin("sensor_pin", PinKind::Analog, pins, Share::Exclusive)?,
-            pullup_resistor: s.float_or("pullup_resistor", 4700.0, Bounds::ANY.above(0.0))?,
-            inline_resistor: s.float_or("inline_resistor", 0.0, Bounds::ANY.min(0.0))?,
-        },
     };
     Ok(SensorSection {
         sensor_type,
