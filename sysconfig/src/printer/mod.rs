@@ -35,6 +35,7 @@ mod realtime;
 mod sections;
 mod stepper;
 mod thermal;
+pub mod tmc;
 mod toolhead;
 
 use std::path::{Path, PathBuf};
@@ -61,6 +62,7 @@ pub use thermal::{
     TemperatureSensorSection, ThermalSections, ThermistorSection, VerifyHeaterSection,
     DRIVEN as THERMAL_DRIVEN,
 };
+pub use tmc::{TmcBus, TmcModel, TmcSection};
 pub use toolhead::{Kinematics, PrinterSection};
 
 use pins::PinRegistry;
@@ -94,6 +96,8 @@ pub struct PrinterConfig {
     pub probe: Option<ProbeSection>,
     /// `[bltouch]`'s own options (its probe options are in `probe`).
     pub bltouch: Option<BlTouchSection>,
+    /// `[tmc2130 …]`, `[tmc2208 …]`, `[tmc2209 …]`, `[tmc5160 …]`: the steppers' drivers.
+    pub tmc: Vec<TmcSection>,
     /// `[simulator]`, or its defaults.
     pub simulator: SimulatorSection,
     /// `[realtime]`, or its defaults.
@@ -179,6 +183,7 @@ impl PrinterConfig {
         if probe.is_some() {
             pins.set_probe();
         }
+        pins.set_tmc_chips(tmc::chips(&reader));
 
         let mut steppers = Vec::new();
         let mut towers = Vec::new();
@@ -221,6 +226,7 @@ impl PrinterConfig {
             Some(s) => Some(extruder::read_extruder(&s, &printer, &mut pins)?),
             None => None,
         };
+        let tmc = read_tmc_sections(&reader, &steppers, &extra_steppers, extruder.as_ref(), &mut pins)?;
         let heater_bed = match reader.section("heater_bed") {
             Some(s) => Some(heater::read_heater(&s, &mut pins)?),
             None => None,
@@ -283,6 +289,7 @@ impl PrinterConfig {
             heater_bed,
             probe,
             bltouch,
+            tmc,
             simulator,
             realtime,
             gcode,
@@ -337,6 +344,44 @@ fn read_extra_steppers(
         }
     }
     Ok(extras)
+}
+
+/// The TMC driver sections, each for an existing stepper (Klipper: "Could not find config
+/// section '[NAME]' required by tmc driver"); a stepper homing on `tmcXXXX_NAME:virtual_endstop`
+/// makes its driver claim the diag pin.
+fn read_tmc_sections(
+    reader: &Reader<'_>,
+    steppers: &[StepperSection],
+    extras: &[ExtraStepperSection],
+    extruder: Option<&ExtruderSection>,
+    pins: &mut PinRegistry,
+) -> Result<Vec<TmcSection>, ConfigError> {
+    let mut out = Vec::new();
+    for (kind, model) in tmc::MODELS {
+        for s in reader.sections_of_kind(kind) {
+            let stepper = s.arg().unwrap_or_default().to_string();
+            let motor = steppers
+                .iter()
+                .map(|r| (&r.name, &r.motor))
+                .chain(extras.iter().map(|e| (&e.name, &e.motor)))
+                .find(|(n, _)| **n == stepper)
+                .map(|(_, m)| m)
+                .or_else(|| extruder.filter(|_| stepper == "extruder").map(|e| &e.motor));
+            let Some(motor) = motor else {
+                return Err(ConfigError::BadSection {
+                    at: s.at().clone(),
+                    section: s.name().to_string(),
+                    reason: format!("Could not find config section '[{stepper}]' required by tmc driver"),
+                });
+            };
+            let chip = tmc::chip_name(kind, &stepper);
+            let homes_on_it = steppers
+                .iter()
+                .any(|r| r.endstop_pin.as_ref().is_some_and(|p| p.mcu == chip));
+            out.push(tmc::read_tmc(&s, model, &stepper, motor, homes_on_it, pins)?);
+        }
+    }
+    Ok(out)
 }
 
 /// Pin providers among the ignored sections: `[adc_scaled NAME]` and `[sx1509 NAME]` provide

@@ -150,6 +150,16 @@ impl<'a> Reader<'a> {
             .collect()
     }
 
+    /// The names of every `[kind …]` section, in file order (not marked as read).
+    pub(crate) fn section_names_of_kind(&self, kind: &str) -> Vec<String> {
+        self.file
+            .sections()
+            .iter()
+            .filter(|s| s.kind() == kind)
+            .map(|s| s.name().to_string())
+            .collect()
+    }
+
     /// Every `[kind NAME]` section (with an argument), in file order, marked as read.
     pub(crate) fn sections_with_arg(&self, kind: &str) -> Vec<SectionReader<'_>> {
         let indices = self.file.sections().iter().enumerate();
