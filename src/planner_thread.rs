@@ -494,13 +494,14 @@ impl FeedTarget for PlannerRun<'_, '_> {
 
     fn motion(&mut self, pipeline: &mut Pipeline, cmd: &MotionCmd<'_>) -> Result<bool, String> {
         let st = self.st;
-        if st.machine.endstops.is_empty() && st.machine.probe.is_none() {
+        if st.machine.endstops.is_empty() && st.machine.probe.is_none() && st.machine.tmc.is_empty() {
             return Ok(false);
         }
         let McuSide::Local(mcus) = st.side else {
             let what = match cmd {
                 MotionCmd::Home(_) => "homing needs",
                 MotionCmd::Probe { .. } => "probing needs",
+                MotionCmd::Tmc { .. } => "TMC driver commands need",
             };
             return Err(format!(
                 "{what} the in-process IO stage (triggers are relayed through the MCU link): \

@@ -69,7 +69,15 @@ pub trait Board {
     /// the host encoded them) at `bit_time` ticks per bit, then, if `read` is not empty, sample
     /// `read.len() × 8` bits of the answer from its first start bit on into `read`. A line that
     /// stays idle leaves `read` as it was (zeros): the host's check of the answer fails.
-    fn tmcuart_transfer(&mut self, _rx_pin: u8, _tx_pin: u8, _bit_time: u32, _write: &[u8], _read: &mut [u8]) {}
+    fn tmcuart_transfer(
+        &mut self,
+        _rx_pin: u8,
+        _tx_pin: u8,
+        _bit_time: u32,
+        _write: &[u8],
+        _read: &mut [u8],
+    ) {
+    }
 
     /// One SPI transaction with chip select `cs_pin` asserted: `data` goes out and is replaced
     /// by the bytes clocked in.

@@ -244,8 +244,16 @@ pub const MESSAGES: &[MessageDef] = &[
     ),
     cmd("tmcuart_send oid=%c write=%*s read=%c", Cmd::TmcuartSend, false),
     resp(FMT_TMCUART_RESPONSE),
-    cmd("config_spi oid=%c pin=%u cs_active_high=%c", Cmd::ConfigSpi, false),
-    cmd("spi_set_bus oid=%c spi_bus=%u mode=%u rate=%u", Cmd::SpiSetBus, false),
+    cmd(
+        "config_spi oid=%c pin=%u cs_active_high=%c",
+        Cmd::ConfigSpi,
+        false,
+    ),
+    cmd(
+        "spi_set_bus oid=%c spi_bus=%u mode=%u rate=%u",
+        Cmd::SpiSetBus,
+        false,
+    ),
     cmd(
         "spi_set_sw_bus oid=%c miso_pin=%u mosi_pin=%u sclk_pin=%u mode=%u pulse_ticks=%u",
         Cmd::SpiSetSwBus,
@@ -362,7 +370,9 @@ mod tests {
         assert!(has("queue_digital_out oid=%c clock=%u on_ticks=%u"));
         assert!(has("set_digital_out_pwm_cycle oid=%c cycle_ticks=%u"));
         assert!(has("config_analog_in oid=%c pin=%u"));
-        assert!(has("config_tmcuart oid=%c rx_pin=%u pull_up=%c tx_pin=%u bit_time=%u"));
+        assert!(has(
+            "config_tmcuart oid=%c rx_pin=%u pull_up=%c tx_pin=%u bit_time=%u"
+        ));
         assert!(has("tmcuart_send oid=%c write=%*s read=%c"));
         assert!(has("tmcuart_response oid=%c read=%*s"));
         assert!(has("config_spi oid=%c pin=%u cs_active_high=%c"));

@@ -209,7 +209,11 @@ impl Board for SimBoard {
             let z = self.world.coord_at_clock(&b.spec.coord, at);
             return b.sense(at, z) != b.spec.active_low;
         }
-        if let Some(i) = self.tmc.iter().position(|t| t.spec.diag.as_ref().is_some_and(|d| d.pin == pin)) {
+        if let Some(i) = self
+            .tmc
+            .iter()
+            .position(|t| t.spec.diag.as_ref().is_some_and(|d| d.pin == pin))
+        {
             let coord = self.tmc[i].spec.diag.as_ref().map(|d| d.coord.clone());
             let pos = coord.and_then(|c| self.world.coord_at_clock(&c, at));
             return pos.is_some_and(|p| self.tmc[i].diag_level(p));
@@ -220,7 +224,11 @@ impl Board for SimBoard {
     fn tmcuart_transfer(&mut self, rx_pin: u8, tx_pin: u8, _bit_time: u32, write: &[u8], read: &mut [u8]) {
         // Every driver on the line hears the request; the addressed one answers.
         let mut reply = None;
-        for t in self.tmc.iter_mut().filter(|t| t.spec.bus_pin == rx_pin || t.spec.bus_pin == tx_pin) {
+        for t in self
+            .tmc
+            .iter_mut()
+            .filter(|t| t.spec.bus_pin == rx_pin || t.spec.bus_pin == tx_pin)
+        {
             reply = t.uart(write).or(reply);
         }
         if let Some(r) = reply.filter(|_| !read.is_empty()) {

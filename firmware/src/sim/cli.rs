@@ -1,8 +1,8 @@
 //! The `cadence-mcu` command line (docs/contract.md).
 
 use super::bltouch::{BlTouchSpec, Fault as BlTouchFault};
-use super::tmc::{DiagSpec as TmcDiagSpec, Model as TmcModel, TmcSpec};
 use super::heater::{HeaterFault, ThermalModel};
+use super::tmc::{DiagSpec as TmcDiagSpec, Model as TmcModel, TmcSpec};
 use super::world::{AxisSpec, Coord, EndstopSpec};
 use crate::trace::TraceFormat;
 #[cfg(test)]
@@ -272,7 +272,8 @@ fn parse_tmc(s: &str) -> Result<TmcSpec, String> {
     };
     let (model, rest) = bus.split_once('@').ok_or(FORM)?;
     let (pin, addr) = rest.split_once(':').ok_or(FORM)?;
-    let model = TmcModel::parse(model.trim()).ok_or_else(|| format!("`{model}` is not tmc2130, tmc2208, tmc2209 or tmc5160"))?;
+    let model = TmcModel::parse(model.trim())
+        .ok_or_else(|| format!("`{model}` is not tmc2130, tmc2208, tmc2209 or tmc5160"))?;
     let address: u8 = addr.trim().parse().map_err(|_| format!("bad address `{addr}`"))?;
     let diag = match diag {
         None => None,
@@ -421,11 +422,24 @@ mod tests {
     #[test]
     fn tmc_spec() {
         let t = parse_tmc("tmc2209@PD1:3=PD2,x,0,min").unwrap();
-        assert_eq!((t.model, t.address, t.diag.as_ref().map(|d| (d.end_mm, d.at_min, d.diag0))), (TmcModel::Tmc2209, 3, Some((0.0, true, false))));
+        assert_eq!(
+            (
+                t.model,
+                t.address,
+                t.diag.as_ref().map(|d| (d.end_mm, d.at_min, d.diag0))
+            ),
+            (TmcModel::Tmc2209, 3, Some((0.0, true, false)))
+        );
         let t = parse_tmc("tmc5160@PA4:0=diag0:PA5,0.5*a+0.5*b,220,max").unwrap();
         assert!(t.diag.as_ref().is_some_and(|d| d.diag0 && !d.at_min));
         assert!(parse_tmc("tmc2130@PA4:0").is_ok_and(|t| t.diag.is_none()));
-        for bad in ["tmc2660@PA4:0", "tmc2209@PA4", "tmc2209@PA4:x", "tmc2209@PA4:0=PA5,x,0,mid", "tmc2209@PA4:0=PA5,x"] {
+        for bad in [
+            "tmc2660@PA4:0",
+            "tmc2209@PA4",
+            "tmc2209@PA4:x",
+            "tmc2209@PA4:0=PA5,x,0,mid",
+            "tmc2209@PA4:0=PA5,x",
+        ] {
             assert!(parse_tmc(bad).is_err(), "{bad}");
         }
     }

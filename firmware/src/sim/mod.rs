@@ -16,7 +16,6 @@
 //! stack while boxing it).
 
 pub mod bltouch;
-pub mod tmc;
 pub mod board;
 pub mod cli;
 pub mod clock;
@@ -25,6 +24,7 @@ pub mod faults;
 pub mod heater;
 pub mod pty;
 pub mod spin;
+pub mod tmc;
 pub mod world;
 
 use crate::core::{Mcu, McuConfig};

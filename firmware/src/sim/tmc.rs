@@ -159,7 +159,9 @@ impl TmcDriver {
                 self.ifcnt = self.ifcnt.wrapping_add(1);
                 None
             }
-            Request::Read { addr, reg } if addr == self.spec.address => Some(wire::encode_reply(reg, self.read(reg))),
+            Request::Read { addr, reg } if addr == self.spec.address => {
+                Some(wire::encode_reply(reg, self.read(reg)))
+            }
             _ => None,
         }
     }
@@ -191,7 +193,9 @@ impl TmcDriver {
         let gconf = self.regs[reg::GCONF as usize];
         let tcoolthrs = self.regs[reg::TCOOLTHRS as usize];
         match self.spec.model {
-            Model::Tmc2209 => self.regs[reg::SGTHRS as usize] & 0xff != 0 && tcoolthrs != 0 && gconf & (1 << 2) == 0,
+            Model::Tmc2209 => {
+                self.regs[reg::SGTHRS as usize] & 0xff != 0 && tcoolthrs != 0 && gconf & (1 << 2) == 0
+            }
             Model::Tmc2208 => false,
             Model::Tmc2130 | Model::Tmc5160 => {
                 let diag0 = self.spec.diag.as_ref().is_some_and(|d| d.diag0);
@@ -206,7 +210,11 @@ impl TmcDriver {
         let Some(d) = &self.spec.diag else {
             return false;
         };
-        let at_end = if d.at_min { pos <= d.end_mm } else { pos >= d.end_mm };
+        let at_end = if d.at_min {
+            pos <= d.end_mm
+        } else {
+            pos >= d.end_mm
+        };
         let stalled = at_end && self.stall_reported();
         let gconf = self.regs[reg::GCONF as usize];
         let active_high = match self.spec.model {
@@ -240,7 +248,10 @@ mod tests {
     #[test]
     fn uart_writes_count_and_reads_answer_with_crc() {
         let mut d = driver(Model::Tmc2209, false);
-        assert_eq!(d.uart(&wire::encode_read(1, reg::IFCNT)), Some(wire::encode_reply(2, 0)));
+        assert_eq!(
+            d.uart(&wire::encode_read(1, reg::IFCNT)),
+            Some(wire::encode_reply(2, 0))
+        );
         assert_eq!(d.uart(&wire::encode_write(1, 0x10, 0x0008_1008)), None);
         // Another address: ignored.
         assert_eq!(d.uart(&wire::encode_write(0, 0x10, 5)), None);

@@ -177,11 +177,14 @@ mod tests {
         // Read request of IFCNT (0x02) at address 0: sync 0xf5 (as Klipper sends it).
         let msg = [0xf5, 0x00, 0x02];
         let crc = crc8(&msg);
-        assert_eq!(encode_read(0, 2)[..], {
-            let mut l = [0u8; 5];
-            to_line(&[0xf5, 0, 2, crc], &mut l).unwrap();
-            l
-        }[..]);
+        assert_eq!(
+            encode_read(0, 2)[..],
+            {
+                let mut l = [0u8; 5];
+                to_line(&[0xf5, 0, 2, crc], &mut l).unwrap();
+                l
+            }[..]
+        );
         // The first line byte: start bit 0, then 0xf5's low 7 bits.
         assert_eq!(encode_read(0, 2)[0], (0xf5u8 << 1) & 0xff);
         assert_eq!(encode_read(0, 2)[0] & 0x3f, 0x2a);

@@ -120,7 +120,10 @@ mod tests {
         // 0.8 A through 0.11 Ω: 32 · 0.13 · 0.8 · √2 / 0.18 = 26.1 → 26 − 1 = 25, vsense on.
         let mut f = FieldSet::new(TmcModel::Tmc2209);
         set_current(&mut f, 0.110, 0.8, 0.5);
-        assert_eq!((f.get("vsense"), f.get("irun"), f.get("ihold")), (Some(1), Some(25), Some(15)));
+        assert_eq!(
+            (f.get("vsense"), f.get("irun"), f.get("ihold")),
+            (Some(1), Some(25), Some(15))
+        );
         // 1.7 A needs the low-sensitivity range: 32 · 0.13 · 1.7 · √2 / 0.32 = 31.25 → 30.
         set_current(&mut f, 0.110, 1.7, 1.7);
         assert_eq!((f.get("vsense"), f.get("irun")), (Some(0), Some(30)));
@@ -130,7 +133,10 @@ mod tests {
         assert_eq!(f.get("globalscaler"), Some(167));
         assert_eq!(f.get("irun"), Some(31));
         assert_eq!(f.get("ihold"), Some(15));
-        assert_eq!(regs.iter().map(|r| r.0).collect::<Vec<_>>(), ["GLOBALSCALER", "IHOLD_IRUN"]);
+        assert_eq!(
+            regs.iter().map(|r| r.0).collect::<Vec<_>>(),
+            ["GLOBALSCALER", "IHOLD_IRUN"]
+        );
     }
 
     proptest! {

@@ -91,7 +91,12 @@ impl TmcSection {
 
     /// A velocity (mm/s) as a TSTEP threshold of this driver.
     pub fn tstep(&self, velocity: f64) -> u32 {
-        tstep(self.model, self.step_dist, self.fields.get("mres").unwrap_or(0), velocity)
+        tstep(
+            self.model,
+            self.step_dist,
+            self.fields.get("mres").unwrap_or(0),
+            velocity,
+        )
     }
 }
 
@@ -136,7 +141,11 @@ pub(crate) fn read_tmc(
     let max = model.max_current();
     let run_current = s.float("run_current", Bounds::ANY.above(0.0).max(max))?;
     let hold_current = s.float_or("hold_current", max, Bounds::ANY.above(0.0).max(max))?;
-    let sense_resistor = s.float_or("sense_resistor", model.default_sense_resistor(), Bounds::ANY.above(0.0))?;
+    let sense_resistor = s.float_or(
+        "sense_resistor",
+        model.default_sense_resistor(),
+        Bounds::ANY.above(0.0),
+    )?;
     let (diag_option, diag_field) = match model {
         TmcModel::Tmc2208 => (None, None),
         TmcModel::Tmc2209 => (Some("diag_pin"), None),
@@ -146,18 +155,16 @@ pub(crate) fn read_tmc(
     let diag_pin = match diag_option {
         Some(option) if virtual_endstop => s.opt_pin(option, PinKind::Input, pins, Share::Exclusive)?,
         Some(option) => match s.value(option) {
-            Some(v) => Some(
-                PinRef::parse(&v.text, PinKind::Input).map_err(|problem| {
-                    s.bad(
-                        option,
-                        v,
-                        super::error::ValueProblem::BadPin {
-                            pin: v.text.clone(),
-                            problem,
-                        },
-                    )
-                })?,
-            ),
+            Some(v) => Some(PinRef::parse(&v.text, PinKind::Input).map_err(|problem| {
+                s.bad(
+                    option,
+                    v,
+                    super::error::ValueProblem::BadPin {
+                        pin: v.text.clone(),
+                        problem,
+                    },
+                )
+            })?),
             None => None,
         },
         None => None,
@@ -244,7 +251,12 @@ pub(crate) fn read_tmc(
 
 /// `driver_<FIELD>`: a boolean for a one-bit field, a signed or unsigned integer within the
 /// field's width otherwise.
-fn read_field(s: &SectionReader<'_>, fields: &mut FieldSet, field: &str, default: i64) -> Result<(), ConfigError> {
+fn read_field(
+    s: &SectionReader<'_>,
+    fields: &mut FieldSet,
+    field: &str,
+    default: i64,
+) -> Result<(), ConfigError> {
     let Some((_, mask)) = fields.model.field(field) else {
         return Ok(());
     };
@@ -257,11 +269,14 @@ fn read_field(s: &SectionReader<'_>, fields: &mut FieldSet, field: &str, default
     } else {
         s.int::<i64>(&option, Some(default), 0..=max)?
     };
-    fields.set(field, value).map(|_| ()).map_err(|e| ConfigError::BadSection {
-        at: s.at().clone(),
-        section: s.name().to_string(),
-        reason: e.to_string(),
-    })
+    fields
+        .set(field, value)
+        .map(|_| ())
+        .map_err(|e| ConfigError::BadSection {
+            at: s.at().clone(),
+            section: s.name().to_string(),
+            reason: e.to_string(),
+        })
 }
 
 fn read_bus(s: &SectionReader<'_>, model: TmcModel, pins: &mut PinRegistry) -> Result<TmcBus, ConfigError> {
@@ -300,7 +315,11 @@ fn read_bus(s: &SectionReader<'_>, model: TmcModel, pins: &mut PinRegistry) -> R
     let cs_pin = s.pin("cs_pin", PinKind::Output, pins, Share::Exclusive)?;
     let speed = s.int::<u32>("spi_speed", Some(4_000_000), 1..=i64::from(u32::MAX))?;
     let bus = s.value("spi_bus").map(|v| v.text.clone());
-    let sw = ["spi_software_sclk_pin", "spi_software_mosi_pin", "spi_software_miso_pin"];
+    let sw = [
+        "spi_software_sclk_pin",
+        "spi_software_mosi_pin",
+        "spi_software_miso_pin",
+    ];
     let software = match s.value(sw[0]) {
         Some(_) => Some([
             s.pin(sw[0], PinKind::Output, pins, Share::SpiBus)?,

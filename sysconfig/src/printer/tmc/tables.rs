@@ -36,7 +36,19 @@ pub const TMC2130_REGISTERS: &[(&str, u8)] = &[
     ("LOST_STEPS", 0x73),
 ];
 /// TMC2130 registers the driver answers reads of.
-pub const TMC2130_READABLE: &[&str] = &["GCONF", "GSTAT", "IOIN", "TSTEP", "XDIRECT", "MSCNT", "MSCURACT", "CHOPCONF", "DRV_STATUS", "PWM_SCALE", "LOST_STEPS"];
+pub const TMC2130_READABLE: &[&str] = &[
+    "GCONF",
+    "GSTAT",
+    "IOIN",
+    "TSTEP",
+    "XDIRECT",
+    "MSCNT",
+    "MSCURACT",
+    "CHOPCONF",
+    "DRV_STATUS",
+    "PWM_SCALE",
+    "LOST_STEPS",
+];
 /// TMC2130 fields: (register, field, mask).
 pub const TMC2130_FIELDS: &[(&str, &str, u32)] = &[
     ("GCONF", "i_scale_analog", 0x00000001),
@@ -165,7 +177,22 @@ pub const TMC2208_REGISTERS: &[(&str, u8)] = &[
     ("PWM_AUTO", 0x72),
 ];
 /// TMC2208 registers the driver answers reads of.
-pub const TMC2208_READABLE: &[&str] = &["GCONF", "GSTAT", "IFCNT", "OTP_READ", "IOIN", "FACTORY_CONF", "TSTEP", "MSCNT", "MSCURACT", "CHOPCONF", "DRV_STATUS", "PWMCONF", "PWM_SCALE", "PWM_AUTO"];
+pub const TMC2208_READABLE: &[&str] = &[
+    "GCONF",
+    "GSTAT",
+    "IFCNT",
+    "OTP_READ",
+    "IOIN",
+    "FACTORY_CONF",
+    "TSTEP",
+    "MSCNT",
+    "MSCURACT",
+    "CHOPCONF",
+    "DRV_STATUS",
+    "PWMCONF",
+    "PWM_SCALE",
+    "PWM_AUTO",
+];
 /// TMC2208 fields: (register, field, mask).
 pub const TMC2208_FIELDS: &[(&str, &str, u32)] = &[
     ("GCONF", "i_scale_analog", 0x00000001),
@@ -298,7 +325,23 @@ pub const TMC2209_REGISTERS: &[(&str, u8)] = &[
     ("PWM_AUTO", 0x72),
 ];
 /// TMC2209 registers the driver answers reads of.
-pub const TMC2209_READABLE: &[&str] = &["GCONF", "GSTAT", "IFCNT", "OTP_READ", "IOIN", "FACTORY_CONF", "TSTEP", "MSCNT", "MSCURACT", "CHOPCONF", "DRV_STATUS", "PWMCONF", "PWM_SCALE", "PWM_AUTO", "SG_RESULT"];
+pub const TMC2209_READABLE: &[&str] = &[
+    "GCONF",
+    "GSTAT",
+    "IFCNT",
+    "OTP_READ",
+    "IOIN",
+    "FACTORY_CONF",
+    "TSTEP",
+    "MSCNT",
+    "MSCURACT",
+    "CHOPCONF",
+    "DRV_STATUS",
+    "PWMCONF",
+    "PWM_SCALE",
+    "PWM_AUTO",
+    "SG_RESULT",
+];
 /// TMC2209 fields: (register, field, mask).
 pub const TMC2209_FIELDS: &[(&str, &str, u32)] = &[
     ("GCONF", "i_scale_analog", 0x00000001),
@@ -485,7 +528,21 @@ pub const TMC5160_REGISTERS: &[(&str, u8)] = &[
     ("LOST_STEPS", 0x73),
 ];
 /// TMC5160 registers the driver answers reads of.
-pub const TMC5160_READABLE: &[&str] = &["GCONF", "CHOPCONF", "GSTAT", "DRV_STATUS", "FACTORY_CONF", "IOIN", "LOST_STEPS", "MSCNT", "MSCURACT", "OTP_READ", "PWM_SCALE", "PWM_AUTO", "TSTEP"];
+pub const TMC5160_READABLE: &[&str] = &[
+    "GCONF",
+    "CHOPCONF",
+    "GSTAT",
+    "DRV_STATUS",
+    "FACTORY_CONF",
+    "IOIN",
+    "LOST_STEPS",
+    "MSCNT",
+    "MSCURACT",
+    "OTP_READ",
+    "PWM_SCALE",
+    "PWM_AUTO",
+    "TSTEP",
+];
 /// TMC5160 fields: (register, field, mask).
 pub const TMC5160_FIELDS: &[(&str, &str, u32)] = &[
     ("COOLCONF", "semin", 0x0000000f),
@@ -609,4 +666,3 @@ pub const TMC5160_FIELDS: &[(&str, &str, u32)] = &[
 ];
 /// TMC5160 signed fields.
 pub const TMC5160_SIGNED: &[&str] = &["cur_a", "cur_b", "sgt", "xactual", "vactual", "pwm_scale_auto"];
-

@@ -26,27 +26,55 @@ fn tmc2209_registers_follow_klipper() {
     .unwrap_or_else(|e| panic!("{e}"));
     let t = &cfg.tmc[0];
     assert_eq!((t.model, t.stepper.as_str()), (TmcModel::Tmc2209, "stepper_x"));
-    let TmcBus::Uart { uart_pin, tx_pin, address } = &t.bus else {
+    let TmcBus::Uart {
+        uart_pin,
+        tx_pin,
+        address,
+    } = &t.bus
+    else {
         panic!("not uart")
     };
-    assert_eq!((uart_pin.pin.as_str(), tx_pin.is_none(), *address), ("PD1", true, 3));
-    assert_eq!(t.diag_pin.as_ref().map(|p| (p.pin.as_str(), p.pullup)), Some(("PD2", true)));
+    assert_eq!(
+        (uart_pin.pin.as_str(), tx_pin.is_none(), *address),
+        ("PD1", true, 3)
+    );
+    assert_eq!(
+        t.diag_pin.as_ref().map(|p| (p.pin.as_str(), p.pullup)),
+        Some(("PD2", true))
+    );
     let f = &t.fields;
     let order: Vec<&str> = f.registers().iter().map(|r| r.0).collect();
     assert_eq!(
         order,
-        ["GCONF", "SLAVECONF", "CHOPCONF", "IHOLD_IRUN", "TPWMTHRS", "TCOOLTHRS", "COOLCONF", "PWMCONF", "TPOWERDOWN", "SGTHRS"]
+        [
+            "GCONF",
+            "SLAVECONF",
+            "CHOPCONF",
+            "IHOLD_IRUN",
+            "TPWMTHRS",
+            "TCOOLTHRS",
+            "COOLCONF",
+            "PWMCONF",
+            "TPOWERDOWN",
+            "SGTHRS"
+        ]
     );
     // pdn_disable, mstep_reg_select, multistep_filt; stealthChop on (en_spreadcycle 0).
     assert_eq!(f.register("GCONF"), (1 << 6) | (1 << 7) | (1 << 8));
     assert_eq!(f.register("SLAVECONF"), 2 << 8);
     // toff 3, hstrt 5, tbl 2, vsense, mres 4 (16 microsteps), intpol.
-    assert_eq!(f.register("CHOPCONF"), 3 | (5 << 4) | (2 << 15) | (1 << 17) | (4 << 24) | (1 << 28));
+    assert_eq!(
+        f.register("CHOPCONF"),
+        3 | (5 << 4) | (2 << 15) | (1 << 17) | (4 << 24) | (1 << 28)
+    );
     assert_eq!(f.register("IHOLD_IRUN"), 15 | (25 << 8) | (8 << 16));
     // 12 MHz · (40 / 3200 / 16 mm) / 999999 mm/s + ½ → 0.
     assert_eq!(f.register("TPWMTHRS"), 0);
     assert_eq!(f.register("SGTHRS"), 100);
-    assert_eq!(f.register("PWMCONF"), 36 | (14 << 8) | (1 << 16) | (1 << 18) | (1 << 19) | (8 << 24) | (12 << 28));
+    assert_eq!(
+        f.register("PWMCONF"),
+        36 | (14 << 8) | (1 << 16) | (1 << 18) | (1 << 19) | (8 << 24) | (12 << 28)
+    );
     assert_eq!(f.register("TPOWERDOWN"), 20);
 }
 
@@ -62,12 +90,18 @@ fn tmc2130_and_5160_over_spi() {
     .unwrap_or_else(|e| panic!("{e}"));
     let x = cfg.tmc.iter().find(|t| t.model == TmcModel::Tmc5160).unwrap();
     assert_eq!(x.fields.get("globalscaler"), Some(167));
-    assert_eq!((x.fields.get("irun"), x.fields.get("ihold")), (Some(31), Some(15)));
+    assert_eq!(
+        (x.fields.get("irun"), x.fields.get("ihold")),
+        (Some(31), Some(15))
+    );
     assert_eq!(x.fields.get("sgt"), Some(-3));
     assert_eq!(x.diag_field, Some("diag1_stall"));
     assert!(x.virtual_endstop && x.diag_pin.as_ref().is_some_and(|p| p.invert && p.pullup));
     let y = cfg.tmc.iter().find(|t| t.model == TmcModel::Tmc2130).unwrap();
-    assert_eq!((y.fields.get("intpol"), y.fields.get("en_pwm_mode")), (Some(0), Some(1)));
+    assert_eq!(
+        (y.fields.get("intpol"), y.fields.get("en_pwm_mode")),
+        (Some(0), Some(1))
+    );
     // 13.2 MHz · (40 / 3200 / 16) / 10 + ½ = 1031.75 → 1031.
     assert_eq!(y.fields.get("tpwmthrs"), Some(1031));
     assert_eq!(y.fields.get("toff"), Some(4));
@@ -92,8 +126,13 @@ fn errors_name_file_line_section_and_option() {
         assert!(err.contains(want), "{extra}: {err}");
         assert!(err.starts_with("printer.cfg:"), "{err}");
     }
-    let inverted = BASE.replace("tmc2209_stepper_x:virtual_endstop", "!tmc2209_stepper_x:virtual_endstop");
-    let err = parse(&format!("{inverted}{uart}run_current: 0.5\n")).err().unwrap_or_default();
+    let inverted = BASE.replace(
+        "tmc2209_stepper_x:virtual_endstop",
+        "!tmc2209_stepper_x:virtual_endstop",
+    );
+    let err = parse(&format!("{inverted}{uart}run_current: 0.5\n"))
+        .err()
+        .unwrap_or_default();
     assert!(err.contains("Can not pullup/invert tmc virtual pin"), "{err}");
 }
 
