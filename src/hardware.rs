@@ -626,6 +626,36 @@ mod tests {
     }
 
     #[test]
+    fn sensorless_endstops_read_the_drivers_diag_pins_and_the_drivers_are_simulated() {
+        let text = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/examples/simulated-sensorless.cfg"
+        ))
+        .unwrap();
+        let m = machine(&text);
+        let x = m.endstops.iter().find(|e| e.axis == 0).unwrap();
+        assert_eq!(
+            (x.pin.pin.as_str(), x.pin.pullup, x.sensorless),
+            ("PE7", true, Some(0))
+        );
+        assert_eq!(m.tmc.iter().map(|t| t.bus).collect::<Vec<_>>(), [0, 0, 1, 2]);
+        assert_eq!(crate::tmc::bus_count(&m.tmc, "mcu"), 3);
+        let args = m.sim_world_args("mcu", "w").join(" ");
+        assert!(
+            args.contains("--tmc tmc2209@PE6:0=PE7,x,0,min --tmc tmc2209@PE6:1=PE8,y,0,min"),
+            "{args}"
+        );
+        assert!(
+            args.contains("--tmc tmc2130@PE9:0 --tmc tmc2208@PE13:0"),
+            "{args}"
+        );
+        assert!(
+            !args.contains("--endstop PE7") && args.contains("--endstop PC3=z,0,min"),
+            "{args}"
+        );
+    }
+
+    #[test]
     fn bltouch_servo_follows_the_endstops_and_is_simulated() {
         let text = include_str!("../examples/simulated-probe.cfg").replace(
             "[probe]\npin: ^probe_mcu:PA4",

@@ -167,8 +167,8 @@ fn dump_tmc_reads_back_what_was_written_and_set_tmc_current_changes_the_driver()
     // The TMC2208 rewritten by INIT_TMC: its 6 registers twice.
     let last_ifcnt = out
         .lines()
-        .filter(|l| l.trim().starts_with("IFCNT:"))
-        .last()
+        .rev()
+        .find(|l| l.trim().starts_with("IFCNT:"))
         .map(str::trim);
     assert_eq!(last_ifcnt, Some("IFCNT:      0000000c ifcnt=12"), "{out}");
 }

@@ -186,7 +186,7 @@ mod tests {
             }[..]
         );
         // The first line byte: start bit 0, then 0xf5's low 7 bits.
-        assert_eq!(encode_read(0, 2)[0], (0xf5u8 << 1) & 0xff);
+        assert_eq!(encode_read(0, 2)[0], 0xea);
         assert_eq!(encode_read(0, 2)[0] & 0x3f, 0x2a);
         // CRC-8/ATM-style check value of the bytes fed LSB first.
         assert_eq!(crc8(&[]), 0);
