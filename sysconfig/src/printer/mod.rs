@@ -357,8 +357,13 @@ fn read_tmc_sections(
     pins: &mut PinRegistry,
 ) -> Result<Vec<TmcSection>, ConfigError> {
     let mut out = Vec::new();
-    for (kind, model) in tmc::MODELS {
-        for s in reader.sections_of_kind(kind) {
+    let kinds = tmc::MODELS.map(|(kind, _)| kind);
+    for s in reader.sections_of_kinds(&kinds) {
+        let kind = s.kind();
+        let Some(model) = TmcModel::of_kind(kind) else {
+            continue;
+        };
+        {
             let stepper = s.arg().unwrap_or_default().to_string();
             let motor = steppers
                 .iter()
