@@ -40,14 +40,15 @@ impl TmcModel {
         }
     }
 
-    /// Register names and addresses.
-    pub fn registers(self) -> &'static [(&'static str, u8)] {
-        match self {
-            TmcModel::Tmc2130 => TMC2130_REGISTERS,
-            TmcModel::Tmc2208 => TMC2208_REGISTERS,
-            TmcModel::Tmc2209 => TMC2209_REGISTERS,
-            TmcModel::Tmc5160 => TMC5160_REGISTERS,
-        }
+    /// Register names and addresses (the TMC2209's are the TMC2208's and more).
+    pub fn registers(self) -> impl Iterator<Item = &'static (&'static str, u8)> {
+        let (base, extra): (&'static [(&'static str, u8)], &'static [(&'static str, u8)]) = match self {
+            TmcModel::Tmc2130 => (TMC2130_REGISTERS, &[]),
+            TmcModel::Tmc2208 => (TMC2208_REGISTERS, &[]),
+            TmcModel::Tmc2209 => (TMC2208_REGISTERS, TMC2209_EXTRA_REGISTERS),
+            TmcModel::Tmc5160 => (TMC5160_REGISTERS, &[]),
+        };
+        base.iter().chain(extra)
     }
 
     /// Registers the driver answers reads of (`DUMP_TMC`'s queried list, in its order).
@@ -60,14 +61,16 @@ impl TmcModel {
         }
     }
 
-    /// (register, field, mask) of every field.
-    pub fn fields(self) -> &'static [(&'static str, &'static str, u32)] {
-        match self {
-            TmcModel::Tmc2130 => TMC2130_FIELDS,
-            TmcModel::Tmc2208 => TMC2208_FIELDS,
-            TmcModel::Tmc2209 => TMC2209_FIELDS,
-            TmcModel::Tmc5160 => TMC5160_FIELDS,
-        }
+    /// (register, field, mask) of every field (the TMC2209's are the TMC2208's and more).
+    pub fn fields(self) -> impl Iterator<Item = &'static (&'static str, &'static str, u32)> {
+        type Fields = &'static [(&'static str, &'static str, u32)];
+        let (base, extra): (Fields, Fields) = match self {
+            TmcModel::Tmc2130 => (TMC2130_FIELDS, &[]),
+            TmcModel::Tmc2208 => (TMC2208_FIELDS, &[]),
+            TmcModel::Tmc2209 => (TMC2208_FIELDS, TMC2209_EXTRA_FIELDS),
+            TmcModel::Tmc5160 => (TMC5160_FIELDS, &[]),
+        };
+        base.iter().chain(extra)
     }
 
     fn signed(self) -> &'static [&'static str] {
@@ -119,20 +122,19 @@ impl TmcModel {
 
     /// The register at `addr`.
     pub fn register_name(self, addr: u8) -> Option<&'static str> {
-        self.registers().iter().find(|(_, a)| *a == addr).map(|&(n, _)| n)
+        self.registers().find(|(_, a)| *a == addr).map(|&(n, _)| n)
     }
 
     /// The address of register `name`.
     pub fn register_addr(self, name: &str) -> Option<u8> {
-        self.registers().iter().find(|(n, _)| *n == name).map(|&(_, a)| a)
+        self.registers().find(|(n, _)| *n == name).map(|&(_, a)| a)
     }
 
     /// The register and mask of field `field` (lowercase).
     pub fn field(self, field: &str) -> Option<(&'static str, u32)> {
         self.fields()
-            .iter()
             .find(|(r, f, _)| *f == field && !r.contains('@'))
-            .or_else(|| self.fields().iter().find(|(_, f, _)| *f == field))
+            .or_else(|| self.fields().find(|(_, f, _)| *f == field))
             .map(|&(r, _, m)| (r, m))
     }
 
@@ -309,7 +311,7 @@ impl FieldSet {
 
     /// Field `field` of `value`, a value of register `reg`, sign-extended for a signed field.
     pub fn decode(model: TmcModel, reg: &str, field: &str, value: u32) -> Option<i64> {
-        let &(_, _, mask) = model.fields().iter().find(|(r, f, _)| *r == reg && *f == field)?;
+        let &(_, _, mask) = model.fields().find(|(r, f, _)| *r == reg && *f == field)?;
         let raw = i64::from((value & mask) >> shift(mask));
         let max = i64::from(mask >> shift(mask));
         if model.signed().contains(&field) && raw > max / 2 {
@@ -343,7 +345,7 @@ impl FieldSet {
     /// `REG:        0000abcd field=v …`: the register's non-zero fields, lowest bits first
     /// (`DUMP_TMC`'s line).
     pub fn pretty(model: TmcModel, reg: &str, value: u32) -> String {
-        let mut fields: Vec<_> = model.fields().iter().filter(|(r, _, _)| *r == reg).collect();
+        let mut fields: Vec<_> = model.fields().filter(|(r, _, _)| *r == reg).collect();
         fields.sort_by_key(|(_, _, m)| *m);
         let mut out = format!("{:<11} {value:08x}", format!("{reg}:"));
         for (_, f, _) in fields {
