@@ -42,7 +42,8 @@ impl TmcModel {
 
     /// Register names and addresses (the TMC2209's are the TMC2208's and more).
     pub fn registers(self) -> impl Iterator<Item = &'static (&'static str, u8)> {
-        let (base, extra): (&'static [(&'static str, u8)], &'static [(&'static str, u8)]) = match self {
+        type Registers = &'static [(&'static str, u8)];
+        let (base, extra): (Registers, Registers) = match self {
             TmcModel::Tmc2130 => (TMC2130_REGISTERS, &[]),
             TmcModel::Tmc2208 => (TMC2208_REGISTERS, &[]),
             TmcModel::Tmc2209 => (TMC2208_REGISTERS, TMC2209_EXTRA_REGISTERS),
