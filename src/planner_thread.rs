@@ -550,7 +550,9 @@ impl FeedTarget for PlannerRun<'_, '_> {
         }
         self.homing_reports.extend(out);
         result?;
-        st.log.log(Level::Info, "homing done", []);
+        if matches!(cmd, MotionCmd::Home(_)) {
+            st.log.log(Level::Info, "homing done", []);
+        }
         self.publish_status(pipeline);
         if self.warm.is_some() {
             let (allocs, n) = self.motions;

@@ -302,6 +302,7 @@ pub(crate) fn run_motion(
         // After the moves before it, as Klipper's print-time ordered register writes.
         MotionCmd::Tmc { name, raw } => wait_motion_done(ctx)
             .and_then(|()| crate::tmc::gcode::run(ctx.mcus, &ctx.machine.tmc, name, raw, out))
+            .and_then(|()| resume_after_io(ctx))
             .map(|()| None),
     };
     out.append(&mut ctx.messages);
@@ -517,7 +518,15 @@ fn sensorless_session(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisRep
     let restored = crate::tmc::sensorless::end(&io, saved);
     let report = result?;
     restored?;
+    resume_after_io(ctx)?;
     Ok(report)
+}
+
+/// After register traffic that took wall time: the toolhead's next move starts no earlier than
+/// a move planned now can (else its first steps would be late).
+fn resume_after_io(ctx: &mut HomingCtx<'_>) -> Result<(), String> {
+    let start = ctx.earliest_start();
+    ctx.pipeline.raise_print_time(start).map_err(|e| e.to_string())
 }
 
 /// `query` with retries (the reply of an idempotent query can be lost on a noisy line).
