@@ -2,8 +2,9 @@
 //!
 //! UART: a read is `tmcuart_send` of the 4-byte request (line bits) asking for 10 line bytes
 //! back, the reply checked bit for bit (start/stop bits, sync, register, CRC); a write is
-//! `tmcuart_send` of the 8-byte request with nothing to read, confirmed by IFCNT having counted
-//! up by one (IFCNT read before the first write). Each is tried up to 5 times, then "Unable to
+//! `tmcuart_send` of the 8-byte request with nothing to read (its empty answer awaited, so
+//! every answer belongs to the request waiting for it), confirmed by IFCNT having counted up by
+//! one (IFCNT read before the first write). Each is tried up to 5 times, then "Unable to
 //! read/write tmc uart 'NAME' register REG".
 //!
 //! SPI: a read is `spi_send` of the request then `spi_transfer` of it again, whose answer
@@ -123,8 +124,14 @@ impl TmcIo<'_> {
                         Some(n) => n,
                         None => self.read("IFCNT")? as u8,
                     };
+                    // The MCU answers a write too (nothing read): waiting for that answer
+                    // keeps it from being taken for the next read's.
                     let req = wire::encode_write(*address, addr, value);
-                    self.send("tmcuart_send", &[oid, Value::Bytes(&req), Value::Int(0)])?;
+                    self.query(
+                        "tmcuart_send",
+                        &[oid, Value::Bytes(&req), Value::Int(0)],
+                        "tmcuart_response",
+                    )?;
                     let after = self.read("IFCNT")? as u8;
                     self.drv.lock().ifcnt = Some(after);
                     if after == before.wrapping_add(1) {
