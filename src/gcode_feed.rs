@@ -224,6 +224,8 @@ pub(crate) enum MotionCmd<'a> {
     Home([bool; 3]),
     /// PROBE, PROBE_ACCURACY or QUERY_PROBE, as written.
     Probe { name: &'a str, raw: &'a str },
+    /// SET_TMC_CURRENT, SET_TMC_FIELD, DUMP_TMC or INIT_TMC, as written.
+    Tmc { name: &'a str, raw: &'a str },
 }
 
 impl MotionCmd<'_> {
@@ -231,7 +233,7 @@ impl MotionCmd<'_> {
     fn name(&self) -> &str {
         match self {
             MotionCmd::Home(_) => "G28",
-            MotionCmd::Probe { name, .. } => name,
+            MotionCmd::Probe { name, .. } | MotionCmd::Tmc { name, .. } => name,
         }
     }
 }
@@ -941,6 +943,9 @@ fn plan_line(
         Command::Home { x, y, z } => Some(MotionCmd::Home([*x, *y, *z])),
         Command::Other { name, raw } if crate::homing::probe::is_probe_command(name) => {
             Some(MotionCmd::Probe { name, raw })
+        }
+        Command::Other { name, raw } if crate::tmc::gcode::is_tmc_command(name) => {
+            Some(MotionCmd::Tmc { name, raw })
         }
         _ => None,
     };

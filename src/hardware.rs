@@ -72,6 +72,9 @@ pub struct EndstopOut {
     pub homing_positive_dir: bool,
     /// The pin is the `[probe]`'s (the simulator triggers it at `[simulator] bed_surface_z`).
     pub probe: bool,
+    /// Sensorless: the pin is the diag pin of this driver (index in [`Machine::tmc`]), whose
+    /// virtual endstop the axis homes on.
+    pub sensorless: Option<usize>,
 }
 
 /// The `[probe]`: its endstop (on its MCU) and its settings.
@@ -107,6 +110,8 @@ pub struct Machine {
     pub probe: Option<ProbeOut>,
     /// `[bltouch]`: the probe's servo.
     pub bltouch: Option<BlTouchOut>,
+    /// The steppers' TMC drivers.
+    pub tmc: Vec<crate::tmc::TmcOut>,
     /// `[simulator] bed_surface_z`: where simulated probe pins trigger.
     pub sim_bed_surface_z: f64,
     pub toolhead: ToolheadConfig,
@@ -210,16 +215,25 @@ impl Machine {
             })?;
         let mut steppers = Vec::new();
         let mut endstops = Vec::new();
+        let tmc = crate::tmc::drivers(cfg);
         for (axis, s) in cfg.steppers.iter().enumerate().take(3) {
             let name = s.name.clone();
             if let (Some(pin), Some(position_endstop)) = (&s.endstop_pin, s.position_endstop) {
                 // `probe:z_virtual_endstop`: the probe's own pin.
                 let probe_pin = cfg.probe.as_ref().filter(|_| pin.mcu == PROBE_PIN_MCU);
+                // `tmc2209_stepper_x:virtual_endstop`: the driver's diag pin.
+                let sensorless = tmc.iter().position(|t| t.cfg.chip() == pin.mcu);
+                let diag_pin = sensorless.and_then(|i| tmc[i].cfg.diag_pin.clone());
                 endstops.push(EndstopOut {
                     stepper: name.clone(),
                     axis,
-                    pin: probe_pin.map_or_else(|| pin.clone(), |p| p.pin.clone()),
+                    pin: match (probe_pin, diag_pin) {
+                        (Some(p), _) => p.pin.clone(),
+                        (None, Some(d)) => d,
+                        (None, None) => pin.clone(),
+                    },
                     probe: probe_pin.is_some(),
+                    sensorless,
                     oid: 0,
                     position_endstop,
                     position_min: s.position_min,
@@ -283,6 +297,7 @@ impl Machine {
             endstops,
             probe,
             bltouch,
+            tmc,
             sim_bed_surface_z: cfg.simulator.bed_surface_z,
             toolhead,
             home_position: home,
@@ -505,7 +520,34 @@ impl Machine {
             args.push("--axis".to_string());
             args.push(format!("{name}={},{steps_per_mm},{start}", s.step_pin.pin));
         }
+        // The TMC drivers on this MCU's buses; one an axis homes on stalls where its endstop
+        // would trigger, and raises DIAG on its diag pin (on this MCU).
+        let endstops = &self.endstops;
+        args.extend(crate::tmc::sim_args(&self.tmc, mcu, |d| {
+            let e = endstops.iter().find(|e| {
+                e.sensorless
+                    .is_some_and(|i| self.tmc[i].cfg.stepper == d.cfg.stepper)
+            })?;
+            if e.pin.mcu != mcu {
+                return None;
+            }
+            let side = if e.homing_positive_dir { "max" } else { "min" };
+            let diag0 = if d.cfg.diag_field == Some("diag0_stall") {
+                "diag0:"
+            } else {
+                ""
+            };
+            Some(format!(
+                "{diag0}{},{},{},{side}",
+                e.pin.pin,
+                self.sim_coord(e.axis, &rails),
+                self.sim_trigger(e)
+            ))
+        }));
         for e in self.mcu_endstops(mcu) {
+            if e.sensorless.is_some() {
+                continue;
+            }
             // A BLTouch with its servo on the same MCU: the simulated probe, deployed and
             // stowed by the servo pulses, its pin touching the bed surface.
             if let Some(b) = self.mcu_bltouch(mcu).filter(|_| e.probe) {
@@ -590,6 +632,7 @@ fn probe_out(
             homing_retract_dist: p.sample_retract_dist,
             homing_positive_dir: false,
             probe: true,
+            sensorless: None,
         },
         z_virtual_endstop: shared.is_some(),
         z_position: p.z_position.unwrap_or(z_min),
@@ -625,6 +668,36 @@ mod tests {
         assert_eq!(args, "--endstop PA4=z,0,min --world w");
         let args = m.sim_world_args("mcu", "w").join(" ");
         assert!(args.contains("--axis z=PC0,400,20 "), "{args}");
+    }
+
+    #[test]
+    fn sensorless_endstops_read_the_drivers_diag_pins_and_the_drivers_are_simulated() {
+        let text = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/examples/simulated-sensorless.cfg"
+        ))
+        .unwrap();
+        let m = machine(&text);
+        let x = m.endstops.iter().find(|e| e.axis == 0).unwrap();
+        assert_eq!(
+            (x.pin.pin.as_str(), x.pin.pullup, x.sensorless),
+            ("PE7", true, Some(0))
+        );
+        assert_eq!(m.tmc.iter().map(|t| t.bus).collect::<Vec<_>>(), [0, 0, 1, 2]);
+        assert_eq!(crate::tmc::bus_count(&m.tmc, "mcu"), 3);
+        let args = m.sim_world_args("mcu", "w").join(" ");
+        assert!(
+            args.contains("--tmc tmc2209@PE6:0=PE7,x,0,min --tmc tmc2209@PE6:1=PE8,y,0,min"),
+            "{args}"
+        );
+        assert!(
+            args.contains("--tmc tmc2130@PE9:0 --tmc tmc2208@PE13:0"),
+            "{args}"
+        );
+        assert!(
+            !args.contains("--endstop PE7") && args.contains("--endstop PC3=z,0,min"),
+            "{args}"
+        );
     }
 
     #[test]

@@ -68,6 +68,7 @@ pub mod sim_mcu;
 pub mod step_stream;
 pub mod summary;
 pub mod telemetry;
+pub mod tmc;
 pub mod wire_check;
 
 /// Lead every step command must have at the MCU, in print seconds (Klipper's "Timer too

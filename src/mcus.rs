@@ -28,6 +28,8 @@ pub struct McuConn {
     pub clock_freq: f64,
     /// Oid of this MCU's trsync object.
     pub trsync_oid: u8,
+    /// Oid of this MCU's first TMC bus object (`crate::tmc`).
+    pub tmc_oid0: u8,
 }
 
 /// All MCUs of the printer; `list[0]` is the main `[mcu]`.
@@ -112,6 +114,9 @@ pub enum ConfigureError {
     /// More objects than a u8 oid can number.
     #[error("too many objects")]
     TooManyObjects,
+    /// A TMC driver's bus objects or register writes (crate::tmc words the problem).
+    #[error("{0}")]
+    Tmc(String),
     /// The dictionary lacks a configuration command (or an argument does not fit it).
     #[error(transparent)]
     Dictionary(#[from] links::dict::DictError),
@@ -269,6 +274,7 @@ impl Mcus {
                 move_count: 0,
                 clock_freq,
                 trsync_oid: 0,
+                tmc_oid0: 0,
             });
         }
         for i in 0..mcus.list.len() {
@@ -278,6 +284,19 @@ impl Mcus {
                 return Err(McuError::Configure {
                     mcu,
                     source: Box::new(source),
+                });
+            }
+        }
+        // The drivers' registers, once every MCU is configured (as Klipper at connect).
+        for d in &machine.tmc {
+            let result =
+                crate::tmc::gcode::io_for(&mcus, &machine.tmc, &d.cfg.stepper).and_then(|io| io.init());
+            if let Err(why) = result {
+                let mcu = d.mcu().to_string();
+                mcus.close();
+                return Err(McuError::Configure {
+                    mcu,
+                    source: Box::new(ConfigureError::Tmc(format!("[{}]: {why}", d.cfg.section_name()))),
                 });
             }
         }
@@ -292,6 +311,7 @@ impl Mcus {
         let get_config = dict.encode("get_config", &[])?;
         let reply = query_config(&conn.link, get_config)?;
         let (cmds, trsync_oid, crc) = config_commands(dict, machine, &name)?;
+        let tmc_oid0 = tmc_oid0(dict, machine, &name);
         if dict.command("config_digital_out").is_err()
             && machine
                 .steppers
@@ -343,6 +363,7 @@ impl Mcus {
         let conn = &mut self.list[i];
         conn.move_count = move_count;
         conn.trsync_oid = trsync_oid;
+        conn.tmc_oid0 = tmc_oid0;
         Ok(())
     }
 
@@ -425,18 +446,33 @@ fn sim_env_args(name: &str) -> Vec<String> {
         .unwrap_or_default()
 }
 
-/// The driver enable pins of MCU `mcu`, once each (several steppers often share one), and the
-/// oid of the first: they follow the steppers, endstops and BLTouch servo. None on a firmware
-/// built without digital outputs (a stripped test build; `configure` warns about that).
-pub fn enable_pins<'m>(
+/// Where each kind of object of one MCU starts (see the module's doc).
+struct OidLayout<'m> {
+    /// Driver enable pins, once each (several steppers often share one), after the endstops.
+    enables: Vec<&'m sysconfig::printer::PinRef>,
+    /// A BLTouch's servo output right after the endstops (its oid: crate::hardware).
+    bltouch: Option<&'m crate::hardware::BlTouchOut>,
+    enable_oid0: usize,
+    trsync_oid: u8,
+    /// Heaters, sensors and fans (crate::heaters::objects) right after the trsync.
+    thermal_oid0: usize,
+    /// The TMC drivers' buses last (crate::tmc).
+    tmc_oid0: usize,
+    count: usize,
+}
+
+fn oid_layout<'m>(
     dict: &Dictionary,
     machine: &'m Machine,
     mcu: &str,
-) -> (usize, Vec<&'m sysconfig::printer::PinRef>) {
-    let has_outputs = dict.command("config_digital_out").is_ok();
+) -> Result<OidLayout<'m>, ConfigureError> {
+    let steppers: Vec<_> = machine.steppers.iter().filter(|s| s.mcu == mcu).collect();
+    let endstops = machine.mcu_endstops(mcu);
     let mut enables: Vec<&sysconfig::printer::PinRef> = Vec::new();
-    let steppers = machine.steppers.iter().filter(|s| s.mcu == mcu);
-    for s in steppers.filter(|_| has_outputs) {
+    // A firmware built without digital outputs (a stripped test build) cannot drive them;
+    // `configure` warns about that.
+    let has_outputs = dict.command("config_digital_out").is_ok();
+    for s in steppers.iter().filter(|_| has_outputs) {
         if let Some(p) = &s.enable_pin {
             if p.mcu == mcu && !enables.iter().any(|e| e.pin == p.pin) {
                 enables.push(p);
@@ -444,10 +480,31 @@ pub fn enable_pins<'m>(
         }
     }
     let bltouch = machine.mcu_bltouch(mcu).filter(|_| has_outputs);
-    let oid0 = machine.steppers.iter().filter(|s| s.mcu == mcu).count()
-        + machine.mcu_endstops(mcu).len()
-        + usize::from(bltouch.is_some());
-    (oid0, enables)
+    let enable_oid0 = steppers.len() + endstops.len() + usize::from(bltouch.is_some());
+    let trsync_oid = u8::try_from(enable_oid0 + enables.len()).map_err(|_| ConfigureError::TooManyObjects)?;
+    let thermal_oid0 = usize::from(trsync_oid) + 1;
+    let tmc_oid0 = thermal_oid0 + machine.thermal.objects_on(mcu).len();
+    let count = tmc_oid0 + crate::tmc::bus_count(&machine.tmc, mcu);
+    Ok(OidLayout {
+        enables,
+        bltouch,
+        enable_oid0,
+        trsync_oid,
+        thermal_oid0,
+        tmc_oid0,
+        count,
+    })
+}
+
+/// The driver enable pins of MCU `mcu`, once each (several steppers often share one), and the
+/// oid of the first: they follow the steppers, endstops and BLTouch servo. None on a firmware
+/// built without digital outputs (a stripped test build; `configure` warns about that).
+pub fn enable_pins<'m>(
+    dict: &Dictionary,
+    machine: &'m Machine,
+    mcu: &str,
+) -> Result<(usize, Vec<&'m sysconfig::printer::PinRef>), ConfigureError> {
+    oid_layout(dict, machine, mcu).map(|l| (l.enable_oid0, l.enables))
 }
 
 /// Encodes one MCU's configuration: oids, endstops, trsync, steppers, enable pins, finalize
@@ -462,14 +519,15 @@ pub fn config_commands(
 ) -> Result<(Vec<Cmd>, u8, u32), ConfigureError> {
     let steppers: Vec<_> = machine.steppers.iter().filter(|s| s.mcu == mcu).collect();
     let endstops = machine.mcu_endstops(mcu);
-    let has_outputs = dict.command("config_digital_out").is_ok();
-    // A BLTouch's servo output right after the endstops (its oid: crate::hardware).
-    let bltouch = machine.mcu_bltouch(mcu).filter(|_| has_outputs);
-    let (enable_oid0, enables) = enable_pins(dict, machine, mcu);
-    let trsync_oid = u8::try_from(enable_oid0 + enables.len()).map_err(|_| ConfigureError::TooManyObjects)?;
-    // Heaters, sensors and fans (crate::heaters::objects) right after the trsync.
-    let thermal_oid0 = usize::from(trsync_oid) + 1;
-    let count = thermal_oid0 + machine.thermal.objects_on(mcu).len();
+    let OidLayout {
+        enables,
+        bltouch,
+        enable_oid0,
+        trsync_oid,
+        thermal_oid0,
+        tmc_oid0,
+        count,
+    } = oid_layout(dict, machine, mcu)?;
     if count > 255 {
         return Err(ConfigureError::TooManyObjects);
     }
@@ -532,6 +590,10 @@ pub fn config_commands(
         cmds.extend(crate::homing::bltouch::config_commands(dict, b)?);
     }
     cmds.extend(machine.thermal.config_commands(dict, mcu, thermal_oid0)?);
+    cmds.extend(
+        crate::tmc::config_commands(dict, &machine.tmc, mcu, tmc_oid0, clock_freq)
+            .map_err(ConfigureError::Tmc)?,
+    );
     let mut crc = crc32fast::Hasher::new();
     for c in &cmds {
         crc.update(c.as_bytes());
@@ -543,6 +605,11 @@ pub fn config_commands(
 
 fn pin_error(what: String, source: links::dict::DictError) -> ConfigureError {
     crate::hardware::PinError { what, source }.into()
+}
+
+/// Oid of MCU `mcu`'s first TMC bus object.
+fn tmc_oid0(dict: &Dictionary, machine: &Machine, mcu: &str) -> u8 {
+    oid_layout(dict, machine, mcu).map_or(0, |l| l.tmc_oid0.min(255) as u8)
 }
 
 /// `get_config` → `config`, retried: MCU → host traffic is not retransmitted, so on a noisy line

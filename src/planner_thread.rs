@@ -612,13 +612,14 @@ impl FeedTarget for PlannerRun<'_, '_> {
 
     fn motion(&mut self, pipeline: &mut Pipeline, cmd: &MotionCmd<'_>) -> Result<bool, String> {
         let st = self.st;
-        if st.machine.endstops.is_empty() && st.machine.probe.is_none() {
+        if st.machine.endstops.is_empty() && st.machine.probe.is_none() && st.machine.tmc.is_empty() {
             return Ok(false);
         }
         let McuSide::Local(mcus) = st.side else {
             let what = match cmd {
                 MotionCmd::Home(_) => "homing needs",
                 MotionCmd::Probe { .. } => "probing needs",
+                MotionCmd::Tmc { .. } => "TMC driver commands need",
             };
             return Err(PlannerError::MotionNeedsLocalIo { what }.into());
         };
@@ -664,7 +665,9 @@ impl FeedTarget for PlannerRun<'_, '_> {
         }
         self.homing_reports.extend(out);
         result?;
-        st.log.log(Level::Info, "homing done", []);
+        if matches!(cmd, MotionCmd::Home(_)) {
+            st.log.log(Level::Info, "homing done", []);
+        }
         self.publish_status(pipeline);
         if self.warm.is_some() {
             let (allocs, n) = self.motions;

@@ -124,6 +124,9 @@ pub enum HomingError {
     #[error("Unknown command: {name} (the printer config has no [{section}] section)")]
     NoSection { name: String, section: &'static str },
     /// PROBE: the samples spread more than `samples_tolerance`, retries exhausted.
+    /// A TMC driver's command or register traffic (crate::tmc words the problem).
+    #[error("{0}")]
+    Tmc(String),
     #[error("Probe samples exceed samples_tolerance")]
     SamplesOutOfTolerance,
     /// PROBE before Z is homed.

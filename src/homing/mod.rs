@@ -308,6 +308,13 @@ pub(crate) fn run_motion(
             Some(report)
         }),
         MotionCmd::Probe { name, raw } => probe::run(ctx, name, raw, out).map(|()| None),
+        // After the moves before it, as Klipper's print-time ordered register writes.
+        MotionCmd::Tmc { name, raw } => wait_motion_done(ctx)
+            .and_then(|()| {
+                crate::tmc::gcode::run(ctx.mcus, &ctx.machine.tmc, name, raw, out).map_err(HomingError::Tmc)
+            })
+            .and_then(|()| resume_after_io(ctx))
+            .map(|()| None),
     };
     out.append(&mut ctx.messages);
     r
@@ -328,6 +335,8 @@ pub fn home_axes(ctx: &mut HomingCtx<'_>, axes: [bool; 3]) -> Result<HomingRepor
         match ctx.machine.endstops.iter().find(|e| e.axis == axis).cloned() {
             // On the probe (`probe:z_virtual_endstop`), a BLTouch is deployed for the passes.
             Some(e) if e.probe => report.axes.push(bltouch::session(ctx, |ctx| home_axis(ctx, &e))?),
+            // On a driver's virtual endstop: the driver reports stalls for the passes.
+            Some(e) if e.sensorless.is_some() => report.axes.push(sensorless_session(ctx, &e)?),
             Some(e) => report.axes.push(home_axis(ctx, &e)?),
             None => {
                 // No endstop: the old behaviour, the position is declared.
@@ -507,6 +516,33 @@ pub fn wait_motion_done(ctx: &mut HomingCtx<'_>) -> Result<(), HomingError> {
         }
     }
     Ok(ctx.mcus.check()?)
+}
+
+/// Homes on a TMC driver's virtual endstop: stall reporting on before the passes, the
+/// driver's settings back after them (also when homing failed).
+fn sensorless_session(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisReport, HomingError> {
+    let tmc = &ctx.machine.tmc;
+    let drv = e
+        .sensorless
+        .and_then(|i| tmc.get(i))
+        .ok_or_else(|| HomingError::Tmc("sensorless endstop without its driver".to_string()))?;
+    let io = crate::tmc::gcode::io_for(ctx.mcus, tmc, &drv.cfg.stepper).map_err(HomingError::Tmc)?;
+    let saved = crate::tmc::sensorless::begin(&io).map_err(HomingError::Tmc)?;
+    let result = home_axis(ctx, e);
+    let io =
+        crate::tmc::gcode::io_for(ctx.mcus, &ctx.machine.tmc, &drv.cfg.stepper).map_err(HomingError::Tmc)?;
+    let restored = crate::tmc::sensorless::end(&io, saved);
+    let report = result?;
+    restored.map_err(HomingError::Tmc)?;
+    resume_after_io(ctx)?;
+    Ok(report)
+}
+
+/// After register traffic that took wall time: the toolhead's next move starts no earlier than
+/// a move planned now can (else its first steps would be late).
+fn resume_after_io(ctx: &mut HomingCtx<'_>) -> Result<(), HomingError> {
+    let start = ctx.earliest_start();
+    Ok(ctx.pipeline.raise_print_time(start)?)
 }
 
 /// `query` with retries (the reply of an idempotent query can be lost on a noisy line).

@@ -90,7 +90,11 @@ impl StepStreams {
             for (local, &i) in steppers.iter().enumerate() {
                 route[i] = (k, local);
             }
-            let (oid0, pins) = crate::mcus::enable_pins(m.dict, machine, m.name);
+            let (oid0, pins) = crate::mcus::enable_pins(m.dict, machine, m.name).map_err(|_| {
+                StreamError::TooManyObjects {
+                    mcu: m.name.to_string(),
+                }
+            })?;
             let mut enables = Vec::with_capacity(pins.len());
             for (i, p) in pins.iter().enumerate() {
                 enables.push(EnableOut {
@@ -319,7 +323,7 @@ mod tests {
         };
         let mut s = StepStreams::new(&m, &[params]).unwrap();
         let mut sink = [Recorder(Vec::new(), dict.clone())];
-        let (oid0, pins) = crate::mcus::enable_pins(&dict, &m, "mcu");
+        let (oid0, pins) = crate::mcus::enable_pins(&dict, &m, "mcu").unwrap();
         assert_eq!(pins.len(), 4, "one enable pin per stepper in this config");
         let x = m.steppers.iter().position(|s| s.name == "stepper_x").unwrap();
         let step = |first_clock| StepCmd::QueueStep {

@@ -332,3 +332,41 @@ pub fn retry_homing_timeouts<T>(mut attempt: impl FnMut() -> T, run_of: impl Fn(
     }
     out
 }
+
+/// The stop bounds of every pass of a homing report line (`… last step 42 µs before the
+/// trigger, first cancelled 208 µs after the trigger …`): (last executed step, first cancelled
+/// step) in µs after the trigger, negative before it.
+pub fn stop_bounds(line: &str) -> Vec<(f64, f64)> {
+    let signed = |s: &str| -> Option<f64> {
+        let s = s.trim_start();
+        let (n, rest) = s.split_once(' ')?;
+        let n: f64 = n.parse().ok()?;
+        let rest = rest.trim_start_matches("µs ").trim_start_matches("us ");
+        if rest.starts_with("before") {
+            Some(-n)
+        } else if rest.starts_with("after") {
+            Some(n)
+        } else {
+            None
+        }
+    };
+    line.split("last step ")
+        .skip(1)
+        .filter_map(|s| {
+            let (last, rest) = s.split_once(", first cancelled ")?;
+            Some((signed(last)?, signed(rest)?))
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn stop_bounds_read_both_units_and_signs() {
+        let line = "homing z: mcus mcu; pass 1 at 10 mm/s: trigger on 'mcu', overshoot 0.0000 mm, \
+                    last step 42 µs before the trigger, first cancelled 208 µs after the trigger; \
+                    pass 2 at 5 mm/s: trigger on 'mcu', overshoot 0.0000 mm, last step 3 us after the \
+                    trigger, first cancelled 250 us after the trigger; position 0.000000";
+        assert_eq!(super::stop_bounds(line), [(-42.0, 208.0), (3.0, 250.0)]);
+    }
+}

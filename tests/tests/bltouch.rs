@@ -113,14 +113,7 @@ fn z_stop_bounds(stdout: &str) -> Vec<(f64, f64)> {
         .lines()
         .find(|l| l.contains("homing z:"))
         .unwrap_or_default();
-    line.split("stop ")
-        .skip(1)
-        .filter_map(|s| {
-            let (range, _) = s.split_once(" µs")?;
-            let (a, b) = range.rsplit_once("..")?;
-            Some((a.parse().ok()?, b.parse().ok()?))
-        })
-        .collect()
+    cadence_tests::stop_bounds(line)
 }
 
 #[test]

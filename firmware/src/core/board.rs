@@ -64,6 +64,25 @@ pub trait Board {
     /// Drive output `pin` to `value`; `clock` is the event's scheduled time.
     fn set_pin(&mut self, _pin: u8, _value: bool, _clock: WireClock) {}
 
+    /// `tmcuart_send` on the single-wire (or `rx_pin` ≠ `tx_pin`) UART of TMC drivers: send
+    /// the line bits of `write` (least significant bit first, start and stop bits included as
+    /// the host encoded them) at `bit_time` ticks per bit, then, if `read` is not empty, sample
+    /// `read.len() × 8` bits of the answer from its first start bit on into `read`. A line that
+    /// stays idle leaves `read` as it was (zeros): the host's check of the answer fails.
+    fn tmcuart_transfer(
+        &mut self,
+        _rx_pin: u8,
+        _tx_pin: u8,
+        _bit_time: u32,
+        _write: &[u8],
+        _read: &mut [u8],
+    ) {
+    }
+
+    /// One SPI transaction with chip select `cs_pin` asserted: `data` goes out and is replaced
+    /// by the bytes clocked in.
+    fn spi_transfer(&mut self, _cs_pin: u8, _data: &mut [u8]) {}
+
     /// Trsync or endstop `oid` triggered at `clock` with `reason`.
     fn triggered(&mut self, _source: TriggerSource, _oid: u8, _reason: u8, _clock: WireClock) {}
 

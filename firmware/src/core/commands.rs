@@ -71,6 +71,20 @@ pub enum Cmd {
     QueryAnalogIn,
     /// `cadence_get_lateness` (Cadence extension).
     CadenceGetLateness,
+    /// `config_tmcuart`.
+    ConfigTmcuart,
+    /// `tmcuart_send`.
+    TmcuartSend,
+    /// `config_spi`.
+    ConfigSpi,
+    /// `spi_set_bus`.
+    SpiSetBus,
+    /// `spi_set_sw_bus`.
+    SpiSetSwBus,
+    /// `spi_transfer`.
+    SpiTransfer,
+    /// `spi_send`.
+    SpiSend,
 }
 
 /// Whether a table entry is a command or a response.
@@ -130,6 +144,11 @@ pub const FMT_TRSYNC_STATE: &str = "trsync_state oid=%c can_trigger=%c trigger_r
 pub const FMT_ANALOG_IN_STATE: &str = "analog_in_state oid=%c next_clock=%u value=%hu";
 /// `cadence_lateness` response (Cadence extension): step lateness in µs of MCU time.
 pub const FMT_CADENCE_LATENESS: &str = "cadence_lateness count=%u p50=%u p99=%u p999=%u max=%u";
+
+/// `tmcuart_response` response: the bits sampled from the line after a `tmcuart_send`.
+pub const FMT_TMCUART_RESPONSE: &str = "tmcuart_response oid=%c read=%*s";
+/// `spi_transfer_response` response: the bytes clocked in during an `spi_transfer`.
+pub const FMT_SPI_TRANSFER_RESPONSE: &str = "spi_transfer_response oid=%c response=%*s";
 
 /// Every message the firmware knows; the index is the message id.
 pub const MESSAGES: &[MessageDef] = &[
@@ -218,6 +237,31 @@ pub const MESSAGES: &[MessageDef] = &[
     resp(FMT_ANALOG_IN_STATE),
     resp(FMT_CADENCE_LATENESS),
     cmd("config_reset", Cmd::ConfigReset, true),
+    cmd(
+        "config_tmcuart oid=%c rx_pin=%u pull_up=%c tx_pin=%u bit_time=%u",
+        Cmd::ConfigTmcuart,
+        false,
+    ),
+    cmd("tmcuart_send oid=%c write=%*s read=%c", Cmd::TmcuartSend, false),
+    resp(FMT_TMCUART_RESPONSE),
+    cmd(
+        "config_spi oid=%c pin=%u cs_active_high=%c",
+        Cmd::ConfigSpi,
+        false,
+    ),
+    cmd(
+        "spi_set_bus oid=%c spi_bus=%u mode=%u rate=%u",
+        Cmd::SpiSetBus,
+        false,
+    ),
+    cmd(
+        "spi_set_sw_bus oid=%c miso_pin=%u mosi_pin=%u sclk_pin=%u mode=%u pulse_ticks=%u",
+        Cmd::SpiSetSwBus,
+        false,
+    ),
+    cmd("spi_transfer oid=%c data=%*s", Cmd::SpiTransfer, false),
+    cmd("spi_send oid=%c data=%*s", Cmd::SpiSend, false),
+    resp(FMT_SPI_TRANSFER_RESPONSE),
 ];
 
 /// Most parameters of any message in the table (checked by a test).
@@ -273,6 +317,10 @@ pub const ID_ENDSTOP_STATE: u32 = message_id(FMT_ENDSTOP_STATE);
 pub const ID_TRSYNC_STATE: u32 = message_id(FMT_TRSYNC_STATE);
 /// Id of `analog_in_state`.
 pub const ID_ANALOG_IN_STATE: u32 = message_id(FMT_ANALOG_IN_STATE);
+/// Id of `tmcuart_response`.
+pub const ID_TMCUART_RESPONSE: u32 = message_id(FMT_TMCUART_RESPONSE);
+/// Id of `spi_transfer_response`.
+pub const ID_SPI_TRANSFER_RESPONSE: u32 = message_id(FMT_SPI_TRANSFER_RESPONSE);
 /// Id of `cadence_lateness`.
 pub const ID_CADENCE_LATENESS: u32 = message_id(FMT_CADENCE_LATENESS);
 
@@ -322,6 +370,16 @@ mod tests {
         assert!(has("queue_digital_out oid=%c clock=%u on_ticks=%u"));
         assert!(has("set_digital_out_pwm_cycle oid=%c cycle_ticks=%u"));
         assert!(has("config_analog_in oid=%c pin=%u"));
+        assert!(has(
+            "config_tmcuart oid=%c rx_pin=%u pull_up=%c tx_pin=%u bit_time=%u"
+        ));
+        assert!(has("tmcuart_send oid=%c write=%*s read=%c"));
+        assert!(has("tmcuart_response oid=%c read=%*s"));
+        assert!(has("config_spi oid=%c pin=%u cs_active_high=%c"));
+        assert!(has("spi_set_bus oid=%c spi_bus=%u mode=%u rate=%u"));
+        assert!(has("spi_transfer oid=%c data=%*s"));
+        assert!(has("spi_send oid=%c data=%*s"));
+        assert!(has("spi_transfer_response oid=%c response=%*s"));
         assert!(has(
             "trsync_start oid=%c report_clock=%u report_ticks=%u expire_reason=%c"
         ));

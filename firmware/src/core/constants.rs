@@ -48,6 +48,8 @@ pub mod reason {
     pub const CONFIG_RESET_NOT_SHUTDOWN: &str = "config_reset only available when shutdown";
     /// A reason not in the table (never sent by this firmware; kept so lookups cannot fail).
     pub const UNKNOWN: &str = "Unknown shutdown reason";
+    pub const TMCUART_TOO_LARGE: &str = "tmcuart data too large";
+    pub const SPI_TOO_LARGE: &str = "spi data too large";
 }
 
 /// Every shutdown reason; the index is its `static_string_id`.
@@ -71,6 +73,8 @@ pub const SHUTDOWN_REASONS: &[&str] = &[
     reason::ADC_OUT_OF_RANGE,
     reason::CONFIG_RESET_NOT_SHUTDOWN,
     reason::EXCEEDS_MAX_DURATION,
+    reason::TMCUART_TOO_LARGE,
+    reason::SPI_TOO_LARGE,
 ];
 
 /// The `static_string_id` of `reason` (0, "Unknown shutdown reason", if it is not listed).

@@ -121,6 +121,13 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
             | Cmd::ConfigAnalogIn
             | Cmd::QueryAnalogIn
             | Cmd::CadenceGetLateness => self.handle_object(cmd, args, now),
+            Cmd::ConfigTmcuart
+            | Cmd::TmcuartSend
+            | Cmd::ConfigSpi
+            | Cmd::SpiSetBus
+            | Cmd::SpiSetSwBus
+            | Cmd::SpiTransfer
+            | Cmd::SpiSend => self.handle_bus(cmd, args, now),
             Cmd::StepperGetPosition => {
                 let oid = arg(0);
                 match self.stepper(oid).map(|s| s.position()) {

@@ -53,6 +53,10 @@ pub(super) enum Object {
     DigitalOut(DigitalOut),
     /// An analog in.
     AnalogIn(AnalogIn),
+    /// A TMC driver's bit-banged UART line.
+    TmcUart(super::buses::TmcUart),
+    /// An SPI device (its chip select).
+    Spi(super::buses::SpiDevice),
 }
 
 /// The periodic `stats` accumulator.
@@ -317,7 +321,9 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                     let level = d.halt();
                     self.board.set_pin(pin, level, now);
                 }
-                Object::Free => {}
+                // The UART line idles high, as after `config_tmcuart`.
+                Object::TmcUart(u) => self.board.set_pin(u.tx_pin, true, now),
+                Object::Spi(_) | Object::Free => {}
             }
         }
         self.sched.clear();

@@ -5,6 +5,7 @@
 //! - [`moves`] and [`stepper`]: the shared move pool and the `queue_step` replay;
 //! - [`endstop`], [`trsync`], [`digital_out`], [`analog_in`]: the other oid objects, each a
 //!   state machine that returns what to do; `objects` wires them to commands and timers;
+//! - [`buses`]: the TMC UART lines and SPI devices (`tmcuart_send`, `spi_transfer`);
 //! - [`commands`] and [`constants`]: the message table and the dictionary's static data,
 //!   declared once (the dispatcher and the dictionary generator both read them);
 //! - [`link`]: block framing, sequence checks, NAK and ack, response blocks;
@@ -17,6 +18,7 @@
 
 pub mod analog_in;
 pub mod board;
+pub mod buses;
 pub mod commands;
 pub mod constants;
 pub mod digital_out;

@@ -240,7 +240,7 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                     AnalogEvent::Idle => {}
                 }
             }
-            Object::Stepper(_) | Object::Free => {}
+            Object::Stepper(_) | Object::Free | Object::TmcUart(_) | Object::Spi(_) => {}
         }
     }
 

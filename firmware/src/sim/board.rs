@@ -13,6 +13,7 @@
 use super::bltouch::{BlTouch, BlTouchSpec};
 use super::cli::{HeaterFaultSpec, HeaterSpec};
 use super::heater::Heater;
+use super::tmc::{TmcDriver, TmcSpec};
 use super::world::World;
 use crate::core::{Board, Lateness, StepperConfig, TriggerSource};
 use crate::trace::{ticks_to_us, TraceRecord, TraceWriter, TriggerRecord};
@@ -60,6 +61,8 @@ pub struct SimBoard {
     heaters: Vec<Heater>,
     /// Simulated BLTouch probes (their sensor pins read them, their control pins drive them).
     pub bltouch: Vec<BlTouch>,
+    /// Simulated TMC drivers (on their UART lines or chip selects; their DIAG pins read them).
+    pub tmc: Vec<TmcDriver>,
 }
 
 impl SimBoard {
@@ -82,6 +85,7 @@ impl SimBoard {
             world: World::local(Vec::new(), Vec::new()),
             heaters: Vec::new(),
             bltouch: Vec::new(),
+            tmc: Vec::new(),
         })
     }
 
@@ -114,6 +118,12 @@ impl SimBoard {
             self.bltouch.retain(|b| b.spec.sensor_pin != p.sensor_pin);
             self.bltouch.push(BlTouch::new(p.clone(), freq));
         }
+        self
+    }
+
+    /// Adds TMC drivers.
+    pub fn with_tmc(mut self, drivers: &[TmcSpec]) -> SimBoard {
+        self.tmc.extend(drivers.iter().cloned().map(TmcDriver::new));
         self
     }
 
@@ -199,7 +209,40 @@ impl Board for SimBoard {
             let z = self.world.coord_at_clock(&b.spec.coord, at);
             return b.sense(at, z) != b.spec.active_low;
         }
+        if let Some(i) = self
+            .tmc
+            .iter()
+            .position(|t| t.spec.diag.as_ref().is_some_and(|d| d.pin == pin))
+        {
+            let coord = self.tmc[i].spec.diag.as_ref().map(|d| d.coord.clone());
+            let pos = coord.and_then(|c| self.world.coord_at_clock(&c, at));
+            return pos.is_some_and(|p| self.tmc[i].diag_level(p));
+        }
         self.world.read_endstop(pin, at).unwrap_or(false)
+    }
+
+    fn tmcuart_transfer(&mut self, rx_pin: u8, tx_pin: u8, _bit_time: u32, write: &[u8], read: &mut [u8]) {
+        // Every driver on the line hears the request; the addressed one answers.
+        let mut reply = None;
+        for t in self
+            .tmc
+            .iter_mut()
+            .filter(|t| t.spec.bus_pin == rx_pin || t.spec.bus_pin == tx_pin)
+        {
+            reply = t.uart(write).or(reply);
+        }
+        if let Some(r) = reply.filter(|_| !read.is_empty()) {
+            let n = read.len().min(r.len());
+            read[..n].copy_from_slice(&r[..n]);
+        }
+    }
+
+    fn spi_transfer(&mut self, cs_pin: u8, data: &mut [u8]) {
+        match self.tmc.iter_mut().find(|t| t.spec.bus_pin == cs_pin) {
+            Some(t) => t.spi(data),
+            // Nothing selected: MISO floats high.
+            None => data.fill(0xff),
+        }
     }
 
     fn read_adc(&mut self, pin: u8) -> u16 {

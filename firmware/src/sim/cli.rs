@@ -2,6 +2,7 @@
 
 use super::bltouch::{BlTouchSpec, Fault as BlTouchFault};
 use super::heater::{HeaterFault, ThermalModel};
+use super::tmc::{DiagSpec as TmcDiagSpec, Model as TmcModel, TmcSpec};
 use super::world::{AxisSpec, Coord, EndstopSpec};
 use crate::trace::TraceFormat;
 #[cfg(test)]
@@ -75,6 +76,12 @@ pub struct Cli {
     #[arg(long = "bltouch", value_name = "[!]SENSOR_PIN=CONTROL_PIN,COORD,SURFACE_MM[,stuck|mute]",
           value_parser = parse_bltouch)]
     pub bltouch: Vec<BlTouchSpec>,
+    /// A TMC driver (tmc2130, tmc2208, tmc2209, tmc5160) on UART line BUS_PIN at address ADDR,
+    /// or with chip select BUS_PIN (SPI); optionally its DIAG (or DIAG0 with `diag0:`) wired to
+    /// DIAG_PIN, the motor stalling when COORD reaches END_MM (min or max end of travel).
+    #[arg(long = "tmc", value_name = "MODEL@BUS_PIN:ADDR[=[diag0:]DIAG_PIN,COORD,END_MM,min|max]",
+          value_parser = parse_tmc)]
+    pub tmc: Vec<TmcSpec>,
     /// A heater output and the thermistor ADC input it warms (100K NTC beta 3950, 4.7k pull-up),
     /// with the thermal model of a 40 W hotend (default) or a 150 W bed.
     #[arg(long = "heater", value_name = "HEATER_PIN=SENSOR_PIN[,hotend|bed]", value_parser = parse_heater)]
@@ -257,6 +264,50 @@ fn parse_bltouch(s: &str) -> Result<BlTouchSpec, String> {
     })
 }
 
+fn parse_tmc(s: &str) -> Result<TmcSpec, String> {
+    const FORM: &str = "expected MODEL@BUS_PIN:ADDR[=[diag0:]DIAG_PIN,COORD,END_MM,min|max]";
+    let (bus, diag) = match s.split_once('=') {
+        Some((b, d)) => (b, Some(d)),
+        None => (s, None),
+    };
+    let (model, rest) = bus.split_once('@').ok_or(FORM)?;
+    let (pin, addr) = rest.split_once(':').ok_or(FORM)?;
+    let model = TmcModel::parse(model.trim())
+        .ok_or_else(|| format!("`{model}` is not tmc2130, tmc2208, tmc2209 or tmc5160"))?;
+    let address: u8 = addr.trim().parse().map_err(|_| format!("bad address `{addr}`"))?;
+    let diag = match diag {
+        None => None,
+        Some(d) => {
+            let f: Vec<&str> = d.split(',').collect();
+            let [pin, coord, end, side] = f.as_slice() else {
+                return Err(FORM.into());
+            };
+            let (diag0, pin) = match pin.trim().strip_prefix("diag0:") {
+                Some(p) => (true, p),
+                None => (false, *pin),
+            };
+            let at_min = match side.trim() {
+                "min" => true,
+                "max" => false,
+                other => return Err(format!("`{other}` is neither min nor max")),
+            };
+            Some(TmcDiagSpec {
+                pin: parse_pin(pin)?,
+                coord: Coord::parse(coord).map_err(|e| e.to_string())?,
+                end_mm: parse_f64(end, "end of travel")?,
+                at_min,
+                diag0,
+            })
+        }
+    };
+    Ok(TmcSpec {
+        model,
+        bus_pin: parse_pin(pin)?,
+        address,
+        diag,
+    })
+}
+
 /// `--heater`: pins and thermal model.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct HeaterSpec {
@@ -362,8 +413,34 @@ mod tests {
             let _ = parse_axis(&s);
             let _ = parse_endstop(&s);
             let _ = parse_bltouch(&s);
+            let _ = parse_tmc(&s);
             let _ = parse_heater(&s);
             let _ = parse_rate(&s);
+        }
+    }
+
+    #[test]
+    fn tmc_spec() {
+        let t = parse_tmc("tmc2209@PD1:3=PD2,x,0,min").unwrap();
+        assert_eq!(
+            (
+                t.model,
+                t.address,
+                t.diag.as_ref().map(|d| (d.end_mm, d.at_min, d.diag0))
+            ),
+            (TmcModel::Tmc2209, 3, Some((0.0, true, false)))
+        );
+        let t = parse_tmc("tmc5160@PA4:0=diag0:PA5,0.5*a+0.5*b,220,max").unwrap();
+        assert!(t.diag.as_ref().is_some_and(|d| d.diag0 && !d.at_min));
+        assert!(parse_tmc("tmc2130@PA4:0").is_ok_and(|t| t.diag.is_none()));
+        for bad in [
+            "tmc2660@PA4:0",
+            "tmc2209@PA4",
+            "tmc2209@PA4:x",
+            "tmc2209@PA4:0=PA5,x,0,mid",
+            "tmc2209@PA4:0=PA5,x",
+        ] {
+            assert!(parse_tmc(bad).is_err(), "{bad}");
         }
     }
 

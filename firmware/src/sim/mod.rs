@@ -24,6 +24,7 @@ pub mod faults;
 pub mod heater;
 pub mod pty;
 pub mod spin;
+pub mod tmc;
 pub mod world;
 
 use crate::core::{Mcu, McuConfig};
@@ -173,7 +174,8 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
     let board = SimBoard::new(cli.clock_freq, trace)?
         .with_world(world)
         .with_heaters(&cli.heaters, &cli.heater_faults)
-        .with_bltouch(&cli.bltouch);
+        .with_bltouch(&cli.bltouch)
+        .with_tmc(&cli.tmc);
     let dictionary: &'static [u8] = Box::leak(crate::dictionary_bytes(cli.clock_freq).into_boxed_slice());
     let config = McuConfig {
         clock_freq: cli.clock_freq,

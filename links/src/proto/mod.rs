@@ -6,6 +6,7 @@
 pub mod block;
 pub mod crc;
 pub mod format;
+pub mod tmc;
 pub mod vlq;
 
 pub use block::{

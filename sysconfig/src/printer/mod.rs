@@ -35,6 +35,7 @@ mod realtime;
 mod sections;
 mod stepper;
 mod thermal;
+pub mod tmc;
 mod toolhead;
 
 use std::path::{Path, PathBuf};
@@ -61,6 +62,7 @@ pub use thermal::{
     TemperatureSensorSection, ThermalSections, ThermistorSection, VerifyHeaterSection,
     DRIVEN as THERMAL_DRIVEN,
 };
+pub use tmc::{TmcBus, TmcModel, TmcSection};
 pub use toolhead::{Kinematics, PrinterSection};
 
 use pins::PinRegistry;
@@ -98,6 +100,8 @@ pub struct PrinterConfig {
     pub probe: Option<ProbeSection>,
     /// `[bltouch]`'s own options (its probe options are in `probe`).
     pub bltouch: Option<BlTouchSection>,
+    /// `[tmc2130 …]`, `[tmc2208 …]`, `[tmc2209 …]`, `[tmc5160 …]`: the steppers' drivers.
+    pub tmc: Vec<TmcSection>,
     /// `[simulator]`, or its defaults.
     pub simulator: SimulatorSection,
     /// `[realtime]`, or its defaults.
@@ -183,6 +187,7 @@ impl PrinterConfig {
         if probe.is_some() {
             pins.set_probe();
         }
+        pins.set_tmc_chips(tmc::chips(&reader));
 
         let mut steppers = Vec::new();
         let mut towers = Vec::new();
@@ -235,6 +240,17 @@ impl PrinterConfig {
             .map(|e| e.name.as_str())
             .collect();
         let extruder_steppers = extruder::read_extruder_steppers(&reader, &extruder_names, &mut pins)?;
+        let extruder_motors: Vec<(String, &MotorSection)> = extruder
+            .iter()
+            .chain(&extra_extruders)
+            .map(|e| (e.name.clone(), &e.motor))
+            .chain(
+                extruder_steppers
+                    .iter()
+                    .map(|e| (format!("extruder_stepper {}", e.name), &e.motor)),
+            )
+            .collect();
+        let tmc = read_tmc_sections(&reader, &steppers, &extra_steppers, &extruder_motors, &mut pins)?;
         let heater_bed = match reader.section("heater_bed") {
             Some(s) => Some(heater::read_heater(&s, &mut pins)?),
             None => None,
@@ -299,6 +315,7 @@ impl PrinterConfig {
             heater_bed,
             probe,
             bltouch,
+            tmc,
             simulator,
             realtime,
             gcode,
@@ -358,6 +375,49 @@ fn read_extra_steppers(
         }
     }
     Ok(extras)
+}
+
+/// The TMC driver sections, each for an existing stepper (Klipper: "Could not find config
+/// section '[NAME]' required by tmc driver"); a stepper homing on `tmcXXXX_NAME:virtual_endstop`
+/// makes its driver claim the diag pin.
+fn read_tmc_sections(
+    reader: &Reader<'_>,
+    steppers: &[StepperSection],
+    extras: &[ExtraStepperSection],
+    extruders: &[(String, &MotorSection)],
+    pins: &mut PinRegistry,
+) -> Result<Vec<TmcSection>, ConfigError> {
+    let mut out = Vec::new();
+    let kinds = tmc::MODELS.map(|(kind, _)| kind);
+    for s in reader.sections_of_kinds(&kinds) {
+        let kind = s.kind();
+        let Some(model) = TmcModel::of_kind(kind) else {
+            continue;
+        };
+        {
+            let stepper = s.arg().unwrap_or_default().to_string();
+            let motor = steppers
+                .iter()
+                .map(|r| (&r.name, &r.motor))
+                .chain(extras.iter().map(|e| (&e.name, &e.motor)))
+                .find(|(n, _)| **n == stepper)
+                .map(|(_, m)| m)
+                .or_else(|| extruders.iter().find(|(n, _)| *n == stepper).map(|(_, m)| *m));
+            let Some(motor) = motor else {
+                return Err(ConfigError::BadSection {
+                    at: s.at().clone(),
+                    section: s.name().to_string(),
+                    reason: format!("Could not find config section '[{stepper}]' required by tmc driver"),
+                });
+            };
+            let chip = tmc::chip_name(kind, &stepper);
+            let homes_on_it = steppers
+                .iter()
+                .any(|r| r.endstop_pin.as_ref().is_some_and(|p| p.mcu == chip));
+            out.push(tmc::read_tmc(&s, model, &stepper, motor, homes_on_it, pins)?);
+        }
+    }
+    Ok(out)
 }
 
 /// Pin providers among the ignored sections: `[adc_scaled NAME]` and `[sx1509 NAME]` provide

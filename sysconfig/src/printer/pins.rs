@@ -152,6 +152,10 @@ pub(crate) enum Share {
     Exclusive,
     /// Stepper enable lines: shareable among themselves with the same `!`.
     StepperEnable,
+    /// A TMC UART line: shared by the drivers on it (each with its own address).
+    TmcUart,
+    /// Software SPI clock/data lines: shared by the devices on that bus.
+    SpiBus,
 }
 
 #[derive(Debug)]
@@ -170,6 +174,8 @@ pub(crate) struct PinRegistry {
     simulated: Vec<String>,
     /// A `[probe]` was read: `probe:z_virtual_endstop` exists.
     probe: bool,
+    /// The TMC drivers' virtual endstop chips (`tmc2209_stepper_x`).
+    tmc_chips: Vec<String>,
     claims: Vec<Claim>,
     /// Per simulated MCU: the pin family its first pin chose, and that pin's use.
     families: Vec<(String, PinFamily, String)>,
@@ -197,6 +203,7 @@ impl PinRegistry {
             mcus,
             simulated: Vec::new(),
             probe: false,
+            tmc_chips: Vec::new(),
             claims: Vec::new(),
             families: Vec::new(),
             unsupported_chips: Vec::new(),
@@ -235,6 +242,25 @@ impl PinRegistry {
     pub(crate) fn with_unsupported_chips(mut self, chips: Vec<(String, String)>) -> Self {
         self.unsupported_chips = chips;
         self
+    }
+
+    /// Declares the TMC drivers' virtual endstop chips (`tmc2209_stepper_x`).
+    pub(crate) fn set_tmc_chips(&mut self, chips: Vec<String>) {
+        self.tmc_chips = chips;
+    }
+
+    /// `tmc2209_stepper_x:virtual_endstop` (Klipper's rules): only `virtual_endstop`, only as
+    /// an endstop, without `^`, `~` or `!` (the driver's diag pin carries those). Not a claim:
+    /// the diag pin is claimed by the driver's section.
+    fn check_tmc_pin(pin: &PinRef, option: &str) -> Result<(), ValueProblem> {
+        let invalid = |why: &str| Err(ValueProblem::Invalid(format!("pin '{pin}': {why}")));
+        if pin.pin != "virtual_endstop" || option != "endstop_pin" {
+            return invalid("tmc virtual endstop only useful as endstop");
+        }
+        if pin.invert || pin.pullup || pin.pulldown {
+            return invalid("Can not pullup/invert tmc virtual pin (set them on the driver's diag pin)");
+        }
+        Ok(())
     }
 
     /// Declares that a `[probe]` exists: its virtual endstop `probe:z_virtual_endstop` may be
@@ -311,11 +337,14 @@ impl PinRegistry {
         if pin.mcu == PROBE_PIN_MCU {
             return self.check_probe_pin(pin, section, option);
         }
+        if self.tmc_chips.contains(&pin.mcu) {
+            return Self::check_tmc_pin(pin, option);
+        }
         if !self.mcus.contains(&pin.mcu) {
             if pin.pin == "virtual_endstop" && pin.mcu.starts_with("tmc") {
                 return Err(ValueProblem::Invalid(format!(
-                    "pin '{pin}': sensorless homing through a TMC driver's virtual endstop is not supported \
-                     by Cadence yet"
+                    "pin '{pin}': there is no [{}] section for this virtual endstop",
+                    pin.mcu.replacen('_', " ", 1)
                 )));
             }
             // `multi_pin:NAME` is the pin group of `[multi_pin NAME]`.
@@ -345,7 +374,7 @@ impl PinRegistry {
             .find(|c| c.pin.mcu == pin.mcu && c.pin.pin == pin.pin);
         if let Some(c) = earlier {
             let (section, option) = (c.section.clone(), c.option.clone());
-            if share != Share::StepperEnable || c.share != Share::StepperEnable {
+            if share != c.share || share == Share::Exclusive {
                 return Err(ValueProblem::PinInUse {
                     pin: pin.to_string(),
                     section,

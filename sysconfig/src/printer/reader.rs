@@ -150,6 +150,27 @@ impl<'a> Reader<'a> {
             .collect()
     }
 
+    /// Every section whose kind is one of `kinds`, in file order, marked as read.
+    pub(crate) fn sections_of_kinds(&self, kinds: &[&str]) -> Vec<SectionReader<'_>> {
+        let indices = self.file.sections().iter().enumerate();
+        let wanted = indices.filter(|(_, s)| kinds.contains(&s.kind())).map(|(i, _)| i);
+        wanted
+            .collect::<Vec<_>>()
+            .into_iter()
+            .filter_map(|i| self.view(i))
+            .collect()
+    }
+
+    /// The names of every `[kind …]` section, in file order (not marked as read).
+    pub(crate) fn section_names_of_kind(&self, kind: &str) -> Vec<String> {
+        self.file
+            .sections()
+            .iter()
+            .filter(|s| s.kind() == kind)
+            .map(|s| s.name().to_string())
+            .collect()
+    }
+
     /// Every `[kind NAME]` section (with an argument), in file order, marked as read.
     pub(crate) fn sections_with_arg(&self, kind: &str) -> Vec<SectionReader<'_>> {
         let indices = self.file.sections().iter().enumerate();
@@ -221,6 +242,11 @@ impl<'r> SectionReader<'r> {
 
     pub(crate) fn arg(&self) -> Option<&'r str> {
         self.section.arg()
+    }
+
+    /// The section's kind: the first word of its name.
+    pub(crate) fn kind(&self) -> &'r str {
+        self.section.kind()
     }
 
     pub(crate) fn at(&self) -> &'r Location {

@@ -123,12 +123,12 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("temperature_probe", Ignored),
     ("temperature_sensor", Read),
     ("thermistor", Read),
-    ("tmc2130", Ignored),
-    ("tmc2208", Ignored),
-    ("tmc2209", Ignored),
+    ("tmc2130", Read),
+    ("tmc2208", Read),
+    ("tmc2209", Read),
     ("tmc2240", Ignored),
     ("tmc2660", Ignored),
-    ("tmc5160", Ignored),
+    ("tmc5160", Read),
     ("tsl1401cl_filament_width_sensor", Ignored),
     ("verify_heater", Read),
     ("virtual_sdcard", Read),
@@ -227,7 +227,8 @@ mod tests {
 
     #[test]
     fn kinds() {
-        assert!(is_ignored("bed_mesh") && is_ignored("tmc2209") && is_ignored("ad5206"));
+        assert!(is_ignored("bed_mesh") && is_ignored("ad5206"));
+        assert_eq!(support("tmc2209"), Some(Read));
         assert_eq!(support("gcode_macro"), Some(Read));
         assert_eq!(support("stepper_x"), Some(Read));
         assert_eq!(support("stepper_a"), Some(Read));

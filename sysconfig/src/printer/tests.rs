@@ -162,8 +162,7 @@ fn pins_of_unsupported_providers_name_the_feature() {
     .unwrap_err();
     assert_eq!(
         err,
-        "printer.cfg:13: [stepper_x] endstop_pin: pin 'tmc2209_stepper_x:virtual_endstop': sensorless homing \
-         through a TMC driver's virtual endstop is not supported by Cadence yet"
+        "printer.cfg:27: [tmc2209 stepper_x] tmc virtual endstop requires diag pin config (diag_pin)"
     );
     let scaled = MINIMAL.replace("step_pin: PC0", "step_pin: vref_scaled:PC0");
     let err = parse(&format!(

@@ -1,0 +1,179 @@
+//! Register reads and writes of one TMC driver through its MCU, as Klipper's host does them.
+//!
+//! UART: a read is `tmcuart_send` of the 4-byte request (line bits) asking for 10 line bytes
+//! back, the reply checked bit for bit (start/stop bits, sync, register, CRC); a write is
+//! `tmcuart_send` of the 8-byte request with nothing to read (its empty answer awaited, so
+//! every answer belongs to the request waiting for it), confirmed by IFCNT having counted up by
+//! one (IFCNT read before the first write). Each is tried up to 5 times, then "Unable to
+//! read/write tmc uart 'NAME' register REG".
+//!
+//! SPI: a read is `spi_send` of the request then `spi_transfer` of it again, whose answer
+//! carries the value; a write is `spi_send` of the write then `spi_transfer` of a dummy read,
+//! whose answer must be the value written (5 tries, then "Unable to write tmc spi …").
+
+use std::time::Duration;
+
+use links::mcu::McuLink;
+use links::proto::format::Value;
+use links::proto::tmc as wire;
+use sysconfig::printer::TmcBus;
+
+use super::TmcOut;
+
+/// Tries of one read or write.
+const TRIES: usize = 5;
+/// Wait for one answer (wall time).
+const TIMEOUT: Duration = Duration::from_secs(1);
+
+/// A driver and the link and oid of its bus.
+#[derive(Debug, Clone, Copy)]
+pub struct TmcIo<'a> {
+    pub link: &'a McuLink,
+    /// Oid of its bus object.
+    pub oid: u8,
+    pub drv: &'a TmcOut,
+}
+
+impl TmcIo<'_> {
+    fn addr(&self, reg: &str) -> Result<u8, String> {
+        self.drv
+            .cfg
+            .model
+            .register_addr(reg)
+            .ok_or_else(|| format!("Unknown register name '{reg}'"))
+    }
+
+    fn send(&self, name: &str, args: &[Value<'_>]) -> Result<(), String> {
+        let cmd = self
+            .link
+            .dictionary()
+            .encode_values(name, args)
+            .map_err(|e| e.to_string())?;
+        self.link.send(cmd).map_err(|e| e.to_string())
+    }
+
+    fn query(&self, name: &str, args: &[Value<'_>], response: &str) -> Result<links::dict::Message, String> {
+        let cmd = self
+            .link
+            .dictionary()
+            .encode_values(name, args)
+            .map_err(|e| e.to_string())?;
+        self.link
+            .query(cmd, response, Some(("oid", i64::from(self.oid))), TIMEOUT)
+            .map_err(|e| e.to_string())
+    }
+
+    fn stepper(&self) -> &str {
+        &self.drv.cfg.stepper
+    }
+
+    /// Reads register `reg`.
+    pub fn read(&self, reg: &str) -> Result<u32, String> {
+        let addr = self.addr(reg)?;
+        let oid = Value::Int(i64::from(self.oid));
+        for _ in 0..TRIES {
+            match &self.drv.cfg.bus {
+                TmcBus::Uart { address, .. } => {
+                    let req = wire::encode_read(*address, addr);
+                    let r = self.query(
+                        "tmcuart_send",
+                        &[
+                            oid,
+                            Value::Bytes(&req),
+                            Value::Int(wire::UART_WRITE_LINE_LEN as i64),
+                        ],
+                        "tmcuart_response",
+                    )?;
+                    if let Some(v) = r.bytes("read").and_then(|b| wire::decode_reply(addr, b)) {
+                        return Ok(v);
+                    }
+                }
+                TmcBus::Spi { .. } => {
+                    let req = wire::spi_datagram(addr, 0);
+                    self.send("spi_send", &[oid, Value::Bytes(&req)])?;
+                    let r = self.query(
+                        "spi_transfer",
+                        &[oid, Value::Bytes(&req)],
+                        "spi_transfer_response",
+                    )?;
+                    if let Some(&[_, a, b, c, d]) = r.bytes("response") {
+                        return Ok(u32::from_be_bytes([a, b, c, d]));
+                    }
+                }
+            }
+        }
+        let bus = if self.drv.cfg.model.is_uart() {
+            "uart"
+        } else {
+            "spi"
+        };
+        Err(format!(
+            "Unable to read tmc {bus} '{}' register {reg}",
+            self.stepper()
+        ))
+    }
+
+    /// Writes `value` to register `reg` and checks that the driver took it.
+    pub fn write(&self, reg: &str, value: u32) -> Result<(), String> {
+        let addr = self.addr(reg)?;
+        let oid = Value::Int(i64::from(self.oid));
+        match &self.drv.cfg.bus {
+            TmcBus::Uart { address, .. } => {
+                for _ in 0..TRIES {
+                    let before = match self.drv.lock().ifcnt {
+                        Some(n) => n,
+                        None => self.read("IFCNT")? as u8,
+                    };
+                    // The MCU answers a write too (nothing read): waiting for that answer
+                    // keeps it from being taken for the next read's.
+                    let req = wire::encode_write(*address, addr, value);
+                    self.query(
+                        "tmcuart_send",
+                        &[oid, Value::Bytes(&req), Value::Int(0)],
+                        "tmcuart_response",
+                    )?;
+                    let after = self.read("IFCNT")? as u8;
+                    self.drv.lock().ifcnt = Some(after);
+                    if after == before.wrapping_add(1) {
+                        return Ok(());
+                    }
+                }
+                Err(format!(
+                    "Unable to write tmc uart '{}' register {reg}",
+                    self.stepper()
+                ))
+            }
+            TmcBus::Spi { .. } => {
+                for _ in 0..TRIES {
+                    let req = wire::spi_datagram(addr | wire::WRITE_BIT, value);
+                    self.send("spi_send", &[oid, Value::Bytes(&req)])?;
+                    let dummy = wire::spi_datagram(0, 0);
+                    let r = self.query(
+                        "spi_transfer",
+                        &[oid, Value::Bytes(&dummy)],
+                        "spi_transfer_response",
+                    )?;
+                    if let Some(&[_, a, b, c, d]) = r.bytes("response") {
+                        if u32::from_be_bytes([a, b, c, d]) == value {
+                            return Ok(());
+                        }
+                    }
+                }
+                Err(format!(
+                    "Unable to write tmc spi '{}' register {reg}",
+                    self.stepper()
+                ))
+            }
+        }
+    }
+
+    /// Writes every register as configured (or as last set), in order: `INIT_TMC`, and the
+    /// start-up.
+    pub fn init(&self) -> Result<(), String> {
+        let regs = self.drv.lock().fields.registers().to_vec();
+        for (reg, value) in regs {
+            self.write(reg, value)?;
+        }
+        Ok(())
+    }
+}

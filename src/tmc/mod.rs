@@ -1,0 +1,205 @@
+//! The steppers' TMC drivers as the host drives them: their buses on the MCUs
+//! (`config_tmcuart` per UART line, `config_spi` + `spi_set_sw_bus`/`spi_set_bus` per SPI
+//! driver), the register writes at start (`init`), and register reads and writes through the
+//! MCU link with Klipper's framing and checks (module `io`).
+//!
+//! Object ids: a MCU's TMC bus objects come last, after its heaters, sensors and fans
+//! (`crate::mcus`), one per UART line (drivers sharing a line share it) and one per SPI driver,
+//! in `[tmc…]` section order.
+//!
+//! The register values the host last wrote live in each driver's [`TmcState`], shared by the
+//! G-code commands (module `gcode`) and sensorless homing (module `sensorless`).
+
+pub mod gcode;
+pub mod io;
+pub mod sensorless;
+
+use std::sync::{Arc, Mutex};
+
+use links::dict::{Cmd, Dictionary};
+use sysconfig::printer::tmc::FieldSet;
+use sysconfig::printer::{PrinterConfig, TmcBus, TmcSection};
+
+/// Klipper's TMC UART bit rate (bits per second).
+pub const TMC_BAUD_RATE: f64 = 40_000.0;
+/// SPI mode of the TMC drivers.
+pub const SPI_MODE: i64 = 3;
+
+/// What the host knows of a driver between commands.
+#[derive(Debug, Clone)]
+pub struct TmcState {
+    /// Register values as last written.
+    pub fields: FieldSet,
+    /// The hold current last asked for (A).
+    pub req_hold_current: f64,
+    /// UART: the driver's write counter as last read.
+    pub ifcnt: Option<u8>,
+}
+
+/// One driver.
+#[derive(Debug, Clone)]
+pub struct TmcOut {
+    pub cfg: TmcSection,
+    /// Index of its bus in [`buses_on`] of its MCU.
+    pub bus: usize,
+    pub state: Arc<Mutex<TmcState>>,
+}
+
+impl TmcOut {
+    /// The MCU its bus is on.
+    pub fn mcu(&self) -> &str {
+        self.cfg.bus.mcu()
+    }
+
+    /// Locks its state (a poisoned lock still holds the last values).
+    pub fn lock(&self) -> std::sync::MutexGuard<'_, TmcState> {
+        self.state
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+}
+
+/// The drivers of a config, each with its bus index on its MCU.
+pub fn drivers(cfg: &PrinterConfig) -> Vec<TmcOut> {
+    let mut out: Vec<TmcOut> = Vec::new();
+    for t in &cfg.tmc {
+        let mcu = t.bus.mcu();
+        let shares = |o: &TmcOut| match (&o.cfg.bus, &t.bus) {
+            (
+                TmcBus::Uart {
+                    uart_pin: a,
+                    tx_pin: ta,
+                    ..
+                },
+                TmcBus::Uart {
+                    uart_pin: b,
+                    tx_pin: tb,
+                    ..
+                },
+            ) => a.mcu == b.mcu && a.pin == b.pin && ta == tb,
+            _ => false,
+        };
+        let bus = match out.iter().find(|o| shares(o)) {
+            Some(o) => o.bus,
+            None => out
+                .iter()
+                .filter(|o| o.mcu() == mcu)
+                .map(|o| o.bus + 1)
+                .max()
+                .unwrap_or(0),
+        };
+        out.push(TmcOut {
+            cfg: t.clone(),
+            bus,
+            state: Arc::new(Mutex::new(TmcState {
+                fields: t.fields.clone(),
+                req_hold_current: t.hold_current,
+                ifcnt: None,
+            })),
+        });
+    }
+    out
+}
+
+/// The number of bus objects on MCU `mcu`.
+pub fn bus_count(drivers: &[TmcOut], mcu: &str) -> usize {
+    drivers
+        .iter()
+        .filter(|d| d.mcu() == mcu)
+        .map(|d| d.bus + 1)
+        .max()
+        .unwrap_or(0)
+}
+
+/// The configuration commands of MCU `mcu`'s TMC buses, the first with oid `oid0`.
+pub fn config_commands(
+    dict: &Dictionary,
+    drivers: &[TmcOut],
+    mcu: &str,
+    oid0: usize,
+    clock_freq: f64,
+) -> Result<Vec<Cmd>, String> {
+    let err = |e: links::dict::DictError| e.to_string();
+    let mut cmds = Vec::new();
+    for bus in 0..bus_count(drivers, mcu) {
+        let Some(d) = drivers.iter().find(|d| d.mcu() == mcu && d.bus == bus) else {
+            continue;
+        };
+        let oid = (oid0 + bus) as i64;
+        let name = d.cfg.section_name();
+        let pin = |p: &sysconfig::printer::PinRef, option: &str| {
+            dict.pin(&p.pin)
+                .map(i64::from)
+                .map_err(|e| format!("[{name}] {option}: {e}"))
+        };
+        match &d.cfg.bus {
+            TmcBus::Uart { uart_pin, tx_pin, .. } => {
+                let rx = pin(uart_pin, "uart_pin")?;
+                let tx = match tx_pin {
+                    Some(t) => pin(t, "tx_pin")?,
+                    None => rx,
+                };
+                let bit_time = (clock_freq / TMC_BAUD_RATE).round() as i64;
+                cmds.push(
+                    dict.encode("config_tmcuart", &[oid, rx, uart_pin.pullup as i64, tx, bit_time])
+                        .map_err(err)?,
+                );
+            }
+            TmcBus::Spi {
+                cs_pin,
+                speed,
+                software,
+                ..
+            } => {
+                cmds.push(
+                    dict.encode("config_spi", &[oid, pin(cs_pin, "cs_pin")?, 0])
+                        .map_err(err)?,
+                );
+                match software {
+                    Some([sclk, mosi, miso]) => {
+                        let pulse_ticks = (clock_freq / (2.0 * f64::from(*speed))).ceil() as i64;
+                        let args = [
+                            oid,
+                            pin(miso, "spi_software_miso_pin")?,
+                            pin(mosi, "spi_software_mosi_pin")?,
+                            pin(sclk, "spi_software_sclk_pin")?,
+                            SPI_MODE,
+                            pulse_ticks,
+                        ];
+                        cmds.push(dict.encode("spi_set_sw_bus", &args).map_err(err)?);
+                    }
+                    // The MCU's first hardware bus (a named `spi_bus` is the board's wiring;
+                    // the simulated MCU has one bus).
+                    None => cmds.push(
+                        dict.encode("spi_set_bus", &[oid, 0, SPI_MODE, i64::from(*speed)])
+                            .map_err(err)?,
+                    ),
+                }
+            }
+        }
+    }
+    Ok(cmds)
+}
+
+/// `--tmc` arguments of the simulated MCU `mcu`: each driver on its bus pin, with its DIAG
+/// wired (for a driver a stepper homes on) to its diag pin, stalling where that stepper's
+/// endstop would trigger (`coord`, `end_mm`, `min`/`max`, from the caller).
+pub fn sim_args(drivers: &[TmcOut], mcu: &str, diag: impl Fn(&TmcOut) -> Option<String>) -> Vec<String> {
+    let mut args = Vec::new();
+    for d in drivers.iter().filter(|d| d.mcu() == mcu) {
+        let (pin, addr) = match &d.cfg.bus {
+            TmcBus::Uart {
+                uart_pin, address, ..
+            } => (&uart_pin.pin, *address),
+            TmcBus::Spi { cs_pin, .. } => (&cs_pin.pin, 0),
+        };
+        let mut spec = format!("{}@{pin}:{addr}", d.cfg.model.kind());
+        if let Some(diag) = diag(d) {
+            spec.push('=');
+            spec.push_str(&diag);
+        }
+        args.push("--tmc".to_string());
+        args.push(spec);
+    }
+    args
+}

@@ -1,0 +1,159 @@
+//! Motor current → current-scale register bits, as the drivers' datasheets define them.
+//!
+//! TMC2130/2208/2209: the RMS current through the sense resistor `R` (plus 20 mΩ of the
+//! driver's internal path) is `I = (CS + 1) / 32 · Vfs / (R + 0.02) / √2`, so
+//! `CS = ⌊32 · (R + 0.02) · I · √2 / Vfs + ½⌋ − 1` clamped to 0..=31, where the full-scale
+//! voltage `Vfs` is 0.32 V, or 0.18 V with `vsense` set (the high-sensitivity range). `vsense`
+//! is used unless the run current needs CS = 31 and the low-sensitivity range is nearer the
+//! request. The hold current (at most the run current) uses the same range.
+//!
+//! TMC5160: `I = GLOBALSCALER / 256 · (CS + 1) / 32 · Vfs / R / √2` with Vfs = 0.325 V; the
+//! global scaler is first chosen for CS = 31 (`⌊I · 256 · √2 · R / Vfs + ½⌋`, at least 32, and
+//! 0 meaning 256 when it would reach 256), then `CS = ⌊I · 256 · 32 · √2 · R / (G · Vfs) − ½⌋`.
+
+use super::model::{FieldSet, TmcModel};
+
+const SQRT2: f64 = std::f64::consts::SQRT_2;
+/// TMC5160 full-scale sense voltage (V).
+const VREF_5160: f64 = 0.325;
+
+fn vref(vsense: bool) -> f64 {
+    if vsense {
+        0.18
+    } else {
+        0.32
+    }
+}
+
+/// CS bits for `current` with `vsense` (TMC2130/2208/2209).
+fn cs_bits(sense: f64, current: f64, vsense: bool) -> i64 {
+    let cs = (32.0 * (sense + 0.020) * current * SQRT2 / vref(vsense) + 0.5).floor() as i64 - 1;
+    cs.clamp(0, 31)
+}
+
+/// Current of CS bits `cs` with `vsense`.
+fn cs_current(sense: f64, cs: i64, vsense: bool) -> f64 {
+    (cs + 1) as f64 * vref(vsense) / (32.0 * (sense + 0.020) * SQRT2)
+}
+
+fn global_scaler(sense: f64, current: f64) -> i64 {
+    let g = ((current * 256.0 * SQRT2 * sense / VREF_5160) + 0.5).floor() as i64;
+    match g.max(32) {
+        g if g >= 256 => 0,
+        g => g,
+    }
+}
+
+fn cs_bits_5160(sense: f64, current: f64, gscaler: i64) -> i64 {
+    let g = if gscaler == 0 { 256 } else { gscaler } as f64;
+    let cs = ((current * 256.0 * 32.0 * SQRT2 * sense) / (g * VREF_5160) - 1.0 + 0.5).floor() as i64;
+    cs.clamp(0, 31)
+}
+
+/// Sets the current fields of `fields` (`vsense` or `globalscaler`, `ihold`, `irun`) for
+/// `run` and `hold` amperes through `sense` Ω; returns the registers changed, in write order.
+pub fn set_current(fields: &mut FieldSet, sense: f64, run: f64, hold: f64) -> Vec<(&'static str, u32)> {
+    let hold = hold.min(run);
+    let mut changed: Vec<(&'static str, u32)> = Vec::new();
+    let mut note = |r: Result<(&'static str, u32), super::model::FieldError>| {
+        if let Ok((reg, v)) = r {
+            match changed.iter_mut().find(|(n, _)| *n == reg) {
+                Some(slot) => slot.1 = v,
+                None => changed.push((reg, v)),
+            }
+        }
+    };
+    match fields.model {
+        TmcModel::Tmc5160 => {
+            let g = global_scaler(sense, run);
+            note(fields.set("globalscaler", g));
+            note(fields.set("ihold", cs_bits_5160(sense, hold, g)));
+            note(fields.set("irun", cs_bits_5160(sense, run, g)));
+        }
+        _ => {
+            let mut vsense = true;
+            let mut irun = cs_bits(sense, run, true);
+            if irun == 31 {
+                let cur = cs_current(sense, irun, true);
+                let irun2 = cs_bits(sense, run, false);
+                let cur2 = cs_current(sense, irun2, false);
+                if cur < run && (run - cur2).abs() < (run - cur).abs() {
+                    vsense = false;
+                    irun = irun2;
+                }
+            }
+            note(fields.set("vsense", i64::from(vsense)));
+            note(fields.set("ihold", cs_bits(sense, hold, vsense)));
+            note(fields.set("irun", irun));
+        }
+    }
+    changed
+}
+
+/// The run and hold currents (A) the fields give through `sense` Ω.
+pub fn current(fields: &FieldSet, sense: f64) -> (f64, f64) {
+    let irun = fields.get("irun").unwrap_or(0);
+    let ihold = fields.get("ihold").unwrap_or(0);
+    match fields.model {
+        TmcModel::Tmc5160 => {
+            let g = match fields.get("globalscaler").unwrap_or(0) {
+                0 => 256,
+                g => g,
+            } as f64;
+            let of = |bits: i64| g * (bits + 1) as f64 * VREF_5160 / (256.0 * 32.0 * SQRT2 * sense);
+            (of(irun), of(ihold))
+        }
+        _ => {
+            let vsense = fields.get("vsense").unwrap_or(0) != 0;
+            (cs_current(sense, irun, vsense), cs_current(sense, ihold, vsense))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    #[test]
+    fn known_values() {
+        // 0.8 A through 0.11 Ω: 32 · 0.13 · 0.8 · √2 / 0.18 = 26.1 → 26 − 1 = 25, vsense on.
+        let mut f = FieldSet::new(TmcModel::Tmc2209);
+        set_current(&mut f, 0.110, 0.8, 0.5);
+        assert_eq!(
+            (f.get("vsense"), f.get("irun"), f.get("ihold")),
+            (Some(1), Some(25), Some(15))
+        );
+        // 1.7 A needs the low-sensitivity range: 32 · 0.13 · 1.7 · √2 / 0.32 = 31.25 → 30.
+        set_current(&mut f, 0.110, 1.7, 1.7);
+        assert_eq!((f.get("vsense"), f.get("irun")), (Some(0), Some(30)));
+        // TMC5160, 2 A through 0.075 Ω: G = ⌊2 · 256 · √2 · 0.075 / 0.325 + ½⌋ = 167.
+        let mut f = FieldSet::new(TmcModel::Tmc5160);
+        let regs = set_current(&mut f, 0.075, 2.0, 1.0);
+        assert_eq!(f.get("globalscaler"), Some(167));
+        assert_eq!(f.get("irun"), Some(31));
+        assert_eq!(f.get("ihold"), Some(15));
+        assert_eq!(
+            regs.iter().map(|r| r.0).collect::<Vec<_>>(),
+            ["GLOBALSCALER", "IHOLD_IRUN"]
+        );
+    }
+
+    proptest! {
+        /// The current the bits give is within one CS step of the request, unless the request
+        /// is beyond the range the resistor allows.
+        #[test]
+        fn bits_give_the_requested_current(run in 0.1f64..1.9, sense in 0.05f64..0.2) {
+            for model in [TmcModel::Tmc2209, TmcModel::Tmc5160] {
+                let mut f = FieldSet::new(model);
+                set_current(&mut f, sense, run, run);
+                let (got, hold) = current(&f, sense);
+                let irun = f.get("irun").unwrap_or(0);
+                prop_assert!((got - hold).abs() < 1e-12);
+                if irun > 0 && irun < 31 {
+                    prop_assert!((got - run).abs() <= got / (irun + 1) as f64 + 1e-9, "{model:?} {run} {got}");
+                }
+            }
+        }
+    }
+}

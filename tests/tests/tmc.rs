@@ -1,0 +1,172 @@
+//! End to end: TMC drivers on the simulated printer (examples/simulated-sensorless.cfg with
+//! 20 mm axes). Two TMC2209s share one UART line (addresses 0 and 1) and home X and Y
+//! sensorlessly (`tmc2209_stepper_x:virtual_endstop`, `driver_SGTHRS: 100`), a TMC2130 on
+//! software SPI drives Z (homed on its switch), a TMC2208 the extruder.
+//!
+//! The simulated MCU's drivers (firmware `sim::tmc`) keep the registers the host writes over
+//! `tmcuart_send` / `spi_send` + `spi_transfer`, answer reads with CRC-checked replies, and
+//! raise DIAG only while the carriage is at its end of travel *and* the registers route a stall
+//! to the pin (SGTHRS > 0, TCOOLTHRS > 0, stealthChop): the host's sensorless set-up around
+//! homing is what makes the axis stop, and `DUMP_TMC` shows what the driver holds.
+
+use std::path::{Path, PathBuf};
+use std::sync::{Mutex, PoisonError};
+use std::time::Duration;
+
+use cadence_tests::{
+    assert_success, home_traced, net_steps, retry_homing_timeouts, run, scratch, short_homing_config_text,
+    Run,
+};
+use firmware::trace::read_trace;
+
+const TIMEOUT: Duration = Duration::from_secs(180);
+/// The multi-MCU stop budget (µs).
+const BUDGET_US: f64 = 25_000.0;
+/// X and Y steps per mm.
+const STEPS_PER_MM: f64 = 80.0;
+
+/// One printer at a time: homing's timeouts are real-time ones.
+static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+fn config(dir: &Path, edit: impl Fn(String) -> String) -> PathBuf {
+    let path = dir.join("printer.cfg");
+    std::fs::write(&path, edit(short_homing_config_text("simulated-sensorless.cfg"))).expect("write config");
+    path
+}
+
+/// The stop bounds (µs after the trigger) of every pass of the `homing AXIS:` line.
+fn stop_bounds(out: &str, axis: char) -> Vec<(f64, f64)> {
+    let key = format!("homing {axis}:");
+    let line = out.lines().find(|l| l.contains(&key)).unwrap_or_default();
+    cadence_tests::stop_bounds(line)
+}
+
+fn home(dir: &Path, cfg: &Path, axes: &str) -> (Run, PathBuf) {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(PoisonError::into_inner);
+    let trace = dir.join("home.trace");
+    let r = retry_homing_timeouts(|| run(&mut home_traced(axes, cfg, &trace), TIMEOUT), |r| r);
+    (r, trace)
+}
+
+#[test]
+fn sensorless_homing_stops_x_and_y_at_their_end_of_travel_within_the_budget() {
+    let dir = scratch("tmc-sensorless");
+    let cfg = config(&dir, |t| t);
+    let (r, trace) = home(&dir, &cfg, "xy");
+    assert_success(&r);
+    let out = format!("{}{}", r.stdout, r.stderr);
+    for axis in ['x', 'y'] {
+        let bounds = stop_bounds(&out, axis);
+        assert_eq!(bounds.len(), 1, "one pass (homing_retract_dist 0): {out}");
+        for (first, last) in bounds {
+            assert!(
+                last <= BUDGET_US && first <= last,
+                "{axis}: stop {first}..{last} µs: {out}"
+            );
+        }
+        println!(
+            "{}",
+            out.lines()
+                .find(|l| l.contains(&format!("homing {axis}:")))
+                .unwrap_or_default()
+        );
+    }
+    assert!(out.contains("homed position: x=0.000000 y=0.000000"), "{out}");
+    // The step trace: X and Y (oids 0, 1) started 2 mm from their ends (10% of 20 mm) and the
+    // host says they stopped at 0: the MCU's net steps agree within the overshoot the host
+    // accounted for (a step).
+    let trace = read_trace(&trace).expect("trace");
+    let net = net_steps(&trace);
+    for oid in [0u8, 1] {
+        let moved = net.get(&oid).copied().unwrap_or(0) as f64 / STEPS_PER_MM;
+        assert!(
+            (moved + 2.0).abs() <= 2.0 / STEPS_PER_MM,
+            "oid {oid} moved {moved} mm"
+        );
+    }
+    for line in out
+        .lines()
+        .filter(|l| l.contains("host view") || l.contains("overshoot:"))
+    {
+        println!("{line}");
+    }
+}
+
+#[test]
+fn without_stall_reporting_the_axis_never_triggers() {
+    let dir = scratch("tmc-no-stall");
+    let cfg = config(&dir, |t| t.replacen("driver_SGTHRS: 100", "driver_SGTHRS: 0", 1));
+    let (r, _) = home(&dir, &cfg, "x");
+    assert_eq!(r.code, Some(1), "{}{}", r.stdout, r.stderr);
+    assert!(
+        r.stderr.contains("No trigger on x after full movement"),
+        "{}",
+        r.stderr
+    );
+}
+
+#[test]
+fn dump_tmc_reads_back_what_was_written_and_set_tmc_current_changes_the_driver() {
+    let dir = scratch("tmc-commands");
+    let cfg = config(&dir, |t| t);
+    let g = dir.join("tmc.gcode");
+    std::fs::write(
+        &g,
+        "G28\nDUMP_TMC STEPPER=stepper_x\nSET_TMC_CURRENT STEPPER=stepper_x CURRENT=0.6 HOLDCURRENT=0.3\n\
+         DUMP_TMC STEPPER=stepper_x REGISTER=IHOLD_IRUN\nDUMP_TMC STEPPER=stepper_x REGISTER=DRV_STATUS\n\
+         SET_TMC_FIELD STEPPER=stepper_z FIELD=sgt VALUE=-5\nDUMP_TMC STEPPER=stepper_z REGISTER=CHOPCONF\n\
+         DUMP_TMC STEPPER=stepper_z REGISTER=COOLCONF\nINIT_TMC STEPPER=extruder\nDUMP_TMC STEPPER=extruder REGISTER=IFCNT\n\
+         G1 X10 Y10 F3000\n",
+    )
+    .expect("gcode");
+    let r = {
+        let _one = ONE_AT_A_TIME.lock().unwrap_or_else(PoisonError::into_inner);
+        retry_homing_timeouts(
+            || {
+                let mut cmd = std::process::Command::new(cadence_tests::bin("cadence"));
+                cmd.arg("print")
+                    .arg(&g)
+                    .arg("--config")
+                    .arg(&cfg)
+                    .arg("--no-progress");
+                run(&mut cmd, TIMEOUT)
+            },
+            |r| r,
+        )
+    };
+    assert_success(&r);
+    let out = &r.stdout;
+    let has = |s: &str| assert!(out.lines().any(|l| l.trim() == s), "no line '{s}' in:\n{out}");
+    // Written at start, read back from the simulated driver: pdn_disable, mstep_reg_select,
+    // multistep_filt, stealthChop (en_spreadcycle 0); toff 3, hstrt 5, tbl 2, vsense, 16
+    // microsteps, interpolation.
+    has("========== Write-only registers ==========");
+    has("SGTHRS:     00000064 sgthrs=100");
+    has("IHOLD_IRUN: 0008190f ihold=15 irun=25 iholddelay=8");
+    has("========== Queried registers ==========");
+    has("GCONF:      000001c0 pdn_disable=1 mstep_reg_select=1 multistep_filt=1");
+    has("CHOPCONF:   14030053 toff=3 hstrt=5 tbl=2 vsense=1 mres=4(16usteps) intpol=1");
+    // 10 registers at start, 3 switched for homing and 3 restored: every write counted (a write
+    // the host had to repeat, its confirmation lost on a loaded VM, counts twice).
+    let ifcnt = |l: &str| -> Option<u32> {
+        l.trim()
+            .strip_prefix("IFCNT:")?
+            .split("ifcnt=")
+            .nth(1)?
+            .parse()
+            .ok()
+    };
+    let counts: Vec<u32> = out.lines().filter_map(ifcnt).collect();
+    assert!(counts.len() == 2 && counts[0] >= 16, "{counts:?}\n{out}");
+    // The sensorless settings were restored after homing.
+    has("TCOOLTHRS:  00000000");
+    // 0.6 A / 0.3 A through 0.11 Ω: IRUN 19, IHOLD 9; the driver's current scale follows.
+    has("Run Current: 0.61A Hold Current: 0.31A");
+    has("IHOLD_IRUN: 00081309 ihold=9 irun=19 iholddelay=8");
+    has("DRV_STATUS: 00130000 cs_actual=19");
+    // The TMC2130 over SPI: its CHOPCONF read back, the field written.
+    has("CHOPCONF:   14028384 toff=4 hend=7 tbl=1 vsense=1 mres=4(16usteps) intpol=1");
+    has("COOLCONF:   007b0000 sgt=-5");
+    // The TMC2208 rewritten by INIT_TMC: its 6 registers twice.
+    assert!(counts[1] >= 12, "{counts:?}");
+}
