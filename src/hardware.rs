@@ -104,8 +104,12 @@ pub struct Machine {
     pub probe: Option<ProbeOut>,
     /// `[bltouch]`: the probe's servo.
     pub bltouch: Option<BlTouchOut>,
+    /// `[bed_mesh]`: its settings, profiles and the mesh in use.
+    pub bed_mesh: Option<crate::homing::bed_mesh::BedMeshOut>,
     /// `[simulator] bed_surface_z`: where simulated probe pins trigger.
     pub sim_bed_surface_z: f64,
+    /// `[simulator]`'s bed shape (tilt and warp), for the simulated probe.
+    pub sim_bed: sysconfig::printer::SimulatorSection,
     pub toolhead: ToolheadConfig,
     pub home_position: [f64; 3],
     /// Kinematics and pressure advance for the planner.
@@ -239,7 +243,9 @@ impl Machine {
             endstops,
             probe,
             bltouch,
+            bed_mesh: cfg.bed_mesh.clone().map(crate::homing::bed_mesh::BedMeshOut::new),
             sim_bed_surface_z: cfg.simulator.bed_surface_z,
+            sim_bed: cfg.simulator.clone(),
             toolhead,
             home_position: home,
             options,
@@ -461,6 +467,27 @@ impl Machine {
             args.push(format!("{name}={},{steps_per_mm},{start}", s.step_pin.pin));
         }
         for e in self.mcu_endstops(mcu) {
+            // A tilted or warped simulated bed under the probe.
+            if let Some(p) = self
+                .probe
+                .as_ref()
+                .filter(|_| e.probe && self.sim_bed.bed_is_shaped())
+            {
+                let b = &self.sim_bed;
+                args.push("--bed-surface".to_string());
+                args.push(format!(
+                    "{}={},{},{},{},{},{},{},{}",
+                    e.pin.pin,
+                    self.sim_coord(0, &rails),
+                    self.sim_coord(1, &rails),
+                    p.cfg.x_offset,
+                    p.cfg.y_offset,
+                    b.bed_tilt[0],
+                    b.bed_tilt[1],
+                    b.bed_warp,
+                    b.bed_warp_period
+                ));
+            }
             // A BLTouch with its servo on the same MCU: the simulated probe, deployed and
             // stowed by the servo pulses, its pin touching the bed surface.
             if let Some(b) = self.mcu_bltouch(mcu).filter(|_| e.probe) {

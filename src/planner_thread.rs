@@ -702,6 +702,9 @@ impl PlannerRun<'_, '_> {
                     .to_string(),
             );
         }
+        if let Some(bm) = &self.st.machine.bed_mesh {
+            self.autosave.merge(bm.take_pending());
+        }
         match sysconfig::autosave::save(&path, &self.autosave).map_err(|e| e.to_string())? {
             Some(saved) => {
                 self.autosave = sysconfig::autosave::Changes::default();

@@ -53,6 +53,7 @@
 //! known from the move profile, so the last executed step and the first cancelled one bound
 //! the moment the stepper MCU stopped, relative to the endstop's trigger.
 
+pub mod bed_mesh;
 pub mod bltouch;
 mod halt;
 mod pass;
@@ -121,6 +122,8 @@ pub struct HomingCtx<'a> {
     /// Lines for the user produced on the way (a BLTouch's retries), drained into the
     /// command's output.
     pub messages: Vec<String>,
+    /// The passes of every probe sample taken so far (their stop latencies), for reports.
+    pub probe_passes: Vec<PassReport>,
 }
 
 impl<'a> HomingCtx<'a> {
@@ -145,6 +148,7 @@ impl<'a> HomingCtx<'a> {
             rt,
             comm_timeout_detail: None,
             messages: Vec::new(),
+            probe_passes: Vec::new(),
         }
     }
 }

@@ -27,7 +27,8 @@ use sysconfig::printer::{ProbeSection, SamplesResult, SAMPLES_RESULTS};
 use super::{endstop_state, homing_pass, plain_move, wait_motion_done, HomingCtx, PassKind};
 use crate::hardware::ProbeOut;
 
-/// The G-code commands this module runs.
+/// The G-code commands this module runs (the bed levelling ones through
+/// [`super::bed_mesh`]).
 pub const COMMANDS: [&str; 5] = [
     "PROBE",
     "PROBE_ACCURACY",
@@ -41,7 +42,7 @@ const ACCURACY_SAMPLES: u32 = 10;
 
 /// True for a command name this module runs.
 pub fn is_probe_command(name: &str) -> bool {
-    COMMANDS.contains(&name)
+    COMMANDS.contains(&name) || super::bed_mesh::COMMANDS.contains(&name)
 }
 
 /// The settings of one PROBE / PROBE_ACCURACY: the config's, overridden by the command's
@@ -164,6 +165,9 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
     if name.starts_with("BLTOUCH_") {
         return super::bltouch::run_command(ctx, name, raw, out);
     }
+    if super::bed_mesh::COMMANDS.contains(&name) {
+        return super::bed_mesh::run(ctx, name, raw, out);
+    }
     let Some(probe) = ctx.machine.probe.clone() else {
         return Err(format!(
             "Unknown command: {name} (the printer config has no [probe] section)"
@@ -205,7 +209,7 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
 }
 
 /// The samples of one PROBE with tolerance retries; returns the combined Z.
-fn run_probe(
+pub(crate) fn run_probe(
     ctx: &mut HomingCtx<'_>,
     probe: &ProbeOut,
     p: &ProbeParams,
@@ -234,7 +238,7 @@ fn run_probe(
 }
 
 /// Z up (or down) to `z` at `speed`.
-fn lift(ctx: &mut HomingCtx<'_>, z: f64, speed: f64) -> Result<(), String> {
+pub(crate) fn lift(ctx: &mut HomingCtx<'_>, z: f64, speed: f64) -> Result<(), String> {
     let mut pos = ctx.pipeline.position();
     pos[2] = z;
     plain_move(ctx, pos, speed)
@@ -259,6 +263,7 @@ fn probe_once(
         }
         homing_pass(ctx, &probe.endstop, PassKind::Probe { target }, speed)
     })?;
+    ctx.probe_passes.push(pass.clone());
     let pos = ctx.pipeline.position();
     let at = [pos[0], pos[1], pass.trigger_position];
     out.push(format!("probe at {:.3},{:.3} is z={:.6}", at[0], at[1], at[2]));

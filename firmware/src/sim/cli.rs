@@ -75,6 +75,12 @@ pub struct Cli {
     #[arg(long = "bltouch", value_name = "[!]SENSOR_PIN=CONTROL_PIN,COORD,SURFACE_MM[,stuck|mute]",
           value_parser = parse_bltouch)]
     pub bltouch: Vec<BlTouchSpec>,
+    /// The bed surface probe input PIN (an `--endstop` or `--bltouch` sensor) touches: its
+    /// trigger coordinate plus `TILT_X·x + TILT_Y·y + WARP·sin(2πx/PERIOD)·sin(2πy/PERIOD)` at
+    /// the probe's bed point (toolhead XCOORD, YCOORD plus the offsets).
+    #[arg(long = "bed-surface", value_name = "PIN=XCOORD,YCOORD,X_OFFSET,Y_OFFSET,TILT_X,TILT_Y,WARP,PERIOD",
+          value_parser = super::surface::SurfaceSpec::parse)]
+    pub surfaces: Vec<super::surface::SurfaceSpec>,
     /// A heater output and the thermistor ADC input it warms (100K NTC beta 3950, 4.7k pull-up),
     /// with the thermal model of a 40 W hotend (default) or a 150 W bed.
     #[arg(long = "heater", value_name = "HEATER_PIN=SENSOR_PIN[,hotend|bed]", value_parser = parse_heater)]

@@ -333,6 +333,8 @@ pub struct World {
     /// The latest step stamp published.
     last_published_stamp: u64,
     time: Option<TimeBase>,
+    /// Bed surfaces under probe pins (`--bed-surface`).
+    surfaces: Vec<super::surface::SurfaceSpec>,
 }
 
 /// Worlds created in this process so far (tells two worlds of one process apart).
@@ -382,7 +384,33 @@ impl World {
             last_publish: None,
             last_published_stamp: 0,
             time: None,
+            surfaces: Vec::new(),
         }
+    }
+
+    /// Probe pins touching a tilted or warped bed ([`super::surface`]).
+    pub fn set_surfaces(&mut self, surfaces: Vec<super::surface::SurfaceSpec>) {
+        self.surfaces = surfaces;
+    }
+
+    /// The bed surface's height under probe input `pin` at `at_ns` (0 when the pin has no
+    /// surface or the toolhead's X or Y is unknown).
+    fn surface_at(&self, pin: u8, at_ns: Option<u64>) -> f64 {
+        let Some(s) = self.surfaces.iter().find(|s| s.pin == pin) else {
+            return 0.0;
+        };
+        match (self.coord_at(&s.x, at_ns), self.coord_at(&s.y, at_ns)) {
+            (Some(x), Some(y)) => s.under_probe(x, y),
+            _ => 0.0,
+        }
+    }
+
+    /// The surface height under probe input `pin` at MCU clock `clock` (see
+    /// [`Self::coord_at_clock`]).
+    pub fn surface_at_clock(&mut self, pin: u8, clock: u64) -> f64 {
+        self.refresh();
+        let at = self.time.map(|t| t.ns(clock));
+        self.surface_at(pin, at)
     }
 
     /// Stamps steps and reads endstops in CLOCK_MONOTONIC time through `time` (this process'
@@ -539,10 +567,11 @@ impl World {
         let at = self.time.map(|t| t.ns(clock));
         let e = &self.endstops[i];
         let pos = self.coord_at(&e.axis, at)?;
+        let trigger_mm = e.trigger_mm + self.surface_at(pin, at);
         let triggered = if e.at_min {
-            pos <= e.trigger_mm
+            pos <= trigger_mm
         } else {
-            pos >= e.trigger_mm
+            pos >= trigger_mm
         };
         Some(triggered != e.active_low)
     }

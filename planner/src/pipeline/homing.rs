@@ -67,6 +67,12 @@ impl Pipeline {
         self.sync_gcode_position();
     }
 
+    /// Applies `mesh` to the G-code moves from now on (`None`: none): `BED_MESH_PROFILE LOAD`,
+    /// `BED_MESH_CLEAR`, the end of `BED_MESH_CALIBRATE`.
+    pub fn set_bed_mesh(&mut self, mesh: Option<crate::bed_mesh::split::AppliedMesh>) {
+        self.state.set_bed_mesh(mesh, &self.th);
+    }
+
     /// The G-code state's last position follows the toolhead: `G28` naming no axis at the
     /// state level (the parser never produces it) redefines nothing and re-reads the position.
     fn sync_gcode_position(&mut self) {

@@ -12,9 +12,10 @@
 //! `probe:z_virtual_endstop`), the steppers the kinematics needs, their further motors
 //! (`[stepper_z1]`…), `[extruder]`, `[heater_bed]`, the thermal sections (`thermal`),
 //! `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`,
-//! `[input_shaper]`, `[gcode_macro]`s, `[safe_z_home]` / `[homing_override]`, then the
+//! `[input_shaper]`, `[gcode_macro]`s, `[safe_z_home]` / `[homing_override]`, `[bed_mesh]`, then the
 //! unused-option/section check.
 
+mod bed_mesh;
 mod bltouch;
 mod board_pins;
 pub mod check;
@@ -41,6 +42,10 @@ use std::path::{Path, PathBuf};
 
 use crate::ini::{self, ConfigFile};
 
+pub use bed_mesh::{
+    profile_options as bed_mesh_profile_options, BedMeshSection, MeshProfile, MeshShape,
+    ALGORITHMS as BED_MESH_ALGORITHMS,
+};
 pub use bltouch::{BlTouchSection, OutputMode as BlTouchOutputMode, OUTPUT_MODES as BLTOUCH_OUTPUT_MODES};
 pub use delta::{DeltaSection, DEFAULT_ANGLES};
 pub use error::{ConfigError, ValueProblem};
@@ -96,6 +101,8 @@ pub struct PrinterConfig {
     pub bltouch: Option<BlTouchSection>,
     /// `[simulator]`, or its defaults.
     pub simulator: SimulatorSection,
+    /// `[bed_mesh]` with its saved profiles.
+    pub bed_mesh: Option<BedMeshSection>,
     /// `[realtime]`, or its defaults.
     pub realtime: RealtimeSection,
     /// `[gcode]`, or its defaults.
@@ -252,8 +259,21 @@ impl PrinterConfig {
         };
 
         let host = host::read_host(&reader)?;
+        let mut mesh_warnings = Vec::new();
+        let bed_mesh = match reader.section("bed_mesh") {
+            Some(s) if probe.is_none() => {
+                return Err(ConfigError::BadSection {
+                    at: s.at().clone(),
+                    section: "bed_mesh".to_string(),
+                    reason: "needs a probe: add a [probe] or [bltouch] section".to_string(),
+                })
+            }
+            Some(s) => Some(bed_mesh::read_bed_mesh(&reader, &s, &mut mesh_warnings)?),
+            None => None,
+        };
 
         let mut warnings = reader.finish(is_ignored)?;
+        warnings.extend(mesh_warnings);
         let scripts: Vec<_> = macros
             .iter()
             .chain(homing_override.as_ref().map(|o| &o.script))
@@ -284,6 +304,7 @@ impl PrinterConfig {
             probe,
             bltouch,
             simulator,
+            bed_mesh,
             realtime,
             gcode,
             gcode_arcs,

@@ -35,7 +35,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("adxl345", Ignored),
     ("angle", Ignored),
     ("axis_twist_compensation", Ignored),
-    ("bed_mesh", Ignored),
+    ("bed_mesh", Read),
     ("bed_screws", Ignored),
     ("bed_tilt", Ignored),
     ("bltouch", Read),
@@ -224,7 +224,7 @@ mod tests {
 
     #[test]
     fn kinds() {
-        assert!(is_ignored("bed_mesh") && is_ignored("tmc2209") && is_ignored("ad5206"));
+        assert!(is_ignored("tmc2209") && is_ignored("ad5206"));
         assert_eq!(support("gcode_macro"), Some(Read));
         assert_eq!(support("stepper_x"), Some(Read));
         assert_eq!(support("stepper_a"), Some(Read));

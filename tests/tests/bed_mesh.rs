@@ -1,0 +1,249 @@
+//! End to end: BED_MESH_CALIBRATE on a tilted and warped simulated bed (`cadence print` on
+//! examples/simulated-probe.cfg with 20 mm axes; Z homes on the probe, which sits on
+//! probe_mcu, so every probe's trigger is relayed by the host within the 25 ms budget).
+//!
+//! The truth is the simulator's surface `h(x, y) = TILT_X·x + TILT_Y·y + WARP·sin(2πx/P)·sin(2πy/P)`
+//! (`[simulator] bed_tilt_x/bed_tilt_y/bed_warp/bed_warp_period`): the probe triggers where
+//! the world's Z reaches `bed_surface_z + h` at the probe's X, Y. Z homes at a known X, Y, so the
+//! mesh at a probed point must be `h(point) − h(probe at homing)`; and a first-layer move's
+//! nozzle height, rebuilt from the main MCU's step trace (not from the host's numbers), must
+//! follow `h` under the nozzle.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use cadence_tests::{assert_success, print_traced, retry_homing_timeouts, run, scratch, workspace, Run};
+use firmware::trace::{read_trace, TraceRecord};
+
+const TIMEOUT: Duration = Duration::from_secs(300);
+const TILT: [f64; 2] = [0.012, -0.007];
+const WARP: f64 = 0.06;
+const PERIOD: f64 = 30.0;
+/// The probe's offsets from the nozzle.
+const OFFSET: [f64; 2] = [2.0, 1.0];
+const Z_OFFSET: f64 = 1.5;
+/// Where the nozzle is when Z homes on the probe.
+const HOME_XY: [f64; 2] = [10.0, 10.0];
+/// The brief's bound.
+const TOLERANCE: f64 = 0.02;
+/// X/Y and Z steps per mm (rotation_distance 40 and 8, 16 microsteps).
+const XY_STEPS: f64 = 80.0;
+const Z_STEPS: f64 = 400.0;
+/// Stepper oids on the main MCU (config order).
+const OID: [u8; 3] = [0, 1, 2];
+
+/// The simulated bed height at bed point (x, y).
+fn h(x: f64, y: f64) -> f64 {
+    let k = std::f64::consts::TAU / PERIOD;
+    TILT[0] * x + TILT[1] * y + WARP * (k * x).sin() * (k * y).sin()
+}
+
+/// examples/simulated-probe.cfg with 20 mm axes, the shaped bed, probe offsets and `mesh`;
+/// with `main_mcu` the probe is on the main MCU (the steppers' own, as on most printers), else
+/// on probe_mcu (every trigger relayed by the host).
+fn config(dir: &Path, mesh: &str, main_mcu: bool) -> PathBuf {
+    let text = std::fs::read_to_string(workspace().join("examples/simulated-probe.cfg")).expect("example");
+    let mut out = String::new();
+    for line in text.lines() {
+        let l = line.split('#').next().unwrap_or_default().trim();
+        let line = match l {
+            "position_max: 220" | "position_max: 200" => "position_max: 20".to_string(),
+            "homing_speed: 50" => "homing_speed: 10".to_string(),
+            "speed: 5" => format!("speed: 2\nlift_speed: 10\nx_offset: {}\ny_offset: {}", OFFSET[0], OFFSET[1]),
+            "bed_surface_z: 0" => format!(
+                "bed_surface_z: 0\nbed_tilt_x: {}\nbed_tilt_y: {}\nbed_warp: {WARP}\nbed_warp_period: {PERIOD}",
+                TILT[0], TILT[1]
+            ),
+            l if l.starts_with("[stepper_") => format!("{line}\nhoming_retract_dist: 2\nsecond_homing_speed: 2"),
+            "pin: ^probe_mcu:PA4" if main_mcu => "pin: ^PA4".to_string(),
+            _ => line.to_string(),
+        };
+        out.push_str(&line);
+        out.push('\n');
+    }
+    out.push_str(mesh);
+    if main_mcu {
+        out = out.replace("[mcu probe_mcu]\nserial: simulator\n", "");
+    }
+    let path = dir.join("printer.cfg");
+    std::fs::write(&path, out).expect("write config");
+    path
+}
+
+fn print(dir: &Path, cfg: &Path, gcode: &str) -> (Run, PathBuf) {
+    let g = dir.join("mesh.gcode");
+    std::fs::write(&g, gcode).expect("write gcode");
+    let trace = dir.join("main.trace");
+    let run = retry_homing_timeouts(|| run(&mut print_traced(&g, cfg, &trace), TIMEOUT), |r| r);
+    (run, trace)
+}
+
+/// (nozzle x, y, z) of every `probe at X,Y is z=Z` line.
+fn probed(stdout: &str) -> Vec<[f64; 3]> {
+    stdout
+        .lines()
+        .filter_map(|l| {
+            let rest = l.split_once("probe at ")?.1;
+            let (xy, z) = rest.split_once(" is z=")?;
+            let (x, y) = xy.split_once(',')?;
+            Some([x.parse().ok()?, y.parse().ok()?, z.trim().parse().ok()?])
+        })
+        .collect()
+}
+
+/// The rows under `Measured points:` (top row first, as printed).
+fn measured(stdout: &str) -> Vec<Vec<f64>> {
+    stdout
+        .lines()
+        .skip_while(|l| !l.contains("Measured points:"))
+        .skip(1)
+        .map_while(|l| {
+            let v: Option<Vec<f64>> = l.split_whitespace().map(|w| w.parse().ok()).collect();
+            v.filter(|v| !v.is_empty())
+        })
+        .collect()
+}
+
+const MESH: &str =
+    "\n[bed_mesh]\nmesh_min: 3, 2\nmesh_max: 19, 18\nprobe_count: 5, 5\nhorizontal_move_z: 3\nspeed: 100\n\
+                    split_delta_z: 0.01\nmove_check_distance: 3\n";
+
+#[test]
+fn bed_mesh_calibrate_measures_the_warped_bed_and_the_first_layer_follows_it() {
+    let dir = scratch("bed-mesh-warped");
+    let cfg = config(&dir, MESH, true);
+    let gcode = format!(
+        "G28 X Y\nG1 X{} Y{} F3000\nG28 Z\nBED_MESH_CALIBRATE\nBED_MESH_OUTPUT\n\
+         G1 Z0.3 F600\nG1 X2 Y4 F3000\nG4 P300\nG1 X17 Y16 F600\nG4 P300\n",
+        HOME_XY[0], HOME_XY[1]
+    );
+    let (run, trace) = print(&dir, &cfg, &gcode);
+    assert_success(&run);
+    let out = &run.stdout;
+    // The homing/probing latency figures: every pass stopped within the 25 ms budget.
+    let line = out
+        .lines()
+        .find(|l| l.contains("bed_mesh: ") && l.contains("probe passes"))
+        .unwrap_or_default();
+    eprintln!("{line}");
+    let worst_us: f64 = line
+        .split_once("stop at most ")
+        .and_then(|(_, r)| r.split_once("..")?.1.split_whitespace().next()?.parse().ok())
+        .unwrap_or_else(|| panic!("no latency line\n{out}"));
+    assert!(worst_us < 25_000.0, "{line}");
+    assert!(line.contains("25 probe passes"), "{line}\n{out}");
+    assert!(out.contains("homing z: mcus mcu;"), "{out}");
+
+    // Each probe point: the probe's Z is z_offset + h(probe) − h(probe at homing).
+    let href = h(HOME_XY[0] + OFFSET[0], HOME_XY[1] + OFFSET[1]);
+    let points = probed(out);
+    assert_eq!(points.len(), 25, "{out}");
+    let mut worst: f64 = 0.0;
+    for [x, y, z] in &points {
+        let want = Z_OFFSET + h(x + OFFSET[0], y + OFFSET[1]) - href;
+        worst = worst.max((z - want).abs());
+        assert!(
+            (z - want).abs() <= TOLERANCE,
+            "probe at {x},{y}: z={z}, surface says {want}\n{out}"
+        );
+    }
+    eprintln!("bed_mesh: probed points within {worst:.4} mm of the true surface");
+    // The mesh (BED_MESH_OUTPUT, top row first) is the probed heights minus z_offset.
+    let rows = measured(out);
+    assert_eq!(rows.len(), 5, "{out}");
+    for (r, row) in rows.iter().rev().enumerate() {
+        assert_eq!(row.len(), 5, "{out}");
+        for (c, v) in row.iter().enumerate() {
+            let (x, y) = (3.0 + 4.0 * c as f64, 2.0 + 4.0 * r as f64);
+            let want = h(x, y) - href;
+            assert!(
+                (v - want).abs() <= TOLERANCE,
+                "mesh ({c},{r}) at {x},{y}: {v}, surface says {want}\n{out}"
+            );
+        }
+    }
+
+    // The first-layer move X2 Y4 → X17 Y16 at Z0.3, from the MCU's executed steps: the
+    // nozzle's height above the bed stays what it was at the move's start.
+    let t = read_trace(&trace).expect("trace");
+    let mut steps: Vec<(u64, u8, bool)> = t
+        .records
+        .iter()
+        .filter_map(|r| match *r {
+            TraceRecord::Step { oid, dir, clock, .. } => Some((clock, oid, dir)),
+            _ => None,
+        })
+        .collect();
+    steps.sort_by_key(|s| s.0);
+    // The move starts after the last pause of more than 200 ms between steps.
+    let gap = (0.2 * t.clock_freq as f64) as u64;
+    let start = steps
+        .windows(2)
+        .rposition(|w| w[1].0 - w[0].0 > gap)
+        .map(|i| i + 1)
+        .expect("a pause before the layer move");
+    let layer = &steps[start..];
+    let mut pos = [0i64; 3];
+    let mut worst: f64 = 0.0;
+    let (x0, y0) = (2.0, 4.0);
+    for &(_, oid, dir) in layer {
+        if let Some(axis) = OID.iter().position(|&o| o == oid) {
+            pos[axis] += if dir { 1 } else { -1 };
+        }
+        let (x, y) = (x0 + pos[0] as f64 / XY_STEPS, y0 + pos[1] as f64 / XY_STEPS);
+        let dz = pos[2] as f64 / Z_STEPS;
+        let err = dz - (h(x, y) - h(x0, y0));
+        worst = worst.max(err.abs());
+    }
+    let end = [x0 + pos[0] as f64 / XY_STEPS, y0 + pos[1] as f64 / XY_STEPS];
+    assert!(
+        (end[0] - 17.0).abs() < 0.02 && (end[1] - 16.0).abs() < 0.02,
+        "the layer move ends at {end:?}"
+    );
+    let rise = h(17.0, 16.0) - h(x0, y0);
+    eprintln!(
+        "bed_mesh: first layer over {:.3} mm of bed height change followed the surface within {worst:.4} mm",
+        rise.abs()
+    );
+    assert!(worst <= TOLERANCE, "nozzle height off the surface by {worst} mm");
+    // Without the mesh the nozzle would be off by the surface's own change.
+    assert!(
+        rise.abs() > 2.0 * TOLERANCE,
+        "the test surface must change along the move"
+    );
+}
+
+#[test]
+fn profiles_save_load_remove_and_save_config() {
+    let dir = scratch("bed-mesh-profiles");
+    let cfg = config(&dir, MESH, false);
+    let (run, _) = print(
+        &dir,
+        &cfg,
+        "BED_MESH_OUTPUT\nG28 X Y\nG1 X10 Y10 F3000\nG28 Z\nBED_MESH_CALIBRATE PROFILE=pla PROBE_COUNT=3 ALGORITHM=lagrange\n\
+         BED_MESH_PROFILE SAVE=copy\nBED_MESH_CLEAR\nBED_MESH_OUTPUT\nBED_MESH_PROFILE LOAD=copy\nBED_MESH_OUTPUT\n\
+         BED_MESH_PROFILE REMOVE=pla\nSAVE_CONFIG\n",
+    );
+    assert_success(&run);
+    let all = format!("{}{}", run.stdout, run.stderr);
+    assert!(all.contains("Bed has not been probed"), "{all}");
+    assert!(all.contains("Profile [pla] removed from storage"), "{all}");
+    assert_eq!(measured(&run.stdout).len(), 3, "{all}");
+    // Every probe's trigger came from probe_mcu, relayed within the 25 ms budget.
+    assert!(all.contains("homing z: mcus probe_mcu+mcu"), "{all}");
+    assert!(all.contains("bed_mesh: 9 probe passes, stop at most"), "{all}");
+    let saved = std::fs::read_to_string(&cfg).expect("config");
+    assert!(saved.contains("#*# [bed_mesh copy]"), "{saved}");
+    assert!(!saved.contains("[bed_mesh pla]"), "{saved}");
+    // The saved profile loads on the next run; an unknown one is an error naming it.
+    let (run, _) = print(&dir, &cfg, "BED_MESH_PROFILE LOAD=copy\nBED_MESH_OUTPUT\n");
+    assert_success(&run);
+    assert_eq!(measured(&run.stdout).len(), 3, "{}", run.stdout);
+    let (run, _) = print(&dir, &cfg, "BED_MESH_PROFILE LOAD=nope\n");
+    assert!(
+        run.stderr
+            .contains("mesh.gcode:1: BED_MESH_PROFILE: bed_mesh: Unknown profile [nope]"),
+        "{}",
+        run.stderr
+    );
+}
