@@ -104,6 +104,8 @@ pub struct Machine {
     pub probe: Option<ProbeOut>,
     /// `[bltouch]`: the probe's servo.
     pub bltouch: Option<BlTouchOut>,
+    /// `[z_tilt]`.
+    pub z_tilt: Option<sysconfig::printer::ZTiltSection>,
     /// `[bed_mesh]`: its settings, profiles and the mesh in use.
     pub bed_mesh: Option<crate::homing::bed_mesh::BedMeshOut>,
     /// `[simulator] bed_surface_z`: where simulated probe pins trigger.
@@ -244,6 +246,7 @@ impl Machine {
             probe,
             bltouch,
             bed_mesh: cfg.bed_mesh.clone().map(crate::homing::bed_mesh::BedMeshOut::new),
+            z_tilt: cfg.z_tilt.clone(),
             sim_bed_surface_z: cfg.simulator.bed_surface_z,
             sim_bed: cfg.simulator.clone(),
             toolhead,
@@ -463,8 +466,17 @@ impl Machine {
                 0 => name.clone(),
                 n => format!("{name}{n}"),
             };
+            // A tilted simulated gantry: each Z motor's end starts that much higher.
+            let tilt = match s.axis {
+                2 => self.sim_bed.gantry_tilt.get(nth).copied().unwrap_or(0.0),
+                _ => 0.0,
+            };
             args.push("--axis".to_string());
-            args.push(format!("{name}={},{steps_per_mm},{start}", s.step_pin.pin));
+            args.push(format!(
+                "{name}={},{steps_per_mm},{}",
+                s.step_pin.pin,
+                start + tilt
+            ));
         }
         for e in self.mcu_endstops(mcu) {
             // A tilted or warped simulated bed under the probe.
@@ -486,6 +498,37 @@ impl Machine {
                     b.bed_tilt[1],
                     b.bed_warp,
                     b.bed_warp_period
+                ));
+            }
+            // A probe on a gantry lifted by several Z motors (`[z_tilt] z_positions`).
+            let gantry = self
+                .z_tilt
+                .as_ref()
+                .filter(|z| e.probe && (2..=3).contains(&z.z_positions.len()));
+            if let Some(zt) = gantry {
+                let p = self
+                    .probe
+                    .as_ref()
+                    .map_or([0.0, 0.0], |p| [p.cfg.x_offset, p.cfg.y_offset]);
+                let z = &rails[2].0;
+                let motors: Vec<String> = zt
+                    .z_positions
+                    .iter()
+                    .enumerate()
+                    .map(|(n, xy)| match n {
+                        0 => format!("{z}:{}:{}", xy[0], xy[1]),
+                        n => format!("{z}{n}:{}:{}", xy[0], xy[1]),
+                    })
+                    .collect();
+                args.push("--gantry".to_string());
+                args.push(format!(
+                    "{}={},{},{},{},{}",
+                    e.pin.pin,
+                    self.sim_coord(0, &rails),
+                    self.sim_coord(1, &rails),
+                    p[0],
+                    p[1],
+                    motors.join(",")
                 ));
             }
             // A BLTouch with its servo on the same MCU: the simulated probe, deployed and

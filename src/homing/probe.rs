@@ -42,7 +42,9 @@ const ACCURACY_SAMPLES: u32 = 10;
 
 /// True for a command name this module runs.
 pub fn is_probe_command(name: &str) -> bool {
-    COMMANDS.contains(&name) || super::bed_mesh::COMMANDS.contains(&name)
+    COMMANDS.contains(&name)
+        || super::bed_mesh::COMMANDS.contains(&name)
+        || super::z_tilt::COMMANDS.contains(&name)
 }
 
 /// The settings of one PROBE / PROBE_ACCURACY: the config's, overridden by the command's
@@ -167,6 +169,9 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
     }
     if super::bed_mesh::COMMANDS.contains(&name) {
         return super::bed_mesh::run(ctx, name, raw, out);
+    }
+    if super::z_tilt::COMMANDS.contains(&name) {
+        return super::z_tilt::run(ctx, raw, out);
     }
     let Some(probe) = ctx.machine.probe.clone() else {
         return Err(format!(

@@ -197,7 +197,10 @@ impl Board for SimBoard {
         let at = self.extend(at);
         if let Some(b) = self.bltouch.iter_mut().find(|b| b.spec.sensor_pin == pin) {
             let h = self.world.surface_at_clock(pin, at);
-            let z = self.world.coord_at_clock(&b.spec.coord, at).map(|z| z - h);
+            let z = self
+                .world
+                .probe_height_at_clock(pin, &b.spec.coord, at)
+                .map(|z| z - h);
             return b.sense(at, z) != b.spec.active_low;
         }
         self.world.read_endstop(pin, at).unwrap_or(false)

@@ -81,6 +81,11 @@ pub struct Cli {
     #[arg(long = "bed-surface", value_name = "PIN=XCOORD,YCOORD,X_OFFSET,Y_OFFSET,TILT_X,TILT_Y,WARP,PERIOD",
           value_parser = super::surface::SurfaceSpec::parse)]
     pub surfaces: Vec<super::surface::SurfaceSpec>,
+    /// The probe on input PIN rides a gantry lifted by 2 or 3 Z motors (world axes AXIS at
+    /// X, Y): its height is the gantry's at the probe (toolhead XCOORD, YCOORD plus offsets).
+    #[arg(long = "gantry", value_name = "PIN=XCOORD,YCOORD,X_OFFSET,Y_OFFSET,AXIS:X:Y,AXIS:X:Y[,AXIS:X:Y]",
+          value_parser = super::surface::GantrySpec::parse)]
+    pub gantries: Vec<super::surface::GantrySpec>,
     /// A heater output and the thermistor ADC input it warms (100K NTC beta 3950, 4.7k pull-up),
     /// with the thermal model of a 40 W hotend (default) or a 150 W bed.
     #[arg(long = "heater", value_name = "HEATER_PIN=SENSOR_PIN[,hotend|bed]", value_parser = parse_heater)]

@@ -100,3 +100,107 @@ mod tests {
         }
     }
 }
+
+/// `--gantry`: the probe on input PIN rides a gantry lifted by several Z motors, so its height
+/// is not one axis but the gantry's at the probe: with two motors the line through their
+/// (position, height) points, with three the plane through them, at the probe's X, Y.
+///
+/// Text form: `PIN=XCOORD,YCOORD,X_OFFSET,Y_OFFSET,AXIS:X:Y,AXIS:X:Y[,AXIS:X:Y]`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GantrySpec {
+    pub pin: u8,
+    pub x: Coord,
+    pub y: Coord,
+    pub offset: [f64; 2],
+    /// (world axis of the motor, its X, Y).
+    pub motors: Vec<(String, [f64; 2])>,
+}
+
+impl GantrySpec {
+    /// The gantry's height at (x, y) given each motor's height (in `motors` order); `None`
+    /// for a degenerate layout.
+    pub fn height(&self, x: f64, y: f64, z: &[f64]) -> Option<f64> {
+        let p: Vec<[f64; 2]> = self.motors.iter().map(|m| m.1).collect();
+        match (p.as_slice(), z) {
+            ([a, b], [za, zb]) => {
+                let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+                let len2 = dx * dx + dy * dy;
+                (len2 > 0.0).then(|| za + (zb - za) * ((x - a[0]) * dx + (y - a[1]) * dy) / len2)
+            }
+            ([a, b, c], [za, zb, zc]) => {
+                // Barycentric weights of (x, y) in triangle a b c.
+                let det = (b[1] - c[1]) * (a[0] - c[0]) + (c[0] - b[0]) * (a[1] - c[1]);
+                if det.abs() < 1e-12 {
+                    return None;
+                }
+                let wa = ((b[1] - c[1]) * (x - c[0]) + (c[0] - b[0]) * (y - c[1])) / det;
+                let wb = ((c[1] - a[1]) * (x - c[0]) + (a[0] - c[0]) * (y - c[1])) / det;
+                Some(wa * za + wb * zb + (1.0 - wa - wb) * zc)
+            }
+            _ => None,
+        }
+    }
+
+    /// Parses the text form; never panics.
+    pub fn parse(s: &str) -> Result<GantrySpec, String> {
+        const FORM: &str = "expected PIN=XCOORD,YCOORD,X_OFFSET,Y_OFFSET,AXIS:X:Y,AXIS:X:Y[,AXIS:X:Y]";
+        let (pin, rest) = s.split_once('=').ok_or(FORM)?;
+        let f: Vec<&str> = rest.split(',').map(str::trim).collect();
+        let [x, y, xo, yo, motors @ ..] = f.as_slice() else {
+            return Err(FORM.into());
+        };
+        if !(2..=3).contains(&motors.len()) {
+            return Err(format!("a gantry has 2 or 3 motors, got {}", motors.len()));
+        }
+        let num = |t: &str| -> Result<f64, String> {
+            t.parse::<f64>()
+                .ok()
+                .filter(|v| v.is_finite())
+                .ok_or_else(|| format!("`{t}` is not a finite number"))
+        };
+        let motors = motors
+            .iter()
+            .map(|m| match m.split(':').collect::<Vec<_>>().as_slice() {
+                [axis, mx, my] if !axis.is_empty() => Ok((axis.to_string(), [num(mx)?, num(my)?])),
+                _ => Err(format!("motor `{m}`: expected AXIS:X:Y")),
+            })
+            .collect::<Result<Vec<_>, String>>()?;
+        Ok(GantrySpec {
+            pin: super::cli::parse_pin(pin.trim())?,
+            x: Coord::parse(x).map_err(|e| e.to_string())?,
+            y: Coord::parse(y).map_err(|e| e.to_string())?,
+            offset: [num(xo)?, num(yo)?],
+            motors,
+        })
+    }
+}
+
+#[cfg(test)]
+mod gantry_tests {
+    use super::*;
+
+    #[test]
+    fn two_and_three_motor_gantries() {
+        let g = GantrySpec::parse("PA4=x,y,0,0,z:0:10,z1:20:10").unwrap();
+        assert_eq!(g.height(5.0, 3.0, &[1.0, 2.0]), Some(1.25));
+        let g = GantrySpec::parse("PA4=x,y,1,2,z:0:0,z1:20:0,z2:10:20").unwrap();
+        assert_eq!(g.offset, [1.0, 2.0]);
+        let h = g.height(10.0, 20.0, &[0.0, 0.0, 3.0]).unwrap();
+        assert!((h - 3.0).abs() < 1e-12);
+        let h = g.height(10.0, 0.0, &[1.0, 3.0, 0.0]).unwrap();
+        assert!((h - 2.0).abs() < 1e-12);
+        assert!(GantrySpec::parse("PA4=x,y,0,0,z:0:0")
+            .unwrap_err()
+            .contains("2 or 3 motors"));
+        assert!(GantrySpec::parse("PA4=x,y,0,0,z:0,z1:1:1")
+            .unwrap_err()
+            .contains("AXIS:X:Y"));
+    }
+
+    proptest::proptest! {
+        #[test]
+        fn parsing_never_panics(s in ".{0,60}") {
+            let _ = GantrySpec::parse(&s);
+        }
+    }
+}

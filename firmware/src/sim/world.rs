@@ -335,6 +335,8 @@ pub struct World {
     time: Option<TimeBase>,
     /// Bed surfaces under probe pins (`--bed-surface`).
     surfaces: Vec<super::surface::SurfaceSpec>,
+    /// Probe pins riding multi-motor gantries (`--gantry`).
+    gantries: Vec<super::surface::GantrySpec>,
 }
 
 /// Worlds created in this process so far (tells two worlds of one process apart).
@@ -385,7 +387,36 @@ impl World {
             last_published_stamp: 0,
             time: None,
             surfaces: Vec::new(),
+            gantries: Vec::new(),
         }
+    }
+
+    /// Probe pins riding gantries lifted by several Z motors ([`super::surface::GantrySpec`]).
+    pub fn set_gantries(&mut self, gantries: Vec<super::surface::GantrySpec>) {
+        self.gantries = gantries;
+    }
+
+    /// The height of probe input `pin` at `at_ns`: the gantry's under the probe when the pin
+    /// rides one, else coordinate `c`.
+    fn probe_height(&self, pin: u8, c: &Coord, at_ns: Option<u64>) -> Option<f64> {
+        let Some(g) = self.gantries.iter().find(|g| g.pin == pin) else {
+            return self.coord_at(c, at_ns);
+        };
+        let x = self.coord_at(&g.x, at_ns)? + g.offset[0];
+        let y = self.coord_at(&g.y, at_ns)? + g.offset[1];
+        let z: Option<Vec<f64>> = g
+            .motors
+            .iter()
+            .map(|(axis, _)| self.position_at(axis, at_ns))
+            .collect();
+        g.height(x, y, &z?)
+    }
+
+    /// [`Self::probe_height`] at MCU clock `clock` (refreshes remote positions first).
+    pub fn probe_height_at_clock(&mut self, pin: u8, c: &Coord, clock: u64) -> Option<f64> {
+        self.refresh();
+        let at = self.time.map(|t| t.ns(clock));
+        self.probe_height(pin, c, at)
     }
 
     /// Probe pins touching a tilted or warped bed ([`super::surface`]).
@@ -566,7 +597,7 @@ impl World {
         self.refresh();
         let at = self.time.map(|t| t.ns(clock));
         let e = &self.endstops[i];
-        let pos = self.coord_at(&e.axis, at)?;
+        let pos = self.probe_height(pin, &e.axis, at)?;
         let trigger_mm = e.trigger_mm + self.surface_at(pin, at);
         let triggered = if e.at_min {
             pos <= trigger_mm

@@ -10,9 +10,11 @@
 //! - [`split`]: fade (`fade_start`/`fade_end`/`fade_target`) and the move splitter
 //!   (`split_delta_z`, `move_check_distance`).
 //! - [`points`]: the probe points of `BED_MESH_CALIBRATE` on rectangular and round beds.
+//! - [`tilt`]: `Z_TILT_ADJUST`'s plane fit and per-motor corrections.
 
 pub mod points;
 pub mod split;
+pub mod tilt;
 
 /// How the probed points are upsampled.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -47,6 +47,9 @@ pub struct SimulatorSection {
     pub bed_warp: f64,
     /// Their wavelength (mm, > 0; default 100).
     pub bed_warp_period: f64,
+    /// How far each Z motor's end of the gantry starts above the first's (mm, `[stepper_z]`
+    /// first: `0, 0.4` lifts `[stepper_z1]`'s end by 0.4); default none: a level gantry.
+    pub gantry_tilt: Vec<f64>,
 }
 
 impl SimulatorSection {
@@ -65,6 +68,7 @@ impl Default for SimulatorSection {
             bed_tilt: [0.0, 0.0],
             bed_warp: 0.0,
             bed_warp_period: 100.0,
+            gantry_tilt: Vec::new(),
         }
     }
 }
@@ -136,6 +140,15 @@ pub(crate) fn read_simulator(s: &SectionReader<'_>) -> Result<SimulatorSection, 
         ],
         bed_warp: s.float_or("bed_warp", 0.0, Bounds::ANY.min(-10.0).max(10.0))?,
         bed_warp_period: s.float_or("bed_warp_period", d.bed_warp_period, Bounds::ANY.above(0.0))?,
+        gantry_tilt: match s.value("gantry_tilt") {
+            None => Vec::new(),
+            Some(v) => v
+                .text
+                .split(',')
+                .map(|t| super::reader::parse_float(t.trim()))
+                .collect::<Result<_, _>>()
+                .map_err(|p| s.bad("gantry_tilt", v, p))?,
+        },
     })
 }
 

@@ -37,6 +37,7 @@ mod sections;
 mod stepper;
 mod thermal;
 mod toolhead;
+mod z_tilt;
 
 use std::path::{Path, PathBuf};
 
@@ -67,6 +68,7 @@ pub use thermal::{
     DRIVEN as THERMAL_DRIVEN,
 };
 pub use toolhead::{Kinematics, PrinterSection};
+pub use z_tilt::ZTiltSection;
 
 use pins::PinRegistry;
 use reader::Reader;
@@ -103,6 +105,8 @@ pub struct PrinterConfig {
     pub simulator: SimulatorSection,
     /// `[bed_mesh]` with its saved profiles.
     pub bed_mesh: Option<BedMeshSection>,
+    /// `[z_tilt]`.
+    pub z_tilt: Option<ZTiltSection>,
     /// `[realtime]`, or its defaults.
     pub realtime: RealtimeSection,
     /// `[gcode]`, or its defaults.
@@ -271,6 +275,20 @@ impl PrinterConfig {
             Some(s) => Some(bed_mesh::read_bed_mesh(&reader, &s, &mut mesh_warnings)?),
             None => None,
         };
+        let z_tilt = match reader.section("z_tilt") {
+            Some(s) if probe.is_none() => {
+                return Err(ConfigError::BadSection {
+                    at: s.at().clone(),
+                    section: "z_tilt".to_string(),
+                    reason: "needs a probe: add a [probe] or [bltouch] section".to_string(),
+                })
+            }
+            Some(s) => {
+                let z_motors = 1 + extra_steppers.iter().filter(|e| e.rail == 2).count();
+                Some(z_tilt::read_z_tilt(&s, z_motors)?)
+            }
+            None => None,
+        };
 
         let mut warnings = reader.finish(is_ignored)?;
         warnings.extend(mesh_warnings);
@@ -305,6 +323,7 @@ impl PrinterConfig {
             bltouch,
             simulator,
             bed_mesh,
+            z_tilt,
             realtime,
             gcode,
             gcode_arcs,

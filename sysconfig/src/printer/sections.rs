@@ -133,7 +133,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("verify_heater", Read),
     ("virtual_sdcard", Read),
     ("z_thermal_adjust", Ignored),
-    ("z_tilt", Ignored),
+    ("z_tilt", Read),
 ];
 
 /// What Cadence does with sections of `kind`; `None` for a kind Klipper does not have either

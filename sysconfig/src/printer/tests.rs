@@ -55,6 +55,7 @@ fn builtin_simulated_printer_loads() {
             bed_tilt: [0.0, 0.0],
             bed_warp: 0.0,
             bed_warp_period: 100.0,
+            gantry_tilt: Vec::new(),
         }
     );
     // Every pin is one the simulated MCU has.

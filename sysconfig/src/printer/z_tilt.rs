@@ -1,0 +1,116 @@
+//! `[z_tilt]`: several independently driven Z motors levelled with the probe (Klipper's options:
+//! `z_positions` — one `X, Y` per Z motor, `[stepper_z]` first then `[stepper_z1]`…, where each
+//! motor lifts the gantry; `points` — at least 2 nozzle positions `X, Y` to probe; `speed`
+//! (> 0, default 50), `horizontal_move_z` (default 5), `retries` (≥ 0, default 0),
+//! `retry_tolerance` (≥ 0, default 0)).
+
+use super::error::{ConfigError, ValueProblem};
+use super::reader::{parse_float, Bounds, SectionReader};
+
+/// `[z_tilt]`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ZTiltSection {
+    pub z_positions: Vec<[f64; 2]>,
+    pub points: Vec<[f64; 2]>,
+    pub speed: f64,
+    pub horizontal_move_z: f64,
+    pub retries: u32,
+    pub retry_tolerance: f64,
+}
+
+/// A list of `X, Y` lines (or `X, Y` pairs separated by newlines).
+pub(crate) fn xy_list(s: &SectionReader<'_>, option: &str, min: usize) -> Result<Vec<[f64; 2]>, ConfigError> {
+    let v = s.required(option)?;
+    let mut out = Vec::new();
+    for line in v.text.lines().map(str::trim).filter(|l| !l.is_empty()) {
+        let parts: Vec<&str> = line.split(',').map(str::trim).collect();
+        let [x, y] = parts.as_slice() else {
+            let why = format!("each line must be two numbers 'X, Y', got '{line}'");
+            return Err(s.bad(option, v, ValueProblem::Invalid(why)));
+        };
+        out.push([
+            parse_float(x).map_err(|p| s.bad(option, v, p))?,
+            parse_float(y).map_err(|p| s.bad(option, v, p))?,
+        ]);
+    }
+    if out.len() < min {
+        let why = format!("needs at least {min} 'X, Y' lines, got {}", out.len());
+        return Err(s.bad(option, v, ValueProblem::Invalid(why)));
+    }
+    Ok(out)
+}
+
+/// Reads `[z_tilt]` for a printer with `z_motors` Z motors.
+pub(crate) fn read_z_tilt(s: &SectionReader<'_>, z_motors: usize) -> Result<ZTiltSection, ConfigError> {
+    let z_positions = xy_list(s, "z_positions", 2)?;
+    if z_positions.len() != z_motors {
+        let v = s.required("z_positions")?;
+        let why = format!(
+            "has {} positions, the printer has {z_motors} Z motors ([stepper_z], [stepper_z1]…): give one per motor",
+            z_positions.len()
+        );
+        return Err(s.bad("z_positions", v, ValueProblem::Invalid(why)));
+    }
+    Ok(ZTiltSection {
+        z_positions,
+        points: xy_list(s, "points", 2)?,
+        speed: s.float_or("speed", 50.0, Bounds::ANY.above(0.0))?,
+        horizontal_move_z: s.float_or("horizontal_move_z", 5.0, Bounds::ANY)?,
+        retries: s.int("retries", Some(0u32), 0..=1000)?,
+        retry_tolerance: s.float_or("retry_tolerance", 0.0, Bounds::ANY.min(0.0))?,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    use crate::printer::parse_str;
+
+    const BASE: &str = "[mcu]\nserial: /dev/ttyACM0\n\
+        [printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
+        [stepper_x]\nstep_pin: PA0\ndir_pin: PA1\nmicrosteps: 16\nrotation_distance: 40\nposition_max: 200\nendstop_pin: PA3\nposition_endstop: 0\n\
+        [stepper_y]\nstep_pin: PB0\ndir_pin: PB1\nmicrosteps: 16\nrotation_distance: 40\nposition_max: 200\nendstop_pin: PB3\nposition_endstop: 0\n\
+        [stepper_z]\nstep_pin: PC0\ndir_pin: PC1\nmicrosteps: 16\nrotation_distance: 8\nposition_max: 200\nendstop_pin: probe:z_virtual_endstop\n\
+        [stepper_z1]\nstep_pin: PD0\ndir_pin: PD1\nmicrosteps: 16\nrotation_distance: 8\n\
+        [probe]\npin: ^PA4\nz_offset: 1.5\n";
+
+    fn parse(body: &str) -> Result<super::ZTiltSection, String> {
+        parse_str(&format!("{BASE}[z_tilt]\n{body}"), Path::new("printer.cfg"))
+            .map(|c| c.z_tilt.unwrap_or_else(|| panic!("no z_tilt")))
+            .map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn options_and_defaults() {
+        let z = parse("z_positions:\n  -20, 100\n  220, 100\npoints:\n  20, 100\n  180, 100\nretries: 5\nretry_tolerance: 0.01\n")
+            .unwrap();
+        assert_eq!(z.z_positions, vec![[-20.0, 100.0], [220.0, 100.0]]);
+        assert_eq!(z.points, vec![[20.0, 100.0], [180.0, 100.0]]);
+        assert_eq!(
+            (z.speed, z.horizontal_move_z, z.retries, z.retry_tolerance),
+            (50.0, 5.0, 5, 0.01)
+        );
+    }
+
+    #[test]
+    fn errors_name_the_option() {
+        let e = |b: &str| parse(b).unwrap_err();
+        assert!(e("points:\n 1, 2\n 3, 4\n")
+            .contains("Option 'z_positions' in section 'z_tilt' must be specified"));
+        assert!(e("z_positions:\n 1, 2\n 3, 4\n 5, 6\npoints:\n 1, 2\n 3, 4\n")
+            .contains("has 3 positions, the printer has 2 Z motors"));
+        assert!(
+            e("z_positions:\n 1, 2\n 3, 4\npoints:\n 1, 2\n").contains("[z_tilt] points: needs at least 2")
+        );
+        assert!(e("z_positions:\n 1, 2\n 3\npoints:\n 1, 2\n 3, 4\n")
+            .contains("each line must be two numbers 'X, Y', got '3'"));
+    }
+
+    proptest::proptest! {
+        #[test]
+        fn never_panics(a in "[-0-9., \n]{0,20}") {
+            let _ = parse(&format!("z_positions:{a}\npoints:{a}\n"));
+        }
+    }
+}
