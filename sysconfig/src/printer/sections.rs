@@ -6,7 +6,7 @@
 //! Ignored sections have no effect on motion or homing without hardware Cadence does not drive
 //! yet (displays, LEDs, digipots, accelerometers, fans and sensors, filament sensors) or are host
 //! features not implemented yet whose absence the user should know of (`gcode_macro`,
-//! `bed_mesh`, `safe_z_home`…): the load warning is the notice, and their G-code commands are
+//! `quad_gantry_level`, `screws_tilt_adjust`…): the load warning is the notice, and their G-code commands are
 //! unknown commands. Refused sections (other probes than `[probe]`, more extruders) fail the
 //! load with `[section] is not supported by Cadence yet (what)`, before anything else is
 //! checked, so the first error names the real cause.
