@@ -170,7 +170,7 @@ impl CalibrateParams {
                     Some(v) => {
                         let p = pair(raw, "PROBE_COUNT", v)
                             .or_else(|_| num(raw, "PROBE_COUNT", v).map(|n| [n, n]))?;
-                        if p.iter().any(|&n| n < 3.0 || n > 99.0 || n.fract() != 0.0) {
+                        if p.iter().any(|&n| !(3.0..=99.0).contains(&n) || n.fract() != 0.0) {
                             return Err(format!(
                                 "Error on '{raw}': PROBE_COUNT must be whole numbers from 3 to 99"
                             ));
@@ -199,7 +199,7 @@ impl CalibrateParams {
                     None => *count,
                     Some(v) => {
                         let n = num(raw, "ROUND_PROBE_COUNT", v)?;
-                        if n < 3.0 || n > 99.0 || n.fract() != 0.0 || n % 2.0 != 1.0 {
+                        if !(3.0..=99.0).contains(&n) || n.fract() != 0.0 || n % 2.0 != 1.0 {
                             return Err(format!(
                                 "Error on '{raw}': ROUND_PROBE_COUNT must be odd, from 3 to 99"
                             ));

@@ -121,7 +121,8 @@ impl AppliedMesh {
     pub fn split(&self, from: [f64; 4], to: [f64; 4], out: &mut Vec<[f64; 4]>) {
         let dxy = ((to[0] - from[0]).powi(2) + (to[1] - from[1]).powi(2)).sqrt();
         let check = self.settings.move_check_distance;
-        if !(dxy > 0.0) || !(check > 0.0) || !dxy.is_finite() {
+        let usable = dxy.is_finite() && dxy > 0.0 && check > 0.0;
+        if !usable {
             out.push(self.transform(to));
             return;
         }
