@@ -106,6 +106,10 @@ pub struct Machine {
     pub bltouch: Option<BlTouchOut>,
     /// `[z_tilt]`.
     pub z_tilt: Option<sysconfig::printer::ZTiltSection>,
+    /// `[screws_tilt_adjust]`.
+    pub screws_tilt_adjust: Option<sysconfig::printer::ScrewsSection>,
+    /// `[bed_screws]`.
+    pub bed_screws: Option<sysconfig::printer::ScrewsSection>,
     /// `[bed_mesh]`: its settings, profiles and the mesh in use.
     pub bed_mesh: Option<crate::homing::bed_mesh::BedMeshOut>,
     /// `[simulator] bed_surface_z`: where simulated probe pins trigger.
@@ -247,6 +251,8 @@ impl Machine {
             bltouch,
             bed_mesh: cfg.bed_mesh.clone().map(crate::homing::bed_mesh::BedMeshOut::new),
             z_tilt: cfg.z_tilt.clone(),
+            screws_tilt_adjust: cfg.screws_tilt_adjust.clone(),
+            bed_screws: cfg.bed_screws.clone(),
             sim_bed_surface_z: cfg.simulator.bed_surface_z,
             sim_bed: cfg.simulator.clone(),
             toolhead,

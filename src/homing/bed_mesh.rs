@@ -97,6 +97,28 @@ impl BedMeshOut {
         }
     }
 
+    /// Klipper's `bed_mesh` status object now.
+    pub fn status(&self) -> crate::events::BedMeshStatus {
+        let Ok(s) = self.state.lock() else {
+            return crate::events::BedMeshStatus::default();
+        };
+        let profiles = s.profiles.iter().map(|p| p.name.clone()).collect();
+        match &s.active {
+            None => crate::events::BedMeshStatus {
+                profiles,
+                ..Default::default()
+            },
+            Some(p) => crate::events::BedMeshStatus {
+                profile_name: p.name.clone(),
+                mesh_min: p.mesh.params().min,
+                mesh_max: p.mesh.params().max,
+                probed_matrix: p.mesh.probed().to_vec(),
+                mesh_matrix: p.mesh.mesh_rows(),
+                profiles,
+            },
+        }
+    }
+
     /// The pending profile changes, taken (SAVE_CONFIG writes them).
     pub fn take_pending(&self) -> Changes {
         self.state

@@ -59,6 +59,7 @@ mod halt;
 mod pass;
 pub mod probe;
 pub mod procedure;
+pub mod screws;
 pub mod z_tilt;
 
 pub(crate) use pass::homing_pass;

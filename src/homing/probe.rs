@@ -45,6 +45,7 @@ pub fn is_probe_command(name: &str) -> bool {
     COMMANDS.contains(&name)
         || super::bed_mesh::COMMANDS.contains(&name)
         || super::z_tilt::COMMANDS.contains(&name)
+        || super::screws::COMMANDS.contains(&name)
 }
 
 /// The settings of one PROBE / PROBE_ACCURACY: the config's, overridden by the command's
@@ -172,6 +173,9 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
     }
     if super::z_tilt::COMMANDS.contains(&name) {
         return super::z_tilt::run(ctx, raw, out);
+    }
+    if super::screws::COMMANDS.contains(&name) {
+        return super::screws::run(ctx, name, raw, out);
     }
     let Some(probe) = ctx.machine.probe.clone() else {
         return Err(format!(

@@ -1,4 +1,5 @@
-//! End to end: BED_MESH_CALIBRATE on a tilted and warped simulated bed, Z_TILT_ADJUST on a tilted gantry (`cadence print` on
+//! End to end: BED_MESH_CALIBRATE and SCREWS_TILT_CALCULATE on a tilted and warped simulated bed,
+//! Z_TILT_ADJUST on a tilted gantry (`cadence print` on
 //! examples/simulated-probe.cfg with 20 mm axes; Z homes on the probe, which sits on
 //! probe_mcu, so every probe's trigger is relayed by the host within the 25 ms budget).
 //!
@@ -315,5 +316,70 @@ fn z_tilt_adjust_levels_a_tilted_gantry() {
         (z1 - z0).abs() <= TOLERANCE,
         "gantry ends differ by {} mm\n{out}",
         z1 - z0
+    );
+}
+
+/// SCREWS_TILT_CALCULATE on the tilted, warped bed: each screw's height is the surface's, and
+/// the turns (CW-M3, 0.5 mm per turn) bring it to the base screw's.
+#[test]
+fn screws_tilt_calculate_reports_the_turns_of_the_true_surface() {
+    let dir = scratch("screws-tilt");
+    let screws = "\n[screws_tilt_adjust]\nscrew1: 2, 2\nscrew1_name: front left screw\nscrew2: 17, 2\n\
+                  screw2_name: front right screw\nscrew3: 10, 17\nscrew3_name: rear screw\nhorizontal_move_z: 3\n\
+                  \n[bed_screws]\nscrew1: 2, 2\nscrew2: 17, 2\nscrew3: 10, 17\n";
+    let cfg = config(&dir, screws, true);
+    let (run, _) = print(
+        &dir,
+        &cfg,
+        &format!(
+            "G28 X Y\nG1 X{} Y{} F3000\nG28 Z\nSCREWS_TILT_CALCULATE\n",
+            HOME_XY[0], HOME_XY[1]
+        ),
+    );
+    assert_success(&run);
+    let out = &run.stdout;
+    assert!(
+        out.contains("01:20 means 1 full turn and 20 minutes, CW=clockwise, CCW=counter-clockwise"),
+        "{out}"
+    );
+    let href = h(HOME_XY[0] + OFFSET[0], HOME_XY[1] + OFFSET[1]);
+    let bed = |x: f64, y: f64| Z_OFFSET + h(x + OFFSET[0], y + OFFSET[1]) - href;
+    let base = bed(2.0, 2.0);
+    let mut seen = 0;
+    for line in out.lines().filter(|l| l.contains(" : x=")) {
+        let field = |k: &str| -> f64 {
+            line.split_once(k)
+                .and_then(|(_, r)| r.split([',', ' ']).next()?.parse().ok())
+                .unwrap_or(f64::NAN)
+        };
+        let (x, y, z) = (field("x="), field("y="), field("z="));
+        assert!(
+            (z - bed(x, y)).abs() <= TOLERANCE,
+            "{line}: the surface is at {}",
+            bed(x, y)
+        );
+        if let Some((_, adj)) = line.split_once(" : adjust ") {
+            let (dir, hm) = adj.split_once(' ').unwrap_or_default();
+            let (hh, mm) = hm.split_once(':').unwrap_or_default();
+            let minutes =
+                hh.parse::<f64>().unwrap_or(f64::NAN) * 60.0 + mm.parse::<f64>().unwrap_or(f64::NAN);
+            let want = (base - bed(x, y)) / 0.5 * 60.0;
+            assert_eq!(dir, if want >= 0.0 { "CW" } else { "CCW" }, "{line}");
+            // 0.02 mm is 2.4 minutes of a 0.5 mm turn.
+            assert!(
+                (minutes - want.abs()).abs() <= 3.0,
+                "{line}: want {want:.1} minutes"
+            );
+        }
+        seen += 1;
+    }
+    assert_eq!(seen, 3, "{out}");
+    // BED_SCREWS_ADJUST is interactive: refused, naming why.
+    let (run, _) = print(&dir, &cfg, "BED_SCREWS_ADJUST\n");
+    assert!(
+        run.stderr
+            .contains("BED_SCREWS_ADJUST: BED_SCREWS_ADJUST is an interactive tool"),
+        "{}",
+        run.stderr
     );
 }

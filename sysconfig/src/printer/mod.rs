@@ -33,6 +33,7 @@ mod pins;
 mod probe;
 mod reader;
 mod realtime;
+mod screws;
 mod sections;
 mod stepper;
 mod thermal;
@@ -60,6 +61,7 @@ pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
 pub use pins::{is_simulator_pin, PinKind, PinProblem, PinRef, MAIN_MCU};
 pub use probe::{ProbeSection, SamplesResult, PROBE_PIN_MCU, SAMPLES_RESULTS, Z_VIRTUAL_ENDSTOP};
 pub use realtime::RealtimeSection;
+pub use screws::{Screw, ScrewThread, ScrewsSection, SCREW_THREADS};
 pub use sections::{is_ignored, support as section_support, Support as SectionSupport, SECTIONS};
 pub use stepper::{ExtraStepperSection, MotorSection, StepperSection};
 pub use thermal::{
@@ -107,6 +109,10 @@ pub struct PrinterConfig {
     pub bed_mesh: Option<BedMeshSection>,
     /// `[z_tilt]`.
     pub z_tilt: Option<ZTiltSection>,
+    /// `[screws_tilt_adjust]`.
+    pub screws_tilt_adjust: Option<ScrewsSection>,
+    /// `[bed_screws]` (read and checked; BED_SCREWS_ADJUST is refused as interactive).
+    pub bed_screws: Option<ScrewsSection>,
     /// `[realtime]`, or its defaults.
     pub realtime: RealtimeSection,
     /// `[gcode]`, or its defaults.
@@ -290,6 +296,22 @@ impl PrinterConfig {
             None => None,
         };
 
+        let screws_tilt_adjust = match reader.section("screws_tilt_adjust") {
+            Some(s) if probe.is_none() => {
+                return Err(ConfigError::BadSection {
+                    at: s.at().clone(),
+                    section: "screws_tilt_adjust".to_string(),
+                    reason: "needs a probe: add a [probe] or [bltouch] section".to_string(),
+                })
+            }
+            Some(s) => Some(screws::read_screws(&s, true)?),
+            None => None,
+        };
+        let bed_screws = match reader.section("bed_screws") {
+            Some(s) => Some(screws::read_screws(&s, false)?),
+            None => None,
+        };
+
         let mut warnings = reader.finish(is_ignored)?;
         warnings.extend(mesh_warnings);
         let scripts: Vec<_> = macros
@@ -324,6 +346,8 @@ impl PrinterConfig {
             simulator,
             bed_mesh,
             z_tilt,
+            screws_tilt_adjust,
+            bed_screws,
             realtime,
             gcode,
             gcode_arcs,

@@ -6,7 +6,7 @@
 //! Ignored sections have no effect on motion or homing without hardware Cadence does not drive
 //! yet (displays, LEDs, digipots, accelerometers, fans and sensors, filament sensors) or are host
 //! features not implemented yet whose absence the user should know of (`gcode_macro`,
-//! `quad_gantry_level`, `screws_tilt_adjust`…): the load warning is the notice, and their G-code commands are
+//! `quad_gantry_level`, `bed_tilt`…): the load warning is the notice, and their G-code commands are
 //! unknown commands. Refused sections (other probes than `[probe]`, more extruders) fail the
 //! load with `[section] is not supported by Cadence yet (what)`, before anything else is
 //! checked, so the first error names the real cause.
@@ -36,7 +36,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("angle", Ignored),
     ("axis_twist_compensation", Ignored),
     ("bed_mesh", Read),
-    ("bed_screws", Ignored),
+    ("bed_screws", Read),
     ("bed_tilt", Ignored),
     ("bltouch", Read),
     ("bmi160", Ignored),
@@ -110,7 +110,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("safe_z_home", Read),
     ("samd_sercom", Ignored),
     ("save_variables", Read),
-    ("screws_tilt_adjust", Ignored),
+    ("screws_tilt_adjust", Read),
     ("sdcard_loop", Ignored),
     ("servo", Ignored),
     ("simulator", Read),
