@@ -23,7 +23,7 @@ use planner::bed_mesh::{Algorithm, MeshParams, ZMesh};
 use sysconfig::autosave::Changes;
 use sysconfig::printer::{BedMeshSection, MeshShape, BED_MESH_ALGORITHMS};
 
-use super::probe::{lift, run_probe, ProbeParams};
+use super::probe::{lift, param, run_probe, ProbeParams};
 use super::{plain_move, HomingCtx};
 
 /// The G-code commands this module runs.
@@ -128,19 +128,6 @@ impl BedMeshOut {
     }
 }
 
-/// `KEY=VALUE` words of `raw` after the command name, keys upper-cased.
-fn params(raw: &str) -> Vec<(String, String)> {
-    raw.split_whitespace()
-        .skip(1)
-        .filter_map(|w| w.split_once('='))
-        .map(|(k, v)| (k.to_ascii_uppercase(), v.to_string()))
-        .collect()
-}
-
-fn get<'p>(ps: &'p [(String, String)], key: &str) -> Option<&'p str> {
-    ps.iter().rev().find(|(k, _)| k == key).map(|(_, v)| v.as_str())
-}
-
 fn num(raw: &str, key: &str, v: &str) -> Result<f64, String> {
     v.trim()
         .parse::<f64>()
@@ -172,26 +159,25 @@ impl CalibrateParams {
     /// `MESH_MIN`, `MESH_MAX`, `PROBE_COUNT`, `MESH_RADIUS`, `MESH_ORIGIN`,
     /// `ROUND_PROBE_COUNT`, `ALGORITHM`; `METHOD=manual` and `ADAPTIVE=1` are refused.
     pub fn parse(cfg: &BedMeshSection, raw: &str) -> Result<CalibrateParams, String> {
-        let ps = params(raw);
-        if get(&ps, "METHOD").is_some_and(|m| !m.eq_ignore_ascii_case("automatic")) {
+        if param(raw, "METHOD").is_some_and(|m| !m.eq_ignore_ascii_case("automatic")) {
             return Err(format!(
                 "Error on '{raw}': only METHOD=automatic (the probe) is supported"
             ));
         }
-        if get(&ps, "ADAPTIVE").is_some_and(|a| a.trim() != "0") {
+        if param(raw, "ADAPTIVE").is_some_and(|a| a.trim() != "0") {
             return Err(format!(
                 "Error on '{raw}': ADAPTIVE meshes are not supported by Cadence yet"
             ));
         }
         let grid = match &cfg.shape {
             MeshShape::Rectangular { min, max, count } => {
-                let min = get(&ps, "MESH_MIN").map_or(Ok(*min), |v| pair(raw, "MESH_MIN", v))?;
-                let max = get(&ps, "MESH_MAX").map_or(Ok(*max), |v| pair(raw, "MESH_MAX", v))?;
-                let count = match get(&ps, "PROBE_COUNT") {
+                let min = param(raw, "MESH_MIN").map_or(Ok(*min), |v| pair(raw, "MESH_MIN", &v))?;
+                let max = param(raw, "MESH_MAX").map_or(Ok(*max), |v| pair(raw, "MESH_MAX", &v))?;
+                let count = match param(raw, "PROBE_COUNT") {
                     None => *count,
                     Some(v) => {
-                        let p = pair(raw, "PROBE_COUNT", v)
-                            .or_else(|_| num(raw, "PROBE_COUNT", v).map(|n| [n, n]))?;
+                        let p = pair(raw, "PROBE_COUNT", &v)
+                            .or_else(|_| num(raw, "PROBE_COUNT", &v).map(|n| [n, n]))?;
                         if p.iter().any(|&n| !(3.0..=99.0).contains(&n) || n.fract() != 0.0) {
                             return Err(format!(
                                 "Error on '{raw}': PROBE_COUNT must be whole numbers from 3 to 99"
@@ -215,12 +201,14 @@ impl CalibrateParams {
                 radius,
                 count,
             } => {
-                let origin = get(&ps, "MESH_ORIGIN").map_or(Ok(*origin), |v| pair(raw, "MESH_ORIGIN", v))?;
-                let radius = get(&ps, "MESH_RADIUS").map_or(Ok(*radius), |v| num(raw, "MESH_RADIUS", v))?;
-                let count = match get(&ps, "ROUND_PROBE_COUNT") {
+                let origin =
+                    param(raw, "MESH_ORIGIN").map_or(Ok(*origin), |v| pair(raw, "MESH_ORIGIN", &v))?;
+                let radius =
+                    param(raw, "MESH_RADIUS").map_or(Ok(*radius), |v| num(raw, "MESH_RADIUS", &v))?;
+                let count = match param(raw, "ROUND_PROBE_COUNT") {
                     None => *count,
                     Some(v) => {
-                        let n = num(raw, "ROUND_PROBE_COUNT", v)?;
+                        let n = num(raw, "ROUND_PROBE_COUNT", &v)?;
                         if !(3.0..=99.0).contains(&n) || n.fract() != 0.0 || n % 2.0 != 1.0 {
                             return Err(format!(
                                 "Error on '{raw}': ROUND_PROBE_COUNT must be odd, from 3 to 99"
@@ -235,20 +223,20 @@ impl CalibrateParams {
                 ProbeGrid::round(origin, radius, count)
             }
         };
-        let algorithm = match get(&ps, "ALGORITHM") {
+        let algorithm = match param(raw, "ALGORITHM") {
             None => cfg.algorithm,
             Some(v) => BED_MESH_ALGORITHMS
                 .iter()
-                .find(|(n, _)| n.eq_ignore_ascii_case(v))
+                .find(|(n, _)| n.eq_ignore_ascii_case(&v))
                 .map(|&(_, a)| a)
                 .ok_or_else(|| {
                     format!("Error on '{raw}': ALGORITHM must be lagrange or bicubic, got '{v}'")
                 })?,
         };
         Ok(CalibrateParams {
-            profile: get(&ps, "PROFILE").unwrap_or("default").to_string(),
-            horizontal_move_z: get(&ps, "HORIZONTAL_MOVE_Z")
-                .map_or(Ok(cfg.horizontal_move_z), |v| num(raw, "HORIZONTAL_MOVE_Z", v))?,
+            profile: param(raw, "PROFILE").unwrap_or_else(|| "default".to_string()),
+            horizontal_move_z: param(raw, "HORIZONTAL_MOVE_Z")
+                .map_or(Ok(cfg.horizontal_move_z), |v| num(raw, "HORIZONTAL_MOVE_Z", &v))?,
             grid,
             pps: cfg.pps,
             algorithm,
@@ -325,9 +313,8 @@ fn profile_command(
     raw: &str,
     out: &mut Vec<String>,
 ) -> Result<(), String> {
-    let ps = params(raw);
     let lost = || "bed_mesh: state lost".to_string();
-    if let Some(name) = get(&ps, "LOAD") {
+    if let Some(name) = param(raw, "LOAD") {
         let found = bm
             .state
             .lock()
@@ -340,20 +327,20 @@ fn profile_command(
         set_active(ctx, bm, Some(p));
         return Ok(());
     }
-    if let Some(name) = get(&ps, "SAVE") {
+    if let Some(name) = param(raw, "SAVE") {
         let mut s = bm.state.lock().map_err(|_| lost())?;
         let Some(active) = s.active.clone() else {
             return Err("Unable to save to profile, the bed has not been probed".to_string());
         };
-        save_profile(&mut s, name, &active.mesh);
+        save_profile(&mut s, &name, &active.mesh);
         s.active = Some(Profile {
             name: name.to_string(),
             mesh: active.mesh,
         });
-        out.extend(saved_message(name));
+        out.extend(saved_message(&name));
         return Ok(());
     }
-    if let Some(name) = get(&ps, "REMOVE") {
+    if let Some(name) = param(raw, "REMOVE") {
         let mut s = bm.state.lock().map_err(|_| lost())?;
         if !s.profiles.iter().any(|p| p.name == name) {
             return Err(format!("bed_mesh: Unknown profile [{name}]"));
@@ -425,6 +412,7 @@ fn calibrate(
         mesh = ZMesh::new(cp.mesh_params(), matrix).map_err(|e| e.to_string())?;
     }
     out.push(latency_line(
+        "bed_mesh",
         &ctx.probe_passes[first_pass.min(ctx.probe_passes.len())..],
     ));
     out.push("Mesh Bed Leveling Complete".to_string());
@@ -444,10 +432,11 @@ fn calibrate(
     Ok(())
 }
 
-/// `bed_mesh: N probe passes, stop A..B us after trigger (worst), budget 25000 us`.
-fn latency_line(passes: &[super::PassReport]) -> String {
+/// `WHO: N probe passes, stop at most A..B us after trigger (budget 25000 us)`: the largest
+/// lower and upper bounds of the passes' stop latency.
+pub(crate) fn latency_line(who: &str, passes: &[super::PassReport]) -> String {
     if passes.is_empty() {
-        return "bed_mesh: no probe passes".to_string();
+        return format!("{who}: no probe passes");
     }
     let lo = passes
         .iter()
@@ -458,7 +447,7 @@ fn latency_line(passes: &[super::PassReport]) -> String {
         .map(|p| p.next_step_after_s)
         .fold(f64::NEG_INFINITY, f64::max);
     format!(
-        "bed_mesh: {} probe passes, stop at most {:.0}..{:.0} us after trigger (budget {BUDGET_US:.0} us)",
+        "{who}: {} probe passes, stop at most {:.0}..{:.0} us after trigger (budget {BUDGET_US:.0} us)",
         passes.len(),
         lo * 1e6,
         hi * 1e6
@@ -603,6 +592,6 @@ mod tests {
 
     #[test]
     fn latency_summary() {
-        assert_eq!(latency_line(&[]), "bed_mesh: no probe passes");
+        assert_eq!(latency_line("bed_mesh", &[]), "bed_mesh: no probe passes");
     }
 }

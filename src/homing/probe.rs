@@ -61,6 +61,17 @@ pub struct ProbeParams {
     pub samples_tolerance_retries: u32,
 }
 
+/// The value of the last `KEY=VALUE` word of `raw` after the command name whose key is `key`
+/// (case-insensitive).
+pub(crate) fn param(raw: &str, key: &str) -> Option<String> {
+    raw.split_whitespace()
+        .skip(1)
+        .filter_map(|w| w.split_once('='))
+        .filter(|(k, _)| k.eq_ignore_ascii_case(key))
+        .map(|(_, v)| v.to_string())
+        .last()
+}
+
 /// `NAME KEY=VALUE …` → the (upper-cased key, value) pairs.
 fn params(raw: &str) -> Result<Vec<(String, String)>, String> {
     raw.split_whitespace()

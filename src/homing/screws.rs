@@ -11,7 +11,7 @@
 
 use sysconfig::printer::{ScrewThread, ScrewsSection};
 
-use super::probe::{lift, run_probe, ProbeParams};
+use super::probe::{lift, param, run_probe, ProbeParams};
 use super::{plain_move, HomingCtx};
 
 /// The G-code commands this module runs.
@@ -19,15 +19,6 @@ pub const COMMANDS: [&str; 2] = ["SCREWS_TILT_CALCULATE", "BED_SCREWS_ADJUST"];
 
 /// Klipper's legend line.
 pub const LEGEND: &str = "01:20 means 1 full turn and 20 minutes, CW=clockwise, CCW=counter-clockwise";
-
-fn param(raw: &str, key: &str) -> Option<String> {
-    raw.split_whitespace()
-        .skip(1)
-        .filter_map(|w| w.split_once('='))
-        .filter(|(k, _)| k.eq_ignore_ascii_case(key))
-        .map(|(_, v)| v.to_string())
-        .last()
-}
 
 /// The direction and `hh:mm` of the turn that moves a screw measured at `z` to the base's `z0`.
 pub fn turns(z0: f64, z: f64, thread: ScrewThread) -> (&'static str, u32, u32) {

@@ -12,20 +12,11 @@
 
 use planner::bed_mesh::tilt::motor_adjustments;
 
-use super::probe::{lift, run_probe, ProbeParams};
+use super::probe::{lift, param, run_probe, ProbeParams};
 use super::{plain_move, wait_motion_done, HomingCtx};
 
 /// The G-code commands this module runs.
 pub const COMMANDS: [&str; 1] = ["Z_TILT_ADJUST"];
-
-fn param(raw: &str, key: &str) -> Option<String> {
-    raw.split_whitespace()
-        .skip(1)
-        .filter_map(|w| w.split_once('='))
-        .filter(|(k, _)| k.eq_ignore_ascii_case(key))
-        .map(|(_, v)| v.to_string())
-        .last()
-}
 
 fn num(raw: &str, key: &str, default: f64, min: f64) -> Result<f64, String> {
     let Some(v) = param(raw, key) else {

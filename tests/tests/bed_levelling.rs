@@ -85,6 +85,22 @@ fn print(dir: &Path, cfg: &Path, gcode: &str) -> (Run, PathBuf) {
     (run, trace)
 }
 
+/// The `WHO: N probe passes, stop at most A..B us after trigger` line of `out`, checked: the
+/// latest stop bound of every pass is within the 25 ms budget.
+fn within_budget<'o>(out: &'o str, who: &str) -> &'o str {
+    let line = out
+        .lines()
+        .find(|l| l.contains(&format!("{who}: ")) && l.contains("probe passes"))
+        .unwrap_or_default();
+    eprintln!("{line}");
+    let worst_us: f64 = line
+        .split_once("stop at most ")
+        .and_then(|(_, r)| r.split_once("..")?.1.split_whitespace().next()?.parse().ok())
+        .unwrap_or_else(|| panic!("no latency line\n{out}"));
+    assert!(worst_us < 25_000.0, "{line}");
+    line
+}
+
 /// (nozzle x, y, z) of every `probe at X,Y is z=Z` line.
 fn probed(stdout: &str) -> Vec<[f64; 3]> {
     stdout
@@ -128,16 +144,7 @@ fn bed_mesh_calibrate_measures_the_warped_bed_and_the_first_layer_follows_it() {
     assert_success(&run);
     let out = &run.stdout;
     // The homing/probing latency figures: every pass stopped within the 25 ms budget.
-    let line = out
-        .lines()
-        .find(|l| l.contains("bed_mesh: ") && l.contains("probe passes"))
-        .unwrap_or_default();
-    eprintln!("{line}");
-    let worst_us: f64 = line
-        .split_once("stop at most ")
-        .and_then(|(_, r)| r.split_once("..")?.1.split_whitespace().next()?.parse().ok())
-        .unwrap_or_else(|| panic!("no latency line\n{out}"));
-    assert!(worst_us < 25_000.0, "{line}");
+    let line = within_budget(out, "bed_mesh");
     assert!(line.contains("25 probe passes"), "{line}\n{out}");
     assert!(out.contains("homing z: mcus mcu;"), "{out}");
 
@@ -296,16 +303,7 @@ fn z_tilt_adjust_levels_a_tilted_gantry() {
         "converged: {ranges:?}\n{out}"
     );
     assert!(out.contains("Making the following Z adjustments:"), "{out}");
-    let line = out
-        .lines()
-        .find(|l| l.contains("z_tilt: ") && l.contains("probe passes"))
-        .unwrap_or_default();
-    eprintln!("{line}");
-    let worst_us: f64 = line
-        .split_once("stop at most ")
-        .and_then(|(_, r)| r.split_whitespace().next()?.parse().ok())
-        .unwrap_or_else(|| panic!("no latency line\n{out}"));
-    assert!(worst_us < 25_000.0, "{line}");
+    within_budget(out, "z_tilt");
     // From the trace: z (oid 2) and z1 (oid 3) net steps; z1 started 0.4 mm higher.
     let t = read_trace(&trace).expect("trace");
     let net = cadence_tests::net_steps(&t);

@@ -70,8 +70,8 @@ pub struct MeshProfile {
 /// Profile format version Klipper writes (and this reads).
 pub const PROFILE_VERSION: i64 = 1;
 
-/// `X, Y` as two numbers.
-fn pair(s: &SectionReader<'_>, option: &str) -> Result<Option<[f64; 2]>, ConfigError> {
+/// `X, Y` as two numbers (`None` when the option is absent).
+pub(crate) fn pair(s: &SectionReader<'_>, option: &str) -> Result<Option<[f64; 2]>, ConfigError> {
     let Some(v) = s.value(option) else {
         return Ok(None);
     };
@@ -320,4 +320,4 @@ pub fn profile_options(params: &MeshParams, points: &[Vec<f64>]) -> Vec<(String,
 
 #[cfg(test)]
 #[path = "bed_mesh_tests.rs"]
-mod tests;
+pub(crate) mod tests;

@@ -8,7 +8,9 @@ use proptest::prelude::*;
 use super::MeshShape;
 use crate::printer::{parse_str, PrinterConfig};
 
-const BASE: &str = "[mcu]\nserial: /dev/ttyACM0\n\
+/// A cartesian printer whose Z homes on a `[probe]` on the main MCU (other sections' tests
+/// append theirs).
+pub(crate) const BASE: &str = "[mcu]\nserial: /dev/ttyACM0\n\
     [printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
     [stepper_x]\nstep_pin: PA0\ndir_pin: PA1\nmicrosteps: 16\nrotation_distance: 40\nposition_max: 200\nendstop_pin: PA3\nposition_endstop: 0\n\
     [stepper_y]\nstep_pin: PB0\ndir_pin: PB1\nmicrosteps: 16\nrotation_distance: 40\nposition_max: 200\nendstop_pin: PB3\nposition_endstop: 0\n\

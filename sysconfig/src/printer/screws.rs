@@ -6,8 +6,9 @@
 //! `CCW-M4`, `CW-M5`, `CCW-M5`, `CW-M6`, `CCW-M6`, `CW-M8`, `CCW-M8`). `[bed_screws]`:
 //! `screwN_fine_adjust` (`X, Y`), `probe_height` (default 0), `probe_speed` (> 0, default 5).
 
-use super::error::{ConfigError, ValueProblem};
-use super::reader::{parse_float, Bounds, SectionReader};
+use super::bed_mesh::pair as xy;
+use super::error::ConfigError;
+use super::reader::{Bounds, SectionReader};
 
 /// A screw thread: its pitch (mm per turn) and whether turning clockwise lowers the bed there.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -112,24 +113,6 @@ pub struct ScrewsSection {
     pub probe_speed: f64,
 }
 
-fn xy(s: &SectionReader<'_>, option: &str) -> Result<Option<[f64; 2]>, ConfigError> {
-    let Some(v) = s.value(option) else {
-        return Ok(None);
-    };
-    let parts: Vec<&str> = v.text.split(',').map(str::trim).collect();
-    match parts.as_slice() {
-        [x, y] => Ok(Some([
-            parse_float(x).map_err(|p| s.bad(option, v, p))?,
-            parse_float(y).map_err(|p| s.bad(option, v, p))?,
-        ])),
-        _ => Err(s.bad(
-            option,
-            v,
-            ValueProblem::Invalid(format!("must be two numbers 'X, Y', got '{}'", v.text)),
-        )),
-    }
-}
-
 /// Reads either section (`tilt`: `[screws_tilt_adjust]`).
 pub(crate) fn read_screws(s: &SectionReader<'_>, tilt: bool) -> Result<ScrewsSection, ConfigError> {
     let mut screws = Vec::new();
@@ -187,12 +170,7 @@ mod tests {
 
     use crate::printer::parse_str;
 
-    const BASE: &str = "[mcu]\nserial: /dev/ttyACM0\n\
-        [printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
-        [stepper_x]\nstep_pin: PA0\ndir_pin: PA1\nmicrosteps: 16\nrotation_distance: 40\nposition_max: 200\nendstop_pin: PA3\nposition_endstop: 0\n\
-        [stepper_y]\nstep_pin: PB0\ndir_pin: PB1\nmicrosteps: 16\nrotation_distance: 40\nposition_max: 200\nendstop_pin: PB3\nposition_endstop: 0\n\
-        [stepper_z]\nstep_pin: PC0\ndir_pin: PC1\nmicrosteps: 16\nrotation_distance: 8\nposition_max: 200\nendstop_pin: probe:z_virtual_endstop\n\
-        [probe]\npin: ^PA4\nz_offset: 1.5\n";
+    use crate::printer::bed_mesh::tests::BASE;
 
     fn parse(body: &str) -> Result<crate::printer::PrinterConfig, String> {
         parse_str(&format!("{BASE}{body}"), Path::new("printer.cfg")).map_err(|e| e.to_string())

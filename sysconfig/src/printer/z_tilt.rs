@@ -67,16 +67,12 @@ mod tests {
 
     use crate::printer::parse_str;
 
-    const BASE: &str = "[mcu]\nserial: /dev/ttyACM0\n\
-        [printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n\
-        [stepper_x]\nstep_pin: PA0\ndir_pin: PA1\nmicrosteps: 16\nrotation_distance: 40\nposition_max: 200\nendstop_pin: PA3\nposition_endstop: 0\n\
-        [stepper_y]\nstep_pin: PB0\ndir_pin: PB1\nmicrosteps: 16\nrotation_distance: 40\nposition_max: 200\nendstop_pin: PB3\nposition_endstop: 0\n\
-        [stepper_z]\nstep_pin: PC0\ndir_pin: PC1\nmicrosteps: 16\nrotation_distance: 8\nposition_max: 200\nendstop_pin: probe:z_virtual_endstop\n\
-        [stepper_z1]\nstep_pin: PD0\ndir_pin: PD1\nmicrosteps: 16\nrotation_distance: 8\n\
-        [probe]\npin: ^PA4\nz_offset: 1.5\n";
+    use crate::printer::bed_mesh::tests::BASE;
+
+    const Z1: &str = "[stepper_z1]\nstep_pin: PD0\ndir_pin: PD1\nmicrosteps: 16\nrotation_distance: 8\n";
 
     fn parse(body: &str) -> Result<super::ZTiltSection, String> {
-        parse_str(&format!("{BASE}[z_tilt]\n{body}"), Path::new("printer.cfg"))
+        parse_str(&format!("{BASE}{Z1}[z_tilt]\n{body}"), Path::new("printer.cfg"))
             .map(|c| c.z_tilt.unwrap_or_else(|| panic!("no z_tilt")))
             .map_err(|e| e.to_string())
     }
