@@ -270,40 +270,19 @@ impl PrinterConfig {
 
         let host = host::read_host(&reader)?;
         let mut mesh_warnings = Vec::new();
-        let bed_mesh = match reader.section("bed_mesh") {
-            Some(s) if probe.is_none() => {
-                return Err(ConfigError::BadSection {
-                    at: s.at().clone(),
-                    section: "bed_mesh".to_string(),
-                    reason: "needs a probe: add a [probe] or [bltouch] section".to_string(),
-                })
-            }
+        let has_probe = probe.is_some();
+        let bed_mesh = match probing_section(&reader, "bed_mesh", has_probe)? {
             Some(s) => Some(bed_mesh::read_bed_mesh(&reader, &s, &mut mesh_warnings)?),
             None => None,
         };
-        let z_tilt = match reader.section("z_tilt") {
-            Some(s) if probe.is_none() => {
-                return Err(ConfigError::BadSection {
-                    at: s.at().clone(),
-                    section: "z_tilt".to_string(),
-                    reason: "needs a probe: add a [probe] or [bltouch] section".to_string(),
-                })
-            }
+        let z_tilt = match probing_section(&reader, "z_tilt", has_probe)? {
             Some(s) => {
                 let z_motors = 1 + extra_steppers.iter().filter(|e| e.rail == 2).count();
                 Some(z_tilt::read_z_tilt(&s, z_motors)?)
             }
             None => None,
         };
-
-        let screws_tilt_adjust = match reader.section("screws_tilt_adjust") {
-            Some(s) if probe.is_none() => {
-                return Err(ConfigError::BadSection {
-                    at: s.at().clone(),
-                    section: "screws_tilt_adjust".to_string(),
-                    reason: "needs a probe: add a [probe] or [bltouch] section".to_string(),
-                })
-            }
+        let screws_tilt_adjust = match probing_section(&reader, "screws_tilt_adjust", has_probe)? {
             Some(s) => Some(screws::read_screws(&s, true)?),
             None => None,
         };
@@ -372,6 +351,22 @@ impl PrinterConfig {
     /// The MCU named `name` (`mcu` for the main one).
     pub fn mcu(&self, name: &str) -> Option<&McuSection> {
         self.mcus.iter().find(|m| m.name == name)
+    }
+}
+
+/// Section `name`, which probes the bed: an error when the printer has no probe.
+fn probing_section<'r>(
+    reader: &'r Reader<'_>,
+    name: &str,
+    has_probe: bool,
+) -> Result<Option<reader::SectionReader<'r>>, ConfigError> {
+    match reader.section(name) {
+        Some(s) if !has_probe => Err(ConfigError::BadSection {
+            at: s.at().clone(),
+            section: name.to_string(),
+            reason: "needs a probe: add a [probe] or [bltouch] section".to_string(),
+        }),
+        s => Ok(s),
     }
 }
 
