@@ -103,15 +103,7 @@ pub fn run(ctx: &mut HomingCtx<'_>, raw: &str, out: &mut Vec<String>) -> Result<
         }
     })?;
     let passes = &ctx.probe_passes[first_pass.min(ctx.probe_passes.len())..];
-    let worst = passes
-        .iter()
-        .map(|p| p.next_step_after_s)
-        .fold(f64::NEG_INFINITY, f64::max);
-    out.push(format!(
-        "z_tilt: {} probe passes, stop at most {:.0} us after trigger (budget 25000 us)",
-        passes.len(),
-        worst * 1e6
-    ));
+    out.push(super::bed_mesh::latency_line("z_tilt", passes));
     Ok(())
 }
 
