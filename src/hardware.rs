@@ -106,6 +106,8 @@ pub struct Machine {
     pub bltouch: Option<BlTouchOut>,
     /// `[z_tilt]`.
     pub z_tilt: Option<sysconfig::printer::ZTiltSection>,
+    /// `[quad_gantry_level]` (its `z_positions` are the four corners).
+    pub quad_gantry_level: Option<sysconfig::printer::ZTiltSection>,
     /// `[screws_tilt_adjust]`.
     pub screws_tilt_adjust: Option<sysconfig::printer::ScrewsSection>,
     /// `[bed_screws]`.
@@ -251,6 +253,7 @@ impl Machine {
             bltouch,
             bed_mesh: cfg.bed_mesh.clone().map(crate::homing::bed_mesh::BedMeshOut::new),
             z_tilt: cfg.z_tilt.clone(),
+            quad_gantry_level: cfg.quad_gantry_level.clone(),
             screws_tilt_adjust: cfg.screws_tilt_adjust.clone(),
             bed_screws: cfg.bed_screws.clone(),
             sim_bed_surface_z: cfg.simulator.bed_surface_z,
@@ -506,11 +509,11 @@ impl Machine {
                     b.bed_warp_period
                 ));
             }
-            // A probe on a gantry lifted by several Z motors (`[z_tilt] z_positions`).
-            let gantry = self
-                .z_tilt
-                .as_ref()
-                .filter(|z| e.probe && (2..=3).contains(&z.z_positions.len()));
+            // A probe on a gantry lifted by several Z motors (`[z_tilt] z_positions`, the
+            // corners of `[quad_gantry_level]`).
+            let gantry = (self.z_tilt.as_ref())
+                .or(self.quad_gantry_level.as_ref())
+                .filter(|z| e.probe && (2..=4).contains(&z.z_positions.len()));
             if let Some(zt) = gantry {
                 let p = self
                     .probe

@@ -183,7 +183,7 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
         return super::bed_mesh::run(ctx, name, raw, out);
     }
     if super::z_tilt::COMMANDS.contains(&name) {
-        return super::z_tilt::run(ctx, raw, out);
+        return super::z_tilt::run(ctx, name, raw, out);
     }
     if super::screws::COMMANDS.contains(&name) {
         return super::screws::run(ctx, name, raw, out);

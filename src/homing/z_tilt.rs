@@ -8,15 +8,17 @@
 //! lanes frozen for the move, then every Z lane resynced to the toolhead's unchanged position).
 //! With `retries` > 0 the rounds repeat until the probed range is within `retry_tolerance`
 //! (`Retries: N/M Probed points range: R tolerance: T`, Klipper's words), else
-//! `Too many retries`.
+//! `Too many retries`. `QUAD_GANTRY_LEVEL` (`[quad_gantry_level]`) is the same with four corner
+//! motors and the bilinear surface through its four points; a correction above `max_adjust`
+//! aborts it.
 
-use planner::bed_mesh::tilt::motor_adjustments;
+use planner::bed_mesh::tilt::{motor_adjustments, quad_adjustments};
 
 use super::probe::{lift, param, run_probe, ProbeParams};
 use super::{plain_move, wait_motion_done, HomingCtx};
 
 /// The G-code commands this module runs.
-pub const COMMANDS: [&str; 1] = ["Z_TILT_ADJUST"];
+pub const COMMANDS: [&str; 2] = ["Z_TILT_ADJUST", "QUAD_GANTRY_LEVEL"];
 
 fn num(raw: &str, key: &str, default: f64, min: f64) -> Result<f64, String> {
     let Some(v) = param(raw, key) else {
@@ -29,16 +31,21 @@ fn num(raw: &str, key: &str, default: f64, min: f64) -> Result<f64, String> {
     }
 }
 
-/// Runs `Z_TILT_ADJUST [RETRIES=] [RETRY_TOLERANCE=] [HORIZONTAL_MOVE_Z=]` (and the probe's
-/// sample parameters); its output lines go to `out`.
-pub fn run(ctx: &mut HomingCtx<'_>, raw: &str, out: &mut Vec<String>) -> Result<(), String> {
-    let Some(zt) = ctx.machine.z_tilt.clone() else {
-        return Err(
-            "Unknown command: Z_TILT_ADJUST (the printer config has no [z_tilt] section)".to_string(),
-        );
+/// Runs `Z_TILT_ADJUST` or `QUAD_GANTRY_LEVEL` (`name`) `[RETRIES=] [RETRY_TOLERANCE=]
+/// [HORIZONTAL_MOVE_Z=]` (and the probe's sample parameters); its output lines go to `out`.
+pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>) -> Result<(), String> {
+    let quad = name == "QUAD_GANTRY_LEVEL";
+    let (cfg, who) = match quad {
+        true => (ctx.machine.quad_gantry_level.clone(), "quad_gantry_level"),
+        false => (ctx.machine.z_tilt.clone(), "z_tilt"),
+    };
+    let Some(zt) = cfg else {
+        return Err(format!(
+            "Unknown command: {name} (the printer config has no [{who}] section)"
+        ));
     };
     let Some(probe) = ctx.machine.probe.clone() else {
-        return Err("Z_TILT_ADJUST needs a probe".to_string());
+        return Err(format!("{name} needs a probe"));
     };
     let retries = num(raw, "RETRIES", f64::from(zt.retries), 0.0)? as u32;
     let tolerance = num(raw, "RETRY_TOLERANCE", zt.retry_tolerance, 0.0)?;
@@ -52,7 +59,7 @@ pub fn run(ctx: &mut HomingCtx<'_>, raw: &str, out: &mut Vec<String>) -> Result<
         .collect();
     if motors.len() != zt.z_positions.len() {
         return Err(format!(
-            "Z_TILT_ADJUST: {} Z motors but {} z_positions",
+            "{name}: {} Z motors but {} motor positions",
             motors.len(),
             zt.z_positions.len()
         ));
@@ -87,8 +94,19 @@ pub fn run(ctx: &mut HomingCtx<'_>, raw: &str, out: &mut Vec<String>) -> Result<
                     return Err("Too many retries".to_string());
                 }
             }
-            let adj = motor_adjustments(&probed, &zt.z_positions)
-                .ok_or_else(|| "Z_TILT_ADJUST: the probe points do not span the bed".to_string())?;
+            let adj = match quad {
+                true => quad_adjustments(&probed, &zt.z_positions),
+                false => motor_adjustments(&probed, &zt.z_positions),
+            }
+            .ok_or_else(|| format!("{name}: the probe points do not span the bed"))?;
+            if let Some(max) = zt.max_adjust {
+                if let Some(a) = adj.iter().find(|a| a.abs() > max) {
+                    return Err(format!(
+                        "Aborting quad_gantry_level required adjustment {:.6} is greater than max_adjust {max:.6}",
+                        a.abs()
+                    ));
+                }
+            }
             out.push("Making the following Z adjustments:".to_string());
             for (&i, a) in motors.iter().zip(&adj) {
                 out.push(format!("{} = {a:.6}", ctx.machine.steppers[i].name));
@@ -103,7 +121,7 @@ pub fn run(ctx: &mut HomingCtx<'_>, raw: &str, out: &mut Vec<String>) -> Result<
         }
     })?;
     let passes = &ctx.probe_passes[first_pass.min(ctx.probe_passes.len())..];
-    out.push(super::bed_mesh::latency_line("z_tilt", passes));
+    out.push(super::bed_mesh::latency_line(who, passes));
     Ok(())
 }
 

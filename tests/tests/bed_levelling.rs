@@ -1,5 +1,5 @@
 //! End to end: BED_MESH_CALIBRATE and SCREWS_TILT_CALCULATE on a tilted and warped simulated bed,
-//! Z_TILT_ADJUST on a tilted gantry (`cadence print` on
+//! Z_TILT_ADJUST and QUAD_GANTRY_LEVEL on a tilted gantry (`cadence print` on
 //! examples/simulated-probe.cfg with 20 mm axes; Z homes on the probe, which sits on
 //! probe_mcu, so every probe's trigger is relayed by the host within the 25 ms budget).
 //!
@@ -56,7 +56,7 @@ fn config_with(dir: &Path, mesh: &str, main_mcu: bool, shaped: bool) -> PathBuf 
             "position_max: 220" | "position_max: 200" => "position_max: 20".to_string(),
             "homing_speed: 50" => "homing_speed: 10".to_string(),
             "speed: 5" => format!("speed: 2\nlift_speed: 10\nx_offset: {}\ny_offset: {}", OFFSET[0], OFFSET[1]),
-            "bed_surface_z: 0" if !shaped => "bed_surface_z: 0\ngantry_tilt: 0, 0.4".to_string(),
+            "bed_surface_z: 0" if !shaped => format!("bed_surface_z: 0\ngantry_tilt: {}", gantry_tilt(mesh)),
             "bed_surface_z: 0" => format!(
                 "bed_surface_z: 0\nbed_tilt_x: {}\nbed_tilt_y: {}\nbed_warp: {WARP}\nbed_warp_period: {PERIOD}",
                 TILT[0], TILT[1]
@@ -262,6 +262,18 @@ fn profiles_save_load_remove_and_save_config() {
     );
 }
 
+/// The simulated gantry's tilt for a config with `extra`: four corner motors bent out of a
+/// plane for `[quad_gantry_level]`, else `[stepper_z1]`'s end 0.4 mm high.
+fn gantry_tilt(extra: &str) -> &'static str {
+    match extra.contains("[quad_gantry_level]") {
+        true => QGL_TILT,
+        false => "0, 0.4",
+    }
+}
+
+/// Where each corner of the QGL gantry starts (not one plane: 0 + 0.5 ≠ 0.3 + 0.1).
+const QGL_TILT: &str = "0, 0.3, 0.5, 0.1";
+
 /// Two Z motors, `[stepper_z1]`'s end of the gantry 0.4 mm high.
 const Z_TILT: &str =
     "\n[stepper_z1]\nstep_pin: PG0\ndir_pin: PG1\nenable_pin: !PG2\nmicrosteps: 16\nrotation_distance: 8\n\
@@ -380,4 +392,46 @@ fn screws_tilt_calculate_reports_the_turns_of_the_true_surface() {
         "{}",
         run.stderr
     );
+}
+
+/// Four corner motors for `[quad_gantry_level]` (front left, back left, back right, front right).
+const QGL: &str = "\n[stepper_z1]\nstep_pin: PG0\ndir_pin: PG1\nenable_pin: !PG2\nmicrosteps: 16\nrotation_distance: 8\n\
+                   \n[stepper_z2]\nstep_pin: PG3\ndir_pin: PG4\nenable_pin: !PG5\nmicrosteps: 16\nrotation_distance: 8\n\
+                   \n[stepper_z3]\nstep_pin: PG6\ndir_pin: PG7\nenable_pin: !PG8\nmicrosteps: 16\nrotation_distance: 8\n\
+                   \n[quad_gantry_level]\ngantry_corners:\n  -5, -5\n  25, 25\npoints:\n  2, 2\n  2, 16\n  16, 16\n  16, 2\n\
+                   speed: 50\nhorizontal_move_z: 3\nmax_adjust: 2\nretries: 5\nretry_tolerance: 0.01\n";
+
+/// QUAD_GANTRY_LEVEL on a gantry whose four corners start bent out of a plane: it converges,
+/// and the MCU's step counts show the four corners level.
+#[test]
+fn quad_gantry_level_levels_a_bent_gantry() {
+    let dir = scratch("qgl");
+    let cfg = config_with(&dir, QGL, true, false);
+    let (run, trace) = print(
+        &dir,
+        &cfg,
+        &format!(
+            "G28 X Y\nG1 X{} Y{} F3000\nG28 Z\nQUAD_GANTRY_LEVEL\n",
+            HOME_XY[0], HOME_XY[1]
+        ),
+    );
+    assert_success(&run);
+    let out = &run.stdout;
+    assert!(out.contains("Making the following Z adjustments:"), "{out}");
+    assert!(out.contains("Retries: 1/5"), "{out}");
+    within_budget(out, "quad_gantry_level");
+    let t = read_trace(&trace).expect("trace");
+    let net = cadence_tests::net_steps(&t);
+    let start: Vec<f64> = QGL_TILT
+        .split(',')
+        .map(|v| v.trim().parse().unwrap_or(f64::NAN))
+        .collect();
+    // Oids: x 0, y 1, z 2, z1 3, z2 4, z3 5.
+    let ends: Vec<f64> = (0..4)
+        .map(|i| start[i] + *net.get(&(2 + i as u8)).unwrap_or(&0) as f64 / Z_STEPS)
+        .collect();
+    eprintln!("quad_gantry_level: corner heights after levelling {ends:?}");
+    let spread = ends.iter().copied().fold(f64::NEG_INFINITY, f64::max)
+        - ends.iter().copied().fold(f64::INFINITY, f64::min);
+    assert!(spread <= TOLERANCE, "corners differ by {spread} mm\n{out}");
 }

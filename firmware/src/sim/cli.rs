@@ -81,9 +81,10 @@ pub struct Cli {
     #[arg(long = "bed-surface", value_name = "PIN=XCOORD,YCOORD,X_OFFSET,Y_OFFSET,TILT_X,TILT_Y,WARP,PERIOD",
           value_parser = super::surface::SurfaceSpec::parse)]
     pub surfaces: Vec<super::surface::SurfaceSpec>,
-    /// The probe on input PIN rides a gantry lifted by 2 or 3 Z motors (world axes AXIS at
-    /// X, Y): its height is the gantry's at the probe (toolhead XCOORD, YCOORD plus offsets).
-    #[arg(long = "gantry", value_name = "PIN=XCOORD,YCOORD,X_OFFSET,Y_OFFSET,AXIS:X:Y,AXIS:X:Y[,AXIS:X:Y]",
+    /// The probe on input PIN rides a gantry lifted by 2 to 4 Z motors (world axes AXIS at
+    /// X, Y; 4: the corners of a rectangle): its height is the gantry's at the probe (toolhead
+    /// XCOORD, YCOORD plus offsets).
+    #[arg(long = "gantry", value_name = "PIN=XCOORD,YCOORD,X_OFFSET,Y_OFFSET,AXIS:X:Y,AXIS:X:Y[,AXIS:X:Y[,AXIS:X:Y]]",
           value_parser = super::surface::GantrySpec::parse)]
     pub gantries: Vec<super::surface::GantrySpec>,
     /// A heater output and the thermistor ADC input it warms (100K NTC beta 3950, 4.7k pull-up),

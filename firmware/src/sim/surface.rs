@@ -103,9 +103,10 @@ mod tests {
 
 /// `--gantry`: the probe on input PIN rides a gantry lifted by several Z motors, so its height
 /// is not one axis but the gantry's at the probe: with two motors the line through their
-/// (position, height) points, with three the plane through them, at the probe's X, Y.
+/// (position, height) points, with three the plane through them, with four (the corners of a
+/// rectangle) the bilinear surface through them, at the probe's X, Y.
 ///
-/// Text form: `PIN=XCOORD,YCOORD,X_OFFSET,Y_OFFSET,AXIS:X:Y,AXIS:X:Y[,AXIS:X:Y]`.
+/// Text form: `PIN=XCOORD,YCOORD,X_OFFSET,Y_OFFSET,AXIS:X:Y,AXIS:X:Y[,AXIS:X:Y[,AXIS:X:Y]]`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct GantrySpec {
     pub pin: u8,
@@ -137,20 +138,39 @@ impl GantrySpec {
                 let wb = ((c[1] - a[1]) * (x - c[0]) + (a[0] - c[0]) * (y - c[1])) / det;
                 Some(wa * za + wb * zb + (1.0 - wa - wb) * zc)
             }
+            (corners @ [_, _, _, _], [_, _, _, _]) => {
+                // A rectangle: u, v across it; each corner weighs by its side.
+                let x0 = corners.iter().map(|c| c[0]).fold(f64::INFINITY, f64::min);
+                let x1 = corners.iter().map(|c| c[0]).fold(f64::NEG_INFINITY, f64::max);
+                let y0 = corners.iter().map(|c| c[1]).fold(f64::INFINITY, f64::min);
+                let y1 = corners.iter().map(|c| c[1]).fold(f64::NEG_INFINITY, f64::max);
+                if x1 - x0 <= 0.0 || y1 - y0 <= 0.0 {
+                    return None;
+                }
+                let (u, v) = ((x - x0) / (x1 - x0), (y - y0) / (y1 - y0));
+                let mut h = 0.0;
+                for (c, zc) in corners.iter().zip(z) {
+                    let wu = if c[0] == x1 { u } else { 1.0 - u };
+                    let wv = if c[1] == y1 { v } else { 1.0 - v };
+                    h += wu * wv * zc;
+                }
+                Some(h)
+            }
             _ => None,
         }
     }
 
     /// Parses the text form; never panics.
     pub fn parse(s: &str) -> Result<GantrySpec, String> {
-        const FORM: &str = "expected PIN=XCOORD,YCOORD,X_OFFSET,Y_OFFSET,AXIS:X:Y,AXIS:X:Y[,AXIS:X:Y]";
+        const FORM: &str =
+            "expected PIN=XCOORD,YCOORD,X_OFFSET,Y_OFFSET,AXIS:X:Y,AXIS:X:Y[,AXIS:X:Y[,AXIS:X:Y]]";
         let (pin, rest) = s.split_once('=').ok_or(FORM)?;
         let f: Vec<&str> = rest.split(',').map(str::trim).collect();
         let [x, y, xo, yo, motors @ ..] = f.as_slice() else {
             return Err(FORM.into());
         };
-        if !(2..=3).contains(&motors.len()) {
-            return Err(format!("a gantry has 2 or 3 motors, got {}", motors.len()));
+        if !(2..=4).contains(&motors.len()) {
+            return Err(format!("a gantry has 2 to 4 motors, got {}", motors.len()));
         }
         let num = |t: &str| -> Result<f64, String> {
             t.parse::<f64>()

@@ -1,4 +1,5 @@
-//! Z_TILT_ADJUST's maths: the plane through probed heights and each Z motor's correction.
+//! Z_TILT_ADJUST's and QUAD_GANTRY_LEVEL's maths: the plane (or, for four corners, the
+//! bilinear surface) through probed heights and each Z motor's correction.
 //!
 //! The probed heights `z_j` at points `p_j` are fitted by least squares with
 //! `z = a + b·x + c·y` (when the points all lie on one line, with `z = a + s·t` along it, the
@@ -110,5 +111,78 @@ mod tests {
                 proptest::prop_assert!(adj.iter().sum::<f64>().abs() < 1e-6);
             }
         }
+    }
+}
+
+/// QUAD_GANTRY_LEVEL's corrections: the bilinear surface `a + b·x + c·y + d·x·y` through the
+/// four probed points (a gantry hung from four corners bends that way), at each motor, minus
+/// their mean; `None` when the points do not pin the surface down.
+pub fn quad_adjustments(probed: &[([f64; 2], f64)], motors: &[[f64; 2]]) -> Option<Vec<f64>> {
+    let [p0, p1, p2, p3] = probed else {
+        return None;
+    };
+    let rows: Vec<[f64; 5]> = [p0, p1, p2, p3]
+        .iter()
+        .map(|(p, z)| [1.0, p[0], p[1], p[0] * p[1], *z])
+        .collect();
+    let k = solve4(rows)?;
+    let at: Vec<f64> = motors
+        .iter()
+        .map(|m| k[0] + k[1] * m[0] + k[2] * m[1] + k[3] * m[0] * m[1])
+        .collect();
+    let mean = at.iter().sum::<f64>() / at.len().max(1) as f64;
+    Some(at.iter().map(|v| v - mean).collect())
+}
+
+/// Solves 4 linear equations (augmented rows) by Gaussian elimination with partial pivoting.
+fn solve4(mut m: Vec<[f64; 5]>) -> Option<[f64; 4]> {
+    let scale = m
+        .iter()
+        .flat_map(|r| r[..4].iter())
+        .fold(0.0f64, |a, v| a.max(v.abs()));
+    for col in 0..4 {
+        let pivot = (col..4).max_by(|&a, &b| m[a][col].abs().total_cmp(&m[b][col].abs()))?;
+        if m[pivot][col].abs() <= 1e-12 * scale.max(1.0) {
+            return None;
+        }
+        m.swap(col, pivot);
+        for r in 0..4 {
+            if r != col {
+                let f = m[r][col] / m[col][col];
+                for c in col..5 {
+                    m[r][c] -= f * m[col][c];
+                }
+            }
+        }
+    }
+    Some([
+        m[0][4] / m[0][0],
+        m[1][4] / m[1][1],
+        m[2][4] / m[2][2],
+        m[3][4] / m[3][3],
+    ])
+}
+
+#[cfg(test)]
+mod quad_tests {
+    use super::*;
+
+    #[test]
+    fn a_bent_gantry_is_levelled_at_its_corners() {
+        let g = |x: f64, y: f64| 0.3 + 0.002 * x - 0.001 * y + 1e-5 * x * y;
+        let probed: Vec<([f64; 2], f64)> = [[20.0, 20.0], [20.0, 180.0], [180.0, 180.0], [180.0, 20.0]]
+            .iter()
+            .map(|&p| (p, g(p[0], p[1])))
+            .collect();
+        let corners = [[0.0, 0.0], [0.0, 200.0], [200.0, 200.0], [200.0, 0.0]];
+        let adj = quad_adjustments(&probed, &corners).unwrap();
+        let at: Vec<f64> = corners.iter().map(|c| g(c[0], c[1])).collect();
+        let mean = at.iter().sum::<f64>() / 4.0;
+        for (a, v) in adj.iter().zip(&at) {
+            assert!((a - (v - mean)).abs() < 1e-9, "{adj:?}");
+        }
+        let line: Vec<([f64; 2], f64)> = (0..4).map(|i| ([i as f64, 0.0], 0.0)).collect();
+        assert!(quad_adjustments(&line, &corners).is_none(), "collinear points");
+        assert!(quad_adjustments(&probed[..3], &corners).is_none());
     }
 }

@@ -109,6 +109,8 @@ pub struct PrinterConfig {
     pub bed_mesh: Option<BedMeshSection>,
     /// `[z_tilt]`.
     pub z_tilt: Option<ZTiltSection>,
+    /// `[quad_gantry_level]` (its `z_positions` are the four corners, Klipper's motor order).
+    pub quad_gantry_level: Option<ZTiltSection>,
     /// `[screws_tilt_adjust]`.
     pub screws_tilt_adjust: Option<ScrewsSection>,
     /// `[bed_screws]` (read and checked; BED_SCREWS_ADJUST is refused as interactive).
@@ -282,6 +284,13 @@ impl PrinterConfig {
             }
             None => None,
         };
+        let quad_gantry_level = match probing_section(&reader, "quad_gantry_level", has_probe)? {
+            Some(s) => {
+                let z_motors = 1 + extra_steppers.iter().filter(|e| e.rail == 2).count();
+                Some(z_tilt::read_quad_gantry_level(&s, z_motors)?)
+            }
+            None => None,
+        };
         let screws_tilt_adjust = match probing_section(&reader, "screws_tilt_adjust", has_probe)? {
             Some(s) => Some(screws::read_screws(&s, true)?),
             None => None,
@@ -325,6 +334,7 @@ impl PrinterConfig {
             simulator,
             bed_mesh,
             z_tilt,
+            quad_gantry_level,
             screws_tilt_adjust,
             bed_screws,
             realtime,

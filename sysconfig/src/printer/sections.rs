@@ -6,7 +6,7 @@
 //! Ignored sections have no effect on motion or homing without hardware Cadence does not drive
 //! yet (displays, LEDs, digipots, accelerometers, fans and sensors, filament sensors) or are host
 //! features not implemented yet whose absence the user should know of (`gcode_macro`,
-//! `quad_gantry_level`, `bed_tilt`…): the load warning is the notice, and their G-code commands are
+//! `bed_tilt`, `skew_correction`…): the load warning is the notice, and their G-code commands are
 //! unknown commands. Refused sections (other probes than `[probe]`, more extruders) fail the
 //! load with `[section] is not supported by Cadence yet (what)`, before anything else is
 //! checked, so the first error names the real cause.
@@ -102,7 +102,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("probe_eddy_current", Refused("eddy current probe")),
     ("pwm_cycle_time", Ignored),
     ("pwm_tool", Ignored),
-    ("quad_gantry_level", Ignored),
+    ("quad_gantry_level", Read),
     ("realtime", Read),
     ("replicape", Ignored),
     ("resonance_tester", Ignored),
