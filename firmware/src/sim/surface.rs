@@ -200,7 +200,7 @@ mod gantry_tests {
     use super::*;
 
     #[test]
-    fn two_and_three_motor_gantries() {
+    fn two_three_and_four_motor_gantries() {
         let g = GantrySpec::parse("PA4=x,y,0,0,z:0:10,z1:20:10").unwrap();
         assert_eq!(g.height(5.0, 3.0, &[1.0, 2.0]), Some(1.25));
         let g = GantrySpec::parse("PA4=x,y,1,2,z:0:0,z1:20:0,z2:10:20").unwrap();
@@ -209,9 +209,13 @@ mod gantry_tests {
         assert!((h - 3.0).abs() < 1e-12);
         let h = g.height(10.0, 0.0, &[1.0, 3.0, 0.0]).unwrap();
         assert!((h - 2.0).abs() < 1e-12);
+        let g = GantrySpec::parse("PA4=x,y,0,0,z:0:0,z1:0:10,z2:20:10,z3:20:0").unwrap();
+        // Bilinear: the centre is the corners' mean, an edge's middle its two corners' mean.
+        assert_eq!(g.height(10.0, 5.0, &[0.0, 1.0, 2.0, 5.0]), Some(2.0));
+        assert_eq!(g.height(0.0, 5.0, &[0.0, 1.0, 2.0, 5.0]), Some(0.5));
         assert!(GantrySpec::parse("PA4=x,y,0,0,z:0:0")
             .unwrap_err()
-            .contains("2 or 3 motors"));
+            .contains("2 to 4 motors"));
         assert!(GantrySpec::parse("PA4=x,y,0,0,z:0,z1:1:1")
             .unwrap_err()
             .contains("AXIS:X:Y"));
