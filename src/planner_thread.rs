@@ -497,6 +497,11 @@ impl FeedTarget for PlannerRun<'_, '_> {
         if st.machine.endstops.is_empty() && st.machine.probe.is_none() {
             return Ok(false);
         }
+        if let MotionCmd::Probe { name, .. } = cmd {
+            if !crate::homing::probe::is_configured(st.machine, name) {
+                return Ok(false);
+            }
+        }
         let McuSide::Local(mcus) = st.side else {
             let what = match cmd {
                 MotionCmd::Home(_) => "homing needs",

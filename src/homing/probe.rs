@@ -48,6 +48,20 @@ pub fn is_probe_command(name: &str) -> bool {
         || super::screws::COMMANDS.contains(&name)
 }
 
+/// False for a levelling command whose section the printer lacks (`BED_MESH_*` without
+/// `[bed_mesh]`, `Z_TILT_ADJUST` without `[z_tilt]`…): it is then an unknown command, reported
+/// and skipped as Klipper does (an error with `--strict`).
+pub fn is_configured(machine: &crate::hardware::Machine, name: &str) -> bool {
+    match name {
+        n if super::bed_mesh::COMMANDS.contains(&n) => machine.bed_mesh.is_some(),
+        "Z_TILT_ADJUST" => machine.z_tilt.is_some(),
+        "QUAD_GANTRY_LEVEL" => machine.quad_gantry_level.is_some(),
+        "SCREWS_TILT_CALCULATE" => machine.screws_tilt_adjust.is_some(),
+        "BED_SCREWS_ADJUST" => machine.bed_screws.is_some(),
+        _ => true,
+    }
+}
+
 /// The settings of one PROBE / PROBE_ACCURACY: the config's, overridden by the command's
 /// parameters.
 #[derive(Debug, Clone, PartialEq)]
