@@ -61,6 +61,23 @@ pub struct Status {
     /// What SAVE_CONFIG would write now (PID_CALIBRATE results…; empty when nothing is
     /// pending): Klipper's `configfile` `save_config_pending` and its items.
     pub save_config_pending: sysconfig::autosave::Changes,
+    /// `[bed_mesh]`: the mesh in use and the profiles (`None` without the section).
+    pub bed_mesh: Option<BedMeshStatus>,
+}
+
+/// Klipper's `bed_mesh` status object.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct BedMeshStatus {
+    /// The profile in use ("" when none).
+    pub profile_name: String,
+    pub mesh_min: [f64; 2],
+    pub mesh_max: [f64; 2],
+    /// Probed heights, rows of X along Y.
+    pub probed_matrix: Vec<Vec<f64>>,
+    /// Interpolated heights, rows of X along Y.
+    pub mesh_matrix: Vec<Vec<f64>>,
+    /// Saved profile names.
+    pub profiles: Vec<String>,
 }
 
 /// One heater in a [`Status`] (Klipper's `extruder`/`heater_bed` status objects).

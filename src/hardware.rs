@@ -112,8 +112,20 @@ pub struct Machine {
     pub bltouch: Option<BlTouchOut>,
     /// The steppers' TMC drivers.
     pub tmc: Vec<crate::tmc::TmcOut>,
+    /// `[z_tilt]`.
+    pub z_tilt: Option<sysconfig::printer::ZTiltSection>,
+    /// `[quad_gantry_level]` (its `z_positions` are the four corners).
+    pub quad_gantry_level: Option<sysconfig::printer::ZTiltSection>,
+    /// `[screws_tilt_adjust]`.
+    pub screws_tilt_adjust: Option<sysconfig::printer::ScrewsSection>,
+    /// `[bed_screws]`.
+    pub bed_screws: Option<sysconfig::printer::ScrewsSection>,
+    /// `[bed_mesh]`: its settings, profiles and the mesh in use.
+    pub bed_mesh: Option<crate::homing::bed_mesh::BedMeshOut>,
     /// `[simulator] bed_surface_z`: where simulated probe pins trigger.
     pub sim_bed_surface_z: f64,
+    /// `[simulator]`'s bed shape (tilt and warp), for the simulated probe.
+    pub sim_bed: sysconfig::printer::SimulatorSection,
     pub toolhead: ToolheadConfig,
     pub home_position: [f64; 3],
     /// Kinematics and pressure advance for the planner.
@@ -298,7 +310,13 @@ impl Machine {
             probe,
             bltouch,
             tmc,
+            bed_mesh: cfg.bed_mesh.clone().map(crate::homing::bed_mesh::BedMeshOut::new),
+            z_tilt: cfg.z_tilt.clone(),
+            quad_gantry_level: cfg.quad_gantry_level.clone(),
+            screws_tilt_adjust: cfg.screws_tilt_adjust.clone(),
+            bed_screws: cfg.bed_screws.clone(),
             sim_bed_surface_z: cfg.simulator.bed_surface_z,
+            sim_bed: cfg.simulator.clone(),
             toolhead,
             home_position: home,
             options,
@@ -517,8 +535,17 @@ impl Machine {
                 0 => name.clone(),
                 n => format!("{name}{n}"),
             };
+            // A tilted simulated gantry: each Z motor's end starts that much higher.
+            let tilt = match s.axis {
+                2 => self.sim_bed.gantry_tilt.get(nth).copied().unwrap_or(0.0),
+                _ => 0.0,
+            };
             args.push("--axis".to_string());
-            args.push(format!("{name}={},{steps_per_mm},{start}", s.step_pin.pin));
+            args.push(format!(
+                "{name}={},{steps_per_mm},{}",
+                s.step_pin.pin,
+                start + tilt
+            ));
         }
         // The TMC drivers on this MCU's buses; one an axis homes on stalls where its endstop
         // would trigger, and raises DIAG on its diag pin (on this MCU).
@@ -547,6 +574,58 @@ impl Machine {
         for e in self.mcu_endstops(mcu) {
             if e.sensorless.is_some() {
                 continue;
+            }
+            // A tilted or warped simulated bed under the probe.
+            if let Some(p) = self
+                .probe
+                .as_ref()
+                .filter(|_| e.probe && self.sim_bed.bed_is_shaped())
+            {
+                let b = &self.sim_bed;
+                args.push("--bed-surface".to_string());
+                args.push(format!(
+                    "{}={},{},{},{},{},{},{},{}",
+                    e.pin.pin,
+                    self.sim_coord(0, &rails),
+                    self.sim_coord(1, &rails),
+                    p.cfg.x_offset,
+                    p.cfg.y_offset,
+                    b.bed_tilt[0],
+                    b.bed_tilt[1],
+                    b.bed_warp,
+                    b.bed_warp_period
+                ));
+            }
+            // A probe on a gantry lifted by several Z motors (`[z_tilt] z_positions`, the
+            // corners of `[quad_gantry_level]`).
+            let gantry = (self.z_tilt.as_ref())
+                .or(self.quad_gantry_level.as_ref())
+                .filter(|z| e.probe && (2..=4).contains(&z.z_positions.len()));
+            if let Some(zt) = gantry {
+                let p = self
+                    .probe
+                    .as_ref()
+                    .map_or([0.0, 0.0], |p| [p.cfg.x_offset, p.cfg.y_offset]);
+                let z = &rails[2].0;
+                let motors: Vec<String> = zt
+                    .z_positions
+                    .iter()
+                    .enumerate()
+                    .map(|(n, xy)| match n {
+                        0 => format!("{z}:{}:{}", xy[0], xy[1]),
+                        n => format!("{z}{n}:{}:{}", xy[0], xy[1]),
+                    })
+                    .collect();
+                args.push("--gantry".to_string());
+                args.push(format!(
+                    "{}={},{},{},{},{}",
+                    e.pin.pin,
+                    self.sim_coord(0, &rails),
+                    self.sim_coord(1, &rails),
+                    p[0],
+                    p[1],
+                    motors.join(",")
+                ));
             }
             // A BLTouch with its servo on the same MCU: the simulated probe, deployed and
             // stowed by the servo pulses, its pin touching the bed surface.

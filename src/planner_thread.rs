@@ -615,6 +615,11 @@ impl FeedTarget for PlannerRun<'_, '_> {
         if st.machine.endstops.is_empty() && st.machine.probe.is_none() && st.machine.tmc.is_empty() {
             return Ok(false);
         }
+        if let MotionCmd::Probe { name, .. } = cmd {
+            if !crate::homing::probe::is_configured(st.machine, name) {
+                return Ok(false);
+            }
+        }
         let McuSide::Local(mcus) = st.side else {
             let what = match cmd {
                 MotionCmd::Home(_) => "homing needs",
@@ -859,6 +864,9 @@ impl PlannerRun<'_, '_> {
         let path = self.st.machine.config_path.clone();
         if path.starts_with("<builtin>") {
             return Err(PlannerError::NoConfigFile);
+        }
+        if let Some(bm) = &self.st.machine.bed_mesh {
+            self.autosave.merge(bm.take_pending());
         }
         match sysconfig::autosave::save(&path, &self.autosave)? {
             Some(saved) => {

@@ -619,6 +619,7 @@ impl PrinterHandle {
                     print_time: 0.0,
                     mcus: Vec::new(),
                     events_dropped: self.shared.events_dropped(),
+                    bed_mesh: None,
                     heaters,
                     fans,
                     sensors,
@@ -691,6 +692,11 @@ fn status_of(inner: &Inner) -> Status {
             .map(|m| (m.name.clone(), m.link.stats()))
             .collect(),
         events_dropped: inner.shared.events_dropped(),
+        bed_mesh: inner
+            .machine
+            .bed_mesh
+            .as_ref()
+            .map(crate::homing::bed_mesh::BedMeshOut::status),
         heaters,
         fans,
         sensors,

@@ -7,6 +7,8 @@
 //!   `minimum_cruise_ratio`, Z and extrude-only limits).
 //! - [`machine`]: modal G-code state (G90/G91, M82/M83, G92, feedrate, homed axes) applied to a
 //!   toolhead.
+//! - [`bed_mesh`]: bed levelling maths: probed mesh interpolation (Lagrange, bicubic), fade and
+//!   the split of moves along the mesh (Klipper's `[bed_mesh]`).
 //! - [`kinematics`]: which stepper moves how when the toolhead moves (cartesian, corexy, corexz,
 //!   delta).
 //! - [`pressure_advance`]: the extruder with pressure advance (iterative step solver).
@@ -25,6 +27,7 @@
 //! independent state; [`pipeline::PipelineOptions::threads`] runs them on worker threads and the
 //! caller's (std threads and channels, pure computation).
 
+pub mod bed_mesh;
 pub mod checker;
 pub mod compress;
 pub mod extruders;

@@ -193,6 +193,11 @@ pub struct GcodeState {
     behind: bool,
     /// `SAVE_GCODE_STATE` states by name (allocated only when a macro saves one).
     saved_states: Vec<(String, SavedState)>,
+    /// The bed mesh applied to moves (`last` stays in G-code space, the toolhead gets Z plus
+    /// the mesh's offset, moves split along the mesh).
+    bed_mesh: Option<crate::bed_mesh::split::AppliedMesh>,
+    /// Scratch for a move's mesh segments (reused).
+    segments: Vec<[f64; 4]>,
 }
 
 /// What `SAVE_GCODE_STATE` keeps (Klipper's `gcode_move` fields).
@@ -249,6 +254,30 @@ impl GcodeState {
             objects: None,
             behind: false,
             saved_states: Vec::new(),
+            bed_mesh: None,
+            segments: Vec::new(),
+        }
+    }
+
+    /// Applies `mesh` to the moves from now on (`None`: none). The G-code position is re-read
+    /// from the toolhead through the new mesh (where the nozzle is stays where it is, as
+    /// Klipper's `reset_last_position` does).
+    pub fn set_bed_mesh(&mut self, mesh: Option<crate::bed_mesh::split::AppliedMesh>, th: &Toolhead) {
+        self.bed_mesh = mesh;
+        self.last = self.untransform(th.position());
+        self.behind = false;
+    }
+
+    /// The bed mesh applied to moves.
+    pub fn bed_mesh(&self) -> Option<&crate::bed_mesh::split::AppliedMesh> {
+        self.bed_mesh.as_ref()
+    }
+
+    /// G-code-space position of toolhead position `p` (without a mesh: `p`).
+    fn untransform(&self, p: [f64; 4]) -> [f64; 4] {
+        match &self.bed_mesh {
+            Some(m) => m.untransform(p),
+            None => p,
         }
     }
 
@@ -377,7 +406,7 @@ impl GcodeState {
                     }
                 }
                 th.set_position(pos);
-                self.last = th.position();
+                self.last = self.untransform(th.position());
             }
             Command::AbsolutePositioning => self.absolute_coord = true,
             Command::RelativePositioning => self.absolute_coord = false,
@@ -456,7 +485,19 @@ impl GcodeState {
                 });
             }
         }
-        th.move_to(next, speed * self.speed_factor)?;
+        match &self.bed_mesh {
+            None => th.move_to(next, speed * self.speed_factor)?,
+            Some(mesh) => {
+                let mut segs = std::mem::take(&mut self.segments);
+                segs.clear();
+                mesh.split(self.last, next, &mut segs);
+                let r = segs
+                    .iter()
+                    .try_for_each(|&p| th.move_to(p, speed * self.speed_factor));
+                self.segments = segs;
+                r?;
+            }
+        }
         self.last = next;
         self.behind = false;
         Ok(())

@@ -282,6 +282,8 @@ pub struct Pipeline {
     /// Input shaper changes not handed to the lanes yet: (index of the first move they apply
     /// to, counting every final move since the start; settings).
     shaper_pending: VecDeque<(u64, InputShaper)>,
+    /// Lanes kept still by [`Self::freeze_lanes`], with the kinematics they get back.
+    frozen: Vec<(usize, crate::kinematics::StepperKin)>,
 }
 
 impl Pipeline {
@@ -488,6 +490,7 @@ impl Pipeline {
             smooth_time,
             dispatched: 0,
             shaper_pending: VecDeque::new(),
+            frozen: Vec::new(),
         })
     }
 

@@ -479,14 +479,7 @@ pub fn run_command(
             section: "bltouch",
         });
     };
-    let value = |key: &str| {
-        raw.split_whitespace()
-            .skip(1)
-            .filter_map(|w| w.split_once('='))
-            .filter(|(k, _)| k.eq_ignore_ascii_case(key))
-            .map(|(_, v)| v.to_string())
-            .last()
-    };
+    let value = |key: &str| super::probe::param(raw, key);
     let r = (|| match name {
         "BLTOUCH_DEBUG" => {
             let Some(cmd) = value("COMMAND").filter(|c| width(c).is_some()) else {

@@ -124,6 +124,10 @@ pub enum HomingError {
     #[error("Unknown command: {name} (the printer config has no [{section}] section)")]
     NoSection { name: String, section: &'static str },
     /// PROBE: the samples spread more than `samples_tolerance`, retries exhausted.
+    /// A bed levelling command (`BED_MESH_*`, `Z_TILT_ADJUST`, `QUAD_GANTRY_LEVEL`,
+    /// `SCREWS_TILT_CALCULATE`…), in Klipper's words.
+    #[error("{0}")]
+    Leveling(String),
     /// A TMC driver's command or register traffic (crate::tmc words the problem).
     #[error("{0}")]
     Tmc(String),

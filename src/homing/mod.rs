@@ -53,12 +53,15 @@
 //! known from the move profile, so the last executed step and the first cancelled one bound
 //! the moment the stepper MCU stopped, relative to the endstop's trigger.
 
+pub mod bed_mesh;
 pub mod bltouch;
 mod error;
 mod halt;
 mod pass;
 pub mod probe;
 pub mod procedure;
+pub mod screws;
+pub mod z_tilt;
 
 pub use error::{HomingError, ParamProblem, WiringError};
 pub(crate) use pass::homing_pass;
@@ -123,6 +126,8 @@ pub struct HomingCtx<'a> {
     /// Lines for the user produced on the way (a BLTouch's retries), drained into the
     /// command's output.
     pub messages: Vec<String>,
+    /// The passes of every probe sample taken so far (their stop latencies), for reports.
+    pub probe_passes: Vec<PassReport>,
 }
 
 impl<'a> HomingCtx<'a> {
@@ -147,6 +152,7 @@ impl<'a> HomingCtx<'a> {
             rt,
             comm_timeout_detail: None,
             messages: Vec::new(),
+            probe_passes: Vec::new(),
         }
     }
 }

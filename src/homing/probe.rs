@@ -29,7 +29,8 @@ use super::{
 };
 use crate::hardware::ProbeOut;
 
-/// The G-code commands this module runs.
+/// The G-code commands this module runs (the bed levelling ones through
+/// [`super::bed_mesh`]).
 pub const COMMANDS: [&str; 5] = [
     "PROBE",
     "PROBE_ACCURACY",
@@ -44,6 +45,23 @@ const ACCURACY_SAMPLES: u32 = 10;
 /// True for a command name this module runs.
 pub fn is_probe_command(name: &str) -> bool {
     COMMANDS.contains(&name)
+        || super::bed_mesh::COMMANDS.contains(&name)
+        || super::z_tilt::COMMANDS.contains(&name)
+        || super::screws::COMMANDS.contains(&name)
+}
+
+/// False for a levelling command whose section the printer lacks (`BED_MESH_*` without
+/// `[bed_mesh]`, `Z_TILT_ADJUST` without `[z_tilt]`…): it is then an unknown command, reported
+/// and skipped as Klipper does (an error with `--strict`).
+pub fn is_configured(machine: &crate::hardware::Machine, name: &str) -> bool {
+    match name {
+        n if super::bed_mesh::COMMANDS.contains(&n) => machine.bed_mesh.is_some(),
+        "Z_TILT_ADJUST" => machine.z_tilt.is_some(),
+        "QUAD_GANTRY_LEVEL" => machine.quad_gantry_level.is_some(),
+        "SCREWS_TILT_CALCULATE" => machine.screws_tilt_adjust.is_some(),
+        "BED_SCREWS_ADJUST" => machine.bed_screws.is_some(),
+        _ => true,
+    }
 }
 
 /// The settings of one PROBE / PROBE_ACCURACY: the config's, overridden by the command's
@@ -65,6 +83,17 @@ fn bad(raw: &str, problem: ParamProblem) -> HomingError {
         raw: raw.to_string(),
         problem,
     }
+}
+
+/// The value of the last `KEY=VALUE` word of `raw` after the command name whose key is `key`
+/// (case-insensitive).
+pub(crate) fn param(raw: &str, key: &str) -> Option<String> {
+    raw.split_whitespace()
+        .skip(1)
+        .filter_map(|w| w.split_once('='))
+        .filter(|(k, _)| k.eq_ignore_ascii_case(key))
+        .map(|(_, v)| v.to_string())
+        .last()
 }
 
 /// `NAME KEY=VALUE …` → the (upper-cased key, value) pairs.
@@ -180,6 +209,15 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
     if name.starts_with("BLTOUCH_") {
         return super::bltouch::run_command(ctx, name, raw, out);
     }
+    if super::bed_mesh::COMMANDS.contains(&name) {
+        return super::bed_mesh::run(ctx, name, raw, out).map_err(HomingError::Leveling);
+    }
+    if super::z_tilt::COMMANDS.contains(&name) {
+        return super::z_tilt::run(ctx, name, raw, out).map_err(HomingError::Leveling);
+    }
+    if super::screws::COMMANDS.contains(&name) {
+        return super::screws::run(ctx, name, raw, out).map_err(HomingError::Leveling);
+    }
     let Some(probe) = ctx.machine.probe.clone() else {
         return Err(HomingError::NoSection {
             name: name.to_string(),
@@ -222,7 +260,7 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
 }
 
 /// The samples of one PROBE with tolerance retries; returns the combined Z.
-fn run_probe(
+pub(crate) fn run_probe(
     ctx: &mut HomingCtx<'_>,
     probe: &ProbeOut,
     p: &ProbeParams,
@@ -251,7 +289,7 @@ fn run_probe(
 }
 
 /// Z up (or down) to `z` at `speed`.
-fn lift(ctx: &mut HomingCtx<'_>, z: f64, speed: f64) -> Result<(), HomingError> {
+pub(crate) fn lift(ctx: &mut HomingCtx<'_>, z: f64, speed: f64) -> Result<(), HomingError> {
     let mut pos = ctx.pipeline.position();
     pos[2] = z;
     plain_move(ctx, pos, speed)
@@ -276,6 +314,7 @@ fn probe_once(
         }
         homing_pass(ctx, &probe.endstop, PassKind::Probe { target }, speed)
     })?;
+    ctx.probe_passes.push(pass.clone());
     let pos = ctx.pipeline.position();
     let at = [pos[0], pos[1], pass.trigger_position];
     out.push(format!("probe at {:.3},{:.3} is z={:.6}", at[0], at[1], at[2]));

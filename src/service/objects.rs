@@ -208,6 +208,13 @@ impl SystemFacts {
     }
 }
 
+/// Klipper's `bed_mesh` object.
+fn bed_mesh(m: &crate::events::BedMeshStatus) -> Value {
+    let profiles: Map<String, Value> = m.profiles.iter().map(|p| (p.clone(), json!({}))).collect();
+    json!({"profile_name": m.profile_name, "mesh_min": m.mesh_min, "mesh_max": m.mesh_max,
+           "probed_matrix": m.probed_matrix, "mesh_matrix": m.mesh_matrix, "profiles": profiles})
+}
+
 /// The names `objects/list` reports for a printer with these MCUs and configuration.
 pub fn names(mcus: &[String], config: Option<&ConfigFacts>) -> Vec<String> {
     let mut names: Vec<String> = [
@@ -229,6 +236,9 @@ pub fn names(mcus: &[String], config: Option<&ConfigFacts>) -> Vec<String> {
     .map(|s| s.to_string())
     .collect();
     names.extend(config.iter().flat_map(|c| c.thermal.objects.iter().cloned()));
+    if config.is_some_and(|c| c.config.get("bed_mesh").is_some()) {
+        names.push("bed_mesh".to_string());
+    }
     for m in mcus {
         names.push(if m == "mcu" {
             "mcu".to_string()
@@ -302,6 +312,9 @@ pub fn all(s: &Snapshot<'_>) -> Map<String, Value> {
         obj.insert("square_corner_velocity".into(), json!(c.square_corner_velocity));
     }
     out.insert("toolhead".into(), toolhead);
+    if let Some(m) = status.and_then(|st| st.bed_mesh.as_ref()) {
+        out.insert("bed_mesh".into(), bed_mesh(m));
+    }
     out.insert(
         "gcode_move".into(),
         json!({"position": position, "gcode_position": position,
@@ -499,6 +512,7 @@ mod tests {
             mcus: Vec::new(),
             events_dropped: 0,
             save_config_pending: Default::default(),
+            bed_mesh: None,
             heaters: vec![HeaterStatus {
                 name: "extruder".into(),
                 temperature: 200.0,
@@ -519,6 +533,21 @@ mod tests {
                 measured_max_temp: 26.0,
             }],
         };
+        let mesh = crate::events::BedMeshStatus {
+            profile_name: "default".into(),
+            mesh_min: [10.0, 10.0],
+            mesh_max: [190.0, 190.0],
+            probed_matrix: vec![vec![0.1, 0.2]; 2],
+            mesh_matrix: vec![vec![0.1, 0.15, 0.2]; 3],
+            profiles: vec!["default".into()],
+        };
+        assert_eq!(
+            bed_mesh(&mesh),
+            json!({"profile_name": "default", "mesh_min": [10.0, 10.0], "mesh_max": [190.0, 190.0],
+                   "probed_matrix": [[0.1, 0.2], [0.1, 0.2]],
+                   "mesh_matrix": [[0.1, 0.15, 0.2], [0.1, 0.15, 0.2], [0.1, 0.15, 0.2]],
+                   "profiles": {"default": {}}})
+        );
         let mut out = Map::new();
         thermal(&mut out, &facts.thermal, Some(&status));
         assert_eq!(

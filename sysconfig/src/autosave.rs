@@ -78,6 +78,20 @@ impl Changes {
         self.sections.push((section.to_string(), SectionChange::Remove));
     }
 
+    /// Adds `other`'s changes after these (a later change of a section wins).
+    pub fn merge(&mut self, other: Changes) {
+        for (section, change) in other.sections {
+            match change {
+                SectionChange::Remove => self.remove_section(&section),
+                SectionChange::Set(opts) => {
+                    for (k, v) in opts {
+                        self.set(&section, &k, v);
+                    }
+                }
+            }
+        }
+    }
+
     /// True when nothing is pending.
     pub fn is_empty(&self) -> bool {
         self.sections.is_empty()

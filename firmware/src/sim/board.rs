@@ -206,7 +206,11 @@ impl Board for SimBoard {
     fn read_pin(&mut self, pin: u8, at: WireClock) -> bool {
         let at = self.extend(at);
         if let Some(b) = self.bltouch.iter_mut().find(|b| b.spec.sensor_pin == pin) {
-            let z = self.world.coord_at_clock(&b.spec.coord, at);
+            let h = self.world.surface_at_clock(pin, at);
+            let z = self
+                .world
+                .probe_height_at_clock(pin, &b.spec.coord, at)
+                .map(|z| z - h);
             return b.sense(at, z) != b.spec.active_low;
         }
         if let Some(i) = self

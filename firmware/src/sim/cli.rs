@@ -82,6 +82,18 @@ pub struct Cli {
     #[arg(long = "tmc", value_name = "MODEL@BUS_PIN:ADDR[=[diag0:]DIAG_PIN,COORD,END_MM,min|max]",
           value_parser = parse_tmc)]
     pub tmc: Vec<TmcSpec>,
+    /// The bed surface probe input PIN (an `--endstop` or `--bltouch` sensor) touches: its
+    /// trigger coordinate plus `TILT_X·x + TILT_Y·y + WARP·sin(2πx/PERIOD)·sin(2πy/PERIOD)` at
+    /// the probe's bed point (toolhead XCOORD, YCOORD plus the offsets).
+    #[arg(long = "bed-surface", value_name = "PIN=XCOORD,YCOORD,X_OFFSET,Y_OFFSET,TILT_X,TILT_Y,WARP,PERIOD",
+          value_parser = super::surface::SurfaceSpec::parse)]
+    pub surfaces: Vec<super::surface::SurfaceSpec>,
+    /// The probe on input PIN rides a gantry lifted by 2 to 4 Z motors (world axes AXIS at
+    /// X, Y; 4: the corners of a rectangle): its height is the gantry's at the probe (toolhead
+    /// XCOORD, YCOORD plus offsets).
+    #[arg(long = "gantry", value_name = "PIN=XCOORD,YCOORD,X_OFFSET,Y_OFFSET,AXIS:X:Y,AXIS:X:Y[,AXIS:X:Y[,AXIS:X:Y]]",
+          value_parser = super::surface::GantrySpec::parse)]
+    pub gantries: Vec<super::surface::GantrySpec>,
     /// A heater output and the thermistor ADC input it warms (100K NTC beta 3950, 4.7k pull-up),
     /// with the thermal model of a 40 W hotend (default) or a 150 W bed.
     #[arg(long = "heater", value_name = "HEATER_PIN=SENSOR_PIN[,hotend|bed]", value_parser = parse_heater)]

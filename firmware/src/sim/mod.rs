@@ -24,6 +24,7 @@ pub mod faults;
 pub mod heater;
 pub mod pty;
 pub mod spin;
+pub mod surface;
 pub mod tmc;
 pub mod world;
 
@@ -170,7 +171,9 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
         ),
         None => None,
     };
-    let world = world::World::new(cli.world.as_deref(), cli.axes.clone(), cli.endstops.clone())?;
+    let mut world = world::World::new(cli.world.as_deref(), cli.axes.clone(), cli.endstops.clone())?;
+    world.set_surfaces(cli.surfaces.clone());
+    world.set_gantries(cli.gantries.clone());
     let board = SimBoard::new(cli.clock_freq, trace)?
         .with_world(world)
         .with_heaters(&cli.heaters, &cli.heater_faults)

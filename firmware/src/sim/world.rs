@@ -333,6 +333,10 @@ pub struct World {
     /// The latest step stamp published.
     last_published_stamp: u64,
     time: Option<TimeBase>,
+    /// Bed surfaces under probe pins (`--bed-surface`).
+    surfaces: Vec<super::surface::SurfaceSpec>,
+    /// Probe pins riding multi-motor gantries (`--gantry`).
+    gantries: Vec<super::surface::GantrySpec>,
 }
 
 /// Worlds created in this process so far (tells two worlds of one process apart).
@@ -382,7 +386,62 @@ impl World {
             last_publish: None,
             last_published_stamp: 0,
             time: None,
+            surfaces: Vec::new(),
+            gantries: Vec::new(),
         }
+    }
+
+    /// Probe pins riding gantries lifted by several Z motors ([`super::surface::GantrySpec`]).
+    pub fn set_gantries(&mut self, gantries: Vec<super::surface::GantrySpec>) {
+        self.gantries = gantries;
+    }
+
+    /// The height of probe input `pin` at `at_ns`: the gantry's under the probe when the pin
+    /// rides one, else coordinate `c`.
+    fn probe_height(&self, pin: u8, c: &Coord, at_ns: Option<u64>) -> Option<f64> {
+        let Some(g) = self.gantries.iter().find(|g| g.pin == pin) else {
+            return self.coord_at(c, at_ns);
+        };
+        let x = self.coord_at(&g.x, at_ns)? + g.offset[0];
+        let y = self.coord_at(&g.y, at_ns)? + g.offset[1];
+        let z: Option<Vec<f64>> = g
+            .motors
+            .iter()
+            .map(|(axis, _)| self.position_at(axis, at_ns))
+            .collect();
+        g.height(x, y, &z?)
+    }
+
+    /// [`Self::probe_height`] at MCU clock `clock` (refreshes remote positions first).
+    pub fn probe_height_at_clock(&mut self, pin: u8, c: &Coord, clock: u64) -> Option<f64> {
+        self.refresh();
+        let at = self.time.map(|t| t.ns(clock));
+        self.probe_height(pin, c, at)
+    }
+
+    /// Probe pins touching a tilted or warped bed ([`super::surface`]).
+    pub fn set_surfaces(&mut self, surfaces: Vec<super::surface::SurfaceSpec>) {
+        self.surfaces = surfaces;
+    }
+
+    /// The bed surface's height under probe input `pin` at `at_ns` (0 when the pin has no
+    /// surface or the toolhead's X or Y is unknown).
+    fn surface_at(&self, pin: u8, at_ns: Option<u64>) -> f64 {
+        let Some(s) = self.surfaces.iter().find(|s| s.pin == pin) else {
+            return 0.0;
+        };
+        match (self.coord_at(&s.x, at_ns), self.coord_at(&s.y, at_ns)) {
+            (Some(x), Some(y)) => s.under_probe(x, y),
+            _ => 0.0,
+        }
+    }
+
+    /// The surface height under probe input `pin` at MCU clock `clock` (see
+    /// [`Self::coord_at_clock`]).
+    pub fn surface_at_clock(&mut self, pin: u8, clock: u64) -> f64 {
+        self.refresh();
+        let at = self.time.map(|t| t.ns(clock));
+        self.surface_at(pin, at)
     }
 
     /// Stamps steps and reads endstops in CLOCK_MONOTONIC time through `time` (this process'
@@ -538,11 +597,12 @@ impl World {
         self.refresh();
         let at = self.time.map(|t| t.ns(clock));
         let e = &self.endstops[i];
-        let pos = self.coord_at(&e.axis, at)?;
+        let pos = self.probe_height(pin, &e.axis, at)?;
+        let trigger_mm = e.trigger_mm + self.surface_at(pin, at);
         let triggered = if e.at_min {
-            pos <= e.trigger_mm
+            pos <= trigger_mm
         } else {
-            pos >= e.trigger_mm
+            pos >= trigger_mm
         };
         Some(triggered != e.active_low)
     }

@@ -67,6 +67,12 @@ impl Pipeline {
         self.sync_gcode_position();
     }
 
+    /// Applies `mesh` to the G-code moves from now on (`None`: none): `BED_MESH_PROFILE LOAD`,
+    /// `BED_MESH_CLEAR`, the end of `BED_MESH_CALIBRATE`.
+    pub fn set_bed_mesh(&mut self, mesh: Option<crate::bed_mesh::split::AppliedMesh>) {
+        self.state.set_bed_mesh(mesh, &self.th);
+    }
+
     /// The G-code state's last position follows the toolhead: `G28` naming no axis at the
     /// state level (the parser never produces it) redefines nothing and re-reads the position.
     fn sync_gcode_position(&mut self) {
@@ -101,6 +107,46 @@ impl Pipeline {
             return Ok(None);
         }
         Ok(self.moves[start..].last().copied())
+    }
+
+    /// Keeps the steppers of lanes `idx` still through the following moves (Z motors left out
+    /// of one Z_TILT_ADJUST correction): each follows the extruder axis instead, which the
+    /// caller's Z moves leave alone, from its step position now. [`Self::thaw_lanes`] gives
+    /// the kinematics back; the caller then resyncs every lane whose stepper moved apart from
+    /// the toolhead ([`Self::resync_after_stop`]). Needs the inline lanes, at rest.
+    pub fn freeze_lanes(&mut self, idx: &[usize]) -> Result<(), PlanError> {
+        if !self.supports_homing() {
+            return Err(config_error("moving single steppers needs the inline planner"));
+        }
+        self.th.flush();
+        let e = self.th.position()[3];
+        if let Backend::Inline(lanes, _) = &mut self.backend {
+            for &i in idx {
+                let (Some(lane), Some(view)) = (lanes.get_mut(i), self.views.get(i)) else {
+                    return Err(config_error("freeze: unknown stepper index"));
+                };
+                let kin = crate::kinematics::StepperKin::axis(3, lane.kin.step_dist);
+                self.frozen.push((i, std::mem::replace(&mut lane.kin, kin)));
+                lane.comp.resync(view.position, e, lane.clock.freq);
+            }
+        }
+        Ok(())
+    }
+
+    /// Gives the lanes [`Self::freeze_lanes`] kept still their kinematics back.
+    pub fn thaw_lanes(&mut self) {
+        if let Backend::Inline(lanes, _) = &mut self.backend {
+            for (i, kin) in self.frozen.drain(..) {
+                if let Some(lane) = lanes.get_mut(i) {
+                    lane.kin = kin;
+                }
+            }
+        }
+    }
+
+    /// Net steps emitted so far by stepper `idx`.
+    pub fn stepper_position(&self, idx: usize) -> Option<i64> {
+        self.views.get(idx).map(|v| v.position)
     }
 
     /// After the MCUs stopped some steppers part-way through the last move: the next move

@@ -39,6 +39,24 @@ pub struct SimulatorSection {
     /// bed surface as the probe sees it; default 0. Independent of the probe's settings, so a
     /// test can check what PROBE measures.
     pub bed_surface_z: f64,
+    /// The simulated bed's slope along X and Y (mm per mm; default 0): the probe triggers at
+    /// `bed_surface_z + bed_tilt_x · x + bed_tilt_y · y + bed_warp · sin(2πx/P) · sin(2πy/P)` at
+    /// the probe's X, Y (P = `bed_warp_period`).
+    pub bed_tilt: [f64; 2],
+    /// Amplitude of the simulated bed's bumps (mm; default 0).
+    pub bed_warp: f64,
+    /// Their wavelength (mm, > 0; default 100).
+    pub bed_warp_period: f64,
+    /// How far each Z motor's end of the gantry starts above the first's (mm, `[stepper_z]`
+    /// first: `0, 0.4` lifts `[stepper_z1]`'s end by 0.4); default none: a level gantry.
+    pub gantry_tilt: Vec<f64>,
+}
+
+impl SimulatorSection {
+    /// True when the simulated bed is not flat.
+    pub fn bed_is_shaped(&self) -> bool {
+        self.bed_tilt != [0.0, 0.0] || self.bed_warp != 0.0
+    }
 }
 
 impl Default for SimulatorSection {
@@ -47,6 +65,10 @@ impl Default for SimulatorSection {
             clock_freq: 50_000_000,
             time_scale: 1.0,
             bed_surface_z: 0.0,
+            bed_tilt: [0.0, 0.0],
+            bed_warp: 0.0,
+            bed_warp_period: 100.0,
+            gantry_tilt: Vec::new(),
         }
     }
 }
@@ -112,6 +134,21 @@ pub(crate) fn read_simulator(s: &SectionReader<'_>) -> Result<SimulatorSection, 
         clock_freq: s.int("clock_freq", Some(d.clock_freq), 1..=i64::MAX)?,
         time_scale: s.float_or("time_scale", d.time_scale, Bounds::ANY.above(0.0))?,
         bed_surface_z: s.float_or("bed_surface_z", d.bed_surface_z, Bounds::ANY)?,
+        bed_tilt: [
+            s.float_or("bed_tilt_x", 0.0, Bounds::ANY.min(-1.0).max(1.0))?,
+            s.float_or("bed_tilt_y", 0.0, Bounds::ANY.min(-1.0).max(1.0))?,
+        ],
+        bed_warp: s.float_or("bed_warp", 0.0, Bounds::ANY.min(-10.0).max(10.0))?,
+        bed_warp_period: s.float_or("bed_warp_period", d.bed_warp_period, Bounds::ANY.above(0.0))?,
+        gantry_tilt: match s.value("gantry_tilt") {
+            None => Vec::new(),
+            Some(v) => v
+                .text
+                .split(',')
+                .map(|t| super::reader::parse_float(t.trim()))
+                .collect::<Result<_, _>>()
+                .map_err(|p| s.bad("gantry_tilt", v, p))?,
+        },
     })
 }
 

@@ -12,9 +12,10 @@
 //! `probe:z_virtual_endstop`), the steppers the kinematics needs, their further motors
 //! (`[stepper_z1]`…), `[extruder]`, `[heater_bed]`, the thermal sections (`thermal`),
 //! `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`,
-//! `[input_shaper]`, `[gcode_macro]`s, `[safe_z_home]` / `[homing_override]`, then the
+//! `[input_shaper]`, `[gcode_macro]`s, `[safe_z_home]` / `[homing_override]`, `[bed_mesh]`, then the
 //! unused-option/section check.
 
+mod bed_mesh;
 mod bltouch;
 mod board_pins;
 pub mod check;
@@ -32,16 +33,22 @@ mod pins;
 mod probe;
 mod reader;
 mod realtime;
+mod screws;
 mod sections;
 mod stepper;
 mod thermal;
 pub mod tmc;
 mod toolhead;
+mod z_tilt;
 
 use std::path::{Path, PathBuf};
 
 use crate::ini::{self, ConfigFile};
 
+pub use bed_mesh::{
+    profile_options as bed_mesh_profile_options, BedMeshSection, MeshProfile, MeshShape,
+    ALGORITHMS as BED_MESH_ALGORITHMS,
+};
 pub use bltouch::{BlTouchSection, OutputMode as BlTouchOutputMode, OUTPUT_MODES as BLTOUCH_OUTPUT_MODES};
 pub use delta::{DeltaSection, DEFAULT_ANGLES};
 pub use error::{ConfigError, ValueProblem};
@@ -55,6 +62,7 @@ pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
 pub use pins::{is_simulator_pin, PinKind, PinProblem, PinRef, MAIN_MCU};
 pub use probe::{ProbeSection, SamplesResult, PROBE_PIN_MCU, SAMPLES_RESULTS, Z_VIRTUAL_ENDSTOP};
 pub use realtime::RealtimeSection;
+pub use screws::{Screw, ScrewThread, ScrewsSection, SCREW_THREADS};
 pub use sections::{is_ignored, support as section_support, Support as SectionSupport, SECTIONS};
 pub use stepper::{ExtraStepperSection, MotorSection, StepperSection};
 pub use thermal::{
@@ -64,6 +72,7 @@ pub use thermal::{
 };
 pub use tmc::{TmcBus, TmcModel, TmcSection};
 pub use toolhead::{Kinematics, PrinterSection};
+pub use z_tilt::ZTiltSection;
 
 use pins::PinRegistry;
 use reader::Reader;
@@ -104,6 +113,16 @@ pub struct PrinterConfig {
     pub tmc: Vec<TmcSection>,
     /// `[simulator]`, or its defaults.
     pub simulator: SimulatorSection,
+    /// `[bed_mesh]` with its saved profiles.
+    pub bed_mesh: Option<BedMeshSection>,
+    /// `[z_tilt]`.
+    pub z_tilt: Option<ZTiltSection>,
+    /// `[quad_gantry_level]` (its `z_positions` are the four corners, Klipper's motor order).
+    pub quad_gantry_level: Option<ZTiltSection>,
+    /// `[screws_tilt_adjust]`.
+    pub screws_tilt_adjust: Option<ScrewsSection>,
+    /// `[bed_screws]` (read and checked; BED_SCREWS_ADJUST is refused as interactive).
+    pub bed_screws: Option<ScrewsSection>,
     /// `[realtime]`, or its defaults.
     pub realtime: RealtimeSection,
     /// `[gcode]`, or its defaults.
@@ -282,8 +301,37 @@ impl PrinterConfig {
         };
 
         let host = host::read_host(&reader)?;
+        let mut mesh_warnings = Vec::new();
+        let has_probe = probe.is_some();
+        let bed_mesh = match probing_section(&reader, "bed_mesh", has_probe)? {
+            Some(s) => Some(bed_mesh::read_bed_mesh(&reader, &s, &mut mesh_warnings)?),
+            None => None,
+        };
+        let z_tilt = match probing_section(&reader, "z_tilt", has_probe)? {
+            Some(s) => {
+                let z_motors = 1 + extra_steppers.iter().filter(|e| e.rail == 2).count();
+                Some(z_tilt::read_z_tilt(&s, z_motors)?)
+            }
+            None => None,
+        };
+        let quad_gantry_level = match probing_section(&reader, "quad_gantry_level", has_probe)? {
+            Some(s) => {
+                let z_motors = 1 + extra_steppers.iter().filter(|e| e.rail == 2).count();
+                Some(z_tilt::read_quad_gantry_level(&s, z_motors)?)
+            }
+            None => None,
+        };
+        let screws_tilt_adjust = match probing_section(&reader, "screws_tilt_adjust", has_probe)? {
+            Some(s) => Some(screws::read_screws(&s, true)?),
+            None => None,
+        };
+        let bed_screws = match reader.section("bed_screws") {
+            Some(s) => Some(screws::read_screws(&s, false)?),
+            None => None,
+        };
 
         let mut warnings = reader.finish(is_ignored)?;
+        warnings.extend(mesh_warnings);
         let scripts: Vec<_> = macros
             .iter()
             .chain(homing_override.as_ref().map(|o| &o.script))
@@ -317,6 +365,11 @@ impl PrinterConfig {
             bltouch,
             tmc,
             simulator,
+            bed_mesh,
+            z_tilt,
+            quad_gantry_level,
+            screws_tilt_adjust,
+            bed_screws,
             realtime,
             gcode,
             gcode_arcs,
@@ -346,6 +399,22 @@ impl PrinterConfig {
     /// The MCU named `name` (`mcu` for the main one).
     pub fn mcu(&self, name: &str) -> Option<&McuSection> {
         self.mcus.iter().find(|m| m.name == name)
+    }
+}
+
+/// Section `name`, which probes the bed: an error when the printer has no probe.
+fn probing_section<'r>(
+    reader: &'r Reader<'_>,
+    name: &str,
+    has_probe: bool,
+) -> Result<Option<reader::SectionReader<'r>>, ConfigError> {
+    match reader.section(name) {
+        Some(s) if !has_probe => Err(ConfigError::BadSection {
+            at: s.at().clone(),
+            section: name.to_string(),
+            reason: "needs a probe: add a [probe] or [bltouch] section".to_string(),
+        }),
+        s => Ok(s),
     }
 }
 

@@ -6,7 +6,7 @@
 //! Ignored sections have no effect on motion or homing without hardware Cadence does not drive
 //! yet (displays, LEDs, digipots, accelerometers, fans and sensors, filament sensors) or are host
 //! features not implemented yet whose absence the user should know of (`gcode_macro`,
-//! `bed_mesh`, `safe_z_home`…): the load warning is the notice, and their G-code commands are
+//! `bed_tilt`, `skew_correction`…): the load warning is the notice, and their G-code commands are
 //! unknown commands. Refused sections (other probes than `[probe]`, more extruders) fail the
 //! load with `[section] is not supported by Cadence yet (what)`, before anything else is
 //! checked, so the first error names the real cause.
@@ -35,8 +35,8 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("adxl345", Ignored),
     ("angle", Ignored),
     ("axis_twist_compensation", Ignored),
-    ("bed_mesh", Ignored),
-    ("bed_screws", Ignored),
+    ("bed_mesh", Read),
+    ("bed_screws", Read),
     ("bed_tilt", Ignored),
     ("bltouch", Read),
     ("bmi160", Ignored),
@@ -102,7 +102,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("probe_eddy_current", Refused("eddy current probe")),
     ("pwm_cycle_time", Ignored),
     ("pwm_tool", Ignored),
-    ("quad_gantry_level", Ignored),
+    ("quad_gantry_level", Read),
     ("realtime", Read),
     ("replicape", Ignored),
     ("resonance_tester", Ignored),
@@ -110,7 +110,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("safe_z_home", Read),
     ("samd_sercom", Ignored),
     ("save_variables", Read),
-    ("screws_tilt_adjust", Ignored),
+    ("screws_tilt_adjust", Read),
     ("sdcard_loop", Ignored),
     ("servo", Ignored),
     ("simulator", Read),
@@ -133,7 +133,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("verify_heater", Read),
     ("virtual_sdcard", Read),
     ("z_thermal_adjust", Ignored),
-    ("z_tilt", Ignored),
+    ("z_tilt", Read),
 ];
 
 /// What Cadence does with sections of `kind`; `None` for a kind Klipper does not have either
@@ -227,8 +227,9 @@ mod tests {
 
     #[test]
     fn kinds() {
-        assert!(is_ignored("bed_mesh") && is_ignored("ad5206"));
+        assert!(is_ignored("ad5206"));
         assert_eq!(support("tmc2209"), Some(Read));
+        assert_eq!(support("bed_mesh"), Some(Read));
         assert_eq!(support("gcode_macro"), Some(Read));
         assert_eq!(support("stepper_x"), Some(Read));
         assert_eq!(support("stepper_a"), Some(Read));

@@ -52,6 +52,10 @@ fn builtin_simulated_printer_loads() {
             clock_freq: 50_000_000,
             time_scale: 1.0,
             bed_surface_z: 0.0,
+            bed_tilt: [0.0, 0.0],
+            bed_warp: 0.0,
+            bed_warp_period: 100.0,
+            gantry_tilt: Vec::new(),
         }
     );
     // Every pin is one the simulated MCU has.
