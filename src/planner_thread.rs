@@ -688,9 +688,10 @@ impl FeedTarget for PlannerRun<'_, '_> {
     }
 
     fn warn(&mut self, text: String) {
+        // A plain print's session has nobody listening for events: the warning goes to stderr.
         match self.st.session {
-            Some(s) => s.emit(Event::Warning(text)),
-            None => eprintln!("cadence: warning: {text}"),
+            Some(s) if s.listening() => s.emit(Event::Warning(text)),
+            _ => eprintln!("cadence: warning: {text}"),
         }
     }
 

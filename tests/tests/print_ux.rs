@@ -211,3 +211,18 @@ fn sigint_during_a_heater_wait_ends_the_wait_and_the_print() {
     assert!(run.stdout.contains("Details:"), "{}", run.stdout);
     assert!(!run.stdout.contains("homing x"), "G28 never ran: {}", run.stdout);
 }
+
+#[test]
+fn a_live_print_reports_an_unknown_command_and_goes_on() {
+    let dir = scratch("ux-unknown");
+    let gcode = dir.join("unknown.gcode");
+    std::fs::write(&gcode, "FOO_BAR X=1\nM105\n").expect("write G-code");
+    let run = cadence(&["print", gcode.to_str().unwrap(), "--no-progress"], TIMEOUT);
+    assert_success(&run);
+    assert!(
+        run.stderr
+            .contains("unknown.gcode:1: Unknown command:\"FOO_BAR\""),
+        "{}",
+        run.stderr
+    );
+}
