@@ -15,6 +15,7 @@
 //! trsync trigger record (the moment its steppers stopped), per printer and axis as
 //! `<printer>-<axis>-exact`.
 
+use super::trace_dir::TraceDir;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -259,27 +260,6 @@ fn report_groups(
     Ok(())
 }
 
-/// A scratch folder for one printer's simulated MCU traces, removed when dropped.
-struct TraceDir(PathBuf);
-
-impl TraceDir {
-    fn new(printer: &str) -> std::io::Result<TraceDir> {
-        let dir = std::env::temp_dir().join(format!("cadence-bench-homing-{}-{printer}", std::process::id()));
-        std::fs::create_dir_all(&dir)?;
-        Ok(TraceDir(dir))
-    }
-
-    fn base(&self) -> PathBuf {
-        self.0.join("mcu.trace")
-    }
-}
-
-impl Drop for TraceDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
 /// A latency histogram (negative values counted as 0) in nanoseconds.
 fn to_ns(h: &rt_core::hist::LatencyHist) -> Result<Histogram<u64>, BenchError> {
     let mut out = new_hist()?;
@@ -300,9 +280,11 @@ fn home_printer(
     axes: [bool; 3],
     m: &HomingMode,
 ) -> Result<(CycleFigures, Vec<String>), BenchCmdError> {
-    let traces = TraceDir::new(name).map_err(|source| BenchCmdError::TraceDir {
-        mode: "homing",
-        source,
+    let traces = TraceDir::new(&format!("homing-{}-{name}", std::process::id())).map_err(|source| {
+        BenchCmdError::TraceDir {
+            mode: "homing",
+            source,
+        }
     })?;
     let opts = HomeOptions {
         config: config.clone(),

@@ -8,6 +8,7 @@
 mod error;
 mod homing;
 mod pipeline;
+mod trace_dir;
 
 use std::path::PathBuf;
 use std::time::Duration;

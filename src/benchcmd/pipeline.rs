@@ -8,6 +8,7 @@
 //! step's lateness (executed − scheduled). The verdict says whether the 100 ms lead held, or
 //! the first violation and where.
 
+use super::trace_dir::TraceDir;
 use std::io::Write;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -82,9 +83,11 @@ pub fn run(
     s.report.set("time_scale", m.time_scale);
     s.report.set("max_error_us", m.max_error_us);
     s.report.set("realtime", m.realtime);
-    let traces = TraceDir::new().map_err(|source| BenchCmdError::TraceDir {
-        mode: "pipeline",
-        source,
+    let traces = TraceDir::new(&format!("pipeline-{}", std::process::id())).map_err(|source| {
+        BenchCmdError::TraceDir {
+            mode: "pipeline",
+            source,
+        }
     })?;
     let t0 = mono_ns().map_err(err)?;
     let (hists, outcome) = print(m, traces.base(), &mut s.report.figures);
@@ -220,28 +223,6 @@ fn print(
         }
     };
     (hists, outcome)
-}
-
-/// A scratch folder for the simulated MCUs' step traces, removed when dropped.
-struct TraceDir(PathBuf);
-
-impl TraceDir {
-    fn new() -> std::io::Result<TraceDir> {
-        let dir = std::env::temp_dir().join(format!("cadence-bench-pipeline-{}", std::process::id()));
-        std::fs::create_dir_all(&dir)?;
-        Ok(TraceDir(dir))
-    }
-
-    /// The main MCU's trace; the others' are named from it ([`cadence::mcus::trace_path`]).
-    fn base(&self) -> PathBuf {
-        self.0.join("mcu.trace")
-    }
-}
-
-impl Drop for TraceDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
 }
 
 /// What the MCUs saw, from their step traces.
