@@ -654,8 +654,12 @@ impl FeedTarget for PlannerRun<'_, '_> {
         // Formatted text is printed by the main thread with the summary.
         let mut out = Vec::new();
         let result = run_motion(&mut ctx, cmd, &mut out);
-        if let (Err(_), Some(detail)) = (&result, ctx.comm_timeout_detail.take()) {
-            out.push(format!("homing: communication timeout: {detail}"));
+        let timeout_detail = match (&result, ctx.comm_timeout_detail.take()) {
+            (Err(_), Some(detail)) => Some(format!("homing: communication timeout: {detail}")),
+            _ => None,
+        };
+        if let Some(line) = &timeout_detail {
+            out.push(line.clone());
         }
         if let Some(session) = st.session {
             match &result {
@@ -669,6 +673,11 @@ impl FeedTarget for PlannerRun<'_, '_> {
             }
         }
         self.homing_reports.extend(out);
+        if let Some(line) = timeout_detail {
+            // Which member fell silent, or whose expiry passed: printed with the error, since a
+            // failed print has no summary to carry it.
+            self.warn(line);
+        }
         result?;
         if matches!(cmd, MotionCmd::Home(_)) {
             st.log.log(Level::Info, "homing done", []);
