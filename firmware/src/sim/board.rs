@@ -14,13 +14,13 @@ use super::bltouch::{BlTouch, BlTouchSpec};
 use super::cli::{HeaterFaultSpec, HeaterSpec};
 use super::heater::Heater;
 use super::tmc::{TmcDriver, TmcSpec};
+use super::trace_file::TraceFile;
 use super::world::World;
 use crate::core::{Board, Lateness, StepperConfig, TriggerSource};
 use crate::trace::{ticks_to_us, TraceRecord, TraceWriter, TriggerRecord};
 use hdrhistogram::{CreationError, Histogram};
 use rt_core::{McuClock, WireClock};
-use std::fs::File;
-use std::io::{self, BufWriter};
+use std::io;
 
 /// Largest lateness the histogram resolves (µs); larger values saturate.
 pub const LATENESS_MAX_US: u64 = 60_000_000;
@@ -52,7 +52,7 @@ pub struct SimBoard {
     /// Bytes dropped because `out` was over [`OUTPUT_LIMIT`].
     pub dropped_output: u64,
     clock_freq: u32,
-    trace: Option<TraceWriter<BufWriter<File>>>,
+    trace: Option<TraceWriter<TraceFile>>,
     trace_error: Option<io::Error>,
     lateness: Histogram<u64>,
     queue_steps: u64,
@@ -67,10 +67,7 @@ pub struct SimBoard {
 
 impl SimBoard {
     /// A board for an MCU at `clock_freq`, tracing to `trace` if given.
-    pub fn new(
-        clock_freq: u32,
-        trace: Option<TraceWriter<BufWriter<File>>>,
-    ) -> Result<SimBoard, CreationError> {
+    pub fn new(clock_freq: u32, trace: Option<TraceWriter<TraceFile>>) -> Result<SimBoard, CreationError> {
         // Fixed bounds: saturating_record never allocates.
         let lateness = Histogram::new_with_bounds(1, LATENESS_MAX_US, 3)?;
         Ok(SimBoard {
@@ -168,7 +165,7 @@ impl SimBoard {
     /// Flushes and closes the trace; reports the first write error, if any.
     pub fn finish_trace(&mut self) -> io::Result<()> {
         if let Some(w) = self.trace.take() {
-            w.finish()?;
+            w.finish()?.close()?;
         }
         match self.trace_error.take() {
             Some(e) => Err(e),
@@ -323,7 +320,8 @@ mod tests {
     #[test]
     fn widens_clocks_and_measures_lateness_and_lead() {
         let path = std::env::temp_dir().join(format!("cadence-board-test-{}.bin", std::process::id()));
-        let w = TraceWriter::create(&path, crate::trace::TraceFormat::Bin, 1_000_000, 1.0).unwrap();
+        let file = TraceFile::create(&path).unwrap();
+        let w = TraceWriter::new(file, crate::trace::TraceFormat::Bin, 1_000_000, 1.0).unwrap();
         let mut b = SimBoard::new(1_000_000, Some(w)).unwrap();
         b.now = (1u64 << 32) + 500;
         b.queue_step_received(2, WireClock(100_500), WireClock(500));

@@ -26,6 +26,7 @@ pub mod pty;
 pub mod spin;
 pub mod surface;
 pub mod tmc;
+pub mod trace_file;
 pub mod world;
 
 use crate::core::{Mcu, McuConfig};
@@ -158,16 +159,19 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
         .transpose()?;
     let trace = match &cli.trace {
         Some(path) => Some(
-            TraceWriter::create(
-                path,
-                cli.trace_format.into(),
-                cli.clock_freq as u64,
-                cli.time_scale,
-            )
-            .map_err(|source| SimError::Trace {
-                path: path.clone(),
-                source,
-            })?,
+            trace_file::TraceFile::create(path)
+                .and_then(|file| {
+                    TraceWriter::new(
+                        file,
+                        cli.trace_format.into(),
+                        cli.clock_freq as u64,
+                        cli.time_scale,
+                    )
+                })
+                .map_err(|source| SimError::Trace {
+                    path: path.clone(),
+                    source,
+                })?,
         ),
         None => None,
     };
