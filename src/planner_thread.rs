@@ -673,6 +673,15 @@ impl FeedTarget for PlannerRun<'_, '_> {
             }
         }
         self.homing_reports.extend(out);
+        // A BED_MESH_CALIBRATE or BED_MESH_PROFILE SAVE/REMOVE is pending for SAVE_CONFIG from
+        // now on, as Klipper's `configfile.save_config_pending` shows it.
+        if let Some(bm) = &self.st.machine.bed_mesh {
+            let pending = bm.take_pending();
+            if !pending.is_empty() {
+                self.autosave.merge(pending);
+                self.publish_save_pending();
+            }
+        }
         if let Some(line) = timeout_detail {
             // Which member fell silent, or whose expiry passed: printed with the error, since a
             // failed print has no summary to carry it.

@@ -243,3 +243,55 @@ fn open_errors_say_what_and_where() {
         other => panic!("expected an option error, got {other:?}"),
     }
 }
+
+/// A mesh calibrated or a profile saved or removed is pending for SAVE_CONFIG at once (the
+/// `configfile.save_config_pending` of Klipper's status), not only when SAVE_CONFIG runs.
+#[test]
+fn a_bed_mesh_profile_is_pending_for_save_config_as_soon_as_it_is_made() {
+    use sysconfig::autosave::SectionChange;
+    let _turn = turn();
+    let dir = cadence_tests::scratch("library-mesh-pending");
+    let text = std::fs::read_to_string(workspace().join("examples/simulated-probe.cfg")).expect("example");
+    let text = text
+        .replace("[mcu probe_mcu]\nserial: simulator\n", "")
+        .replace("pin: ^probe_mcu:PA4", "pin: ^PA4")
+        .replace("bed_surface_z: 0", "bed_surface_z: 0\nbed_tilt_x: 0.01");
+    let cfg = dir.join("printer.cfg");
+    std::fs::write(
+        &cfg,
+        format!("{text}\n[bed_mesh]\nmesh_min: 10, 10\nmesh_max: 30, 30\nprobe_count: 3, 3\nhorizontal_move_z: 3\n"),
+    )
+    .expect("write config");
+    let opts = PrinterOptions {
+        log_to_stderr: true,
+        ..PrinterOptions::default()
+    };
+    let printer = Printer::open(PrinterSource::ConfigFile(cfg), opts).expect("open");
+    let pending =
+        |p: &Printer| -> Vec<(String, SectionChange)> { p.status().save_config_pending.items().to_vec() };
+    assert!(pending(&printer).is_empty());
+    printer.home([true, true, true]).expect("home");
+    printer.run_command("BED_MESH_CALIBRATE").expect("calibrate");
+    let after = pending(&printer);
+    assert_eq!(after.len(), 1, "{after:?}");
+    assert_eq!(after[0].0, "bed_mesh default");
+    let SectionChange::Set(opts) = &after[0].1 else {
+        panic!("{after:?}");
+    };
+    assert!(opts.iter().any(|(k, _)| k == "points"), "{opts:?}");
+    printer.run_command("BED_MESH_PROFILE SAVE=copy").expect("save");
+    printer
+        .run_command("BED_MESH_PROFILE REMOVE=default")
+        .expect("remove");
+    let after = pending(&printer);
+    let names: Vec<(&str, bool)> = after
+        .iter()
+        .map(|(s, c)| (s.as_str(), matches!(c, SectionChange::Remove)))
+        .collect();
+    assert_eq!(
+        names,
+        [("bed_mesh copy", false), ("bed_mesh default", true)],
+        "{after:?}"
+    );
+    printer.close().expect("close");
+}
