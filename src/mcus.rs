@@ -142,6 +142,10 @@ pub enum ConfigureError {
         theirs: u32,
         ours: u32,
     },
+    /// The MCU restarted by re-executing itself (Klipper's Linux-process MCU on
+    /// `config_reset`), which ended the link: it must be connected again.
+    #[error("restarted, and the connection to it ended: connect again")]
+    Reconnect,
     /// The MCU shut down while configuring (its reason).
     #[error("shut down: {reason} (the configuration was not accepted; restart the MCU)")]
     ShutDown { reason: String },
@@ -220,33 +224,9 @@ impl Mcus {
                 sim = Some(s);
                 Box::new(t)
             } else {
-                Box::new(SerialTransport::open(&mcu_cfg.serial, mcu_cfg.baud).map_err(|e| {
-                    McuError::Open {
-                        mcu: name.clone(),
-                        port: mcu_cfg.serial.clone(),
-                        why: e.to_string(),
-                    }
-                })?)
+                open_serial(&name, &mcu_cfg.serial, mcu_cfg.baud)?
             };
-            let link_opts = LinkOptions {
-                name: name.clone(),
-                identify_timeout: Duration::from_secs(5),
-                response_timeout: Duration::from_secs(2),
-                queue_capacity: 4096,
-            };
-            let io_rt = opts.io_rt.clone().map(|mut spec| {
-                spec.name = format!("io-{name}");
-                spec
-            });
-            let tuning = LinkTuning {
-                margin_hook: opts.lead_hooks.as_ref().map(|make| make(i)),
-                thread_setup: io_rt.map(|spec| -> Box<dyn FnOnce() + Send> {
-                    Box::new(move || {
-                        rt_core::os::apply_rt(&spec);
-                    })
-                }),
-                ..LinkTuning::default()
-            };
+            let (link_opts, tuning) = link_settings(&name, &opts, i);
             let link = match McuLink::connect_with(transport, link_opts, tuning) {
                 Ok(l) => l,
                 Err(e) => {
@@ -278,7 +258,23 @@ impl Mcus {
             });
         }
         for i in 0..mcus.list.len() {
-            if let Err(source) = mcus.configure(i, machine) {
+            let mut result = mcus.configure(i, machine);
+            if let Err(ConfigureError::Reconnect) = result {
+                // Restarted by re-executing itself (Klipper's Linux-process MCU): connect to
+                // its new instance and configure that.
+                let serial = cfg.mcus.get(i).map(|m| (m.serial.clone(), m.baud));
+                result = match serial {
+                    Some((port, baud)) => match mcus.reconnect(i, &port, baud, &opts) {
+                        Ok(()) => mcus.configure(i, machine),
+                        Err(e) => {
+                            mcus.close();
+                            return Err(e);
+                        }
+                    },
+                    None => Err(ConfigureError::Reconnect),
+                };
+            }
+            if let Err(source) = result {
                 let mcu = mcus.list[i].name.clone();
                 mcus.close();
                 return Err(McuError::Configure {
@@ -323,20 +319,44 @@ impl Mcus {
                  stepper enable pins are not driven"
             );
         }
-        if reply.get("is_config") == Some(1) {
+        let was_shut_down = reply.get("is_shutdown") == Some(1);
+        let reply = if reply.get("is_config") == Some(1) || was_shut_down {
             // A long-running MCU (a board, or Klipper's Linux-process MCU) keeps its
-            // configuration between runs. Reusing it would need the host's position model
-            // re-based on the MCU's step counters; until then a restart is required.
+            // configuration, or its shutdown, between runs: restart it as Klipper's
+            // FIRMWARE_RESTART does.
             let theirs = reply.get("crc").unwrap_or(-1) as u32;
             let same = if theirs == crc {
                 "this printer.cfg's configuration"
             } else {
                 "another configuration"
             };
-            return Err(ConfigureError::AlreadyConfigured {
-                same,
-                theirs,
-                ours: crc,
+            let why = match (was_shut_down, conn.link.shutdown_reason()) {
+                (true, Some(reason)) => format!("was shut down by an earlier run ({reason})"),
+                (true, None) => "was shut down by an earlier run".to_string(),
+                (false, _) => format!("was configured by an earlier run (with {same}, crc {theirs:#010x})"),
+            };
+            match restart(&conn.link, get_config, &name, &why)? {
+                Restarted::Reply(reply) => reply,
+                Restarted::Reconnect => return Err(ConfigureError::Reconnect),
+                Restarted::Unsupported if was_shut_down => {
+                    return Err(ConfigureError::ShutDown {
+                        reason: conn.link.shutdown_reason().unwrap_or_default(),
+                    })
+                }
+                Restarted::Unsupported => {
+                    return Err(ConfigureError::AlreadyConfigured {
+                        same,
+                        theirs,
+                        ours: crc,
+                    })
+                }
+            }
+        } else {
+            reply
+        };
+        if reply.get("is_config") == Some(1) {
+            return Err(ConfigureError::NotAccepted {
+                reply: format!("still configured after config_reset: {reply}"),
             });
         }
         let reply = {
@@ -405,6 +425,35 @@ impl Mcus {
                 });
             }
         }
+        Ok(())
+    }
+
+    /// Connects MCU `i` again at `port` after it restarted by re-executing itself: waits (up
+    /// to 5 s) for the port to come back, identifies the new instance and replaces the link.
+    fn reconnect(&mut self, i: usize, port: &str, baud: u32, opts: &ConnectOptions) -> Result<(), McuError> {
+        let Some(conn) = self.list.get_mut(i) else {
+            return Ok(());
+        };
+        let name = conn.name.clone();
+        let deadline = std::time::Instant::now() + Duration::from_secs(5);
+        let transport = loop {
+            // The old instance's port may linger for a moment: try until one identifies.
+            std::thread::sleep(Duration::from_millis(100));
+            let attempt = open_serial(&name, port, baud).and_then(|t| {
+                let (link_opts, tuning) = link_settings(&name, opts, i);
+                McuLink::connect_with(t, link_opts, tuning).map_err(|source| McuError::Link {
+                    mcu: name.clone(),
+                    source,
+                })
+            });
+            match attempt {
+                Ok(link) => break link,
+                Err(e) if std::time::Instant::now() >= deadline => return Err(e),
+                Err(_) => continue,
+            }
+        };
+        let old = std::mem::replace(&mut conn.link, transport);
+        let _ = old.close();
         Ok(())
     }
 
@@ -614,6 +663,94 @@ fn tmc_oid0(dict: &Dictionary, machine: &Machine, mcu: &str) -> u8 {
 
 /// `get_config` → `config`, retried: MCU → host traffic is not retransmitted, so on a noisy line
 /// an answer can be lost; the query itself is idempotent. Bounded: 4 tries of 1 s.
+/// Restarts an MCU left configured or shut down by an earlier run, the way Klipper's
+/// FIRMWARE_RESTART does it with no `reset` command: `emergency_stop` (unless already shut
+/// down; its `shutdown` awaited), then `config_reset`, which Klipper's MCUs and Cadence's
+/// accept only while shut down and which leaves them unconfigured and running on the same
+/// link, or (Klipper's Linux-process MCU) re-execute themselves. Says so on stderr (`why`).
+fn restart(
+    link: &McuLink,
+    get_config: Cmd,
+    name: &str,
+    why: &str,
+) -> Result<Restarted, links::mcu::LinkError> {
+    let dict = link.dictionary();
+    let (Ok(stop), Ok(reset)) = (
+        dict.encode("emergency_stop", &[]),
+        dict.encode("config_reset", &[]),
+    ) else {
+        return Ok(Restarted::Unsupported);
+    };
+    eprintln!("cadence: mcu '{name}' {why}: restarting it (emergency_stop, config_reset)");
+    if link.shutdown_reason().is_none() {
+        link.send(stop)?;
+        let deadline = std::time::Instant::now() + Duration::from_secs(1);
+        while link.shutdown_reason().is_none() && std::time::Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+    link.send(reset)?;
+    // Answers the MCU sent before it took config_reset (an `is_shutdown`) arrive meanwhile;
+    // an MCU that restarts by re-executing itself closes its end of the link.
+    let deadline = std::time::Instant::now() + Duration::from_millis(300);
+    while std::time::Instant::now() < deadline {
+        if link.error().is_some() {
+            return Ok(Restarted::Reconnect);
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    link.clear_shutdown();
+    match query_config(link, get_config) {
+        Ok(reply) => Ok(Restarted::Reply(reply)),
+        Err(_) if link.error().is_some() => Ok(Restarted::Reconnect),
+        Err(e) => Err(e),
+    }
+}
+
+/// What [`restart`] left.
+enum Restarted {
+    /// The dictionary has no `config_reset`.
+    Unsupported,
+    /// The same link, the MCU's fresh `get_config` reply.
+    Reply(links::dict::Message),
+    /// The MCU closed the link to restart: connect again.
+    Reconnect,
+}
+
+/// Opens a board's serial port (or a pty a Linux-process MCU made) as a transport.
+fn open_serial(name: &str, port: &str, baud: u32) -> Result<Box<dyn Transport>, McuError> {
+    let t = SerialTransport::open(port, baud).map_err(|e| McuError::Open {
+        mcu: name.to_string(),
+        port: port.to_string(),
+        why: e.to_string(),
+    })?;
+    Ok(Box::new(t))
+}
+
+/// The link settings of MCU `name`, the `i`-th in `[mcu]` order.
+fn link_settings(name: &str, opts: &ConnectOptions, i: usize) -> (LinkOptions, LinkTuning) {
+    let link_opts = LinkOptions {
+        name: name.to_string(),
+        identify_timeout: Duration::from_secs(5),
+        response_timeout: Duration::from_secs(2),
+        queue_capacity: 4096,
+    };
+    let io_rt = opts.io_rt.clone().map(|mut spec| {
+        spec.name = format!("io-{name}");
+        spec
+    });
+    let tuning = LinkTuning {
+        margin_hook: opts.lead_hooks.as_ref().map(|make| make(i)),
+        thread_setup: io_rt.map(|spec| -> Box<dyn FnOnce() + Send> {
+            Box::new(move || {
+                rt_core::os::apply_rt(&spec);
+            })
+        }),
+        ..LinkTuning::default()
+    };
+    (link_opts, tuning)
+}
+
 fn query_config(link: &McuLink, get_config: Cmd) -> Result<links::dict::Message, links::mcu::LinkError> {
     let mut tries = 1;
     loop {

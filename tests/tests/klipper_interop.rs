@@ -186,18 +186,22 @@ fn configuration_sends_endstops_before_steppers() {
     assert!(last_endstop < first("config_stepper"), "{names:?}");
 }
 
-/// An MCU already shut down when Cadence configures it answers with `is_shutdown` and its
-/// reason: Cadence says that reason as the MCU gave it (it said only "did not accept the
-/// configuration"). A `cadence-mcu --keep-open` is shut down by a first host's
-/// `emergency_stop`, then `cadence home` connects to it as to a board.
+/// A board keeps its state between host runs: an MCU left shut down, or configured, by an
+/// earlier host is restarted the way Klipper's FIRMWARE_RESTART does it (`emergency_stop`,
+/// `config_reset`), saying why (with the MCU's shutdown reason when it was heard), then
+/// configured afresh (Cadence used to refuse both: "restart the MCU"). A `cadence-mcu
+/// --keep-open` on a pty is shut down by a first host's `emergency_stop`; then two `cadence
+/// print` runs connect to it as to a board: the first finds it shut down, the second
+/// configured by the first.
 #[test]
-fn a_shut_down_mcu_is_reported_with_its_own_reason() {
+fn an_mcu_left_shut_down_or_configured_by_an_earlier_run_is_restarted() {
     use std::io::{BufRead, BufReader, Write};
     use std::os::unix::fs::OpenOptionsExt;
-    let dir = scratch("shut-down-mcu");
+    let dir = scratch("earlier-run-mcu");
     let pty = dir.join("mcu.pty");
     let mut mcu = std::process::Command::new(cadence_tests::bin("cadence-mcu"))
         .args(["--keep-open", "--pty-link", pty.to_str().unwrap()])
+        .args(["--heater", "PE0=PF0,hotend", "--heater", "PE1=PF1,bed"])
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::null())
         .spawn()
@@ -226,24 +230,41 @@ fn a_shut_down_mcu_is_reported_with_its_own_reason() {
         .unwrap()
         .replace("serial: simulator", &format!("serial: {}", pty.display()));
     std::fs::write(&cfg, text).unwrap();
-    let run = cadence(
-        &[
-            "home",
-            "--config",
-            cfg.to_str().unwrap(),
-            "--cycles",
-            "1",
-            "--no-realtime",
-        ],
-        TIMEOUT,
-    );
+    let gcode = dir.join("wait.gcode");
+    std::fs::write(&gcode, "G4 P50\nM400\n").unwrap();
+    let print = || {
+        cadence(
+            &[
+                "print",
+                gcode.to_str().unwrap(),
+                "--config",
+                cfg.to_str().unwrap(),
+                "--no-realtime",
+                "--no-progress",
+            ],
+            TIMEOUT,
+        )
+    };
+    let first = print();
+    let second = print();
     let _ = mcu.kill();
     let _ = mcu.wait();
-    assert_eq!(run.code, Some(1), "{}\n{}", run.stdout, run.stderr);
+    assert_eq!(first.code, Some(0), "{}\n{}", first.stdout, first.stderr);
     assert!(
-        run.stderr.contains("mcu 'mcu': shut down: Command request"),
+        first.stderr.contains(
+            "cadence: mcu 'mcu' was shut down by an earlier run: restarting it (emergency_stop, \
+             config_reset)"
+        ),
         "{}",
-        run.stderr
+        first.stderr
+    );
+    assert_eq!(second.code, Some(0), "{}\n{}", second.stdout, second.stderr);
+    assert!(
+        second.stderr.contains(
+            "cadence: mcu 'mcu' was configured by an earlier run (with this printer.cfg's configuration"
+        ),
+        "{}",
+        second.stderr
     );
 }
 

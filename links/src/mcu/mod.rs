@@ -534,6 +534,14 @@ impl McuLink {
         lock(&self.shared.shutdown).clone()
     }
 
+    /// Forgets the MCU's shutdown once it has left it (a `config_reset` brings a Klipper-style
+    /// MCU back to the unconfigured, running state): clocked sends work again, and a later
+    /// shutdown is recorded with its own reason.
+    pub fn clear_shutdown(&self) {
+        *lock(&self.shared.shutdown) = None;
+        self.shared.is_shutdown.store(false, Ordering::Release);
+    }
+
     /// Why the link died, if it did.
     pub fn error(&self) -> Option<LinkError> {
         self.shared.dead_error()
