@@ -14,11 +14,10 @@ import json
 import os
 import re
 import shutil
-import signal
 import subprocess
 import time
 
-from interop import Blocked, Fail, log, run, selected
+from interop import Blocked, Fail, last_line, log, run, selected, stop
 
 NAME = "c2k-avr-home-print"
 STEPS_PER_MM = {"x": 80.0, "y": 80.0, "z": 400.0}
@@ -74,11 +73,6 @@ def printer_cfg(path, pty):
                   "position_max: %d" % pmax, "homing_speed: %d" % speed, ""]
     with open(path, "w") as f:
         f.write("\n".join(lines) + "\n")
-
-
-def last_line(p):
-    lines = (p.stderr or p.stdout or "").strip().splitlines()
-    return lines[-1] if lines else "exit status %d, no output" % p.returncode
 
 
 def scenarios(results, args, klipper, bins):
@@ -148,13 +142,7 @@ def home_print(args, klipper, bins):
             if printed.returncode != 0 or not m:
                 error = "cadence print: %s" % last_line(printed)
     finally:
-        if board.poll() is None:
-            board.send_signal(signal.SIGTERM)
-            try:
-                board.wait(30)
-            except subprocess.TimeoutExpired:
-                board.kill()
-                board.wait()
+        stop(board, 30)
     with open(positions) as f:
         got = json.load(f)
     pace = got["sim_s"] / got["wall_s"] if got.get("wall_s") else 0.0

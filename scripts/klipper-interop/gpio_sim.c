@@ -187,36 +187,41 @@ open_chip(void)
     return fd;
 }
 
+// The mode argument of open(2), present only when the flags create a file.
+#define OPEN_MODE(flags, mode)                         \
+    do {                                               \
+        if ((flags) & (O_CREAT | O_TMPFILE)) {         \
+            va_list ap;                                \
+            va_start(ap, flags);                       \
+            mode = va_arg(ap, mode_t);                 \
+            va_end(ap);                                \
+        }                                              \
+    } while (0)
+
+static int
+open_any(int large, const char *path, int flags, mode_t mode)
+{
+    configure();
+    if (is_chip(path))
+        return open_chip();
+    int (*real)(const char *, int, ...) = large && real_open64 ? real_open64 : real_open;
+    return real(path, flags, mode);
+}
+
 int
 open(const char *path, int flags, ...)
 {
-    configure();
     mode_t mode = 0;
-    if (flags & (O_CREAT | O_TMPFILE)) {
-        va_list ap;
-        va_start(ap, flags);
-        mode = va_arg(ap, mode_t);
-        va_end(ap);
-    }
-    if (is_chip(path))
-        return open_chip();
-    return real_open(path, flags, mode);
+    OPEN_MODE(flags, mode);
+    return open_any(0, path, flags, mode);
 }
 
 int
 open64(const char *path, int flags, ...)
 {
-    configure();
     mode_t mode = 0;
-    if (flags & (O_CREAT | O_TMPFILE)) {
-        va_list ap;
-        va_start(ap, flags);
-        mode = va_arg(ap, mode_t);
-        va_end(ap);
-    }
-    if (is_chip(path))
-        return open_chip();
-    return real_open64 ? real_open64(path, flags, mode) : real_open(path, flags, mode);
+    OPEN_MODE(flags, mode);
+    return open_any(1, path, flags, mode);
 }
 
 int

@@ -19,11 +19,10 @@ import shutil
 import struct
 import os
 import re
-import signal
 import subprocess
 import time
 
-from interop import run, selected
+from interop import last_line, run, selected, stop
 
 def scenarios(results, args, klipper, bins):
     names = ("c2k-config", "c2k-shutdown-verbatim", "c2k-home-print")
@@ -78,13 +77,7 @@ def scenarios(results, args, klipper, bins):
             else:
                 results.append(("c2k-home-print", "FAIL", msg))
     finally:
-        if mcu.poll() is None:
-            mcu.send_signal(signal.SIGTERM)
-            try:
-                mcu.wait(10)
-            except subprocess.TimeoutExpired:
-                mcu.kill()
-                mcu.wait()
+        stop(mcu)
 
 
 # The c2k-home-print machine: axis, step, dir, enable, endstop line, rotation_distance,
@@ -168,13 +161,7 @@ def home_print(args, klipper, bins, d):
             return fail("cadence print: %s" % last_line(printed))
         restarted = [l for l in printed.stderr.splitlines() if "restarting it" in l]
     finally:
-        if mcu.poll() is None:
-            mcu.send_signal(signal.SIGTERM)
-            try:
-                mcu.wait(10)
-            except subprocess.TimeoutExpired:
-                mcu.kill()
-                mcu.wait()
+        stop(mcu)
     with open(counts, "rb") as f:
         got = struct.unpack("<9q", f.read(72))
     os.remove(counts)
@@ -192,7 +179,3 @@ def home_print(args, klipper, bins, d):
                 if restarted else "no restart", m.group(0), ", ".join(rows),
                 time.monotonic() - t0))
 
-
-def last_line(p):
-    lines = (p.stderr or p.stdout or "").strip().splitlines()
-    return lines[-1] if lines else "exit status %d, no output" % p.returncode

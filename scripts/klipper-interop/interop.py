@@ -75,6 +75,24 @@ def run(cmd, cwd=None, env=None, timeout=None, check=True):
     return p
 
 
+def stop(proc, wait_s=10):
+    """Ends a child process: SIGTERM, then SIGKILL if it is still there after `wait_s`."""
+    if proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(wait_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def last_line(p):
+    """The last line a finished command printed (stderr first), for a table's detail."""
+    lines = (p.stderr or p.stdout or "").strip().splitlines()
+    return lines[-1] if lines else "exit status %d, no output" % p.returncode
+
+
 # ----------------------------------------------------------------------------------------
 # Building Klipper and Cadence
 
