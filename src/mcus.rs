@@ -208,6 +208,12 @@ impl Mcus {
                         if opts.io_rt.as_ref().is_some_and(|s| s.fifo_priority.is_some()) {
                             extra.extend(["--fifo".to_string(), SIM_FIFO_PRIORITY.to_string()]);
                         }
+                        // And its memory locked like the host's: a page of its code that the
+                        // kernel dropped while idle (homing code, between homings) would
+                        // otherwise be read back from a busy disk in the middle of a homing.
+                        if opts.io_rt.as_ref().is_some_and(|s| s.lock_memory) {
+                            extra.push("--lock-memory".to_string());
+                        }
                         extra.extend(sim_env_args(&name));
                         extra
                     },
