@@ -12,9 +12,11 @@
 
 use links::dict::{Cmd, Dictionary};
 use sysconfig::printer::{
-    FanOptions, HeaterControl, HeaterSection, PinRef, PrinterConfig, ThermistorSection,
+    FanOptions, HeaterControl, HeaterSection, PinRef, PrinterConfig, SensorSection, SensorSource,
+    ThermistorSection,
 };
 
+use super::mcu_sensor::{McuSensor, McuSensorError, ADC_TEMPERATURE};
 use super::thermistor::{Element, Sensor, SensorError, SteinhartHart};
 use super::verify::VerifyConfig;
 
@@ -84,7 +86,11 @@ pub struct SensorOut {
     pub gcode_id: Option<String>,
     pub mcu: String,
     pub pin: PinRef,
+    /// The conversion; for the MCU's own sensor ([`SensorOut::internal`]) a placeholder until
+    /// the MCU's type is known: use [`SensorOut::sensor_on`].
     pub sensor: Sensor,
+    /// `temperature_mcu`: the MCU's own sensor, calibrated for the MCU's type.
+    pub internal: Option<McuSensor>,
     pub smooth_time: f64,
     pub min_temp: f64,
     pub max_temp: f64,
@@ -184,6 +190,13 @@ pub enum ObjectsError {
     /// A command does not encode.
     #[error(transparent)]
     Dictionary(#[from] links::dict::DictError),
+    /// `temperature_mcu` on an MCU it cannot be calibrated for.
+    #[error("[temperature_sensor {section}] {source}")]
+    McuSensor {
+        section: String,
+        #[source]
+        source: McuSensorError,
+    },
 }
 
 /// The object of one MCU's thermal list.
@@ -223,6 +236,70 @@ fn sensor_of(
         });
     }
     Sensor::named(sensor_type, pullup, inline).map_err(bad)
+}
+
+/// A sensor read through an MCU's ADC: its MCU, pin, conversion and (for the MCU's own
+/// sensor) calibration; `None` for the host's own sensor.
+type AdcSensor = (String, PinRef, Sensor, Option<McuSensor>);
+
+fn adc_sensor(
+    section: &str,
+    s: &SensorSection,
+    thermistors: &[(String, ThermistorSection)],
+) -> Result<Option<AdcSensor>, ThermalError> {
+    Ok(match &s.source {
+        SensorSource::Adc {
+            sensor_pin,
+            pullup_resistor,
+            inline_resistor,
+        } => {
+            let sensor = sensor_of(
+                section,
+                &s.sensor_type,
+                *pullup_resistor,
+                *inline_resistor,
+                thermistors,
+            )?;
+            Some((sensor_pin.mcu.clone(), sensor_pin.clone(), sensor, None))
+        }
+        SensorSource::Mcu {
+            sensor_mcu,
+            point1,
+            point2,
+        } => {
+            let pin = PinRef {
+                mcu: sensor_mcu.clone(),
+                pin: ADC_TEMPERATURE.to_string(),
+                invert: false,
+                pullup: false,
+                pulldown: false,
+            };
+            let placeholder = Sensor {
+                element: Element::Linear {
+                    base: 0.0,
+                    slope: 1.0,
+                },
+                pullup: 0.0,
+                inline: 0.0,
+            };
+            let internal = McuSensor {
+                point1: *point1,
+                point2: *point2,
+            };
+            Some((sensor_mcu.clone(), pin, placeholder, Some(internal)))
+        }
+        SensorSource::Host { .. } => None,
+    })
+}
+
+impl SensorOut {
+    /// The sensor's conversion on an MCU whose dictionary names its type `mcu_type`.
+    pub fn sensor_on(&self, mcu_type: &str) -> Result<Sensor, McuSensorError> {
+        match &self.internal {
+            Some(m) => m.sensor(mcu_type),
+            None => Ok(self.sensor),
+        }
+    }
 }
 
 impl Thermal {
@@ -321,34 +398,24 @@ impl Thermal {
         Ok(())
     }
 
-    /// The `[temperature_sensor]`s read through an MCU's ADC.
+    /// The `[temperature_sensor]`s read through an MCU's ADC (thermistors and the like, and
+    /// the MCU's own sensor).
     fn add_sensors(&mut self, cfg: &PrinterConfig) -> Result<(), ThermalError> {
         let th = &cfg.thermal;
         for s in &th.temperature_sensors {
             let section = format!("temperature_sensor {}", s.name);
-            let sysconfig::printer::SensorSource::Adc {
-                sensor_pin,
-                pullup_resistor,
-                inline_resistor,
-            } = &s.sensor.source
-            else {
+            let Some((mcu, pin, sensor, internal)) = adc_sensor(&section, &s.sensor, &th.thermistors)? else {
                 // temperature_host is read from the host's own sysfs, no MCU object.
                 continue;
             };
-            let sensor = sensor_of(
-                &section,
-                &s.sensor.sensor_type,
-                *pullup_resistor,
-                *inline_resistor,
-                &th.thermistors,
-            )?;
             self.sensors.push(SensorOut {
                 name: s.name.clone(),
                 fan: None,
                 gcode_id: s.gcode_id.clone(),
-                mcu: sensor_pin.mcu.clone(),
-                pin: sensor_pin.clone(),
+                mcu,
+                pin,
                 sensor,
+                internal,
                 smooth_time: s.sensor.smooth_time,
                 min_temp: s.min_temp,
                 max_temp: s.max_temp,
@@ -426,31 +493,20 @@ impl Thermal {
         let th = &cfg.thermal;
         for f in &th.temperature_fans {
             let section = format!("temperature_fan {}", f.name);
-            let sysconfig::printer::SensorSource::Adc {
-                sensor_pin,
-                pullup_resistor,
-                inline_resistor,
-            } = &f.sensor.source
-            else {
+            let Some((mcu, pin, sensor, internal)) = adc_sensor(&section, &f.sensor, &th.thermistors)? else {
                 return Err(ThermalError::Invalid {
                     section,
-                    what: "sensor_type: only ADC sensors can drive a temperature fan".to_string(),
+                    what: "sensor_type: only sensors on an MCU can drive a temperature fan".to_string(),
                 });
             };
-            let sensor = sensor_of(
-                &section,
-                &f.sensor.sensor_type,
-                *pullup_resistor,
-                *inline_resistor,
-                &th.thermistors,
-            )?;
             self.sensors.push(SensorOut {
                 name: f.name.clone(),
                 fan: Some(self.fans.len()),
                 gcode_id: f.gcode_id.clone(),
-                mcu: sensor_pin.mcu.clone(),
-                pin: sensor_pin.clone(),
+                mcu,
+                pin,
                 sensor,
+                internal,
                 smooth_time: f.sensor.smooth_time,
                 min_temp: f.min_temp,
                 max_temp: f.max_temp,
@@ -622,6 +678,11 @@ impl Thermal {
                 }
                 ThermalObject::SensorAdc(i) => {
                     let s = &self.sensors[i];
+                    let mcu_type = dict.config_str("MCU").unwrap_or_default();
+                    s.sensor_on(&mcu_type).map_err(|source| ObjectsError::McuSensor {
+                        section: s.name.clone(),
+                        source,
+                    })?;
                     let pin = pin_of(&s.pin, &format!("[temperature_sensor {}] sensor_pin", s.name))?;
                     cmds.push(dict.encode("config_analog_in", &[oid, pin])?);
                 }

@@ -412,6 +412,9 @@ pub enum HeaterLoopError {
     /// The MCU link refused a message.
     #[error(transparent)]
     Link(#[from] links::mcu::LinkError),
+    /// `temperature_mcu` on an MCU it cannot be calibrated for.
+    #[error(transparent)]
+    McuSensor(#[from] super::mcu_sensor::McuSensorError),
 }
 
 /// Runs the heater loop until `shared.stop` (then every heater off) or an MCU shutdown. Errors
@@ -476,7 +479,8 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                 }
                 ThermalObject::SensorAdc(i) => {
                     let s = &thermal.sensors[i];
-                    let (lo, hi) = adc_range(&s.sensor, s.min_temp.max(-273.0), s.max_temp.min(1e4), adc_max);
+                    let sensor = s.sensor_on(&dict.config_str("MCU").unwrap_or_default())?;
+                    let (lo, hi) = adc_range(&sensor, s.min_temp.max(-273.0), s.max_temp.min(1e4), adc_max);
                     query_analog(&conn.link, dict, oid, start, freq, lo, hi, 0)?;
                     sensors.push((
                         i,
@@ -485,7 +489,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                             oid,
                             smooth: Smoothed::new(s.smooth_time),
                             full_scale: adc_max * f64::from(SAMPLE_COUNT),
-                            sensor: s.sensor,
+                            sensor,
                             last_count: 0,
                         },
                     ));

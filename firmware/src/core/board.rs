@@ -61,6 +61,12 @@ pub trait Board {
         0
     }
 
+    /// ADC reading of the MCU's own temperature sensor (the `ADC_TEMPERATURE` channel),
+    /// `0..=ADC_MAX`; 0 on a board that does not offer it.
+    fn read_mcu_temperature(&mut self) -> u16 {
+        0
+    }
+
     /// Drive output `pin` to `value`; `clock` is the event's scheduled time.
     fn set_pin(&mut self, _pin: u8, _value: bool, _clock: WireClock) {}
 

@@ -131,6 +131,13 @@ pub const CONSTANTS: &[(&str, ConstValue)] = &[
     ("PWM_MAX", ConstValue::Int(255)),
 ];
 
+/// The pin number of the MCU's own temperature sensor (Klipper's `ADC_TEMPERATURE` pin name):
+/// above every GPIO number (pins travel as `%c` elsewhere, so no GPIO can reach it), read by
+/// `config_analog_in` (whose `pin` is `%u`) through [`Board::read_mcu_temperature`].
+///
+/// [`Board::read_mcu_temperature`]: super::board::Board::read_mcu_temperature
+pub const ADC_TEMPERATURE_PIN: u32 = 256;
+
 /// Divisor of squared loop times in `stats sumsq` (keeps the sum inside 32 bits).
 pub const STATS_SUMSQ_BASE: u32 = 256;
 /// Bytes the host may have in flight to this MCU (its receive buffer is at least this big).

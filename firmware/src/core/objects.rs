@@ -14,7 +14,7 @@
 use super::analog_in::{AnalogEvent, AnalogIn, AnalogQuery};
 use super::board::{Board, TriggerSource};
 use super::commands::*;
-use super::constants::reason;
+use super::constants::{reason, ADC_TEMPERATURE_PIN};
 use super::digital_out::{DigitalOut, DigitalOutConfig, DigitalOutError};
 use super::endstop::{Endstop, EndstopEvent, HomeParams};
 use super::mcu::{Mcu, Object};
@@ -150,7 +150,7 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
             }
             Cmd::SetDigitalOut => self.board.set_pin(arg(0) as u8, arg(1) != 0, now),
             Cmd::ConfigAnalogIn => {
-                self.config_object(oid, Object::AnalogIn(AnalogIn::new(arg(1) as u8)), now);
+                self.config_object(oid, Object::AnalogIn(AnalogIn::new(arg(1) as u32)), now);
             }
             Cmd::QueryAnalogIn => {
                 let q = AnalogQuery {
@@ -224,7 +224,11 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                 Err(e) => self.digital_out_fault(e, now),
             },
             Object::AnalogIn(a) => {
-                let value = self.board.read_adc(a.pin);
+                let value = match u8::try_from(a.pin) {
+                    Ok(pin) => self.board.read_adc(pin),
+                    Err(_) if a.pin == ADC_TEMPERATURE_PIN => self.board.read_mcu_temperature(),
+                    Err(_) => 0,
+                };
                 match a.event(at, value) {
                     AnalogEvent::Rearm(t) => self.rearm(oid, t, now),
                     AnalogEvent::Report { next_clock, value } => {

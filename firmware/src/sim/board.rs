@@ -259,6 +259,11 @@ impl Board for SimBoard {
         }
     }
 
+    fn read_mcu_temperature(&mut self) -> u16 {
+        let t = self.seconds(self.now);
+        super::mcu_temp::adc_of(super::mcu_temp::die_temperature(t))
+    }
+
     fn set_pin(&mut self, pin: u8, value: bool, clock: WireClock) {
         let at = self.extend(clock);
         for b in self.bltouch.iter_mut().filter(|b| b.spec.control_pin == pin) {

@@ -22,6 +22,7 @@ pub mod clock;
 pub mod event_loop;
 pub mod faults;
 pub mod heater;
+pub mod mcu_temp;
 pub mod pty;
 pub mod spin;
 pub mod surface;

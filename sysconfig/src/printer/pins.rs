@@ -211,6 +211,11 @@ impl PinRegistry {
         }
     }
 
+    /// True when `name` is a declared MCU.
+    pub(crate) fn has_mcu(&self, name: &str) -> bool {
+        self.mcus.iter().any(|m| m == name)
+    }
+
     /// Marks `names` as simulated MCUs.
     pub(crate) fn with_simulated(mut self, names: Vec<String>) -> Self {
         self.simulated = names;
