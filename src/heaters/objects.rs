@@ -532,14 +532,6 @@ impl Thermal {
     /// Refuses the fan options the MCUs cannot serve.
     fn check_fans(&self) -> Result<(), ThermalError> {
         for f in &self.fans {
-            if f.opts.hardware_pwm {
-                return Err(ThermalError::Invalid {
-                    section: f.name.clone(),
-                    what: "hardware_pwm: the Cadence MCUs drive fans with software PWM \
-                           (set hardware_pwm: False)"
-                        .to_string(),
-                });
-            }
             if f.opts.enable_pin.is_some() || f.opts.tachometer_pin.is_some() {
                 return Err(ThermalError::Invalid {
                     section: f.name.clone(),
@@ -666,6 +658,18 @@ impl Thermal {
                         h.pwm_cycle_time,
                         self.max_heat_time(),
                     )?;
+                }
+                ThermalObject::Fan(i) if self.fans[i].opts.hardware_pwm => {
+                    // Klipper's hardware PWM: the chip's PWM unit, duty in 0..=PWM_MAX.
+                    let f = &self.fans[i];
+                    if dict.command("config_pwm_out").is_err() {
+                        return Err(ObjectsError::MissingCommand("config_pwm_out"));
+                    }
+                    let pwm_max = dict.config_f64("PWM_MAX")?.round() as i64;
+                    let off = if f.opts.pin.invert { pwm_max } else { 0 };
+                    let pin = pin_of(&f.opts.pin, &format!("[{}] pin", f.name))?;
+                    let cycle_ticks = (f.opts.cycle_time * clock_freq).round().max(1.0) as i64;
+                    cmds.push(dict.encode("config_pwm_out", &[oid, pin, cycle_ticks, off, off, 0])?);
                 }
                 ThermalObject::Fan(i) => {
                     let f = &self.fans[i];

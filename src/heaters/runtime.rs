@@ -369,6 +369,8 @@ struct Relay {
 }
 
 struct RunningFan {
+    /// `hardware_pwm`: `cycle_ticks` is then PWM_MAX and updates are `queue_pwm_out`.
+    hardware: bool,
     link_index: usize,
     oid: u8,
     cycle_ticks: f64,
@@ -499,7 +501,13 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                     RunningFan {
                         link_index: li,
                         oid,
-                        cycle_ticks: thermal.fans[i].opts.cycle_time * freq,
+                        // A hardware PWM's duty is in 0..=PWM_MAX (Klipper's pwm_max).
+                        hardware: thermal.fans[i].opts.hardware_pwm,
+                        cycle_ticks: if thermal.fans[i].opts.hardware_pwm {
+                            dict.config_f64("PWM_MAX")?
+                        } else {
+                            thermal.fans[i].opts.cycle_time * freq
+                        },
                         invert: thermal.fans[i].opts.pin.invert,
                         last: None,
                         control: match thermal.fans[i].role {
@@ -595,6 +603,24 @@ fn send_pwm(
     let cmd = dict.encode(
         "queue_digital_out",
         &[i64::from(oid), (clock & 0xFFFF_FFFF) as i64, i64::from(on)],
+    )?;
+    Ok(link.send_clocked(cmd, 0, clock)?)
+}
+
+/// Fan `f`'s output at `clock`: `value` on ticks of its cycle (software PWM), or its duty in
+/// 0..=PWM_MAX through `queue_pwm_out` (hardware PWM).
+fn send_fan(link: &McuLink, f: &RunningFan, clock: u64, value: u32) -> Result<(), HeaterLoopError> {
+    if !f.hardware {
+        return send_pwm(link, f.oid, clock, value, f.invert, f.cycle_ticks);
+    }
+    let duty = if f.invert {
+        (f.cycle_ticks.round() as u32).saturating_sub(value)
+    } else {
+        value
+    };
+    let cmd = link.dictionary().encode(
+        "queue_pwm_out",
+        &[i64::from(f.oid), (clock & 0xFFFF_FFFF) as i64, i64::from(duty)],
     )?;
     Ok(link.send_clocked(cmd, 0, clock)?)
 }
@@ -885,18 +911,10 @@ fn update_fan(
     let from_off = f.last.is_none_or(|l| l == 0.0);
     let ok = if kick > 0.0 && from_off && speed > 0.0 && speed < 1.0 {
         let full = on_ticks(spec.opts.max_power, f.cycle_ticks);
-        send_pwm(&conn.link, f.oid, at, full, f.invert, f.cycle_ticks).is_ok()
-            && send_pwm(
-                &conn.link,
-                f.oid,
-                at + (kick * conn.clock_freq) as u64,
-                value,
-                f.invert,
-                f.cycle_ticks,
-            )
-            .is_ok()
+        send_fan(&conn.link, f, at, full).is_ok()
+            && send_fan(&conn.link, f, at + (kick * conn.clock_freq) as u64, value).is_ok()
     } else {
-        send_pwm(&conn.link, f.oid, at, value, f.invert, f.cycle_ticks).is_ok()
+        send_fan(&conn.link, f, at, value).is_ok()
     };
     if ok {
         f.last = Some(speed);

@@ -85,6 +85,12 @@ pub enum Cmd {
     SpiTransfer,
     /// `spi_send`.
     SpiSend,
+    /// `config_pwm_out`.
+    ConfigPwmOut,
+    /// `queue_pwm_out`.
+    QueuePwmOut,
+    /// `set_pwm_out` (a pin set once, no object).
+    SetPwmOut,
 }
 
 /// Whether a table entry is a command or a response.
@@ -262,6 +268,17 @@ pub const MESSAGES: &[MessageDef] = &[
     cmd("spi_transfer oid=%c data=%*s", Cmd::SpiTransfer, false),
     cmd("spi_send oid=%c data=%*s", Cmd::SpiSend, false),
     resp(FMT_SPI_TRANSFER_RESPONSE),
+    cmd(
+        "config_pwm_out oid=%c pin=%u cycle_ticks=%u value=%hu default_value=%hu max_duration=%u",
+        Cmd::ConfigPwmOut,
+        false,
+    ),
+    cmd("queue_pwm_out oid=%c clock=%u value=%hu", Cmd::QueuePwmOut, false),
+    cmd(
+        "set_pwm_out pin=%u cycle_ticks=%u value=%hu",
+        Cmd::SetPwmOut,
+        false,
+    ),
 ];
 
 /// Most parameters of any message in the table (checked by a test).

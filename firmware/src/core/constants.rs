@@ -50,6 +50,10 @@ pub mod reason {
     pub const UNKNOWN: &str = "Unknown shutdown reason";
     pub const TMCUART_TOO_LARGE: &str = "tmcuart data too large";
     pub const SPI_TOO_LARGE: &str = "spi data too large";
+    /// A hardware PWM change scheduled in the past, or `max_duration` passed without one.
+    pub const MISSED_PWM: &str = "Missed scheduling of next hard pwm event";
+    /// A `queue_pwm_out` further than `max_duration` after the change away from the default.
+    pub const PWM_EXCEEDS_MAX_DURATION: &str = "Scheduled pwm event will exceed max_duration";
 }
 
 /// Every shutdown reason; the index is its `static_string_id`.
@@ -75,6 +79,8 @@ pub const SHUTDOWN_REASONS: &[&str] = &[
     reason::EXCEEDS_MAX_DURATION,
     reason::TMCUART_TOO_LARGE,
     reason::SPI_TOO_LARGE,
+    reason::MISSED_PWM,
+    reason::PWM_EXCEEDS_MAX_DURATION,
 ];
 
 /// The `static_string_id` of `reason` (0, "Unknown shutdown reason", if it is not listed).

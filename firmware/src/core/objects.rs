@@ -18,6 +18,7 @@ use super::constants::{reason, ADC_TEMPERATURE_PIN};
 use super::digital_out::{DigitalOut, DigitalOutConfig, DigitalOutError};
 use super::endstop::{Endstop, EndstopEvent, HomeParams};
 use super::mcu::{Mcu, Object};
+use super::pwm_out::{PwmOut, PwmOutConfig, PwmOutError};
 use super::trsync::Trsync;
 use links::proto::format::Value;
 use rt_core::WireClock;
@@ -149,6 +150,34 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                 self.arm_or_disarm(oid as u8, wake);
             }
             Cmd::SetDigitalOut => self.board.set_pin(arg(0) as u8, arg(1) != 0, now),
+            Cmd::ConfigPwmOut => {
+                let config = PwmOutConfig {
+                    pin: arg(1) as u8,
+                    cycle_ticks: arg(2) as u32,
+                    value: arg(3) as u16,
+                    default_value: arg(4) as u16,
+                    max_duration: arg(5) as u32,
+                };
+                if self.config_object(oid, Object::PwmOut(PwmOut::new(config)), now) {
+                    self.board
+                        .set_pwm(config.pin, config.cycle_ticks, config.value, now);
+                }
+            }
+            Cmd::QueuePwmOut => {
+                let Some(Object::PwmOut(p)) = self.object(oid) else {
+                    return self.shutdown(reason::INVALID_OID, now);
+                };
+                match p.queue(clock(1), arg(2) as u16, now) {
+                    Ok(()) => {
+                        let wake = p.next_wake();
+                        self.arm_or_disarm(oid as u8, wake);
+                    }
+                    Err(e) => self.pwm_out_fault(e, now),
+                }
+            }
+            Cmd::SetPwmOut => self
+                .board
+                .set_pwm(arg(0) as u8, arg(1) as u32, arg(2) as u16, now),
             Cmd::ConfigAnalogIn => {
                 self.config_object(oid, Object::AnalogIn(AnalogIn::new(arg(1) as u32)), now);
             }
@@ -222,6 +251,18 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                     }
                 }
                 Err(e) => self.digital_out_fault(e, now),
+            },
+            Object::PwmOut(p) => match p.event(at) {
+                Ok(change) => {
+                    let (pin, cycle, wake) = (p.config().pin, p.config().cycle_ticks, p.next_wake());
+                    if let Some(value) = change {
+                        self.board.set_pwm(pin, cycle, value, at);
+                    }
+                    if let Some(w) = wake {
+                        self.rearm(oid, w, now);
+                    }
+                }
+                Err(e) => self.pwm_out_fault(e, now),
             },
             Object::AnalogIn(a) => {
                 let value = match u8::try_from(a.pin) {
@@ -302,6 +343,15 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
             DigitalOutError::Missed => reason::MISSED_DIGITAL_OUT,
             DigitalOutError::ExceedsMaxDuration => reason::EXCEEDS_MAX_DURATION,
             DigitalOutError::QueueFull => reason::MOVE_QUEUE_OVERFLOW,
+        };
+        self.shutdown(r, now);
+    }
+
+    fn pwm_out_fault(&mut self, e: PwmOutError, now: WireClock) {
+        let r = match e {
+            PwmOutError::Missed => reason::MISSED_PWM,
+            PwmOutError::ExceedsMaxDuration => reason::PWM_EXCEEDS_MAX_DURATION,
+            PwmOutError::QueueFull => reason::MOVE_QUEUE_OVERFLOW,
         };
         self.shutdown(r, now);
     }
