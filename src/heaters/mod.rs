@@ -7,6 +7,7 @@
 //! and configuration commands) and [`runtime`] (the heater thread of a live print: ADC reports
 //! → temperature → control → PWM on the MCU clock, verify_heater, fans).
 
+pub mod adc_scaled;
 pub mod calibrate;
 pub mod control;
 pub mod feed;

@@ -74,6 +74,8 @@ pub struct HeaterOut {
     pub min_extrude_temp: Option<f64>,
     pub verify: VerifyConfig,
     pub sim: SimKind,
+    /// The `[adc_scaled]` chip (index in [`Thermal::scaled`]) its sensor pin is read through.
+    pub sensor_scale: Option<usize>,
 }
 
 /// One ADC `[temperature_sensor NAME]`, or the sensor of `[temperature_fan NAME]`.
@@ -91,6 +93,8 @@ pub struct SensorOut {
     pub sensor: Sensor,
     /// `temperature_mcu`: the MCU's own sensor, calibrated for the MCU's type.
     pub internal: Option<McuSensor>,
+    /// The `[adc_scaled]` chip (index in [`Thermal::scaled`]) its pin is read through.
+    pub scale: Option<usize>,
     pub smooth_time: f64,
     pub min_temp: f64,
     pub max_temp: f64,
@@ -154,9 +158,21 @@ pub struct FanOut {
     pub role: FanRole,
 }
 
+/// One `[adc_scaled NAME]`: the reference inputs of MCU `mcu`'s ADC.
+#[derive(Debug, Clone)]
+pub struct ScaledOut {
+    pub name: String,
+    pub mcu: String,
+    pub vref_pin: PinRef,
+    pub vssa_pin: PinRef,
+    pub smooth_time: f64,
+}
+
 /// Every thermal object of the printer.
 #[derive(Debug, Clone, Default)]
 pub struct Thermal {
+    /// `[adc_scaled]` chips.
+    pub scaled: Vec<ScaledOut>,
     pub heaters: Vec<HeaterOut>,
     pub sensors: Vec<SensorOut>,
     pub fans: Vec<FanOut>,
@@ -210,6 +226,10 @@ pub enum ThermalObject {
     SensorAdc(usize),
     /// Fan `i`'s output.
     Fan(usize),
+    /// `[adc_scaled]` chip `i`'s `vref_pin` input.
+    ScaledVref(usize),
+    /// `[adc_scaled]` chip `i`'s `vssa_pin` input.
+    ScaledVssa(usize),
 }
 
 fn sensor_of(
@@ -292,6 +312,21 @@ fn adc_sensor(
     })
 }
 
+/// `pin` as its MCU reads it: `NAME:PIN` of `[adc_scaled NAME]` is PIN of the chip's MCU,
+/// read through chip `NAME` (its index in `scaled`).
+fn resolve_scaled(scaled: &[ScaledOut], pin: &PinRef) -> (PinRef, Option<usize>) {
+    match scaled.iter().position(|c| c.name == pin.mcu) {
+        Some(k) => (
+            PinRef {
+                mcu: scaled[k].mcu.clone(),
+                ..pin.clone()
+            },
+            Some(k),
+        ),
+        None => (pin.clone(), None),
+    }
+}
+
 impl SensorOut {
     /// The sensor's conversion on an MCU whose dictionary names its type `mcu_type`.
     pub fn sensor_on(&self, mcu_type: &str) -> Result<Sensor, McuSensorError> {
@@ -319,6 +354,18 @@ impl Thermal {
         if cfg.mcus.iter().any(|m| m.is_simulated()) {
             out.sim_time_scale = cfg.simulator.time_scale;
         }
+        out.scaled = cfg
+            .thermal
+            .adc_scaled
+            .iter()
+            .map(|a| ScaledOut {
+                name: a.name.clone(),
+                mcu: a.vref_pin.mcu.clone(),
+                vref_pin: a.vref_pin.clone(),
+                vssa_pin: a.vssa_pin.clone(),
+                smooth_time: a.smooth_time,
+            })
+            .collect();
         out.add_heaters(cfg)?;
         out.add_sensors(cfg)?;
         out.add_fans(cfg)?;
@@ -343,12 +390,13 @@ impl Thermal {
             } else {
                 format!("heater_generic {}", h.name)
             };
-            if h.sensor_pin.mcu != h.heater_pin.mcu {
+            let (sensor_pin, sensor_scale) = resolve_scaled(&self.scaled, &h.sensor_pin);
+            if sensor_pin.mcu != h.heater_pin.mcu {
                 return Err(ThermalError::Invalid {
                     section,
                     what: format!(
                         "sensor_pin is on mcu '{}' and heater_pin on mcu '{}': both must be on one MCU",
-                        h.sensor_pin.mcu, h.heater_pin.mcu
+                        sensor_pin.mcu, h.heater_pin.mcu
                     ),
                 });
             }
@@ -374,7 +422,7 @@ impl Thermal {
                 name: h.name.clone(),
                 mcu: h.heater_pin.mcu.clone(),
                 heater_pin: h.heater_pin.clone(),
-                sensor_pin: h.sensor_pin.clone(),
+                sensor_pin,
                 sensor,
                 max_power: h.max_power,
                 pwm_cycle_time: h.pwm_cycle_time,
@@ -385,6 +433,7 @@ impl Thermal {
                 min_extrude_temp: extruder.then_some(h.min_extrude_temp),
                 verify,
                 sim: if extruder { SimKind::Hotend } else { SimKind::Bed },
+                sensor_scale,
             });
         }
         for (name, _) in &th.verify_heater {
@@ -404,18 +453,20 @@ impl Thermal {
         let th = &cfg.thermal;
         for s in &th.temperature_sensors {
             let section = format!("temperature_sensor {}", s.name);
-            let Some((mcu, pin, sensor, internal)) = adc_sensor(&section, &s.sensor, &th.thermistors)? else {
+            let Some((_, pin, sensor, internal)) = adc_sensor(&section, &s.sensor, &th.thermistors)? else {
                 // temperature_host is read from the host's own sysfs, no MCU object.
                 continue;
             };
+            let (pin, scale) = resolve_scaled(&self.scaled, &pin);
             self.sensors.push(SensorOut {
                 name: s.name.clone(),
                 fan: None,
                 gcode_id: s.gcode_id.clone(),
-                mcu,
+                mcu: pin.mcu.clone(),
                 pin,
                 sensor,
                 internal,
+                scale,
                 smooth_time: s.sensor.smooth_time,
                 min_temp: s.min_temp,
                 max_temp: s.max_temp,
@@ -493,20 +544,22 @@ impl Thermal {
         let th = &cfg.thermal;
         for f in &th.temperature_fans {
             let section = format!("temperature_fan {}", f.name);
-            let Some((mcu, pin, sensor, internal)) = adc_sensor(&section, &f.sensor, &th.thermistors)? else {
+            let Some((_, pin, sensor, internal)) = adc_sensor(&section, &f.sensor, &th.thermistors)? else {
                 return Err(ThermalError::Invalid {
                     section,
                     what: "sensor_type: only sensors on an MCU can drive a temperature fan".to_string(),
                 });
             };
+            let (pin, scale) = resolve_scaled(&self.scaled, &pin);
             self.sensors.push(SensorOut {
                 name: f.name.clone(),
                 fan: Some(self.fans.len()),
                 gcode_id: f.gcode_id.clone(),
-                mcu,
+                mcu: pin.mcu.clone(),
                 pin,
                 sensor,
                 internal,
+                scale,
                 smooth_time: f.sensor.smooth_time,
                 min_temp: f.min_temp,
                 max_temp: f.max_temp,
@@ -589,7 +642,26 @@ impl Thermal {
                 .filter(|(_, f)| f.mcu == mcu)
                 .map(|(i, _)| ThermalObject::Fan(i)),
         );
+        for (i, _) in self.scaled.iter().enumerate().filter(|(_, c)| c.mcu == mcu) {
+            v.push(ThermalObject::ScaledVref(i));
+            v.push(ThermalObject::ScaledVssa(i));
+        }
         v
+    }
+
+    /// `cadence-mcu` arguments giving the simulated MCU `mcu` the ADC references of its
+    /// `[adc_scaled]` chips (`--adc-ref VREF_PIN=VSSA_PIN`).
+    pub fn sim_adc_ref_args(&self, mcu: &str) -> Vec<String> {
+        self.scaled
+            .iter()
+            .filter(|c| c.mcu == mcu)
+            .flat_map(|c| {
+                [
+                    "--adc-ref".to_string(),
+                    format!("{}={}", c.vref_pin.pin, c.vssa_pin.pin),
+                ]
+            })
+            .collect()
     }
 
     /// `cadence-mcu` arguments giving the simulated MCU `mcu` a thermal model per heater
@@ -678,6 +750,15 @@ impl Thermal {
                 ThermalObject::HeaterAdc(i) => {
                     let h = &self.heaters[i];
                     let pin = pin_of(&h.sensor_pin, &format!("[{}] sensor_pin", h.name))?;
+                    cmds.push(dict.encode("config_analog_in", &[oid, pin])?);
+                }
+                ThermalObject::ScaledVref(i) | ThermalObject::ScaledVssa(i) => {
+                    let c = &self.scaled[i];
+                    let (pin, option) = match *obj {
+                        ThermalObject::ScaledVref(_) => (&c.vref_pin, "vref_pin"),
+                        _ => (&c.vssa_pin, "vssa_pin"),
+                    };
+                    let pin = pin_of(pin, &format!("[adc_scaled {}] {option}", c.name))?;
                     cmds.push(dict.encode("config_analog_in", &[oid, pin])?);
                 }
                 ThermalObject::SensorAdc(i) => {

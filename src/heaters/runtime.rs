@@ -20,6 +20,7 @@ use std::time::Duration;
 use links::dict::Dictionary;
 use links::mcu::McuLink;
 
+use super::adc_scaled::ScaledRefs;
 use super::calibrate::RelayTuner;
 use super::control::{Control, Pid, PidGains, SmithPredictor, Smoothed, Watermark};
 use super::objects::{
@@ -428,6 +429,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
     let mut heaters = Vec::new();
     let mut fans = Vec::new();
     let mut sensors = Vec::new();
+    let mut scaled: Vec<Option<ScaledRefs>> = thermal.scaled.iter().map(|_| None).collect();
     for (li, conn) in mcus.list.iter().enumerate() {
         let objects = thermal.objects_on(&conn.name);
         if objects.is_empty() {
@@ -522,10 +524,30 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                     },
                 )),
                 ThermalObject::HeaterAdc(_) => {}
+                ThermalObject::ScaledVref(k) | ThermalObject::ScaledVssa(k) => {
+                    query_analog(&conn.link, dict, oid, start, freq, 0, u16::MAX, 0)?;
+                    let smooth_time = thermal.scaled[k].smooth_time;
+                    if let Some(refs) = scaled.get_mut(k) {
+                        let r = refs
+                            .get_or_insert_with(|| ScaledRefs::new(li, adc_max * f64::from(SAMPLE_COUNT)));
+                        match *obj {
+                            ThermalObject::ScaledVref(_) => r.set_vref(oid, smooth_time),
+                            _ => r.set_vssa(oid, smooth_time),
+                        }
+                    }
+                }
             }
         }
     }
-    let result = heater_loop(mcus, thermal, shared, &mut heaters, &mut sensors, &mut fans);
+    let result = heater_loop(
+        mcus,
+        thermal,
+        shared,
+        &mut heaters,
+        &mut sensors,
+        &mut fans,
+        &mut scaled,
+    );
     // A calibration cut short ends without gains (the G-code waiting for it goes on).
     if let Ok(mut c) = shared.calibration.lock() {
         if let Some(Calibration::Requested { heater, .. } | Calibration::Running { heater }) = *c {
@@ -725,6 +747,7 @@ fn heater_loop(
     heaters: &mut [(usize, Running)],
     sensors: &mut [(usize, RunningSensor)],
     fans: &mut [(usize, RunningFan)],
+    scaled: &mut [Option<ScaledRefs>],
 ) -> Result<(), HeaterLoopError> {
     loop {
         if shared.stop.load(Ordering::Acquire) {
@@ -737,13 +760,23 @@ fn heater_loop(
         }
         start_calibration(shared, heaters);
         let now_sys = McuLink::system_now();
+        for c in scaled.iter_mut().flatten() {
+            let conn = &mcus.list[c.link_index];
+            c.update(&conn.link, conn.clock_freq, now_sys);
+        }
         for (i, r) in heaters.iter_mut() {
-            if !update_heater(mcus, thermal, shared, *i, r, now_sys) {
+            let scale = thermal.heaters[*i]
+                .sensor_scale
+                .map(|k| scaled.get(k).and_then(Option::as_ref));
+            if !update_heater(mcus, thermal, shared, *i, r, now_sys, scale) {
                 return Ok(());
             }
         }
         for (i, r) in sensors.iter_mut() {
-            update_sensor(mcus, shared, *i, r, now_sys);
+            let scale = thermal.sensors[*i]
+                .scale
+                .map(|k| scaled.get(k).and_then(Option::as_ref));
+            update_sensor(mcus, shared, *i, r, now_sys, scale);
         }
         for (i, f) in fans.iter_mut() {
             update_fan(mcus, thermal, shared, *i, f, now_sys);
@@ -761,6 +794,16 @@ fn heater_loop(
     }
 }
 
+/// The ADC fraction of a report `value` summed to `full_scale`, rescaled between the
+/// references of its `[adc_scaled]` chip if it has one (`None` until they have read).
+fn fraction(value: u16, full_scale: f64, scale: Option<Option<&ScaledRefs>>) -> Option<f64> {
+    let raw = f64::from(value) / full_scale;
+    match scale {
+        None => Some(raw),
+        Some(chip) => chip?.scale(raw),
+    }
+}
+
 /// Heater `i`'s new reading, if any: temperature, control output, verify_heater's check and
 /// the PWM update. False once the check shut the printer down.
 fn update_heater(
@@ -770,6 +813,7 @@ fn update_heater(
     i: usize,
     r: &mut Running,
     now_sys: f64,
+    scale: Option<Option<&ScaledRefs>>,
 ) -> bool {
     let conn = &mcus.list[r.link_index];
     let Some((count, next_clock, value)) = conn.link.analog_report(r.adc_oid) else {
@@ -785,7 +829,10 @@ fn update_heater(
         .extend(next_clock, now_sys)
         .saturating_sub((REPORT_TIME * freq) as u64);
     let time = read_clock as f64 / freq;
-    let temp = r.sensor.temperature(f64::from(value) / r.full_scale);
+    let Some(adc) = fraction(value, r.full_scale, scale) else {
+        return true;
+    };
+    let temp = r.sensor.temperature(adc);
     let cell = &shared.heaters[i];
     let target = cell.target.get();
     let smoothed = r.smooth.update(time, temp);
@@ -855,7 +902,14 @@ fn update_heater(
 }
 
 /// Sensor `i`'s new reading, if any, into its shared cell.
-fn update_sensor(mcus: &Mcus, shared: &HeaterShared, i: usize, r: &mut RunningSensor, now_sys: f64) {
+fn update_sensor(
+    mcus: &Mcus,
+    shared: &HeaterShared,
+    i: usize,
+    r: &mut RunningSensor,
+    now_sys: f64,
+    scale: Option<Option<&ScaledRefs>>,
+) {
     let conn = &mcus.list[r.link_index];
     let Some((count, next_clock, value)) = conn.link.analog_report(r.oid) else {
         return;
@@ -871,7 +925,10 @@ fn update_sensor(mcus: &Mcus, shared: &HeaterShared, i: usize, r: &mut RunningSe
         .extend(next_clock, now_sys)
         .saturating_sub((REPORT_TIME * freq) as u64);
     let time = read_clock as f64 / freq;
-    let temp = r.sensor.temperature(f64::from(value) / r.full_scale);
+    let Some(adc) = fraction(value, r.full_scale, scale) else {
+        return;
+    };
+    let temp = r.sensor.temperature(adc);
     let smoothed = r.smooth.update(time, temp);
     let cell = &shared.sensors[i];
     cell.temp.set(smoothed);

@@ -59,6 +59,8 @@ pub struct SimBoard {
     /// Simulated axes and endstops.
     pub world: World,
     heaters: Vec<Heater>,
+    /// The ADC's references (`--adc-ref`): with them every reading has an offset and gain error.
+    adc_refs: Vec<super::adc_ref::AdcRefSpec>,
     /// Simulated BLTouch probes (their sensor pins read them, their control pins drive them).
     pub bltouch: Vec<BlTouch>,
     /// Simulated TMC drivers (on their UART lines or chip selects; their DIAG pins read them).
@@ -84,6 +86,7 @@ impl SimBoard {
             queue_steps: 0,
             world: World::local(Vec::new(), Vec::new()),
             heaters: Vec::new(),
+            adc_refs: Vec::new(),
             bltouch: Vec::new(),
             tmc: Vec::new(),
         })
@@ -92,6 +95,12 @@ impl SimBoard {
     /// Uses `world` for axes and endstops.
     pub fn with_world(mut self, world: World) -> SimBoard {
         self.world = world;
+        self
+    }
+
+    /// Gives the ADC measurable references (and their offset and gain error).
+    pub fn with_adc_refs(mut self, refs: &[super::adc_ref::AdcRefSpec]) -> SimBoard {
+        self.adc_refs = refs.to_vec();
         self
     }
 
@@ -125,6 +134,17 @@ impl SimBoard {
     pub fn with_tmc(mut self, drivers: &[TmcSpec]) -> SimBoard {
         self.tmc.extend(drivers.iter().cloned().map(TmcDriver::new));
         self
+    }
+
+    /// What analog input `pin` reads on a perfect ADC.
+    fn read_adc_ideal(&mut self, pin: u8) -> u16 {
+        let t = self.seconds(self.now);
+        match self.heaters.iter_mut().find(|h| h.sensor_pin == pin) {
+            Some(h) => h.adc(t),
+            // Any other analog input is a thermistor at room temperature (a chamber or board
+            // sensor).
+            None => super::heater::adc_of(super::heater::AMBIENT_C),
+        }
     }
 
     fn seconds(&self, clock: u64) -> f64 {
@@ -250,12 +270,10 @@ impl Board for SimBoard {
     }
 
     fn read_adc(&mut self, pin: u8) -> u16 {
-        let t = self.seconds(self.now);
-        match self.heaters.iter_mut().find(|h| h.sensor_pin == pin) {
-            Some(h) => h.adc(t),
-            // Any other analog input is a thermistor at room temperature (a chamber or board
-            // sensor).
-            None => super::heater::adc_of(super::heater::AMBIENT_C),
+        let ideal = self.read_adc_ideal(pin);
+        match self.adc_refs.first() {
+            Some(r) => r.read(pin, ideal, super::heater::ADC_MAX),
+            None => ideal,
         }
     }
 

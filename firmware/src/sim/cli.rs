@@ -98,6 +98,10 @@ pub struct Cli {
     /// with the thermal model of a 40 W hotend (default) or a 150 W bed.
     #[arg(long = "heater", value_name = "HEATER_PIN=SENSOR_PIN[,hotend|bed]", value_parser = parse_heater)]
     pub heaters: Vec<HeaterSpec>,
+    /// The ADC's reference inputs (a Duet's `vref_pin` and `vssa_pin`): every analog reading
+    /// then carries the ADC's offset and gain error, which the references measure.
+    #[arg(long = "adc-ref", value_name = "VREF_PIN=VSSA_PIN", value_parser = super::adc_ref::AdcRefSpec::parse)]
+    pub adc_refs: Vec<super::adc_ref::AdcRefSpec>,
     /// Inject a heater fault from SECONDS of MCU time on: `open` (thermistor open, ADC at
     /// max), `no-heat` (the heater stops heating), `frozen` (the reading stops changing).
     #[arg(long = "heater-fault", value_name = "HEATER_PIN=open|no-heat|frozen@SECONDS",

@@ -15,6 +15,7 @@
 //! `[input_shaper]`, `[gcode_macro]`s, `[safe_z_home]` / `[homing_override]`, `[bed_mesh]`, then the
 //! unused-option/section check.
 
+mod adc_scaled;
 mod bed_mesh;
 mod bltouch;
 mod board_pins;
@@ -45,6 +46,7 @@ use std::path::{Path, PathBuf};
 
 use crate::ini::{self, ConfigFile};
 
+pub use adc_scaled::AdcScaledSection;
 pub use bed_mesh::{
     profile_options as bed_mesh_profile_options, BedMeshSection, MeshProfile, MeshShape,
     ALGORITHMS as BED_MESH_ALGORITHMS,
@@ -172,6 +174,7 @@ impl PrinterConfig {
             .with_simulated(simulated)
             .with_unsupported_chips(unsupported_chips(file))
             .with_aliases(board_pins::read_board_pins(&reader)?);
+        let adc_scaled = adc_scaled::read_adc_scaled(&reader, &mut pins)?;
 
         let printer_section = reader
             .section("printer")
@@ -274,7 +277,8 @@ impl PrinterConfig {
             Some(s) => Some(heater::read_heater(&s, &mut pins)?),
             None => None,
         };
-        let thermal = thermal::read_thermal(&reader, &mut pins, true)?;
+        let mut thermal = thermal::read_thermal(&reader, &mut pins, true)?;
+        thermal.adc_scaled = adc_scaled;
         let simulator_section = reader.section("simulator");
         let simulator = match &simulator_section {
             Some(s) => mcu::read_simulator(s)?,
@@ -489,12 +493,12 @@ fn read_tmc_sections(
     Ok(out)
 }
 
-/// Pin providers among the ignored sections: `[adc_scaled NAME]` and `[sx1509 NAME]` provide
+/// Pin providers among the ignored sections: `[sx1509 NAME]` provides
 /// chip `NAME`, `[replicape]` chip `replicape`, `[multi_pin NAME]` chip `multi_pin` (Klipper's
 /// names), as (chip, section name).
 fn unsupported_chips(file: &ConfigFile) -> Vec<(String, String)> {
     let chip = |s: &ini::Section| match (s.kind(), s.name().split_whitespace().nth(1)) {
-        ("adc_scaled" | "sx1509", Some(name)) => Some(name.to_string()),
+        ("sx1509", Some(name)) => Some(name.to_string()),
         // `multi_pin:NAME` names the section's pin group.
         ("multi_pin", Some(_)) => Some("multi_pin".to_string()),
         ("replicape", _) => Some("replicape".to_string()),

@@ -184,6 +184,8 @@ pub(crate) struct PinRegistry {
     unsupported_chips: Vec<(String, String)>,
     /// `[board_pins]` aliases.
     aliases: Aliases,
+    /// `[adc_scaled NAME]` chips and the MCU whose pins they scale.
+    scaled_chips: Vec<(String, String)>,
 }
 
 /// True when the simulated MCU has `pin` (any family of [`links::pinmap`]: `PA0`, `PF13`,
@@ -208,7 +210,21 @@ impl PinRegistry {
             families: Vec::new(),
             unsupported_chips: Vec::new(),
             aliases: Aliases::new(),
+            scaled_chips: Vec::new(),
         }
+    }
+
+    /// Declares `[adc_scaled chip]`, whose pins are `mcu`'s.
+    pub(crate) fn add_scaled_chip(&mut self, chip: &str, mcu: &str) {
+        self.scaled_chips.push((chip.to_string(), mcu.to_string()));
+    }
+
+    /// The MCU whose pins `[adc_scaled chip]` scales, if `chip` is one.
+    pub(crate) fn scaled_mcu(&self, chip: &str) -> Option<&str> {
+        self.scaled_chips
+            .iter()
+            .find(|(c, _)| c == chip)
+            .map(|(_, m)| m.as_str())
     }
 
     /// True when `name` is a declared MCU.
@@ -344,6 +360,14 @@ impl PinRegistry {
         }
         if self.tmc_chips.contains(&pin.mcu) {
             return Self::check_tmc_pin(pin, option);
+        }
+        if let Some(mcu) = self.scaled_mcu(&pin.mcu) {
+            // `NAME:PIN` of `[adc_scaled NAME]` is PIN of its MCU.
+            let real = PinRef {
+                mcu: mcu.to_string(),
+                ..pin.clone()
+            };
+            return self.claim(&real, section, option, share);
         }
         if !self.mcus.contains(&pin.mcu) {
             if pin.pin == "virtual_endstop" && pin.mcu.starts_with("tmc") {

@@ -29,7 +29,7 @@ use Support::{Ignored, Read, Refused};
 /// `[realtime]` and `[gcode]`. `stepper_*` and `extruderN` are matched by [`support`].
 pub const SECTIONS: &[(&str, Support)] = &[
     ("ad5206", Ignored),
-    ("adc_scaled", Ignored),
+    ("adc_scaled", Read),
     ("adc_temperature", Ignored),
     ("ads1x1x", Ignored),
     ("adxl345", Ignored),

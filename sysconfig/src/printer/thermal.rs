@@ -215,6 +215,8 @@ pub struct ThermalSections {
     pub fan_generic: Vec<(String, FanOptions)>,
     /// `[temperature_fan NAME]`.
     pub temperature_fans: Vec<TemperatureFanSection>,
+    /// `[adc_scaled NAME]` (read before the sections naming its pins).
+    pub adc_scaled: Vec<super::adc_scaled::AdcScaledSection>,
 }
 
 const UNIT: Bounds = Bounds::ANY.min(0.0).max(1.0);
