@@ -199,6 +199,8 @@ impl Mcus {
                         extra.extend(machine.thermal.sim_args(&name));
                         // Its `[adc_scaled]` chips' ADC references.
                         extra.extend(machine.thermal.sim_adc_ref_args(&name));
+                        // Its fans with tachometers.
+                        extra.extend(machine.thermal.sim_fan_args(&name));
                         // A simulated MCU stands in for hardware that is never descheduled:
                         // when the host's threads run SCHED_FIFO, it runs SCHED_FIFO too, below
                         // them (they preempt it) but above ordinary processes. Refused: it

@@ -15,5 +15,6 @@ pub mod gcode;
 pub mod mcu_sensor;
 pub mod objects;
 pub mod runtime;
+pub mod tachometer;
 pub mod thermistor;
 pub mod verify;

@@ -226,6 +226,8 @@ pub enum ThermalObject {
     SensorAdc(usize),
     /// Fan `i`'s output.
     Fan(usize),
+    /// Fan `i`'s tachometer (a pulse counter on its `tachometer_pin`).
+    Tach(usize),
     /// `[adc_scaled]` chip `i`'s `vref_pin` input.
     ScaledVref(usize),
     /// `[adc_scaled]` chip `i`'s `vssa_pin` input.
@@ -585,10 +587,10 @@ impl Thermal {
     /// Refuses the fan options the MCUs cannot serve.
     fn check_fans(&self) -> Result<(), ThermalError> {
         for f in &self.fans {
-            if f.opts.enable_pin.is_some() || f.opts.tachometer_pin.is_some() {
+            if f.opts.enable_pin.is_some() {
                 return Err(ThermalError::Invalid {
                     section: f.name.clone(),
-                    what: "enable_pin and tachometer_pin are not supported yet".to_string(),
+                    what: "enable_pin: is not supported by Cadence yet (fan enable pins)".to_string(),
                 });
             }
         }
@@ -642,11 +644,35 @@ impl Thermal {
                 .filter(|(_, f)| f.mcu == mcu)
                 .map(|(i, _)| ThermalObject::Fan(i)),
         );
+        v.extend(
+            self.fans
+                .iter()
+                .enumerate()
+                .filter(|(_, f)| f.opts.tachometer_pin.as_ref().is_some_and(|p| p.mcu == mcu))
+                .map(|(i, _)| ThermalObject::Tach(i)),
+        );
         for (i, _) in self.scaled.iter().enumerate().filter(|(_, c)| c.mcu == mcu) {
             v.push(ThermalObject::ScaledVref(i));
             v.push(ThermalObject::ScaledVssa(i));
         }
         v
+    }
+
+    /// `cadence-mcu` arguments giving the simulated MCU `mcu` a spinning fan behind each fan
+    /// output with a tachometer on it (`--fan OUT_PIN=TACH_PIN,PPR`).
+    pub fn sim_fan_args(&self, mcu: &str) -> Vec<String> {
+        self.fans
+            .iter()
+            .filter(|f| f.mcu == mcu)
+            .filter_map(|f| {
+                let t = f.opts.tachometer_pin.as_ref().filter(|t| t.mcu == mcu)?;
+                Some([
+                    "--fan".to_string(),
+                    format!("{}={},{}", f.opts.pin.pin, t.pin, f.opts.tachometer_ppr),
+                ])
+            })
+            .flatten()
+            .collect()
     }
 
     /// `cadence-mcu` arguments giving the simulated MCU `mcu` the ADC references of its
@@ -751,6 +777,16 @@ impl Thermal {
                     let h = &self.heaters[i];
                     let pin = pin_of(&h.sensor_pin, &format!("[{}] sensor_pin", h.name))?;
                     cmds.push(dict.encode("config_analog_in", &[oid, pin])?);
+                }
+                ThermalObject::Tach(i) => {
+                    let f = &self.fans[i];
+                    if dict.command("config_counter").is_err() {
+                        return Err(ObjectsError::MissingCommand("config_counter"));
+                    }
+                    if let Some(t) = &f.opts.tachometer_pin {
+                        let pin = pin_of(t, &format!("[{}] tachometer_pin", f.name))?;
+                        cmds.push(dict.encode("config_counter", &[oid, pin, i64::from(t.pullup)])?);
+                    }
                 }
                 ThermalObject::ScaledVref(i) | ThermalObject::ScaledVssa(i) => {
                     let c = &self.scaled[i];

@@ -26,6 +26,7 @@ use super::control::{Control, Pid, PidGains, SmithPredictor, Smoothed, Watermark
 use super::objects::{
     adc_range, FanRole, Thermal, ThermalObject, RANGE_CHECK_COUNT, REPORT_TIME, SAMPLE_COUNT, SAMPLE_TIME,
 };
+use super::tachometer::Tachometer;
 use super::verify::{VerifyHeater, CHECK_INTERVAL_S};
 use crate::mcus::Mcus;
 use sysconfig::printer::HeaterControl;
@@ -84,6 +85,9 @@ pub struct FanCell {
     pub max_speed: AtomicF64,
     /// A temperature fan's sensor (index in [`HeaterShared::sensors`]).
     pub sensor: Option<usize>,
+    /// The tachometer's speed (rev/min; NaN without `tachometer_pin` or before its first
+    /// measure).
+    pub rpm: AtomicF64,
 }
 
 /// One temperature sensor's state (`[temperature_sensor]`, a `[temperature_fan]`'s sensor).
@@ -178,6 +182,7 @@ impl HeaterShared {
                         min_speed: AtomicF64::new(min_speed),
                         max_speed: AtomicF64::new(max_speed),
                         sensor,
+                        rpm: AtomicF64::new(f64::NAN),
                     }
                 })
                 .collect(),
@@ -430,6 +435,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
     let mut fans = Vec::new();
     let mut sensors = Vec::new();
     let mut scaled: Vec<Option<ScaledRefs>> = thermal.scaled.iter().map(|_| None).collect();
+    let mut tachs = Vec::new();
     for (li, conn) in mcus.list.iter().enumerate() {
         let objects = thermal.objects_on(&conn.name);
         if objects.is_empty() {
@@ -524,6 +530,12 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                     },
                 )),
                 ThermalObject::HeaterAdc(_) => {}
+                ThermalObject::Tach(i) => {
+                    let opts = &thermal.fans[i].opts;
+                    let t = Tachometer::new(i, li, oid, opts.tachometer_ppr);
+                    t.start(&conn.link, start as u64, freq, opts.tachometer_poll_interval)?;
+                    tachs.push(t);
+                }
                 ThermalObject::ScaledVref(k) | ThermalObject::ScaledVssa(k) => {
                     query_analog(&conn.link, dict, oid, start, freq, 0, u16::MAX, 0)?;
                     let smooth_time = thermal.scaled[k].smooth_time;
@@ -539,15 +551,12 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
             }
         }
     }
-    let result = heater_loop(
-        mcus,
-        thermal,
-        shared,
-        &mut heaters,
-        &mut sensors,
-        &mut fans,
-        &mut scaled,
-    );
+    let mut outputs = Outputs {
+        fans: &mut fans,
+        scaled: &mut scaled,
+        tachs: &mut tachs,
+    };
+    let result = heater_loop(mcus, thermal, shared, &mut heaters, &mut sensors, &mut outputs);
     // A calibration cut short ends without gains (the G-code waiting for it goes on).
     if let Ok(mut c) = shared.calibration.lock() {
         if let Some(Calibration::Requested { heater, .. } | Calibration::Running { heater }) = *c {
@@ -746,9 +755,9 @@ fn heater_loop(
     shared: &HeaterShared,
     heaters: &mut [(usize, Running)],
     sensors: &mut [(usize, RunningSensor)],
-    fans: &mut [(usize, RunningFan)],
-    scaled: &mut [Option<ScaledRefs>],
+    outputs: &mut Outputs<'_>,
 ) -> Result<(), HeaterLoopError> {
+    let Outputs { fans, scaled, tachs } = outputs;
     loop {
         if shared.stop.load(Ordering::Acquire) {
             return Ok(());
@@ -781,6 +790,14 @@ fn heater_loop(
         for (i, f) in fans.iter_mut() {
             update_fan(mcus, thermal, shared, *i, f, now_sys);
         }
+        for t in tachs.iter_mut() {
+            let conn = &mcus.list[t.link_index];
+            if let Some(rpm) = t.update(&conn.link, conn.clock_freq, now_sys) {
+                if let Some(cell) = shared.fans.get(t.fan) {
+                    cell.rpm.set(rpm);
+                }
+            }
+        }
         // Reports come every 0.3 s of MCU time: look four times per report (every 50 ms at
         // most; every 2 ms at least, on a fast time-scaled simulator).
         let scale = mcus
@@ -792,6 +809,13 @@ fn heater_loop(
             (REPORT_TIME / scale / 4.0).clamp(0.002, 0.05),
         ));
     }
+}
+
+/// The fans, `[adc_scaled]` chips and tachometers of the loop.
+struct Outputs<'a> {
+    fans: &'a mut [(usize, RunningFan)],
+    scaled: &'a mut [Option<ScaledRefs>],
+    tachs: &'a mut [Tachometer],
 }
 
 /// The ADC fraction of a report `value` summed to `full_scale`, rescaled between the

@@ -134,7 +134,7 @@ pub const CONSTANTS: &[(&str, ConstValue)] = &[
     ("RECEIVE_WINDOW", ConstValue::Int(RECEIVE_WINDOW as i64)),
     ("SERIAL_BAUD", ConstValue::Int(250_000)),
     ("ADC_MAX", ConstValue::Int(4095)),
-    ("PWM_MAX", ConstValue::Int(255)),
+    ("PWM_MAX", ConstValue::Int(PWM_MAX as i64)),
 ];
 
 /// The pin number of the MCU's own temperature sensor (Klipper's `ADC_TEMPERATURE` pin name):
@@ -143,6 +143,9 @@ pub const CONSTANTS: &[(&str, ConstValue)] = &[
 ///
 /// [`Board::read_mcu_temperature`]: super::board::Board::read_mcu_temperature
 pub const ADC_TEMPERATURE_PIN: u32 = 256;
+
+/// The largest hardware PWM duty (`PWM_MAX`): `value / PWM_MAX` of `queue_pwm_out`.
+pub const PWM_MAX: u16 = 255;
 
 /// Divisor of squared loop times in `stats sumsq` (keeps the sum inside 32 bits).
 pub const STATS_SUMSQ_BASE: u32 = 256;

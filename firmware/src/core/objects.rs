@@ -15,6 +15,7 @@ use super::analog_in::{AnalogEvent, AnalogIn, AnalogQuery};
 use super::board::{Board, TriggerSource};
 use super::commands::*;
 use super::constants::{reason, ADC_TEMPERATURE_PIN};
+use super::counter::Counter;
 use super::digital_out::{DigitalOut, DigitalOutConfig, DigitalOutError};
 use super::endstop::{Endstop, EndstopEvent, HomeParams};
 use super::mcu::{Mcu, Object};
@@ -178,6 +179,18 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
             Cmd::SetPwmOut => self
                 .board
                 .set_pwm(arg(0) as u8, arg(1) as u32, arg(2) as u16, now),
+            Cmd::ConfigCounter => {
+                let (pin, pull_up) = (arg(1) as u8, arg(2) != 0);
+                self.board.config_input(pin, pull_up);
+                self.config_object(oid, Object::Counter(Counter::new(pin)), now);
+            }
+            Cmd::QueryCounter => {
+                let armed = match self.object(oid) {
+                    Some(Object::Counter(c)) => c.query(clock(1), arg(2) as u32, arg(3) as u32),
+                    _ => return self.shutdown(reason::INVALID_OID, now),
+                };
+                self.arm_or_disarm(oid as u8, armed);
+            }
             Cmd::ConfigAnalogIn => {
                 self.config_object(oid, Object::AnalogIn(AnalogIn::new(arg(1) as u32)), now);
             }
@@ -252,6 +265,22 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                 }
                 Err(e) => self.digital_out_fault(e, now),
             },
+            Object::Counter(c) => {
+                let level = self.board.read_pin(c.pin, at);
+                let (next, report) = c.event(at, level);
+                if let Some(r) = report {
+                    let args = [
+                        Value::Int(oid as i64),
+                        Value::Int(r.next_clock.0 as i64),
+                        Value::Int(r.count as i64),
+                        Value::Int(r.count_clock.0 as i64),
+                    ];
+                    self.respond(ID_COUNTER_STATE, FMT_COUNTER_STATE, &args);
+                }
+                if let Some(w) = next {
+                    self.rearm(oid, w, now);
+                }
+            }
             Object::PwmOut(p) => match p.event(at) {
                 Ok(change) => {
                     let (pin, cycle, wake) = (p.config().pin, p.config().cycle_ticks, p.next_wake());

@@ -59,6 +59,8 @@ pub struct SimBoard {
     /// Simulated axes and endstops.
     pub world: World,
     heaters: Vec<Heater>,
+    /// Fans with tachometers (`--fan`).
+    fans: Vec<super::fan::Fan>,
     /// The ADC's references (`--adc-ref`): with them every reading has an offset and gain error.
     adc_refs: Vec<super::adc_ref::AdcRefSpec>,
     /// Simulated BLTouch probes (their sensor pins read them, their control pins drive them).
@@ -87,6 +89,7 @@ impl SimBoard {
             world: World::local(Vec::new(), Vec::new()),
             heaters: Vec::new(),
             adc_refs: Vec::new(),
+            fans: Vec::new(),
             bltouch: Vec::new(),
             tmc: Vec::new(),
         })
@@ -95,6 +98,12 @@ impl SimBoard {
     /// Uses `world` for axes and endstops.
     pub fn with_world(mut self, world: World) -> SimBoard {
         self.world = world;
+        self
+    }
+
+    /// Adds fans with tachometers.
+    pub fn with_fans(mut self, fans: &[super::fan::FanSpec]) -> SimBoard {
+        self.fans = fans.iter().map(|&f| super::fan::Fan::new(f)).collect();
         self
     }
 
@@ -242,6 +251,10 @@ impl Board for SimBoard {
             let pos = coord.and_then(|c| self.world.coord_at_clock(&c, at));
             return pos.is_some_and(|p| self.tmc[i].diag_level(p));
         }
+        if let Some(f) = self.fans.iter_mut().find(|f| f.spec.tach_pin == pin) {
+            let t = at as f64 / self.clock_freq.max(1) as f64;
+            return f.tach_level(t);
+        }
         self.world.read_endstop(pin, at).unwrap_or(false)
     }
 
@@ -290,6 +303,17 @@ impl Board for SimBoard {
         let t = self.seconds(at);
         for h in self.heaters.iter_mut().filter(|h| h.heater_pin == pin) {
             h.set(value, t);
+        }
+        for f in self.fans.iter_mut().filter(|f| f.spec.out_pin == pin) {
+            f.set(f64::from(u8::from(value)), t);
+        }
+    }
+
+    fn set_pwm(&mut self, pin: u8, _cycle_ticks: u32, value: u16, clock: WireClock) {
+        let t = self.seconds(self.extend(clock));
+        let pwm_max = f64::from(crate::core::constants::PWM_MAX);
+        for f in self.fans.iter_mut().filter(|f| f.spec.out_pin == pin) {
+            f.set(f64::from(value) / pwm_max, t);
         }
     }
 

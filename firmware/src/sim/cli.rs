@@ -98,6 +98,10 @@ pub struct Cli {
     /// with the thermal model of a 40 W hotend (default) or a 150 W bed.
     #[arg(long = "heater", value_name = "HEATER_PIN=SENSOR_PIN[,hotend|bed]", value_parser = parse_heater)]
     pub heaters: Vec<HeaterSpec>,
+    /// A fan powered by OUT_PIN (software or hardware PWM) whose tachometer drives TACH_PIN
+    /// with PPR pulses per revolution (default 2).
+    #[arg(long = "fan", value_name = "OUT_PIN=TACH_PIN[,PPR]", value_parser = super::fan::FanSpec::parse)]
+    pub fans: Vec<super::fan::FanSpec>,
     /// The ADC's reference inputs (a Duet's `vref_pin` and `vssa_pin`): every analog reading
     /// then carries the ADC's offset and gain error, which the references measure.
     #[arg(long = "adc-ref", value_name = "VREF_PIN=VSSA_PIN", value_parser = super::adc_ref::AdcRefSpec::parse)]

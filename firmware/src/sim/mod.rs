@@ -21,6 +21,7 @@ pub mod board;
 pub mod cli;
 pub mod clock;
 pub mod event_loop;
+pub mod fan;
 pub mod faults;
 pub mod heater;
 pub mod mcu_temp;
@@ -180,6 +181,7 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
         .with_world(world)
         .with_heaters(&cli.heaters, &cli.heater_faults)
         .with_adc_refs(&cli.adc_refs)
+        .with_fans(&cli.fans)
         .with_bltouch(&cli.bltouch)
         .with_tmc(&cli.tmc);
     let dictionary: &'static [u8] = Box::leak(crate::dictionary_bytes(cli.clock_freq).into_boxed_slice());
