@@ -13,7 +13,7 @@
 use links::dict::{Cmd, Dictionary};
 use sysconfig::printer::{
     FanOptions, HeaterControl, HeaterSection, PinRef, PrinterConfig, SensorSection, SensorSource,
-    ThermistorSection,
+    ThermistorSection, MULTI_PIN_CHIP,
 };
 
 use super::mcu_sensor::{McuSensor, McuSensorError, ADC_TEMPERATURE};
@@ -168,9 +168,21 @@ pub struct ScaledOut {
     pub smooth_time: f64,
 }
 
+/// An output driven through `[multi_pin]`: its first pin is the output's own; the others get
+/// the same commands.
+#[derive(Debug, Clone, PartialEq)]
+pub enum MultiOutput {
+    /// Heater `i`'s PWM.
+    Heater(usize),
+    /// Fan `i`'s output.
+    Fan(usize),
+}
+
 /// Every thermal object of the printer.
 #[derive(Debug, Clone, Default)]
 pub struct Thermal {
+    /// The further pins of outputs named `multi_pin:NAME`.
+    pub multi_outputs: Vec<(MultiOutput, Vec<PinRef>)>,
     /// `[adc_scaled]` chips.
     pub scaled: Vec<ScaledOut>,
     pub heaters: Vec<HeaterOut>,
@@ -206,6 +218,9 @@ pub enum ObjectsError {
     /// A command does not encode.
     #[error(transparent)]
     Dictionary(#[from] links::dict::DictError),
+    /// A hardware-PWM fan on a `[multi_pin]` group.
+    #[error("[{0}] hardware_pwm: a multi_pin group is driven with software PWM (set hardware_pwm: False)")]
+    MultiPinHardwarePwm(String),
     /// `temperature_mcu` on an MCU it cannot be calibrated for.
     #[error("[temperature_sensor {section}] {source}")]
     McuSensor {
@@ -226,6 +241,8 @@ pub enum ThermalObject {
     SensorAdc(usize),
     /// Fan `i`'s output.
     Fan(usize),
+    /// Further pin `j` of [`Thermal::multi_outputs`] entry `k`.
+    MultiPwm(usize, usize),
     /// Fan `i`'s tachometer (a pulse counter on its `tachometer_pin`).
     Tach(usize),
     /// `[adc_scaled]` chip `i`'s `vref_pin` input.
@@ -314,6 +331,37 @@ fn adc_sensor(
     })
 }
 
+/// `pin` as MCU outputs: `multi_pin:NAME` is the first pin of `[multi_pin NAME]` (inverted
+/// when the reference is) and the further pins; any other pin is itself.
+fn multi_pin(
+    cfg: &PrinterConfig,
+    section: &str,
+    pin: &PinRef,
+) -> Result<(PinRef, Vec<PinRef>), ThermalError> {
+    if pin.mcu != MULTI_PIN_CHIP {
+        return Ok((pin.clone(), Vec::new()));
+    }
+    let group = cfg
+        .thermal
+        .multi_pins
+        .iter()
+        .find(|g| g.name == pin.pin)
+        .map(|g| &g.pins)
+        .filter(|p| !p.is_empty())
+        .ok_or_else(|| ThermalError::Invalid {
+            section: section.to_string(),
+            what: format!("there is no [multi_pin {}] section", pin.pin),
+        })?;
+    let pins: Vec<PinRef> = group
+        .iter()
+        .map(|p| PinRef {
+            invert: p.invert != pin.invert,
+            ..p.clone()
+        })
+        .collect();
+    Ok((pins[0].clone(), pins[1..].to_vec()))
+}
+
 /// `pin` as its MCU reads it: `NAME:PIN` of `[adc_scaled NAME]` is PIN of the chip's MCU,
 /// read through chip `NAME` (its index in `scaled`).
 fn resolve_scaled(scaled: &[ScaledOut], pin: &PinRef) -> (PinRef, Option<usize>) {
@@ -372,6 +420,7 @@ impl Thermal {
         out.add_sensors(cfg)?;
         out.add_fans(cfg)?;
         out.add_temperature_fans(cfg)?;
+        out.expand_multi_fans(cfg)?;
         out.check_fans()?;
         Ok(out)
     }
@@ -392,13 +441,18 @@ impl Thermal {
             } else {
                 format!("heater_generic {}", h.name)
             };
+            let (heater_pin, more) = multi_pin(cfg, &section, &h.heater_pin)?;
+            if !more.is_empty() {
+                self.multi_outputs
+                    .push((MultiOutput::Heater(self.heaters.len()), more));
+            }
             let (sensor_pin, sensor_scale) = resolve_scaled(&self.scaled, &h.sensor_pin);
-            if sensor_pin.mcu != h.heater_pin.mcu {
+            if sensor_pin.mcu != heater_pin.mcu {
                 return Err(ThermalError::Invalid {
                     section,
                     what: format!(
                         "sensor_pin is on mcu '{}' and heater_pin on mcu '{}': both must be on one MCU",
-                        sensor_pin.mcu, h.heater_pin.mcu
+                        sensor_pin.mcu, heater_pin.mcu
                     ),
                 });
             }
@@ -422,8 +476,8 @@ impl Thermal {
                 .unwrap_or_else(|| VerifyConfig::defaults_for(&h.name));
             self.heaters.push(HeaterOut {
                 name: h.name.clone(),
-                mcu: h.heater_pin.mcu.clone(),
-                heater_pin: h.heater_pin.clone(),
+                mcu: heater_pin.mcu.clone(),
+                heater_pin,
                 sensor_pin,
                 sensor,
                 max_power: h.max_power,
@@ -584,6 +638,24 @@ impl Thermal {
         Ok(())
     }
 
+    /// Fans whose pin is `multi_pin:NAME`: the group's first pin is theirs, the others follow.
+    fn expand_multi_fans(&mut self, cfg: &PrinterConfig) -> Result<(), ThermalError> {
+        for i in 0..self.fans.len() {
+            let f = &self.fans[i];
+            let (pin, more) = multi_pin(cfg, &f.name, &f.opts.pin)?;
+            if more.is_empty() && pin == f.opts.pin {
+                continue;
+            }
+            let f = &mut self.fans[i];
+            f.mcu = pin.mcu.clone();
+            f.opts.pin = pin;
+            if !more.is_empty() {
+                self.multi_outputs.push((MultiOutput::Fan(i), more));
+            }
+        }
+        Ok(())
+    }
+
     /// Refuses the fan options the MCUs cannot serve.
     fn check_fans(&self) -> Result<(), ThermalError> {
         for f in &self.fans {
@@ -644,6 +716,13 @@ impl Thermal {
                 .filter(|(_, f)| f.mcu == mcu)
                 .map(|(i, _)| ThermalObject::Fan(i)),
         );
+        for (k, (_, pins)) in self.multi_outputs.iter().enumerate() {
+            v.extend(
+                (0..pins.len())
+                    .filter(|&j| pins[j].mcu == mcu)
+                    .map(|j| ThermalObject::MultiPwm(k, j)),
+            );
+        }
         v.extend(
             self.fans
                 .iter()
@@ -777,6 +856,27 @@ impl Thermal {
                     let h = &self.heaters[i];
                     let pin = pin_of(&h.sensor_pin, &format!("[{}] sensor_pin", h.name))?;
                     cmds.push(dict.encode("config_analog_in", &[oid, pin])?);
+                }
+                ThermalObject::MultiPwm(k, j) => {
+                    let (output, pins) = &self.multi_outputs[k];
+                    let (cycle, max_duration, what) = match *output {
+                        MultiOutput::Heater(i) => (
+                            self.heaters[i].pwm_cycle_time,
+                            self.max_heat_time(),
+                            format!("[{}] heater_pin", self.heaters[i].name),
+                        ),
+                        MultiOutput::Fan(i) => (
+                            self.fans[i].opts.cycle_time,
+                            0.0,
+                            format!("[{}] pin", self.fans[i].name),
+                        ),
+                    };
+                    if let MultiOutput::Fan(i) = *output {
+                        if self.fans[i].opts.hardware_pwm {
+                            return Err(ObjectsError::MultiPinHardwarePwm(self.fans[i].name.clone()));
+                        }
+                    }
+                    pwm(&pins[j], &what, cycle, max_duration)?;
                 }
                 ThermalObject::Tach(i) => {
                     let f = &self.fans[i];

@@ -24,7 +24,8 @@ use super::adc_scaled::ScaledRefs;
 use super::calibrate::RelayTuner;
 use super::control::{Control, Pid, PidGains, SmithPredictor, Smoothed, Watermark};
 use super::objects::{
-    adc_range, FanRole, Thermal, ThermalObject, RANGE_CHECK_COUNT, REPORT_TIME, SAMPLE_COUNT, SAMPLE_TIME,
+    adc_range, FanRole, MultiOutput, Thermal, ThermalObject, RANGE_CHECK_COUNT, REPORT_TIME, SAMPLE_COUNT,
+    SAMPLE_TIME,
 };
 use super::tachometer::Tachometer;
 use super::verify::{VerifyHeater, CHECK_INTERVAL_S};
@@ -343,6 +344,8 @@ pub fn m105_text(shared: &HeaterShared) -> String {
 
 /// One heater's loop state.
 struct Running {
+    /// Further outputs of a `[multi_pin]` heater (oid, inverted): they get the same updates.
+    extra: Vec<(u8, bool)>,
     link_index: usize,
     pwm_oid: u8,
     adc_oid: u8,
@@ -375,6 +378,8 @@ struct Relay {
 }
 
 struct RunningFan {
+    /// Further outputs of a `[multi_pin]` fan (oid, inverted): they get the same updates.
+    extra: Vec<(u8, bool)>,
     /// `hardware_pwm`: `cycle_ticks` is then PWM_MAX and updates are `queue_pwm_out`.
     hardware: bool,
     link_index: usize,
@@ -465,6 +470,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                     heaters.push((
                         i,
                         Running {
+                            extra: Vec::new(),
                             link_index: li,
                             pwm_oid: oid,
                             adc_oid: oid + 1,
@@ -507,6 +513,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                 ThermalObject::Fan(i) => fans.push((
                     i,
                     RunningFan {
+                        extra: Vec::new(),
                         link_index: li,
                         oid,
                         // A hardware PWM's duty is in 0..=PWM_MAX (Klipper's pwm_max).
@@ -530,6 +537,22 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                     },
                 )),
                 ThermalObject::HeaterAdc(_) => {}
+                ThermalObject::MultiPwm(k, j) => {
+                    let (output, pins) = &thermal.multi_outputs[k];
+                    let invert = pins.get(j).is_some_and(|p| p.invert);
+                    match *output {
+                        MultiOutput::Heater(i) => {
+                            if let Some((_, r)) = heaters.iter_mut().find(|(h, _)| *h == i) {
+                                r.extra.push((oid, invert));
+                            }
+                        }
+                        MultiOutput::Fan(i) => {
+                            if let Some((_, f)) = fans.iter_mut().find(|(n, _)| *n == i) {
+                                f.extra.push((oid, invert));
+                            }
+                        }
+                    }
+                }
                 ThermalObject::Tach(i) => {
                     let opts = &thermal.fans[i].opts;
                     let t = Tachometer::new(i, li, oid, opts.tachometer_ppr);
@@ -573,6 +596,9 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
         let conn = &mcus.list[r.link_index];
         let at = lead_clock(&conn.link, conn.clock_freq, thermal.max_heat_time());
         let _ = send_pwm(&conn.link, r.pwm_oid, at, 0, r.invert, r.cycle_ticks);
+        for &(oid, invert) in &r.extra {
+            let _ = send_pwm(&conn.link, oid, at, 0, invert, r.cycle_ticks);
+        }
     }
     result
 }
@@ -642,6 +668,9 @@ fn send_pwm(
 /// 0..=PWM_MAX through `queue_pwm_out` (hardware PWM).
 fn send_fan(link: &McuLink, f: &RunningFan, clock: u64, value: u32) -> Result<(), HeaterLoopError> {
     if !f.hardware {
+        for &(oid, invert) in &f.extra {
+            send_pwm(link, oid, clock, value, invert, f.cycle_ticks)?;
+        }
         return send_pwm(link, f.oid, clock, value, f.invert, f.cycle_ticks);
     }
     let duty = if f.invert {
@@ -912,7 +941,11 @@ fn update_heater(
             || gap as f64 > 0.25 * thermal.max_heat_time() * freq
     });
     if send {
-        if send_pwm(&conn.link, r.pwm_oid, at, on, r.invert, r.cycle_ticks).is_err() {
+        let extra_failed = r
+            .extra
+            .iter()
+            .any(|&(oid, invert)| send_pwm(&conn.link, oid, at, on, invert, r.cycle_ticks).is_err());
+        if extra_failed || send_pwm(&conn.link, r.pwm_oid, at, on, r.invert, r.cycle_ticks).is_err() {
             // The MCU shut down or the link died: the check above ends the loop.
             return true;
         }

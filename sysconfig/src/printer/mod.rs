@@ -30,6 +30,7 @@ mod host;
 mod input_shaper;
 mod macros;
 mod mcu;
+mod multi_pin;
 mod pins;
 mod probe;
 mod reader;
@@ -61,6 +62,7 @@ pub use homing::{HomingOverrideSection, SafeZHomeSection, HOMING_OVERRIDE_MACRO}
 pub use host::HostSections;
 pub use input_shaper::InputShaperSection;
 pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
+pub use multi_pin::{MultiPinSection, MULTI_PIN_CHIP};
 pub use pins::{is_simulator_pin, PinKind, PinProblem, PinRef, MAIN_MCU};
 pub use probe::{ProbeSection, SamplesResult, PROBE_PIN_MCU, SAMPLES_RESULTS, Z_VIRTUAL_ENDSTOP};
 pub use realtime::RealtimeSection;
@@ -175,6 +177,7 @@ impl PrinterConfig {
             .with_unsupported_chips(unsupported_chips(file))
             .with_aliases(board_pins::read_board_pins(&reader)?);
         let adc_scaled = adc_scaled::read_adc_scaled(&reader, &mut pins)?;
+        let multi_pins = multi_pin::read_multi_pins(&reader, &mut pins)?;
 
         let printer_section = reader
             .section("printer")
@@ -279,6 +282,7 @@ impl PrinterConfig {
         };
         let mut thermal = thermal::read_thermal(&reader, &mut pins, true)?;
         thermal.adc_scaled = adc_scaled;
+        thermal.multi_pins = multi_pins;
         let simulator_section = reader.section("simulator");
         let simulator = match &simulator_section {
             Some(s) => mcu::read_simulator(s)?,
@@ -494,13 +498,11 @@ fn read_tmc_sections(
 }
 
 /// Pin providers among the ignored sections: `[sx1509 NAME]` provides
-/// chip `NAME`, `[replicape]` chip `replicape`, `[multi_pin NAME]` chip `multi_pin` (Klipper's
+/// chip `NAME`, `[replicape]` chip `replicape` (Klipper's
 /// names), as (chip, section name).
 fn unsupported_chips(file: &ConfigFile) -> Vec<(String, String)> {
     let chip = |s: &ini::Section| match (s.kind(), s.name().split_whitespace().nth(1)) {
         ("sx1509", Some(name)) => Some(name.to_string()),
-        // `multi_pin:NAME` names the section's pin group.
-        ("multi_pin", Some(_)) => Some("multi_pin".to_string()),
         ("replicape", _) => Some("replicape".to_string()),
         _ => None,
     };

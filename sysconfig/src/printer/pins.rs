@@ -186,6 +186,8 @@ pub(crate) struct PinRegistry {
     aliases: Aliases,
     /// `[adc_scaled NAME]` chips and the MCU whose pins they scale.
     scaled_chips: Vec<(String, String)>,
+    /// `[multi_pin NAME]` groups.
+    multi_pins: Vec<(String, Vec<PinRef>)>,
 }
 
 /// True when the simulated MCU has `pin` (any family of [`links::pinmap`]: `PA0`, `PF13`,
@@ -211,12 +213,18 @@ impl PinRegistry {
             unsupported_chips: Vec::new(),
             aliases: Aliases::new(),
             scaled_chips: Vec::new(),
+            multi_pins: Vec::new(),
         }
     }
 
     /// Declares `[adc_scaled chip]`, whose pins are `mcu`'s.
     pub(crate) fn add_scaled_chip(&mut self, chip: &str, mcu: &str) {
         self.scaled_chips.push((chip.to_string(), mcu.to_string()));
+    }
+
+    /// Declares `[multi_pin name]` with its pins.
+    pub(crate) fn add_multi_pin(&mut self, name: &str, group: Vec<PinRef>) {
+        self.multi_pins.push((name.to_string(), group));
     }
 
     /// The MCU whose pins `[adc_scaled chip]` scales, if `chip` is one.
@@ -361,6 +369,19 @@ impl PinRegistry {
         if self.tmc_chips.contains(&pin.mcu) {
             return Self::check_tmc_pin(pin, option);
         }
+        if pin.mcu == super::multi_pin::MULTI_PIN_CHIP {
+            // `multi_pin:NAME` claims each pin of `[multi_pin NAME]`.
+            let Some((_, group)) = self.multi_pins.iter().find(|(n, _)| *n == pin.pin).cloned() else {
+                return Err(ValueProblem::Invalid(format!(
+                    "pin '{pin}': there is no [multi_pin {}] section",
+                    pin.pin
+                )));
+            };
+            for member in &group {
+                self.claim(member, section, option, share)?;
+            }
+            return Ok(());
+        }
         if let Some(mcu) = self.scaled_mcu(&pin.mcu) {
             // `NAME:PIN` of `[adc_scaled NAME]` is PIN of its MCU.
             let real = PinRef {
@@ -376,14 +397,7 @@ impl PinRegistry {
                     pin.mcu.replacen('_', " ", 1)
                 )));
             }
-            // `multi_pin:NAME` is the pin group of `[multi_pin NAME]`.
-            let names = |chip: &str, section: &str| {
-                chip != "multi_pin" || section.split_whitespace().nth(1) == Some(&pin.pin)
-            };
-            let unsupported = self
-                .unsupported_chips
-                .iter()
-                .find(|(chip, section)| *chip == pin.mcu && names(chip, section));
+            let unsupported = self.unsupported_chips.iter().find(|(chip, _)| *chip == pin.mcu);
             if let Some((_, section)) = unsupported {
                 return Err(ValueProblem::Invalid(format!(
                     "pin '{pin}' is on [{section}], whose pins Cadence does not support yet"

@@ -89,7 +89,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("mcu", Read),
     ("menu", Ignored),
     ("mpu9250", Ignored),
-    ("multi_pin", Ignored),
+    ("multi_pin", Read),
     ("neopixel", Ignored),
     ("output_pin", Ignored),
     ("palette2", Ignored),

@@ -217,6 +217,8 @@ pub struct ThermalSections {
     pub temperature_fans: Vec<TemperatureFanSection>,
     /// `[adc_scaled NAME]` (read before the sections naming its pins).
     pub adc_scaled: Vec<super::adc_scaled::AdcScaledSection>,
+    /// `[multi_pin NAME]` (read before the sections naming its group).
+    pub multi_pins: Vec<super::multi_pin::MultiPinSection>,
 }
 
 const UNIT: Bounds = Bounds::ANY.min(0.0).max(1.0);
