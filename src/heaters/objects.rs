@@ -451,7 +451,8 @@ impl Thermal {
                 return Err(ThermalError::Invalid {
                     section,
                     what: format!(
-                        "sensor_pin is on mcu '{}' and heater_pin on mcu '{}': both must be on one MCU",
+                        "sensor_pin is on mcu '{}' and heater_pin on mcu '{}': a heater whose sensor is on another \
+                         MCU is not supported by Cadence yet",
                         sensor_pin.mcu, heater_pin.mcu
                     ),
                 });
