@@ -488,7 +488,7 @@ fn oid_layout<'m>(
     let trsync_oid = u8::try_from(enable_oid0 + enables.len()).map_err(|_| ConfigureError::TooManyObjects)?;
     let thermal_oid0 = usize::from(trsync_oid) + 1;
     let tmc_oid0 = thermal_oid0 + machine.thermal.objects_on(mcu).len();
-    let count = tmc_oid0 + crate::tmc::bus_count(&machine.tmc, mcu);
+    let count = tmc_oid0 + crate::tmc::object_count(&machine.tmc, mcu);
     Ok(OidLayout {
         enables,
         bltouch,

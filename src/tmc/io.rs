@@ -7,6 +7,9 @@
 //! one (IFCNT read before the first write). Each is tried up to 5 times, then "Unable to
 //! read/write tmc uart 'NAME' register REG".
 //!
+//! Behind an analog mux (`select_pins`), the select outputs are set to the driver's levels
+//! (`update_digital_out`) before each UART transfer, as Klipper does.
+//!
 //! SPI: a read is `spi_send` of the request then `spi_transfer` of it again, whose answer
 //! carries the value; a write is `spi_send` of the write then `spi_transfer` of a dummy read,
 //! whose answer must be the value written (5 tries, then "Unable to write tmc spi …").
@@ -26,12 +29,15 @@ const TRIES: usize = 5;
 const TIMEOUT: Duration = Duration::from_secs(1);
 
 /// A driver and the link and oid of its bus.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct TmcIo<'a> {
     pub link: &'a McuLink,
     /// Oid of its bus object.
     pub oid: u8,
     pub drv: &'a TmcOut,
+    /// Behind an analog mux (`select_pins`): each select output's oid and the level that
+    /// selects this driver, set before each transfer.
+    pub mux: Vec<(u8, bool)>,
 }
 
 impl TmcIo<'_> {
@@ -63,6 +69,17 @@ impl TmcIo<'_> {
             .map_err(|e| e.to_string())
     }
 
+    /// Selects this driver on its mux (Klipper sets the select outputs before each transfer).
+    fn select(&self) -> Result<(), String> {
+        for &(oid, level) in &self.mux {
+            self.send(
+                "update_digital_out",
+                &[Value::Int(i64::from(oid)), Value::Int(i64::from(level))],
+            )?;
+        }
+        Ok(())
+    }
+
     fn stepper(&self) -> &str {
         &self.drv.cfg.stepper
     }
@@ -74,6 +91,7 @@ impl TmcIo<'_> {
         for _ in 0..TRIES {
             match &self.drv.cfg.bus {
                 TmcBus::Uart { address, .. } => {
+                    self.select()?;
                     let req = wire::encode_read(*address, addr);
                     let r = self.query(
                         "tmcuart_send",
@@ -127,6 +145,7 @@ impl TmcIo<'_> {
                     // The MCU answers a write too (nothing read): waiting for that answer
                     // keeps it from being taken for the next read's.
                     let req = wire::encode_write(*address, addr, value);
+                    self.select()?;
                     self.query(
                         "tmcuart_send",
                         &[oid, Value::Bytes(&req), Value::Int(0)],

@@ -59,6 +59,8 @@ pub struct SimBoard {
     /// Simulated axes and endstops.
     pub world: World,
     heaters: Vec<Heater>,
+    /// The level each output pin was last set to (a TMC UART mux's select pins).
+    levels: [bool; 256],
     /// Fans with tachometers (`--fan`).
     fans: Vec<super::fan::Fan>,
     /// The ADC's references (`--adc-ref`): with them every reading has an offset and gain error.
@@ -90,6 +92,7 @@ impl SimBoard {
             heaters: Vec::new(),
             adc_refs: Vec::new(),
             fans: Vec::new(),
+            levels: [false; 256],
             bltouch: Vec::new(),
             tmc: Vec::new(),
         })
@@ -261,10 +264,13 @@ impl Board for SimBoard {
     fn tmcuart_transfer(&mut self, rx_pin: u8, tx_pin: u8, _bit_time: u32, write: &[u8], read: &mut [u8]) {
         // Every driver on the line hears the request; the addressed one answers.
         let mut reply = None;
+        let levels = &self.levels;
+        let selected = |select: &[(u8, bool)]| select.iter().all(|&(p, l)| levels[usize::from(p)] == l);
         for t in self
             .tmc
             .iter_mut()
             .filter(|t| t.spec.bus_pin == rx_pin || t.spec.bus_pin == tx_pin)
+            .filter(|t| selected(&t.spec.select))
         {
             reply = t.uart(write).or(reply);
         }
@@ -296,6 +302,7 @@ impl Board for SimBoard {
     }
 
     fn set_pin(&mut self, pin: u8, value: bool, clock: WireClock) {
+        self.levels[usize::from(pin)] = value;
         let at = self.extend(clock);
         for b in self.bltouch.iter_mut().filter(|b| b.spec.control_pin == pin) {
             b.control(value, at);
