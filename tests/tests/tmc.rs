@@ -170,3 +170,60 @@ fn dump_tmc_reads_back_what_was_written_and_set_tmc_current_changes_the_driver()
     // The TMC2208 rewritten by INIT_TMC: its 6 registers twice.
     assert!(counts[1] >= 12, "{counts:?}");
 }
+
+/// A Duet's TMC UART analog mux (`select_pins`): X and Y both at address 0 on one line, told
+/// apart by the select outputs the host sets before each transfer; each driver keeps its own
+/// current (without the mux both would take every write), and both still home sensorlessly.
+#[test]
+fn drivers_behind_an_analog_mux_are_reached_one_at_a_time() {
+    let dir = scratch("tmc-mux");
+    let cfg = config(&dir, |t| {
+        t.replace(
+            "uart_pin: PE6\nuart_address: 0\nrun_current: 0.8\n",
+            "uart_pin: PE6\nselect_pins: !PC14, PC15\nrun_current: 0.8\n",
+        )
+        .replace(
+            "uart_pin: PE6\nuart_address: 1\nrun_current: 0.8\n",
+            "uart_pin: PE6\nselect_pins: PC14, !PC15\nrun_current: 0.5\n",
+        )
+    });
+    let text = std::fs::read_to_string(&cfg).expect("config");
+    assert_eq!(
+        text.matches("select_pins").count(),
+        2,
+        "the example's UART sections changed"
+    );
+    let g = dir.join("mux.gcode");
+    std::fs::write(
+        &g,
+        "G28 X Y\nDUMP_TMC STEPPER=stepper_x REGISTER=IHOLD_IRUN\nDUMP_TMC STEPPER=stepper_y REGISTER=IHOLD_IRUN\n",
+    )
+    .expect("gcode");
+    let r = {
+        let _one = ONE_AT_A_TIME.lock().unwrap_or_else(PoisonError::into_inner);
+        retry_homing_timeouts(
+            || {
+                let mut cmd = std::process::Command::new(cadence_tests::bin("cadence"));
+                cmd.arg("print")
+                    .arg(&g)
+                    .arg("--config")
+                    .arg(&cfg)
+                    .arg("--no-progress");
+                run(&mut cmd, TIMEOUT)
+            },
+            |r| r,
+        )
+    };
+    assert_success(&r);
+    let out = &r.stdout;
+    let irun: Vec<&str> = out
+        .lines()
+        .filter_map(|l| l.trim().strip_prefix("IHOLD_IRUN:"))
+        .collect();
+    // 0.8 A and 0.5 A through 0.11 Ω: IRUN 25 and 15.
+    assert_eq!(irun.len(), 2, "{out}");
+    assert!(
+        irun[0].contains("irun=25") && irun[1].contains("irun=15"),
+        "{irun:?}"
+    );
+}
