@@ -77,6 +77,19 @@ pub fn drivers(cfg: &PrinterConfig) -> Vec<TmcOut> {
                     ..
                 },
             ) => a.mcu == b.mcu && a.pin == b.pin && ta == tb,
+            // The drivers of one SPI daisy chain share its chip select.
+            (
+                TmcBus::Spi {
+                    cs_pin: a,
+                    chain: Some(_),
+                    ..
+                },
+                TmcBus::Spi {
+                    cs_pin: b,
+                    chain: Some(_),
+                    ..
+                },
+            ) => a.mcu == b.mcu && a.pin == b.pin,
             _ => false,
         };
         let bus = match out.iter().find(|o| shares(o)) {
@@ -251,7 +264,7 @@ pub fn sim_args(drivers: &[TmcOut], mcu: &str, diag: impl Fn(&TmcOut) -> Option<
                 select_pins,
                 ..
             } => (&uart_pin.pin, *address, select_pins.as_slice()),
-            TmcBus::Spi { cs_pin, .. } => (&cs_pin.pin, 0, &[][..]),
+            TmcBus::Spi { cs_pin, chain, .. } => (&cs_pin.pin, chain.map_or(0, |(_, p)| p), &[][..]),
         };
         let mut spec = format!("{}@{pin}:{addr}", d.cfg.model.kind());
         for s in select {

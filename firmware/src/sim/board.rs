@@ -281,10 +281,29 @@ impl Board for SimBoard {
     }
 
     fn spi_transfer(&mut self, cs_pin: u8, data: &mut [u8]) {
-        match self.tmc.iter_mut().find(|t| t.spec.bus_pin == cs_pin) {
-            Some(t) => t.spi(data),
+        let mut selected = self
+            .tmc
+            .iter_mut()
+            .filter(|t| t.spec.bus_pin == cs_pin)
+            .peekable();
+        if selected.peek().is_none() {
             // Nothing selected: MISO floats high.
-            None => data.fill(0xff),
+            data.fill(0xff);
+            return;
+        }
+        // A daisy chain (drivers at positions 1..=n on one chip select): the bytes shift through
+        // every driver, so position p holds the 5 bytes at (n − p)·5 of the n·5 clocked, and
+        // answers in their place.
+        let n = data.len() / 5;
+        for t in selected {
+            match usize::from(t.spec.address) {
+                0 => t.spi(data),
+                p if p <= n => {
+                    let at = (n - p) * 5;
+                    t.spi(&mut data[at..at + 5]);
+                }
+                _ => {}
+            }
         }
     }
 

@@ -97,7 +97,7 @@ pub struct TmcSpec {
     pub model: Model,
     /// UART receive pin, or SPI chip select.
     pub bus_pin: u8,
-    /// UART address (0 on SPI).
+    /// UART address; on SPI the position in a daisy chain (1..; 0 alone on its chip select).
     pub address: u8,
     pub diag: Option<DiagSpec>,
     /// UART behind an analog mux (Klipper's `select_pins`): the driver hears the line only

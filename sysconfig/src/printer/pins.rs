@@ -156,6 +156,8 @@ pub(crate) enum Share {
     TmcUart,
     /// Software SPI clock/data lines: shared by the devices on that bus.
     SpiBus,
+    /// The chip select of a TMC SPI daisy chain: shared by the drivers of the chain.
+    SpiChain,
 }
 
 #[derive(Debug)]

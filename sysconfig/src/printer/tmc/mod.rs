@@ -43,6 +43,9 @@ pub enum TmcBus {
         bus: Option<String>,
         /// `spi_software_sclk_pin`, `spi_software_mosi_pin`, `spi_software_miso_pin`.
         software: Option<[PinRef; 3]>,
+        /// A daisy chain on `cs_pin`: `chain_length` and this driver's `chain_position`
+        /// (1..=length).
+        chain: Option<(u8, u8)>,
     },
 }
 
@@ -350,9 +353,27 @@ fn read_bus(s: &SectionReader<'_>, model: TmcModel, pins: &mut PinRegistry) -> R
             select_pins,
         });
     }
-    refuse("chain_length", "TMC SPI daisy chains")?;
-    refuse("chain_position", "TMC SPI daisy chains")?;
-    let cs_pin = s.pin("cs_pin", PinKind::Output, pins, Share::Exclusive)?;
+    // At most 9 drivers: 45 bytes, within the MCU's largest SPI transfer.
+    let length = match s.value("chain_length") {
+        Some(_) => Some(s.int::<u8>("chain_length", None, 2..=9)?),
+        None => None,
+    };
+    let chain = match length {
+        Some(length) => Some((
+            length,
+            s.int::<u8>("chain_position", None, 1..=i64::from(length))?,
+        )),
+        None => {
+            refuse("chain_position", "a chain_position without chain_length")?;
+            None
+        }
+    };
+    let share = if chain.is_some() {
+        Share::SpiChain
+    } else {
+        Share::Exclusive
+    };
+    let cs_pin = s.pin("cs_pin", PinKind::Output, pins, share)?;
     let speed = s.int::<u32>("spi_speed", Some(4_000_000), 1..=i64::from(u32::MAX))?;
     let bus = s.value("spi_bus").map(|v| v.text.clone());
     let sw = [
@@ -373,6 +394,7 @@ fn read_bus(s: &SectionReader<'_>, model: TmcModel, pins: &mut PinRegistry) -> R
         speed,
         bus,
         software,
+        chain,
     })
 }
 
