@@ -227,3 +227,62 @@ fn drivers_behind_an_analog_mux_are_reached_one_at_a_time() {
         "{irun:?}"
     );
 }
+
+/// A TMC SPI daisy chain (`chain_length`, `chain_position`): Z and the extruder as TMC2130s on
+/// one chip select, each datagram placed for its driver in the chain's frame; a field written to
+/// one driver stays in that driver (a frame placed or read at the wrong place would show it in
+/// the other, or fail the write's check).
+#[test]
+fn drivers_on_an_spi_daisy_chain_keep_their_own_registers() {
+    let dir = scratch("tmc-chain");
+    let cfg = config(&dir, |t| {
+        t.replace(
+            "cs_pin: PE9\n",
+            "cs_pin: PE9\nchain_length: 2\nchain_position: 1\n",
+        )
+        .replace(
+            "[tmc2208 extruder]\nuart_pin: PE13\nrun_current: 0.5\n",
+            "[tmc2130 extruder]\ncs_pin: PE9\nchain_length: 2\nchain_position: 2\n\
+             spi_software_sclk_pin: PE10\nspi_software_mosi_pin: PE11\nspi_software_miso_pin: PE12\n\
+             run_current: 0.3\n",
+        )
+    });
+    let text = std::fs::read_to_string(&cfg).expect("config");
+    assert_eq!(
+        text.matches("chain_position").count(),
+        2,
+        "the example's TMC sections changed"
+    );
+    let g = dir.join("chain.gcode");
+    std::fs::write(
+        &g,
+        "DUMP_TMC STEPPER=stepper_z REGISTER=CHOPCONF\nDUMP_TMC STEPPER=extruder REGISTER=CHOPCONF\n\
+         SET_TMC_FIELD STEPPER=extruder FIELD=toff VALUE=5\n\
+         DUMP_TMC STEPPER=stepper_z REGISTER=CHOPCONF\nDUMP_TMC STEPPER=extruder REGISTER=CHOPCONF\n",
+    )
+    .expect("gcode");
+    let mut cmd = std::process::Command::new(cadence_tests::bin("cadence"));
+    cmd.arg("print")
+        .arg(&g)
+        .arg("--config")
+        .arg(&cfg)
+        .arg("--no-progress");
+    let r = run(&mut cmd, TIMEOUT);
+    assert_success(&r);
+    let out = &r.stdout;
+    let chop: Vec<&str> = out
+        .lines()
+        .filter_map(|l| l.trim().strip_prefix("CHOPCONF:"))
+        .collect();
+    assert_eq!(chop.len(), 4, "{out}");
+    // Read back from each driver: Z's configured toff 4, the extruder's own, then 5 on the
+    // extruder only.
+    assert!(
+        chop[0].contains("toff=4") && chop[1].contains("toff=4"),
+        "{chop:?}"
+    );
+    assert!(
+        chop[2].contains("toff=4") && chop[3].contains("toff=5"),
+        "{chop:?}"
+    );
+}
