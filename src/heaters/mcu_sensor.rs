@@ -39,28 +39,43 @@ pub enum McuSensorError {
 }
 
 /// A datasheet line: `v0` volts at `t0` °C, `dv_dt` V/°C, against `vref` volts.
-fn line(t0: f64, v0: f64, dv_dt: f64, vref: f64) -> (f64, f64) {
-    let slope = vref / dv_dt;
-    (t0 - v0 / vref * slope, slope)
+#[derive(Debug, Clone, Copy)]
+struct Datasheet {
+    t0: f64,
+    v0: f64,
+    dv_dt: f64,
+    vref: f64,
+}
+
+impl Datasheet {
+    /// `(base, slope)` of the line in ADC fractions.
+    fn line(self) -> (f64, f64) {
+        let slope = self.vref / self.dv_dt;
+        (self.t0 - self.v0 / self.vref * slope, slope)
+    }
+}
+
+const fn sheet(t0: f64, v0: f64, dv_dt: f64, vref: f64) -> Datasheet {
+    Datasheet { t0, v0, dv_dt, vref }
 }
 
 /// Klipper's fixed calibration line `(base, slope)` of MCU family `mcu_type`, for the families
 /// whose line is in their datasheet (not in their flash).
 pub fn family_line(mcu_type: &str) -> Option<(f64, f64)> {
     use firmware::sim::mcu_temp as sim;
-    let families: [(&str, (f64, f64, f64, f64)); 7] = [
-        ("rp2", (27.0, 0.706, -0.001721, 3.3)),
-        ("sam3", (27.0, 0.8, 0.00265, 3.3)),
-        ("sam4", (27.0, 1.44, 0.0047, 3.3)),
-        ("same70", (25.0, 0.72, 0.00233, 3.3)),
-        ("stm32f1", (25.0, 1.43, -0.0043, 3.3)),
-        ("stm32f2", (25.0, 0.76, 0.0025, 3.3)),
-        ("linux-sim", (25.0, sim::V25, sim::SLOPE_V_PER_C, sim::VREF)),
+    let families = [
+        ("rp2", sheet(27.0, 0.706, -0.001721, 3.3)),
+        ("sam3", sheet(27.0, 0.8, 0.00265, 3.3)),
+        ("sam4", sheet(27.0, 1.44, 0.0047, 3.3)),
+        ("same70", sheet(25.0, 0.72, 0.00233, 3.3)),
+        ("stm32f1", sheet(25.0, 1.43, -0.0043, 3.3)),
+        ("stm32f2", sheet(25.0, 0.76, 0.0025, 3.3)),
+        ("linux-sim", sheet(25.0, sim::V25, sim::SLOPE_V_PER_C, sim::VREF)),
     ];
     families
         .iter()
         .find(|(prefix, _)| mcu_type.starts_with(prefix))
-        .map(|&(_, (t0, v0, dv_dt, vref))| line(t0, v0, dv_dt, vref))
+        .map(|(_, s)| s.line())
 }
 
 impl McuSensor {
