@@ -97,11 +97,13 @@ mod tests {
             reports.extend(report);
             at = next.unwrap();
         }
-        // Polls at 100..=290: changes at 120, 140, …, 280 (9 of them).
+        // Polls at 100..=290, reports at 100, 150, 200 and 250; the line is high at the first
+        // poll (a change from the count's even start), then changes at 120, 140, …: 8 changes
+        // by the last report, the last at 240.
         assert_eq!(reports.len(), 4);
         let last = reports[3];
         assert_eq!(last.next_clock, WireClock(260));
-        assert_eq!((last.count, last.count_clock), (7, WireClock(240)));
+        assert_eq!((last.count, last.count_clock), (8, WireClock(240)));
         c.halt();
         assert_eq!(c.event(at, true), (None, None));
     }
