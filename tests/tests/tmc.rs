@@ -34,6 +34,24 @@ fn config(dir: &Path, edit: impl Fn(String) -> String) -> PathBuf {
     path
 }
 
+/// `cadence print` of the G-code `g` on `cfg`, one printer at a time, run again after a homing
+/// timeout (a loaded VM).
+fn print(g: &Path, cfg: &Path) -> Run {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(PoisonError::into_inner);
+    retry_homing_timeouts(
+        || {
+            let mut cmd = std::process::Command::new(cadence_tests::bin("cadence"));
+            cmd.arg("print")
+                .arg(g)
+                .arg("--config")
+                .arg(cfg)
+                .arg("--no-progress");
+            run(&mut cmd, TIMEOUT)
+        },
+        |r| r,
+    )
+}
+
 /// The stop bounds (µs after the trigger) of every pass of the `homing AXIS:` line.
 fn stop_bounds(out: &str, axis: char) -> Vec<(f64, f64)> {
     let key = format!("homing {axis}:");
@@ -119,21 +137,7 @@ fn dump_tmc_reads_back_what_was_written_and_set_tmc_current_changes_the_driver()
          G1 X10 Y10 F3000\n",
     )
     .expect("gcode");
-    let r = {
-        let _one = ONE_AT_A_TIME.lock().unwrap_or_else(PoisonError::into_inner);
-        retry_homing_timeouts(
-            || {
-                let mut cmd = std::process::Command::new(cadence_tests::bin("cadence"));
-                cmd.arg("print")
-                    .arg(&g)
-                    .arg("--config")
-                    .arg(&cfg)
-                    .arg("--no-progress");
-                run(&mut cmd, TIMEOUT)
-            },
-            |r| r,
-        )
-    };
+    let r = print(&g, &cfg);
     assert_success(&r);
     let out = &r.stdout;
     let has = |s: &str| assert!(out.lines().any(|l| l.trim() == s), "no line '{s}' in:\n{out}");
@@ -199,21 +203,7 @@ fn drivers_behind_an_analog_mux_are_reached_one_at_a_time() {
         "G28 X Y\nDUMP_TMC STEPPER=stepper_x REGISTER=IHOLD_IRUN\nDUMP_TMC STEPPER=stepper_y REGISTER=IHOLD_IRUN\n",
     )
     .expect("gcode");
-    let r = {
-        let _one = ONE_AT_A_TIME.lock().unwrap_or_else(PoisonError::into_inner);
-        retry_homing_timeouts(
-            || {
-                let mut cmd = std::process::Command::new(cadence_tests::bin("cadence"));
-                cmd.arg("print")
-                    .arg(&g)
-                    .arg("--config")
-                    .arg(&cfg)
-                    .arg("--no-progress");
-                run(&mut cmd, TIMEOUT)
-            },
-            |r| r,
-        )
-    };
+    let r = print(&g, &cfg);
     assert_success(&r);
     let out = &r.stdout;
     let irun: Vec<&str> = out
