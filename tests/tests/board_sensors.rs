@@ -1,8 +1,9 @@
 //! End to end on the simulated printer: the board-level sensors and outputs of Klipper's
 //! example configs — the MCU's own temperature sensor (`temperature_mcu` on `ADC_TEMPERATURE`),
 //! `[adc_scaled]` (a Duet's ADC references, which the simulated ADC's offset and gain error
-//! make necessary), a hardware-PWM fan (`config_pwm_out`) and fan tachometers
-//! (`config_counter`) — each read back from the simulated MCU through the print's summary.
+//! make necessary), a hardware-PWM fan (`config_pwm_out`), fan tachometers (`config_counter`)
+//! and a `[multi_pin]` heater output — each read back from the simulated MCU through the print's
+//! summary.
 //! Times are MCU time (a time-scaled simulator); bounds are generous.
 
 use std::path::{Path, PathBuf};
@@ -38,6 +39,11 @@ fn config(dir: &Path) -> PathBuf {
 
 fn print(dir: &Path, gcode: &str) -> Run {
     let cfg = config(dir);
+    print_with(dir, &cfg, gcode, None)
+}
+
+/// `cadence print` of `gcode` on `cfg`, the simulated MCU given `sim_args` too.
+fn print_with(dir: &Path, cfg: &Path, gcode: &str, sim_args: Option<&str>) -> Run {
     let g = dir.join("print.gcode");
     std::fs::write(&g, gcode).unwrap();
     let mut cmd = Command::new(bin("cadence"));
@@ -50,7 +56,10 @@ fn print(dir: &Path, gcode: &str) -> Run {
         "5",
         "--no-realtime",
     ]);
-    cmd.env_remove("CADENCE_SIM_ARGS_MCU");
+    match sim_args {
+        Some(a) => cmd.env("CADENCE_SIM_ARGS_MCU", a),
+        None => cmd.env_remove("CADENCE_SIM_ARGS_MCU"),
+    };
     run(&mut cmd, TIMEOUT)
 }
 
@@ -100,6 +109,31 @@ fn mcu_sensor_scaled_adc_hardware_pwm_and_tachometers() {
     assert!(
         (exhaust - 5000.0).abs() < 250.0,
         "exhaust fan: {exhaust} rpm\n{out}"
+    );
+}
+
+/// `[multi_pin]`: the hotend's heater output on two pins; the simulated MCU gets a second
+/// hotend model on the group's second pin (read by a `[temperature_sensor]`), which heats as the
+/// first does only if the host drives both pins with the same PWM.
+#[test]
+fn a_multi_pin_heater_drives_every_pin_of_its_group() {
+    let dir = scratch("multi-pin");
+    let cfg = config(&dir);
+    let text = std::fs::read_to_string(&cfg).unwrap();
+    assert!(text.contains("heater_pin: PE0\n"), "the example's hotend moved");
+    let text = text.replacen("heater_pin: PE0\n", "heater_pin: multi_pin:hotend\n", 1)
+        + "\n[multi_pin hotend]\npins: PE4, PE5\n\
+           \n[temperature_sensor twin]\nsensor_type: Generic 3950\nsensor_pin: PF4\n";
+    std::fs::write(&cfg, text).unwrap();
+    let run = print_with(&dir, &cfg, "M109 S60\nM104 S0\n", Some("--heater PE5=PF4,hotend"));
+    assert_eq!(run.code, Some(0), "{}\n{}", run.stdout, run.stderr);
+    let out = &run.stdout;
+    let hotend = value(out, "heater extruder:", "highest");
+    let twin = value(out, "temperature_sensor twin:", "highest");
+    assert!(hotend >= 59.0, "{out}");
+    assert!(
+        (twin - hotend).abs() < 5.0,
+        "the second pin heated as the first: {twin} vs {hotend}\n{out}"
     );
 }
 
