@@ -104,6 +104,8 @@ pub struct FanStatus {
     /// A temperature fan's sensor temperature and target (°C), `None` for other fans.
     pub temperature: Option<f64>,
     pub target: Option<f64>,
+    /// The tachometer's speed (rev/min), `None` without one.
+    pub rpm: Option<f64>,
 }
 
 /// One `[temperature_sensor]` in a [`Status`].
@@ -296,6 +298,7 @@ impl SessionShared {
                         speed: f.speed.get(),
                         temperature: sensor.map(|s| s.temp.get()),
                         target: sensor.map(|_| f.target.get()),
+                        rpm: Some(f.rpm.get()).filter(|r| !r.is_nan()),
                     }
                 })
                 .collect(),

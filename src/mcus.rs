@@ -201,6 +201,10 @@ impl Mcus {
                         let mut extra = machine.sim_world_args(&name, &world);
                         // Each heater of this MCU gets the simulator's thermal model.
                         extra.extend(machine.thermal.sim_args(&name));
+                        // Its `[adc_scaled]` chips' ADC references.
+                        extra.extend(machine.thermal.sim_adc_ref_args(&name));
+                        // Its fans with tachometers.
+                        extra.extend(machine.thermal.sim_fan_args(&name));
                         // A simulated MCU stands in for hardware that is never descheduled:
                         // when the host's threads run SCHED_FIFO, it runs SCHED_FIFO too, below
                         // them (they preempt it) but above ordinary processes. Refused: it
@@ -539,7 +543,7 @@ fn oid_layout<'m>(
     let trsync_oid = u8::try_from(enable_oid0 + enables.len()).map_err(|_| ConfigureError::TooManyObjects)?;
     let thermal_oid0 = usize::from(trsync_oid) + 1;
     let tmc_oid0 = thermal_oid0 + machine.thermal.objects_on(mcu).len();
-    let count = tmc_oid0 + crate::tmc::bus_count(&machine.tmc, mcu);
+    let count = tmc_oid0 + crate::tmc::object_count(&machine.tmc, mcu);
     Ok(OidLayout {
         enables,
         bltouch,

@@ -8,7 +8,7 @@
 //! hard-codes ids beyond 0 and 1.
 
 use crate::core::commands::{Kind, MESSAGES};
-use crate::core::constants::{Chip, ConstValue, CONSTANTS, SHUTDOWN_REASONS, SIM_CHIP};
+use crate::core::constants::{Chip, ConstValue, ADC_TEMPERATURE_PIN, CONSTANTS, SHUTDOWN_REASONS, SIM_CHIP};
 use flate2::write::ZlibEncoder;
 use flate2::Compression;
 use serde_json::{json, Map, Value};
@@ -35,6 +35,7 @@ pub fn dictionary_json_for(chip: &Chip, clock_freq: u32) -> Value {
         for run in links::pinmap::pin_runs() {
             pins.insert(run.first.to_string(), json!([run.value, run.count]));
         }
+        pins.insert("ADC_TEMPERATURE".into(), json!(ADC_TEMPERATURE_PIN));
     }
     for (i, port) in chip.ports.iter().enumerate() {
         let first = i as u32 * chip.pins_per_port as u32;
@@ -108,7 +109,8 @@ mod tests {
         assert_eq!(v["config"]["ADC_MAX"], 4095);
         assert_eq!(v["config"]["PWM_MAX"], 255);
         let pins = v["enumerations"]["pin"].as_object().unwrap();
-        assert_eq!(pins.len(), links::pinmap::pin_runs().count());
+        assert_eq!(pins.len(), links::pinmap::pin_runs().count() + 1);
+        assert_eq!(pins["ADC_TEMPERATURE"], json!(ADC_TEMPERATURE_PIN));
         assert_eq!(pins["PA0"], json!([0, 8]));
         assert_eq!(pins["PC8"], json!([112, 8]));
         assert_eq!(pins["P1.0"], json!([32, 32]));

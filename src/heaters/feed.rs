@@ -274,8 +274,14 @@ impl HeatLog {
                 ),
                 None => String::new(),
             };
+            let rpm = f.rpm.get();
+            let rpm = if rpm.is_nan() {
+                String::new()
+            } else {
+                format!(", {rpm:.0} rpm")
+            };
             out.push(format!(
-                "{} {}: {:.0} %{target}",
+                "{} {}: {:.0} %{target}{rpm}",
                 f.kind,
                 f.name,
                 f.speed.get() * 100.0

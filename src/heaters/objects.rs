@@ -12,9 +12,11 @@
 
 use links::dict::{Cmd, Dictionary};
 use sysconfig::printer::{
-    FanOptions, HeaterControl, HeaterSection, PinRef, PrinterConfig, ThermistorSection,
+    FanOptions, HeaterControl, HeaterSection, PinRef, PrinterConfig, SensorSection, SensorSource,
+    ThermistorSection, MULTI_PIN_CHIP,
 };
 
+use super::mcu_sensor::{McuSensor, McuSensorError, ADC_TEMPERATURE};
 use super::thermistor::{Element, Sensor, SensorError, SteinhartHart};
 use super::verify::VerifyConfig;
 
@@ -72,6 +74,8 @@ pub struct HeaterOut {
     pub min_extrude_temp: Option<f64>,
     pub verify: VerifyConfig,
     pub sim: SimKind,
+    /// The `[adc_scaled]` chip (index in [`Thermal::scaled`]) its sensor pin is read through.
+    pub sensor_scale: Option<usize>,
 }
 
 /// One ADC `[temperature_sensor NAME]`, or the sensor of `[temperature_fan NAME]`.
@@ -84,7 +88,13 @@ pub struct SensorOut {
     pub gcode_id: Option<String>,
     pub mcu: String,
     pub pin: PinRef,
+    /// The conversion; for the MCU's own sensor ([`SensorOut::internal`]) a placeholder until
+    /// the MCU's type is known: use [`SensorOut::sensor_on`].
     pub sensor: Sensor,
+    /// `temperature_mcu`: the MCU's own sensor, calibrated for the MCU's type.
+    pub internal: Option<McuSensor>,
+    /// The `[adc_scaled]` chip (index in [`Thermal::scaled`]) its pin is read through.
+    pub scale: Option<usize>,
     pub smooth_time: f64,
     pub min_temp: f64,
     pub max_temp: f64,
@@ -148,9 +158,33 @@ pub struct FanOut {
     pub role: FanRole,
 }
 
+/// One `[adc_scaled NAME]`: the reference inputs of MCU `mcu`'s ADC.
+#[derive(Debug, Clone)]
+pub struct ScaledOut {
+    pub name: String,
+    pub mcu: String,
+    pub vref_pin: PinRef,
+    pub vssa_pin: PinRef,
+    pub smooth_time: f64,
+}
+
+/// An output driven through `[multi_pin]`: its first pin is the output's own; the others get
+/// the same commands.
+#[derive(Debug, Clone, PartialEq)]
+pub enum MultiOutput {
+    /// Heater `i`'s PWM.
+    Heater(usize),
+    /// Fan `i`'s output.
+    Fan(usize),
+}
+
 /// Every thermal object of the printer.
 #[derive(Debug, Clone, Default)]
 pub struct Thermal {
+    /// The further pins of outputs named `multi_pin:NAME`.
+    pub multi_outputs: Vec<(MultiOutput, Vec<PinRef>)>,
+    /// `[adc_scaled]` chips.
+    pub scaled: Vec<ScaledOut>,
     pub heaters: Vec<HeaterOut>,
     pub sensors: Vec<SensorOut>,
     pub fans: Vec<FanOut>,
@@ -184,6 +218,16 @@ pub enum ObjectsError {
     /// A command does not encode.
     #[error(transparent)]
     Dictionary(#[from] links::dict::DictError),
+    /// A hardware-PWM fan on a `[multi_pin]` group.
+    #[error("[{0}] hardware_pwm: a multi_pin group is driven with software PWM (set hardware_pwm: False)")]
+    MultiPinHardwarePwm(String),
+    /// `temperature_mcu` on an MCU it cannot be calibrated for.
+    #[error("[temperature_sensor {section}] {source}")]
+    McuSensor {
+        section: String,
+        #[source]
+        source: McuSensorError,
+    },
 }
 
 /// The object of one MCU's thermal list.
@@ -197,6 +241,14 @@ pub enum ThermalObject {
     SensorAdc(usize),
     /// Fan `i`'s output.
     Fan(usize),
+    /// Further pin `j` of [`Thermal::multi_outputs`] entry `k`.
+    MultiPwm(usize, usize),
+    /// Fan `i`'s tachometer (a pulse counter on its `tachometer_pin`).
+    Tach(usize),
+    /// `[adc_scaled]` chip `i`'s `vref_pin` input.
+    ScaledVref(usize),
+    /// `[adc_scaled]` chip `i`'s `vssa_pin` input.
+    ScaledVssa(usize),
 }
 
 fn sensor_of(
@@ -225,6 +277,116 @@ fn sensor_of(
     Sensor::named(sensor_type, pullup, inline).map_err(bad)
 }
 
+/// A sensor read through an MCU's ADC: its MCU, pin, conversion and (for the MCU's own
+/// sensor) calibration; `None` for the host's own sensor.
+type AdcSensor = (String, PinRef, Sensor, Option<McuSensor>);
+
+fn adc_sensor(
+    section: &str,
+    s: &SensorSection,
+    thermistors: &[(String, ThermistorSection)],
+) -> Result<Option<AdcSensor>, ThermalError> {
+    Ok(match &s.source {
+        SensorSource::Adc {
+            sensor_pin,
+            pullup_resistor,
+            inline_resistor,
+        } => {
+            let sensor = sensor_of(
+                section,
+                &s.sensor_type,
+                *pullup_resistor,
+                *inline_resistor,
+                thermistors,
+            )?;
+            Some((sensor_pin.mcu.clone(), sensor_pin.clone(), sensor, None))
+        }
+        SensorSource::Mcu {
+            sensor_mcu,
+            point1,
+            point2,
+        } => {
+            let pin = PinRef {
+                mcu: sensor_mcu.clone(),
+                pin: ADC_TEMPERATURE.to_string(),
+                invert: false,
+                pullup: false,
+                pulldown: false,
+            };
+            let placeholder = Sensor {
+                element: Element::Linear {
+                    base: 0.0,
+                    slope: 1.0,
+                },
+                pullup: 0.0,
+                inline: 0.0,
+            };
+            let internal = McuSensor {
+                point1: *point1,
+                point2: *point2,
+            };
+            Some((sensor_mcu.clone(), pin, placeholder, Some(internal)))
+        }
+        SensorSource::Host { .. } => None,
+    })
+}
+
+/// `pin` as MCU outputs: `multi_pin:NAME` is the first pin of `[multi_pin NAME]` (inverted
+/// when the reference is) and the further pins; any other pin is itself.
+fn multi_pin(
+    cfg: &PrinterConfig,
+    section: &str,
+    pin: &PinRef,
+) -> Result<(PinRef, Vec<PinRef>), ThermalError> {
+    if pin.mcu != MULTI_PIN_CHIP {
+        return Ok((pin.clone(), Vec::new()));
+    }
+    let group = cfg
+        .thermal
+        .multi_pins
+        .iter()
+        .find(|g| g.name == pin.pin)
+        .map(|g| &g.pins)
+        .filter(|p| !p.is_empty())
+        .ok_or_else(|| ThermalError::Invalid {
+            section: section.to_string(),
+            what: format!("there is no [multi_pin {}] section", pin.pin),
+        })?;
+    let pins: Vec<PinRef> = group
+        .iter()
+        .map(|p| PinRef {
+            invert: p.invert != pin.invert,
+            ..p.clone()
+        })
+        .collect();
+    Ok((pins[0].clone(), pins[1..].to_vec()))
+}
+
+/// `pin` as its MCU reads it: `NAME:PIN` of `[adc_scaled NAME]` is PIN of the chip's MCU,
+/// read through chip `NAME` (its index in `scaled`).
+fn resolve_scaled(scaled: &[ScaledOut], pin: &PinRef) -> (PinRef, Option<usize>) {
+    match scaled.iter().position(|c| c.name == pin.mcu) {
+        Some(k) => (
+            PinRef {
+                mcu: scaled[k].mcu.clone(),
+                ..pin.clone()
+            },
+            Some(k),
+        ),
+        None => (pin.clone(), None),
+    }
+}
+
+impl SensorOut {
+    /// The sensor's conversion on an MCU whose dictionary names its type `mcu_type`.
+    pub fn sensor_on(&self, mcu_type: &str) -> Result<Sensor, McuSensorError> {
+        match &self.internal {
+            Some(m) => m.sensor(mcu_type),
+            None => Ok(self.sensor),
+        }
+    }
+}
+
 impl Thermal {
     /// The longest time (s of MCU time) a heater's PWM value stays in force without a refresh:
     /// the `max_duration` of every heater output. Klipper's 3 s on a real board. A simulated MCU
@@ -242,10 +404,23 @@ impl Thermal {
         if cfg.mcus.iter().any(|m| m.is_simulated()) {
             out.sim_time_scale = cfg.simulator.time_scale;
         }
+        out.scaled = cfg
+            .thermal
+            .adc_scaled
+            .iter()
+            .map(|a| ScaledOut {
+                name: a.name.clone(),
+                mcu: a.vref_pin.mcu.clone(),
+                vref_pin: a.vref_pin.clone(),
+                vssa_pin: a.vssa_pin.clone(),
+                smooth_time: a.smooth_time,
+            })
+            .collect();
         out.add_heaters(cfg)?;
         out.add_sensors(cfg)?;
         out.add_fans(cfg)?;
         out.add_temperature_fans(cfg)?;
+        out.expand_multi_fans(cfg)?;
         out.check_fans()?;
         Ok(out)
     }
@@ -266,12 +441,19 @@ impl Thermal {
             } else {
                 format!("heater_generic {}", h.name)
             };
-            if h.sensor_pin.mcu != h.heater_pin.mcu {
+            let (heater_pin, more) = multi_pin(cfg, &section, &h.heater_pin)?;
+            if !more.is_empty() {
+                self.multi_outputs
+                    .push((MultiOutput::Heater(self.heaters.len()), more));
+            }
+            let (sensor_pin, sensor_scale) = resolve_scaled(&self.scaled, &h.sensor_pin);
+            if sensor_pin.mcu != heater_pin.mcu {
                 return Err(ThermalError::Invalid {
                     section,
                     what: format!(
-                        "sensor_pin is on mcu '{}' and heater_pin on mcu '{}': both must be on one MCU",
-                        h.sensor_pin.mcu, h.heater_pin.mcu
+                        "sensor_pin is on mcu '{}' and heater_pin on mcu '{}': a heater whose sensor is on another \
+                         MCU is not supported by Cadence yet",
+                        sensor_pin.mcu, heater_pin.mcu
                     ),
                 });
             }
@@ -295,9 +477,9 @@ impl Thermal {
                 .unwrap_or_else(|| VerifyConfig::defaults_for(&h.name));
             self.heaters.push(HeaterOut {
                 name: h.name.clone(),
-                mcu: h.heater_pin.mcu.clone(),
-                heater_pin: h.heater_pin.clone(),
-                sensor_pin: h.sensor_pin.clone(),
+                mcu: heater_pin.mcu.clone(),
+                heater_pin,
+                sensor_pin,
                 sensor,
                 max_power: h.max_power,
                 pwm_cycle_time: h.pwm_cycle_time,
@@ -308,6 +490,7 @@ impl Thermal {
                 min_extrude_temp: extruder.then_some(h.min_extrude_temp),
                 verify,
                 sim: if extruder { SimKind::Hotend } else { SimKind::Bed },
+                sensor_scale,
             });
         }
         for (name, _) in &th.verify_heater {
@@ -321,34 +504,26 @@ impl Thermal {
         Ok(())
     }
 
-    /// The `[temperature_sensor]`s read through an MCU's ADC.
+    /// The `[temperature_sensor]`s read through an MCU's ADC (thermistors and the like, and
+    /// the MCU's own sensor).
     fn add_sensors(&mut self, cfg: &PrinterConfig) -> Result<(), ThermalError> {
         let th = &cfg.thermal;
         for s in &th.temperature_sensors {
             let section = format!("temperature_sensor {}", s.name);
-            let sysconfig::printer::SensorSource::Adc {
-                sensor_pin,
-                pullup_resistor,
-                inline_resistor,
-            } = &s.sensor.source
-            else {
+            let Some((_, pin, sensor, internal)) = adc_sensor(&section, &s.sensor, &th.thermistors)? else {
                 // temperature_host is read from the host's own sysfs, no MCU object.
                 continue;
             };
-            let sensor = sensor_of(
-                &section,
-                &s.sensor.sensor_type,
-                *pullup_resistor,
-                *inline_resistor,
-                &th.thermistors,
-            )?;
+            let (pin, scale) = resolve_scaled(&self.scaled, &pin);
             self.sensors.push(SensorOut {
                 name: s.name.clone(),
                 fan: None,
                 gcode_id: s.gcode_id.clone(),
-                mcu: sensor_pin.mcu.clone(),
-                pin: sensor_pin.clone(),
+                mcu: pin.mcu.clone(),
+                pin,
                 sensor,
+                internal,
+                scale,
                 smooth_time: s.sensor.smooth_time,
                 min_temp: s.min_temp,
                 max_temp: s.max_temp,
@@ -426,31 +601,22 @@ impl Thermal {
         let th = &cfg.thermal;
         for f in &th.temperature_fans {
             let section = format!("temperature_fan {}", f.name);
-            let sysconfig::printer::SensorSource::Adc {
-                sensor_pin,
-                pullup_resistor,
-                inline_resistor,
-            } = &f.sensor.source
-            else {
+            let Some((_, pin, sensor, internal)) = adc_sensor(&section, &f.sensor, &th.thermistors)? else {
                 return Err(ThermalError::Invalid {
                     section,
-                    what: "sensor_type: only ADC sensors can drive a temperature fan".to_string(),
+                    what: "sensor_type: only sensors on an MCU can drive a temperature fan".to_string(),
                 });
             };
-            let sensor = sensor_of(
-                &section,
-                &f.sensor.sensor_type,
-                *pullup_resistor,
-                *inline_resistor,
-                &th.thermistors,
-            )?;
+            let (pin, scale) = resolve_scaled(&self.scaled, &pin);
             self.sensors.push(SensorOut {
                 name: f.name.clone(),
                 fan: Some(self.fans.len()),
                 gcode_id: f.gcode_id.clone(),
-                mcu: sensor_pin.mcu.clone(),
-                pin: sensor_pin.clone(),
+                mcu: pin.mcu.clone(),
+                pin,
                 sensor,
+                internal,
+                scale,
                 smooth_time: f.sensor.smooth_time,
                 min_temp: f.min_temp,
                 max_temp: f.max_temp,
@@ -473,21 +639,31 @@ impl Thermal {
         Ok(())
     }
 
+    /// Fans whose pin is `multi_pin:NAME`: the group's first pin is theirs, the others follow.
+    fn expand_multi_fans(&mut self, cfg: &PrinterConfig) -> Result<(), ThermalError> {
+        for i in 0..self.fans.len() {
+            let f = &self.fans[i];
+            let (pin, more) = multi_pin(cfg, &f.name, &f.opts.pin)?;
+            if more.is_empty() && pin == f.opts.pin {
+                continue;
+            }
+            let f = &mut self.fans[i];
+            f.mcu = pin.mcu.clone();
+            f.opts.pin = pin;
+            if !more.is_empty() {
+                self.multi_outputs.push((MultiOutput::Fan(i), more));
+            }
+        }
+        Ok(())
+    }
+
     /// Refuses the fan options the MCUs cannot serve.
     fn check_fans(&self) -> Result<(), ThermalError> {
         for f in &self.fans {
-            if f.opts.hardware_pwm {
+            if f.opts.enable_pin.is_some() {
                 return Err(ThermalError::Invalid {
                     section: f.name.clone(),
-                    what: "hardware_pwm: the Cadence MCUs drive fans with software PWM \
-                           (set hardware_pwm: False)"
-                        .to_string(),
-                });
-            }
-            if f.opts.enable_pin.is_some() || f.opts.tachometer_pin.is_some() {
-                return Err(ThermalError::Invalid {
-                    section: f.name.clone(),
-                    what: "enable_pin and tachometer_pin are not supported yet".to_string(),
+                    what: "enable_pin: is not supported by Cadence yet (fan enable pins)".to_string(),
                 });
             }
         }
@@ -541,7 +717,57 @@ impl Thermal {
                 .filter(|(_, f)| f.mcu == mcu)
                 .map(|(i, _)| ThermalObject::Fan(i)),
         );
+        for (k, (_, pins)) in self.multi_outputs.iter().enumerate() {
+            v.extend(
+                (0..pins.len())
+                    .filter(|&j| pins[j].mcu == mcu)
+                    .map(|j| ThermalObject::MultiPwm(k, j)),
+            );
+        }
+        v.extend(
+            self.fans
+                .iter()
+                .enumerate()
+                .filter(|(_, f)| f.opts.tachometer_pin.as_ref().is_some_and(|p| p.mcu == mcu))
+                .map(|(i, _)| ThermalObject::Tach(i)),
+        );
+        for (i, _) in self.scaled.iter().enumerate().filter(|(_, c)| c.mcu == mcu) {
+            v.push(ThermalObject::ScaledVref(i));
+            v.push(ThermalObject::ScaledVssa(i));
+        }
         v
+    }
+
+    /// `cadence-mcu` arguments giving the simulated MCU `mcu` a spinning fan behind each fan
+    /// output with a tachometer on it (`--fan OUT_PIN=TACH_PIN,PPR`).
+    pub fn sim_fan_args(&self, mcu: &str) -> Vec<String> {
+        self.fans
+            .iter()
+            .filter(|f| f.mcu == mcu)
+            .filter_map(|f| {
+                let t = f.opts.tachometer_pin.as_ref().filter(|t| t.mcu == mcu)?;
+                Some([
+                    "--fan".to_string(),
+                    format!("{}={},{}", f.opts.pin.pin, t.pin, f.opts.tachometer_ppr),
+                ])
+            })
+            .flatten()
+            .collect()
+    }
+
+    /// `cadence-mcu` arguments giving the simulated MCU `mcu` the ADC references of its
+    /// `[adc_scaled]` chips (`--adc-ref VREF_PIN=VSSA_PIN`).
+    pub fn sim_adc_ref_args(&self, mcu: &str) -> Vec<String> {
+        self.scaled
+            .iter()
+            .filter(|c| c.mcu == mcu)
+            .flat_map(|c| {
+                [
+                    "--adc-ref".to_string(),
+                    format!("{}={}", c.vref_pin.pin, c.vssa_pin.pin),
+                ]
+            })
+            .collect()
     }
 
     /// `cadence-mcu` arguments giving the simulated MCU `mcu` a thermal model per heater
@@ -611,6 +837,18 @@ impl Thermal {
                         self.max_heat_time(),
                     )?;
                 }
+                ThermalObject::Fan(i) if self.fans[i].opts.hardware_pwm => {
+                    // Klipper's hardware PWM: the chip's PWM unit, duty in 0..=PWM_MAX.
+                    let f = &self.fans[i];
+                    if dict.command("config_pwm_out").is_err() {
+                        return Err(ObjectsError::MissingCommand("config_pwm_out"));
+                    }
+                    let pwm_max = dict.config_f64("PWM_MAX")?.round() as i64;
+                    let off = if f.opts.pin.invert { pwm_max } else { 0 };
+                    let pin = pin_of(&f.opts.pin, &format!("[{}] pin", f.name))?;
+                    let cycle_ticks = (f.opts.cycle_time * clock_freq).round().max(1.0) as i64;
+                    cmds.push(dict.encode("config_pwm_out", &[oid, pin, cycle_ticks, off, off, 0])?);
+                }
                 ThermalObject::Fan(i) => {
                     let f = &self.fans[i];
                     pwm(&f.opts.pin, &format!("[{}] pin", f.name), f.opts.cycle_time, 0.0)?;
@@ -620,8 +858,53 @@ impl Thermal {
                     let pin = pin_of(&h.sensor_pin, &format!("[{}] sensor_pin", h.name))?;
                     cmds.push(dict.encode("config_analog_in", &[oid, pin])?);
                 }
+                ThermalObject::MultiPwm(k, j) => {
+                    let (output, pins) = &self.multi_outputs[k];
+                    let (cycle, max_duration, what) = match *output {
+                        MultiOutput::Heater(i) => (
+                            self.heaters[i].pwm_cycle_time,
+                            self.max_heat_time(),
+                            format!("[{}] heater_pin", self.heaters[i].name),
+                        ),
+                        MultiOutput::Fan(i) => (
+                            self.fans[i].opts.cycle_time,
+                            0.0,
+                            format!("[{}] pin", self.fans[i].name),
+                        ),
+                    };
+                    if let MultiOutput::Fan(i) = *output {
+                        if self.fans[i].opts.hardware_pwm {
+                            return Err(ObjectsError::MultiPinHardwarePwm(self.fans[i].name.clone()));
+                        }
+                    }
+                    pwm(&pins[j], &what, cycle, max_duration)?;
+                }
+                ThermalObject::Tach(i) => {
+                    let f = &self.fans[i];
+                    if dict.command("config_counter").is_err() {
+                        return Err(ObjectsError::MissingCommand("config_counter"));
+                    }
+                    if let Some(t) = &f.opts.tachometer_pin {
+                        let pin = pin_of(t, &format!("[{}] tachometer_pin", f.name))?;
+                        cmds.push(dict.encode("config_counter", &[oid, pin, i64::from(t.pullup)])?);
+                    }
+                }
+                ThermalObject::ScaledVref(i) | ThermalObject::ScaledVssa(i) => {
+                    let c = &self.scaled[i];
+                    let (pin, option) = match *obj {
+                        ThermalObject::ScaledVref(_) => (&c.vref_pin, "vref_pin"),
+                        _ => (&c.vssa_pin, "vssa_pin"),
+                    };
+                    let pin = pin_of(pin, &format!("[adc_scaled {}] {option}", c.name))?;
+                    cmds.push(dict.encode("config_analog_in", &[oid, pin])?);
+                }
                 ThermalObject::SensorAdc(i) => {
                     let s = &self.sensors[i];
+                    let mcu_type = dict.config_str("MCU").unwrap_or_default();
+                    s.sensor_on(&mcu_type).map_err(|source| ObjectsError::McuSensor {
+                        section: s.name.clone(),
+                        source,
+                    })?;
                     let pin = pin_of(&s.pin, &format!("[temperature_sensor {}] sensor_pin", s.name))?;
                     cmds.push(dict.encode("config_analog_in", &[oid, pin])?);
                 }

@@ -20,11 +20,14 @@ use std::time::Duration;
 use links::dict::Dictionary;
 use links::mcu::McuLink;
 
+use super::adc_scaled::ScaledRefs;
 use super::calibrate::RelayTuner;
 use super::control::{Control, Pid, PidGains, SmithPredictor, Smoothed, Watermark};
 use super::objects::{
-    adc_range, FanRole, Thermal, ThermalObject, RANGE_CHECK_COUNT, REPORT_TIME, SAMPLE_COUNT, SAMPLE_TIME,
+    adc_range, FanRole, MultiOutput, Thermal, ThermalObject, RANGE_CHECK_COUNT, REPORT_TIME, SAMPLE_COUNT,
+    SAMPLE_TIME,
 };
+use super::tachometer::Tachometer;
 use super::verify::{VerifyHeater, CHECK_INTERVAL_S};
 use crate::mcus::Mcus;
 use sysconfig::printer::HeaterControl;
@@ -83,6 +86,9 @@ pub struct FanCell {
     pub max_speed: AtomicF64,
     /// A temperature fan's sensor (index in [`HeaterShared::sensors`]).
     pub sensor: Option<usize>,
+    /// The tachometer's speed (rev/min; NaN without `tachometer_pin` or before its first
+    /// measure).
+    pub rpm: AtomicF64,
 }
 
 /// One temperature sensor's state (`[temperature_sensor]`, a `[temperature_fan]`'s sensor).
@@ -177,6 +183,7 @@ impl HeaterShared {
                         min_speed: AtomicF64::new(min_speed),
                         max_speed: AtomicF64::new(max_speed),
                         sensor,
+                        rpm: AtomicF64::new(f64::NAN),
                     }
                 })
                 .collect(),
@@ -337,6 +344,8 @@ pub fn m105_text(shared: &HeaterShared) -> String {
 
 /// One heater's loop state.
 struct Running {
+    /// Further outputs of a `[multi_pin]` heater (oid, inverted): they get the same updates.
+    extra: Vec<(u8, bool)>,
     link_index: usize,
     pwm_oid: u8,
     adc_oid: u8,
@@ -369,6 +378,10 @@ struct Relay {
 }
 
 struct RunningFan {
+    /// Further outputs of a `[multi_pin]` fan (oid, inverted): they get the same updates.
+    extra: Vec<(u8, bool)>,
+    /// `hardware_pwm`: `cycle_ticks` is then PWM_MAX and updates are `queue_pwm_out`.
+    hardware: bool,
     link_index: usize,
     oid: u8,
     cycle_ticks: f64,
@@ -412,6 +425,9 @@ pub enum HeaterLoopError {
     /// The MCU link refused a message.
     #[error(transparent)]
     Link(#[from] links::mcu::LinkError),
+    /// `temperature_mcu` on an MCU it cannot be calibrated for.
+    #[error(transparent)]
+    McuSensor(#[from] super::mcu_sensor::McuSensorError),
 }
 
 /// Runs the heater loop until `shared.stop` (then every heater off) or an MCU shutdown. Errors
@@ -423,6 +439,8 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
     let mut heaters = Vec::new();
     let mut fans = Vec::new();
     let mut sensors = Vec::new();
+    let mut scaled: Vec<Option<ScaledRefs>> = thermal.scaled.iter().map(|_| None).collect();
+    let mut tachs = Vec::new();
     for (li, conn) in mcus.list.iter().enumerate() {
         let objects = thermal.objects_on(&conn.name);
         if objects.is_empty() {
@@ -452,6 +470,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                     heaters.push((
                         i,
                         Running {
+                            extra: Vec::new(),
                             link_index: li,
                             pwm_oid: oid,
                             adc_oid: oid + 1,
@@ -476,7 +495,8 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                 }
                 ThermalObject::SensorAdc(i) => {
                     let s = &thermal.sensors[i];
-                    let (lo, hi) = adc_range(&s.sensor, s.min_temp.max(-273.0), s.max_temp.min(1e4), adc_max);
+                    let sensor = s.sensor_on(&dict.config_str("MCU").unwrap_or_default())?;
+                    let (lo, hi) = adc_range(&sensor, s.min_temp.max(-273.0), s.max_temp.min(1e4), adc_max);
                     query_analog(&conn.link, dict, oid, start, freq, lo, hi, 0)?;
                     sensors.push((
                         i,
@@ -485,7 +505,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                             oid,
                             smooth: Smoothed::new(s.smooth_time),
                             full_scale: adc_max * f64::from(SAMPLE_COUNT),
-                            sensor: s.sensor,
+                            sensor,
                             last_count: 0,
                         },
                     ));
@@ -493,9 +513,16 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                 ThermalObject::Fan(i) => fans.push((
                     i,
                     RunningFan {
+                        extra: Vec::new(),
                         link_index: li,
                         oid,
-                        cycle_ticks: thermal.fans[i].opts.cycle_time * freq,
+                        // A hardware PWM's duty is in 0..=PWM_MAX (Klipper's pwm_max).
+                        hardware: thermal.fans[i].opts.hardware_pwm,
+                        cycle_ticks: if thermal.fans[i].opts.hardware_pwm {
+                            dict.config_f64("PWM_MAX")?
+                        } else {
+                            thermal.fans[i].opts.cycle_time * freq
+                        },
                         invert: thermal.fans[i].opts.pin.invert,
                         last: None,
                         control: match thermal.fans[i].role {
@@ -510,10 +537,49 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                     },
                 )),
                 ThermalObject::HeaterAdc(_) => {}
+                ThermalObject::MultiPwm(k, j) => {
+                    let (output, pins) = &thermal.multi_outputs[k];
+                    let invert = pins.get(j).is_some_and(|p| p.invert);
+                    match *output {
+                        MultiOutput::Heater(i) => {
+                            if let Some((_, r)) = heaters.iter_mut().find(|(h, _)| *h == i) {
+                                r.extra.push((oid, invert));
+                            }
+                        }
+                        MultiOutput::Fan(i) => {
+                            if let Some((_, f)) = fans.iter_mut().find(|(n, _)| *n == i) {
+                                f.extra.push((oid, invert));
+                            }
+                        }
+                    }
+                }
+                ThermalObject::Tach(i) => {
+                    let opts = &thermal.fans[i].opts;
+                    let t = Tachometer::new(i, li, oid, opts.tachometer_ppr);
+                    t.start(&conn.link, start as u64, freq, opts.tachometer_poll_interval)?;
+                    tachs.push(t);
+                }
+                ThermalObject::ScaledVref(k) | ThermalObject::ScaledVssa(k) => {
+                    query_analog(&conn.link, dict, oid, start, freq, 0, u16::MAX, 0)?;
+                    let smooth_time = thermal.scaled[k].smooth_time;
+                    if let Some(refs) = scaled.get_mut(k) {
+                        let r = refs
+                            .get_or_insert_with(|| ScaledRefs::new(li, adc_max * f64::from(SAMPLE_COUNT)));
+                        match *obj {
+                            ThermalObject::ScaledVref(_) => r.set_vref(oid, smooth_time),
+                            _ => r.set_vssa(oid, smooth_time),
+                        }
+                    }
+                }
             }
         }
     }
-    let result = heater_loop(mcus, thermal, shared, &mut heaters, &mut sensors, &mut fans);
+    let mut outputs = Outputs {
+        fans: &mut fans,
+        scaled: &mut scaled,
+        tachs: &mut tachs,
+    };
+    let result = heater_loop(mcus, thermal, shared, &mut heaters, &mut sensors, &mut outputs);
     // A calibration cut short ends without gains (the G-code waiting for it goes on).
     if let Ok(mut c) = shared.calibration.lock() {
         if let Some(Calibration::Requested { heater, .. } | Calibration::Running { heater }) = *c {
@@ -530,6 +596,9 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
         let conn = &mcus.list[r.link_index];
         let at = lead_clock(&conn.link, conn.clock_freq, thermal.max_heat_time());
         let _ = send_pwm(&conn.link, r.pwm_oid, at, 0, r.invert, r.cycle_ticks);
+        for &(oid, invert) in &r.extra {
+            let _ = send_pwm(&conn.link, oid, at, 0, invert, r.cycle_ticks);
+        }
     }
     result
 }
@@ -591,6 +660,27 @@ fn send_pwm(
     let cmd = dict.encode(
         "queue_digital_out",
         &[i64::from(oid), (clock & 0xFFFF_FFFF) as i64, i64::from(on)],
+    )?;
+    Ok(link.send_clocked(cmd, 0, clock)?)
+}
+
+/// Fan `f`'s output at `clock`: `value` on ticks of its cycle (software PWM), or its duty in
+/// 0..=PWM_MAX through `queue_pwm_out` (hardware PWM).
+fn send_fan(link: &McuLink, f: &RunningFan, clock: u64, value: u32) -> Result<(), HeaterLoopError> {
+    if !f.hardware {
+        for &(oid, invert) in &f.extra {
+            send_pwm(link, oid, clock, value, invert, f.cycle_ticks)?;
+        }
+        return send_pwm(link, f.oid, clock, value, f.invert, f.cycle_ticks);
+    }
+    let duty = if f.invert {
+        (f.cycle_ticks.round() as u32).saturating_sub(value)
+    } else {
+        value
+    };
+    let cmd = link.dictionary().encode(
+        "queue_pwm_out",
+        &[i64::from(f.oid), (clock & 0xFFFF_FFFF) as i64, i64::from(duty)],
     )?;
     Ok(link.send_clocked(cmd, 0, clock)?)
 }
@@ -694,8 +784,9 @@ fn heater_loop(
     shared: &HeaterShared,
     heaters: &mut [(usize, Running)],
     sensors: &mut [(usize, RunningSensor)],
-    fans: &mut [(usize, RunningFan)],
+    outputs: &mut Outputs<'_>,
 ) -> Result<(), HeaterLoopError> {
+    let Outputs { fans, scaled, tachs } = outputs;
     loop {
         if shared.stop.load(Ordering::Acquire) {
             return Ok(());
@@ -707,16 +798,34 @@ fn heater_loop(
         }
         start_calibration(shared, heaters);
         let now_sys = McuLink::system_now();
+        for c in scaled.iter_mut().flatten() {
+            let conn = &mcus.list[c.link_index];
+            c.update(&conn.link, conn.clock_freq, now_sys);
+        }
         for (i, r) in heaters.iter_mut() {
-            if !update_heater(mcus, thermal, shared, *i, r, now_sys) {
+            let scale = thermal.heaters[*i]
+                .sensor_scale
+                .map(|k| scaled.get(k).and_then(Option::as_ref));
+            if !update_heater(mcus, thermal, shared, *i, r, now_sys, scale) {
                 return Ok(());
             }
         }
         for (i, r) in sensors.iter_mut() {
-            update_sensor(mcus, shared, *i, r, now_sys);
+            let scale = thermal.sensors[*i]
+                .scale
+                .map(|k| scaled.get(k).and_then(Option::as_ref));
+            update_sensor(mcus, shared, *i, r, now_sys, scale);
         }
         for (i, f) in fans.iter_mut() {
             update_fan(mcus, thermal, shared, *i, f, now_sys);
+        }
+        for t in tachs.iter_mut() {
+            let conn = &mcus.list[t.link_index];
+            if let Some(rpm) = t.update(&conn.link, conn.clock_freq, now_sys) {
+                if let Some(cell) = shared.fans.get(t.fan) {
+                    cell.rpm.set(rpm);
+                }
+            }
         }
         // Reports come every 0.3 s of MCU time: look four times per report (every 50 ms at
         // most; every 2 ms at least, on a fast time-scaled simulator).
@@ -731,6 +840,23 @@ fn heater_loop(
     }
 }
 
+/// The fans, `[adc_scaled]` chips and tachometers of the loop.
+struct Outputs<'a> {
+    fans: &'a mut [(usize, RunningFan)],
+    scaled: &'a mut [Option<ScaledRefs>],
+    tachs: &'a mut [Tachometer],
+}
+
+/// The ADC fraction of a report `value` summed to `full_scale`, rescaled between the
+/// references of its `[adc_scaled]` chip if it has one (`None` until they have read).
+fn fraction(value: u16, full_scale: f64, scale: Option<Option<&ScaledRefs>>) -> Option<f64> {
+    let raw = f64::from(value) / full_scale;
+    match scale {
+        None => Some(raw),
+        Some(chip) => chip?.scale(raw),
+    }
+}
+
 /// Heater `i`'s new reading, if any: temperature, control output, verify_heater's check and
 /// the PWM update. False once the check shut the printer down.
 fn update_heater(
@@ -740,6 +866,7 @@ fn update_heater(
     i: usize,
     r: &mut Running,
     now_sys: f64,
+    scale: Option<Option<&ScaledRefs>>,
 ) -> bool {
     let conn = &mcus.list[r.link_index];
     let Some((count, next_clock, value)) = conn.link.analog_report(r.adc_oid) else {
@@ -755,7 +882,10 @@ fn update_heater(
         .extend(next_clock, now_sys)
         .saturating_sub((REPORT_TIME * freq) as u64);
     let time = read_clock as f64 / freq;
-    let temp = r.sensor.temperature(f64::from(value) / r.full_scale);
+    let Some(adc) = fraction(value, r.full_scale, scale) else {
+        return true;
+    };
+    let temp = r.sensor.temperature(adc);
     let cell = &shared.heaters[i];
     let target = cell.target.get();
     let smoothed = r.smooth.update(time, temp);
@@ -811,7 +941,11 @@ fn update_heater(
             || gap as f64 > 0.25 * thermal.max_heat_time() * freq
     });
     if send {
-        if send_pwm(&conn.link, r.pwm_oid, at, on, r.invert, r.cycle_ticks).is_err() {
+        let extra_failed = r
+            .extra
+            .iter()
+            .any(|&(oid, invert)| send_pwm(&conn.link, oid, at, on, invert, r.cycle_ticks).is_err());
+        if extra_failed || send_pwm(&conn.link, r.pwm_oid, at, on, r.invert, r.cycle_ticks).is_err() {
             // The MCU shut down or the link died: the check above ends the loop.
             return true;
         }
@@ -825,7 +959,14 @@ fn update_heater(
 }
 
 /// Sensor `i`'s new reading, if any, into its shared cell.
-fn update_sensor(mcus: &Mcus, shared: &HeaterShared, i: usize, r: &mut RunningSensor, now_sys: f64) {
+fn update_sensor(
+    mcus: &Mcus,
+    shared: &HeaterShared,
+    i: usize,
+    r: &mut RunningSensor,
+    now_sys: f64,
+    scale: Option<Option<&ScaledRefs>>,
+) {
     let conn = &mcus.list[r.link_index];
     let Some((count, next_clock, value)) = conn.link.analog_report(r.oid) else {
         return;
@@ -841,7 +982,10 @@ fn update_sensor(mcus: &Mcus, shared: &HeaterShared, i: usize, r: &mut RunningSe
         .extend(next_clock, now_sys)
         .saturating_sub((REPORT_TIME * freq) as u64);
     let time = read_clock as f64 / freq;
-    let temp = r.sensor.temperature(f64::from(value) / r.full_scale);
+    let Some(adc) = fraction(value, r.full_scale, scale) else {
+        return;
+    };
+    let temp = r.sensor.temperature(adc);
     let smoothed = r.smooth.update(time, temp);
     let cell = &shared.sensors[i];
     cell.temp.set(smoothed);
@@ -881,18 +1025,10 @@ fn update_fan(
     let from_off = f.last.is_none_or(|l| l == 0.0);
     let ok = if kick > 0.0 && from_off && speed > 0.0 && speed < 1.0 {
         let full = on_ticks(spec.opts.max_power, f.cycle_ticks);
-        send_pwm(&conn.link, f.oid, at, full, f.invert, f.cycle_ticks).is_ok()
-            && send_pwm(
-                &conn.link,
-                f.oid,
-                at + (kick * conn.clock_freq) as u64,
-                value,
-                f.invert,
-                f.cycle_ticks,
-            )
-            .is_ok()
+        send_fan(&conn.link, f, at, full).is_ok()
+            && send_fan(&conn.link, f, at + (kick * conn.clock_freq) as u64, value).is_ok()
     } else {
-        send_pwm(&conn.link, f.oid, at, value, f.invert, f.cycle_ticks).is_ok()
+        send_fan(&conn.link, f, at, value).is_ok()
     };
     if ok {
         f.last = Some(speed);

@@ -152,6 +152,14 @@ pub enum Element {
         /// Ω at 0 °C.
         r0: f64,
     },
+    /// A linear sensor, `T = base + slope · adc` (the MCU's own sensor, see
+    /// [`super::mcu_sensor`]).
+    Linear {
+        /// °C at adc 0.
+        base: f64,
+        /// °C per unit of adc.
+        slope: f64,
+    },
     /// A PT100 through the INA826 amplifier: `V = gain · supply · R / (R + pullup)`.
     Ina826Pt100 {
         /// The ADC's reference voltage (`adc_voltage`, default 5).
@@ -189,6 +197,7 @@ impl Sensor {
         match self.element {
             Element::Thermistor(sh) => sh.temperature(self.resistance_of(adc)),
             Element::Rtd { r0 } => rtd_temperature(r0, self.resistance_of(adc)),
+            Element::Linear { base, slope } => base + slope * adc,
             Element::Ina826Pt100 { adc_voltage } => {
                 let (pullup, supply, gain) = INA826;
                 // v/(gain·supply) = R/(R + pullup).
@@ -207,6 +216,7 @@ impl Sensor {
         match self.element {
             Element::Thermistor(sh) => divider(sh.resistance(t)),
             Element::Rtd { r0 } => divider(rtd_resistance(r0, t)),
+            Element::Linear { base, slope } => ((t - base) / slope).clamp(0.0, 1.0),
             Element::Ina826Pt100 { adc_voltage } => {
                 let (pullup, supply, gain) = INA826;
                 let r = rtd_resistance(100.0, t);

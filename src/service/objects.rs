@@ -427,7 +427,7 @@ fn thermal(out: &mut Map<String, Value>, facts: &ThermalFacts, status: Option<&S
             }
             _ => {
                 let fan = status.and_then(|st| st.fans.iter().find(|f| f.kind == kind && f.name == bare));
-                let mut v = json!({"speed": fan.map_or(0.0, |f| f.speed), "rpm": null});
+                let mut v = json!({"speed": fan.map_or(0.0, |f| f.speed), "rpm": fan.and_then(|f| f.rpm)});
                 if kind == "temperature_fan" {
                     v["temperature"] = json!(num(fan.and_then(|f| f.temperature).unwrap_or(0.0)));
                     v["target"] = json!(num(fan.and_then(|f| f.target).unwrap_or(0.0)));
@@ -525,6 +525,7 @@ mod tests {
                 speed: 1.0,
                 temperature: Some(25.0),
                 target: Some(20.0),
+                rpm: None,
             }],
             sensors: vec![SensorStatus {
                 name: "chamber".into(),

@@ -45,10 +45,17 @@ pub fn io_for<'a>(mcus: &'a Mcus, drivers: &'a [TmcOut], stepper: &str) -> Resul
         )
     })?;
     let oid = usize::from(conn.tmc_oid0) + drv.bus;
+    let too_many = |_| "too many objects".to_string();
+    let mux = super::mux_selection(drivers, drv)
+        .into_iter()
+        .map(|(offset, level)| u8::try_from(usize::from(conn.tmc_oid0) + offset).map(|o| (o, level)))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(too_many)?;
     Ok(TmcIo {
         link: &conn.link,
-        oid: u8::try_from(oid).map_err(|_| "too many objects".to_string())?,
+        oid: u8::try_from(oid).map_err(too_many)?,
         drv,
+        mux,
     })
 }
 

@@ -7,6 +7,13 @@
 //! one (IFCNT read before the first write). Each is tried up to 5 times, then "Unable to
 //! read/write tmc uart 'NAME' register REG".
 //!
+//! Behind an analog mux (`select_pins`), the select outputs are set to the driver's levels
+//! (`update_digital_out`) before each UART transfer, as Klipper does.
+//!
+//! An SPI daisy chain (`chain_length`, `chain_position`) clocks one datagram per driver of the
+//! chain: this driver's in its place, zeros for the others, and its answer is taken from the
+//! same place.
+//!
 //! SPI: a read is `spi_send` of the request then `spi_transfer` of it again, whose answer
 //! carries the value; a write is `spi_send` of the write then `spi_transfer` of a dummy read,
 //! whose answer must be the value written (5 tries, then "Unable to write tmc spi …").
@@ -20,18 +27,48 @@ use sysconfig::printer::TmcBus;
 
 use super::TmcOut;
 
+/// `datagram` as a daisy chain `(length, position)` clocks it (Klipper's framing): zeros for the
+/// drivers after this one in the chain, the datagram, zeros for those before it, since the
+/// first bytes shift furthest.
+fn chained(chain: Option<(u8, u8)>, datagram: [u8; 5]) -> Vec<u8> {
+    let Some((len, pos)) = chain else {
+        return datagram.to_vec();
+    };
+    let (len, pos) = (usize::from(len), usize::from(pos));
+    let mut out = vec![0u8; len * 5];
+    let at = len.saturating_sub(pos) * 5;
+    if let Some(slot) = out.get_mut(at..at + 5) {
+        slot.copy_from_slice(&datagram);
+    }
+    out
+}
+
+/// This driver's 5 bytes of a chain's answer (the whole answer without a chain).
+fn own_answer(chain: Option<(u8, u8)>, answer: &[u8]) -> Option<&[u8]> {
+    match chain {
+        None => Some(answer),
+        Some((len, pos)) => {
+            let at = usize::from(len).saturating_sub(usize::from(pos)) * 5;
+            answer.get(at..at + 5)
+        }
+    }
+}
+
 /// Tries of one read or write.
 const TRIES: usize = 5;
 /// Wait for one answer (wall time).
 const TIMEOUT: Duration = Duration::from_secs(1);
 
 /// A driver and the link and oid of its bus.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct TmcIo<'a> {
     pub link: &'a McuLink,
     /// Oid of its bus object.
     pub oid: u8,
     pub drv: &'a TmcOut,
+    /// Behind an analog mux (`select_pins`): each select output's oid and the level that
+    /// selects this driver, set before each transfer.
+    pub mux: Vec<(u8, bool)>,
 }
 
 impl TmcIo<'_> {
@@ -63,6 +100,17 @@ impl TmcIo<'_> {
             .map_err(|e| e.to_string())
     }
 
+    /// Selects this driver on its mux (Klipper sets the select outputs before each transfer).
+    fn select(&self) -> Result<(), String> {
+        for &(oid, level) in &self.mux {
+            self.send(
+                "update_digital_out",
+                &[Value::Int(i64::from(oid)), Value::Int(i64::from(level))],
+            )?;
+        }
+        Ok(())
+    }
+
     fn stepper(&self) -> &str {
         &self.drv.cfg.stepper
     }
@@ -74,6 +122,7 @@ impl TmcIo<'_> {
         for _ in 0..TRIES {
             match &self.drv.cfg.bus {
                 TmcBus::Uart { address, .. } => {
+                    self.select()?;
                     let req = wire::encode_read(*address, addr);
                     let r = self.query(
                         "tmcuart_send",
@@ -88,15 +137,15 @@ impl TmcIo<'_> {
                         return Ok(v);
                     }
                 }
-                TmcBus::Spi { .. } => {
-                    let req = wire::spi_datagram(addr, 0);
+                TmcBus::Spi { chain, .. } => {
+                    let req = chained(*chain, wire::spi_datagram(addr, 0));
                     self.send("spi_send", &[oid, Value::Bytes(&req)])?;
                     let r = self.query(
                         "spi_transfer",
                         &[oid, Value::Bytes(&req)],
                         "spi_transfer_response",
                     )?;
-                    if let Some(&[_, a, b, c, d]) = r.bytes("response") {
+                    if let Some(&[_, a, b, c, d]) = r.bytes("response").and_then(|b| own_answer(*chain, b)) {
                         return Ok(u32::from_be_bytes([a, b, c, d]));
                     }
                 }
@@ -127,6 +176,7 @@ impl TmcIo<'_> {
                     // The MCU answers a write too (nothing read): waiting for that answer
                     // keeps it from being taken for the next read's.
                     let req = wire::encode_write(*address, addr, value);
+                    self.select()?;
                     self.query(
                         "tmcuart_send",
                         &[oid, Value::Bytes(&req), Value::Int(0)],
@@ -143,17 +193,17 @@ impl TmcIo<'_> {
                     self.stepper()
                 ))
             }
-            TmcBus::Spi { .. } => {
+            TmcBus::Spi { chain, .. } => {
                 for _ in 0..TRIES {
-                    let req = wire::spi_datagram(addr | wire::WRITE_BIT, value);
+                    let req = chained(*chain, wire::spi_datagram(addr | wire::WRITE_BIT, value));
                     self.send("spi_send", &[oid, Value::Bytes(&req)])?;
-                    let dummy = wire::spi_datagram(0, 0);
+                    let dummy = chained(*chain, wire::spi_datagram(0, 0));
                     let r = self.query(
                         "spi_transfer",
                         &[oid, Value::Bytes(&dummy)],
                         "spi_transfer_response",
                     )?;
-                    if let Some(&[_, a, b, c, d]) = r.bytes("response") {
+                    if let Some(&[_, a, b, c, d]) = r.bytes("response").and_then(|b| own_answer(*chain, b)) {
                         if u32::from_be_bytes([a, b, c, d]) == value {
                             return Ok(());
                         }

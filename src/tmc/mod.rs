@@ -77,6 +77,19 @@ pub fn drivers(cfg: &PrinterConfig) -> Vec<TmcOut> {
                     ..
                 },
             ) => a.mcu == b.mcu && a.pin == b.pin && ta == tb,
+            // The drivers of one SPI daisy chain share its chip select.
+            (
+                TmcBus::Spi {
+                    cs_pin: a,
+                    chain: Some(_),
+                    ..
+                },
+                TmcBus::Spi {
+                    cs_pin: b,
+                    chain: Some(_),
+                    ..
+                },
+            ) => a.mcu == b.mcu && a.pin == b.pin,
             _ => false,
         };
         let bus = match out.iter().find(|o| shares(o)) {
@@ -109,6 +122,48 @@ pub fn bus_count(drivers: &[TmcOut], mcu: &str) -> usize {
         .map(|d| d.bus + 1)
         .max()
         .unwrap_or(0)
+}
+
+/// The analog muxes of MCU `mcu`'s UART lines (`select_pins`), in bus order: each muxed bus
+/// with its select pins (as its first driver names them; every driver behind one mux names the
+/// same pins). Their outputs are objects after the buses.
+pub fn muxes(drivers: &[TmcOut], mcu: &str) -> Vec<(usize, Vec<sysconfig::printer::PinRef>)> {
+    (0..bus_count(drivers, mcu))
+        .filter_map(|bus| {
+            let d = drivers.iter().find(|d| d.mcu() == mcu && d.bus == bus)?;
+            match &d.cfg.bus {
+                TmcBus::Uart { select_pins, .. } if !select_pins.is_empty() => {
+                    Some((bus, select_pins.clone()))
+                }
+                _ => None,
+            }
+        })
+        .collect()
+}
+
+/// The number of TMC objects on MCU `mcu`: its buses, then its muxes' select outputs.
+pub fn object_count(drivers: &[TmcOut], mcu: &str) -> usize {
+    bus_count(drivers, mcu) + muxes(drivers, mcu).iter().map(|(_, p)| p.len()).sum::<usize>()
+}
+
+/// Driver `drv`'s mux selection: each select output's offset from the MCU's first TMC object
+/// and the level that selects `drv` (high, low for `!PIN`). Empty without a mux.
+pub fn mux_selection(drivers: &[TmcOut], drv: &TmcOut) -> Vec<(usize, bool)> {
+    let TmcBus::Uart { select_pins, .. } = &drv.cfg.bus else {
+        return Vec::new();
+    };
+    let mut offset = bus_count(drivers, drv.mcu());
+    for (bus, pins) in muxes(drivers, drv.mcu()) {
+        if bus == drv.bus {
+            return select_pins
+                .iter()
+                .enumerate()
+                .map(|(k, p)| (offset + k, !p.invert))
+                .collect();
+        }
+        offset += pins.len();
+    }
+    Vec::new()
 }
 
 /// The configuration commands of MCU `mcu`'s TMC buses, the first with oid `oid0`.
@@ -178,6 +233,21 @@ pub fn config_commands(
             }
         }
     }
+    // Each mux's select outputs, low until a transfer selects a driver (Klipper's).
+    let mut oid = oid0 + bus_count(drivers, mcu);
+    for (bus, pins) in muxes(drivers, mcu) {
+        for p in &pins {
+            let pin = dict
+                .pin(&p.pin)
+                .map(i64::from)
+                .map_err(|e| format!("[tmc bus {bus}] select_pins: {e}"))?;
+            cmds.push(
+                dict.encode("config_digital_out", &[oid as i64, pin, 0, 0, 0])
+                    .map_err(err)?,
+            );
+            oid += 1;
+        }
+    }
     Ok(cmds)
 }
 
@@ -187,13 +257,23 @@ pub fn config_commands(
 pub fn sim_args(drivers: &[TmcOut], mcu: &str, diag: impl Fn(&TmcOut) -> Option<String>) -> Vec<String> {
     let mut args = Vec::new();
     for d in drivers.iter().filter(|d| d.mcu() == mcu) {
-        let (pin, addr) = match &d.cfg.bus {
+        let (pin, addr, select) = match &d.cfg.bus {
             TmcBus::Uart {
-                uart_pin, address, ..
-            } => (&uart_pin.pin, *address),
-            TmcBus::Spi { cs_pin, .. } => (&cs_pin.pin, 0),
+                uart_pin,
+                address,
+                select_pins,
+                ..
+            } => (&uart_pin.pin, *address, select_pins.as_slice()),
+            TmcBus::Spi { cs_pin, chain, .. } => (&cs_pin.pin, chain.map_or(0, |(_, p)| p), &[][..]),
         };
         let mut spec = format!("{}@{pin}:{addr}", d.cfg.model.kind());
+        for s in select {
+            spec.push('+');
+            if s.invert {
+                spec.push('!');
+            }
+            spec.push_str(&s.pin);
+        }
         if let Some(diag) = diag(d) {
             spec.push('=');
             spec.push_str(&diag);

@@ -34,6 +34,24 @@ fn config(dir: &Path, edit: impl Fn(String) -> String) -> PathBuf {
     path
 }
 
+/// `cadence print` of the G-code `g` on `cfg`, one printer at a time, run again after a homing
+/// timeout (a loaded VM).
+fn print(g: &Path, cfg: &Path) -> Run {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(PoisonError::into_inner);
+    retry_homing_timeouts(
+        || {
+            let mut cmd = std::process::Command::new(cadence_tests::bin("cadence"));
+            cmd.arg("print")
+                .arg(g)
+                .arg("--config")
+                .arg(cfg)
+                .arg("--no-progress");
+            run(&mut cmd, TIMEOUT)
+        },
+        |r| r,
+    )
+}
+
 /// The stop bounds (µs after the trigger) of every pass of the `homing AXIS:` line.
 fn stop_bounds(out: &str, axis: char) -> Vec<(f64, f64)> {
     let key = format!("homing {axis}:");
@@ -119,21 +137,7 @@ fn dump_tmc_reads_back_what_was_written_and_set_tmc_current_changes_the_driver()
          G1 X10 Y10 F3000\n",
     )
     .expect("gcode");
-    let r = {
-        let _one = ONE_AT_A_TIME.lock().unwrap_or_else(PoisonError::into_inner);
-        retry_homing_timeouts(
-            || {
-                let mut cmd = std::process::Command::new(cadence_tests::bin("cadence"));
-                cmd.arg("print")
-                    .arg(&g)
-                    .arg("--config")
-                    .arg(&cfg)
-                    .arg("--no-progress");
-                run(&mut cmd, TIMEOUT)
-            },
-            |r| r,
-        )
-    };
+    let r = print(&g, &cfg);
     assert_success(&r);
     let out = &r.stdout;
     let has = |s: &str| assert!(out.lines().any(|l| l.trim() == s), "no line '{s}' in:\n{out}");
@@ -169,4 +173,106 @@ fn dump_tmc_reads_back_what_was_written_and_set_tmc_current_changes_the_driver()
     has("COOLCONF:   007b0000 sgt=-5");
     // The TMC2208 rewritten by INIT_TMC: its 6 registers twice.
     assert!(counts[1] >= 12, "{counts:?}");
+}
+
+/// A Duet's TMC UART analog mux (`select_pins`): X and Y both at address 0 on one line, told
+/// apart by the select outputs the host sets before each transfer; each driver keeps its own
+/// current (without the mux both would take every write), and both still home sensorlessly.
+#[test]
+fn drivers_behind_an_analog_mux_are_reached_one_at_a_time() {
+    let dir = scratch("tmc-mux");
+    let cfg = config(&dir, |t| {
+        t.replace(
+            "uart_pin: PE6\nuart_address: 0\nrun_current: 0.8\n",
+            "uart_pin: PE6\nselect_pins: !PC14, PC15\nrun_current: 0.8\n",
+        )
+        .replace(
+            "uart_pin: PE6\nuart_address: 1\nrun_current: 0.8\n",
+            "uart_pin: PE6\nselect_pins: PC14, !PC15\nrun_current: 0.5\n",
+        )
+    });
+    let text = std::fs::read_to_string(&cfg).expect("config");
+    assert_eq!(
+        text.matches("select_pins").count(),
+        2,
+        "the example's UART sections changed"
+    );
+    let g = dir.join("mux.gcode");
+    std::fs::write(
+        &g,
+        "G28 X Y\nDUMP_TMC STEPPER=stepper_x REGISTER=IHOLD_IRUN\nDUMP_TMC STEPPER=stepper_y REGISTER=IHOLD_IRUN\n",
+    )
+    .expect("gcode");
+    let r = print(&g, &cfg);
+    assert_success(&r);
+    let out = &r.stdout;
+    let irun: Vec<&str> = out
+        .lines()
+        .filter_map(|l| l.trim().strip_prefix("IHOLD_IRUN:"))
+        .collect();
+    // 0.8 A and 0.5 A through 0.11 Ω: IRUN 25 and 15.
+    assert_eq!(irun.len(), 2, "{out}");
+    assert!(
+        irun[0].contains("irun=25") && irun[1].contains("irun=15"),
+        "{irun:?}"
+    );
+}
+
+/// A TMC SPI daisy chain (`chain_length`, `chain_position`): Z and the extruder as TMC2130s on
+/// one chip select, each datagram placed for its driver in the chain's frame; a field written to
+/// one driver stays in that driver (a frame placed or read at the wrong place would show it in
+/// the other, or fail the write's check).
+#[test]
+fn drivers_on_an_spi_daisy_chain_keep_their_own_registers() {
+    let dir = scratch("tmc-chain");
+    let cfg = config(&dir, |t| {
+        t.replace(
+            "cs_pin: PE9\n",
+            "cs_pin: PE9\nchain_length: 2\nchain_position: 1\n",
+        )
+        .replace(
+            "[tmc2208 extruder]\nuart_pin: PE13\nrun_current: 0.5\n",
+            "[tmc2130 extruder]\ncs_pin: PE9\nchain_length: 2\nchain_position: 2\n\
+             spi_software_sclk_pin: PE10\nspi_software_mosi_pin: PE11\nspi_software_miso_pin: PE12\n\
+             run_current: 0.3\n",
+        )
+    });
+    let text = std::fs::read_to_string(&cfg).expect("config");
+    assert_eq!(
+        text.matches("chain_position").count(),
+        2,
+        "the example's TMC sections changed"
+    );
+    let g = dir.join("chain.gcode");
+    std::fs::write(
+        &g,
+        "DUMP_TMC STEPPER=stepper_z REGISTER=CHOPCONF\nDUMP_TMC STEPPER=extruder REGISTER=CHOPCONF\n\
+         SET_TMC_FIELD STEPPER=extruder FIELD=toff VALUE=5\n\
+         DUMP_TMC STEPPER=stepper_z REGISTER=CHOPCONF\nDUMP_TMC STEPPER=extruder REGISTER=CHOPCONF\n",
+    )
+    .expect("gcode");
+    let mut cmd = std::process::Command::new(cadence_tests::bin("cadence"));
+    cmd.arg("print")
+        .arg(&g)
+        .arg("--config")
+        .arg(&cfg)
+        .arg("--no-progress");
+    let r = run(&mut cmd, TIMEOUT);
+    assert_success(&r);
+    let out = &r.stdout;
+    let chop: Vec<&str> = out
+        .lines()
+        .filter_map(|l| l.trim().strip_prefix("CHOPCONF:"))
+        .collect();
+    assert_eq!(chop.len(), 4, "{out}");
+    // Read back from each driver: Z's configured toff 4, the extruder's own, then 5 on the
+    // extruder only.
+    assert!(
+        chop[0].contains("toff=4") && chop[1].contains("toff=4"),
+        "{chop:?}"
+    );
+    assert!(
+        chop[2].contains("toff=4") && chop[3].contains("toff=5"),
+        "{chop:?}"
+    );
 }

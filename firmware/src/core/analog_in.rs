@@ -49,8 +49,10 @@ pub enum AnalogEvent {
 /// The state of one analog input.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct AnalogIn {
-    /// The pin.
-    pub pin: u8,
+    /// The pin (a GPIO number, or [`ADC_TEMPERATURE_PIN`]).
+    ///
+    /// [`ADC_TEMPERATURE_PIN`]: super::constants::ADC_TEMPERATURE_PIN
+    pub pin: u32,
     q: AnalogQuery,
     active: bool,
     round_start: WireClock,
@@ -61,7 +63,7 @@ pub struct AnalogIn {
 
 impl AnalogIn {
     /// `config_analog_in`.
-    pub const fn new(pin: u8) -> AnalogIn {
+    pub const fn new(pin: u32) -> AnalogIn {
         AnalogIn {
             pin,
             q: AnalogQuery {

@@ -61,6 +61,16 @@ pub trait Board {
         0
     }
 
+    /// ADC reading of the MCU's own temperature sensor (the `ADC_TEMPERATURE` channel),
+    /// `0..=ADC_MAX`; 0 on a board that does not offer it.
+    fn read_mcu_temperature(&mut self) -> u16 {
+        0
+    }
+
+    /// Set hardware PWM output `pin` to a duty of `value / PWM_MAX` at `cycle_ticks` per cycle
+    /// (`config_pwm_out`, `queue_pwm_out`, `set_pwm_out`); `clock` is the change's time.
+    fn set_pwm(&mut self, _pin: u8, _cycle_ticks: u32, _value: u16, _clock: WireClock) {}
+
     /// Drive output `pin` to `value`; `clock` is the event's scheduled time.
     fn set_pin(&mut self, _pin: u8, _value: bool, _clock: WireClock) {}
 

@@ -85,6 +85,16 @@ pub enum Cmd {
     SpiTransfer,
     /// `spi_send`.
     SpiSend,
+    /// `config_pwm_out`.
+    ConfigPwmOut,
+    /// `queue_pwm_out`.
+    QueuePwmOut,
+    /// `set_pwm_out` (a pin set once, no object).
+    SetPwmOut,
+    /// `config_counter`.
+    ConfigCounter,
+    /// `query_counter`.
+    QueryCounter,
 }
 
 /// Whether a table entry is a command or a response.
@@ -149,6 +159,10 @@ pub const FMT_CADENCE_LATENESS: &str = "cadence_lateness count=%u p50=%u p99=%u 
 pub const FMT_TMCUART_RESPONSE: &str = "tmcuart_response oid=%c read=%*s";
 /// `spi_transfer_response` response: the bytes clocked in during an `spi_transfer`.
 pub const FMT_SPI_TRANSFER_RESPONSE: &str = "spi_transfer_response oid=%c response=%*s";
+
+/// `counter_state` response: a pulse counter's count, the clock of its last change and the
+/// clock of its next poll.
+pub const FMT_COUNTER_STATE: &str = "counter_state oid=%c next_clock=%u count=%u count_clock=%u";
 
 /// Every message the firmware knows; the index is the message id.
 pub const MESSAGES: &[MessageDef] = &[
@@ -262,6 +276,28 @@ pub const MESSAGES: &[MessageDef] = &[
     cmd("spi_transfer oid=%c data=%*s", Cmd::SpiTransfer, false),
     cmd("spi_send oid=%c data=%*s", Cmd::SpiSend, false),
     resp(FMT_SPI_TRANSFER_RESPONSE),
+    cmd(
+        "config_pwm_out oid=%c pin=%u cycle_ticks=%u value=%hu default_value=%hu max_duration=%u",
+        Cmd::ConfigPwmOut,
+        false,
+    ),
+    cmd("queue_pwm_out oid=%c clock=%u value=%hu", Cmd::QueuePwmOut, false),
+    cmd(
+        "set_pwm_out pin=%u cycle_ticks=%u value=%hu",
+        Cmd::SetPwmOut,
+        false,
+    ),
+    cmd(
+        "config_counter oid=%c pin=%u pull_up=%c",
+        Cmd::ConfigCounter,
+        false,
+    ),
+    cmd(
+        "query_counter oid=%c clock=%u poll_ticks=%u sample_ticks=%u",
+        Cmd::QueryCounter,
+        false,
+    ),
+    resp(FMT_COUNTER_STATE),
 ];
 
 /// Most parameters of any message in the table (checked by a test).
@@ -321,6 +357,8 @@ pub const ID_ANALOG_IN_STATE: u32 = message_id(FMT_ANALOG_IN_STATE);
 pub const ID_TMCUART_RESPONSE: u32 = message_id(FMT_TMCUART_RESPONSE);
 /// Id of `spi_transfer_response`.
 pub const ID_SPI_TRANSFER_RESPONSE: u32 = message_id(FMT_SPI_TRANSFER_RESPONSE);
+/// Id of `counter_state`.
+pub const ID_COUNTER_STATE: u32 = message_id(FMT_COUNTER_STATE);
 /// Id of `cadence_lateness`.
 pub const ID_CADENCE_LATENESS: u32 = message_id(FMT_CADENCE_LATENESS);
 

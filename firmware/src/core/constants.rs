@@ -50,6 +50,10 @@ pub mod reason {
     pub const UNKNOWN: &str = "Unknown shutdown reason";
     pub const TMCUART_TOO_LARGE: &str = "tmcuart data too large";
     pub const SPI_TOO_LARGE: &str = "spi data too large";
+    /// A hardware PWM change scheduled in the past, or `max_duration` passed without one.
+    pub const MISSED_PWM: &str = "Missed scheduling of next hard pwm event";
+    /// A `queue_pwm_out` further than `max_duration` after the change away from the default.
+    pub const PWM_EXCEEDS_MAX_DURATION: &str = "Scheduled pwm event will exceed max_duration";
 }
 
 /// Every shutdown reason; the index is its `static_string_id`.
@@ -75,6 +79,8 @@ pub const SHUTDOWN_REASONS: &[&str] = &[
     reason::EXCEEDS_MAX_DURATION,
     reason::TMCUART_TOO_LARGE,
     reason::SPI_TOO_LARGE,
+    reason::MISSED_PWM,
+    reason::PWM_EXCEEDS_MAX_DURATION,
 ];
 
 /// The `static_string_id` of `reason` (0, "Unknown shutdown reason", if it is not listed).
@@ -128,8 +134,18 @@ pub const CONSTANTS: &[(&str, ConstValue)] = &[
     ("RECEIVE_WINDOW", ConstValue::Int(RECEIVE_WINDOW as i64)),
     ("SERIAL_BAUD", ConstValue::Int(250_000)),
     ("ADC_MAX", ConstValue::Int(4095)),
-    ("PWM_MAX", ConstValue::Int(255)),
+    ("PWM_MAX", ConstValue::Int(PWM_MAX as i64)),
 ];
+
+/// The pin number of the MCU's own temperature sensor (Klipper's `ADC_TEMPERATURE` pin name):
+/// above every GPIO number (pins travel as `%c` elsewhere, so no GPIO can reach it), read by
+/// `config_analog_in` (whose `pin` is `%u`) through [`Board::read_mcu_temperature`].
+///
+/// [`Board::read_mcu_temperature`]: super::board::Board::read_mcu_temperature
+pub const ADC_TEMPERATURE_PIN: u32 = 256;
+
+/// The largest hardware PWM duty (`PWM_MAX`): `value / PWM_MAX` of `queue_pwm_out`.
+pub const PWM_MAX: u16 = 255;
 
 /// Divisor of squared loop times in `stats sumsq` (keeps the sum inside 32 bits).
 pub const STATS_SUMSQ_BASE: u32 = 256;

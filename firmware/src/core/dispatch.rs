@@ -118,6 +118,11 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
             | Cmd::QueueDigitalOut
             | Cmd::UpdateDigitalOut
             | Cmd::SetDigitalOut
+            | Cmd::ConfigPwmOut
+            | Cmd::QueuePwmOut
+            | Cmd::SetPwmOut
+            | Cmd::ConfigCounter
+            | Cmd::QueryCounter
             | Cmd::ConfigAnalogIn
             | Cmd::QueryAnalogIn
             | Cmd::CadenceGetLateness => self.handle_object(cmd, args, now),

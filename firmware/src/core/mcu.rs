@@ -53,6 +53,10 @@ pub(super) enum Object {
     DigitalOut(DigitalOut),
     /// An analog in.
     AnalogIn(AnalogIn),
+    /// A hardware PWM output.
+    PwmOut(super::pwm_out::PwmOut),
+    /// A pulse counter.
+    Counter(super::counter::Counter),
     /// A TMC driver's bit-banged UART line.
     TmcUart(super::buses::TmcUart),
     /// An SPI device (its chip select).
@@ -316,6 +320,12 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                 Object::Endstop(e) => e.halt(),
                 Object::Trsync(t) => t.halt(),
                 Object::AnalogIn(a) => a.halt(),
+                Object::Counter(c) => c.halt(),
+                Object::PwmOut(p) => {
+                    let (pin, cycle) = (p.config().pin, p.config().cycle_ticks);
+                    let value = p.halt();
+                    self.board.set_pwm(pin, cycle, value, now);
+                }
                 Object::DigitalOut(d) => {
                     let pin = d.config().pin;
                     let level = d.halt();

@@ -3,7 +3,7 @@
 //! Layers (bottom up):
 //! - [`sched`]: one timer per oid on the wrapping 32-bit clock;
 //! - [`moves`] and [`stepper`]: the shared move pool and the `queue_step` replay;
-//! - [`endstop`], [`trsync`], [`digital_out`], [`analog_in`]: the other oid objects, each a
+//! - [`endstop`], [`trsync`], [`digital_out`], [`pwm_out`], [`analog_in`], [`counter`]: the other oid objects, each a
 //!   state machine that returns what to do; `objects` wires them to commands and timers;
 //! - [`buses`]: the TMC UART lines and SPI devices (`tmcuart_send`, `spi_transfer`);
 //! - [`commands`] and [`constants`]: the message table and the dictionary's static data,
@@ -21,6 +21,7 @@ pub mod board;
 pub mod buses;
 pub mod commands;
 pub mod constants;
+pub mod counter;
 pub mod digital_out;
 mod dispatch;
 pub mod endstop;
@@ -28,6 +29,7 @@ pub mod link;
 pub mod mcu;
 pub mod moves;
 mod objects;
+pub mod pwm_out;
 pub mod sched;
 pub mod stepper;
 pub mod trsync;

@@ -14,10 +14,12 @@
 use super::analog_in::{AnalogEvent, AnalogIn, AnalogQuery};
 use super::board::{Board, TriggerSource};
 use super::commands::*;
-use super::constants::reason;
+use super::constants::{reason, ADC_TEMPERATURE_PIN};
+use super::counter::Counter;
 use super::digital_out::{DigitalOut, DigitalOutConfig, DigitalOutError};
 use super::endstop::{Endstop, EndstopEvent, HomeParams};
 use super::mcu::{Mcu, Object};
+use super::pwm_out::{PwmOut, PwmOutConfig, PwmOutError};
 use super::trsync::Trsync;
 use links::proto::format::Value;
 use rt_core::WireClock;
@@ -149,8 +151,48 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                 self.arm_or_disarm(oid as u8, wake);
             }
             Cmd::SetDigitalOut => self.board.set_pin(arg(0) as u8, arg(1) != 0, now),
+            Cmd::ConfigPwmOut => {
+                let config = PwmOutConfig {
+                    pin: arg(1) as u8,
+                    cycle_ticks: arg(2) as u32,
+                    value: arg(3) as u16,
+                    default_value: arg(4) as u16,
+                    max_duration: arg(5) as u32,
+                };
+                if self.config_object(oid, Object::PwmOut(PwmOut::new(config)), now) {
+                    self.board
+                        .set_pwm(config.pin, config.cycle_ticks, config.value, now);
+                }
+            }
+            Cmd::QueuePwmOut => {
+                let Some(Object::PwmOut(p)) = self.object(oid) else {
+                    return self.shutdown(reason::INVALID_OID, now);
+                };
+                match p.queue(clock(1), arg(2) as u16, now) {
+                    Ok(()) => {
+                        let wake = p.next_wake();
+                        self.arm_or_disarm(oid as u8, wake);
+                    }
+                    Err(e) => self.pwm_out_fault(e, now),
+                }
+            }
+            Cmd::SetPwmOut => self
+                .board
+                .set_pwm(arg(0) as u8, arg(1) as u32, arg(2) as u16, now),
+            Cmd::ConfigCounter => {
+                let (pin, pull_up) = (arg(1) as u8, arg(2) != 0);
+                self.board.config_input(pin, pull_up);
+                self.config_object(oid, Object::Counter(Counter::new(pin)), now);
+            }
+            Cmd::QueryCounter => {
+                let armed = match self.object(oid) {
+                    Some(Object::Counter(c)) => c.query(clock(1), arg(2) as u32, arg(3) as u32),
+                    _ => return self.shutdown(reason::INVALID_OID, now),
+                };
+                self.arm_or_disarm(oid as u8, armed);
+            }
             Cmd::ConfigAnalogIn => {
-                self.config_object(oid, Object::AnalogIn(AnalogIn::new(arg(1) as u8)), now);
+                self.config_object(oid, Object::AnalogIn(AnalogIn::new(arg(1) as u32)), now);
             }
             Cmd::QueryAnalogIn => {
                 let q = AnalogQuery {
@@ -223,8 +265,40 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                 }
                 Err(e) => self.digital_out_fault(e, now),
             },
+            Object::Counter(c) => {
+                let level = self.board.read_pin(c.pin, at);
+                let (next, report) = c.event(at, level);
+                if let Some(r) = report {
+                    let args = [
+                        Value::Int(oid as i64),
+                        Value::Int(r.next_clock.0 as i64),
+                        Value::Int(r.count as i64),
+                        Value::Int(r.count_clock.0 as i64),
+                    ];
+                    self.respond(ID_COUNTER_STATE, FMT_COUNTER_STATE, &args);
+                }
+                if let Some(w) = next {
+                    self.rearm(oid, w, now);
+                }
+            }
+            Object::PwmOut(p) => match p.event(at) {
+                Ok(change) => {
+                    let (pin, cycle, wake) = (p.config().pin, p.config().cycle_ticks, p.next_wake());
+                    if let Some(value) = change {
+                        self.board.set_pwm(pin, cycle, value, at);
+                    }
+                    if let Some(w) = wake {
+                        self.rearm(oid, w, now);
+                    }
+                }
+                Err(e) => self.pwm_out_fault(e, now),
+            },
             Object::AnalogIn(a) => {
-                let value = self.board.read_adc(a.pin);
+                let value = match u8::try_from(a.pin) {
+                    Ok(pin) => self.board.read_adc(pin),
+                    Err(_) if a.pin == ADC_TEMPERATURE_PIN => self.board.read_mcu_temperature(),
+                    Err(_) => 0,
+                };
                 match a.event(at, value) {
                     AnalogEvent::Rearm(t) => self.rearm(oid, t, now),
                     AnalogEvent::Report { next_clock, value } => {
@@ -298,6 +372,15 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
             DigitalOutError::Missed => reason::MISSED_DIGITAL_OUT,
             DigitalOutError::ExceedsMaxDuration => reason::EXCEEDS_MAX_DURATION,
             DigitalOutError::QueueFull => reason::MOVE_QUEUE_OVERFLOW,
+        };
+        self.shutdown(r, now);
+    }
+
+    fn pwm_out_fault(&mut self, e: PwmOutError, now: WireClock) {
+        let r = match e {
+            PwmOutError::Missed => reason::MISSED_PWM,
+            PwmOutError::ExceedsMaxDuration => reason::PWM_EXCEEDS_MAX_DURATION,
+            PwmOutError::QueueFull => reason::MOVE_QUEUE_OVERFLOW,
         };
         self.shutdown(r, now);
     }

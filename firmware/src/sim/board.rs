@@ -59,6 +59,12 @@ pub struct SimBoard {
     /// Simulated axes and endstops.
     pub world: World,
     heaters: Vec<Heater>,
+    /// The level each output pin was last set to (a TMC UART mux's select pins).
+    levels: [bool; 256],
+    /// Fans with tachometers (`--fan`).
+    fans: Vec<super::fan::Fan>,
+    /// The ADC's references (`--adc-ref`): with them every reading has an offset and gain error.
+    adc_refs: Vec<super::adc_ref::AdcRefSpec>,
     /// Simulated BLTouch probes (their sensor pins read them, their control pins drive them).
     pub bltouch: Vec<BlTouch>,
     /// Simulated TMC drivers (on their UART lines or chip selects; their DIAG pins read them).
@@ -81,6 +87,9 @@ impl SimBoard {
             queue_steps: 0,
             world: World::local(Vec::new(), Vec::new()),
             heaters: Vec::new(),
+            adc_refs: Vec::new(),
+            fans: Vec::new(),
+            levels: [false; 256],
             bltouch: Vec::new(),
             tmc: Vec::new(),
         })
@@ -89,6 +98,18 @@ impl SimBoard {
     /// Uses `world` for axes and endstops.
     pub fn with_world(mut self, world: World) -> SimBoard {
         self.world = world;
+        self
+    }
+
+    /// Adds fans with tachometers.
+    pub fn with_fans(mut self, fans: &[super::fan::FanSpec]) -> SimBoard {
+        self.fans = fans.iter().map(|&f| super::fan::Fan::new(f)).collect();
+        self
+    }
+
+    /// Gives the ADC measurable references (and their offset and gain error).
+    pub fn with_adc_refs(mut self, refs: &[super::adc_ref::AdcRefSpec]) -> SimBoard {
+        self.adc_refs = refs.to_vec();
         self
     }
 
@@ -122,6 +143,17 @@ impl SimBoard {
     pub fn with_tmc(mut self, drivers: &[TmcSpec]) -> SimBoard {
         self.tmc.extend(drivers.iter().cloned().map(TmcDriver::new));
         self
+    }
+
+    /// What analog input `pin` reads on a perfect ADC.
+    fn read_adc_ideal(&mut self, pin: u8) -> u16 {
+        let t = self.seconds(self.now);
+        match self.heaters.iter_mut().find(|h| h.sensor_pin == pin) {
+            Some(h) => h.adc(t),
+            // Any other analog input is a thermistor at room temperature (a chamber or board
+            // sensor).
+            None => super::heater::adc_of(super::heater::AMBIENT_C),
+        }
     }
 
     fn seconds(&self, clock: u64) -> f64 {
@@ -219,16 +251,23 @@ impl Board for SimBoard {
             let pos = coord.and_then(|c| self.world.coord_at_clock(&c, at));
             return pos.is_some_and(|p| self.tmc[i].diag_level(p));
         }
+        if let Some(f) = self.fans.iter_mut().find(|f| f.spec.tach_pin == pin) {
+            let t = at as f64 / self.clock_freq.max(1) as f64;
+            return f.tach_level(t);
+        }
         self.world.read_endstop(pin, at).unwrap_or(false)
     }
 
     fn tmcuart_transfer(&mut self, rx_pin: u8, tx_pin: u8, _bit_time: u32, write: &[u8], read: &mut [u8]) {
         // Every driver on the line hears the request; the addressed one answers.
         let mut reply = None;
+        let levels = &self.levels;
+        let selected = |select: &[(u8, bool)]| select.iter().all(|&(p, l)| levels[usize::from(p)] == l);
         for t in self
             .tmc
             .iter_mut()
             .filter(|t| t.spec.bus_pin == rx_pin || t.spec.bus_pin == tx_pin)
+            .filter(|t| selected(&t.spec.select))
         {
             reply = t.uart(write).or(reply);
         }
@@ -239,24 +278,47 @@ impl Board for SimBoard {
     }
 
     fn spi_transfer(&mut self, cs_pin: u8, data: &mut [u8]) {
-        match self.tmc.iter_mut().find(|t| t.spec.bus_pin == cs_pin) {
-            Some(t) => t.spi(data),
+        let mut selected = self
+            .tmc
+            .iter_mut()
+            .filter(|t| t.spec.bus_pin == cs_pin)
+            .peekable();
+        if selected.peek().is_none() {
             // Nothing selected: MISO floats high.
-            None => data.fill(0xff),
+            data.fill(0xff);
+            return;
+        }
+        // A daisy chain (drivers at positions 1..=n on one chip select): the bytes shift through
+        // every driver, so position p holds the 5 bytes at (n − p)·5 of the n·5 clocked, and
+        // answers in their place.
+        let n = data.len() / 5;
+        for t in selected {
+            match usize::from(t.spec.address) {
+                0 => t.spi(data),
+                p if p <= n => {
+                    let at = (n - p) * 5;
+                    t.spi(&mut data[at..at + 5]);
+                }
+                _ => {}
+            }
         }
     }
 
     fn read_adc(&mut self, pin: u8) -> u16 {
-        let t = self.seconds(self.now);
-        match self.heaters.iter_mut().find(|h| h.sensor_pin == pin) {
-            Some(h) => h.adc(t),
-            // Any other analog input is a thermistor at room temperature (a chamber or board
-            // sensor).
-            None => super::heater::adc_of(super::heater::AMBIENT_C),
+        let ideal = self.read_adc_ideal(pin);
+        match self.adc_refs.first() {
+            Some(r) => r.read(pin, ideal, super::heater::ADC_MAX),
+            None => ideal,
         }
     }
 
+    fn read_mcu_temperature(&mut self) -> u16 {
+        let t = self.seconds(self.now);
+        super::mcu_temp::adc_of(super::mcu_temp::die_temperature(t))
+    }
+
     fn set_pin(&mut self, pin: u8, value: bool, clock: WireClock) {
+        self.levels[usize::from(pin)] = value;
         let at = self.extend(clock);
         for b in self.bltouch.iter_mut().filter(|b| b.spec.control_pin == pin) {
             b.control(value, at);
@@ -264,6 +326,17 @@ impl Board for SimBoard {
         let t = self.seconds(at);
         for h in self.heaters.iter_mut().filter(|h| h.heater_pin == pin) {
             h.set(value, t);
+        }
+        for f in self.fans.iter_mut().filter(|f| f.spec.out_pin == pin) {
+            f.set(f64::from(u8::from(value)), t);
+        }
+    }
+
+    fn set_pwm(&mut self, pin: u8, _cycle_ticks: u32, value: u16, clock: WireClock) {
+        let t = self.seconds(self.extend(clock));
+        let pwm_max = f64::from(crate::core::constants::PWM_MAX);
+        for f in self.fans.iter_mut().filter(|f| f.spec.out_pin == pin) {
+            f.set(f64::from(value) / pwm_max, t);
         }
     }
 

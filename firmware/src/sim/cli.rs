@@ -76,10 +76,11 @@ pub struct Cli {
     #[arg(long = "bltouch", value_name = "[!]SENSOR_PIN=CONTROL_PIN,COORD,SURFACE_MM[,stuck|mute]",
           value_parser = parse_bltouch)]
     pub bltouch: Vec<BlTouchSpec>,
-    /// A TMC driver (tmc2130, tmc2208, tmc2209, tmc5160) on UART line BUS_PIN at address ADDR,
+    /// A TMC driver (tmc2130, tmc2208, tmc2209, tmc5160) on UART line BUS_PIN at address ADDR
+    /// (behind an analog mux: reached while each SELECT_PIN is high, or low with `!`),
     /// or with chip select BUS_PIN (SPI); optionally its DIAG (or DIAG0 with `diag0:`) wired to
     /// DIAG_PIN, the motor stalling when COORD reaches END_MM (min or max end of travel).
-    #[arg(long = "tmc", value_name = "MODEL@BUS_PIN:ADDR[=[diag0:]DIAG_PIN,COORD,END_MM,min|max]",
+    #[arg(long = "tmc", value_name = "MODEL@BUS_PIN:ADDR[+[!]SELECT_PIN…][=[diag0:]DIAG_PIN,COORD,END_MM,min|max]",
           value_parser = parse_tmc)]
     pub tmc: Vec<TmcSpec>,
     /// The bed surface probe input PIN (an `--endstop` or `--bltouch` sensor) touches: its
@@ -98,6 +99,14 @@ pub struct Cli {
     /// with the thermal model of a 40 W hotend (default) or a 150 W bed.
     #[arg(long = "heater", value_name = "HEATER_PIN=SENSOR_PIN[,hotend|bed]", value_parser = parse_heater)]
     pub heaters: Vec<HeaterSpec>,
+    /// A fan powered by OUT_PIN (software or hardware PWM) whose tachometer drives TACH_PIN
+    /// with PPR pulses per revolution (default 2).
+    #[arg(long = "fan", value_name = "OUT_PIN=TACH_PIN[,PPR]", value_parser = super::fan::FanSpec::parse)]
+    pub fans: Vec<super::fan::FanSpec>,
+    /// The ADC's reference inputs (a Duet's `vref_pin` and `vssa_pin`): every analog reading
+    /// then carries the ADC's offset and gain error, which the references measure.
+    #[arg(long = "adc-ref", value_name = "VREF_PIN=VSSA_PIN", value_parser = super::adc_ref::AdcRefSpec::parse)]
+    pub adc_refs: Vec<super::adc_ref::AdcRefSpec>,
     /// Inject a heater fault from SECONDS of MCU time on: `open` (thermistor open, ADC at
     /// max), `no-heat` (the heater stops heating), `frozen` (the reading stops changing).
     #[arg(long = "heater-fault", value_name = "HEATER_PIN=open|no-heat|frozen@SECONDS",
@@ -277,11 +286,19 @@ fn parse_bltouch(s: &str) -> Result<BlTouchSpec, String> {
 }
 
 fn parse_tmc(s: &str) -> Result<TmcSpec, String> {
-    const FORM: &str = "expected MODEL@BUS_PIN:ADDR[=[diag0:]DIAG_PIN,COORD,END_MM,min|max]";
+    const FORM: &str = "expected MODEL@BUS_PIN:ADDR[+[!]SELECT_PIN…][=[diag0:]DIAG_PIN,COORD,END_MM,min|max]";
     let (bus, diag) = match s.split_once('=') {
         Some((b, d)) => (b, Some(d)),
         None => (s, None),
     };
+    let mut parts = bus.split('+');
+    let bus = parts.next().unwrap_or_default();
+    let select = parts
+        .map(|p| match p.trim().strip_prefix('!') {
+            Some(pin) => parse_pin(pin).map(|n| (n, false)),
+            None => parse_pin(p.trim()).map(|n| (n, true)),
+        })
+        .collect::<Result<Vec<_>, _>>()?;
     let (model, rest) = bus.split_once('@').ok_or(FORM)?;
     let (pin, addr) = rest.split_once(':').ok_or(FORM)?;
     let model = TmcModel::parse(model.trim())
@@ -317,6 +334,7 @@ fn parse_tmc(s: &str) -> Result<TmcSpec, String> {
         bus_pin: parse_pin(pin)?,
         address,
         diag,
+        select,
     })
 }
 
@@ -445,6 +463,15 @@ mod tests {
         let t = parse_tmc("tmc5160@PA4:0=diag0:PA5,0.5*a+0.5*b,220,max").unwrap();
         assert!(t.diag.as_ref().is_some_and(|d| d.diag0 && !d.at_min));
         assert!(parse_tmc("tmc2130@PA4:0").is_ok_and(|t| t.diag.is_none()));
+        let t = parse_tmc("tmc2209@PA9:0+!PC14+PC16=PD2,x,0,min").unwrap();
+        assert_eq!(
+            t.select,
+            [
+                (parse_pin("PC14").unwrap(), false),
+                (parse_pin("PC16").unwrap(), true)
+            ]
+        );
+        assert!(t.diag.is_some());
         for bad in [
             "tmc2660@PA4:0",
             "tmc2209@PA4",

@@ -15,13 +15,16 @@
 //! loop runs on a thread with a generous stack (a debug build may copy the value through the
 //! stack while boxing it).
 
+pub mod adc_ref;
 pub mod bltouch;
 pub mod board;
 pub mod cli;
 pub mod clock;
 pub mod event_loop;
+pub mod fan;
 pub mod faults;
 pub mod heater;
+pub mod mcu_temp;
 pub mod pty;
 pub mod spin;
 pub mod surface;
@@ -181,6 +184,8 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
     let board = SimBoard::new(cli.clock_freq, trace)?
         .with_world(world)
         .with_heaters(&cli.heaters, &cli.heater_faults)
+        .with_adc_refs(&cli.adc_refs)
+        .with_fans(&cli.fans)
         .with_bltouch(&cli.bltouch)
         .with_tmc(&cli.tmc);
     let dictionary: &'static [u8] = Box::leak(crate::dictionary_bytes(cli.clock_freq).into_boxed_slice());

@@ -8,6 +8,9 @@
 //! written IRUN). A request with a wrong sync nibble, address or CRC is ignored, as the chip
 //! does.
 //!
+//! A UART behind an analog mux (a Duet's `select_pins`) reaches the driver only while the
+//! MCU's select pins are at the driver's levels (the board checks that).
+//!
 //! DIAG (stallGuard): the motor stalls when its carriage reaches the end of travel (`COORD` at
 //! or beyond `END_MM`, the `min` or `max` end). The stall is reported only when the registers
 //! route it: TMC2209 `SGTHRS` > 0 and `TCOOLTHRS` > 0 in stealthChop (`en_spreadcycle` 0);
@@ -94,9 +97,12 @@ pub struct TmcSpec {
     pub model: Model,
     /// UART receive pin, or SPI chip select.
     pub bus_pin: u8,
-    /// UART address (0 on SPI).
+    /// UART address; on SPI the position in a daisy chain (1..; 0 alone on its chip select).
     pub address: u8,
     pub diag: Option<DiagSpec>,
+    /// UART behind an analog mux (Klipper's `select_pins`): the driver hears the line only
+    /// while each of these pins is at its level.
+    pub select: Vec<(u8, bool)>,
 }
 
 /// One driver's state.
@@ -242,6 +248,7 @@ mod tests {
                 at_min: true,
                 diag0,
             }),
+            select: Vec::new(),
         })
     }
 

@@ -127,6 +127,7 @@ struct Known {
     starting: Option<u32>,
     trsync_state: Option<u32>,
     analog_in_state: Option<u32>,
+    counter_state: Option<u32>,
     stats: Option<u32>,
 }
 
@@ -567,6 +568,13 @@ impl IoThread {
                 let packed = ((int(1) as u64 & 0xFFFF_FFFF) << 32) | (count << 16) | (int(2) as u64 & 0xFFFF);
                 slot.store(packed, Ordering::Release);
             }
+        } else if Some(id) == k.counter_state {
+            if let Some(slot) = usize::try_from(int(0))
+                .ok()
+                .and_then(|o| self.shared.counters.get(o))
+            {
+                slot.store(int(1) as u32, int(2) as u32, int(3) as u32);
+            }
         } else if Some(id) == k.starting && matches!(self.phase, Phase::Running) {
             // Sent once by a freshly booted MCU: after the handshake it means a restart.
             return Err(Death::Reset("it sent 'starting'".into()));
@@ -632,6 +640,7 @@ impl IoThread {
             starting: dict.response("starting").ok().map(|d| d.id),
             trsync_state: dict.response("trsync_state").ok().map(|d| d.id),
             analog_in_state: dict.response("analog_in_state").ok().map(|d| d.id),
+            counter_state: dict.response("counter_state").ok().map(|d| d.id),
             stats: dict.response("stats").ok().map(|d| d.id),
         };
         self.sq.set_receive_window(dict.receive_window());

@@ -16,6 +16,7 @@
 //! replies; decoding a response into a [`Message`] allocates, which happens only for responses
 //! some `query` waits for, for `shutdown`/`is_shutdown`, and during the handshake.
 
+pub mod counter;
 mod io;
 pub(crate) mod shared;
 
@@ -527,6 +528,12 @@ impl McuLink {
         let v = self.shared.analog.get(usize::from(oid))?.load(Ordering::Acquire);
         let count = ((v >> 16) & 0xFFFF) as u16;
         (count != 0).then_some((count, (v >> 32) as u32, (v & 0xFFFF) as u16))
+    }
+
+    /// The latest `counter_state` report of pulse counter `oid` (< 64), `None` before the
+    /// first. Lock-free (a seqlock the IO thread writes).
+    pub fn counter_report(&self, oid: u8) -> Option<counter::CounterReport> {
+        self.shared.counters.get(usize::from(oid))?.load()
     }
 
     /// The MCU's shutdown reason, once it sent `shutdown` or `is_shutdown`.

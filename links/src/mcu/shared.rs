@@ -204,6 +204,8 @@ pub(crate) struct Shared {
     /// The latest `analog_in_state` of oids `0..ANALOG_SLOTS`: `(next_clock << 32) |
     /// (reports mod 2^16) << 16 | value`, 0 before the first (see `McuLink::analog_report`).
     pub analog: [AtomicU64; ANALOG_SLOTS],
+    /// The latest `counter_state` of oids `0..ANALOG_SLOTS`.
+    pub counters: [super::counter::CounterSlot; ANALOG_SLOTS],
 }
 
 /// Oids whose `analog_in_state` reports the link keeps (the latest of each).
@@ -235,6 +237,7 @@ impl Shared {
             armed: AtomicUsize::new(0),
             wake: crate::transport::Wake::new().ok(),
             analog: std::array::from_fn(|_| AtomicU64::new(0)),
+            counters: std::array::from_fn(|_| super::counter::CounterSlot::default()),
         }
     }
 

@@ -15,6 +15,7 @@
 //! `[input_shaper]`, `[gcode_macro]`s, `[safe_z_home]` / `[homing_override]`, `[bed_mesh]`, then the
 //! unused-option/section check.
 
+mod adc_scaled;
 mod bed_mesh;
 mod bltouch;
 mod board_pins;
@@ -29,6 +30,7 @@ mod host;
 mod input_shaper;
 mod macros;
 mod mcu;
+mod multi_pin;
 mod pins;
 mod probe;
 mod reader;
@@ -45,6 +47,7 @@ use std::path::{Path, PathBuf};
 
 use crate::ini::{self, ConfigFile};
 
+pub use adc_scaled::AdcScaledSection;
 pub use bed_mesh::{
     profile_options as bed_mesh_profile_options, BedMeshSection, MeshProfile, MeshShape,
     ALGORITHMS as BED_MESH_ALGORITHMS,
@@ -59,6 +62,7 @@ pub use homing::{HomingOverrideSection, SafeZHomeSection, HOMING_OVERRIDE_MACRO}
 pub use host::HostSections;
 pub use input_shaper::InputShaperSection;
 pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
+pub use multi_pin::{MultiPinSection, MULTI_PIN_CHIP};
 pub use pins::{is_simulator_pin, PinKind, PinProblem, PinRef, MAIN_MCU};
 pub use probe::{ProbeSection, SamplesResult, PROBE_PIN_MCU, SAMPLES_RESULTS, Z_VIRTUAL_ENDSTOP};
 pub use realtime::RealtimeSection;
@@ -172,6 +176,8 @@ impl PrinterConfig {
             .with_simulated(simulated)
             .with_unsupported_chips(unsupported_chips(file))
             .with_aliases(board_pins::read_board_pins(&reader)?);
+        let adc_scaled = adc_scaled::read_adc_scaled(&reader, &mut pins)?;
+        let multi_pins = multi_pin::read_multi_pins(&reader, &mut pins)?;
 
         let printer_section = reader
             .section("printer")
@@ -274,7 +280,9 @@ impl PrinterConfig {
             Some(s) => Some(heater::read_heater(&s, &mut pins)?),
             None => None,
         };
-        let thermal = thermal::read_thermal(&reader, &mut pins, true)?;
+        let mut thermal = thermal::read_thermal(&reader, &mut pins, true)?;
+        thermal.adc_scaled = adc_scaled;
+        thermal.multi_pins = multi_pins;
         let simulator_section = reader.section("simulator");
         let simulator = match &simulator_section {
             Some(s) => mcu::read_simulator(s)?,
@@ -489,14 +497,12 @@ fn read_tmc_sections(
     Ok(out)
 }
 
-/// Pin providers among the ignored sections: `[adc_scaled NAME]` and `[sx1509 NAME]` provide
-/// chip `NAME`, `[replicape]` chip `replicape`, `[multi_pin NAME]` chip `multi_pin` (Klipper's
+/// Pin providers among the ignored sections: `[sx1509 NAME]` provides
+/// chip `NAME`, `[replicape]` chip `replicape` (Klipper's
 /// names), as (chip, section name).
 fn unsupported_chips(file: &ConfigFile) -> Vec<(String, String)> {
     let chip = |s: &ini::Section| match (s.kind(), s.name().split_whitespace().nth(1)) {
-        ("adc_scaled" | "sx1509", Some(name)) => Some(name.to_string()),
-        // `multi_pin:NAME` names the section's pin group.
-        ("multi_pin", Some(_)) => Some("multi_pin".to_string()),
+        ("sx1509", Some(name)) => Some(name.to_string()),
         ("replicape", _) => Some("replicape".to_string()),
         _ => None,
     };

@@ -156,6 +156,8 @@ pub(crate) enum Share {
     TmcUart,
     /// Software SPI clock/data lines: shared by the devices on that bus.
     SpiBus,
+    /// The chip select of a TMC SPI daisy chain: shared by the drivers of the chain.
+    SpiChain,
 }
 
 #[derive(Debug)]
@@ -184,6 +186,10 @@ pub(crate) struct PinRegistry {
     unsupported_chips: Vec<(String, String)>,
     /// `[board_pins]` aliases.
     aliases: Aliases,
+    /// `[adc_scaled NAME]` chips and the MCU whose pins they scale.
+    scaled_chips: Vec<(String, String)>,
+    /// `[multi_pin NAME]` groups.
+    multi_pins: Vec<(String, Vec<PinRef>)>,
 }
 
 /// True when the simulated MCU has `pin` (any family of [`links::pinmap`]: `PA0`, `PF13`,
@@ -208,7 +214,32 @@ impl PinRegistry {
             families: Vec::new(),
             unsupported_chips: Vec::new(),
             aliases: Aliases::new(),
+            scaled_chips: Vec::new(),
+            multi_pins: Vec::new(),
         }
+    }
+
+    /// Declares `[adc_scaled chip]`, whose pins are `mcu`'s.
+    pub(crate) fn add_scaled_chip(&mut self, chip: &str, mcu: &str) {
+        self.scaled_chips.push((chip.to_string(), mcu.to_string()));
+    }
+
+    /// Declares `[multi_pin name]` with its pins.
+    pub(crate) fn add_multi_pin(&mut self, name: &str, group: Vec<PinRef>) {
+        self.multi_pins.push((name.to_string(), group));
+    }
+
+    /// The MCU whose pins `[adc_scaled chip]` scales, if `chip` is one.
+    pub(crate) fn scaled_mcu(&self, chip: &str) -> Option<&str> {
+        self.scaled_chips
+            .iter()
+            .find(|(c, _)| c == chip)
+            .map(|(_, m)| m.as_str())
+    }
+
+    /// True when `name` is a declared MCU.
+    pub(crate) fn has_mcu(&self, name: &str) -> bool {
+        self.mcus.iter().any(|m| m == name)
     }
 
     /// Marks `names` as simulated MCUs.
@@ -340,6 +371,27 @@ impl PinRegistry {
         if self.tmc_chips.contains(&pin.mcu) {
             return Self::check_tmc_pin(pin, option);
         }
+        if pin.mcu == super::multi_pin::MULTI_PIN_CHIP {
+            // `multi_pin:NAME` claims each pin of `[multi_pin NAME]`.
+            let Some((_, group)) = self.multi_pins.iter().find(|(n, _)| *n == pin.pin).cloned() else {
+                return Err(ValueProblem::Invalid(format!(
+                    "pin '{pin}': there is no [multi_pin {}] section",
+                    pin.pin
+                )));
+            };
+            for member in &group {
+                self.claim(member, section, option, share)?;
+            }
+            return Ok(());
+        }
+        if let Some(mcu) = self.scaled_mcu(&pin.mcu) {
+            // `NAME:PIN` of `[adc_scaled NAME]` is PIN of its MCU.
+            let real = PinRef {
+                mcu: mcu.to_string(),
+                ..pin.clone()
+            };
+            return self.claim(&real, section, option, share);
+        }
         if !self.mcus.contains(&pin.mcu) {
             if pin.pin == "virtual_endstop" && pin.mcu.starts_with("tmc") {
                 return Err(ValueProblem::Invalid(format!(
@@ -347,14 +399,7 @@ impl PinRegistry {
                     pin.mcu.replacen('_', " ", 1)
                 )));
             }
-            // `multi_pin:NAME` is the pin group of `[multi_pin NAME]`.
-            let names = |chip: &str, section: &str| {
-                chip != "multi_pin" || section.split_whitespace().nth(1) == Some(&pin.pin)
-            };
-            let unsupported = self
-                .unsupported_chips
-                .iter()
-                .find(|(chip, section)| *chip == pin.mcu && names(chip, section));
+            let unsupported = self.unsupported_chips.iter().find(|(chip, _)| *chip == pin.mcu);
             if let Some((_, section)) = unsupported {
                 return Err(ValueProblem::Invalid(format!(
                     "pin '{pin}' is on [{section}], whose pins Cadence does not support yet"

@@ -417,6 +417,14 @@ impl<'r> SectionReader<'r> {
             )
         })?;
         let pin = pins.resolve(pin).map_err(|p| self.bad(option, v, p))?;
+        if kind != PinKind::Output && pin.mcu == super::multi_pin::MULTI_PIN_CHIP {
+            let why = format!("pin '{pin}': multi_pin only supports output pins");
+            return Err(self.bad(option, v, ValueProblem::Invalid(why)));
+        }
+        if kind != PinKind::Analog && pins.scaled_mcu(&pin.mcu).is_some() {
+            let why = format!("pin '{pin}': adc_scaled only supports adc pins");
+            return Err(self.bad(option, v, ValueProblem::Invalid(why)));
+        }
         pins.claim(&pin, self.name(), option, share)
             .map_err(|p| self.bad(option, v, p))?;
         Ok(Some(pin))

@@ -29,7 +29,7 @@ use Support::{Ignored, Read, Refused};
 /// `[realtime]` and `[gcode]`. `stepper_*` and `extruderN` are matched by [`support`].
 pub const SECTIONS: &[(&str, Support)] = &[
     ("ad5206", Ignored),
-    ("adc_scaled", Ignored),
+    ("adc_scaled", Read),
     ("adc_temperature", Ignored),
     ("ads1x1x", Ignored),
     ("adxl345", Ignored),
@@ -89,7 +89,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("mcu", Read),
     ("menu", Ignored),
     ("mpu9250", Ignored),
-    ("multi_pin", Ignored),
+    ("multi_pin", Read),
     ("neopixel", Ignored),
     ("output_pin", Ignored),
     ("palette2", Ignored),

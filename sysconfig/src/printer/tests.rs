@@ -175,7 +175,13 @@ fn pins_of_unsupported_providers_name_the_feature() {
     .unwrap_err();
     assert_eq!(
         err,
-        "printer.cfg:20: [stepper_z] step_pin: pin 'vref_scaled:PC0' is on [adc_scaled vref_scaled], whose pins \
+        "printer.cfg:20: [stepper_z] step_pin: pin 'vref_scaled:PC0': adc_scaled only supports adc pins"
+    );
+    let cape = MINIMAL.replace("step_pin: PC0", "step_pin: replicape:stepper_z_step");
+    let err = parse(&format!("{cape}[replicape]\n")).unwrap_err();
+    assert_eq!(
+        err,
+        "printer.cfg:20: [stepper_z] step_pin: pin 'replicape:stepper_z_step' is on [replicape], whose pins \
          Cadence does not support yet"
     );
 }

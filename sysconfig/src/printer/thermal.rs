@@ -5,7 +5,7 @@
 //!
 //! The load reads every one of them ([`DRIVEN`]): the host drives them all.
 
-use super::error::ConfigError;
+use super::error::{ConfigError, ValueProblem};
 use super::heater::{read_heater_options, HeaterSection, ABSOLUTE_ZERO_C};
 use super::pins::{PinKind, PinRef, PinRegistry, Share};
 use super::reader::{Bounds, Reader, SectionReader};
@@ -22,6 +22,17 @@ pub enum SensorSource {
         pullup_resistor: f64,
         /// `inline_resistor` (Ω, default 0).
         inline_resistor: f64,
+    },
+    /// `temperature_mcu`: the MCU's own sensor, read through its `ADC_TEMPERATURE` channel.
+    Mcu {
+        /// `sensor_mcu` (default `mcu`).
+        sensor_mcu: String,
+        /// `sensor_temperature1` (°C) and `sensor_adc1` (0..1): with it the calibration's line
+        /// goes through this point (Klipper keeps the MCU family's slope).
+        point1: Option<(f64, f64)>,
+        /// `sensor_temperature2` and `sensor_adc2` (only with the first): the slope through
+        /// both points.
+        point2: Option<(f64, f64)>,
     },
     /// `temperature_host`: the host's own temperature from `sensor_path`.
     Host {
@@ -204,6 +215,10 @@ pub struct ThermalSections {
     pub fan_generic: Vec<(String, FanOptions)>,
     /// `[temperature_fan NAME]`.
     pub temperature_fans: Vec<TemperatureFanSection>,
+    /// `[adc_scaled NAME]` (read before the sections naming its pins).
+    pub adc_scaled: Vec<super::adc_scaled::AdcScaledSection>,
+    /// `[multi_pin NAME]` (read before the sections naming its group).
+    pub multi_pins: Vec<super::multi_pin::MultiPinSection>,
 }
 
 const UNIT: Bounds = Bounds::ANY.min(0.0).max(1.0);
@@ -234,6 +249,7 @@ fn read_sensor(s: &SectionReader<'_>, pins: &mut PinRegistry) -> Result<SensorSe
                 .map(|v| v.text.clone())
                 .unwrap_or_else(|| "/sys/class/thermal/thermal_zone0/temp".into()),
         },
+        "temperature_mcu" => read_mcu_sensor(s, pins)?,
         _ => {
             super::heater::refuse_unsupported_sensor(s, &sensor_type)?;
             SensorSource::Adc {
@@ -247,6 +263,38 @@ fn read_sensor(s: &SectionReader<'_>, pins: &mut PinRegistry) -> Result<SensorSe
         sensor_type,
         source,
         smooth_time: s.float_or("smooth_time", 1.0, Bounds::ANY.above(0.0))?,
+    })
+}
+
+/// `sensor_type: temperature_mcu`'s options (Klipper's: `sensor_mcu`, and an optional
+/// calibration by one or two points).
+fn read_mcu_sensor(s: &SectionReader<'_>, pins: &PinRegistry) -> Result<SensorSource, ConfigError> {
+    let sensor_mcu = s
+        .value("sensor_mcu")
+        .map_or_else(|| "mcu".to_string(), |v| v.text.clone());
+    if let Some(v) = s.value("sensor_mcu") {
+        if !pins.has_mcu(&sensor_mcu) {
+            return Err(s.bad(
+                "sensor_mcu",
+                v,
+                ValueProblem::Invalid(format!("there is no [mcu {sensor_mcu}] section")),
+            ));
+        }
+    }
+    let adc = Bounds::ANY.min(0.0).max(1.0);
+    let temp = Bounds::ANY.min(ABSOLUTE_ZERO_C);
+    let mut point1 = None;
+    let mut point2 = None;
+    if let Some(t1) = s.opt_float("sensor_temperature1", temp)? {
+        point1 = Some((t1, s.float("sensor_adc1", adc)?));
+        if let Some(t2) = s.opt_float("sensor_temperature2", temp)? {
+            point2 = Some((t2, s.float("sensor_adc2", adc)?));
+        }
+    }
+    Ok(SensorSource::Mcu {
+        sensor_mcu,
+        point1,
+        point2,
     })
 }
 
@@ -554,6 +602,33 @@ mod tests {
     }
 
     #[test]
+    fn the_mcus_own_sensor() {
+        let t = read(
+            "[temperature_sensor board]\nsensor_type: temperature_mcu\nmax_temp: 100\n\
+             [temperature_fan cpu]\npin: PH1\nsensor_type: temperature_mcu\nsensor_mcu: mcu\n\
+             sensor_temperature1: 30\nsensor_adc1: 0.4\nsensor_temperature2: 110\nsensor_adc2: 0.5\n\
+             min_temp: 0\nmax_temp: 90\ncontrol: watermark\n",
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(
+            t.temperature_sensors[0].sensor.source,
+            SensorSource::Mcu {
+                sensor_mcu: "mcu".into(),
+                point1: None,
+                point2: None
+            }
+        );
+        assert_eq!(
+            t.temperature_fans[0].sensor.source,
+            SensorSource::Mcu {
+                sensor_mcu: "mcu".into(),
+                point1: Some((30.0, 0.4)),
+                point2: Some((110.0, 0.5))
+            }
+        );
+    }
+
+    #[test]
     fn errors_name_file_line_section_and_option() {
         let cases = [
             ("[fan]\npin: PH6\nmax_power: 0\n", "printer.cfg:3: [fan] max_power: must be above 0, got 0"),
@@ -577,8 +652,16 @@ mod tests {
                 "printer.cfg:8: [temperature_fan f] target_temp: must have maximum of 80, got 90",
             ),
             (
-                "[temperature_sensor m]\nsensor_type: temperature_mcu\n",
-                "printer.cfg:2: [temperature_sensor m] sensor_type: temperature_mcu (the MCU's own sensor) is not supported",
+                "[temperature_sensor m]\nsensor_type: temperature_mcu\nsensor_mcu: ebb\n",
+                "printer.cfg:3: [temperature_sensor m] sensor_mcu: there is no [mcu ebb] section",
+            ),
+            (
+                "[temperature_sensor m]\nsensor_type: temperature_mcu\nsensor_temperature1: 25\nsensor_adc1: 1.5\n",
+                "printer.cfg:4: [temperature_sensor m] sensor_adc1: must have maximum of 1, got 1.5",
+            ),
+            (
+                "[temperature_sensor m]\nsensor_type: temperature_mcu\nsensor_temperature1: 25\n",
+                "printer.cfg:1: Option 'sensor_adc1' in section 'temperature_sensor m' must be specified",
             ),
             (
                 "[fan]\npin: PH6\n[fan_generic a]\npin: PH6\n",

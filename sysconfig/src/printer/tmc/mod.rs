@@ -18,7 +18,7 @@ pub mod current;
 pub mod model;
 pub mod tables;
 
-use super::error::ConfigError;
+use super::error::{ConfigError, ValueProblem};
 use super::pins::{PinKind, PinRef, PinRegistry, Share};
 use super::reader::{Bounds, SectionReader};
 use super::stepper::MotorSection;
@@ -32,6 +32,9 @@ pub enum TmcBus {
         uart_pin: PinRef,
         tx_pin: Option<PinRef>,
         address: u8,
+        /// `select_pins`: the line reaches this driver through an analog mux while each pin is
+        /// at its level (high; low when written `!PIN`), as on Duet boards. Empty without a mux.
+        select_pins: Vec<PinRef>,
     },
     /// SPI (`cs_pin`), hardware bus `spi_bus` or software pins.
     Spi {
@@ -40,6 +43,9 @@ pub enum TmcBus {
         bus: Option<String>,
         /// `spi_software_sclk_pin`, `spi_software_mosi_pin`, `spi_software_miso_pin`.
         software: Option<[PinRef; 3]>,
+        /// A daisy chain on `cs_pin`: `chain_length` and this driver's `chain_position`
+        /// (1..=length).
+        chain: Option<(u8, u8)>,
     },
 }
 
@@ -279,6 +285,42 @@ fn read_field(
         })
 }
 
+/// `select_pins`: outputs on the UART's MCU, shared by the drivers behind the same mux (each
+/// with its own levels, so claimed without their `!`).
+fn read_select_pins(
+    s: &SectionReader<'_>,
+    mcu: &str,
+    pins: &mut PinRegistry,
+) -> Result<Vec<PinRef>, ConfigError> {
+    let Some(v) = s.value("select_pins") else {
+        return Ok(Vec::new());
+    };
+    let mut out = Vec::new();
+    for text in v.text.split(',').map(str::trim).filter(|t| !t.is_empty()) {
+        let bad = |problem| s.bad("select_pins", v, problem);
+        let pin = PinRef::parse(text, PinKind::Output).map_err(|problem| {
+            bad(ValueProblem::BadPin {
+                pin: text.to_string(),
+                problem,
+            })
+        })?;
+        let pin = pins.resolve(pin).map_err(bad)?;
+        if pin.mcu != mcu {
+            return Err(bad(ValueProblem::Invalid(
+                "TMC mux pins must be on the same mcu".to_string(),
+            )));
+        }
+        let level_free = PinRef {
+            invert: false,
+            ..pin.clone()
+        };
+        pins.claim(&level_free, s.name(), "select_pins", Share::TmcUart)
+            .map_err(bad)?;
+        out.push(pin);
+    }
+    Ok(out)
+}
+
 fn read_bus(s: &SectionReader<'_>, model: TmcModel, pins: &mut PinRegistry) -> Result<TmcBus, ConfigError> {
     let refuse = |option: &str, what: &str| -> Result<(), ConfigError> {
         match s.value(option) {
@@ -291,7 +333,6 @@ fn read_bus(s: &SectionReader<'_>, model: TmcModel, pins: &mut PinRegistry) -> R
         }
     };
     if model.is_uart() {
-        refuse("select_pins", "TMC UART analog mux")?;
         let uart_pin = s.pin("uart_pin", PinKind::Input, pins, Share::TmcUart)?;
         let tx_pin = s.opt_pin("tx_pin", PinKind::Output, pins, Share::TmcUart)?;
         if let Some(tx) = &tx_pin {
@@ -304,15 +345,35 @@ fn read_bus(s: &SectionReader<'_>, model: TmcModel, pins: &mut PinRegistry) -> R
             }
         }
         let address = s.int::<u8>("uart_address", Some(0), 0..=i64::from(model.max_uart_address()))?;
+        let select_pins = read_select_pins(s, &uart_pin.mcu, pins)?;
         return Ok(TmcBus::Uart {
             uart_pin,
             tx_pin,
             address,
+            select_pins,
         });
     }
-    refuse("chain_length", "TMC SPI daisy chains")?;
-    refuse("chain_position", "TMC SPI daisy chains")?;
-    let cs_pin = s.pin("cs_pin", PinKind::Output, pins, Share::Exclusive)?;
+    // At most 9 drivers: 45 bytes, within the MCU's largest SPI transfer.
+    let length = match s.value("chain_length") {
+        Some(_) => Some(s.int::<u8>("chain_length", None, 2..=9)?),
+        None => None,
+    };
+    let chain = match length {
+        Some(length) => Some((
+            length,
+            s.int::<u8>("chain_position", None, 1..=i64::from(length))?,
+        )),
+        None => {
+            refuse("chain_position", "a chain_position without chain_length")?;
+            None
+        }
+    };
+    let share = if chain.is_some() {
+        Share::SpiChain
+    } else {
+        Share::Exclusive
+    };
+    let cs_pin = s.pin("cs_pin", PinKind::Output, pins, share)?;
     let speed = s.int::<u32>("spi_speed", Some(4_000_000), 1..=i64::from(u32::MAX))?;
     let bus = s.value("spi_bus").map(|v| v.text.clone());
     let sw = [
@@ -333,6 +394,7 @@ fn read_bus(s: &SectionReader<'_>, model: TmcModel, pins: &mut PinRegistry) -> R
         speed,
         bus,
         software,
+        chain,
     })
 }
 

@@ -30,6 +30,7 @@ fn tmc2209_registers_follow_klipper() {
         uart_pin,
         tx_pin,
         address,
+        ..
     } = &t.bus
     else {
         panic!("not uart")
@@ -119,7 +120,7 @@ fn errors_name_file_line_section_and_option() {
         (format!("{uart}run_current: 0.5\ndriver_BOGUS: 1\n"), "driver_bogus"),
         ("[tmc2209 stepper_x]\nuart_pin: PD1\nrun_current: 0.5\n".to_string(), "requires diag pin"),
         (format!("{uart}run_current: 0.5\n[tmc2209 stepper_q]\nuart_pin: PD1\nuart_address: 1\nrun_current: 1\n"), "Could not find config section '[stepper_q]'"),
-        (format!("{uart}run_current: 0.5\nselect_pins: PE1\n"), "analog mux"),
+        (format!("{uart}run_current: 0.5\nselect_pins: PE1, ebb:PE2\n"), "TMC mux pins must be on the same mcu"),
     ];
     for (extra, want) in cases {
         let err = parse(&format!("{BASE}{extra}")).err().unwrap_or_default();
