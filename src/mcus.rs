@@ -114,9 +114,16 @@ pub enum ConfigureError {
     /// More objects than a u8 oid can number.
     #[error("too many objects")]
     TooManyObjects,
-    /// A TMC driver's bus objects or register writes (crate::tmc words the problem).
-    #[error("{0}")]
-    Tmc(String),
+    /// A TMC driver's bus objects.
+    #[error(transparent)]
+    Tmc(#[from] crate::tmc::TmcError),
+    /// A TMC driver's register writes at start (`section`: its `[tmc2209 stepper_x]`).
+    #[error("[{section}]: {source}")]
+    TmcInit {
+        section: String,
+        #[source]
+        source: crate::tmc::TmcError,
+    },
     /// The dictionary lacks a configuration command (or an argument does not fit it).
     #[error(transparent)]
     Dictionary(#[from] links::dict::DictError),
@@ -291,12 +298,15 @@ impl Mcus {
         for d in &machine.tmc {
             let result =
                 crate::tmc::gcode::io_for(&mcus, &machine.tmc, &d.cfg.stepper).and_then(|io| io.init());
-            if let Err(why) = result {
+            if let Err(source) = result {
                 let mcu = d.mcu().to_string();
                 mcus.close();
                 return Err(McuError::Configure {
                     mcu,
-                    source: Box::new(ConfigureError::Tmc(format!("[{}]: {why}", d.cfg.section_name()))),
+                    source: Box::new(ConfigureError::TmcInit {
+                        section: d.cfg.section_name(),
+                        source,
+                    }),
                 });
             }
         }
@@ -590,10 +600,13 @@ pub fn config_commands(
         cmds.extend(crate::homing::bltouch::config_commands(dict, b)?);
     }
     cmds.extend(machine.thermal.config_commands(dict, mcu, thermal_oid0)?);
-    cmds.extend(
-        crate::tmc::config_commands(dict, &machine.tmc, mcu, tmc_oid0, clock_freq)
-            .map_err(ConfigureError::Tmc)?,
-    );
+    cmds.extend(crate::tmc::config_commands(
+        dict,
+        &machine.tmc,
+        mcu,
+        tmc_oid0,
+        clock_freq,
+    )?);
     let mut crc = crc32fast::Hasher::new();
     for c in &cmds {
         crc.update(c.as_bytes());
