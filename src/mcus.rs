@@ -116,13 +116,13 @@ pub enum ConfigureError {
     TooManyObjects,
     /// A TMC driver's bus objects.
     #[error(transparent)]
-    Tmc(#[from] crate::tmc::TmcError),
+    Tmc(Box<crate::tmc::TmcError>),
     /// A TMC driver's register writes at start (`section`: its `[tmc2209 stepper_x]`).
     #[error("[{section}]: {source}")]
     TmcInit {
         section: String,
         #[source]
-        source: crate::tmc::TmcError,
+        source: Box<crate::tmc::TmcError>,
     },
     /// The dictionary lacks a configuration command (or an argument does not fit it).
     #[error(transparent)]
@@ -159,6 +159,8 @@ pub enum ConfigureError {
     #[error("its move queue is too small ({0} entries)")]
     MoveQueueTooSmall(usize),
 }
+
+from_boxed!(ConfigureError, Tmc, crate::tmc::TmcError);
 
 /// The CLI's and the older string-typed layers' view (the message as shown).
 impl From<McuError> for String {
@@ -305,7 +307,7 @@ impl Mcus {
                     mcu,
                     source: Box::new(ConfigureError::TmcInit {
                         section: d.cfg.section_name(),
-                        source,
+                        source: Box::new(source),
                     }),
                 });
             }

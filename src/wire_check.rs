@@ -96,8 +96,8 @@ pub enum WireCheckError {
     #[error(transparent)]
     Macro(#[from] planner::gcode::macros::MacroError),
     /// A macro call failed while planning (located by the G-code feed).
-    #[error("{0}")]
-    MacroRun(String),
+    #[error(transparent)]
+    MacroRun(Box<crate::gcode_feed::MacroRunError>),
     /// A G-code line could not be read.
     #[error("{}: {source}", .file.display())]
     Read {
@@ -243,7 +243,7 @@ impl Planner {
                 let status = macro_status(&self.pipeline);
                 match run
                     .next(&mut self.macros, &status, file, say)
-                    .map_err(WireCheckError::MacroRun)?
+                    .map_err(|e| WireCheckError::MacroRun(Box::new(e)))?
                 {
                     Some(sub) => {
                         self.pipeline.apply(&sub).map_err(|source| WireCheckError::Line {
@@ -266,7 +266,7 @@ impl Planner {
                     })?;
                     let pipeline = &self.pipeline;
                     self.run = MacroRun::start(&line, &mut self.macros, || macro_status(pipeline), file, say)
-                        .map_err(WireCheckError::MacroRun)?;
+                        .map_err(|e| WireCheckError::MacroRun(Box::new(e)))?;
                     if self.run.is_some() {
                         continue;
                     }

@@ -9,6 +9,43 @@ use super::objects::Thermal;
 use super::runtime::HeaterShared;
 use std::sync::atomic::Ordering;
 
+/// Why a heater or fan command was refused, in Klipper's words.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum HeatError {
+    /// A heater or fan name that is not configured (`param`: `HEATER`, `FAN`, …).
+    #[error("The value '{value}' is not valid for {param}")]
+    NotValid { value: String, param: &'static str },
+    /// A target outside the heater's (or temperature fan's) `min_temp`..`max_temp`.
+    #[error("Requested temperature ({target:.1}) out of range ({min:.1}:{max:.1})")]
+    OutOfRange { target: f64, min: f64, max: f64 },
+    /// `PID_CALIBRATE HEATER=` of an unknown heater.
+    #[error("Unknown heater '{0}'")]
+    UnknownHeater(String),
+    /// A second `PID_CALIBRATE` while one runs.
+    #[error("PID_CALIBRATE is already running")]
+    CalibrationRunning,
+    /// `TEMPERATURE_WAIT SENSOR=` of an unknown heater or sensor.
+    #[error("Unknown sensor '{0}'")]
+    UnknownSensor(String),
+    /// `SET_TEMPERATURE_FAN_TARGET` with `MIN_SPEED` above `MAX_SPEED`.
+    #[error("Requested min speed ({min:.1}) is greater than max speed ({max:.1})")]
+    MinAboveMax { min: f64, max: f64 },
+    /// An extruding move below the extruder's `min_extrude_temp`.
+    #[error(
+        "Extrude below minimum temp ({heater} at {temp:.1} °C, min_extrude_temp {min:.1}; see the \
+         'min_extrude_temp' config option)"
+    )]
+    ColdExtrude { heater: String, temp: f64, min: f64 },
+}
+
+/// A name that is not valid for parameter `param`.
+fn not_valid(value: &str, param: &'static str) -> HeatError {
+    HeatError::NotValid {
+        value: value.to_string(),
+        param,
+    }
+}
+
 /// A wait the G-code holds for.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Wait {
@@ -51,18 +88,19 @@ impl Wait {
 }
 
 /// Applies `cmd` to the heaters; returns the wait the G-code must hold for, if any.
-pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<Option<Wait>, String> {
+pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<Option<Wait>, HeatError> {
     match cmd {
         HeatCmd::Set { heater, target, wait } => {
             let i = thermal
                 .heater(heater)
-                .ok_or_else(|| format!("The value '{heater}' is not valid for HEATER"))?;
+                .ok_or_else(|| not_valid(heater, "HEATER"))?;
             let h = &thermal.heaters[i];
             if *target != 0.0 && (*target < h.min_temp || *target > h.max_temp) {
-                return Err(format!(
-                    "Requested temperature ({target:.1}) out of range ({:.1}:{:.1})",
-                    h.min_temp, h.max_temp
-                ));
+                return Err(HeatError::OutOfRange {
+                    target: *target,
+                    min: h.min_temp,
+                    max: h.max_temp,
+                });
             }
             shared.set_target(i, *target);
             Ok(wait.then_some(Wait {
@@ -79,16 +117,17 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
         HeatCmd::PidCalibrate { heater, target, .. } => {
             let i = thermal
                 .heater(heater)
-                .ok_or_else(|| format!("Unknown heater '{heater}'"))?;
+                .ok_or_else(|| HeatError::UnknownHeater(heater.to_string()))?;
             let h = &thermal.heaters[i];
             if *target < h.min_temp || *target > h.max_temp {
-                return Err(format!(
-                    "Requested temperature ({target:.1}) out of range ({:.1}:{:.1})",
-                    h.min_temp, h.max_temp
-                ));
+                return Err(HeatError::OutOfRange {
+                    target: *target,
+                    min: h.min_temp,
+                    max: h.max_temp,
+                });
             }
             if !shared.start_calibration(i, *target) {
-                return Err("PID_CALIBRATE is already running".to_string());
+                return Err(HeatError::CalibrationRunning);
             }
             Ok(Some(Wait {
                 heater: i,
@@ -105,7 +144,7 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
             let (i, is_sensor) = match (thermal.heater(sensor), thermal.sensor(sensor)) {
                 (Some(i), _) => (i, false),
                 (None, Some(i)) => (i, true),
-                (None, None) => return Err(format!("Unknown sensor '{sensor}'")),
+                (None, None) => return Err(HeatError::UnknownSensor(sensor.to_string())),
             };
             Ok(Some(Wait {
                 heater: i,
@@ -130,7 +169,7 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
         HeatCmd::FanSpeed { fan, speed } => {
             let i = thermal
                 .fan("fan_generic", fan)
-                .ok_or_else(|| format!("The value '{fan}' is not valid for FAN"))?;
+                .ok_or_else(|| not_valid(fan, "FAN"))?;
             shared.set_fan_index(i, *speed);
             Ok(None)
         }
@@ -142,7 +181,7 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
         } => {
             let i = thermal
                 .fan("temperature_fan", fan)
-                .ok_or_else(|| format!("The value '{fan}' is not valid for TEMPERATURE_FAN"))?;
+                .ok_or_else(|| not_valid(fan, "TEMPERATURE_FAN"))?;
             let super::objects::FanRole::Temperature {
                 target_temp,
                 min_temp,
@@ -150,21 +189,21 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
                 ..
             } = thermal.fans[i].role
             else {
-                return Err(format!("The value '{fan}' is not valid for TEMPERATURE_FAN"));
+                return Err(not_valid(fan, "TEMPERATURE_FAN"));
             };
             let cell = &shared.fans[i];
             let target = target.unwrap_or(target_temp);
             if target != 0.0 && (target < min_temp || target > max_temp) {
-                return Err(format!(
-                    "Requested temperature ({target:.1}) out of range ({min_temp:.1}:{max_temp:.1})"
-                ));
+                return Err(HeatError::OutOfRange {
+                    target,
+                    min: min_temp,
+                    max: max_temp,
+                });
             }
             let min = min_speed.unwrap_or(cell.min_speed.get());
             let max = max_speed.unwrap_or(cell.max_speed.get());
             if min > max {
-                return Err(format!(
-                    "Requested min speed ({min:.1}) is greater than max speed ({max:.1})"
-                ));
+                return Err(HeatError::MinAboveMax { min, max });
             }
             cell.target.set(target);
             cell.min_speed.set(min.clamp(0.0, 1.0));
@@ -176,19 +215,18 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
 
 /// Klipper's refusal of an extruding move while the extruder `extruder` (its heater's name)
 /// is below `min_extrude_temp`.
-pub fn can_extrude(thermal: &Thermal, shared: &HeaterShared, extruder: &str) -> Result<(), String> {
+pub fn can_extrude(thermal: &Thermal, shared: &HeaterShared, extruder: &str) -> Result<(), HeatError> {
     for (h, cell) in thermal.heaters.iter().zip(&shared.heaters) {
         let Some(min) = h.min_extrude_temp.filter(|_| h.name == extruder) else {
             continue;
         };
         let t = cell.temp.get();
         if min > 0.0 && (t.is_nan() || t < min) {
-            return Err(format!(
-                "Extrude below minimum temp ({} at {:.1} °C, min_extrude_temp {min:.1}; see the \
-                 'min_extrude_temp' config option)",
-                h.name,
-                if t.is_nan() { 0.0 } else { t }
-            ));
+            return Err(HeatError::ColdExtrude {
+                heater: h.name.clone(),
+                temp: if t.is_nan() { 0.0 } else { t },
+                min,
+            });
         }
     }
     Ok(())
@@ -313,7 +351,7 @@ mod tests {
     fn targets_out_of_range_are_refused_as_klipper_words_it() {
         let (t, s) = setup();
         assert_eq!(
-            apply(&t, &s, &set("extruder", 300.0, false)),
+            apply(&t, &s, &set("extruder", 300.0, false)).map_err(|e| e.to_string()),
             Err("Requested temperature (300.0) out of range (0.0:250.0)".to_string())
         );
         assert_eq!(apply(&t, &s, &set("extruder", 210.0, false)), Ok(None));
@@ -336,7 +374,7 @@ mod tests {
         .unwrap();
         let t = Thermal::from_config(&cfg).unwrap();
         let s = HeaterShared::new(&t);
-        let e = can_extrude(&t, &s, "extruder").unwrap_err();
+        let e = can_extrude(&t, &s, "extruder").unwrap_err().to_string();
         assert!(e.starts_with("Extrude below minimum temp"), "{e}");
         s.heaters[0].temp.set(171.0);
         assert_eq!(can_extrude(&t, &s, "extruder"), Ok(()));

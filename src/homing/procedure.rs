@@ -22,6 +22,14 @@ pub struct HomingProcedure {
     pub homing_override: Option<HomingOverrideSection>,
 }
 
+/// Why the procedure itself refused to go on.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ProcedureError {
+    /// `[safe_z_home]`: Z homes only after X and Y.
+    #[error("Must home X and Y axes first")]
+    XyNotHomed,
+}
+
 /// What the procedure needs of the printer.
 pub(crate) trait HomeOps {
     /// Why one of the printer's operations failed (the procedure's own errors too).
@@ -39,7 +47,7 @@ pub(crate) trait HomeOps {
     /// Runs the `[homing_override]` script with the G28's raw parameters.
     fn run_override(&mut self, rawparams: &str) -> Result<(), Self::Error>;
     /// The procedure's own error `why`, located as the printer reports errors.
-    fn fail(&self, why: &str) -> Self::Error;
+    fn fail(&self, why: ProcedureError) -> Self::Error;
 }
 
 impl HomingProcedure {
@@ -107,7 +115,7 @@ fn safe_z_home<O: HomeOps>(s: &SafeZHomeSection, axes: [bool; 3], ops: &mut O) -
     if need[2] {
         let homed = ops.homed();
         if !(homed[0] && homed[1]) {
-            return Err(ops.fail("Must home X and Y axes first"));
+            return Err(ops.fail(ProcedureError::XyNotHomed));
         }
         let previous = ops.position();
         let mut pos = previous;
@@ -183,7 +191,7 @@ mod tests {
             self.log.push(format!("script '{rawparams}'"));
             Ok(())
         }
-        fn fail(&self, why: &str) -> String {
+        fn fail(&self, why: ProcedureError) -> String {
             why.to_string()
         }
     }
