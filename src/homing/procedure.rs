@@ -160,7 +160,7 @@ mod tests {
     }
 
     impl HomeOps for Recorder {
-        type Error = String;
+        type Error = ProcedureError;
         fn homed(&self) -> [bool; 3] {
             self.homed
         }
@@ -191,8 +191,8 @@ mod tests {
             self.log.push(format!("script '{rawparams}'"));
             Ok(())
         }
-        fn fail(&self, why: ProcedureError) -> String {
-            why.to_string()
+        fn fail(&self, why: ProcedureError) -> ProcedureError {
+            why
         }
     }
 
@@ -209,7 +209,7 @@ mod tests {
         }
     }
 
-    fn run(p: &HomingProcedure, r: &mut Recorder, axes: [bool; 3]) -> Result<Vec<String>, String> {
+    fn run(p: &HomingProcedure, r: &mut Recorder, axes: [bool; 3]) -> Result<Vec<String>, ProcedureError> {
         r.log.clear();
         p.g28(axes, r)?;
         Ok(r.log.clone())
@@ -253,7 +253,7 @@ mod tests {
         let mut r = Recorder::default();
         assert_eq!(
             run(&p, &mut r, [false, false, true]),
-            Err("Must home X and Y axes first".to_string())
+            Err(ProcedureError::XyNotHomed)
         );
         r.homed = [true, true, false];
         r.pos = [5.0, 6.0, 7.0, 0.0];

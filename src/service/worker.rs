@@ -11,10 +11,11 @@ use std::time::Duration;
 use serde_json::Value;
 
 use crate::events::{Event, PrinterState};
-use crate::printer::{Printer, PrinterError, PrinterSource};
+use crate::printer::{Printer, PrinterSource};
 
 use super::objects::ConfigFacts;
-use super::sdcard::{PrintState, SdCard};
+use super::reply::ReplyError;
+use super::sdcard::{PrintState, SdCard, SdError};
 use super::{
     shutdown_message, ServiceOptions, ServiceState, Shared, HELP_ERROR, MESSAGE_READY, MESSAGE_STARTUP,
 };
@@ -25,11 +26,11 @@ use super::{
 pub struct Asker {
     pub client: u64,
     pub id: Option<Value>,
-    pub via: Option<Sender<Result<Value, String>>>,
+    pub via: Option<Sender<Result<Value, ReplyError>>>,
 }
 
 /// Answers `asker`.
-fn answer(to_api: &Sender<ToApi>, asker: Asker, result: Result<Value, String>) {
+fn answer(to_api: &Sender<ToApi>, asker: Asker, result: Result<Value, ReplyError>) {
     match &asker.via {
         Some(tx) => {
             let _ = tx.send(result);
@@ -55,7 +56,7 @@ pub enum ToApi {
     /// The answer to a request.
     Reply {
         asker: Asker,
-        result: Result<Value, String>,
+        result: Result<Value, ReplyError>,
     },
     /// A line of G-code output (`notify_gcode_response`).
     Output(String),
@@ -143,7 +144,8 @@ fn wait_failed(
         }
         match jobs.recv_timeout(left.min(Duration::from_millis(100))) {
             Ok(Job::Script { asker, .. }) => {
-                answer(to_api, asker, Err(message.to_string()));
+                let message = message.to_string();
+                answer(to_api, asker, Err(ReplyError::NotReady { message }));
             }
             Ok(Job::Restart { asker }) => {
                 *pending_restart = Some(asker);
@@ -290,7 +292,7 @@ impl Ctx<'_> {
 
     /// Runs a script's lines in order; the first error ends it. `true` when it asked for a
     /// restart (`RESTART` or `FIRMWARE_RESTART`).
-    fn run_script(&mut self, text: &str) -> (Result<(), String>, bool) {
+    fn run_script(&mut self, text: &str) -> (Result<(), ReplyError>, bool) {
         for line in text.lines() {
             match self.run_line(line) {
                 Ok(false) => {}
@@ -303,7 +305,7 @@ impl Ctx<'_> {
         if self.shared.get().state != ServiceState::Ready || self.sd.info.is_active() {
             return (Ok(()), false);
         }
-        (self.printer.flush().map_err(|e| e.to_string()), false)
+        (self.printer.flush().map_err(ReplyError::from), false)
     }
 
     /// Up to [`LINES_PER_TURN`] lines of the printing file (or [`TURN`] of them); `Some(true)` when one asked for a
@@ -340,6 +342,7 @@ impl Ctx<'_> {
                 Ok(false) => {}
                 Ok(true) => return Some(true),
                 Err(e) => {
+                    let e = e.to_string();
                     self.say(format!("!! {e}"));
                     self.sd.end(PrintState::Error, &e);
                     return None;
@@ -354,7 +357,7 @@ impl Ctx<'_> {
 
     /// One command: the service's own (restarts, M112, the sdcard and print commands, M73,
     /// M117) or the printer's. `Ok(true)`: restart the printer.
-    fn run_line(&mut self, line: &str) -> Result<bool, String> {
+    fn run_line(&mut self, line: &str) -> Result<bool, ReplyError> {
         let code = line.split(';').next().unwrap_or("").trim();
         let (word, rest) = match code.split_once(char::is_whitespace) {
             Some((w, r)) => (w.to_ascii_uppercase(), r.trim()),
@@ -365,18 +368,18 @@ impl Ctx<'_> {
             "SAVE_CONFIG" => {
                 // The printer writes its config file; then it restarts to read it, as
                 // Klipper's SAVE_CONFIG does.
-                return match self.printer.run_command(line) {
-                    Ok(()) => Ok(true),
-                    Err(PrinterError::Command { message }) => Err(message),
-                    Err(e) => Err(e.to_string()),
-                };
+                return self
+                    .printer
+                    .run_command(line)
+                    .map(|()| true)
+                    .map_err(ReplyError::from);
             }
             "M112" => {
                 self.printer.handle().emergency_stop();
                 return Ok(false);
             }
             "SDCARD_PRINT_FILE" => {
-                let name = param(rest, "FILENAME").ok_or("Missing Argument [FILENAME]")?;
+                let name = param(rest, "FILENAME").ok_or(ReplyError::MissingArgument("FILENAME"))?;
                 let opened = self.sd.load(&name)?;
                 self.say(opened);
                 self.sd.start()?;
@@ -391,26 +394,26 @@ impl Ctx<'_> {
             "M24" => return Ok(self.sd.start().map(|()| false)?),
             "RESUME" => {
                 if self.sd.info.state != PrintState::Paused {
-                    return Err("Print is not paused, resume aborted".into());
+                    return Err(ReplyError::NotPaused);
                 }
                 return Ok(self.sd.start().map(|()| false)?);
             }
             "M25" | "PAUSE" => {
                 self.sd.pause()?;
                 // What was planned moves; the next line starts from the MCUs' time then.
-                self.printer.flush().map_err(|e| e.to_string())?;
+                self.printer.flush()?;
                 return Ok(false);
             }
             "CANCEL_PRINT" => {
                 if matches!(self.sd.info.state, PrintState::Printing | PrintState::Paused) {
                     self.sd.end(PrintState::Cancelled, "");
                 }
-                self.printer.flush().map_err(|e| e.to_string())?;
+                self.printer.flush()?;
                 return Ok(false);
             }
             "SDCARD_RESET_FILE" => {
                 if self.sd.info.is_active() {
-                    return Err("SD busy".into());
+                    return Err(SdError::Busy.into());
                 }
                 self.sd.end(PrintState::Standby, "");
                 return Ok(false);
@@ -418,7 +421,7 @@ impl Ctx<'_> {
             "M26" => {
                 let pos = param(rest, "S")
                     .and_then(|v| v.parse::<u64>().ok())
-                    .ok_or("M26: S<byte position> expected")?;
+                    .ok_or(ReplyError::M26Position)?;
                 return Ok(self.sd.set_position(pos).map(|()| false)?);
             }
             "M27" => {
@@ -441,13 +444,12 @@ impl Ctx<'_> {
         }
         let state = self.shared.get();
         if state.state != ServiceState::Ready {
-            return Err(state.message);
+            return Err(ReplyError::NotReady {
+                message: state.message,
+            });
         }
-        match self.printer.run_command(line) {
-            Ok(()) => Ok(false),
-            Err(PrinterError::Command { message }) => Err(message),
-            Err(e) => Err(e.to_string()),
-        }
+        self.printer.run_command(line)?;
+        Ok(false)
     }
 }
 

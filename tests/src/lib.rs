@@ -1,6 +1,8 @@
 //! Shared helpers for the end-to-end tests in `tests/tests/`: locating the built binaries,
 //! running them with a bounded wait, and workspace paths.
 
+pub mod api;
+
 use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -12,6 +14,18 @@ pub fn workspace() -> PathBuf {
         .parent()
         .map(Path::to_path_buf)
         .unwrap_or_default()
+}
+
+/// The built-in simulated printer's printer.cfg plus `extra` sections, written to
+/// `dir/printer.cfg`.
+pub fn simulated_config(dir: &Path, extra: &str) -> PathBuf {
+    let cfg = dir.join("printer.cfg");
+    std::fs::write(
+        &cfg,
+        format!("{}\n{extra}\n", sysconfig::printer::SIMULATED_PRINTER_CFG),
+    )
+    .expect("write printer.cfg");
+    cfg
 }
 
 /// A binary of the workspace, built by `cargo test --workspace` into the same target directory

@@ -4,20 +4,9 @@
 
 use std::time::Duration;
 
-use cadence_tests::{cadence, scratch};
+use cadence_tests::{cadence, scratch, simulated_config as config};
 
 const TIMEOUT: Duration = Duration::from_secs(120);
-
-/// The built-in simulated printer plus `extra` sections, written to `dir/printer.cfg`.
-fn config(dir: &std::path::Path, extra: &str) -> std::path::PathBuf {
-    let cfg = dir.join("printer.cfg");
-    std::fs::write(
-        &cfg,
-        format!("{}\n{extra}\n", sysconfig::printer::SIMULATED_PRINTER_CFG),
-    )
-    .unwrap();
-    cfg
-}
 
 #[test]
 fn slicer_start_code_prints_with_unknown_commands_reported() {

@@ -7,20 +7,9 @@
 use std::time::{Duration, Instant};
 
 use cadence::{Event, Printer, PrinterOptions, PrinterSource};
-use cadence_tests::{cadence, scratch};
+use cadence_tests::{cadence, scratch, simulated_config as config};
 
 const TIMEOUT: Duration = Duration::from_secs(120);
-
-/// The built-in simulated printer plus `extra` sections, written to `dir/printer.cfg`.
-fn config(dir: &std::path::Path, extra: &str) -> std::path::PathBuf {
-    let cfg = dir.join("printer.cfg");
-    std::fs::write(
-        &cfg,
-        format!("{}\n{extra}\n", sysconfig::printer::SIMULATED_PRINTER_CFG),
-    )
-    .unwrap();
-    cfg
-}
 
 #[test]
 fn host_objects_in_a_batch_print() {
