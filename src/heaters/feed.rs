@@ -90,73 +90,11 @@ impl Wait {
 /// Applies `cmd` to the heaters; returns the wait the G-code must hold for, if any.
 pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<Option<Wait>, HeatError> {
     match cmd {
-        HeatCmd::Set { heater, target, wait } => {
-            let i = thermal
-                .heater(heater)
-                .ok_or_else(|| not_valid(heater, "HEATER"))?;
-            let h = &thermal.heaters[i];
-            if *target != 0.0 && (*target < h.min_temp || *target > h.max_temp) {
-                return Err(HeatError::OutOfRange {
-                    target: *target,
-                    min: h.min_temp,
-                    max: h.max_temp,
-                });
-            }
-            shared.set_target(i, *target);
-            Ok(wait.then_some(Wait {
-                heater: i,
-                sensor: false,
-                what: if heater == "heater_bed" { "M190" } else { "M109" },
-                settle: true,
-                min: None,
-                max: None,
-                target: *target,
-                calibrate: false,
-            }))
-        }
+        HeatCmd::Set { heater, target, wait } => set_target(thermal, shared, heater, *target, *wait),
         HeatCmd::PidCalibrate { heater, target, .. } => {
-            let i = thermal
-                .heater(heater)
-                .ok_or_else(|| HeatError::UnknownHeater(heater.to_string()))?;
-            let h = &thermal.heaters[i];
-            if *target < h.min_temp || *target > h.max_temp {
-                return Err(HeatError::OutOfRange {
-                    target: *target,
-                    min: h.min_temp,
-                    max: h.max_temp,
-                });
-            }
-            if !shared.start_calibration(i, *target) {
-                return Err(HeatError::CalibrationRunning);
-            }
-            Ok(Some(Wait {
-                heater: i,
-                sensor: false,
-                what: "PID_CALIBRATE",
-                settle: false,
-                min: None,
-                max: None,
-                target: *target,
-                calibrate: true,
-            }))
+            pid_calibrate(thermal, shared, heater, *target).map(Some)
         }
-        HeatCmd::Wait { sensor, min, max } => {
-            let (i, is_sensor) = match (thermal.heater(sensor), thermal.sensor(sensor)) {
-                (Some(i), _) => (i, false),
-                (None, Some(i)) => (i, true),
-                (None, None) => return Err(HeatError::UnknownSensor(sensor.to_string())),
-            };
-            Ok(Some(Wait {
-                heater: i,
-                sensor: is_sensor,
-                what: "TEMPERATURE_WAIT",
-                settle: false,
-                min: *min,
-                max: *max,
-                target: min.or(*max).unwrap_or(0.0),
-                calibrate: false,
-            }))
-        }
+        HeatCmd::Wait { sensor, min, max } => temperature_wait(thermal, sensor, *min, *max).map(Some),
         HeatCmd::TurnOffAll | HeatCmd::EmergencyStop => {
             shared.turn_off_all();
             Ok(None)
@@ -178,39 +116,134 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
             target,
             min_speed,
             max_speed,
-        } => {
-            let i = thermal
-                .fan("temperature_fan", fan)
-                .ok_or_else(|| not_valid(fan, "TEMPERATURE_FAN"))?;
-            let super::objects::FanRole::Temperature {
-                target_temp,
-                min_temp,
-                max_temp,
-                ..
-            } = thermal.fans[i].role
-            else {
-                return Err(not_valid(fan, "TEMPERATURE_FAN"));
-            };
-            let cell = &shared.fans[i];
-            let target = target.unwrap_or(target_temp);
-            if target != 0.0 && (target < min_temp || target > max_temp) {
-                return Err(HeatError::OutOfRange {
-                    target,
-                    min: min_temp,
-                    max: max_temp,
-                });
-            }
-            let min = min_speed.unwrap_or(cell.min_speed.get());
-            let max = max_speed.unwrap_or(cell.max_speed.get());
-            if min > max {
-                return Err(HeatError::MinAboveMax { min, max });
-            }
-            cell.target.set(target);
-            cell.min_speed.set(min.clamp(0.0, 1.0));
-            cell.max_speed.set(max.clamp(0.0, 1.0));
-            Ok(None)
-        }
+        } => temperature_fan_target(thermal, shared, fan, *target, [*min_speed, *max_speed]).map(|()| None),
     }
+}
+
+/// The heater's range check: 0 (off) or `min_temp`..`max_temp`.
+fn check_range(target: f64, min: f64, max: f64) -> Result<(), HeatError> {
+    match target != 0.0 && (target < min || target > max) {
+        true => Err(HeatError::OutOfRange { target, min, max }),
+        false => Ok(()),
+    }
+}
+
+/// M104/M140/M109/M190/SET_HEATER_TEMPERATURE: the target set; M109/M190 wait for it.
+fn set_target(
+    thermal: &Thermal,
+    shared: &HeaterShared,
+    heater: &str,
+    target: f64,
+    wait: bool,
+) -> Result<Option<Wait>, HeatError> {
+    let i = thermal
+        .heater(heater)
+        .ok_or_else(|| not_valid(heater, "HEATER"))?;
+    let h = &thermal.heaters[i];
+    check_range(target, h.min_temp, h.max_temp)?;
+    shared.set_target(i, target);
+    Ok(wait.then_some(Wait {
+        heater: i,
+        sensor: false,
+        what: if heater == "heater_bed" { "M190" } else { "M109" },
+        settle: true,
+        min: None,
+        max: None,
+        target,
+        calibrate: false,
+    }))
+}
+
+/// PID_CALIBRATE: the relay test started; the G-code waits for its end.
+fn pid_calibrate(
+    thermal: &Thermal,
+    shared: &HeaterShared,
+    heater: &str,
+    target: f64,
+) -> Result<Wait, HeatError> {
+    let i = thermal
+        .heater(heater)
+        .ok_or_else(|| HeatError::UnknownHeater(heater.to_string()))?;
+    let h = &thermal.heaters[i];
+    if target < h.min_temp || target > h.max_temp {
+        return Err(HeatError::OutOfRange {
+            target,
+            min: h.min_temp,
+            max: h.max_temp,
+        });
+    }
+    if !shared.start_calibration(i, target) {
+        return Err(HeatError::CalibrationRunning);
+    }
+    Ok(Wait {
+        heater: i,
+        sensor: false,
+        what: "PID_CALIBRATE",
+        settle: false,
+        min: None,
+        max: None,
+        target,
+        calibrate: true,
+    })
+}
+
+/// TEMPERATURE_WAIT on a heater or a temperature sensor.
+fn temperature_wait(
+    thermal: &Thermal,
+    sensor: &str,
+    min: Option<f64>,
+    max: Option<f64>,
+) -> Result<Wait, HeatError> {
+    let (i, is_sensor) = match (thermal.heater(sensor), thermal.sensor(sensor)) {
+        (Some(i), _) => (i, false),
+        (None, Some(i)) => (i, true),
+        (None, None) => return Err(HeatError::UnknownSensor(sensor.to_string())),
+    };
+    Ok(Wait {
+        heater: i,
+        sensor: is_sensor,
+        what: "TEMPERATURE_WAIT",
+        settle: false,
+        min,
+        max,
+        target: min.or(max).unwrap_or(0.0),
+        calibrate: false,
+    })
+}
+
+/// SET_TEMPERATURE_FAN_TARGET: the fan's target and its speed range (`[min, max]`, each
+/// kept when not given).
+fn temperature_fan_target(
+    thermal: &Thermal,
+    shared: &HeaterShared,
+    fan: &str,
+    target: Option<f64>,
+    speeds: [Option<f64>; 2],
+) -> Result<(), HeatError> {
+    let i = thermal
+        .fan("temperature_fan", fan)
+        .ok_or_else(|| not_valid(fan, "TEMPERATURE_FAN"))?;
+    let super::objects::FanRole::Temperature {
+        target_temp,
+        min_temp,
+        max_temp,
+        ..
+    } = thermal.fans[i].role
+    else {
+        return Err(not_valid(fan, "TEMPERATURE_FAN"));
+    };
+    let cell = &shared.fans[i];
+    let target = target.unwrap_or(target_temp);
+    check_range(target, min_temp, max_temp)?;
+    let min = speeds[0].unwrap_or(cell.min_speed.get());
+    let max = speeds[1].unwrap_or(cell.max_speed.get());
+    if min > max {
+        return Err(HeatError::MinAboveMax { min, max });
+    }
+    cell.target.set(target);
+    cell.min_speed.set(min.clamp(0.0, 1.0));
+    cell.max_speed.set(max.clamp(0.0, 1.0));
+    Ok(())
 }
 
 /// Klipper's refusal of an extruding move while the extruder `extruder` (its heater's name)
@@ -268,15 +301,15 @@ impl HeatLog {
         let Some(shared) = shared else {
             return Vec::new();
         };
+        let fmt = |t: f64| {
+            if t.is_nan() {
+                "no reading".to_string()
+            } else {
+                format!("{t:.1} °C")
+            }
+        };
         let mut out = Vec::new();
         for h in &shared.heaters {
-            let fmt = |t: f64| {
-                if t.is_nan() {
-                    "no reading".to_string()
-                } else {
-                    format!("{t:.1} °C")
-                }
-            };
             out.push(format!(
                 "heater {}: {} (highest {}), target {:.1} °C, power {:.0} %",
                 h.name,
@@ -287,13 +320,6 @@ impl HeatLog {
             ));
         }
         for s in shared.sensors.iter().filter(|s| s.kind == "temperature_sensor") {
-            let fmt = |t: f64| {
-                if t.is_nan() {
-                    "no reading".to_string()
-                } else {
-                    format!("{t:.1} °C")
-                }
-            };
             out.push(format!(
                 "{} {}: {} (lowest {}, highest {})",
                 s.kind,
