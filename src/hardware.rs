@@ -216,6 +216,69 @@ impl From<HardwareError> for String {
     }
 }
 
+/// The steppers of the X, Y and Z rails (a rail's further motors, `stepper_z1`…, after
+/// them: they move with it and stop on its endstop) and the rails' endstops, objects not yet
+/// numbered.
+fn rails(cfg: &PrinterConfig, tmc: &[crate::tmc::TmcOut]) -> (Vec<StepperOut>, Vec<EndstopOut>) {
+    let mut steppers = Vec::new();
+    let mut endstops = Vec::new();
+    for (axis, s) in cfg.steppers.iter().enumerate().take(3) {
+        let name = s.name.clone();
+        if let (Some(pin), Some(position_endstop)) = (&s.endstop_pin, s.position_endstop) {
+            // `probe:z_virtual_endstop`: the probe's own pin.
+            let probe_pin = cfg.probe.as_ref().filter(|_| pin.mcu == PROBE_PIN_MCU);
+            // `tmc2209_stepper_x:virtual_endstop`: the driver's diag pin.
+            let sensorless = tmc.iter().position(|t| t.cfg.chip() == pin.mcu);
+            let diag_pin = sensorless.and_then(|i| tmc[i].cfg.diag_pin.clone());
+            endstops.push(EndstopOut {
+                stepper: name.clone(),
+                axis,
+                pin: match (probe_pin, diag_pin) {
+                    (Some(p), _) => p.pin.clone(),
+                    (None, Some(d)) => d,
+                    (None, None) => pin.clone(),
+                },
+                probe: probe_pin.is_some(),
+                sensorless,
+                oid: 0,
+                position_endstop,
+                position_min: s.position_min,
+                position_max: s.position_max,
+                homing_speed: s.homing_speed,
+                second_homing_speed: s.second_homing_speed,
+                homing_retract_dist: s.homing_retract_dist,
+                homing_positive_dir: s.homing_positive_dir,
+            });
+        }
+        steppers.push(StepperOut::new(name, axis, &s.motor));
+    }
+    for s in &cfg.extra_steppers {
+        steppers.push(StepperOut::new(s.name.clone(), s.rail, &s.motor));
+    }
+    (steppers, endstops)
+}
+
+/// Numbers the objects per MCU, steppers first, then endstops (the trsync comes last); the
+/// next free oid of each MCU. A stepper lives on its step pin's MCU, any configured one
+/// (sysconfig checked that the MCU exists and that the dir pin is on the same one).
+fn number_objects(
+    steppers: &mut [StepperOut],
+    endstops: &mut [EndstopOut],
+) -> std::collections::HashMap<String, u8> {
+    let mut next: std::collections::HashMap<String, u8> = std::collections::HashMap::new();
+    for s in steppers.iter_mut() {
+        let n = next.entry(s.mcu.clone()).or_insert(0);
+        s.oid = *n;
+        *n += 1;
+    }
+    for e in endstops.iter_mut() {
+        let n = next.entry(e.pin.mcu.clone()).or_insert(0);
+        e.oid = *n;
+        *n += 1;
+    }
+    next
+}
+
 impl Machine {
     /// Derives the machine from a validated config: steppers and endstops on any of its MCUs.
     pub fn from_config(cfg: &PrinterConfig) -> Result<Machine, HardwareError> {
@@ -225,43 +288,8 @@ impl Machine {
                 file: cfg.source.clone(),
                 why: e.to_string(),
             })?;
-        let mut steppers = Vec::new();
-        let mut endstops = Vec::new();
         let tmc = crate::tmc::drivers(cfg);
-        for (axis, s) in cfg.steppers.iter().enumerate().take(3) {
-            let name = s.name.clone();
-            if let (Some(pin), Some(position_endstop)) = (&s.endstop_pin, s.position_endstop) {
-                // `probe:z_virtual_endstop`: the probe's own pin.
-                let probe_pin = cfg.probe.as_ref().filter(|_| pin.mcu == PROBE_PIN_MCU);
-                // `tmc2209_stepper_x:virtual_endstop`: the driver's diag pin.
-                let sensorless = tmc.iter().position(|t| t.cfg.chip() == pin.mcu);
-                let diag_pin = sensorless.and_then(|i| tmc[i].cfg.diag_pin.clone());
-                endstops.push(EndstopOut {
-                    stepper: name.clone(),
-                    axis,
-                    pin: match (probe_pin, diag_pin) {
-                        (Some(p), _) => p.pin.clone(),
-                        (None, Some(d)) => d,
-                        (None, None) => pin.clone(),
-                    },
-                    probe: probe_pin.is_some(),
-                    sensorless,
-                    oid: 0,
-                    position_endstop,
-                    position_min: s.position_min,
-                    position_max: s.position_max,
-                    homing_speed: s.homing_speed,
-                    second_homing_speed: s.second_homing_speed,
-                    homing_retract_dist: s.homing_retract_dist,
-                    homing_positive_dir: s.homing_positive_dir,
-                });
-            }
-            steppers.push(StepperOut::new(name, axis, &s.motor));
-        }
-        // A rail's further motors (`stepper_z1`…) move with it and stop on its endstop.
-        for s in &cfg.extra_steppers {
-            steppers.push(StepperOut::new(s.name.clone(), s.rail, &s.motor));
-        }
+        let (mut steppers, mut endstops) = rails(cfg, &tmc);
         let toolhead = planning.toolhead;
         let home = planning.home_position;
         for (name, motor, link) in sysconfig::planning::extruder_steppers(cfg) {
@@ -269,20 +297,7 @@ impl Machine {
             s.extruder = link;
             steppers.push(s);
         }
-        // A stepper lives on its step pin's MCU, any configured one (sysconfig checked that
-        // the MCU exists and that the dir pin is on the same one).
-        // Object ids: per MCU, steppers first, then endstops (the trsync comes last).
-        let mut next: std::collections::HashMap<String, u8> = std::collections::HashMap::new();
-        for s in steppers.iter_mut() {
-            let n = next.entry(s.mcu.clone()).or_insert(0);
-            s.oid = *n;
-            *n += 1;
-        }
-        for e in endstops.iter_mut() {
-            let n = next.entry(e.pin.mcu.clone()).or_insert(0);
-            e.oid = *n;
-            *n += 1;
-        }
+        let mut next = number_objects(&mut steppers, &mut endstops);
         let probe = match &cfg.probe {
             Some(p) => Some(probe_out(p, cfg, &endstops, &mut next)?),
             None => None,
