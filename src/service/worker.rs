@@ -168,15 +168,7 @@ fn serve_printer(
     sdcard_dir: Option<std::path::PathBuf>,
 ) -> Next {
     let handle = printer.handle();
-    if let Some(events) = printer.events() {
-        let out = to_api.clone();
-        let spawned = std::thread::Builder::new()
-            .name("serve-events".to_string())
-            .spawn(move || forward_events(&events, &out));
-        if let Err(e) = spawned {
-            eprintln!("cadence serve: G-code output will not be forwarded: {e}");
-        }
-    }
+    spawn_forwarder(&mut printer, to_api);
     let mcus: Vec<String> = printer.status().mcus.into_iter().map(|(n, _)| n).collect();
     let mut sd = SdCard::new(sdcard_dir.or_else(|| facts.sdcard.clone()));
     shared.set(|p| {
@@ -243,19 +235,7 @@ fn serve_printer(
         }
         shared.set(|p| p.print = ctx.sd.info.clone());
         if !shut_down {
-            if let PrinterState::Shutdown { reason } = handle.state() {
-                shut_down = true;
-                eprintln!("cadence serve: printer shut down: {reason}");
-                if ctx.sd.info.state == PrintState::Printing || ctx.sd.info.state == PrintState::Paused {
-                    ctx.sd.end(PrintState::Error, &reason);
-                }
-                let message = shutdown_message(&reason);
-                shared.set(|p| {
-                    p.state = ServiceState::Shutdown;
-                    p.message = message;
-                    p.print = ctx.sd.info.clone();
-                });
-            }
+            shut_down = ctx.note_shutdown(handle.state());
         }
     };
     shared.set(|p| p.handle = None);
@@ -268,6 +248,19 @@ fn serve_printer(
         Err(e) => eprintln!("cadence serve: printer closed: {}", e.reason),
     }
     next
+}
+
+/// The printer's messages forwarded as G-code output by a thread of their own.
+fn spawn_forwarder(printer: &mut Printer, to_api: &Sender<ToApi>) {
+    if let Some(events) = printer.events() {
+        let out = to_api.clone();
+        let spawned = std::thread::Builder::new()
+            .name("serve-events".to_string())
+            .spawn(move || forward_events(&events, &out));
+        if let Err(e) = spawned {
+            eprintln!("cadence serve: G-code output will not be forwarded: {e}");
+        }
+    }
 }
 
 /// What a command line runs with: the printer, the sdcard, the G-code output.
@@ -285,6 +278,26 @@ const LINES_PER_TURN: usize = 64;
 const TURN: Duration = Duration::from_millis(50);
 
 impl Ctx<'_> {
+    /// A printer in `state` that shut down: the print ends in error and the service is in
+    /// `shutdown` with the reason; true once that happened.
+    fn note_shutdown(&mut self, state: PrinterState) -> bool {
+        let PrinterState::Shutdown { reason } = state else {
+            return false;
+        };
+        eprintln!("cadence serve: printer shut down: {reason}");
+        if self.sd.info.state == PrintState::Printing || self.sd.info.state == PrintState::Paused {
+            self.sd.end(PrintState::Error, &reason);
+        }
+        let message = shutdown_message(&reason);
+        let print = self.sd.info.clone();
+        self.shared.set(|p| {
+            p.state = ServiceState::Shutdown;
+            p.message = message;
+            p.print = print;
+        });
+        true
+    }
+
     /// A line of G-code output.
     fn say(&self, line: String) {
         let _ = self.out.send(ToApi::Output(line));
