@@ -756,7 +756,22 @@ fn trace_stops(
         .filter(|s| s.mcu == stepper_mcu)
         .map(|s| s.oid)
         .collect();
-    let mut steps: Vec<u64> = s_trace
+    let steps = step_clocks(&s_trace, &oids);
+    let (stop_h, last_h, stop_of) = pair_stops(&triggers, &stops, &steps, &s_est);
+    Ok(Some(TraceStops {
+        axis: e.axis,
+        endstop_mcu: e.pin.mcu.clone(),
+        stepper_mcu: stepper_mcu.to_string(),
+        stop: stop_h,
+        last_step: last_h,
+        triggers,
+        stop_of,
+    }))
+}
+
+/// The clocks of the steps of the steppers `oids` in `trace`, in order.
+fn step_clocks(trace: &firmware::trace::TraceFile, oids: &[u8]) -> Vec<u64> {
+    let mut steps: Vec<u64> = trace
         .records
         .iter()
         .filter_map(|r| match *r {
@@ -765,6 +780,19 @@ fn trace_stops(
         })
         .collect();
     steps.sort_unstable();
+    steps
+}
+
+/// Pairs each trigger (system time) with the first trsync stop (stepper MCU clock, system
+/// time) not before it (within [`PAIR_SLACK_S`]): the trigger → stop latencies, the trigger →
+/// last step before the stop latencies (`steps`: the axis' step clocks, `est` their time
+/// base), and each trigger's stop time.
+fn pair_stops(
+    triggers: &[f64],
+    stops: &[(u64, f64)],
+    steps: &[u64],
+    est: &TimeBase,
+) -> (LatencyHist, LatencyHist, Vec<Option<f64>>) {
     let mut stop_h = LatencyHist::new();
     let mut last_h = LatencyHist::new();
     let mut stop_of = vec![None; triggers.len()];
@@ -781,18 +809,10 @@ fn trace_stops(
         stop_h.record_signed(((stop_sys - t) * 1e9) as i64);
         let k = steps.partition_point(|&c| c <= stop_clock);
         if k > 0 {
-            last_h.record_signed(((s_est.system_time_at(steps[k - 1] as f64) - t) * 1e9) as i64);
+            last_h.record_signed(((est.system_time_at(steps[k - 1] as f64) - t) * 1e9) as i64);
         }
     }
-    Ok(Some(TraceStops {
-        axis: e.axis,
-        endstop_mcu: e.pin.mcu.clone(),
-        stepper_mcu: stepper_mcu.to_string(),
-        stop: stop_h,
-        last_step: last_h,
-        triggers,
-        stop_of,
-    }))
+    (stop_h, last_h, stop_of)
 }
 
 #[cfg(test)]
