@@ -217,9 +217,8 @@ pub fn run(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<(), HomeCyclesE
     run_figures(args, o).map(|_| ())
 }
 
-/// [`run`], returning what it measured.
-pub fn run_figures(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<CycleFigures, HomeCyclesError> {
-    let axes = args.axes;
+/// The options clap cannot check: `--away` above 0, `--time-scale` in (0, 50].
+fn check_options(args: &HomeOptions) -> Result<(), HomeCyclesError> {
     if !(args.away.is_finite() && args.away > 0.0) {
         return Err(HomeCyclesError::Away(args.away));
     }
@@ -228,6 +227,36 @@ pub fn run_figures(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<CycleFi
             return Err(HomeCyclesError::TimeScale(scale));
         }
     }
+    Ok(())
+}
+
+/// The report's line on the threads: real time, this thread's pinning and priority (`got`),
+/// the links' IO threads' and the CPU load.
+fn threads_line(
+    rt: &RtConfig,
+    got: &rt_core::os::RtApplied,
+    link_spec: &rt_core::os::RtSpec,
+    hogs: Option<&CpuHogs>,
+) -> String {
+    format!(
+        "threads: real time {} (this thread pinned={} fifo={}, links' IO threads on core {} at \
+         SCHED_FIFO {}); cpu load: {}",
+        if rt.enabled { "on" } else { "off" },
+        got.pinned,
+        got.fifo,
+        link_spec.core.map_or("any".to_string(), |c| c.to_string()),
+        link_spec.fifo_priority.map_or("-".to_string(), |p| p.to_string()),
+        match hogs {
+            Some(h) => format!("on ({} SCHED_OTHER spinning threads)", h.threads.len()),
+            None => "off".to_string(),
+        }
+    )
+}
+
+/// [`run`], returning what it measured.
+pub fn run_figures(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<CycleFigures, HomeCyclesError> {
+    let axes = args.axes;
+    check_options(args)?;
     let cfg = crate::hardware::load_config(args.config.as_deref())?;
     for w in &cfg.warnings {
         o.err(format!("warning: {w}"));
@@ -258,19 +287,7 @@ pub fn run_figures(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<CycleFi
         WakeupProbe::start(WAKEUP_PERIOD, link_spec.fifo_priority).map_err(HomeCyclesError::ProbeThread)?;
     // After the simulated MCUs were spawned (they would inherit this thread's core).
     let got = rt_core::os::apply_rt(&rt.planner_spec());
-    o.out(format!(
-        "threads: real time {} (this thread pinned={} fifo={}, links' IO threads on core {} at \
-         SCHED_FIFO {}); cpu load: {}",
-        if rt.enabled { "on" } else { "off" },
-        got.pinned,
-        got.fifo,
-        link_spec.core.map_or("any".to_string(), |c| c.to_string()),
-        link_spec.fifo_priority.map_or("-".to_string(), |p| p.to_string()),
-        match &hogs {
-            Some(h) => format!("on ({} SCHED_OTHER spinning threads)", h.threads.len()),
-            None => "off".to_string(),
-        }
-    ));
+    o.out(threads_line(&rt, &got, &link_spec, hogs.as_ref()));
     let clocks: Vec<(String, ClockEstimate)> = mcus
         .list
         .iter()
