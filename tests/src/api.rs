@@ -2,10 +2,11 @@
 //! protocol, JSON messages each ended by 0x03, replies matched by id with the notifications
 //! read on the way kept; and the service process, killed when the test ends.
 
+use std::ffi::OsStr;
 use std::io::{Read, Write};
 use std::os::unix::net::UnixStream;
 use std::path::Path;
-use std::process::Child;
+use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use serde_json::{json, Value};
@@ -106,6 +107,28 @@ impl Api {
         let q = self.ok("objects/query", json!({"objects": {object: null}}));
         q["status"][object].clone()
     }
+}
+
+/// Starts `cadence serve --no-realtime -a SOCKET ARGS…` in the workspace (its stderr to
+/// `dir/stderr.txt`) and waits (at most 60 s) for its API socket.
+pub fn start_service(dir: &Path, socket: &Path, args: &[&OsStr]) -> Service {
+    let child = Command::new(crate::bin("cadence"))
+        .args(["serve", "--no-realtime", "-a"])
+        .arg(socket)
+        .args(args)
+        .current_dir(crate::workspace())
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(dir.join("stderr.txt")).expect("stderr file"))
+        .spawn()
+        .expect("start cadence serve");
+    let service = Service(child);
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while !socket.exists() {
+        assert!(Instant::now() < deadline, "no API socket after 60 s");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    service
 }
 
 /// The service process, killed (and reaped) when the test ends, passed or failed.

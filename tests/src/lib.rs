@@ -28,6 +28,25 @@ pub fn simulated_config(dir: &Path, extra: &str) -> PathBuf {
     cfg
 }
 
+/// examples/simulated-cartesian.cfg without endstops, written to `dir/no-endstops.cfg`: G28
+/// homes without motion (homing's timing under a loaded test machine is tested elsewhere).
+pub fn printer_without_endstops(dir: &Path) -> PathBuf {
+    let text = std::fs::read_to_string(workspace().join("examples/simulated-cartesian.cfg"))
+        .expect("example config");
+    let body: Vec<&str> = text
+        .lines()
+        .filter(|l| {
+            let l = l.trim_start();
+            !(l.starts_with("endstop_pin")
+                || l.starts_with("position_endstop")
+                || l.starts_with("homing_speed"))
+        })
+        .collect();
+    let path = dir.join("no-endstops.cfg");
+    std::fs::write(&path, body.join("\n")).expect("write config");
+    path
+}
+
 /// A binary of the workspace, built by `cargo test --workspace` into the same target directory
 /// as this test executable (`target/<profile>/deps/<test>` → `target/<profile>/<name>`).
 pub fn bin(name: &str) -> PathBuf {

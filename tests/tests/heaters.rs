@@ -7,10 +7,10 @@
 //! MCU clocks from the simulator's trace (time-scaled), never wall time; bounds are generous.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
-use cadence_tests::api::{Api, Service};
+use cadence_tests::api::{start_service, Api};
 use cadence_tests::{bin, run, scratch, workspace, Run};
 use firmware::trace::{read_trace, TraceRecord};
 use serde_json::json;
@@ -346,23 +346,13 @@ fn a_service_session_heats_calibrates_and_saves_its_config() {
     let dir = scratch("heat-serve");
     let cfg = config(&dir);
     let socket = dir.join("klippy.sock");
-    let child = Command::new(bin("cadence"))
-        .args(["serve", "--no-realtime", "--time-scale", "5", "-a"])
-        .arg(&socket)
-        .arg("--config")
-        .arg(&cfg)
-        .current_dir(workspace())
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(dir.join("stderr.txt")).expect("stderr file"))
-        .spawn()
-        .expect("start cadence serve");
-    let _service = Service(child);
-    let deadline = Instant::now() + Duration::from_secs(60);
-    while !socket.exists() {
-        assert!(Instant::now() < deadline, "no API socket after 60 s");
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    let args = [
+        "--time-scale".as_ref(),
+        "5".as_ref(),
+        "--config".as_ref(),
+        cfg.as_os_str(),
+    ];
+    let _service = start_service(&dir, &socket, &args);
     let mut api = Api::connect(&socket, Duration::from_secs(240));
     api.wait_state("ready");
     let list = api.ok("objects/list", json!({}));

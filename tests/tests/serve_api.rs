@@ -7,52 +7,20 @@ use std::io::{Read, Write};
 use std::os::unix::fs::PermissionsExt;
 use std::os::unix::net::UnixStream;
 use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
-use cadence_tests::api::{Api, Service};
-use cadence_tests::{bin, scratch, workspace};
+use cadence_tests::api::{start_service, Api, Service};
+use cadence_tests::{printer_without_endstops, scratch, workspace};
 use serde_json::{json, Value};
 
-/// examples/simulated-cartesian.cfg without endstops: G28 homes without motion (homing's
-/// timing under a loaded test machine is tested elsewhere).
-fn printer_without_endstops(dir: &Path) -> std::path::PathBuf {
-    let text = std::fs::read_to_string(workspace().join("examples/simulated-cartesian.cfg"))
-        .expect("example config");
-    let body: Vec<&str> = text
-        .lines()
-        .filter(|l| {
-            let l = l.trim_start();
-            !(l.starts_with("endstop_pin")
-                || l.starts_with("position_endstop")
-                || l.starts_with("homing_speed"))
-        })
-        .collect();
-    let path = dir.join("no-endstops.cfg");
-    std::fs::write(&path, body.join("\n")).expect("write config");
-    path
-}
-
-/// Starts `cadence serve` with `printer` arguments (`--config PATH` or `--simulated`).
+/// Starts `cadence serve` with `printer` arguments (`--config PATH` or `--simulated`), its
+/// log in `dir/serve.log`.
 fn start(dir: &Path, socket: &Path, printer: &[&std::ffi::OsStr]) -> Service {
-    let child = Command::new(bin("cadence"))
-        .args(["serve", "--no-realtime", "-a"])
-        .arg(socket)
-        .args(printer)
-        .arg("--log-file")
-        .arg(dir.join("serve.log"))
-        .current_dir(workspace())
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(dir.join("stderr.txt")).expect("stderr file"))
-        .spawn()
-        .expect("start cadence serve");
-    let deadline = Instant::now() + Duration::from_secs(60);
-    while !socket.exists() {
-        assert!(Instant::now() < deadline, "no API socket after 60 s");
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    Service(child)
+    let log = dir.join("serve.log");
+    let mut args = printer.to_vec();
+    args.extend(["--log-file".as_ref(), log.as_os_str()]);
+    start_service(dir, socket, &args)
 }
 
 #[test]
