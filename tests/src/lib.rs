@@ -77,6 +77,19 @@ pub fn cadence(args: &[&str], timeout: Duration) -> Run {
     run(Command::new(bin("cadence")).args(args), timeout)
 }
 
+/// `cadence print GCODE --config CFG --batch OUT`: a batch print of `gcode` on the printer of
+/// `cfg`, its wire stream to `out`, waited for at most `timeout`.
+pub fn print_batch(gcode: &Path, cfg: &Path, out: &Path, timeout: Duration) -> Run {
+    let mut cmd = Command::new(bin("cadence"));
+    cmd.arg("print")
+        .arg(gcode)
+        .arg("--config")
+        .arg(cfg)
+        .arg("--batch")
+        .arg(out);
+    run(&mut cmd, timeout)
+}
+
 /// Runs `cmd` to completion with a bounded wait.
 pub fn run(cmd: &mut Command, timeout: Duration) -> Run {
     run_then(cmd, timeout, |_| {})

@@ -4,7 +4,7 @@
 
 use std::time::Duration;
 
-use cadence_tests::{cadence, scratch, simulated_config as config};
+use cadence_tests::{cadence, print_batch, scratch, simulated_config as config};
 
 const TIMEOUT: Duration = Duration::from_secs(120);
 
@@ -53,19 +53,7 @@ fn respond_answers_with_the_section_and_is_unknown_without() {
     let out = dir.join("out.bin");
     let macro_cfg = "[gcode_macro TELL]\ngcode:\n  RESPOND PREFIX=tell: MSG={printer.toolhead.homed_axes}";
     let cfg = config(&dir, &format!("[respond]\n{macro_cfg}"));
-    let print = |cfg: &std::path::Path| {
-        cadence(
-            &[
-                "print",
-                g.to_str().unwrap(),
-                "--config",
-                cfg.to_str().unwrap(),
-                "--batch",
-                out.to_str().unwrap(),
-            ],
-            TIMEOUT,
-        )
-    };
+    let print = |cfg: &std::path::Path| print_batch(&g, cfg, &out, TIMEOUT);
     let run = print(&cfg);
     assert_eq!(run.code, Some(0), "{}", run.stderr);
     for said in ["echo: homed, printing", "// hi", "echo: layer 1", "tell: xyz"] {
@@ -249,19 +237,7 @@ fn exclude_object_drops_an_excluded_objects_moves() {
     )
     .unwrap();
     let out = dir.join("out.bin");
-    let print = |cfg: &std::path::Path| {
-        cadence(
-            &[
-                "print",
-                g.to_str().unwrap(),
-                "--config",
-                cfg.to_str().unwrap(),
-                "--batch",
-                out.to_str().unwrap(),
-            ],
-            TIMEOUT,
-        )
-    };
+    let print = |cfg: &std::path::Path| print_batch(&g, cfg, &out, TIMEOUT);
     let run = print(&config(&dir, "[exclude_object]"));
     assert_eq!(run.code, Some(0), "{}", run.stderr);
     assert!(run.stdout.contains("moves 3,"), "{}", run.stdout);
