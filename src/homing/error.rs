@@ -262,10 +262,3 @@ pub enum LevelingError {
     #[error("bed level exceeds configured limits ({max}mm)! Adjust screws and restart print.")]
     ExceedsLimits { max: f64 },
 }
-
-/// The older string-typed layers' view (the message as shown).
-impl From<HomingError> for String {
-    fn from(e: HomingError) -> String {
-        e.to_string()
-    }
-}
