@@ -12,9 +12,10 @@ use planner::stepgen::StepCmd;
 use sysconfig::printer::PrinterConfig;
 
 use crate::accessories::Accessories;
-use crate::gcode_feed::{plan_file, FeedTarget, GcodeInput, MotionCmd};
+use crate::gcode_feed::{plan_file, FeedError, FeedTarget, GcodeInput, MotionCmd};
 use crate::hardware::Machine;
 use crate::step_stream::sink::{BatchSink, Sink};
+use crate::step_stream::StreamError;
 use crate::step_stream::{McuParams, StepStreams};
 
 /// What a batch print writes and with what.
@@ -82,9 +83,11 @@ pub enum BatchError {
     #[error(transparent)]
     Macros(#[from] crate::hardware::MacrosError),
     /// The G-code feed stopped (its error, located at its file and line).
-    #[error("{0}")]
-    Feed(String),
+    #[error(transparent)]
+    Feed(Box<FeedError<crate::step_stream::StreamError>>),
 }
+
+from_boxed!(BatchError, Feed, FeedError<crate::step_stream::StreamError>);
 
 /// Batch mode: the wire stream of each MCU with steppers (the main one to `out`, another one
 /// to `out` with `-NAME` inserted, as for traces), every MCU encoded with the one dictionary and
@@ -150,8 +153,7 @@ pub fn run_batch(
         &mut macros,
         &machine.homing,
         &mut target,
-    )
-    .map_err(BatchError::Feed)?;
+    )?;
     for s in &mut sinks {
         s.finish()?;
     }
@@ -184,18 +186,20 @@ struct BatchTarget<'a, W: std::io::Write> {
 }
 
 impl<W: std::io::Write> FeedTarget for BatchTarget<'_, W> {
-    fn emit(&mut self, cmds: &mut Vec<(usize, StepCmd)>) -> Result<(), String> {
+    type Error = StreamError;
+
+    fn emit(&mut self, cmds: &mut Vec<(usize, StepCmd)>) -> Result<(), StreamError> {
         for &(idx, cmd) in cmds.iter() {
             self.streams.push(idx, cmd, self.sinks)?;
         }
         Ok(())
     }
 
-    fn pace(&mut self, _: &mut Pipeline) -> Result<(), String> {
+    fn pace(&mut self, _: &mut Pipeline) -> Result<(), StreamError> {
         Ok(())
     }
 
-    fn motion(&mut self, _: &mut Pipeline, _: &MotionCmd<'_>) -> Result<bool, String> {
+    fn motion(&mut self, _: &mut Pipeline, _: &MotionCmd<'_>) -> Result<bool, StreamError> {
         Ok(false)
     }
 
@@ -207,11 +211,11 @@ impl<W: std::io::Write> FeedTarget for BatchTarget<'_, W> {
         eprintln!("cadence: warning: {text}");
     }
 
-    fn motors_off(&mut self, pipeline: &mut Pipeline) -> Result<(), String> {
+    fn motors_off(&mut self, pipeline: &mut Pipeline) -> Result<(), StreamError> {
         let mut out = Vec::new();
         pipeline.flush_lookahead();
         pipeline.generate(&mut out);
         self.emit(&mut out)?;
-        Ok(self.streams.motors_off(&[], self.sinks)?)
+        self.streams.motors_off(&[], self.sinks)
     }
 }

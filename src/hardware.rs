@@ -216,6 +216,69 @@ impl From<HardwareError> for String {
     }
 }
 
+/// The steppers of the X, Y and Z rails (a rail's further motors, `stepper_z1`…, after
+/// them: they move with it and stop on its endstop) and the rails' endstops, objects not yet
+/// numbered.
+fn rails(cfg: &PrinterConfig, tmc: &[crate::tmc::TmcOut]) -> (Vec<StepperOut>, Vec<EndstopOut>) {
+    let mut steppers = Vec::new();
+    let mut endstops = Vec::new();
+    for (axis, s) in cfg.steppers.iter().enumerate().take(3) {
+        let name = s.name.clone();
+        if let (Some(pin), Some(position_endstop)) = (&s.endstop_pin, s.position_endstop) {
+            // `probe:z_virtual_endstop`: the probe's own pin.
+            let probe_pin = cfg.probe.as_ref().filter(|_| pin.mcu == PROBE_PIN_MCU);
+            // `tmc2209_stepper_x:virtual_endstop`: the driver's diag pin.
+            let sensorless = tmc.iter().position(|t| t.cfg.chip() == pin.mcu);
+            let diag_pin = sensorless.and_then(|i| tmc[i].cfg.diag_pin.clone());
+            endstops.push(EndstopOut {
+                stepper: name.clone(),
+                axis,
+                pin: match (probe_pin, diag_pin) {
+                    (Some(p), _) => p.pin.clone(),
+                    (None, Some(d)) => d,
+                    (None, None) => pin.clone(),
+                },
+                probe: probe_pin.is_some(),
+                sensorless,
+                oid: 0,
+                position_endstop,
+                position_min: s.position_min,
+                position_max: s.position_max,
+                homing_speed: s.homing_speed,
+                second_homing_speed: s.second_homing_speed,
+                homing_retract_dist: s.homing_retract_dist,
+                homing_positive_dir: s.homing_positive_dir,
+            });
+        }
+        steppers.push(StepperOut::new(name, axis, &s.motor));
+    }
+    for s in &cfg.extra_steppers {
+        steppers.push(StepperOut::new(s.name.clone(), s.rail, &s.motor));
+    }
+    (steppers, endstops)
+}
+
+/// Numbers the objects per MCU, steppers first, then endstops (the trsync comes last); the
+/// next free oid of each MCU. A stepper lives on its step pin's MCU, any configured one
+/// (sysconfig checked that the MCU exists and that the dir pin is on the same one).
+fn number_objects(
+    steppers: &mut [StepperOut],
+    endstops: &mut [EndstopOut],
+) -> std::collections::HashMap<String, u8> {
+    let mut next: std::collections::HashMap<String, u8> = std::collections::HashMap::new();
+    for s in steppers.iter_mut() {
+        let n = next.entry(s.mcu.clone()).or_insert(0);
+        s.oid = *n;
+        *n += 1;
+    }
+    for e in endstops.iter_mut() {
+        let n = next.entry(e.pin.mcu.clone()).or_insert(0);
+        e.oid = *n;
+        *n += 1;
+    }
+    next
+}
+
 impl Machine {
     /// Derives the machine from a validated config: steppers and endstops on any of its MCUs.
     pub fn from_config(cfg: &PrinterConfig) -> Result<Machine, HardwareError> {
@@ -225,43 +288,8 @@ impl Machine {
                 file: cfg.source.clone(),
                 why: e.to_string(),
             })?;
-        let mut steppers = Vec::new();
-        let mut endstops = Vec::new();
         let tmc = crate::tmc::drivers(cfg);
-        for (axis, s) in cfg.steppers.iter().enumerate().take(3) {
-            let name = s.name.clone();
-            if let (Some(pin), Some(position_endstop)) = (&s.endstop_pin, s.position_endstop) {
-                // `probe:z_virtual_endstop`: the probe's own pin.
-                let probe_pin = cfg.probe.as_ref().filter(|_| pin.mcu == PROBE_PIN_MCU);
-                // `tmc2209_stepper_x:virtual_endstop`: the driver's diag pin.
-                let sensorless = tmc.iter().position(|t| t.cfg.chip() == pin.mcu);
-                let diag_pin = sensorless.and_then(|i| tmc[i].cfg.diag_pin.clone());
-                endstops.push(EndstopOut {
-                    stepper: name.clone(),
-                    axis,
-                    pin: match (probe_pin, diag_pin) {
-                        (Some(p), _) => p.pin.clone(),
-                        (None, Some(d)) => d,
-                        (None, None) => pin.clone(),
-                    },
-                    probe: probe_pin.is_some(),
-                    sensorless,
-                    oid: 0,
-                    position_endstop,
-                    position_min: s.position_min,
-                    position_max: s.position_max,
-                    homing_speed: s.homing_speed,
-                    second_homing_speed: s.second_homing_speed,
-                    homing_retract_dist: s.homing_retract_dist,
-                    homing_positive_dir: s.homing_positive_dir,
-                });
-            }
-            steppers.push(StepperOut::new(name, axis, &s.motor));
-        }
-        // A rail's further motors (`stepper_z1`…) move with it and stop on its endstop.
-        for s in &cfg.extra_steppers {
-            steppers.push(StepperOut::new(s.name.clone(), s.rail, &s.motor));
-        }
+        let (mut steppers, mut endstops) = rails(cfg, &tmc);
         let toolhead = planning.toolhead;
         let home = planning.home_position;
         for (name, motor, link) in sysconfig::planning::extruder_steppers(cfg) {
@@ -269,20 +297,7 @@ impl Machine {
             s.extruder = link;
             steppers.push(s);
         }
-        // A stepper lives on its step pin's MCU, any configured one (sysconfig checked that
-        // the MCU exists and that the dir pin is on the same one).
-        // Object ids: per MCU, steppers first, then endstops (the trsync comes last).
-        let mut next: std::collections::HashMap<String, u8> = std::collections::HashMap::new();
-        for s in steppers.iter_mut() {
-            let n = next.entry(s.mcu.clone()).or_insert(0);
-            s.oid = *n;
-            *n += 1;
-        }
-        for e in endstops.iter_mut() {
-            let n = next.entry(e.pin.mcu.clone()).or_insert(0);
-            e.oid = *n;
-            *n += 1;
-        }
+        let mut next = number_objects(&mut steppers, &mut endstops);
         let probe = match &cfg.probe {
             Some(p) => Some(probe_out(p, cfg, &endstops, &mut next)?),
             None => None,
@@ -517,8 +532,48 @@ impl Machine {
     /// X: `0.5*a+0.5*b`). A delta's towers drive `x`, `y`, `z` and each endstop reads its tower's
     /// carriage.
     pub fn sim_world_args(&self, mcu: &str, world: &str) -> Vec<String> {
-        let mut args = Vec::new();
         let rails = self.sim_rails();
+        let mut args = self.sim_axis_args(mcu, &rails);
+        // The TMC drivers on this MCU's buses; one an axis homes on stalls where its endstop
+        // would trigger, and raises DIAG on its diag pin (on this MCU).
+        let endstops = &self.endstops;
+        args.extend(crate::tmc::sim_args(&self.tmc, mcu, |d| {
+            let e = endstops.iter().find(|e| {
+                e.sensorless
+                    .is_some_and(|i| self.tmc[i].cfg.stepper == d.cfg.stepper)
+            })?;
+            if e.pin.mcu != mcu {
+                return None;
+            }
+            let side = if e.homing_positive_dir { "max" } else { "min" };
+            let diag0 = if d.cfg.diag_field == Some("diag0_stall") {
+                "diag0:"
+            } else {
+                ""
+            };
+            Some(format!(
+                "{diag0}{},{},{},{side}",
+                e.pin.pin,
+                self.sim_coord(e.axis, &rails),
+                self.sim_trigger(e)
+            ))
+        }));
+        for e in self.mcu_endstops(mcu) {
+            if e.sensorless.is_none() {
+                self.sim_endstop_args(mcu, e, &rails, &mut args);
+            }
+        }
+        if !args.is_empty() {
+            args.push("--world".to_string());
+            args.push(world.to_string());
+        }
+        args
+    }
+
+    /// `--axis` for each stepper of `mcu`: the world axis (rail end) it drives, its step pin,
+    /// steps per mm and start.
+    fn sim_axis_args(&self, mcu: &str, rails: &[(String, f64); 3]) -> Vec<String> {
+        let mut args = Vec::new();
         for (i, s) in self.steppers.iter().enumerate() {
             if s.mcu != mcu || s.axis >= 3 {
                 continue;
@@ -547,116 +602,101 @@ impl Machine {
                 start + tilt
             ));
         }
-        // The TMC drivers on this MCU's buses; one an axis homes on stalls where its endstop
-        // would trigger, and raises DIAG on its diag pin (on this MCU).
-        let endstops = &self.endstops;
-        args.extend(crate::tmc::sim_args(&self.tmc, mcu, |d| {
-            let e = endstops.iter().find(|e| {
-                e.sensorless
-                    .is_some_and(|i| self.tmc[i].cfg.stepper == d.cfg.stepper)
-            })?;
-            if e.pin.mcu != mcu {
-                return None;
-            }
-            let side = if e.homing_positive_dir { "max" } else { "min" };
-            let diag0 = if d.cfg.diag_field == Some("diag0_stall") {
-                "diag0:"
-            } else {
-                ""
-            };
-            Some(format!(
-                "{diag0}{},{},{},{side}",
-                e.pin.pin,
-                self.sim_coord(e.axis, &rails),
-                self.sim_trigger(e)
-            ))
-        }));
-        for e in self.mcu_endstops(mcu) {
-            if e.sensorless.is_some() {
-                continue;
-            }
-            // A tilted or warped simulated bed under the probe.
-            if let Some(p) = self
-                .probe
-                .as_ref()
-                .filter(|_| e.probe && self.sim_bed.bed_is_shaped())
-            {
-                let b = &self.sim_bed;
-                args.push("--bed-surface".to_string());
-                args.push(format!(
-                    "{}={},{},{},{},{},{},{},{}",
-                    e.pin.pin,
-                    self.sim_coord(0, &rails),
-                    self.sim_coord(1, &rails),
-                    p.cfg.x_offset,
-                    p.cfg.y_offset,
-                    b.bed_tilt[0],
-                    b.bed_tilt[1],
-                    b.bed_warp,
-                    b.bed_warp_period
-                ));
-            }
-            // A probe on a gantry lifted by several Z motors (`[z_tilt] z_positions`, the
-            // corners of `[quad_gantry_level]`).
-            let gantry = (self.z_tilt.as_ref())
-                .or(self.quad_gantry_level.as_ref())
-                .filter(|z| e.probe && (2..=4).contains(&z.z_positions.len()));
-            if let Some(zt) = gantry {
-                let p = self
-                    .probe
-                    .as_ref()
-                    .map_or([0.0, 0.0], |p| [p.cfg.x_offset, p.cfg.y_offset]);
-                let z = &rails[2].0;
-                let motors: Vec<String> = zt
-                    .z_positions
-                    .iter()
-                    .enumerate()
-                    .map(|(n, xy)| match n {
-                        0 => format!("{z}:{}:{}", xy[0], xy[1]),
-                        n => format!("{z}{n}:{}:{}", xy[0], xy[1]),
-                    })
-                    .collect();
-                args.push("--gantry".to_string());
-                args.push(format!(
-                    "{}={},{},{},{},{}",
-                    e.pin.pin,
-                    self.sim_coord(0, &rails),
-                    self.sim_coord(1, &rails),
-                    p[0],
-                    p[1],
-                    motors.join(",")
-                ));
-            }
-            // A BLTouch with its servo on the same MCU: the simulated probe, deployed and
-            // stowed by the servo pulses, its pin touching the bed surface.
-            if let Some(b) = self.mcu_bltouch(mcu).filter(|_| e.probe) {
-                let active_low = if e.pin.invert { "!" } else { "" };
-                args.push("--bltouch".to_string());
-                args.push(format!(
-                    "{active_low}{}={},{},{}",
-                    e.pin.pin,
-                    b.control_pin.pin,
-                    self.sim_coord(e.axis, &rails),
-                    self.sim_trigger(e)
-                ));
-                continue;
-            }
-            let side = if e.homing_positive_dir { "max" } else { "min" };
-            // `!`: the pin reads 0 when triggered, as the config's inverted endstop expects.
-            let active_low = if e.pin.invert { "!" } else { "" };
-            args.push("--endstop".to_string());
+        args
+    }
+
+    /// The arguments of endstop `e` on `mcu` (not a driver's virtual endstop): the shaped bed
+    /// and the gantry under a probe, then the BLTouch or the plain endstop reading its axis.
+    fn sim_endstop_args(
+        &self,
+        mcu: &str,
+        e: &EndstopOut,
+        rails: &[(String, f64); 3],
+        args: &mut Vec<String>,
+    ) {
+        // A tilted or warped simulated bed under the probe.
+        if let Some(p) = self
+            .probe
+            .as_ref()
+            .filter(|_| e.probe && self.sim_bed.bed_is_shaped())
+        {
+            let b = &self.sim_bed;
+            args.push("--bed-surface".to_string());
             args.push(format!(
-                "{active_low}{}={},{},{side}",
+                "{}={},{},{},{},{},{},{},{}",
                 e.pin.pin,
-                self.sim_coord(e.axis, &rails),
-                self.sim_trigger(e)
+                self.sim_coord(0, rails),
+                self.sim_coord(1, rails),
+                p.cfg.x_offset,
+                p.cfg.y_offset,
+                b.bed_tilt[0],
+                b.bed_tilt[1],
+                b.bed_warp,
+                b.bed_warp_period
             ));
         }
-        if !args.is_empty() {
-            args.push("--world".to_string());
-            args.push(world.to_string());
+        if e.probe {
+            self.sim_gantry_args(e, rails, args);
         }
-        args
+        // A BLTouch with its servo on the same MCU: the simulated probe, deployed and
+        // stowed by the servo pulses, its pin touching the bed surface.
+        if let Some(b) = self.mcu_bltouch(mcu).filter(|_| e.probe) {
+            let active_low = if e.pin.invert { "!" } else { "" };
+            args.push("--bltouch".to_string());
+            args.push(format!(
+                "{active_low}{}={},{},{}",
+                e.pin.pin,
+                b.control_pin.pin,
+                self.sim_coord(e.axis, rails),
+                self.sim_trigger(e)
+            ));
+            return;
+        }
+        let side = if e.homing_positive_dir { "max" } else { "min" };
+        // `!`: the pin reads 0 when triggered, as the config's inverted endstop expects.
+        let active_low = if e.pin.invert { "!" } else { "" };
+        args.push("--endstop".to_string());
+        args.push(format!(
+            "{active_low}{}={},{},{side}",
+            e.pin.pin,
+            self.sim_coord(e.axis, rails),
+            self.sim_trigger(e)
+        ));
+    }
+
+    /// `--gantry` for probe `e` on a gantry lifted by several Z motors (`[z_tilt]
+    /// z_positions`, the corners of `[quad_gantry_level]`).
+    fn sim_gantry_args(&self, e: &EndstopOut, rails: &[(String, f64); 3], args: &mut Vec<String>) {
+        let gantry = (self.z_tilt.as_ref())
+            .or(self.quad_gantry_level.as_ref())
+            .filter(|z| (2..=4).contains(&z.z_positions.len()));
+        let Some(zt) = gantry else {
+            return;
+        };
+        let p = self
+            .probe
+            .as_ref()
+            .map_or([0.0, 0.0], |p| [p.cfg.x_offset, p.cfg.y_offset]);
+        let z = &rails[2].0;
+        let motors: Vec<String> = zt
+            .z_positions
+            .iter()
+            .enumerate()
+            .map(|(n, xy)| match n {
+                0 => format!("{z}:{}:{}", xy[0], xy[1]),
+                n => format!("{z}{n}:{}:{}", xy[0], xy[1]),
+            })
+            .collect();
+        args.push("--gantry".to_string());
+        args.push(format!(
+            "{}={},{},{},{},{}",
+            e.pin.pin,
+            self.sim_coord(0, rails),
+            self.sim_coord(1, rails),
+            p[0],
+            p[1],
+            motors.join(",")
+        ));
     }
 }
 

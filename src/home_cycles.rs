@@ -217,9 +217,8 @@ pub fn run(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<(), HomeCyclesE
     run_figures(args, o).map(|_| ())
 }
 
-/// [`run`], returning what it measured.
-pub fn run_figures(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<CycleFigures, HomeCyclesError> {
-    let axes = args.axes;
+/// The options clap cannot check: `--away` above 0, `--time-scale` in (0, 50].
+fn check_options(args: &HomeOptions) -> Result<(), HomeCyclesError> {
     if !(args.away.is_finite() && args.away > 0.0) {
         return Err(HomeCyclesError::Away(args.away));
     }
@@ -228,6 +227,36 @@ pub fn run_figures(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<CycleFi
             return Err(HomeCyclesError::TimeScale(scale));
         }
     }
+    Ok(())
+}
+
+/// The report's line on the threads: real time, this thread's pinning and priority (`got`),
+/// the links' IO threads' and the CPU load.
+fn threads_line(
+    rt: &RtConfig,
+    got: &rt_core::os::RtApplied,
+    link_spec: &rt_core::os::RtSpec,
+    hogs: Option<&CpuHogs>,
+) -> String {
+    format!(
+        "threads: real time {} (this thread pinned={} fifo={}, links' IO threads on core {} at \
+         SCHED_FIFO {}); cpu load: {}",
+        if rt.enabled { "on" } else { "off" },
+        got.pinned,
+        got.fifo,
+        link_spec.core.map_or("any".to_string(), |c| c.to_string()),
+        link_spec.fifo_priority.map_or("-".to_string(), |p| p.to_string()),
+        match hogs {
+            Some(h) => format!("on ({} SCHED_OTHER spinning threads)", h.threads.len()),
+            None => "off".to_string(),
+        }
+    )
+}
+
+/// [`run`], returning what it measured.
+pub fn run_figures(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<CycleFigures, HomeCyclesError> {
+    let axes = args.axes;
+    check_options(args)?;
     let cfg = crate::hardware::load_config(args.config.as_deref())?;
     for w in &cfg.warnings {
         o.err(format!("warning: {w}"));
@@ -258,19 +287,7 @@ pub fn run_figures(args: &HomeOptions, o: &mut dyn HomeOutput) -> Result<CycleFi
         WakeupProbe::start(WAKEUP_PERIOD, link_spec.fifo_priority).map_err(HomeCyclesError::ProbeThread)?;
     // After the simulated MCUs were spawned (they would inherit this thread's core).
     let got = rt_core::os::apply_rt(&rt.planner_spec());
-    o.out(format!(
-        "threads: real time {} (this thread pinned={} fifo={}, links' IO threads on core {} at \
-         SCHED_FIFO {}); cpu load: {}",
-        if rt.enabled { "on" } else { "off" },
-        got.pinned,
-        got.fifo,
-        link_spec.core.map_or("any".to_string(), |c| c.to_string()),
-        link_spec.fifo_priority.map_or("-".to_string(), |p| p.to_string()),
-        match &hogs {
-            Some(h) => format!("on ({} SCHED_OTHER spinning threads)", h.threads.len()),
-            None => "off".to_string(),
-        }
-    ));
+    o.out(threads_line(&rt, &got, &link_spec, hogs.as_ref()));
     let clocks: Vec<(String, ClockEstimate)> = mcus
         .list
         .iter()
@@ -756,7 +773,22 @@ fn trace_stops(
         .filter(|s| s.mcu == stepper_mcu)
         .map(|s| s.oid)
         .collect();
-    let mut steps: Vec<u64> = s_trace
+    let steps = step_clocks(&s_trace, &oids);
+    let (stop_h, last_h, stop_of) = pair_stops(&triggers, &stops, &steps, &s_est);
+    Ok(Some(TraceStops {
+        axis: e.axis,
+        endstop_mcu: e.pin.mcu.clone(),
+        stepper_mcu: stepper_mcu.to_string(),
+        stop: stop_h,
+        last_step: last_h,
+        triggers,
+        stop_of,
+    }))
+}
+
+/// The clocks of the steps of the steppers `oids` in `trace`, in order.
+fn step_clocks(trace: &firmware::trace::TraceFile, oids: &[u8]) -> Vec<u64> {
+    let mut steps: Vec<u64> = trace
         .records
         .iter()
         .filter_map(|r| match *r {
@@ -765,6 +797,19 @@ fn trace_stops(
         })
         .collect();
     steps.sort_unstable();
+    steps
+}
+
+/// Pairs each trigger (system time) with the first trsync stop (stepper MCU clock, system
+/// time) not before it (within [`PAIR_SLACK_S`]): the trigger → stop latencies, the trigger →
+/// last step before the stop latencies (`steps`: the axis' step clocks, `est` their time
+/// base), and each trigger's stop time.
+fn pair_stops(
+    triggers: &[f64],
+    stops: &[(u64, f64)],
+    steps: &[u64],
+    est: &TimeBase,
+) -> (LatencyHist, LatencyHist, Vec<Option<f64>>) {
     let mut stop_h = LatencyHist::new();
     let mut last_h = LatencyHist::new();
     let mut stop_of = vec![None; triggers.len()];
@@ -781,18 +826,10 @@ fn trace_stops(
         stop_h.record_signed(((stop_sys - t) * 1e9) as i64);
         let k = steps.partition_point(|&c| c <= stop_clock);
         if k > 0 {
-            last_h.record_signed(((s_est.system_time_at(steps[k - 1] as f64) - t) * 1e9) as i64);
+            last_h.record_signed(((est.system_time_at(steps[k - 1] as f64) - t) * 1e9) as i64);
         }
     }
-    Ok(Some(TraceStops {
-        axis: e.axis,
-        endstop_mcu: e.pin.mcu.clone(),
-        stepper_mcu: stepper_mcu.to_string(),
-        stop: stop_h,
-        last_step: last_h,
-        triggers,
-        stop_of,
-    }))
+    (stop_h, last_h, stop_of)
 }
 
 #[cfg(test)]

@@ -114,9 +114,16 @@ pub enum ConfigureError {
     /// More objects than a u8 oid can number.
     #[error("too many objects")]
     TooManyObjects,
-    /// A TMC driver's bus objects or register writes (crate::tmc words the problem).
-    #[error("{0}")]
-    Tmc(String),
+    /// A TMC driver's bus objects.
+    #[error(transparent)]
+    Tmc(Box<crate::tmc::TmcError>),
+    /// A TMC driver's register writes at start (`section`: its `[tmc2209 stepper_x]`).
+    #[error("[{section}]: {source}")]
+    TmcInit {
+        section: String,
+        #[source]
+        source: Box<crate::tmc::TmcError>,
+    },
     /// The dictionary lacks a configuration command (or an argument does not fit it).
     #[error(transparent)]
     Dictionary(#[from] links::dict::DictError),
@@ -157,6 +164,8 @@ pub enum ConfigureError {
     MoveQueueTooSmall(usize),
 }
 
+from_boxed!(ConfigureError, Tmc, crate::tmc::TmcError);
+
 /// The CLI's and the older string-typed layers' view (the message as shown).
 impl From<McuError> for String {
     fn from(e: McuError) -> String {
@@ -184,6 +193,75 @@ pub fn trace_path(base: &Path, name: &str, main: bool) -> PathBuf {
     base.with_file_name(file)
 }
 
+/// The transport of MCU `i` of `cfg`: its serial port, or the pseudo-terminal of the
+/// simulated MCU started for it (returned too) in the printer's simulated world `world`.
+fn open_transport(
+    cfg: &PrinterConfig,
+    i: usize,
+    machine: &Machine,
+    opts: &ConnectOptions,
+    world: &str,
+) -> Result<(Box<dyn Transport>, Option<SimMcu>), McuError> {
+    let mcu_cfg = &cfg.mcus[i];
+    let name = &mcu_cfg.name;
+    if !mcu_cfg.is_simulated() {
+        return Ok((open_serial(name, &mcu_cfg.serial, mcu_cfg.baud)?, None));
+    }
+    let mut extra = machine.sim_world_args(name, world);
+    // Each heater of this MCU gets the simulator's thermal model.
+    extra.extend(machine.thermal.sim_args(name));
+    // Its `[adc_scaled]` chips' ADC references.
+    extra.extend(machine.thermal.sim_adc_ref_args(name));
+    // Its fans with tachometers.
+    extra.extend(machine.thermal.sim_fan_args(name));
+    // A simulated MCU stands in for hardware that is never descheduled: when the host's
+    // threads run SCHED_FIFO, it runs SCHED_FIFO too, below them (they preempt it) but above
+    // ordinary processes. Refused: it says so once and runs anyway.
+    if opts.io_rt.as_ref().is_some_and(|s| s.fifo_priority.is_some()) {
+        extra.extend(["--fifo".to_string(), SIM_FIFO_PRIORITY.to_string()]);
+    }
+    // And its memory locked like the host's: a page of its code that the kernel dropped while
+    // idle (homing code, between homings) would otherwise be read back from a busy disk in the
+    // middle of a homing.
+    if opts.io_rt.as_ref().is_some_and(|s| s.lock_memory) {
+        extra.push("--lock-memory".to_string());
+    }
+    extra.extend(sim_env_args(name));
+    let sim_opts = SimOptions {
+        clock_freq: cfg.simulator.clock_freq,
+        time_scale: opts.time_scale,
+        trace: opts.trace.as_deref().map(|t| trace_path(t, name, i == 0)),
+        extra,
+    };
+    let s = SimMcu::spawn(name, &sim_opts).map_err(|source| McuError::Start {
+        mcu: name.clone(),
+        source,
+    })?;
+    let t = PtyTransport::open(&s.pty).map_err(|e| McuError::Open {
+        mcu: name.clone(),
+        port: s.pty.display().to_string(),
+        why: e.to_string(),
+    })?;
+    Ok((Box::new(t), Some(s)))
+}
+
+/// The link's lead-margin hook and its IO thread's real-time set-up (`io-NAME`).
+fn link_tuning(opts: &ConnectOptions, i: usize, name: &str) -> LinkTuning {
+    let io_rt = opts.io_rt.clone().map(|mut spec| {
+        spec.name = format!("io-{name}");
+        spec
+    });
+    LinkTuning {
+        margin_hook: opts.lead_hooks.as_ref().map(|make| make(i)),
+        thread_setup: io_rt.map(|spec| -> Box<dyn FnOnce() + Send> {
+            Box::new(move || {
+                rt_core::os::apply_rt(&spec);
+            })
+        }),
+        ..LinkTuning::default()
+    }
+}
+
 impl Mcus {
     /// Starts (for `serial: simulator`) and connects every MCU, then configures its objects.
     pub fn connect(cfg: &PrinterConfig, machine: &Machine, opts: ConnectOptions) -> Result<Mcus, McuError> {
@@ -191,51 +269,7 @@ impl Mcus {
         let mut mcus = Mcus { list: Vec::new() };
         for (i, mcu_cfg) in cfg.mcus.iter().enumerate() {
             let name = mcu_cfg.name.clone();
-            let mut sim = None;
-            let transport: Box<dyn Transport> = if mcu_cfg.is_simulated() {
-                let sim_opts = SimOptions {
-                    clock_freq: cfg.simulator.clock_freq,
-                    time_scale: opts.time_scale,
-                    trace: opts.trace.as_deref().map(|t| trace_path(t, &name, i == 0)),
-                    extra: {
-                        let mut extra = machine.sim_world_args(&name, &world);
-                        // Each heater of this MCU gets the simulator's thermal model.
-                        extra.extend(machine.thermal.sim_args(&name));
-                        // Its `[adc_scaled]` chips' ADC references.
-                        extra.extend(machine.thermal.sim_adc_ref_args(&name));
-                        // Its fans with tachometers.
-                        extra.extend(machine.thermal.sim_fan_args(&name));
-                        // A simulated MCU stands in for hardware that is never descheduled:
-                        // when the host's threads run SCHED_FIFO, it runs SCHED_FIFO too, below
-                        // them (they preempt it) but above ordinary processes. Refused: it
-                        // says so once and runs anyway.
-                        if opts.io_rt.as_ref().is_some_and(|s| s.fifo_priority.is_some()) {
-                            extra.extend(["--fifo".to_string(), SIM_FIFO_PRIORITY.to_string()]);
-                        }
-                        // And its memory locked like the host's: a page of its code that the
-                        // kernel dropped while idle (homing code, between homings) would
-                        // otherwise be read back from a busy disk in the middle of a homing.
-                        if opts.io_rt.as_ref().is_some_and(|s| s.lock_memory) {
-                            extra.push("--lock-memory".to_string());
-                        }
-                        extra.extend(sim_env_args(&name));
-                        extra
-                    },
-                };
-                let s = SimMcu::spawn(&name, &sim_opts).map_err(|source| McuError::Start {
-                    mcu: name.clone(),
-                    source,
-                })?;
-                let t = PtyTransport::open(&s.pty).map_err(|e| McuError::Open {
-                    mcu: name.clone(),
-                    port: s.pty.display().to_string(),
-                    why: e.to_string(),
-                })?;
-                sim = Some(s);
-                Box::new(t)
-            } else {
-                open_serial(&name, &mcu_cfg.serial, mcu_cfg.baud)?
-            };
+            let (transport, sim) = open_transport(cfg, i, machine, &opts, &world)?;
             let (link_opts, tuning) = link_settings(&name, &opts, i);
             let link = match McuLink::connect_with(transport, link_opts, tuning) {
                 Ok(l) => l,
@@ -293,20 +327,29 @@ impl Mcus {
                 });
             }
         }
-        // The drivers' registers, once every MCU is configured (as Klipper at connect).
+        mcus.init_drivers(machine)?;
+        Ok(mcus)
+    }
+
+    /// The drivers' registers, once every MCU is configured (as Klipper at connect); the MCUs
+    /// are closed when one fails.
+    fn init_drivers(&mut self, machine: &Machine) -> Result<(), McuError> {
         for d in &machine.tmc {
             let result =
-                crate::tmc::gcode::io_for(&mcus, &machine.tmc, &d.cfg.stepper).and_then(|io| io.init());
-            if let Err(why) = result {
+                crate::tmc::gcode::io_for(self, &machine.tmc, &d.cfg.stepper).and_then(|io| io.init());
+            if let Err(source) = result {
                 let mcu = d.mcu().to_string();
-                mcus.close();
+                self.close();
                 return Err(McuError::Configure {
                     mcu,
-                    source: Box::new(ConfigureError::Tmc(format!("[{}]: {why}", d.cfg.section_name()))),
+                    source: Box::new(ConfigureError::TmcInit {
+                        section: d.cfg.section_name(),
+                        source: Box::new(source),
+                    }),
                 });
             }
         }
-        Ok(mcus)
+        Ok(())
     }
 
     /// Sends one MCU its configuration and checks that it took it.
@@ -649,10 +692,13 @@ pub fn config_commands(
         cmds.extend(crate::homing::bltouch::config_commands(dict, b)?);
     }
     cmds.extend(machine.thermal.config_commands(dict, mcu, thermal_oid0)?);
-    cmds.extend(
-        crate::tmc::config_commands(dict, &machine.tmc, mcu, tmc_oid0, clock_freq)
-            .map_err(ConfigureError::Tmc)?,
-    );
+    cmds.extend(crate::tmc::config_commands(
+        dict,
+        &machine.tmc,
+        mcu,
+        tmc_oid0,
+        clock_freq,
+    )?);
     let mut crc = crc32fast::Hasher::new();
     for c in &cmds {
         crc.update(c.as_bytes());
@@ -745,20 +791,7 @@ fn link_settings(name: &str, opts: &ConnectOptions, i: usize) -> (LinkOptions, L
         response_timeout: Duration::from_secs(2),
         queue_capacity: 4096,
     };
-    let io_rt = opts.io_rt.clone().map(|mut spec| {
-        spec.name = format!("io-{name}");
-        spec
-    });
-    let tuning = LinkTuning {
-        margin_hook: opts.lead_hooks.as_ref().map(|make| make(i)),
-        thread_setup: io_rt.map(|spec| -> Box<dyn FnOnce() + Send> {
-            Box::new(move || {
-                rt_core::os::apply_rt(&spec);
-            })
-        }),
-        ..LinkTuning::default()
-    };
-    (link_opts, tuning)
+    (link_opts, link_tuning(opts, i, name))
 }
 
 fn query_config(link: &McuLink, get_config: Cmd) -> Result<links::dict::Message, links::mcu::LinkError> {

@@ -23,7 +23,7 @@ use rt_core::shm::{open_node, steps_service_name, ChannelConfig, ShmPublisher, S
 
 use crate::accessories::Accessories;
 use crate::events::{Event, MotionStatus, PrinterState, SessionShared};
-use crate::gcode_feed::{plan_file, FeedTarget, GcodeInput, MotionCmd};
+use crate::gcode_feed::{plan_file, FeedError, FeedTarget, GcodeInput, MotionCmd};
 use crate::hardware::Machine;
 use crate::homing::{run_motion, HomingCtx};
 use crate::io_stage::AfterWarmup;
@@ -86,8 +86,21 @@ pub enum PlannerError {
     ThermalFault { reason: String },
     /// The G-code feed stopped: a line refused, a failed homing, a shutdown (located at its
     /// file and line by the feed).
-    #[error("{0}")]
-    Feed(String),
+    #[error(transparent)]
+    Feed(Box<FeedError<PlannerError>>),
+    /// G28, a probe or a TMC command with the MCUs in the loop failed.
+    #[error(transparent)]
+    Homing(Box<crate::homing::HomingError>),
+    /// A heater or fan command was refused.
+    #[error(transparent)]
+    Heat(#[from] crate::heaters::feed::HeatError),
+    /// A heater or fan to drive while the IO stage is in another process.
+    #[error(
+        "heaters and fans are driven only with the IO stage in this process (the heater loop \
+         reads and drives their MCU objects over the MCU link): print without \
+         --io-process/--io-attach"
+    )]
+    HeatersNeedLocalIo,
     /// A step command would have reached its MCU with less than the minimum lead.
     #[error(
         "the planner fell behind: a step for {stepper} on mcu '{mcu}' at its clock {clock} was \
@@ -130,12 +143,8 @@ pub enum PlannerError {
     Save(#[from] sysconfig::autosave::SaveError),
 }
 
-/// The G-code feed's view (its errors are text located at a line).
-impl From<PlannerError> for String {
-    fn from(e: PlannerError) -> String {
-        e.to_string()
-    }
-}
+from_boxed!(PlannerError, Feed, FeedError<PlannerError>);
+from_boxed!(PlannerError, Homing, crate::homing::HomingError);
 
 /// `ipc::Service` with pooled per-loan state: a loan allocates nothing after warm-up (see
 /// rt-core's `shm::pooled`); it talks to `ipc::Service` ports of other processes unchanged.
@@ -321,8 +330,7 @@ pub(crate) fn planner_stage(gcode: GcodeInput, st: &PlannerStage<'_>) -> Result<
         &mut macros,
         &st.machine.homing,
         &mut run,
-    )
-    .map_err(PlannerError::Feed)?;
+    )?;
     run.sinks.iter_mut().try_for_each(ShmSink::flush)?;
     let total = run.published();
     // Counted before anything below allocates (the report's own vectors).
@@ -567,7 +575,9 @@ impl<'a, 'p> PlannerRun<'a, 'p> {
 }
 
 impl FeedTarget for PlannerRun<'_, '_> {
-    fn emit(&mut self, cmds: &mut Vec<(usize, StepCmd)>) -> Result<(), String> {
+    type Error = PlannerError;
+
+    fn emit(&mut self, cmds: &mut Vec<(usize, StepCmd)>) -> Result<(), PlannerError> {
         let now = McuLink::system_now();
         for (c, m) in self.now_clocks.iter_mut().zip(&self.streams.mcus) {
             *c = self.st.side.clock(m.mcu_index).clock_at(now);
@@ -579,7 +589,7 @@ impl FeedTarget for PlannerRun<'_, '_> {
         Ok(self.sinks.iter_mut().try_for_each(ShmSink::flush)?)
     }
 
-    fn pace(&mut self, p: &mut Pipeline) -> Result<(), String> {
+    fn pace(&mut self, p: &mut Pipeline) -> Result<(), PlannerError> {
         let side = self.st.side;
         // The next batch is planned with the MCUs' latest clock fits.
         self.streams.refresh_clocks(p, |i| side.clock(i))?;
@@ -607,10 +617,10 @@ impl FeedTarget for PlannerRun<'_, '_> {
                 }
             }
         }
-        Ok(self.check()?)
+        self.check()
     }
 
-    fn motion(&mut self, pipeline: &mut Pipeline, cmd: &MotionCmd<'_>) -> Result<bool, String> {
+    fn motion(&mut self, pipeline: &mut Pipeline, cmd: &MotionCmd<'_>) -> Result<bool, PlannerError> {
         let st = self.st;
         if st.machine.endstops.is_empty() && st.machine.probe.is_none() && st.machine.tmc.is_empty() {
             return Ok(false);
@@ -626,7 +636,7 @@ impl FeedTarget for PlannerRun<'_, '_> {
                 MotionCmd::Probe { .. } => "probing needs",
                 MotionCmd::Tmc { .. } => "TMC driver commands need",
             };
-            return Err(PlannerError::MotionNeedsLocalIo { what }.into());
+            return Err(PlannerError::MotionNeedsLocalIo { what });
         };
         let motion_start = AllocCounter::snapshot();
         self.drain_handoff(mcus)?;
@@ -713,18 +723,17 @@ impl FeedTarget for PlannerRun<'_, '_> {
         }
     }
 
-    fn heat(&mut self, pipeline: &mut Pipeline, cmd: &crate::heaters::gcode::HeatCmd) -> Result<(), String> {
+    fn heat(
+        &mut self,
+        pipeline: &mut Pipeline,
+        cmd: &crate::heaters::gcode::HeatCmd,
+    ) -> Result<(), PlannerError> {
         if *cmd == crate::heaters::gcode::HeatCmd::SaveConfig {
-            return Ok(self.save_config()?);
+            return self.save_config();
         }
         let Some(shared) = self.st.heaters else {
             if matches!(self.st.side, McuSide::Remote(..)) && drives_output(cmd) {
-                return Err(
-                    "heaters and fans are driven only with the IO stage in this process (the heater loop \
-                     reads and drives their MCU objects over the MCU link): print without \
-                     --io-process/--io-attach"
-                        .to_string(),
-                );
+                return Err(PlannerError::HeatersNeedLocalIo);
             }
             return Ok(());
         };
@@ -739,7 +748,7 @@ impl FeedTarget for PlannerRun<'_, '_> {
                         }
                     }
                 }
-                return Err(PlannerError::EmergencyStop.into());
+                return Err(PlannerError::EmergencyStop);
             }
             if *cmd == crate::heaters::gcode::HeatCmd::Report {
                 let text = crate::heaters::runtime::m105_text(shared);
@@ -783,7 +792,7 @@ impl FeedTarget for PlannerRun<'_, '_> {
         Ok(())
     }
 
-    fn motors_off(&mut self, pipeline: &mut Pipeline) -> Result<(), String> {
+    fn motors_off(&mut self, pipeline: &mut Pipeline) -> Result<(), PlannerError> {
         let mut out = Vec::new();
         pipeline.flush_lookahead();
         pipeline.generate(&mut out);
@@ -797,9 +806,13 @@ impl FeedTarget for PlannerRun<'_, '_> {
         Ok(self.sinks.iter_mut().try_for_each(ShmSink::flush)?)
     }
 
-    fn can_extrude(&self, extruder: &str) -> Result<(), String> {
+    fn can_extrude(&self, extruder: &str) -> Result<(), PlannerError> {
         match self.st.heaters {
-            Some(shared) => crate::heaters::feed::can_extrude(&self.st.machine.thermal, shared, extruder),
+            Some(shared) => Ok(crate::heaters::feed::can_extrude(
+                &self.st.machine.thermal,
+                shared,
+                extruder,
+            )?),
             None => Ok(()),
         }
     }

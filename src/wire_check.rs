@@ -96,8 +96,8 @@ pub enum WireCheckError {
     #[error(transparent)]
     Macro(#[from] planner::gcode::macros::MacroError),
     /// A macro call failed while planning (located by the G-code feed).
-    #[error("{0}")]
-    MacroRun(String),
+    #[error(transparent)]
+    MacroRun(Box<crate::gcode_feed::MacroRunError>),
     /// A G-code line could not be read.
     #[error("{}: {source}", .file.display())]
     Read {
@@ -243,7 +243,7 @@ impl Planner {
                 let status = macro_status(&self.pipeline);
                 match run
                     .next(&mut self.macros, &status, file, say)
-                    .map_err(WireCheckError::MacroRun)?
+                    .map_err(|e| WireCheckError::MacroRun(Box::new(e)))?
                 {
                     Some(sub) => {
                         self.pipeline.apply(&sub).map_err(|source| WireCheckError::Line {
@@ -266,7 +266,7 @@ impl Planner {
                     })?;
                     let pipeline = &self.pipeline;
                     self.run = MacroRun::start(&line, &mut self.macros, || macro_status(pipeline), file, say)
-                        .map_err(WireCheckError::MacroRun)?;
+                        .map_err(|e| WireCheckError::MacroRun(Box::new(e)))?;
                     if self.run.is_some() {
                         continue;
                     }
@@ -322,10 +322,31 @@ pub fn run(
     let clock_freq = dict.clock_freq()?;
     let mut pipeline = machine.batch_pipeline(clock_freq, spec.max_error_us * 1e-6, 0)?;
     pipeline.set_record_ideal(true);
-    let max_ticks = pipeline.max_error_ticks();
+    let mut checked = checked_steppers(&machine, dict, spec.mcu, pipeline.max_error_ticks())?;
+    let mut planner = Planner {
+        pipeline,
+        lines: GcodeReader::new(BufReader::with_capacity(1 << 16, gcode)),
+        macros: Macros::new(machine.macros.clone())?.with_respond(machine.respond_prefix.clone()),
+        run: None,
+        done: false,
+        out: Vec::with_capacity(4096),
+        steppers: machine.steppers.len(),
+    };
+    replay_stream(stream, data, dict, &mut checked, &mut planner, spec.gcode)?;
+    while planner.more(&mut checked, spec.gcode)? {}
+    report(stream, spec, &machine, &checked, clock_freq, out)
+}
+
+/// The checkers of the steppers on MCU `mcu`.
+fn checked_steppers(
+    machine: &Machine,
+    dict: &Dictionary,
+    mcu: &str,
+    max_ticks: u32,
+) -> Result<Vec<Checked>, WireCheckError> {
     let mut checked = Vec::new();
     for (idx, s) in machine.steppers.iter().enumerate() {
-        if s.mcu != spec.mcu {
+        if s.mcu != mcu {
             continue;
         }
         let step_pin = dict
@@ -343,15 +364,18 @@ pub fn run(
             configured: false,
         });
     }
-    let mut planner = Planner {
-        pipeline,
-        lines: GcodeReader::new(BufReader::with_capacity(1 << 16, gcode)),
-        macros: Macros::new(machine.macros.clone())?.with_respond(machine.respond_prefix.clone()),
-        run: None,
-        done: false,
-        out: Vec::with_capacity(4096),
-        steppers: machine.steppers.len(),
-    };
+    Ok(checked)
+}
+
+/// Decodes the stream block by block and replays each message against the planned G-code.
+fn replay_stream(
+    stream: &Path,
+    data: &[u8],
+    dict: &Dictionary,
+    checked: &mut [Checked],
+    planner: &mut Planner,
+    gcode: &Path,
+) -> Result<(), WireCheckError> {
     // Object id → index in `checked`.
     let mut by_oid: [Option<usize>; 256] = [None; 256];
     let stream_path = stream.to_path_buf();
@@ -368,7 +392,7 @@ pub fn run(
                     .decode(block_payload(&data[pos..pos + len]))
                     .map_err(|e| at(pos, e.into()))?;
                 for m in &msgs {
-                    replay(m, &mut checked, &mut by_oid, &mut planner, spec.gcode).map_err(|e| at(pos, e))?;
+                    replay(m, checked, &mut by_oid, planner, gcode).map_err(|e| at(pos, e))?;
                 }
                 pos += len;
             }
@@ -387,7 +411,18 @@ pub fn run(
             }
         }
     }
-    while planner.more(&mut checked, spec.gcode)? {}
+    Ok(())
+}
+
+/// The check's report: the stream and G-code, then one line per stepper (or its mismatch).
+fn report(
+    stream: &Path,
+    spec: &CheckSpec<'_>,
+    machine: &Machine,
+    checked: &[Checked],
+    clock_freq: f64,
+    out: &mut dyn FnMut(String),
+) -> Result<(), WireCheckError> {
     out(format!(
         "check: {} against {} (MCU '{}', max error {} µs)",
         stream.display(),
@@ -405,7 +440,7 @@ pub fn run(
             ids.join(", ")
         ));
     }
-    for c in &checked {
+    for c in checked {
         let stats: CheckStats = c.checker.finish().map_err(|source| WireCheckError::Steps {
             stepper: c.name.clone(),
             configured: c.configured,

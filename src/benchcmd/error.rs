@@ -129,3 +129,23 @@ pub enum PrintFailure {
     #[error(transparent)]
     Close(#[from] cadence::printer::CloseError),
 }
+
+/// A bench option's value that does not parse (clap shows it after the option's name).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ArgError {
+    /// `--duration` that is not a number with a unit.
+    #[error("duration {0:?}: expected e.g. 10, 10s, 500ms, 2m or 1h")]
+    Duration(String),
+    /// `--duration` of 0, below or more than a week.
+    #[error("duration {0:?}: must be more than 0 and at most a week")]
+    DurationRange(String),
+    /// `--budget-us` below 0 or not a number.
+    #[error("budget {0:?}: expected microseconds, 0 or more")]
+    Budget(String),
+    /// `--time-scale` outside (0, 50].
+    #[error("time scale {0:?}: expected a number more than 0 and at most 50")]
+    TimeScale(String),
+    /// `--clock-freq` outside 1 MHz..1 GHz.
+    #[error("clock frequency {0:?}: expected Hz between 1000000 and 1000000000")]
+    ClockFreq(String),
+}

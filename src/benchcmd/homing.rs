@@ -98,21 +98,7 @@ pub fn run(
         .iter()
         .map(|(n, _, axes)| format!("{n} ({})", axes_str(*axes)))
         .collect();
-    let describe = format!(
-        "homing: {} cycles on each of {}, {} mm away between cycles, time scale {}, real time {}",
-        m.cycles,
-        names.join(", "),
-        m.away,
-        m.time_scale
-            .map_or("as configured".to_string(), |s| s.to_string()),
-        if m.realtime { "on" } else { "off" }
-    );
-    // About 2 s per axis and cycle at the simulated printers' homing speeds.
-    let passes: u32 = printers
-        .iter()
-        .map(|(_, _, a)| a.iter().filter(|x| **x).count() as u32)
-        .sum();
-    let expected = Duration::from_secs(2) * m.cycles.saturating_mul(passes);
+    let (describe, expected) = describe(m, &printers, &names);
     let mut s =
         Session::start("homing", &describe, common, Some(HOMING_BUDGET_NS), expected, out).map_err(err)?;
     s.report.set("printers", names.clone());
@@ -161,24 +147,7 @@ pub fn run(
         s.interval(name, t0, t1, h).map_err(err)?;
     }
     s.report.figures.insert("timeouts".into(), f64::from(timeouts));
-    if scales.iter().any(|&x| x != 1.0) {
-        s.report.notes.push(
-            "trigger → stop and overshoot are MCU print time, which ran time-scale times faster than \
-             the wall clock (the machine's wake-up is wall time)"
-                .into(),
-        );
-    }
-    s.report.notes.push(
-        "trigger → stop: first step the stop cancelled − the endstop's trigger (an upper bound; MCU time)"
-            .into(),
-    );
-    if has_exact {
-        s.report.notes.push(
-            "*-exact: the endstop MCU's trigger record → the steppers' MCU's trsync trigger record (its \
-             steppers stopped), from the simulated MCUs' traces, in system time"
-                .into(),
-        );
-    }
+    explain(&mut s.report, scales.iter().any(|&x| x != 1.0), has_exact);
     s.report.verdict = verdict(&groups, timeouts, wake_p999, s.report.budget_ns);
     let mut plot: Vec<bench::plot::PlotSeries<'_>> = groups
         .iter()
@@ -193,6 +162,48 @@ pub fn run(
     );
     let title = format!("homing trigger → stop, {} cycles", m.cycles);
     s.finish(&title, &plot, out).map_err(err)
+}
+
+/// The run's one-line description and its expected duration: about 2 s per axis and cycle at
+/// the simulated printers' homing speeds.
+fn describe(m: &HomingMode, printers: &[PrinterRun], names: &[String]) -> (String, Duration) {
+    let describe = format!(
+        "homing: {} cycles on each of {}, {} mm away between cycles, time scale {}, real time {}",
+        m.cycles,
+        names.join(", "),
+        m.away,
+        m.time_scale
+            .map_or("as configured".to_string(), |s| s.to_string()),
+        if m.realtime { "on" } else { "off" }
+    );
+    let passes: u32 = printers
+        .iter()
+        .map(|(_, _, a)| a.iter().filter(|x| **x).count() as u32)
+        .sum();
+    (describe, Duration::from_secs(2) * m.cycles.saturating_mul(passes))
+}
+
+/// The report's notes on what its series measure (`scaled`: a time scale other than 1;
+/// `exact`: there are series from the MCU traces).
+fn explain(report: &mut bench::report::Report, scaled: bool, exact: bool) {
+    if scaled {
+        report.notes.push(
+            "trigger → stop and overshoot are MCU print time, which ran time-scale times faster than \
+             the wall clock (the machine's wake-up is wall time)"
+                .into(),
+        );
+    }
+    report.notes.push(
+        "trigger → stop: first step the stop cancelled − the endstop's trigger (an upper bound; MCU time)"
+            .into(),
+    );
+    if exact {
+        report.notes.push(
+            "*-exact: the endstop MCU's trigger record → the steppers' MCU's trsync trigger record (its \
+             steppers stopped), from the simulated MCUs' traces, in system time"
+                .into(),
+        );
+    }
 }
 
 /// One printer to home: its name, its printer.cfg (`None`: the built-in one) and the axes.

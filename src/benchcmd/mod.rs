@@ -20,7 +20,7 @@ use bench::run::Common;
 use bench::wakeup::{Stop, Wait, WakeupOptions};
 use clap::{Args, Subcommand};
 
-pub use error::{BenchCmdError, McuTraceError, PrintFailure};
+pub use error::{ArgError, BenchCmdError, McuTraceError, PrintFailure};
 
 /// Arguments of `cadence bench`.
 #[derive(Debug, Args)]
@@ -482,8 +482,8 @@ fn wakeup_mode(what: &BenchWhat) -> Result<WakeupMode, BenchCmdError> {
 }
 
 /// `10`, `10s`, `500ms`, `2m`, `1h`: a positive duration.
-fn parse_duration(s: &str) -> Result<Duration, String> {
-    let bad = || format!("duration {s:?}: expected e.g. 10, 10s, 500ms, 2m or 1h");
+fn parse_duration(s: &str) -> Result<Duration, ArgError> {
+    let bad = || ArgError::Duration(s.to_string());
     let (num, unit) = match s.find(|c: char| !c.is_ascii_digit() && c != '.') {
         Some(i) => s.split_at(i),
         None => (s, "s"),
@@ -497,36 +497,32 @@ fn parse_duration(s: &str) -> Result<Duration, String> {
         _ => return Err(bad()),
     };
     if !(secs.is_finite() && secs > 0.0 && secs <= 7.0 * 86400.0) {
-        return Err(format!("duration {s:?}: must be more than 0 and at most a week"));
+        return Err(ArgError::DurationRange(s.to_string()));
     }
     Ok(Duration::from_secs_f64(secs))
 }
 
 /// A budget in µs, 0 or more.
-fn parse_budget(s: &str) -> Result<f64, String> {
+fn parse_budget(s: &str) -> Result<f64, ArgError> {
     match s.parse::<f64>() {
         Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
-        _ => Err(format!("budget {s:?}: expected microseconds, 0 or more")),
+        _ => Err(ArgError::Budget(s.to_string())),
     }
 }
 
 /// A simulated time scale in (0, 50].
-fn parse_time_scale(s: &str) -> Result<f64, String> {
+fn parse_time_scale(s: &str) -> Result<f64, ArgError> {
     match s.parse::<f64>() {
         Ok(v) if v > 0.0 && v <= 50.0 => Ok(v),
-        _ => Err(format!(
-            "time scale {s:?}: expected a number more than 0 and at most 50"
-        )),
+        _ => Err(ArgError::TimeScale(s.to_string())),
     }
 }
 
 /// A clock frequency between 1 MHz and 1 GHz.
-fn parse_clock_freq(s: &str) -> Result<f64, String> {
+fn parse_clock_freq(s: &str) -> Result<f64, ArgError> {
     match s.parse::<f64>() {
         Ok(f) if (1e6..=1e9).contains(&f) => Ok(f),
-        _ => Err(format!(
-            "clock frequency {s:?}: expected Hz between 1000000 and 1000000000"
-        )),
+        _ => Err(ArgError::ClockFreq(s.to_string())),
     }
 }
 
@@ -541,10 +537,8 @@ mod tests {
         what: BenchWhat,
     }
 
-    fn parse(args: &[&str]) -> Result<BenchWhat, String> {
-        Cli::try_parse_from(std::iter::once("bench").chain(args.iter().copied()))
-            .map(|c| c.what)
-            .map_err(|e| e.to_string())
+    fn parse(args: &[&str]) -> Result<BenchWhat, clap::Error> {
+        Cli::try_parse_from(std::iter::once("bench").chain(args.iter().copied())).map(|c| c.what)
     }
 
     #[test]
@@ -625,7 +619,7 @@ mod tests {
             (&["handoff", "--fifo", "0"], "0"),
             (&["plan"], "FILE"),
         ] {
-            let e = parse(args).unwrap_err();
+            let e = parse(args).unwrap_err().to_string();
             assert!(e.contains(want), "{args:?}: {e}");
         }
         let w = parse(&["wakeup", "--cpus", "4096"]).unwrap();
@@ -700,7 +694,7 @@ mod tests {
                 "cannot be used with",
             ),
         ] {
-            let e = parse(args).unwrap_err();
+            let e = parse(args).unwrap_err().to_string();
             assert!(e.contains(want), "{args:?}: {e}");
         }
         let e = homing_mode(&parse(&["homing", "--axes", "xw"]).unwrap()).unwrap_err();
@@ -725,7 +719,10 @@ mod tests {
     #[test]
     fn clock_freq_is_checked() {
         assert_eq!(parse_clock_freq("16000000"), Ok(16e6));
-        assert!(parse_clock_freq("10").unwrap_err().contains("expected Hz"));
+        assert!(parse_clock_freq("10")
+            .unwrap_err()
+            .to_string()
+            .contains("expected Hz"));
         assert!(parse_clock_freq("fast").is_err());
     }
 }

@@ -56,24 +56,7 @@ pub fn run(
     common: &Common,
     out: &mut dyn Write,
 ) -> Result<bench::report::Report, BenchCmdError> {
-    let file_name = m
-        .file
-        .as_ref()
-        .map_or(format!("{REFERENCE_NAME} (built in)"), |f| {
-            f.display().to_string()
-        });
-    let printer_name = m
-        .config
-        .as_ref()
-        .map_or("the built-in simulated printer".to_string(), |c| {
-            c.display().to_string()
-        });
-    let describe = format!(
-        "pipeline: {file_name} on {printer_name}, time scale {}, real time {}",
-        m.time_scale
-            .map_or("as configured".to_string(), |s| s.to_string()),
-        if m.realtime { "on" } else { "off" }
-    );
+    let (file_name, describe) = describe(m);
     let budget = Some((MIN_LEAD_S * 1e9) as u64);
     let err = BenchCmdError::Bench;
     let mut s = Session::start("pipeline", &describe, common, budget, Duration::ZERO, out).map_err(err)?;
@@ -103,21 +86,7 @@ pub fn run(
     if let Some(v) = &mcu {
         series.push((MCU_SERIES[0], v.lead.clone()));
         series.push((MCU_SERIES[1], v.step_late.clone()));
-        s.report.figures.insert("mcu_traces".into(), v.traces as f64);
-        s.report
-            .figures
-            .insert("mcu_steps".into(), v.step_late.len() as f64);
-        s.report
-            .figures
-            .insert("mcu_queue_steps".into(), v.lead.len() as f64);
-        s.report
-            .figures
-            .insert("mcu_late_queue_steps".into(), v.late_on_arrival as f64);
-        s.report.notes.push(
-            "mcu-lead: each queue_step's first step − its arrival at the MCU; mcu-step-late: each step's \
-             execution − its scheduled clock; both in MCU time, read from the simulated MCUs' step traces"
-                .into(),
-        );
+        report_mcu_view(&mut s.report, v);
     }
     for (name, h) in &series {
         if h.is_empty() {
@@ -166,6 +135,48 @@ pub fn run(
     let title = format!("live print of {file_name}: lead margin and stage latencies");
     let report = s.finish(&title, &plot, out).map_err(err)?;
     Ok(outcome.map(|()| report)?)
+}
+
+/// The G-code file's name and the run's one-line description.
+fn describe(m: &PipelineMode) -> (String, String) {
+    let file_name = m
+        .file
+        .as_ref()
+        .map_or(format!("{REFERENCE_NAME} (built in)"), |f| {
+            f.display().to_string()
+        });
+    let printer_name = m
+        .config
+        .as_ref()
+        .map_or("the built-in simulated printer".to_string(), |c| {
+            c.display().to_string()
+        });
+    let describe = format!(
+        "pipeline: {file_name} on {printer_name}, time scale {}, real time {}",
+        m.time_scale
+            .map_or("as configured".to_string(), |s| s.to_string()),
+        if m.realtime { "on" } else { "off" }
+    );
+    (file_name, describe)
+}
+
+/// The MCU traces' figures and what their series mean, in the report.
+fn report_mcu_view(report: &mut bench::report::Report, v: &McuView) {
+    report.figures.insert("mcu_traces".into(), v.traces as f64);
+    report
+        .figures
+        .insert("mcu_steps".into(), v.step_late.len() as f64);
+    report
+        .figures
+        .insert("mcu_queue_steps".into(), v.lead.len() as f64);
+    report
+        .figures
+        .insert("mcu_late_queue_steps".into(), v.late_on_arrival as f64);
+    report.notes.push(
+        "mcu-lead: each queue_step's first step − its arrival at the MCU; mcu-step-late: each step's \
+         execution − its scheduled clock; both in MCU time, read from the simulated MCUs' step traces"
+            .into(),
+    );
 }
 
 /// Runs the print; returns the histograms (whatever happened) and the outcome. Figures of the

@@ -9,6 +9,43 @@ use super::objects::Thermal;
 use super::runtime::HeaterShared;
 use std::sync::atomic::Ordering;
 
+/// Why a heater or fan command was refused, in Klipper's words.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum HeatError {
+    /// A heater or fan name that is not configured (`param`: `HEATER`, `FAN`, …).
+    #[error("The value '{value}' is not valid for {param}")]
+    NotValid { value: String, param: &'static str },
+    /// A target outside the heater's (or temperature fan's) `min_temp`..`max_temp`.
+    #[error("Requested temperature ({target:.1}) out of range ({min:.1}:{max:.1})")]
+    OutOfRange { target: f64, min: f64, max: f64 },
+    /// `PID_CALIBRATE HEATER=` of an unknown heater.
+    #[error("Unknown heater '{0}'")]
+    UnknownHeater(String),
+    /// A second `PID_CALIBRATE` while one runs.
+    #[error("PID_CALIBRATE is already running")]
+    CalibrationRunning,
+    /// `TEMPERATURE_WAIT SENSOR=` of an unknown heater or sensor.
+    #[error("Unknown sensor '{0}'")]
+    UnknownSensor(String),
+    /// `SET_TEMPERATURE_FAN_TARGET` with `MIN_SPEED` above `MAX_SPEED`.
+    #[error("Requested min speed ({min:.1}) is greater than max speed ({max:.1})")]
+    MinAboveMax { min: f64, max: f64 },
+    /// An extruding move below the extruder's `min_extrude_temp`.
+    #[error(
+        "Extrude below minimum temp ({heater} at {temp:.1} °C, min_extrude_temp {min:.1}; see the \
+         'min_extrude_temp' config option)"
+    )]
+    ColdExtrude { heater: String, temp: f64, min: f64 },
+}
+
+/// A name that is not valid for parameter `param`.
+fn not_valid(value: &str, param: &'static str) -> HeatError {
+    HeatError::NotValid {
+        value: value.to_string(),
+        param,
+    }
+}
+
 /// A wait the G-code holds for.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Wait {
@@ -51,73 +88,13 @@ impl Wait {
 }
 
 /// Applies `cmd` to the heaters; returns the wait the G-code must hold for, if any.
-pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<Option<Wait>, String> {
+pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<Option<Wait>, HeatError> {
     match cmd {
-        HeatCmd::Set { heater, target, wait } => {
-            let i = thermal
-                .heater(heater)
-                .ok_or_else(|| format!("The value '{heater}' is not valid for HEATER"))?;
-            let h = &thermal.heaters[i];
-            if *target != 0.0 && (*target < h.min_temp || *target > h.max_temp) {
-                return Err(format!(
-                    "Requested temperature ({target:.1}) out of range ({:.1}:{:.1})",
-                    h.min_temp, h.max_temp
-                ));
-            }
-            shared.set_target(i, *target);
-            Ok(wait.then_some(Wait {
-                heater: i,
-                sensor: false,
-                what: if heater == "heater_bed" { "M190" } else { "M109" },
-                settle: true,
-                min: None,
-                max: None,
-                target: *target,
-                calibrate: false,
-            }))
-        }
+        HeatCmd::Set { heater, target, wait } => set_target(thermal, shared, heater, *target, *wait),
         HeatCmd::PidCalibrate { heater, target, .. } => {
-            let i = thermal
-                .heater(heater)
-                .ok_or_else(|| format!("Unknown heater '{heater}'"))?;
-            let h = &thermal.heaters[i];
-            if *target < h.min_temp || *target > h.max_temp {
-                return Err(format!(
-                    "Requested temperature ({target:.1}) out of range ({:.1}:{:.1})",
-                    h.min_temp, h.max_temp
-                ));
-            }
-            if !shared.start_calibration(i, *target) {
-                return Err("PID_CALIBRATE is already running".to_string());
-            }
-            Ok(Some(Wait {
-                heater: i,
-                sensor: false,
-                what: "PID_CALIBRATE",
-                settle: false,
-                min: None,
-                max: None,
-                target: *target,
-                calibrate: true,
-            }))
+            pid_calibrate(thermal, shared, heater, *target).map(Some)
         }
-        HeatCmd::Wait { sensor, min, max } => {
-            let (i, is_sensor) = match (thermal.heater(sensor), thermal.sensor(sensor)) {
-                (Some(i), _) => (i, false),
-                (None, Some(i)) => (i, true),
-                (None, None) => return Err(format!("Unknown sensor '{sensor}'")),
-            };
-            Ok(Some(Wait {
-                heater: i,
-                sensor: is_sensor,
-                what: "TEMPERATURE_WAIT",
-                settle: false,
-                min: *min,
-                max: *max,
-                target: min.or(*max).unwrap_or(0.0),
-                calibrate: false,
-            }))
-        }
+        HeatCmd::Wait { sensor, min, max } => temperature_wait(thermal, sensor, *min, *max).map(Some),
         HeatCmd::TurnOffAll | HeatCmd::EmergencyStop => {
             shared.turn_off_all();
             Ok(None)
@@ -130,7 +107,7 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
         HeatCmd::FanSpeed { fan, speed } => {
             let i = thermal
                 .fan("fan_generic", fan)
-                .ok_or_else(|| format!("The value '{fan}' is not valid for FAN"))?;
+                .ok_or_else(|| not_valid(fan, "FAN"))?;
             shared.set_fan_index(i, *speed);
             Ok(None)
         }
@@ -139,56 +116,150 @@ pub fn apply(thermal: &Thermal, shared: &HeaterShared, cmd: &HeatCmd) -> Result<
             target,
             min_speed,
             max_speed,
-        } => {
-            let i = thermal
-                .fan("temperature_fan", fan)
-                .ok_or_else(|| format!("The value '{fan}' is not valid for TEMPERATURE_FAN"))?;
-            let super::objects::FanRole::Temperature {
-                target_temp,
-                min_temp,
-                max_temp,
-                ..
-            } = thermal.fans[i].role
-            else {
-                return Err(format!("The value '{fan}' is not valid for TEMPERATURE_FAN"));
-            };
-            let cell = &shared.fans[i];
-            let target = target.unwrap_or(target_temp);
-            if target != 0.0 && (target < min_temp || target > max_temp) {
-                return Err(format!(
-                    "Requested temperature ({target:.1}) out of range ({min_temp:.1}:{max_temp:.1})"
-                ));
-            }
-            let min = min_speed.unwrap_or(cell.min_speed.get());
-            let max = max_speed.unwrap_or(cell.max_speed.get());
-            if min > max {
-                return Err(format!(
-                    "Requested min speed ({min:.1}) is greater than max speed ({max:.1})"
-                ));
-            }
-            cell.target.set(target);
-            cell.min_speed.set(min.clamp(0.0, 1.0));
-            cell.max_speed.set(max.clamp(0.0, 1.0));
-            Ok(None)
-        }
+        } => temperature_fan_target(thermal, shared, fan, *target, [*min_speed, *max_speed]).map(|()| None),
     }
+}
+
+/// The heater's range check: 0 (off) or `min_temp`..`max_temp`.
+fn check_range(target: f64, min: f64, max: f64) -> Result<(), HeatError> {
+    match target != 0.0 && (target < min || target > max) {
+        true => Err(HeatError::OutOfRange { target, min, max }),
+        false => Ok(()),
+    }
+}
+
+/// M104/M140/M109/M190/SET_HEATER_TEMPERATURE: the target set; M109/M190 wait for it.
+fn set_target(
+    thermal: &Thermal,
+    shared: &HeaterShared,
+    heater: &str,
+    target: f64,
+    wait: bool,
+) -> Result<Option<Wait>, HeatError> {
+    let i = thermal
+        .heater(heater)
+        .ok_or_else(|| not_valid(heater, "HEATER"))?;
+    let h = &thermal.heaters[i];
+    check_range(target, h.min_temp, h.max_temp)?;
+    shared.set_target(i, target);
+    Ok(wait.then_some(Wait {
+        heater: i,
+        sensor: false,
+        what: if heater == "heater_bed" { "M190" } else { "M109" },
+        settle: true,
+        min: None,
+        max: None,
+        target,
+        calibrate: false,
+    }))
+}
+
+/// PID_CALIBRATE: the relay test started; the G-code waits for its end.
+fn pid_calibrate(
+    thermal: &Thermal,
+    shared: &HeaterShared,
+    heater: &str,
+    target: f64,
+) -> Result<Wait, HeatError> {
+    let i = thermal
+        .heater(heater)
+        .ok_or_else(|| HeatError::UnknownHeater(heater.to_string()))?;
+    let h = &thermal.heaters[i];
+    if target < h.min_temp || target > h.max_temp {
+        return Err(HeatError::OutOfRange {
+            target,
+            min: h.min_temp,
+            max: h.max_temp,
+        });
+    }
+    if !shared.start_calibration(i, target) {
+        return Err(HeatError::CalibrationRunning);
+    }
+    Ok(Wait {
+        heater: i,
+        sensor: false,
+        what: "PID_CALIBRATE",
+        settle: false,
+        min: None,
+        max: None,
+        target,
+        calibrate: true,
+    })
+}
+
+/// TEMPERATURE_WAIT on a heater or a temperature sensor.
+fn temperature_wait(
+    thermal: &Thermal,
+    sensor: &str,
+    min: Option<f64>,
+    max: Option<f64>,
+) -> Result<Wait, HeatError> {
+    let (i, is_sensor) = match (thermal.heater(sensor), thermal.sensor(sensor)) {
+        (Some(i), _) => (i, false),
+        (None, Some(i)) => (i, true),
+        (None, None) => return Err(HeatError::UnknownSensor(sensor.to_string())),
+    };
+    Ok(Wait {
+        heater: i,
+        sensor: is_sensor,
+        what: "TEMPERATURE_WAIT",
+        settle: false,
+        min,
+        max,
+        target: min.or(max).unwrap_or(0.0),
+        calibrate: false,
+    })
+}
+
+/// SET_TEMPERATURE_FAN_TARGET: the fan's target and its speed range (`[min, max]`, each
+/// kept when not given).
+fn temperature_fan_target(
+    thermal: &Thermal,
+    shared: &HeaterShared,
+    fan: &str,
+    target: Option<f64>,
+    speeds: [Option<f64>; 2],
+) -> Result<(), HeatError> {
+    let i = thermal
+        .fan("temperature_fan", fan)
+        .ok_or_else(|| not_valid(fan, "TEMPERATURE_FAN"))?;
+    let super::objects::FanRole::Temperature {
+        target_temp,
+        min_temp,
+        max_temp,
+        ..
+    } = thermal.fans[i].role
+    else {
+        return Err(not_valid(fan, "TEMPERATURE_FAN"));
+    };
+    let cell = &shared.fans[i];
+    let target = target.unwrap_or(target_temp);
+    check_range(target, min_temp, max_temp)?;
+    let min = speeds[0].unwrap_or(cell.min_speed.get());
+    let max = speeds[1].unwrap_or(cell.max_speed.get());
+    if min > max {
+        return Err(HeatError::MinAboveMax { min, max });
+    }
+    cell.target.set(target);
+    cell.min_speed.set(min.clamp(0.0, 1.0));
+    cell.max_speed.set(max.clamp(0.0, 1.0));
+    Ok(())
 }
 
 /// Klipper's refusal of an extruding move while the extruder `extruder` (its heater's name)
 /// is below `min_extrude_temp`.
-pub fn can_extrude(thermal: &Thermal, shared: &HeaterShared, extruder: &str) -> Result<(), String> {
+pub fn can_extrude(thermal: &Thermal, shared: &HeaterShared, extruder: &str) -> Result<(), HeatError> {
     for (h, cell) in thermal.heaters.iter().zip(&shared.heaters) {
         let Some(min) = h.min_extrude_temp.filter(|_| h.name == extruder) else {
             continue;
         };
         let t = cell.temp.get();
         if min > 0.0 && (t.is_nan() || t < min) {
-            return Err(format!(
-                "Extrude below minimum temp ({} at {:.1} °C, min_extrude_temp {min:.1}; see the \
-                 'min_extrude_temp' config option)",
-                h.name,
-                if t.is_nan() { 0.0 } else { t }
-            ));
+            return Err(HeatError::ColdExtrude {
+                heater: h.name.clone(),
+                temp: if t.is_nan() { 0.0 } else { t },
+                min,
+            });
         }
     }
     Ok(())
@@ -230,15 +301,15 @@ impl HeatLog {
         let Some(shared) = shared else {
             return Vec::new();
         };
+        let fmt = |t: f64| {
+            if t.is_nan() {
+                "no reading".to_string()
+            } else {
+                format!("{t:.1} °C")
+            }
+        };
         let mut out = Vec::new();
         for h in &shared.heaters {
-            let fmt = |t: f64| {
-                if t.is_nan() {
-                    "no reading".to_string()
-                } else {
-                    format!("{t:.1} °C")
-                }
-            };
             out.push(format!(
                 "heater {}: {} (highest {}), target {:.1} °C, power {:.0} %",
                 h.name,
@@ -249,13 +320,6 @@ impl HeatLog {
             ));
         }
         for s in shared.sensors.iter().filter(|s| s.kind == "temperature_sensor") {
-            let fmt = |t: f64| {
-                if t.is_nan() {
-                    "no reading".to_string()
-                } else {
-                    format!("{t:.1} °C")
-                }
-            };
             out.push(format!(
                 "{} {}: {} (lowest {}, highest {})",
                 s.kind,
@@ -319,7 +383,7 @@ mod tests {
     fn targets_out_of_range_are_refused_as_klipper_words_it() {
         let (t, s) = setup();
         assert_eq!(
-            apply(&t, &s, &set("extruder", 300.0, false)),
+            apply(&t, &s, &set("extruder", 300.0, false)).map_err(|e| e.to_string()),
             Err("Requested temperature (300.0) out of range (0.0:250.0)".to_string())
         );
         assert_eq!(apply(&t, &s, &set("extruder", 210.0, false)), Ok(None));
@@ -342,7 +406,7 @@ mod tests {
         .unwrap();
         let t = Thermal::from_config(&cfg).unwrap();
         let s = HeaterShared::new(&t);
-        let e = can_extrude(&t, &s, "extruder").unwrap_err();
+        let e = can_extrude(&t, &s, "extruder").unwrap_err().to_string();
         assert!(e.starts_with("Extrude below minimum temp"), "{e}");
         s.heaters[0].temp.set(171.0);
         assert_eq!(can_extrude(&t, &s, "extruder"), Ok(()));

@@ -459,14 +459,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
             match *obj {
                 ThermalObject::HeaterPwm(i) => {
                     let h = &thermal.heaters[i];
-                    let control: Box<dyn Control + Send> = match h.control {
-                        HeaterControl::Watermark { max_delta } => {
-                            Box::new(Watermark::new(max_delta, h.max_power))
-                        }
-                        HeaterControl::Pid { kp, ki, kd } => {
-                            Box::new(Pid::new(PidGains { kp, ki, kd }, h.max_power, h.smooth_time))
-                        }
-                    };
+                    let control = heater_control(h.control, h.max_power, h.smooth_time);
                     heaters.push((
                         i,
                         Running {
@@ -580,7 +573,24 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
         tachs: &mut tachs,
     };
     let result = heater_loop(mcus, thermal, shared, &mut heaters, &mut sensors, &mut outputs);
-    // A calibration cut short ends without gains (the G-code waiting for it goes on).
+    wind_down(mcus, thermal, shared, &heaters);
+    result
+}
+
+/// The heater's control as configured: watermark or PID.
+fn heater_control(control: HeaterControl, max_power: f64, smooth_time: f64) -> Box<dyn Control + Send> {
+    match control {
+        HeaterControl::Watermark { max_delta } => Box::new(Watermark::new(max_delta, max_power)),
+        HeaterControl::Pid { kp, ki, kd } => {
+            Box::new(Pid::new(PidGains { kp, ki, kd }, max_power, smooth_time))
+        }
+    }
+}
+
+/// After the loop, whatever ended it: a calibration cut short ends without gains (the G-code
+/// waiting for it goes on) and every heater goes off (an MCU that shut down has them off
+/// already).
+fn wind_down(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared, heaters: &[(usize, Running)]) {
     if let Ok(mut c) = shared.calibration.lock() {
         if let Some(Calibration::Requested { heater, .. } | Calibration::Running { heater }) = *c {
             *c = Some(Calibration::Done {
@@ -591,8 +601,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
             });
         }
     }
-    // Every heater off, whatever ended the loop (an MCU that shut down has them off already).
-    for (_, r) in &heaters {
+    for (_, r) in heaters {
         let conn = &mcus.list[r.link_index];
         let at = lead_clock(&conn.link, conn.clock_freq, thermal.max_heat_time());
         let _ = send_pwm(&conn.link, r.pwm_oid, at, 0, r.invert, r.cycle_ticks);
@@ -600,7 +609,6 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
             let _ = send_pwm(&conn.link, oid, at, 0, invert, r.cycle_ticks);
         }
     }
-    result
 }
 
 #[allow(clippy::too_many_arguments)]

@@ -23,8 +23,8 @@ use planner::bed_mesh::{Algorithm, MeshParams, ZMesh};
 use sysconfig::autosave::Changes;
 use sysconfig::printer::{BedMeshSection, MeshShape, BED_MESH_ALGORITHMS};
 
-use super::probe::{lift, param, run_probe, ProbeParams};
-use super::{plain_move, HomingCtx};
+use super::probe::{bad, lift, param, run_probe, ProbeParams};
+use super::{plain_move, HomingCtx, HomingError, LevelingError, ParamProblem};
 
 /// The G-code commands this module runs.
 pub const COMMANDS: [&str; 4] = [
@@ -128,18 +128,24 @@ impl BedMeshOut {
     }
 }
 
-fn num(raw: &str, key: &str, v: &str) -> Result<f64, String> {
+fn num(raw: &str, key: &str, v: &str) -> Result<f64, HomingError> {
     v.trim()
         .parse::<f64>()
         .ok()
         .filter(|x| x.is_finite())
-        .ok_or_else(|| format!("Error on '{raw}': unable to parse '{v}' for {key}"))
+        .ok_or_else(|| {
+            let (value, key) = (v.to_string(), key.to_string());
+            bad(raw, ParamProblem::Unparsable { value, key })
+        })
 }
 
-fn pair(raw: &str, key: &str, v: &str) -> Result<[f64; 2], String> {
+fn pair(raw: &str, key: &str, v: &str) -> Result<[f64; 2], HomingError> {
     match v.split(',').collect::<Vec<_>>().as_slice() {
         [x, y] => Ok([num(raw, key, x)?, num(raw, key, y)?]),
-        _ => Err(format!("Error on '{raw}': {key} must be 'X,Y', got '{v}'")),
+        _ => {
+            let (key, value) = (key.to_string(), v.to_string());
+            Err(bad(raw, ParamProblem::NotPair { key, value }))
+        }
     }
 }
 
@@ -158,16 +164,12 @@ impl CalibrateParams {
     /// The config's settings overridden by the command's `PROFILE`, `HORIZONTAL_MOVE_Z`,
     /// `MESH_MIN`, `MESH_MAX`, `PROBE_COUNT`, `MESH_RADIUS`, `MESH_ORIGIN`,
     /// `ROUND_PROBE_COUNT`, `ALGORITHM`; `METHOD=manual` and `ADAPTIVE=1` are refused.
-    pub fn parse(cfg: &BedMeshSection, raw: &str) -> Result<CalibrateParams, String> {
+    pub fn parse(cfg: &BedMeshSection, raw: &str) -> Result<CalibrateParams, HomingError> {
         if param(raw, "METHOD").is_some_and(|m| !m.eq_ignore_ascii_case("automatic")) {
-            return Err(format!(
-                "Error on '{raw}': only METHOD=automatic (the probe) is supported"
-            ));
+            return Err(bad(raw, ParamProblem::OnlyAutomatic));
         }
         if param(raw, "ADAPTIVE").is_some_and(|a| a.trim() != "0") {
-            return Err(format!(
-                "Error on '{raw}': ADAPTIVE meshes are not supported by Cadence yet"
-            ));
+            return Err(bad(raw, ParamProblem::Adaptive));
         }
         let grid = match &cfg.shape {
             MeshShape::Rectangular { min, max, count } => {
@@ -179,15 +181,13 @@ impl CalibrateParams {
                         let p = pair(raw, "PROBE_COUNT", &v)
                             .or_else(|_| num(raw, "PROBE_COUNT", &v).map(|n| [n, n]))?;
                         if p.iter().any(|&n| !(3.0..=99.0).contains(&n) || n.fract() != 0.0) {
-                            return Err(format!(
-                                "Error on '{raw}': PROBE_COUNT must be whole numbers from 3 to 99"
-                            ));
+                            return Err(bad(raw, ParamProblem::ProbeCount));
                         }
                         [p[0] as usize, p[1] as usize]
                     }
                 };
                 if max[0] <= min[0] || max[1] <= min[1] {
-                    return Err(format!("Error on '{raw}': MESH_MAX must be above MESH_MIN"));
+                    return Err(bad(raw, ParamProblem::MeshMaxBelowMin));
                 }
                 ProbeGrid {
                     min,
@@ -210,15 +210,14 @@ impl CalibrateParams {
                     Some(v) => {
                         let n = num(raw, "ROUND_PROBE_COUNT", &v)?;
                         if !(3.0..=99.0).contains(&n) || n.fract() != 0.0 || n % 2.0 != 1.0 {
-                            return Err(format!(
-                                "Error on '{raw}': ROUND_PROBE_COUNT must be odd, from 3 to 99"
-                            ));
+                            return Err(bad(raw, ParamProblem::RoundProbeCount));
                         }
                         n as usize
                     }
                 };
                 if radius <= 0.0 {
-                    return Err(format!("Error on '{raw}': MESH_RADIUS must be above 0"));
+                    let key = "MESH_RADIUS".to_string();
+                    return Err(bad(raw, ParamProblem::NotAbove { key, min: 0.0 }));
                 }
                 ProbeGrid::round(origin, radius, count)
             }
@@ -229,9 +228,7 @@ impl CalibrateParams {
                 .iter()
                 .find(|(n, _)| n.eq_ignore_ascii_case(&v))
                 .map(|&(_, a)| a)
-                .ok_or_else(|| {
-                    format!("Error on '{raw}': ALGORITHM must be lagrange or bicubic, got '{v}'")
-                })?,
+                .ok_or_else(|| bad(raw, ParamProblem::Algorithm { value: v.clone() }))?,
         };
         Ok(CalibrateParams {
             profile: param(raw, "PROFILE").unwrap_or_else(|| "default".to_string()),
@@ -258,11 +255,12 @@ impl CalibrateParams {
 }
 
 /// Runs bed mesh command `name` written as `raw`; its output lines go to `out`.
-pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>) -> Result<(), String> {
+pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>) -> Result<(), HomingError> {
     let Some(bm) = ctx.machine.bed_mesh.clone() else {
-        return Err(format!(
-            "Unknown command: {name} (the printer config has no [bed_mesh] section)"
-        ));
+        return Err(HomingError::NoSection {
+            name: name.to_string(),
+            section: "bed_mesh",
+        });
     };
     match name {
         "BED_MESH_CALIBRATE" => calibrate(ctx, &bm, raw, out),
@@ -271,7 +269,7 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
             Ok(())
         }
         "BED_MESH_OUTPUT" => {
-            let state = bm.state.lock().map_err(|_| "bed_mesh: state lost".to_string())?;
+            let state = bm.state.lock().map_err(|_| LevelingError::MeshStateLost)?;
             match &state.active {
                 None => out.push("Bed has not been probed".to_string()),
                 Some(p) => out.extend(output_lines(&p.mesh, bm.cfg.horizontal_move_z, ctx.machine)),
@@ -312,25 +310,25 @@ fn profile_command(
     bm: &BedMeshOut,
     raw: &str,
     out: &mut Vec<String>,
-) -> Result<(), String> {
-    let lost = || "bed_mesh: state lost".to_string();
+) -> Result<(), HomingError> {
+    let lost = |_| LevelingError::MeshStateLost;
     if let Some(name) = param(raw, "LOAD") {
         let found = bm
             .state
             .lock()
-            .map_err(|_| lost())?
+            .map_err(lost)?
             .profiles
             .iter()
             .find(|p| p.name == name)
             .cloned();
-        let p = found.ok_or_else(|| format!("bed_mesh: Unknown profile [{name}]"))?;
+        let p = found.ok_or(LevelingError::UnknownProfile { name })?;
         set_active(ctx, bm, Some(p));
         return Ok(());
     }
     if let Some(name) = param(raw, "SAVE") {
-        let mut s = bm.state.lock().map_err(|_| lost())?;
+        let mut s = bm.state.lock().map_err(lost)?;
         let Some(active) = s.active.clone() else {
-            return Err("Unable to save to profile, the bed has not been probed".to_string());
+            return Err(LevelingError::NotProbed.into());
         };
         save_profile(&mut s, &name, &active.mesh);
         s.active = Some(Profile {
@@ -341,9 +339,9 @@ fn profile_command(
         return Ok(());
     }
     if let Some(name) = param(raw, "REMOVE") {
-        let mut s = bm.state.lock().map_err(|_| lost())?;
+        let mut s = bm.state.lock().map_err(lost)?;
         if !s.profiles.iter().any(|p| p.name == name) {
-            return Err(format!("bed_mesh: Unknown profile [{name}]"));
+            return Err(LevelingError::UnknownProfile { name }.into());
         }
         s.profiles.retain(|p| p.name != name);
         s.pending.remove_section(&format!("bed_mesh {name}"));
@@ -354,9 +352,7 @@ fn profile_command(
         );
         return Ok(());
     }
-    Err(format!(
-        "Error on '{raw}': give LOAD=, SAVE= or REMOVE= and a profile name"
-    ))
+    Err(bad(raw, ParamProblem::ProfileAction))
 }
 
 /// Klipper's answer to a profile saved for the session (its two lines).
@@ -373,14 +369,17 @@ fn calibrate(
     bm: &BedMeshOut,
     raw: &str,
     out: &mut Vec<String>,
-) -> Result<(), String> {
+) -> Result<(), HomingError> {
     let Some(probe) = ctx.machine.probe.clone() else {
-        return Err("BED_MESH_CALIBRATE needs a probe".to_string());
+        return Err(LevelingError::NeedsProbe {
+            name: "BED_MESH_CALIBRATE".to_string(),
+        }
+        .into());
     };
     let cp = CalibrateParams::parse(&bm.cfg, raw)?;
     let pp = ProbeParams::parse(&probe.cfg, raw, probe.cfg.samples)?;
     if !ctx.pipeline.gcode_state().homed().iter().all(|&h| h) {
-        return Err("Must home axes first".to_string());
+        return Err(LevelingError::NotHomed.into());
     }
     set_active(ctx, bm, None);
     let points = cp.grid.points();
@@ -401,15 +400,12 @@ fn calibrate(
         }
         Ok(heights)
     })?;
-    let mut matrix = cp
-        .grid
-        .matrix(&heights)
-        .ok_or_else(|| "bed_mesh: a row of the mesh has no probe point".to_string())?;
-    let mut mesh = ZMesh::new(cp.mesh_params(), matrix.clone()).map_err(|e| e.to_string())?;
+    let mut matrix = cp.grid.matrix(&heights).ok_or(LevelingError::EmptyRow)?;
+    let mut mesh = ZMesh::new(cp.mesh_params(), matrix.clone()).map_err(LevelingError::from)?;
     if let Some([x, y]) = bm.cfg.zero_reference_position {
         let z0 = mesh.calc_z(x, y);
         matrix.iter_mut().flatten().for_each(|v| *v -= z0);
-        mesh = ZMesh::new(cp.mesh_params(), matrix).map_err(|e| e.to_string())?;
+        mesh = ZMesh::new(cp.mesh_params(), matrix).map_err(LevelingError::from)?;
     }
     out.push(latency_line(
         "bed_mesh",
@@ -417,7 +413,7 @@ fn calibrate(
     ));
     out.push("Mesh Bed Leveling Complete".to_string());
     {
-        let mut s = bm.state.lock().map_err(|_| "bed_mesh: state lost".to_string())?;
+        let mut s = bm.state.lock().map_err(|_| LevelingError::MeshStateLost)?;
         save_profile(&mut s, &cp.profile, &mesh);
     }
     out.extend(saved_message(&cp.profile));
@@ -548,7 +544,7 @@ mod tests {
 
     #[test]
     fn bad_calibrate_parameters_are_named() {
-        let e = |raw: &str| CalibrateParams::parse(&rect(), raw).unwrap_err();
+        let e = |raw: &str| CalibrateParams::parse(&rect(), raw).unwrap_err().to_string();
         assert_eq!(
             e("BED_MESH_CALIBRATE METHOD=manual"),
             "Error on 'BED_MESH_CALIBRATE METHOD=manual': only METHOD=automatic (the probe) is supported"
@@ -566,6 +562,7 @@ mod tests {
         assert!(
             CalibrateParams::parse(&round, "BED_MESH_CALIBRATE ROUND_PROBE_COUNT=4")
                 .unwrap_err()
+                .to_string()
                 .contains("must be odd")
         );
     }

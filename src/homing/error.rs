@@ -123,14 +123,17 @@ pub enum HomingError {
     /// A probe or BLTouch command on a printer without that section.
     #[error("Unknown command: {name} (the printer config has no [{section}] section)")]
     NoSection { name: String, section: &'static str },
-    /// PROBE: the samples spread more than `samples_tolerance`, retries exhausted.
     /// A bed levelling command (`BED_MESH_*`, `Z_TILT_ADJUST`, `QUAD_GANTRY_LEVEL`,
-    /// `SCREWS_TILT_CALCULATE`…), in Klipper's words.
-    #[error("{0}")]
-    Leveling(String),
-    /// A TMC driver's command or register traffic (crate::tmc words the problem).
-    #[error("{0}")]
-    Tmc(String),
+    /// `SCREWS_TILT_CALCULATE`…) failed for a reason of its own.
+    #[error(transparent)]
+    Leveling(#[from] LevelingError),
+    /// A TMC driver's command or register traffic.
+    #[error(transparent)]
+    Tmc(#[from] crate::tmc::TmcError),
+    /// A sensorless endstop whose driver is not among the printer's TMC drivers (a bug).
+    #[error("sensorless endstop without its driver")]
+    NoSensorlessDriver,
+    /// PROBE: the samples spread more than `samples_tolerance`, retries exhausted.
     #[error("Probe samples exceed samples_tolerance")]
     SamplesOutOfTolerance,
     /// PROBE before Z is homed.
@@ -186,11 +189,76 @@ pub enum ParamProblem {
     TooLarge { key: String },
     #[error("SAMPLES_RESULT must be median or average, got '{value}'")]
     SamplesResult { value: String },
+    #[error("{key} must be 'X,Y', got '{value}'")]
+    NotPair { key: String, value: String },
+    #[error("only METHOD=automatic (the probe) is supported")]
+    OnlyAutomatic,
+    #[error("ADAPTIVE meshes are not supported by Cadence yet")]
+    Adaptive,
+    #[error("PROBE_COUNT must be whole numbers from 3 to 99")]
+    ProbeCount,
+    #[error("ROUND_PROBE_COUNT must be odd, from 3 to 99")]
+    RoundProbeCount,
+    #[error("MESH_MAX must be above MESH_MIN")]
+    MeshMaxBelowMin,
+    #[error("ALGORITHM must be lagrange or bicubic, got '{value}'")]
+    Algorithm { value: String },
+    #[error("give LOAD=, SAVE= or REMOVE= and a profile name")]
+    ProfileAction,
+    #[error("DIRECTION must be CW or CCW, got '{value}'")]
+    Direction { value: String },
 }
 
-/// The older string-typed layers' view (the message as shown).
-impl From<HomingError> for String {
-    fn from(e: HomingError) -> String {
-        e.to_string()
-    }
+/// Why a bed levelling command failed for a reason of its own (its probing and moves fail
+/// with the other [`HomingError`]s), in Klipper's words where it has them.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum LevelingError {
+    /// The command probes, the printer has no `[probe]`/`[bltouch]`.
+    #[error("{name} needs a probe")]
+    NeedsProbe { name: String },
+    /// Levelling before every axis is homed.
+    #[error("Must home axes first")]
+    NotHomed,
+    /// The mesh state's lock was poisoned (a thread panicked holding it).
+    #[error("bed_mesh: state lost")]
+    MeshStateLost,
+    /// `BED_MESH_PROFILE LOAD=`/`REMOVE=` of a profile that does not exist.
+    #[error("bed_mesh: Unknown profile [{name}]")]
+    UnknownProfile { name: String },
+    /// `BED_MESH_PROFILE SAVE=` without a mesh.
+    #[error("Unable to save to profile, the bed has not been probed")]
+    NotProbed,
+    /// A row of the probe grid without a probed point.
+    #[error("bed_mesh: a row of the mesh has no probe point")]
+    EmptyRow,
+    /// The probed heights do not make a mesh.
+    #[error(transparent)]
+    Mesh(#[from] planner::bed_mesh::MeshError),
+    /// `[z_tilt]`/`[quad_gantry_level]` with another number of `z_positions` than Z motors.
+    #[error("{name}: {motors} Z motors but {positions} motor positions")]
+    MotorCount {
+        name: String,
+        motors: usize,
+        positions: usize,
+    },
+    /// The probed range stayed above `retry_tolerance` for every retry.
+    #[error("Too many retries")]
+    TooManyRetries,
+    /// The probe points do not determine a plane (or surface).
+    #[error("{name}: the probe points do not span the bed")]
+    NoSpan { name: String },
+    /// A quad gantry correction above `max_adjust`.
+    #[error(
+        "Aborting quad_gantry_level required adjustment {adjust:.6} is greater than max_adjust {max:.6}"
+    )]
+    MaxAdjust { adjust: f64, max: f64 },
+    /// `BED_SCREWS_ADJUST`, an interactive tool.
+    #[error(
+        "BED_SCREWS_ADJUST is an interactive tool (ACCEPT/ADJUSTED between screws): not supported by Cadence yet; \
+         use [screws_tilt_adjust] and SCREWS_TILT_CALCULATE"
+    )]
+    BedScrewsInteractive,
+    /// `SCREWS_TILT_CALCULATE MAX_DEVIATION=`: a screw farther than that from the base.
+    #[error("bed level exceeds configured limits ({max}mm)! Adjust screws and restart print.")]
+    ExceedsLimits { max: f64 },
 }

@@ -63,7 +63,7 @@ pub mod procedure;
 pub mod screws;
 pub mod z_tilt;
 
-pub use error::{HomingError, ParamProblem, WiringError};
+pub use error::{HomingError, LevelingError, ParamProblem, WiringError};
 pub(crate) use pass::homing_pass;
 
 use std::fmt;
@@ -317,7 +317,13 @@ pub(crate) fn run_motion(
         // After the moves before it, as Klipper's print-time ordered register writes.
         MotionCmd::Tmc { name, raw } => wait_motion_done(ctx)
             .and_then(|()| {
-                crate::tmc::gcode::run(ctx.mcus, &ctx.machine.tmc, name, raw, out).map_err(HomingError::Tmc)
+                Ok(crate::tmc::gcode::run(
+                    ctx.mcus,
+                    &ctx.machine.tmc,
+                    name,
+                    raw,
+                    out,
+                )?)
             })
             .and_then(|()| resume_after_io(ctx))
             .map(|()| None),
@@ -531,15 +537,14 @@ fn sensorless_session(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisRep
     let drv = e
         .sensorless
         .and_then(|i| tmc.get(i))
-        .ok_or_else(|| HomingError::Tmc("sensorless endstop without its driver".to_string()))?;
-    let io = crate::tmc::gcode::io_for(ctx.mcus, tmc, &drv.cfg.stepper).map_err(HomingError::Tmc)?;
-    let saved = crate::tmc::sensorless::begin(&io).map_err(HomingError::Tmc)?;
+        .ok_or(HomingError::NoSensorlessDriver)?;
+    let io = crate::tmc::gcode::io_for(ctx.mcus, tmc, &drv.cfg.stepper)?;
+    let saved = crate::tmc::sensorless::begin(&io)?;
     let result = home_axis(ctx, e);
-    let io =
-        crate::tmc::gcode::io_for(ctx.mcus, &ctx.machine.tmc, &drv.cfg.stepper).map_err(HomingError::Tmc)?;
+    let io = crate::tmc::gcode::io_for(ctx.mcus, &ctx.machine.tmc, &drv.cfg.stepper)?;
     let restored = crate::tmc::sensorless::end(&io, saved);
     let report = result?;
-    restored.map_err(HomingError::Tmc)?;
+    restored?;
     resume_after_io(ctx)?;
     Ok(report)
 }

@@ -27,12 +27,7 @@ pub(crate) fn homing_pass(
 ) -> Result<(PassReport, Vec<String>), HomingError> {
     let axis = e.axis;
     let axis_name = AXIS_NAMES[axis];
-    if let Some(kinematics) = unsupported_kinematics(&ctx.machine.options.kinematics) {
-        return Err(HomingError::UnsupportedKinematics {
-            axis: axis_name,
-            kinematics,
-        });
-    }
+    check_kinematics(ctx, axis_name)?;
     // From before the move is queued until the stop is read back: no CPU halts meanwhile.
     let _idle_poll = ctx.rt.start_idle_poll();
     wait_motion_done(ctx)?;
@@ -66,13 +61,7 @@ pub(crate) fn homing_pass(
         _ => Ok(None),
     };
     let after: Result<Vec<i64>, HomingError> = g.idxs.iter().map(|&i| stepper_position(ctx, i)).collect();
-    // The relay to the axis steppers' MCU (written by now: `restop` waited for its link).
-    let stepper_mcu = &ctx.machine.steppers[g.idxs[0]].mcu;
-    let relay_written_at = g
-        .names
-        .iter()
-        .position(|n| n == stepper_mcu && *n != e.pin.mcu)
-        .and_then(|i| group.trigger_written_at(i));
+    let relay_written_at = relay_written_at(ctx, &g, e, &group);
     group.close();
     quiet(&g.conns);
     let primary_error = pass_error(ctx, outcome, axis_name, kind);
@@ -120,6 +109,29 @@ pub(crate) fn homing_pass(
         },
         g.names,
     ))
+}
+
+/// Refuses a pass on kinematics whose axes do not home one at a time (delta).
+fn check_kinematics(ctx: &HomingCtx<'_>, axis: char) -> Result<(), HomingError> {
+    match unsupported_kinematics(&ctx.machine.options.kinematics) {
+        Some(kinematics) => Err(HomingError::UnsupportedKinematics { axis, kinematics }),
+        None => Ok(()),
+    }
+}
+
+/// When the host wrote the trigger's relay to the axis steppers' MCU (written by now:
+/// `restop` waited for its link); `None` with the endstop on that MCU.
+fn relay_written_at(
+    ctx: &HomingCtx<'_>,
+    g: &PassGroup<'_>,
+    e: &EndstopOut,
+    group: &TriggerGroup,
+) -> Option<f64> {
+    let stepper_mcu = &ctx.machine.steppers[g.idxs[0]].mcu;
+    g.names
+        .iter()
+        .position(|n| n == stepper_mcu && *n != e.pin.mcu)
+        .and_then(|i| group.trigger_written_at(i))
 }
 
 /// Where the pass's move heads: G28 pretends the toolhead starts at `start` (and sets it

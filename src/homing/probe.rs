@@ -78,7 +78,8 @@ pub struct ProbeParams {
 }
 
 /// Parameter `problem` of command `raw`.
-fn bad(raw: &str, problem: ParamProblem) -> HomingError {
+/// A bad parameter of command line `raw`.
+pub(crate) fn bad(raw: &str, problem: ParamProblem) -> HomingError {
     HomingError::BadParameter {
         raw: raw.to_string(),
         problem,
@@ -210,13 +211,13 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
         return super::bltouch::run_command(ctx, name, raw, out);
     }
     if super::bed_mesh::COMMANDS.contains(&name) {
-        return super::bed_mesh::run(ctx, name, raw, out).map_err(HomingError::Leveling);
+        return super::bed_mesh::run(ctx, name, raw, out);
     }
     if super::z_tilt::COMMANDS.contains(&name) {
-        return super::z_tilt::run(ctx, name, raw, out).map_err(HomingError::Leveling);
+        return super::z_tilt::run(ctx, name, raw, out);
     }
     if super::screws::COMMANDS.contains(&name) {
-        return super::screws::run(ctx, name, raw, out).map_err(HomingError::Leveling);
+        return super::screws::run(ctx, name, raw, out);
     }
     let Some(probe) = ctx.machine.probe.clone() else {
         return Err(HomingError::NoSection {

@@ -22,6 +22,14 @@ pub struct HomingProcedure {
     pub homing_override: Option<HomingOverrideSection>,
 }
 
+/// Why the procedure itself refused to go on.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ProcedureError {
+    /// `[safe_z_home]`: Z homes only after X and Y.
+    #[error("Must home X and Y axes first")]
+    XyNotHomed,
+}
+
 /// What the procedure needs of the printer.
 pub(crate) trait HomeOps {
     /// Why one of the printer's operations failed (the procedure's own errors too).
@@ -39,7 +47,7 @@ pub(crate) trait HomeOps {
     /// Runs the `[homing_override]` script with the G28's raw parameters.
     fn run_override(&mut self, rawparams: &str) -> Result<(), Self::Error>;
     /// The procedure's own error `why`, located as the printer reports errors.
-    fn fail(&self, why: &str) -> Self::Error;
+    fn fail(&self, why: ProcedureError) -> Self::Error;
 }
 
 impl HomingProcedure {
@@ -107,7 +115,7 @@ fn safe_z_home<O: HomeOps>(s: &SafeZHomeSection, axes: [bool; 3], ops: &mut O) -
     if need[2] {
         let homed = ops.homed();
         if !(homed[0] && homed[1]) {
-            return Err(ops.fail("Must home X and Y axes first"));
+            return Err(ops.fail(ProcedureError::XyNotHomed));
         }
         let previous = ops.position();
         let mut pos = previous;
@@ -152,7 +160,7 @@ mod tests {
     }
 
     impl HomeOps for Recorder {
-        type Error = String;
+        type Error = ProcedureError;
         fn homed(&self) -> [bool; 3] {
             self.homed
         }
@@ -183,8 +191,8 @@ mod tests {
             self.log.push(format!("script '{rawparams}'"));
             Ok(())
         }
-        fn fail(&self, why: &str) -> String {
-            why.to_string()
+        fn fail(&self, why: ProcedureError) -> ProcedureError {
+            why
         }
     }
 
@@ -201,7 +209,7 @@ mod tests {
         }
     }
 
-    fn run(p: &HomingProcedure, r: &mut Recorder, axes: [bool; 3]) -> Result<Vec<String>, String> {
+    fn run(p: &HomingProcedure, r: &mut Recorder, axes: [bool; 3]) -> Result<Vec<String>, ProcedureError> {
         r.log.clear();
         p.g28(axes, r)?;
         Ok(r.log.clone())
@@ -245,7 +253,7 @@ mod tests {
         let mut r = Recorder::default();
         assert_eq!(
             run(&p, &mut r, [false, false, true]),
-            Err("Must home X and Y axes first".to_string())
+            Err(ProcedureError::XyNotHomed)
         );
         r.homed = [true, true, false];
         r.pos = [5.0, 6.0, 7.0, 0.0];

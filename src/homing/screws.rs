@@ -11,8 +11,8 @@
 
 use sysconfig::printer::{ScrewThread, ScrewsSection};
 
-use super::probe::{lift, param, run_probe, ProbeParams};
-use super::{plain_move, HomingCtx};
+use super::probe::{bad, lift, param, run_probe, ProbeParams};
+use super::{plain_move, HomingCtx, HomingError, LevelingError, ParamProblem};
 
 /// The G-code commands this module runs.
 pub const COMMANDS: [&str; 2] = ["SCREWS_TILT_CALCULATE", "BED_SCREWS_ADJUST"];
@@ -49,15 +49,15 @@ pub fn report(cfg: &ScrewsSection, z: &[f64], base: usize) -> Vec<String> {
 
 /// The base screw: `screw1`, or for `DIRECTION` the one every other screw turns away from in
 /// that direction (the highest for CW on a clockwise thread, the lowest for CCW).
-pub fn base_screw(z: &[f64], direction: Option<&str>, thread: ScrewThread) -> Result<usize, String> {
+pub fn base_screw(z: &[f64], direction: Option<&str>, thread: ScrewThread) -> Result<usize, ParamProblem> {
     let pick_max = match direction.map(str::to_ascii_uppercase).as_deref() {
         None => return Ok(0),
         Some("CW") => thread.clockwise,
         Some("CCW") => !thread.clockwise,
         Some(other) => {
-            return Err(format!(
-                "Error on 'SCREWS_TILT_CALCULATE': DIRECTION must be CW or CCW, got '{other}'"
-            ))
+            return Err(ParamProblem::Direction {
+                value: other.to_string(),
+            })
         }
     };
     let mut best = 0;
@@ -71,25 +71,25 @@ pub fn base_screw(z: &[f64], direction: Option<&str>, thread: ScrewThread) -> Re
 }
 
 /// Runs `name` written as `raw`; its output lines go to `out`.
-pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>) -> Result<(), String> {
+pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>) -> Result<(), HomingError> {
+    let no_section = |section| HomingError::NoSection {
+        name: name.to_string(),
+        section,
+    };
     if name == "BED_SCREWS_ADJUST" {
         return match ctx.machine.bed_screws {
-            None => Err("Unknown command: BED_SCREWS_ADJUST (the printer config has no [bed_screws] section)".to_string()),
-            Some(_) => Err(
-                "BED_SCREWS_ADJUST is an interactive tool (ACCEPT/ADJUSTED between screws): not supported by Cadence yet; \
-                 use [screws_tilt_adjust] and SCREWS_TILT_CALCULATE"
-                    .to_string(),
-            ),
+            None => Err(no_section("bed_screws")),
+            Some(_) => Err(LevelingError::BedScrewsInteractive.into()),
         };
     }
     let Some(cfg) = ctx.machine.screws_tilt_adjust.clone() else {
-        return Err(
-            "Unknown command: SCREWS_TILT_CALCULATE (the printer config has no [screws_tilt_adjust] section)"
-                .to_string(),
-        );
+        return Err(no_section("screws_tilt_adjust"));
     };
     let Some(probe) = ctx.machine.probe.clone() else {
-        return Err("SCREWS_TILT_CALCULATE needs a probe".to_string());
+        return Err(LevelingError::NeedsProbe {
+            name: name.to_string(),
+        }
+        .into());
     };
     let max_dev = match param(raw, "MAX_DEVIATION") {
         None => None,
@@ -97,13 +97,16 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
             v.parse::<f64>()
                 .ok()
                 .filter(|x| x.is_finite() && *x >= 0.0)
-                .ok_or_else(|| format!("Error on '{raw}': unable to parse '{v}' for MAX_DEVIATION"))?,
+                .ok_or_else(|| {
+                    let (value, key) = (v.clone(), "MAX_DEVIATION".to_string());
+                    bad(raw, ParamProblem::Unparsable { value, key })
+                })?,
         ),
     };
     let direction = param(raw, "DIRECTION");
     let pp = ProbeParams::parse(&probe.cfg, raw, probe.cfg.samples)?;
     if !ctx.pipeline.gcode_state().homed().iter().all(|&h| h) {
-        return Err("Must home axes first".to_string());
+        return Err(LevelingError::NotHomed.into());
     }
     let z = super::bltouch::session(ctx, |ctx| {
         lift(ctx, cfg.horizontal_move_z, probe.cfg.lift_speed)?;
@@ -119,13 +122,12 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
         }
         Ok(z)
     })?;
-    let base = base_screw(&z, direction.as_deref(), cfg.thread)?;
+    let base =
+        base_screw(&z, direction.as_deref(), cfg.thread).map_err(|p| bad("SCREWS_TILT_CALCULATE", p))?;
     out.extend(report(&cfg, &z, base));
     if let Some(max) = max_dev {
         if z.iter().any(|v| (v - z[base]).abs() > max) {
-            return Err(format!(
-                "bed level exceeds configured limits ({max}mm)! Adjust screws and restart print."
-            ));
+            return Err(LevelingError::ExceedsLimits { max }.into());
         }
     }
     Ok(())
@@ -184,6 +186,7 @@ mod tests {
         assert_eq!(base_screw(&z, Some("CCW"), t), Ok(2));
         assert!(base_screw(&z, Some("up"), t)
             .unwrap_err()
+            .to_string()
             .contains("DIRECTION must be CW or CCW"));
         // With the CW base every other screw turns CW.
         for (i, &v) in z.iter().enumerate().filter(|(i, _)| *i != 1) {

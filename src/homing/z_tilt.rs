@@ -14,56 +14,62 @@
 
 use planner::bed_mesh::tilt::{motor_adjustments, quad_adjustments};
 
-use super::error::HomingError;
-use super::probe::{lift, param, run_probe, ProbeParams};
+use super::error::{HomingError, LevelingError, ParamProblem};
+use super::probe::{bad, lift, param, run_probe, ProbeParams};
 use super::{plain_move, wait_motion_done, HomingCtx};
 
 /// The G-code commands this module runs.
 pub const COMMANDS: [&str; 2] = ["Z_TILT_ADJUST", "QUAD_GANTRY_LEVEL"];
 
-fn num(raw: &str, key: &str, default: f64, min: f64) -> Result<f64, String> {
-    let Some(v) = param(raw, key) else {
+fn num(raw: &str, key: &str, default: f64, min: f64) -> Result<f64, HomingError> {
+    let Some(value) = param(raw, key) else {
         return Ok(default);
     };
-    match v.parse::<f64>() {
+    let key = key.to_string();
+    match value.parse::<f64>() {
         Ok(x) if x.is_finite() && x >= min => Ok(x),
-        Ok(_) => Err(format!("Error on '{raw}': {key} must have minimum of {min}")),
-        Err(_) => Err(format!("Error on '{raw}': unable to parse '{v}' for {key}")),
+        Ok(_) => Err(bad(raw, ParamProblem::BelowMinimum { key, min })),
+        Err(_) => Err(bad(raw, ParamProblem::Unparsable { value, key })),
     }
 }
 
 /// Runs `Z_TILT_ADJUST` or `QUAD_GANTRY_LEVEL` (`name`) `[RETRIES=] [RETRY_TOLERANCE=]
 /// [HORIZONTAL_MOVE_Z=]` (and the probe's sample parameters); its output lines go to `out`.
-pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>) -> Result<(), String> {
+pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>) -> Result<(), HomingError> {
     let quad = name == "QUAD_GANTRY_LEVEL";
     let (cfg, who) = match quad {
         true => (ctx.machine.quad_gantry_level.clone(), "quad_gantry_level"),
         false => (ctx.machine.z_tilt.clone(), "z_tilt"),
     };
     let Some(zt) = cfg else {
-        return Err(format!(
-            "Unknown command: {name} (the printer config has no [{who}] section)"
-        ));
+        return Err(HomingError::NoSection {
+            name: name.to_string(),
+            section: who,
+        });
     };
     let Some(probe) = ctx.machine.probe.clone() else {
-        return Err(format!("{name} needs a probe"));
+        return Err(LevelingError::NeedsProbe {
+            name: name.to_string(),
+        }
+        .into());
     };
     let retries = num(raw, "RETRIES", f64::from(zt.retries), 0.0)? as u32;
     let tolerance = num(raw, "RETRY_TOLERANCE", zt.retry_tolerance, 0.0)?;
     let hmz = num(raw, "HORIZONTAL_MOVE_Z", zt.horizontal_move_z, f64::NEG_INFINITY)?;
     let pp = ProbeParams::parse(&probe.cfg, raw, probe.cfg.samples)?;
     if !ctx.pipeline.gcode_state().homed().iter().all(|&h| h) {
-        return Err("Must home axes first".to_string());
+        return Err(LevelingError::NotHomed.into());
     }
     let motors: Vec<usize> = (0..ctx.machine.steppers.len())
         .filter(|&i| ctx.machine.steppers[i].axis == 2)
         .collect();
     if motors.len() != zt.z_positions.len() {
-        return Err(format!(
-            "{name}: {} Z motors but {} motor positions",
-            motors.len(),
-            zt.z_positions.len()
-        ));
+        return Err(LevelingError::MotorCount {
+            name: name.to_string(),
+            motors: motors.len(),
+            positions: zt.z_positions.len(),
+        }
+        .into());
     }
     let offset = [probe.cfg.x_offset, probe.cfg.y_offset];
     let first_pass = ctx.probe_passes.len();
@@ -92,20 +98,19 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
                     return Ok(());
                 }
                 if attempt >= retries {
-                    return Err(HomingError::Leveling("Too many retries".to_string()));
+                    return Err(LevelingError::TooManyRetries.into());
                 }
             }
             let adj = match quad {
                 true => quad_adjustments(&probed, &zt.z_positions),
                 false => motor_adjustments(&probed, &zt.z_positions),
             }
-            .ok_or_else(|| HomingError::Leveling(format!("{name}: the probe points do not span the bed")))?;
+            .ok_or_else(|| LevelingError::NoSpan {
+                name: name.to_string(),
+            })?;
             if let Some(max) = zt.max_adjust {
                 if let Some(a) = adj.iter().find(|a| a.abs() > max) {
-                    return Err(HomingError::Leveling(format!(
-                        "Aborting quad_gantry_level required adjustment {:.6} is greater than max_adjust {max:.6}",
-                        a.abs()
-                    )));
+                    return Err(LevelingError::MaxAdjust { adjust: a.abs(), max }.into());
                 }
             }
             out.push("Making the following Z adjustments:".to_string());
@@ -113,15 +118,14 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
                 out.push(format!("{} = {a:.6}", ctx.machine.steppers[i].name));
             }
             for (k, a) in adj.iter().enumerate() {
-                move_alone(ctx, &motors, k, *a, zt.speed).map_err(HomingError::Leveling)?;
+                move_alone(ctx, &motors, k, *a, zt.speed)?;
             }
             attempt += 1;
             if retries == 0 {
                 return Ok(());
             }
         }
-    })
-    .map_err(|e| e.to_string())?;
+    })?;
     let passes = &ctx.probe_passes[first_pass.min(ctx.probe_passes.len())..];
     out.push(super::bed_mesh::latency_line(who, passes));
     Ok(())
@@ -135,14 +139,14 @@ fn move_alone(
     k: usize,
     dz: f64,
     speed: f64,
-) -> Result<(), String> {
+) -> Result<(), HomingError> {
     if dz == 0.0 {
         return Ok(());
     }
     wait_motion_done(ctx)?;
     let home = ctx.pipeline.position();
     let others: Vec<usize> = motors.iter().copied().filter(|&i| i != motors[k]).collect();
-    ctx.pipeline.freeze_lanes(&others).map_err(|e| e.to_string())?;
+    ctx.pipeline.freeze_lanes(&others)?;
     let mut to = home;
     to[2] += dz;
     let moved = plain_move(ctx, to, speed).and_then(|()| wait_motion_done(ctx));
@@ -153,9 +157,7 @@ fn move_alone(
         .filter_map(|&i| Some((i, ctx.pipeline.stepper_position(i)?)))
         .collect();
     let t = ctx.pipeline.toolhead_print_time();
-    ctx.pipeline
-        .resync_after_stop(t, home, &stopped)
-        .map_err(|e| e.to_string())
+    Ok(ctx.pipeline.resync_after_stop(t, home, &stopped)?)
 }
 
 #[cfg(test)]
@@ -164,6 +166,9 @@ mod tests {
 
     #[test]
     fn parameters() {
+        let num = |raw: &str, key: &str, default: f64, min: f64| {
+            num(raw, key, default, min).map_err(|e| e.to_string())
+        };
         assert_eq!(num("Z_TILT_ADJUST RETRIES=3", "RETRIES", 0.0, 0.0), Ok(3.0));
         assert_eq!(num("Z_TILT_ADJUST", "RETRIES", 2.0, 0.0), Ok(2.0));
         assert_eq!(

@@ -375,26 +375,13 @@ fn serve_print(
                 Ok(Turn::Go) => {}
                 Ok(Turn::Finish(f)) => {
                     let io_report = stop_io(io)?;
-                    ctx.log.log(
-                        Level::Info,
-                        "serve: all batches taken, waiting for the MCU: batches, end clock",
-                        [Arg::U(f.batches), Arg::U(f.end_clock)],
-                    );
-                    fill_done(ctx, f.end_clock, io_report.batches, report)?;
-                    report.send(status, io_state::DONE, "")?;
-                    hists.publish(
-                        &mut chans.telemetry,
-                        started.elapsed().as_nanos() as u64,
-                        latency::LEAD_SOURCE,
-                    );
-                    ctx.log.log(Level::Info, "serve: print done", []);
-                    // Keep the DONE sample alive until the planner has read it.
-                    wait_for_ack(&mut chans.control, ctx.log);
-                    return Ok(ServedReport {
-                        batches: io_report.batches,
-                        allocations_after_warmup: io_report.allocations_after_warmup,
-                        clock_freq,
-                    });
+                    let end = Served {
+                        status: &mut *status,
+                        report: &mut *report,
+                        chans: &mut chans,
+                        started,
+                    };
+                    return end.finish(ctx, &f, &io_report, clock_freq);
                 }
                 Ok(Turn::IoEnded) => {
                     // The IO stage only ends on its own with an error (or after `done`).
@@ -411,6 +398,47 @@ fn serve_print(
             }
         }
     })
+}
+
+/// The ends of a served print the planner reads its outcome from.
+struct Served<'a> {
+    status: &'a mut ShmPublisher<Ipc, IoStatus>,
+    report: &'a mut StatusReport,
+    chans: &'a mut Chans,
+    started: Instant,
+}
+
+impl Served<'_> {
+    /// The planner's FINISH (`f`) with every batch taken: waits for the MCU, publishes DONE
+    /// with the final positions and the last telemetry, and keeps DONE until it was read.
+    fn finish(
+        self,
+        ctx: &ServeCtx<'_>,
+        f: &IoControl,
+        io_report: &io_stage::IoReport,
+        clock_freq: f64,
+    ) -> Result<ServedReport, IoProcessError> {
+        ctx.log.log(
+            Level::Info,
+            "serve: all batches taken, waiting for the MCU: batches, end clock",
+            [Arg::U(f.batches), Arg::U(f.end_clock)],
+        );
+        fill_done(ctx, f.end_clock, io_report.batches, self.report)?;
+        self.report.send(self.status, io_state::DONE, "")?;
+        ctx.hists.publish(
+            &mut self.chans.telemetry,
+            self.started.elapsed().as_nanos() as u64,
+            latency::LEAD_SOURCE,
+        );
+        ctx.log.log(Level::Info, "serve: print done", []);
+        // Keep the DONE sample alive until the planner has read it.
+        wait_for_ack(&mut self.chans.control, ctx.log);
+        Ok(ServedReport {
+            batches: io_report.batches,
+            allocations_after_warmup: io_report.allocations_after_warmup,
+            clock_freq,
+        })
+    }
 }
 
 /// Publishes the MCU info and the first clocks, opens the control and telemetry channels.

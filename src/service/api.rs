@@ -21,6 +21,7 @@ use serde_json::{json, Map, Value};
 
 use super::framing::{encode, parse_request, Framer, Request};
 use super::objects::{self, Snapshot, SystemFacts};
+use super::reply::ReplyError;
 use super::worker::{Asker, Job, ToApi};
 use super::Shared;
 
@@ -125,13 +126,13 @@ impl Client {
         }
     }
 
-    fn reply(&mut self, id: &Option<Value>, result: Result<Value, String>) {
+    fn reply(&mut self, id: &Option<Value>, result: Result<Value, ReplyError>) {
         let Some(id) = id else {
             return;
         };
         let msg = match result {
             Ok(r) => json!({"id": id, "result": r}),
-            Err(message) => json!({"id": id, "error": {"error": "WebRequestError", "message": message}}),
+            Err(e) => json!({"id": id, "error": {"error": "WebRequestError", "message": e.to_string()}}),
         };
         self.send(&msg);
     }
@@ -290,7 +291,7 @@ impl Server<'_> {
                 Err((id, e)) => {
                     eprintln!("cadence serve: API client {}: {e}", self.clients[idx].id);
                     let id = Some(id.unwrap_or(Value::Null));
-                    self.clients[idx].reply(&id, Err(e.to_string()));
+                    self.clients[idx].reply(&id, Err(e.into()));
                 }
             }
         }
@@ -320,7 +321,7 @@ impl Server<'_> {
             id: id.clone(),
             via: None,
         };
-        let result: Result<Value, String> = match method.as_str() {
+        let result: Result<Value, ReplyError> = match method.as_str() {
             "info" => Ok(self.info()),
             "list_endpoints" => Ok(json!({"endpoints": ENDPOINTS})),
             "emergency_stop" => {
@@ -339,9 +340,9 @@ impl Server<'_> {
                         });
                         Ok(json!({}))
                     }
-                    (None, _) => Err("Missing Argument [response_template]".into()),
-                    (Some(_), None) => Err("Missing Argument [remote_method]".into()),
-                    _ => Err("Invalid Argument Type [remote_method]".into()),
+                    (None, _) => Err(ReplyError::MissingArgument("response_template")),
+                    (Some(_), None) => Err(ReplyError::MissingArgument("remote_method")),
+                    _ => Err(ReplyError::InvalidArgumentType("remote_method")),
                 }
             }
             "objects/list" => {
@@ -358,8 +359,8 @@ impl Server<'_> {
                     });
                     return;
                 }
-                None => Err("Missing Argument [script]".into()),
-                Some(_) => Err("Invalid Argument Type [script]".into()),
+                None => Err(ReplyError::MissingArgument("script")),
+                Some(_) => Err(ReplyError::InvalidArgumentType("script")),
             },
             "pause_resume/pause" | "pause_resume/resume" | "pause_resume/cancel" => {
                 let text = match method.as_str() {
@@ -386,9 +387,9 @@ impl Server<'_> {
                     self.clients[idx].output_template = Some(t.clone());
                     Ok(json!({}))
                 }
-                Some(_) => Err("Invalid Argument Type [response_template]".into()),
+                Some(_) => Err(ReplyError::InvalidArgumentType("response_template")),
             },
-            other => Err(format!("webhooks: No registered callback for path '{other}'")),
+            other => Err(ReplyError::NoCallback(other.to_string())),
         };
         self.clients[idx].reply(&id, result);
     }
@@ -430,11 +431,16 @@ impl Server<'_> {
 
     /// `objects/query` and `objects/subscribe`: the fields asked for now; a subscription
     /// then gets the changed ones every 250 ms.
-    fn query(&mut self, idx: usize, params: &Map<String, Value>, subscribe: bool) -> Result<Value, String> {
+    fn query(
+        &mut self,
+        idx: usize,
+        params: &Map<String, Value>,
+        subscribe: bool,
+    ) -> Result<Value, ReplyError> {
         let asked = match params.get("objects") {
             Some(Value::Object(o)) => o,
-            None => return Err("Missing Argument [objects]".into()),
-            Some(_) => return Err("Invalid Argument Type [objects]".into()),
+            None => return Err(ReplyError::MissingArgument("objects")),
+            Some(_) => return Err(ReplyError::InvalidArgumentType("objects")),
         };
         let mut wanted = BTreeMap::new();
         for (name, fields) in asked {
@@ -444,16 +450,16 @@ impl Server<'_> {
                     list.iter()
                         .map(|f| f.as_str().map(str::to_string))
                         .collect::<Option<Vec<String>>>()
-                        .ok_or("Invalid argument")?,
+                        .ok_or(ReplyError::InvalidArgument)?,
                 ),
-                _ => return Err("Invalid argument".into()),
+                _ => return Err(ReplyError::InvalidArgument),
             };
             wanted.insert(name.clone(), fields);
         }
         let template = match params.get("response_template") {
             None => Map::new(),
             Some(Value::Object(t)) => t.clone(),
-            Some(_) => return Err("Invalid Argument Type [response_template]".into()),
+            Some(_) => return Err(ReplyError::InvalidArgumentType("response_template")),
         };
         let all = self.snapshot_all();
         let mut status = Map::new();

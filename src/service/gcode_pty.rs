@@ -126,7 +126,7 @@ fn serve_lines(reader: impl BufRead, mut writer: impl Write, jobs: &Sender<Job>,
         };
         let out = match reply {
             Ok(()) => "ok\n".to_string(),
-            Err(e) => format!("!! {}\nok\n", e.lines().next().unwrap_or("")),
+            Err(e) => format!("!! {}\nok\n", e.to_string().lines().next().unwrap_or("")),
         };
         if writer.write_all(out.as_bytes()).is_err() {
             return;
@@ -146,7 +146,8 @@ mod tests {
             for job in jobs_rx {
                 if let Job::Script { text, asker } = job {
                     let r = if text == "BAD" {
-                        Err("Unknown command:\"BAD\"\nmore".to_string())
+                        let message = "Unknown command:\"BAD\"\nmore".to_string();
+                        Err(crate::printer::PrinterError::Command { message }.into())
                     } else {
                         Ok(serde_json::json!({}))
                     };

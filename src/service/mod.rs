@@ -14,6 +14,7 @@ pub mod api;
 pub mod framing;
 pub mod gcode_pty;
 pub mod objects;
+pub mod reply;
 pub mod sdcard;
 pub mod worker;
 

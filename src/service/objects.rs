@@ -295,6 +295,39 @@ pub fn all(s: &Snapshot<'_>) -> Map<String, Value> {
         })
         .unwrap_or_default();
     let printing = matches!(status.map(|st| &st.state), Some(PrinterState::Printing));
+    out.insert("toolhead".into(), toolhead(s, position, homed_axes));
+    if let Some(m) = status.and_then(|st| st.bed_mesh.as_ref()) {
+        out.insert("bed_mesh".into(), bed_mesh(m));
+    }
+    out.insert(
+        "gcode_move".into(),
+        json!({"position": position, "gcode_position": position,
+               "homing_origin": [0.0, 0.0, 0.0, 0.0]}),
+    );
+    print_objects(&mut out, s.print, printing);
+    out.insert(
+        "system_stats".into(),
+        json!({"sysload": s.system.sysload, "cputime": s.system.cputime,
+               "memavail": s.system.memavail}),
+    );
+    out.insert(
+        "motion_report".into(),
+        json!({"live_position": position,
+               "steppers": s.config.map(|c| c.steppers.clone()).unwrap_or_default(),
+               "trapq": ["toolhead"]}),
+    );
+    out.insert("query_endstops".into(), json!({"last_query": {}}));
+    mcu_objects(&mut out, status.map(|st| st.mcus.as_slice()).unwrap_or(&[]));
+    out.insert("latency".into(), latency(s.latency.as_ref()));
+    if let Some(c) = s.config {
+        thermal(&mut out, &c.thermal, status);
+    }
+    out
+}
+
+/// The `toolhead` object: position, homed axes, times and the configured limits.
+fn toolhead(s: &Snapshot<'_>, position: [f64; 4], homed_axes: String) -> Value {
+    let status = s.status.as_ref();
     let print_time = status.map(|st| st.print_time).unwrap_or(0.0);
     let mut toolhead = json!({
         "homed_axes": homed_axes,
@@ -311,16 +344,12 @@ pub fn all(s: &Snapshot<'_>) -> Map<String, Value> {
         obj.insert("minimum_cruise_ratio".into(), json!(c.minimum_cruise_ratio));
         obj.insert("square_corner_velocity".into(), json!(c.square_corner_velocity));
     }
-    out.insert("toolhead".into(), toolhead);
-    if let Some(m) = status.and_then(|st| st.bed_mesh.as_ref()) {
-        out.insert("bed_mesh".into(), bed_mesh(m));
-    }
-    out.insert(
-        "gcode_move".into(),
-        json!({"position": position, "gcode_position": position,
-               "homing_origin": [0.0, 0.0, 0.0, 0.0]}),
-    );
-    let pr = s.print;
+    toolhead
+}
+
+/// The objects of the print job: `print_stats`, `virtual_sdcard`, `pause_resume`,
+/// `display_status` and `idle_timeout` (`printing`: the printer is printing).
+fn print_objects(out: &mut Map<String, Value>, pr: &PrintInfo, printing: bool) {
     out.insert(
         "print_stats".into(),
         json!({"filename": pr.filename, "total_duration": pr.total_duration(),
@@ -348,19 +377,11 @@ pub fn all(s: &Snapshot<'_>) -> Map<String, Value> {
         json!({"state": if printing || pr.is_active() { "Printing" } else { "Ready" },
                "printing_time": if pr.is_active() { pr.print_duration() } else { 0.0 }}),
     );
-    out.insert(
-        "system_stats".into(),
-        json!({"sysload": s.system.sysload, "cputime": s.system.cputime,
-               "memavail": s.system.memavail}),
-    );
-    out.insert(
-        "motion_report".into(),
-        json!({"live_position": position,
-               "steppers": s.config.map(|c| c.steppers.clone()).unwrap_or_default(),
-               "trapq": ["toolhead"]}),
-    );
-    out.insert("query_endstops".into(), json!({"last_query": {}}));
-    for (name, stats) in status.map(|st| st.mcus.as_slice()).unwrap_or(&[]) {
+}
+
+/// One `mcu` / `mcu NAME` object per MCU with its link statistics.
+fn mcu_objects(out: &mut Map<String, Value>, mcus: &[(String, links::mcu::LinkStats)]) {
+    for (name, stats) in mcus {
         let key = if name == "mcu" {
             "mcu".to_string()
         } else {
@@ -379,11 +400,6 @@ pub fn all(s: &Snapshot<'_>) -> Map<String, Value> {
                 "ready_bytes": q.ready_bytes, "freq": stats.clock_freq}}),
         );
     }
-    out.insert("latency".into(), latency(s.latency.as_ref()));
-    if let Some(c) = s.config {
-        thermal(&mut out, &c.thermal, status);
-    }
-    out
 }
 
 /// The thermal objects with Klipper's fields: heaters (`temperature`, `target`, `power`; the

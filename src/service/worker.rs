@@ -11,10 +11,11 @@ use std::time::Duration;
 use serde_json::Value;
 
 use crate::events::{Event, PrinterState};
-use crate::printer::{Printer, PrinterError, PrinterSource};
+use crate::printer::{Printer, PrinterSource};
 
 use super::objects::ConfigFacts;
-use super::sdcard::{PrintState, SdCard};
+use super::reply::ReplyError;
+use super::sdcard::{PrintState, SdCard, SdError};
 use super::{
     shutdown_message, ServiceOptions, ServiceState, Shared, HELP_ERROR, MESSAGE_READY, MESSAGE_STARTUP,
 };
@@ -25,11 +26,11 @@ use super::{
 pub struct Asker {
     pub client: u64,
     pub id: Option<Value>,
-    pub via: Option<Sender<Result<Value, String>>>,
+    pub via: Option<Sender<Result<Value, ReplyError>>>,
 }
 
 /// Answers `asker`.
-fn answer(to_api: &Sender<ToApi>, asker: Asker, result: Result<Value, String>) {
+fn answer(to_api: &Sender<ToApi>, asker: Asker, result: Result<Value, ReplyError>) {
     match &asker.via {
         Some(tx) => {
             let _ = tx.send(result);
@@ -55,7 +56,7 @@ pub enum ToApi {
     /// The answer to a request.
     Reply {
         asker: Asker,
-        result: Result<Value, String>,
+        result: Result<Value, ReplyError>,
     },
     /// A line of G-code output (`notify_gcode_response`).
     Output(String),
@@ -143,7 +144,8 @@ fn wait_failed(
         }
         match jobs.recv_timeout(left.min(Duration::from_millis(100))) {
             Ok(Job::Script { asker, .. }) => {
-                answer(to_api, asker, Err(message.to_string()));
+                let message = message.to_string();
+                answer(to_api, asker, Err(ReplyError::NotReady { message }));
             }
             Ok(Job::Restart { asker }) => {
                 *pending_restart = Some(asker);
@@ -166,15 +168,7 @@ fn serve_printer(
     sdcard_dir: Option<std::path::PathBuf>,
 ) -> Next {
     let handle = printer.handle();
-    if let Some(events) = printer.events() {
-        let out = to_api.clone();
-        let spawned = std::thread::Builder::new()
-            .name("serve-events".to_string())
-            .spawn(move || forward_events(&events, &out));
-        if let Err(e) = spawned {
-            eprintln!("cadence serve: G-code output will not be forwarded: {e}");
-        }
-    }
+    spawn_forwarder(&mut printer, to_api);
     let mcus: Vec<String> = printer.status().mcus.into_iter().map(|(n, _)| n).collect();
     let mut sd = SdCard::new(sdcard_dir.or_else(|| facts.sdcard.clone()));
     shared.set(|p| {
@@ -241,19 +235,7 @@ fn serve_printer(
         }
         shared.set(|p| p.print = ctx.sd.info.clone());
         if !shut_down {
-            if let PrinterState::Shutdown { reason } = handle.state() {
-                shut_down = true;
-                eprintln!("cadence serve: printer shut down: {reason}");
-                if ctx.sd.info.state == PrintState::Printing || ctx.sd.info.state == PrintState::Paused {
-                    ctx.sd.end(PrintState::Error, &reason);
-                }
-                let message = shutdown_message(&reason);
-                shared.set(|p| {
-                    p.state = ServiceState::Shutdown;
-                    p.message = message;
-                    p.print = ctx.sd.info.clone();
-                });
-            }
+            shut_down = ctx.note_shutdown(handle.state());
         }
     };
     shared.set(|p| p.handle = None);
@@ -266,6 +248,19 @@ fn serve_printer(
         Err(e) => eprintln!("cadence serve: printer closed: {}", e.reason),
     }
     next
+}
+
+/// The printer's messages forwarded as G-code output by a thread of their own.
+fn spawn_forwarder(printer: &mut Printer, to_api: &Sender<ToApi>) {
+    if let Some(events) = printer.events() {
+        let out = to_api.clone();
+        let spawned = std::thread::Builder::new()
+            .name("serve-events".to_string())
+            .spawn(move || forward_events(&events, &out));
+        if let Err(e) = spawned {
+            eprintln!("cadence serve: G-code output will not be forwarded: {e}");
+        }
+    }
 }
 
 /// What a command line runs with: the printer, the sdcard, the G-code output.
@@ -283,6 +278,26 @@ const LINES_PER_TURN: usize = 64;
 const TURN: Duration = Duration::from_millis(50);
 
 impl Ctx<'_> {
+    /// A printer in `state` that shut down: the print ends in error and the service is in
+    /// `shutdown` with the reason; true once that happened.
+    fn note_shutdown(&mut self, state: PrinterState) -> bool {
+        let PrinterState::Shutdown { reason } = state else {
+            return false;
+        };
+        eprintln!("cadence serve: printer shut down: {reason}");
+        if self.sd.info.state == PrintState::Printing || self.sd.info.state == PrintState::Paused {
+            self.sd.end(PrintState::Error, &reason);
+        }
+        let message = shutdown_message(&reason);
+        let print = self.sd.info.clone();
+        self.shared.set(|p| {
+            p.state = ServiceState::Shutdown;
+            p.message = message;
+            p.print = print;
+        });
+        true
+    }
+
     /// A line of G-code output.
     fn say(&self, line: String) {
         let _ = self.out.send(ToApi::Output(line));
@@ -290,7 +305,7 @@ impl Ctx<'_> {
 
     /// Runs a script's lines in order; the first error ends it. `true` when it asked for a
     /// restart (`RESTART` or `FIRMWARE_RESTART`).
-    fn run_script(&mut self, text: &str) -> (Result<(), String>, bool) {
+    fn run_script(&mut self, text: &str) -> (Result<(), ReplyError>, bool) {
         for line in text.lines() {
             match self.run_line(line) {
                 Ok(false) => {}
@@ -303,7 +318,7 @@ impl Ctx<'_> {
         if self.shared.get().state != ServiceState::Ready || self.sd.info.is_active() {
             return (Ok(()), false);
         }
-        (self.printer.flush().map_err(|e| e.to_string()), false)
+        (self.printer.flush().map_err(ReplyError::from), false)
     }
 
     /// Up to [`LINES_PER_TURN`] lines of the printing file (or [`TURN`] of them); `Some(true)` when one asked for a
@@ -340,6 +355,7 @@ impl Ctx<'_> {
                 Ok(false) => {}
                 Ok(true) => return Some(true),
                 Err(e) => {
+                    let e = e.to_string();
                     self.say(format!("!! {e}"));
                     self.sd.end(PrintState::Error, &e);
                     return None;
@@ -354,7 +370,7 @@ impl Ctx<'_> {
 
     /// One command: the service's own (restarts, M112, the sdcard and print commands, M73,
     /// M117) or the printer's. `Ok(true)`: restart the printer.
-    fn run_line(&mut self, line: &str) -> Result<bool, String> {
+    fn run_line(&mut self, line: &str) -> Result<bool, ReplyError> {
         let code = line.split(';').next().unwrap_or("").trim();
         let (word, rest) = match code.split_once(char::is_whitespace) {
             Some((w, r)) => (w.to_ascii_uppercase(), r.trim()),
@@ -365,18 +381,18 @@ impl Ctx<'_> {
             "SAVE_CONFIG" => {
                 // The printer writes its config file; then it restarts to read it, as
                 // Klipper's SAVE_CONFIG does.
-                return match self.printer.run_command(line) {
-                    Ok(()) => Ok(true),
-                    Err(PrinterError::Command { message }) => Err(message),
-                    Err(e) => Err(e.to_string()),
-                };
+                return self
+                    .printer
+                    .run_command(line)
+                    .map(|()| true)
+                    .map_err(ReplyError::from);
             }
             "M112" => {
                 self.printer.handle().emergency_stop();
                 return Ok(false);
             }
             "SDCARD_PRINT_FILE" => {
-                let name = param(rest, "FILENAME").ok_or("Missing Argument [FILENAME]")?;
+                let name = param(rest, "FILENAME").ok_or(ReplyError::MissingArgument("FILENAME"))?;
                 let opened = self.sd.load(&name)?;
                 self.say(opened);
                 self.sd.start()?;
@@ -391,26 +407,26 @@ impl Ctx<'_> {
             "M24" => return Ok(self.sd.start().map(|()| false)?),
             "RESUME" => {
                 if self.sd.info.state != PrintState::Paused {
-                    return Err("Print is not paused, resume aborted".into());
+                    return Err(ReplyError::NotPaused);
                 }
                 return Ok(self.sd.start().map(|()| false)?);
             }
             "M25" | "PAUSE" => {
                 self.sd.pause()?;
                 // What was planned moves; the next line starts from the MCUs' time then.
-                self.printer.flush().map_err(|e| e.to_string())?;
+                self.printer.flush()?;
                 return Ok(false);
             }
             "CANCEL_PRINT" => {
                 if matches!(self.sd.info.state, PrintState::Printing | PrintState::Paused) {
                     self.sd.end(PrintState::Cancelled, "");
                 }
-                self.printer.flush().map_err(|e| e.to_string())?;
+                self.printer.flush()?;
                 return Ok(false);
             }
             "SDCARD_RESET_FILE" => {
                 if self.sd.info.is_active() {
-                    return Err("SD busy".into());
+                    return Err(SdError::Busy.into());
                 }
                 self.sd.end(PrintState::Standby, "");
                 return Ok(false);
@@ -418,7 +434,7 @@ impl Ctx<'_> {
             "M26" => {
                 let pos = param(rest, "S")
                     .and_then(|v| v.parse::<u64>().ok())
-                    .ok_or("M26: S<byte position> expected")?;
+                    .ok_or(ReplyError::M26Position)?;
                 return Ok(self.sd.set_position(pos).map(|()| false)?);
             }
             "M27" => {
@@ -441,13 +457,12 @@ impl Ctx<'_> {
         }
         let state = self.shared.get();
         if state.state != ServiceState::Ready {
-            return Err(state.message);
+            return Err(ReplyError::NotReady {
+                message: state.message,
+            });
         }
-        match self.printer.run_command(line) {
-            Ok(()) => Ok(false),
-            Err(PrinterError::Command { message }) => Err(message),
-            Err(e) => Err(e.to_string()),
-        }
+        self.printer.run_command(line)?;
+        Ok(false)
     }
 }
 

@@ -10,7 +10,7 @@
 //! - `INIT_TMC STEPPER=s`: every register written again.
 
 use super::io::TmcIo;
-use super::TmcOut;
+use super::{TmcError, TmcOut};
 use crate::mcus::Mcus;
 use sysconfig::printer::tmc::{current, FieldSet};
 
@@ -32,28 +32,26 @@ fn params(raw: &str) -> Vec<(String, String)> {
 }
 
 /// The driver and its bus link of `STEPPER=`.
-pub fn io_for<'a>(mcus: &'a Mcus, drivers: &'a [TmcOut], stepper: &str) -> Result<TmcIo<'a>, String> {
+pub fn io_for<'a>(mcus: &'a Mcus, drivers: &'a [TmcOut], stepper: &str) -> Result<TmcIo<'a>, TmcError> {
     let drv = drivers
         .iter()
         .find(|d| d.cfg.stepper == stepper)
-        .ok_or_else(|| format!("Unknown STEPPER '{stepper}': no TMC driver configured for it"))?;
-    let conn = mcus.get(drv.mcu()).ok_or_else(|| {
-        format!(
-            "mcu '{}' of [{}] is not connected",
-            drv.mcu(),
-            drv.cfg.section_name()
-        )
+        .ok_or_else(|| TmcError::UnknownStepper {
+            stepper: stepper.to_string(),
+        })?;
+    let conn = mcus.get(drv.mcu()).ok_or_else(|| TmcError::NotConnected {
+        mcu: drv.mcu().to_string(),
+        section: drv.cfg.section_name(),
     })?;
     let oid = usize::from(conn.tmc_oid0) + drv.bus;
-    let too_many = |_| "too many objects".to_string();
     let mux = super::mux_selection(drivers, drv)
         .into_iter()
         .map(|(offset, level)| u8::try_from(usize::from(conn.tmc_oid0) + offset).map(|o| (o, level)))
         .collect::<Result<Vec<_>, _>>()
-        .map_err(too_many)?;
+        .map_err(|_| TmcError::TooManyObjects)?;
     Ok(TmcIo {
         link: &conn.link,
-        oid: u8::try_from(oid).map_err(too_many)?,
+        oid: u8::try_from(oid).map_err(|_| TmcError::TooManyObjects)?,
         drv,
         mux,
     })
@@ -66,47 +64,46 @@ pub fn run(
     name: &str,
     raw: &str,
     out: &mut Vec<String>,
-) -> Result<(), String> {
+) -> Result<(), TmcError> {
     let ps = params(raw);
     let get = |key: &str| ps.iter().rev().find(|(k, _)| k == key).map(|(_, v)| v.as_str());
-    let stepper = get("STEPPER").ok_or_else(|| format!("Error on '{raw}': missing STEPPER"))?;
+    let missing = |key: &'static str| TmcError::Missing {
+        raw: raw.to_string(),
+        key,
+    };
+    let unparsable = |value: &str, what: &'static str| TmcError::Unparsable {
+        raw: raw.to_string(),
+        value: value.to_string(),
+        what,
+    };
+    let stepper = get("STEPPER").ok_or_else(|| missing("STEPPER"))?;
     let io = io_for(mcus, drivers, stepper)?;
-    let float = |key: &str| -> Result<Option<f64>, String> {
+    let float = |key: &str| -> Result<Option<f64>, TmcError> {
         get(key)
             .map(|v| {
                 v.parse::<f64>()
                     .ok()
                     .filter(|x| x.is_finite())
-                    .ok_or_else(|| format!("Error on '{raw}': unable to parse '{v}' as a float"))
+                    .ok_or_else(|| unparsable(v, "a float"))
             })
             .transpose()
     };
     match name {
         "SET_TMC_CURRENT" => set_current(&io, float("CURRENT")?, float("HOLDCURRENT")?, raw, out),
         "SET_TMC_FIELD" => {
-            let field = get("FIELD")
-                .ok_or_else(|| format!("Error on '{raw}': missing FIELD"))?
-                .to_ascii_lowercase();
+            let field = get("FIELD").ok_or_else(|| missing("FIELD"))?.to_ascii_lowercase();
             let value = match get("VALUE") {
-                Some(v) => Some(
-                    v.parse::<i64>()
-                        .map_err(|_| format!("Error on '{raw}': unable to parse '{v}' as an integer"))?,
-                ),
+                Some(v) => Some(v.parse::<i64>().map_err(|_| unparsable(v, "an integer"))?),
                 None => None,
             };
             let velocity = float("VELOCITY")?;
             let value = match (value, velocity) {
                 (Some(v), None) => v,
                 (None, Some(v)) if v >= 0.0 => i64::from(io.drv.cfg.tstep(v)),
-                (None, Some(_)) => return Err(format!("Error on '{raw}': VELOCITY must be at least 0")),
-                _ => return Err("Specify either VALUE or VELOCITY".to_string()),
+                (None, Some(_)) => return Err(TmcError::NegativeVelocity { raw: raw.to_string() }),
+                _ => return Err(TmcError::ValueOrVelocity),
             };
-            let (reg, val) = io
-                .drv
-                .lock()
-                .fields
-                .set(&field, value)
-                .map_err(|e| e.to_string())?;
+            let (reg, val) = io.drv.lock().fields.set(&field, value)?;
             io.write(reg, val)
         }
         "DUMP_TMC" => dump(&io, get("REGISTER"), out),
@@ -120,14 +117,17 @@ fn set_current(
     hold: Option<f64>,
     raw: &str,
     out: &mut Vec<String>,
-) -> Result<(), String> {
+) -> Result<(), TmcError> {
     let cfg = &io.drv.cfg;
     let max = cfg.model.max_current();
     for (key, v) in [("CURRENT", run), ("HOLDCURRENT", hold)] {
-        if let Some(v) = v.filter(|&v| v <= 0.0 || v > max) {
-            return Err(format!(
-                "Error on '{raw}': {key} must be above 0 and at most {max} (got {v})"
-            ));
+        if let Some(value) = v.filter(|&v| v <= 0.0 || v > max) {
+            return Err(TmcError::Current {
+                raw: raw.to_string(),
+                key,
+                max,
+                value,
+            });
         }
     }
     if run.is_some() || hold.is_some() {
@@ -148,7 +148,7 @@ fn set_current(
     Ok(())
 }
 
-fn dump(io: &TmcIo<'_>, register: Option<&str>, out: &mut Vec<String>) -> Result<(), String> {
+fn dump(io: &TmcIo<'_>, register: Option<&str>, out: &mut Vec<String>) -> Result<(), TmcError> {
     let model = io.drv.cfg.model;
     let readable = model.readable();
     let written = io.drv.lock().fields.registers().to_vec();
@@ -160,7 +160,7 @@ fn dump(io: &TmcIo<'_>, register: Option<&str>, out: &mut Vec<String>) -> Result
         } else if let Some(&(r, v)) = written.iter().find(|(r, _)| *r == reg) {
             out.push(show(r, v));
         } else {
-            return Err(format!("Unknown register name '{reg}'"));
+            return Err(TmcError::UnknownRegister { reg });
         }
         return Ok(());
     }

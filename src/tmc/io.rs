@@ -25,7 +25,7 @@ use links::proto::format::Value;
 use links::proto::tmc as wire;
 use sysconfig::printer::TmcBus;
 
-use super::TmcOut;
+use super::{TmcError, TmcOut};
 
 /// `datagram` as a daisy chain `(length, position)` clocks it (Klipper's framing): zeros for the
 /// drivers after this one in the chain, the datagram, zeros for those before it, since the
@@ -72,36 +72,42 @@ pub struct TmcIo<'a> {
 }
 
 impl TmcIo<'_> {
-    fn addr(&self, reg: &str) -> Result<u8, String> {
+    fn addr(&self, reg: &str) -> Result<u8, TmcError> {
         self.drv
             .cfg
             .model
             .register_addr(reg)
-            .ok_or_else(|| format!("Unknown register name '{reg}'"))
+            .ok_or_else(|| TmcError::UnknownRegister { reg: reg.to_string() })
     }
 
-    fn send(&self, name: &str, args: &[Value<'_>]) -> Result<(), String> {
-        let cmd = self
-            .link
-            .dictionary()
-            .encode_values(name, args)
-            .map_err(|e| e.to_string())?;
-        self.link.send(cmd).map_err(|e| e.to_string())
+    fn send(&self, name: &str, args: &[Value<'_>]) -> Result<(), TmcError> {
+        let cmd = self.link.dictionary().encode_values(name, args)?;
+        Ok(self.link.send(cmd)?)
     }
 
-    fn query(&self, name: &str, args: &[Value<'_>], response: &str) -> Result<links::dict::Message, String> {
-        let cmd = self
+    fn query(
+        &self,
+        name: &str,
+        args: &[Value<'_>],
+        response: &str,
+    ) -> Result<links::dict::Message, TmcError> {
+        let cmd = self.link.dictionary().encode_values(name, args)?;
+        Ok(self
             .link
-            .dictionary()
-            .encode_values(name, args)
-            .map_err(|e| e.to_string())?;
-        self.link
-            .query(cmd, response, Some(("oid", i64::from(self.oid))), TIMEOUT)
-            .map_err(|e| e.to_string())
+            .query(cmd, response, Some(("oid", i64::from(self.oid))), TIMEOUT)?)
+    }
+
+    /// The bus kind for messages: `uart` or `spi`.
+    fn bus(&self) -> &'static str {
+        if self.drv.cfg.model.is_uart() {
+            "uart"
+        } else {
+            "spi"
+        }
     }
 
     /// Selects this driver on its mux (Klipper sets the select outputs before each transfer).
-    fn select(&self) -> Result<(), String> {
+    fn select(&self) -> Result<(), TmcError> {
         for &(oid, level) in &self.mux {
             self.send(
                 "update_digital_out",
@@ -116,7 +122,7 @@ impl TmcIo<'_> {
     }
 
     /// Reads register `reg`.
-    pub fn read(&self, reg: &str) -> Result<u32, String> {
+    pub fn read(&self, reg: &str) -> Result<u32, TmcError> {
         let addr = self.addr(reg)?;
         let oid = Value::Int(i64::from(self.oid));
         for _ in 0..TRIES {
@@ -151,19 +157,15 @@ impl TmcIo<'_> {
                 }
             }
         }
-        let bus = if self.drv.cfg.model.is_uart() {
-            "uart"
-        } else {
-            "spi"
-        };
-        Err(format!(
-            "Unable to read tmc {bus} '{}' register {reg}",
-            self.stepper()
-        ))
+        Err(TmcError::Read {
+            bus: self.bus(),
+            stepper: self.stepper().to_string(),
+            reg: reg.to_string(),
+        })
     }
 
     /// Writes `value` to register `reg` and checks that the driver took it.
-    pub fn write(&self, reg: &str, value: u32) -> Result<(), String> {
+    pub fn write(&self, reg: &str, value: u32) -> Result<(), TmcError> {
         let addr = self.addr(reg)?;
         let oid = Value::Int(i64::from(self.oid));
         match &self.drv.cfg.bus {
@@ -188,10 +190,7 @@ impl TmcIo<'_> {
                         return Ok(());
                     }
                 }
-                Err(format!(
-                    "Unable to write tmc uart '{}' register {reg}",
-                    self.stepper()
-                ))
+                Err(self.write_failed("uart", reg))
             }
             TmcBus::Spi { chain, .. } => {
                 for _ in 0..TRIES {
@@ -209,17 +208,23 @@ impl TmcIo<'_> {
                         }
                     }
                 }
-                Err(format!(
-                    "Unable to write tmc spi '{}' register {reg}",
-                    self.stepper()
-                ))
+                Err(self.write_failed("spi", reg))
             }
+        }
+    }
+
+    /// Every try of a write of `reg` on a `bus` (`uart` or `spi`) failed.
+    fn write_failed(&self, bus: &'static str, reg: &str) -> TmcError {
+        TmcError::Write {
+            bus,
+            stepper: self.stepper().to_string(),
+            reg: reg.to_string(),
         }
     }
 
     /// Writes every register as configured (or as last set), in order: `INIT_TMC`, and the
     /// start-up.
-    pub fn init(&self) -> Result<(), String> {
+    pub fn init(&self) -> Result<(), TmcError> {
         let regs = self.drv.lock().fields.registers().to_vec();
         for (reg, value) in regs {
             self.write(reg, value)?;

@@ -10,9 +10,12 @@
 //! The register values the host last wrote live in each driver's [`TmcState`], shared by the
 //! G-code commands (module `gcode`) and sensorless homing (module `sensorless`).
 
+mod error;
 pub mod gcode;
 pub mod io;
 pub mod sensorless;
+
+pub use error::TmcError;
 
 use std::sync::{Arc, Mutex};
 
@@ -173,8 +176,7 @@ pub fn config_commands(
     mcu: &str,
     oid0: usize,
     clock_freq: f64,
-) -> Result<Vec<Cmd>, String> {
-    let err = |e: links::dict::DictError| e.to_string();
+) -> Result<Vec<Cmd>, TmcError> {
     let mut cmds = Vec::new();
     for bus in 0..bus_count(drivers, mcu) {
         let Some(d) = drivers.iter().find(|d| d.mcu() == mcu && d.bus == bus) else {
@@ -182,10 +184,12 @@ pub fn config_commands(
         };
         let oid = (oid0 + bus) as i64;
         let name = d.cfg.section_name();
-        let pin = |p: &sysconfig::printer::PinRef, option: &str| {
-            dict.pin(&p.pin)
-                .map(i64::from)
-                .map_err(|e| format!("[{name}] {option}: {e}"))
+        let pin = |p: &sysconfig::printer::PinRef, option: &'static str| {
+            dict.pin(&p.pin).map(i64::from).map_err(|source| TmcError::Pin {
+                section: name.clone(),
+                option,
+                source,
+            })
         };
         match &d.cfg.bus {
             TmcBus::Uart { uart_pin, tx_pin, .. } => {
@@ -195,10 +199,7 @@ pub fn config_commands(
                     None => rx,
                 };
                 let bit_time = (clock_freq / TMC_BAUD_RATE).round() as i64;
-                cmds.push(
-                    dict.encode("config_tmcuart", &[oid, rx, uart_pin.pullup as i64, tx, bit_time])
-                        .map_err(err)?,
-                );
+                cmds.push(dict.encode("config_tmcuart", &[oid, rx, uart_pin.pullup as i64, tx, bit_time])?);
             }
             TmcBus::Spi {
                 cs_pin,
@@ -206,10 +207,7 @@ pub fn config_commands(
                 software,
                 ..
             } => {
-                cmds.push(
-                    dict.encode("config_spi", &[oid, pin(cs_pin, "cs_pin")?, 0])
-                        .map_err(err)?,
-                );
+                cmds.push(dict.encode("config_spi", &[oid, pin(cs_pin, "cs_pin")?, 0])?);
                 match software {
                     Some([sclk, mosi, miso]) => {
                         let pulse_ticks = (clock_freq / (2.0 * f64::from(*speed))).ceil() as i64;
@@ -221,14 +219,11 @@ pub fn config_commands(
                             SPI_MODE,
                             pulse_ticks,
                         ];
-                        cmds.push(dict.encode("spi_set_sw_bus", &args).map_err(err)?);
+                        cmds.push(dict.encode("spi_set_sw_bus", &args)?);
                     }
                     // The MCU's first hardware bus (a named `spi_bus` is the board's wiring;
                     // the simulated MCU has one bus).
-                    None => cmds.push(
-                        dict.encode("spi_set_bus", &[oid, 0, SPI_MODE, i64::from(*speed)])
-                            .map_err(err)?,
-                    ),
+                    None => cmds.push(dict.encode("spi_set_bus", &[oid, 0, SPI_MODE, i64::from(*speed)])?),
                 }
             }
         }
@@ -237,14 +232,12 @@ pub fn config_commands(
     let mut oid = oid0 + bus_count(drivers, mcu);
     for (bus, pins) in muxes(drivers, mcu) {
         for p in &pins {
-            let pin = dict
-                .pin(&p.pin)
-                .map(i64::from)
-                .map_err(|e| format!("[tmc bus {bus}] select_pins: {e}"))?;
-            cmds.push(
-                dict.encode("config_digital_out", &[oid as i64, pin, 0, 0, 0])
-                    .map_err(err)?,
-            );
+            let pin = dict.pin(&p.pin).map(i64::from).map_err(|source| TmcError::Pin {
+                section: format!("tmc bus {bus}"),
+                option: "select_pins",
+                source,
+            })?;
+            cmds.push(dict.encode("config_digital_out", &[oid as i64, pin, 0, 0, 0])?);
             oid += 1;
         }
     }

@@ -9,6 +9,7 @@
 //! earlier values back and their registers are written again, also when homing failed.
 
 use super::io::TmcIo;
+use super::TmcError;
 
 /// The fields changed for homing and their earlier values.
 #[derive(Debug, Default)]
@@ -17,7 +18,7 @@ pub struct Saved {
 }
 
 /// Sets the homing fields, writes their registers; returns what to restore.
-pub fn begin(io: &TmcIo<'_>) -> Result<Saved, String> {
+pub fn begin(io: &TmcIo<'_>) -> Result<Saved, TmcError> {
     let mut saved = Saved::default();
     let mut dirty: Vec<&'static str> = Vec::new();
     {
@@ -55,7 +56,7 @@ pub fn begin(io: &TmcIo<'_>) -> Result<Saved, String> {
 }
 
 /// Gives the fields their earlier values back and writes their registers.
-pub fn end(io: &TmcIo<'_>, saved: Saved) -> Result<(), String> {
+pub fn end(io: &TmcIo<'_>, saved: Saved) -> Result<(), TmcError> {
     let mut dirty: Vec<&'static str> = Vec::new();
     {
         let mut st = io.drv.lock();
@@ -70,7 +71,7 @@ pub fn end(io: &TmcIo<'_>, saved: Saved) -> Result<(), String> {
     write_all(io, &dirty)
 }
 
-fn write_all(io: &TmcIo<'_>, regs: &[&'static str]) -> Result<(), String> {
+fn write_all(io: &TmcIo<'_>, regs: &[&'static str]) -> Result<(), TmcError> {
     for reg in regs {
         let value = io.drv.lock().fields.register(reg);
         io.write(reg, value)?;

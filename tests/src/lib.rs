@@ -1,6 +1,8 @@
 //! Shared helpers for the end-to-end tests in `tests/tests/`: locating the built binaries,
 //! running them with a bounded wait, and workspace paths.
 
+pub mod api;
+
 use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -12,6 +14,37 @@ pub fn workspace() -> PathBuf {
         .parent()
         .map(Path::to_path_buf)
         .unwrap_or_default()
+}
+
+/// The built-in simulated printer's printer.cfg plus `extra` sections, written to
+/// `dir/printer.cfg`.
+pub fn simulated_config(dir: &Path, extra: &str) -> PathBuf {
+    let cfg = dir.join("printer.cfg");
+    std::fs::write(
+        &cfg,
+        format!("{}\n{extra}\n", sysconfig::printer::SIMULATED_PRINTER_CFG),
+    )
+    .expect("write printer.cfg");
+    cfg
+}
+
+/// examples/simulated-cartesian.cfg without endstops, written to `dir/no-endstops.cfg`: G28
+/// homes without motion (homing's timing under a loaded test machine is tested elsewhere).
+pub fn printer_without_endstops(dir: &Path) -> PathBuf {
+    let text = std::fs::read_to_string(workspace().join("examples/simulated-cartesian.cfg"))
+        .expect("example config");
+    let body: Vec<&str> = text
+        .lines()
+        .filter(|l| {
+            let l = l.trim_start();
+            !(l.starts_with("endstop_pin")
+                || l.starts_with("position_endstop")
+                || l.starts_with("homing_speed"))
+        })
+        .collect();
+    let path = dir.join("no-endstops.cfg");
+    std::fs::write(&path, body.join("\n")).expect("write config");
+    path
 }
 
 /// A binary of the workspace, built by `cargo test --workspace` into the same target directory
@@ -42,6 +75,19 @@ pub struct Run {
 /// Runs the `cadence` binary with `args`, killing it after `timeout` (a hang is a test failure).
 pub fn cadence(args: &[&str], timeout: Duration) -> Run {
     run(Command::new(bin("cadence")).args(args), timeout)
+}
+
+/// `cadence print GCODE --config CFG --batch OUT`: a batch print of `gcode` on the printer of
+/// `cfg`, its wire stream to `out`, waited for at most `timeout`.
+pub fn print_batch(gcode: &Path, cfg: &Path, out: &Path, timeout: Duration) -> Run {
+    let mut cmd = Command::new(bin("cadence"));
+    cmd.arg("print")
+        .arg(gcode)
+        .arg("--config")
+        .arg(cfg)
+        .arg("--batch")
+        .arg(out);
+    run(&mut cmd, timeout)
 }
 
 /// Runs `cmd` to completion with a bounded wait.

@@ -4,20 +4,9 @@
 
 use std::time::Duration;
 
-use cadence_tests::{cadence, scratch};
+use cadence_tests::{cadence, print_batch, scratch, simulated_config as config};
 
 const TIMEOUT: Duration = Duration::from_secs(120);
-
-/// The built-in simulated printer plus `extra` sections, written to `dir/printer.cfg`.
-fn config(dir: &std::path::Path, extra: &str) -> std::path::PathBuf {
-    let cfg = dir.join("printer.cfg");
-    std::fs::write(
-        &cfg,
-        format!("{}\n{extra}\n", sysconfig::printer::SIMULATED_PRINTER_CFG),
-    )
-    .unwrap();
-    cfg
-}
 
 #[test]
 fn slicer_start_code_prints_with_unknown_commands_reported() {
@@ -64,19 +53,7 @@ fn respond_answers_with_the_section_and_is_unknown_without() {
     let out = dir.join("out.bin");
     let macro_cfg = "[gcode_macro TELL]\ngcode:\n  RESPOND PREFIX=tell: MSG={printer.toolhead.homed_axes}";
     let cfg = config(&dir, &format!("[respond]\n{macro_cfg}"));
-    let print = |cfg: &std::path::Path| {
-        cadence(
-            &[
-                "print",
-                g.to_str().unwrap(),
-                "--config",
-                cfg.to_str().unwrap(),
-                "--batch",
-                out.to_str().unwrap(),
-            ],
-            TIMEOUT,
-        )
-    };
+    let print = |cfg: &std::path::Path| print_batch(&g, cfg, &out, TIMEOUT);
     let run = print(&cfg);
     assert_eq!(run.code, Some(0), "{}", run.stderr);
     for said in ["echo: homed, printing", "// hi", "echo: layer 1", "tell: xyz"] {
@@ -260,19 +237,7 @@ fn exclude_object_drops_an_excluded_objects_moves() {
     )
     .unwrap();
     let out = dir.join("out.bin");
-    let print = |cfg: &std::path::Path| {
-        cadence(
-            &[
-                "print",
-                g.to_str().unwrap(),
-                "--config",
-                cfg.to_str().unwrap(),
-                "--batch",
-                out.to_str().unwrap(),
-            ],
-            TIMEOUT,
-        )
-    };
+    let print = |cfg: &std::path::Path| print_batch(&g, cfg, &out, TIMEOUT);
     let run = print(&config(&dir, "[exclude_object]"));
     assert_eq!(run.code, Some(0), "{}", run.stderr);
     assert!(run.stdout.contains("moves 3,"), "{}", run.stdout);

@@ -7,20 +7,9 @@
 use std::time::{Duration, Instant};
 
 use cadence::{Event, Printer, PrinterOptions, PrinterSource};
-use cadence_tests::{cadence, scratch};
+use cadence_tests::{print_batch, scratch, simulated_config as config};
 
 const TIMEOUT: Duration = Duration::from_secs(120);
-
-/// The built-in simulated printer plus `extra` sections, written to `dir/printer.cfg`.
-fn config(dir: &std::path::Path, extra: &str) -> std::path::PathBuf {
-    let cfg = dir.join("printer.cfg");
-    std::fs::write(
-        &cfg,
-        format!("{}\n{extra}\n", sysconfig::printer::SIMULATED_PRINTER_CFG),
-    )
-    .unwrap();
-    cfg
-}
 
 #[test]
 fn host_objects_in_a_batch_print() {
@@ -48,17 +37,7 @@ fn host_objects_in_a_batch_print() {
     )
     .unwrap();
     let out = dir.join("out.bin");
-    let run = cadence(
-        &[
-            "print",
-            g.to_str().unwrap(),
-            "--config",
-            cfg.to_str().unwrap(),
-            "--batch",
-            out.to_str().unwrap(),
-        ],
-        TIMEOUT,
-    );
+    let run = print_batch(&g, &cfg, &out, TIMEOUT);
     assert_eq!(run.code, Some(0), "{}\n{}", run.stdout, run.stderr);
     for said in [
         "REPORT: progress 0.25 msg hello count 3",

@@ -6,15 +6,14 @@
 //! G-code output and SAVE_CONFIG rewrites printer.cfg and restarts the printer. Times are
 //! MCU clocks from the simulator's trace (time-scaled), never wall time; bounds are generous.
 
-use std::io::{Read, Write};
-use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
+use cadence_tests::api::{start_service, Api};
 use cadence_tests::{bin, run, scratch, workspace, Run};
 use firmware::trace::{read_trace, TraceRecord};
-use serde_json::{json, Value};
+use serde_json::json;
 
 const TIMEOUT: Duration = Duration::from_secs(240);
 /// MCU seconds per wall second: heat-ups of minutes take seconds.
@@ -341,112 +340,21 @@ fn sensors_and_the_other_fans_are_driven() {
 
 // `cadence serve`: a service session heats, calibrates and saves its config.
 
-/// A minimal client of the API socket (JSON messages ended by 0x03).
-struct Api {
-    stream: UnixStream,
-    pending: Vec<u8>,
-    next_id: u64,
-    /// Notifications read while waiting for replies.
-    notes: Vec<Value>,
-}
-
-impl Api {
-    fn connect(path: &Path) -> Api {
-        let stream = UnixStream::connect(path).expect("connect to the API socket");
-        stream
-            .set_read_timeout(Some(Duration::from_secs(240)))
-            .expect("timeout");
-        Api {
-            stream,
-            pending: Vec::new(),
-            next_id: 1,
-            notes: Vec::new(),
-        }
-    }
-
-    fn read(&mut self) -> Value {
-        loop {
-            if let Some(end) = self.pending.iter().position(|&b| b == 0x03) {
-                let msg: Vec<u8> = self.pending.drain(..=end).collect();
-                return serde_json::from_slice(&msg[..end]).expect("a JSON message");
-            }
-            let mut buf = [0u8; 65536];
-            let n = self.stream.read(&mut buf).expect("read from the service");
-            assert!(n > 0, "the service closed the connection");
-            self.pending.extend_from_slice(&buf[..n]);
-        }
-    }
-
-    fn ok(&mut self, method: &str, params: Value) -> Value {
-        let id = json!(self.next_id);
-        self.next_id += 1;
-        let mut bytes =
-            serde_json::to_vec(&json!({"id": id, "method": method, "params": params})).expect("json");
-        bytes.push(0x03);
-        self.stream.write_all(&bytes).expect("write");
-        loop {
-            let msg = self.read();
-            if msg.get("id") == Some(&id) {
-                assert!(msg.get("error").is_none(), "{method}: {msg}");
-                return msg["result"].clone();
-            }
-            self.notes.push(msg);
-        }
-    }
-
-    fn wait_ready(&mut self) {
-        let deadline = Instant::now() + Duration::from_secs(120);
-        loop {
-            let info = self.ok("info", json!({}));
-            if info["state"] == "ready" {
-                return;
-            }
-            assert!(Instant::now() < deadline, "never ready: {info}");
-            std::thread::sleep(Duration::from_millis(100));
-        }
-    }
-
-    fn status(&mut self, object: &str) -> Value {
-        let q = self.ok("objects/query", json!({"objects": {object: null}}));
-        q["status"][object].clone()
-    }
-}
-
-/// The service process, killed when the test ends.
-struct Service(Child);
-
-impl Drop for Service {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
 #[test]
 fn a_service_session_heats_calibrates_and_saves_its_config() {
     let _slot = Slot::take();
     let dir = scratch("heat-serve");
     let cfg = config(&dir);
     let socket = dir.join("klippy.sock");
-    let child = Command::new(bin("cadence"))
-        .args(["serve", "--no-realtime", "--time-scale", "5", "-a"])
-        .arg(&socket)
-        .arg("--config")
-        .arg(&cfg)
-        .current_dir(workspace())
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(dir.join("stderr.txt")).expect("stderr file"))
-        .spawn()
-        .expect("start cadence serve");
-    let _service = Service(child);
-    let deadline = Instant::now() + Duration::from_secs(60);
-    while !socket.exists() {
-        assert!(Instant::now() < deadline, "no API socket after 60 s");
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    let mut api = Api::connect(&socket);
-    api.wait_ready();
+    let args = [
+        "--time-scale".as_ref(),
+        "5".as_ref(),
+        "--config".as_ref(),
+        cfg.as_os_str(),
+    ];
+    let _service = start_service(&dir, &socket, &args);
+    let mut api = Api::connect(&socket, Duration::from_secs(240));
+    api.wait_state("ready");
     let list = api.ok("objects/list", json!({}));
     for name in [
         "heaters",

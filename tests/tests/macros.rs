@@ -6,7 +6,7 @@
 use std::path::Path;
 use std::time::Duration;
 
-use cadence_tests::{cadence, scratch, workspace};
+use cadence_tests::{scratch, workspace};
 
 const TIMEOUT: Duration = Duration::from_secs(120);
 
@@ -39,17 +39,7 @@ fn print_batch(dir: &Path, name: &str, gcode: &str, cfg: &Path) -> Result<Vec<u8
     let g = dir.join(format!("{name}.gcode"));
     std::fs::write(&g, gcode).expect("write gcode");
     let out = dir.join(format!("{name}.bin"));
-    let run = cadence(
-        &[
-            "print",
-            g.to_str().unwrap(),
-            "--config",
-            cfg.to_str().unwrap(),
-            "--batch",
-            out.to_str().unwrap(),
-        ],
-        TIMEOUT,
-    );
+    let run = cadence_tests::print_batch(&g, cfg, &out, TIMEOUT);
     if run.code != Some(0) {
         return Err(run.stderr);
     }

@@ -7,148 +7,20 @@ use std::io::{Read, Write};
 use std::os::unix::fs::PermissionsExt;
 use std::os::unix::net::UnixStream;
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
-use cadence_tests::{bin, scratch, workspace};
+use cadence_tests::api::{start_service, Api, Service};
+use cadence_tests::{printer_without_endstops, scratch, workspace};
 use serde_json::{json, Value};
 
-/// A client of the API socket.
-struct Api {
-    stream: UnixStream,
-    pending: Vec<u8>,
-    next_id: u64,
-    /// Notifications read while waiting for replies.
-    notes: Vec<Value>,
-}
-
-impl Api {
-    fn connect(path: &Path) -> Api {
-        let stream = UnixStream::connect(path).expect("connect to the API socket");
-        stream
-            .set_read_timeout(Some(Duration::from_secs(120)))
-            .expect("timeout");
-        Api {
-            stream,
-            pending: Vec::new(),
-            next_id: 1,
-            notes: Vec::new(),
-        }
-    }
-
-    fn send_raw(&mut self, bytes: &[u8]) {
-        self.stream.write_all(bytes).expect("write");
-    }
-
-    /// The next message (reply or notification).
-    fn read(&mut self) -> Value {
-        loop {
-            if let Some(end) = self.pending.iter().position(|&b| b == 0x03) {
-                let msg: Vec<u8> = self.pending.drain(..=end).collect();
-                return serde_json::from_slice(&msg[..end]).expect("a JSON message");
-            }
-            let mut buf = [0u8; 65536];
-            let n = self.stream.read(&mut buf).expect("read from the service");
-            assert!(n > 0, "the service closed the connection");
-            self.pending.extend_from_slice(&buf[..n]);
-        }
-    }
-
-    /// The reply to `id` (notifications on the way are kept).
-    fn reply(&mut self, id: &Value) -> Value {
-        loop {
-            let msg = self.read();
-            if msg.get("id") == Some(id) {
-                return msg;
-            }
-            self.notes.push(msg);
-        }
-    }
-
-    fn call(&mut self, method: &str, params: Value) -> Value {
-        let id = json!(self.next_id);
-        self.next_id += 1;
-        let mut bytes =
-            serde_json::to_vec(&json!({"id": id, "method": method, "params": params})).expect("json");
-        bytes.push(0x03);
-        self.send_raw(&bytes);
-        self.reply(&id)
-    }
-
-    fn ok(&mut self, method: &str, params: Value) -> Value {
-        let r = self.call(method, params);
-        assert!(r.get("error").is_none(), "{method}: {r}");
-        r["result"].clone()
-    }
-
-    fn error(&mut self, method: &str, params: Value) -> String {
-        let r = self.call(method, params);
-        assert_eq!(r["error"]["error"], "WebRequestError", "{method}: {r}");
-        r["error"]["message"].as_str().expect("message").to_string()
-    }
-
-    fn wait_state(&mut self, want: &str) -> Value {
-        let deadline = Instant::now() + Duration::from_secs(120);
-        loop {
-            let info = self.ok("info", json!({}));
-            if info["state"] == want {
-                return info;
-            }
-            assert!(Instant::now() < deadline, "never {want}: {info}");
-            std::thread::sleep(Duration::from_millis(100));
-        }
-    }
-}
-
-/// The service process, killed if the test fails.
-struct Service(Child);
-
-impl Drop for Service {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-/// examples/simulated-cartesian.cfg without endstops: G28 homes without motion (homing's
-/// timing under a loaded test machine is tested elsewhere).
-fn printer_without_endstops(dir: &Path) -> std::path::PathBuf {
-    let text = std::fs::read_to_string(workspace().join("examples/simulated-cartesian.cfg"))
-        .expect("example config");
-    let body: Vec<&str> = text
-        .lines()
-        .filter(|l| {
-            let l = l.trim_start();
-            !(l.starts_with("endstop_pin")
-                || l.starts_with("position_endstop")
-                || l.starts_with("homing_speed"))
-        })
-        .collect();
-    let path = dir.join("no-endstops.cfg");
-    std::fs::write(&path, body.join("\n")).expect("write config");
-    path
-}
-
-/// Starts `cadence serve` with `printer` arguments (`--config PATH` or `--simulated`).
+/// Starts `cadence serve` with `printer` arguments (`--config PATH` or `--simulated`), its
+/// log in `dir/serve.log`.
 fn start(dir: &Path, socket: &Path, printer: &[&std::ffi::OsStr]) -> Service {
-    let child = Command::new(bin("cadence"))
-        .args(["serve", "--no-realtime", "-a"])
-        .arg(socket)
-        .args(printer)
-        .arg("--log-file")
-        .arg(dir.join("serve.log"))
-        .current_dir(workspace())
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(dir.join("stderr.txt")).expect("stderr file"))
-        .spawn()
-        .expect("start cadence serve");
-    let deadline = Instant::now() + Duration::from_secs(60);
-    while !socket.exists() {
-        assert!(Instant::now() < deadline, "no API socket after 60 s");
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    Service(child)
+    let log = dir.join("serve.log");
+    let mut args = printer.to_vec();
+    args.extend(["--log-file".as_ref(), log.as_os_str()]);
+    start_service(dir, socket, &args)
 }
 
 #[test]
@@ -160,7 +32,7 @@ fn a_front_end_drives_the_service_over_the_api_socket() {
     let mode = std::fs::metadata(&socket).expect("socket").permissions().mode();
     assert_eq!(mode & 0o777, 0o600, "the socket is owner-only: {mode:o}");
 
-    let mut api = Api::connect(&socket);
+    let mut api = Api::connect(&socket, Duration::from_secs(120));
     let info = api.wait_state("ready");
     assert_eq!(info["state_message"], "Printer is ready");
     assert_eq!(info["process_id"], json!(service.0.id()));
@@ -350,7 +222,7 @@ fn the_built_in_simulated_printer_serves_and_stops_on_sigint() {
     let dir = scratch("serve-sim");
     let socket = dir.join("api.sock");
     let mut service = start(&dir, &socket, &["--simulated".as_ref()]);
-    let mut api = Api::connect(&socket);
+    let mut api = Api::connect(&socket, Duration::from_secs(120));
     let info = api.wait_state("ready");
     assert_eq!(info["config_file"], Value::Null, "{info}");
     let q = api.ok(
@@ -413,7 +285,7 @@ fn sdcard_prints_pause_resume_at_the_same_byte_and_cancel() {
             gcodes.as_os_str(),
         ],
     );
-    let mut api = Api::connect(&socket);
+    let mut api = Api::connect(&socket, Duration::from_secs(120));
     api.wait_state("ready");
 
     let e = api.error(
@@ -494,7 +366,7 @@ fn the_gcode_pseudo_terminal_answers_ok_and_errors() {
             link.as_os_str(),
         ],
     );
-    let mut api = Api::connect(&socket);
+    let mut api = Api::connect(&socket, Duration::from_secs(120));
     api.wait_state("ready");
     let mut tty = std::fs::OpenOptions::new()
         .read(true)
@@ -592,7 +464,7 @@ fn a_printer_that_cannot_start_is_in_error_with_the_reason_and_the_service_stays
             "0.5".as_ref(),
         ],
     );
-    let mut api = Api::connect(&socket);
+    let mut api = Api::connect(&socket, Duration::from_secs(120));
     let info = api.wait_state("error");
     let message = info["state_message"].as_str().expect("message");
     assert!(message.contains("ttyCADENCE_ABSENT"), "{message}");

@@ -10,26 +10,11 @@
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use cadence_tests::{assert_exit, assert_success, bin, cadence, check_trace, scratch, workspace, Run};
+use cadence_tests::{
+    assert_exit, assert_success, bin, cadence, check_trace, printer_without_endstops, scratch, workspace, Run,
+};
 
 const TIMEOUT: Duration = Duration::from_secs(180);
-
-/// examples/simulated-cartesian.cfg without endstops: G28 homes without motion.
-fn printer_without_endstops(dir: &std::path::Path) -> std::path::PathBuf {
-    let text = std::fs::read_to_string(workspace().join("examples/simulated-cartesian.cfg")).unwrap();
-    let body: Vec<&str> = text
-        .lines()
-        .filter(|l| {
-            let l = l.trim_start();
-            !(l.starts_with("endstop_pin")
-                || l.starts_with("position_endstop")
-                || l.starts_with("homing_speed"))
-        })
-        .collect();
-    let path = dir.join("no-endstops.cfg");
-    std::fs::write(&path, body.join("\n")).unwrap();
-    path
-}
 
 fn square() -> std::path::PathBuf {
     workspace().join("examples/square.gcode")

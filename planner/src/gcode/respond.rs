@@ -21,9 +21,17 @@ pub fn is_respond_command(name: &str) -> bool {
     name == "RESPOND" || name == "M118"
 }
 
+/// Why `RESPOND` was refused.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RespondError {
+    /// A `TYPE=` that is none of [`RESPOND_TYPES`] nor `echo_no_space` (Klipper's words).
+    #[error("RESPOND TYPE '{0}' is invalid. Must be one of 'echo', 'command', or 'error'")]
+    BadType(String),
+}
+
 /// The answer to `RESPOND`/`M118` (`name`) with `rawparams` (the text after the name), the
 /// section's prefix being `default_prefix`. A bad `TYPE` is Klipper's error.
-pub fn respond(default_prefix: &str, name: &str, rawparams: &str) -> Result<String, String> {
+pub fn respond(default_prefix: &str, name: &str, rawparams: &str) -> Result<String, RespondError> {
     if name == "M118" {
         return Ok(format!("{default_prefix} {}", rawparams.trim()));
     }
@@ -38,11 +46,7 @@ pub fn respond(default_prefix: &str, name: &str, rawparams: &str) -> Result<Stri
                 prefix = "echo:".to_string();
                 space = false;
             }
-            None => {
-                return Err(format!(
-                    "RESPOND TYPE '{t}' is invalid. Must be one of 'echo', 'command', or 'error'"
-                ))
-            }
+            None => return Err(RespondError::BadType(t)),
         }
     }
     if let Some(p) = params.get("PREFIX") {
@@ -70,7 +74,7 @@ mod tests {
         assert_eq!(r("TYPE=echo_no_space MSG=x").unwrap(), "echo:x");
         assert_eq!(r("PREFIX=note: MSG=x").unwrap(), "note: x");
         assert_eq!(r("").unwrap(), "echo: ");
-        let e = r("TYPE=loud MSG=x").unwrap_err();
+        let e = r("TYPE=loud MSG=x").unwrap_err().to_string();
         assert!(
             e.contains("'loud'") && e.contains("'echo', 'command', or 'error'"),
             "{e}"

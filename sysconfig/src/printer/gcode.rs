@@ -117,13 +117,8 @@ pub(crate) fn read_firmware_retraction(
 #[cfg(test)]
 mod tests {
     use super::{FirmwareRetractionSection, GcodeArcsSection, GcodeSection, UnknownCommands};
-    use crate::printer::parse_str;
-    use std::path::Path;
 
-    fn config(section: &str) -> Result<crate::printer::PrinterConfig, String> {
-        let text = format!("{}\n{section}\n", crate::printer::SIMULATED_PRINTER_CFG);
-        parse_str(&text, Path::new("printer.cfg")).map_err(|e| e.to_string())
-    }
+    use crate::printer::simulated_with as config;
 
     fn with(section: &str) -> Result<GcodeSection, String> {
         config(section).map(|c| c.gcode)

@@ -104,13 +104,9 @@ pub(crate) fn read_host(reader: &Reader<'_>) -> Result<HostSections, ConfigError
 
 #[cfg(test)]
 mod tests {
-    use crate::printer::parse_str;
-    use std::path::{Path, PathBuf};
+    use std::path::PathBuf;
 
-    fn config(section: &str) -> Result<crate::printer::PrinterConfig, String> {
-        let text = format!("{}\n{section}\n", crate::printer::SIMULATED_PRINTER_CFG);
-        parse_str(&text, Path::new("printer.cfg")).map_err(|e| e.to_string())
-    }
+    use crate::printer::simulated_with as config;
 
     #[test]
     fn sections_read_with_klipper_defaults() {

@@ -69,13 +69,8 @@ pub(crate) fn read_input_shaper(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::printer::parse_str;
-    use std::path::Path;
 
-    fn config(section: &str) -> Result<crate::printer::PrinterConfig, String> {
-        let text = format!("{}\n{section}\n", crate::printer::SIMULATED_PRINTER_CFG);
-        parse_str(&text, Path::new("printer.cfg")).map_err(|e| e.to_string())
-    }
+    use crate::printer::simulated_with as config;
 
     #[test]
     fn reads_klippers_options_and_defaults() {

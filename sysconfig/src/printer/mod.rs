@@ -542,5 +542,13 @@ pub fn builtin_simulated() -> Result<PrinterConfig, ConfigError> {
     parse_str(SIMULATED_PRINTER_CFG, Path::new(SIMULATED_PRINTER_NAME))
 }
 
+/// The built-in simulated printer with `section` added after it, parsed (the section
+/// modules' tests); an error as its message.
+#[cfg(test)]
+pub(crate) fn simulated_with(section: &str) -> Result<PrinterConfig, String> {
+    let text = format!("{SIMULATED_PRINTER_CFG}\n{section}\n");
+    parse_str(&text, Path::new("printer.cfg")).map_err(|e| e.to_string())
+}
+
 #[cfg(test)]
 mod tests;

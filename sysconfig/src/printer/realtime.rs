@@ -72,14 +72,9 @@ pub(crate) fn read_realtime(s: &SectionReader<'_>) -> Result<RealtimeSection, Co
 
 #[cfg(test)]
 mod tests {
-    use crate::printer::parse_str;
-    use std::path::Path;
 
     fn with(section: &str) -> Result<super::RealtimeSection, String> {
-        let text = format!("{}\n{section}\n", crate::printer::SIMULATED_PRINTER_CFG);
-        parse_str(&text, Path::new("printer.cfg"))
-            .map(|c| c.realtime)
-            .map_err(|e| e.to_string())
+        crate::printer::simulated_with(section).map(|c| c.realtime)
     }
 
     #[test]

@@ -14,13 +14,17 @@ use planner::gcode::host::{delayed_macro_name, HostAction, IDLE_TIMEOUT_MACRO};
 use planner::gcode::macros::{split_command, Macros, Script};
 use planner::gcode::respond::{is_respond_command, respond};
 use planner::gcode::{parse_line, Command, GcodeError, GcodeLine, GcodeReader, OtherParams};
-use planner::machine::{Applied, PlanErrorKind};
+use planner::machine::Applied;
 use planner::pipeline::Pipeline;
 use planner::stepgen::StepCmd;
 
 use crate::accessories::Accessories;
 use crate::heaters::gcode::{self as heat_gcode, HeatCmd};
-use crate::homing::procedure::{HomeOps, HomingProcedure};
+use crate::homing::procedure::{HomeOps, HomingProcedure, ProcedureError};
+
+mod error;
+
+pub use error::{CommandError, FeedError, G28Error, MacroRunError, MacroStepError};
 
 /// Where a print's G-code comes from: a name for messages (the file's path, or a stream's
 /// label) and either buffered bytes or a session's channel of commands.
@@ -168,13 +172,15 @@ impl Iterator for SessionFeed {
 
 /// Where the G-code loop hands its results: the live planner thread or a batch print.
 pub(crate) trait FeedTarget {
+    /// Why the target failed: the MCUs, the hand-off, a stop, a refused heater command.
+    type Error: std::error::Error + 'static;
     /// Step commands that became final (the target may leave `cmds` as it is: it is cleared).
-    fn emit(&mut self, cmds: &mut Vec<(usize, StepCmd)>) -> Result<(), String>;
+    fn emit(&mut self, cmds: &mut Vec<(usize, StepCmd)>) -> Result<(), Self::Error>;
     /// Runs between batches: flow control, MCU and stop checks, status.
-    fn pace(&mut self, pipeline: &mut Pipeline) -> Result<(), String>;
+    fn pace(&mut self, pipeline: &mut Pipeline) -> Result<(), Self::Error>;
     /// Runs G28 or a probe command with the MCUs in the loop (true), or leaves it to the
     /// planner (false).
-    fn motion(&mut self, pipeline: &mut Pipeline, cmd: &MotionCmd<'_>) -> Result<bool, String>;
+    fn motion(&mut self, pipeline: &mut Pipeline, cmd: &MotionCmd<'_>) -> Result<bool, Self::Error>;
     /// The earliest print time a move may start at after the feed was idle.
     fn resume_at(&self) -> f64;
     /// A warning about the G-code.
@@ -183,19 +189,22 @@ pub(crate) trait FeedTarget {
     fn idle(&mut self, _idle: bool, _pipeline: &Pipeline) {}
     /// A heater or fan command ([`HeatCmd`]; waits hold the G-code, with the moves before
     /// them flushed; M105 reports). Without heaters (batch) nothing.
-    fn heat(&mut self, _pipeline: &mut Pipeline, _cmd: &HeatCmd) -> Result<(), String> {
+    fn heat(&mut self, _pipeline: &mut Pipeline, _cmd: &HeatCmd) -> Result<(), Self::Error> {
         Ok(())
     }
     /// An extruding move of extruder `extruder` (its heater's name) is allowed (it is at
     /// `min_extrude_temp` or above).
-    fn can_extrude(&self, _extruder: &str) -> Result<(), String> {
+    fn can_extrude(&self, _extruder: &str) -> Result<(), Self::Error> {
         Ok(())
     }
     /// M84/M18 after the moves before it were planned: the drivers go off once they ran.
-    fn motors_off(&mut self, _pipeline: &mut Pipeline) -> Result<(), String> {
+    fn motors_off(&mut self, _pipeline: &mut Pipeline) -> Result<(), Self::Error> {
         Ok(())
     }
 }
+
+/// The outcome of a step of the loop fed to target `T`.
+type Fed<T, R = ()> = Result<R, FeedError<<T as FeedTarget>::Error>>;
 
 /// Reports G-code commands the planner does not know, once per name, in Klipper's words.
 #[derive(Debug, Default)]
@@ -243,122 +252,147 @@ impl MotionCmd<'_> {
 /// and M114 commands go to `accessories`. A session's idle spells flush the lookahead; the
 /// next command then starts no earlier than [`FeedTarget::resume_at`]. Returns the commands
 /// planned.
-pub(crate) fn plan_file(
+pub(crate) fn plan_file<T: FeedTarget>(
     input: GcodeInput,
     pipeline: &mut Pipeline,
     accessories: &mut Accessories,
     macros: &mut Macros,
     homing: &HomingProcedure,
-    target: &mut impl FeedTarget,
-) -> Result<u64, String> {
-    let mut warnings = Warnings::default();
-    let mut out = Vec::with_capacity(4096);
-    let mut lines = 0u64;
-    let file = input.name.clone();
-    // A session starts idle: its first command starts from the MCUs' time then.
-    let mut idle = input.is_session();
-    if idle {
+    target: &mut T,
+) -> Fed<T, u64> {
+    let mut st = FeedState {
+        warnings: Warnings::default(),
+        out: Vec::with_capacity(4096),
+        file: input.name.clone(),
+        // A session starts idle: its first command starts from the MCUs' time then.
+        idle: input.is_session(),
+        lines: 0,
+    };
+    if st.idle {
         target.idle(true, pipeline);
     }
     for item in input.items() {
         let (line, reply) = match item {
             FeedItem::Line(line) => (line, None),
             FeedItem::Checked(line, reply) => (line, Some(reply)),
-            FeedItem::Idle | FeedItem::Barrier(_) => {
-                if !idle {
-                    pipeline.flush_lookahead();
-                    release(pipeline, &mut out, target)?;
-                    idle = true;
-                    target.idle(true, pipeline);
-                }
-                target.pace(pipeline)?;
-                // The printer's timeline goes on while the session is quiet: timers and the
-                // idle timeout run from it.
-                macros.host_mut().quiet(target.resume_at());
-                if macros.host().due_timer().is_some() || macros.host_mut().idle_timeout_due() {
-                    let mut feed = Feed {
-                        force_move: macros.host().force_move(),
-                        file: &file,
-                        pipeline: &mut *pipeline,
-                        accessories: &mut *accessories,
-                        warnings: &mut warnings,
-                        out: &mut out,
-                    };
-                    let quiet = macros.host().due_timer().is_none();
-                    feed.run_line_idle(&mut idle, quiet, macros, target)?;
-                }
-                if let FeedItem::Barrier(done) = item {
-                    // The sender waits for it; a sender that gave up is no error.
-                    let _ = done.try_send(());
-                }
+            FeedItem::Idle => {
+                st.quiet_turn(pipeline, accessories, macros, target)?;
+                continue;
+            }
+            FeedItem::Barrier(done) => {
+                st.quiet_turn(pipeline, accessories, macros, target)?;
+                // The sender waits for it; a sender that gave up is no error.
+                let _ = done.try_send(());
                 continue;
             }
         };
-        lines += 1;
-        let mut feed = Feed {
-            force_move: macros.host().force_move(),
-            file: &file,
-            pipeline: &mut *pipeline,
-            accessories: &mut *accessories,
-            warnings: &mut warnings,
-            out: &mut out,
-        };
+        st.lines += 1;
+        let mut feed = st.feed(pipeline, accessories, macros);
         // `[delayed_gcode]` timers that came due on the print timeline run before the line.
         macros.host_mut().set_now(feed.pipeline.planned_until());
         if macros.host().due_timer().is_some() {
             let line_no = line.as_ref().map_or(0, |l| l.line_no);
             feed.run_due_timers(line_no, None, macros, target)?;
         }
-        let Some(reply) = reply else {
-            let line = line.map_err(|e| format!("{}: {e}", file.display()))?;
-            feed.run_line(&line, &mut idle, macros, homing, target)?;
-            continue;
-        };
-        // A checked command: its own error is answered and the session goes on; an error of
-        // the target (the MCUs, the hand-off, a stop) ends the session as for any line.
-        let mut checked = Checked {
-            target,
-            failed: false,
-        };
-        let result = line
-            .map_err(|e| format!("{}: {e}", file.display()))
-            .and_then(|line| feed.run_line(&line, &mut idle, macros, homing, &mut checked));
-        let failed = checked.failed;
-        // The sender waits for the answer; a sender that gave up is no error.
-        let _ = reply.try_send(result.clone().map_err(|message| LineError {
-            message,
-            ends_session: failed,
-        }));
-        if failed {
-            result?;
+        let line = line.map_err(|source| FeedError::Read {
+            file: feed.file.to_path_buf(),
+            source,
+        });
+        match reply {
+            None => feed.run_line(&line?, macros, homing, target)?,
+            Some(reply) => feed.run_checked(line, reply, macros, homing, target)?,
         }
     }
-    if !macros.host().pending_timers().is_empty() {
-        // Timers due while the last moves run fire; later ones are said not to.
+    st.run_last_timers(pipeline, accessories, macros, target)?;
+    pipeline.finish(&mut st.out);
+    target.emit(&mut st.out).map_err(FeedError::Target)?;
+    Ok(st.lines)
+}
+
+/// What the loop keeps from one command to the next.
+struct FeedState {
+    warnings: Warnings,
+    out: Vec<(usize, StepCmd)>,
+    /// The file, or the stream's label, errors name.
+    file: PathBuf,
+    /// The feed is idle: the lookahead was flushed and the next command starts anew.
+    idle: bool,
+    /// Commands planned so far.
+    lines: u64,
+}
+
+impl FeedState {
+    /// What the next command is planned with.
+    fn feed<'a>(
+        &'a mut self,
+        pipeline: &'a mut Pipeline,
+        accessories: &'a mut Accessories,
+        macros: &Macros,
+    ) -> Feed<'a> {
+        Feed {
+            force_move: macros.host().force_move(),
+            file: &self.file,
+            pipeline,
+            accessories,
+            warnings: &mut self.warnings,
+            out: &mut self.out,
+            idle: &mut self.idle,
+        }
+    }
+
+    /// A session was quiet for a while, or asked for a barrier: the lookahead is flushed, the
+    /// printer's timeline goes on (timers and the idle timeout run from it).
+    fn quiet_turn<T: FeedTarget>(
+        &mut self,
+        pipeline: &mut Pipeline,
+        accessories: &mut Accessories,
+        macros: &mut Macros,
+        target: &mut T,
+    ) -> Fed<T> {
+        if !self.idle {
+            pipeline.flush_lookahead();
+            release(pipeline, &mut self.out, target)?;
+            self.idle = true;
+            target.idle(true, pipeline);
+        }
+        target.pace(pipeline).map_err(FeedError::Target)?;
+        macros.host_mut().quiet(target.resume_at());
+        if macros.host().due_timer().is_some() || macros.host_mut().idle_timeout_due() {
+            let quiet = macros.host().due_timer().is_none();
+            self.feed(pipeline, accessories, macros)
+                .run_line_idle(quiet, macros, target)?;
+        }
+        Ok(())
+    }
+
+    /// At the end of the G-code: timers due while the last moves run fire; later ones are
+    /// said not to.
+    fn run_last_timers<T: FeedTarget>(
+        &mut self,
+        pipeline: &mut Pipeline,
+        accessories: &mut Accessories,
+        macros: &mut Macros,
+        target: &mut T,
+    ) -> Fed<T> {
+        if macros.host().pending_timers().is_empty() {
+            return Ok(());
+        }
         pipeline.flush_lookahead();
-        release(pipeline, &mut out, target)?;
+        release(pipeline, &mut self.out, target)?;
         let end = pipeline.planned_until();
         macros.host_mut().set_now(end);
-        let mut feed = Feed {
-            force_move: macros.host().force_move(),
-            file: &file,
-            pipeline: &mut *pipeline,
-            accessories: &mut *accessories,
-            warnings: &mut warnings,
-            out: &mut out,
-        };
-        feed.run_due_timers(lines as usize, Some(end), macros, target)?;
+        let lines = self.lines as usize;
+        self.feed(pipeline, accessories, macros)
+            .run_due_timers(lines, Some(end), macros, target)?;
         for (id, due) in macros.host().pending_timers() {
             target.warn(format!(
                 "{}: [delayed_gcode {id}] was due {:.1} s after the print's last move: not run",
-                file.display(),
+                self.file.display(),
                 due - end
             ));
         }
+        Ok(())
     }
-    pipeline.finish(&mut out);
-    target.emit(&mut out)?;
-    Ok(lines)
 }
 
 /// What one command line is planned with.
@@ -370,26 +404,36 @@ struct Feed<'a> {
     accessories: &'a mut Accessories,
     warnings: &'a mut Warnings,
     out: &'a mut Vec<(usize, StepCmd)>,
+    /// The feed is idle (see [`FeedState::idle`]).
+    idle: &'a mut bool,
 }
 
 impl Feed<'_> {
-    /// One command line of the feed: a macro call or a planned command, after an idle spell
-    /// from the MCUs' time then.
-    fn run_line(
-        &mut self,
-        line: &GcodeLine,
-        idle: &mut bool,
-        macros: &mut Macros,
-        homing: &HomingProcedure,
-        target: &mut impl FeedTarget,
-    ) -> Result<(), String> {
-        if *idle {
-            *idle = false;
+    /// The first command after an idle spell starts from the MCUs' time then.
+    fn wake<T: FeedTarget>(&mut self, target: &mut T) -> Fed<T> {
+        if *self.idle {
+            *self.idle = false;
             self.pipeline
                 .raise_print_time(target.resume_at())
-                .map_err(|e| format!("{}: {e}", self.file.display()))?;
+                .map_err(|source| FeedError::Plan {
+                    file: self.file.to_path_buf(),
+                    source,
+                })?;
             target.idle(false, self.pipeline);
         }
+        Ok(())
+    }
+
+    /// One command line of the feed: a macro call or a planned command, after an idle spell
+    /// from the MCUs' time then.
+    fn run_line<T: FeedTarget>(
+        &mut self,
+        line: &GcodeLine,
+        macros: &mut Macros,
+        homing: &HomingProcedure,
+        target: &mut T,
+    ) -> Fed<T> {
+        self.wake(target)?;
         match &line.cmd {
             Command::Other { name, raw } => macros.host_mut().observe(name, raw),
             _ => macros.host_mut().observe("", ""),
@@ -414,15 +458,45 @@ impl Feed<'_> {
         Ok(())
     }
 
+    /// A checked command of a session: its own error is answered and the session goes on; an
+    /// error of the target (the MCUs, the hand-off, a stop) ends the session as for any line.
+    fn run_checked<T: FeedTarget>(
+        &mut self,
+        line: Fed<T, GcodeLine>,
+        reply: SyncSender<Result<(), LineError>>,
+        macros: &mut Macros,
+        homing: &HomingProcedure,
+        target: &mut T,
+    ) -> Fed<T> {
+        let mut checked = Checked {
+            target,
+            failed: false,
+        };
+        let result = line.and_then(|line| self.run_line(&line, macros, homing, &mut checked));
+        let failed = checked.failed;
+        // The sender waits for the answer; a sender that gave up is no error.
+        let _ = reply.try_send(match &result {
+            Ok(()) => Ok(()),
+            Err(e) => Err(LineError {
+                message: e.to_string(),
+                ends_session: failed,
+            }),
+        });
+        match failed {
+            true => result,
+            false => Ok(()),
+        }
+    }
+
     /// Runs the `[delayed_gcode]` timers due at or before `until` (default: now), earliest
     /// first, each script as a macro reported under line `line_no`.
-    fn run_due_timers(
+    fn run_due_timers<T: FeedTarget>(
         &mut self,
         line_no: usize,
         until: Option<f64>,
         macros: &mut Macros,
-        target: &mut impl FeedTarget,
-    ) -> Result<(), String> {
+        target: &mut T,
+    ) -> Fed<T> {
         loop {
             let host = macros.host();
             let due = match until {
@@ -442,20 +516,13 @@ impl Feed<'_> {
 
     /// A quiet session's turn: due timers run, or (`idle_timeout`) the `[idle_timeout]`
     /// script; the lookahead is flushed after them, as after any command of a session.
-    fn run_line_idle(
+    fn run_line_idle<T: FeedTarget>(
         &mut self,
-        idle: &mut bool,
         idle_timeout: bool,
         macros: &mut Macros,
-        target: &mut impl FeedTarget,
-    ) -> Result<(), String> {
-        if *idle {
-            *idle = false;
-            self.pipeline
-                .raise_print_time(target.resume_at())
-                .map_err(|e| format!("{}: {e}", self.file.display()))?;
-            target.idle(false, self.pipeline);
-        }
+        target: &mut T,
+    ) -> Fed<T> {
+        self.wake(target)?;
         if idle_timeout {
             self.run_script(IDLE_TIMEOUT_MACRO, "", 0, macros, target)?;
         } else {
@@ -463,7 +530,7 @@ impl Feed<'_> {
         }
         self.pipeline.flush_lookahead();
         release(self.pipeline, self.out, target)?;
-        *idle = true;
+        *self.idle = true;
         target.idle(true, self.pipeline);
         Ok(())
     }
@@ -471,23 +538,20 @@ impl Feed<'_> {
     /// `SET_KINEMATIC_POSITION [X=] [Y=] [Z=] [SET_HOMED=xyz] [CLEAR_HOMED=]` (`[force_move]
     /// enable_force_move`): the toolhead is declared at the position, without moving, and the
     /// axes homed or not, as Klipper's force_move does.
-    fn set_kinematic_position(
+    fn set_kinematic_position<T: FeedTarget>(
         &mut self,
         line: &GcodeLine,
         raw: &str,
-        target: &mut impl FeedTarget,
-    ) -> Result<(), String> {
-        let at = |e: String| {
-            format!(
-                "{}:{}: SET_KINEMATIC_POSITION: {e}",
-                self.file.display(),
-                line.line_no
-            )
+        target: &mut T,
+    ) -> Fed<T> {
+        let at = |source| {
+            let cmd = "SET_KINEMATIC_POSITION";
+            FeedError::at(self.file, line.line_no, CommandError::Param { cmd, source })
         };
-        let p = OtherParams::parse(raw).map_err(|e| at(e.to_string()))?;
+        let p = OtherParams::parse(raw).map_err(at)?;
         let mut pos = self.pipeline.position();
         for (i, key) in ["X", "Y", "Z"].into_iter().enumerate() {
-            if let Some(v) = p.float(key).map_err(|e| at(e.to_string()))? {
+            if let Some(v) = p.float(key).map_err(at)? {
                 pos[i] = v;
             }
         }
@@ -513,48 +577,54 @@ impl Feed<'_> {
 
     /// `FORCE_MOVE STEPPER= DISTANCE= VELOCITY= [ACCEL=]` or `STEPPER_BUZZ STEPPER=`: one
     /// stepper moved on its own (Klipper's `[force_move]`), its steps sent at once.
-    fn forced_move(
+    fn forced_move<T: FeedTarget>(
         &mut self,
         line: &GcodeLine,
-        name: &str,
+        cmd: &'static str,
         raw: &str,
-        target: &mut impl FeedTarget,
-    ) -> Result<(), String> {
-        let at = |e: String| format!("{}:{}: {name}: {e}", self.file.display(), line.line_no);
-        let p = OtherParams::parse(raw).map_err(|e| at(e.to_string()))?;
-        let stepper = p.get("STEPPER").ok_or_else(|| at("missing STEPPER".into()))?;
-        let num = |k: &str| p.float(k).map_err(|e| at(e.to_string()));
+        target: &mut T,
+    ) -> Fed<T> {
+        let (file, line_no) = (self.file, line.line_no);
+        let at = |source| FeedError::at(file, line_no, source);
+        let param = |source| at(CommandError::Param { cmd, source });
+        let missing = |key| at(CommandError::Missing { cmd, key });
+        let p = OtherParams::parse(raw).map_err(param)?;
+        let stepper = p.get("STEPPER").ok_or_else(|| missing("STEPPER"))?;
+        let num = |k: &str| p.float(k).map_err(param);
         // Everything planned so far goes out first.
         self.pipeline.flush_lookahead();
         release(self.pipeline, self.out, target)?;
-        let done = if name == "STEPPER_BUZZ" {
+        let done = if cmd == "STEPPER_BUZZ" {
             self.pipeline.stepper_buzz(stepper, self.out)
         } else {
-            let distance = num("DISTANCE")?.ok_or_else(|| at("missing DISTANCE".into()))?;
-            let velocity = num("VELOCITY")?.ok_or_else(|| at("missing VELOCITY".into()))?;
+            let distance = num("DISTANCE")?.ok_or_else(|| missing("DISTANCE"))?;
+            let velocity = num("VELOCITY")?.ok_or_else(|| missing("VELOCITY"))?;
             let accel = num("ACCEL")?.unwrap_or(0.0);
             self.pipeline
                 .force_move(stepper, distance, velocity, accel, self.out)
         };
-        done.map_err(|e| at(e.kind.to_string()))?;
+        done.map_err(|e| at(CommandError::Forced { cmd, source: e.kind }))?;
         if !self.out.is_empty() {
-            target.emit(self.out)?;
+            target.emit(self.out).map_err(FeedError::Target)?;
             self.out.clear();
-            target.pace(self.pipeline)?;
+            target.pace(self.pipeline).map_err(FeedError::Target)?;
         }
         Ok(())
     }
 
     /// Plans one command and hands on what became final.
-    fn plan(&mut self, line: &GcodeLine, target: &mut impl FeedTarget) -> Result<(), String> {
+    fn plan<T: FeedTarget>(&mut self, line: &GcodeLine, target: &mut T) -> Fed<T> {
         if let Command::Other { name, raw } = &line.cmd {
             if name.as_str() == "SET_KINEMATIC_POSITION" && self.force_move {
                 return self.set_kinematic_position(line, raw.as_str(), target);
             }
             // FORCE_MOVE only with `enable_force_move: True` (otherwise an unknown command, as
             // Klipper registers it only then); STEPPER_BUZZ always.
-            if (name.as_str() == "FORCE_MOVE" && self.force_move) || name.as_str() == "STEPPER_BUZZ" {
-                return self.forced_move(line, name.as_str(), raw.as_str(), target);
+            if name.as_str() == "FORCE_MOVE" && self.force_move {
+                return self.forced_move(line, "FORCE_MOVE", raw.as_str(), target);
+            }
+            if name.as_str() == "STEPPER_BUZZ" {
+                return self.forced_move(line, "STEPPER_BUZZ", raw.as_str(), target);
             }
         }
         if plan_line(
@@ -574,12 +644,12 @@ impl Feed<'_> {
     /// Klipper's semantics: see `planner::gcode::macros`), `SET_GCODE_VARIABLE` or a `[respond]`
     /// command; false for any other command. Macro lines are reported under the calling line's
     /// number.
-    fn run_macro_or_variable(
+    fn run_macro_or_variable<T: FeedTarget>(
         &mut self,
         line: &GcodeLine,
         macros: &mut Macros,
-        target: &mut impl FeedTarget,
-    ) -> Result<bool, String> {
+        target: &mut T,
+    ) -> Fed<T, bool> {
         let pipeline = &*self.pipeline;
         let status = || macro_status(pipeline);
         let Some(mut run) = MacroRun::start(line, macros, status, self.file, &mut |m| target.warn(m))? else {
@@ -591,14 +661,14 @@ impl Feed<'_> {
 
     /// Runs macro `name` called with `rawparams` from line `line_no` to its end (the
     /// `[homing_override]` script).
-    fn run_script(
+    fn run_script<T: FeedTarget>(
         &mut self,
         name: &str,
         rawparams: &str,
         line_no: usize,
         macros: &mut Macros,
-        target: &mut impl FeedTarget,
-    ) -> Result<(), String> {
+        target: &mut T,
+    ) -> Fed<T> {
         let status = macro_status(self.pipeline);
         let mut run = MacroRun::call(name, rawparams, line_no, macros, &status, self.file, &mut |m| {
             target.warn(m)
@@ -607,19 +677,21 @@ impl Feed<'_> {
     }
 
     /// Plans the lines of a started macro run until it ends.
-    fn run_to_end(
+    fn run_to_end<T: FeedTarget>(
         &mut self,
         run: &mut MacroRun,
         macros: &mut Macros,
-        target: &mut impl FeedTarget,
-    ) -> Result<(), String> {
+        target: &mut T,
+    ) -> Fed<T> {
         loop {
             let status = macro_status(self.pipeline);
             let Some(sub) = run.next(macros, &status, self.file, &mut |m| target.warn(m))? else {
                 return Ok(());
             };
-            self.plan(&sub, target)
-                .map_err(|e| format!("{e} (in macro {})", run.via()))?;
+            self.plan(&sub, target).map_err(|e| FeedError::InMacro {
+                source: Box::new(e),
+                via: run.via().to_string(),
+            })?;
         }
     }
 }
@@ -647,7 +719,7 @@ impl MacroRun {
         printer: impl FnOnce() -> serde_json::Value,
         file: &Path,
         say: &mut dyn FnMut(String),
-    ) -> Result<Option<MacroRun>, String> {
+    ) -> Result<Option<MacroRun>, MacroRunError> {
         let Some((name, rawparams)) = macro_call(&line.cmd, macros) else {
             return Ok(None);
         };
@@ -665,14 +737,20 @@ impl MacroRun {
         printer: &serde_json::Value,
         file: &Path,
         say: &mut dyn FnMut(String),
-    ) -> Result<MacroRun, String> {
+    ) -> Result<MacroRun, MacroRunError> {
         let mut run = MacroRun {
             script: Script::new(),
             line_no,
             via: String::new(),
         };
-        macro_step(name, rawparams, macros, &mut run.script, printer, say)
-            .map_err(|why| format!("{}:{line_no}: {why}", file.display()))?;
+        macro_step(name, rawparams, macros, &mut run.script, printer, say).map_err(|source| {
+            MacroRunError {
+                file: file.to_path_buf(),
+                line: line_no,
+                via: None,
+                source: Box::new(source),
+            }
+        })?;
         Ok(run)
     }
 
@@ -690,8 +768,13 @@ impl MacroRun {
         printer: &serde_json::Value,
         file: &Path,
         say: &mut dyn FnMut(String),
-    ) -> Result<Option<GcodeLine>, String> {
-        let at = |why: String| format!("{}:{}: {why}", file.display(), self.line_no);
+    ) -> Result<Option<GcodeLine>, MacroRunError> {
+        let at = |via: &str, source: MacroStepError| MacroRunError {
+            file: file.to_path_buf(),
+            line: self.line_no,
+            via: Some(via.to_string()),
+            source: Box::new(source),
+        };
         while let Some(next) = self.script.next_line() {
             self.via = next.macros.join(" > ");
             let Some((called, rest)) = split_command(&next.text) else {
@@ -699,7 +782,7 @@ impl MacroRun {
             };
             if macros.is_feed_command(&called) {
                 macro_step(&called, rest, macros, &mut self.script, printer, say)
-                    .map_err(|why| at(format!("in macro {}: {why}", self.via)))?;
+                    .map_err(|e| at(&self.via, e))?;
                 continue;
             }
             if called == "M117" {
@@ -717,7 +800,7 @@ impl MacroRun {
                     }))
                 }
                 Ok(None) => continue,
-                Err(e) => return Err(at(format!("in macro {}: {e}", self.via))),
+                Err(e) => return Err(at(&self.via, e.into())),
             }
         }
         Ok(None)
@@ -734,9 +817,9 @@ fn macro_step(
     script: &mut Script,
     printer: &serde_json::Value,
     say: &mut dyn FnMut(String),
-) -> Result<(), String> {
+) -> Result<(), MacroStepError> {
     if name == "SET_GCODE_VARIABLE" {
-        return macros.set_variable(rawparams).map_err(|e| e.to_string());
+        return Ok(macros.set_variable(rawparams)?);
     }
     if let Some(prefix) = macros.respond_prefix().filter(|_| is_respond_command(name)) {
         if !macros.is_macro(name) {
@@ -745,21 +828,16 @@ fn macro_step(
         }
     }
     if macros.host().handles(name) && !macros.is_macro(name) {
-        match macros
-            .host_mut()
-            .command(name, rawparams)
-            .map_err(|e| e.to_string())?
-        {
+        match macros.host_mut().command(name, rawparams)? {
             HostAction::Done => {}
             HostAction::Respond(text) => say(text),
-            HostAction::Save { path, text } => std::fs::write(&path, text)
-                .map_err(|e| format!("Unable to save variable ({}: {e})", path.display()))?,
+            HostAction::Save { path, text } => {
+                std::fs::write(&path, text).map_err(|source| MacroStepError::Save { path, source })?
+            }
         }
         return Ok(());
     }
-    let said = script
-        .call(macros, name, rawparams, printer)
-        .map_err(|e| e.to_string())?;
+    let said = script.call(macros, name, rawparams, printer)?;
     said.into_iter().for_each(|m| say(format!("{name}: {m}")));
     Ok(())
 }
@@ -797,7 +875,7 @@ struct FeedHoming<'f, 'a, T> {
 }
 
 impl<T: FeedTarget> HomeOps for FeedHoming<'_, '_, T> {
-    type Error = String;
+    type Error = FeedError<T::Error>;
 
     fn homed(&self) -> [bool; 3] {
         self.feed.pipeline.gcode_state().homed()
@@ -812,7 +890,7 @@ impl<T: FeedTarget> HomeOps for FeedHoming<'_, '_, T> {
         self.feed.pipeline.set_homed(homed);
     }
 
-    fn home(&mut self, axes: [bool; 3]) -> Result<(), String> {
+    fn home(&mut self, axes: [bool; 3]) -> Fed<T> {
         let [x, y, z] = axes;
         let line = GcodeLine {
             line_no: self.line_no,
@@ -821,22 +899,28 @@ impl<T: FeedTarget> HomeOps for FeedHoming<'_, '_, T> {
         self.feed.plan(&line, self.target)
     }
 
-    fn move_to(&mut self, pos: [f64; 4], speed: f64) -> Result<(), String> {
-        self.feed
-            .pipeline
-            .home_move(pos, speed)
-            .map_err(|e| self.fail(&e.to_string()))?;
+    fn move_to(&mut self, pos: [f64; 4], speed: f64) -> Fed<T> {
+        if let Err(e) = self.feed.pipeline.home_move(pos, speed) {
+            return Err(self.located(G28Error::Move(e)));
+        }
         release(self.feed.pipeline, self.feed.out, self.target)
     }
 
-    fn run_override(&mut self, rawparams: &str) -> Result<(), String> {
+    fn run_override(&mut self, rawparams: &str) -> Fed<T> {
         let name = sysconfig::printer::HOMING_OVERRIDE_MACRO;
         self.feed
             .run_script(name, rawparams, self.line_no, self.macros, self.target)
     }
 
-    fn fail(&self, why: &str) -> String {
-        format!("{}:{}: G28: {why}", self.feed.file.display(), self.line_no)
+    fn fail(&self, why: ProcedureError) -> FeedError<T::Error> {
+        self.located(G28Error::Procedure(why))
+    }
+}
+
+impl<T: FeedTarget> FeedHoming<'_, '_, T> {
+    /// `why`, at the G28's line.
+    fn located(&self, why: G28Error) -> FeedError<T::Error> {
+        FeedError::at(self.feed.file, self.line_no, CommandError::Homing(why))
     }
 }
 
@@ -874,22 +958,24 @@ struct Checked<'t, T> {
 }
 
 impl<T> Checked<'_, T> {
-    fn note<R>(&mut self, r: Result<R, String>) -> Result<R, String> {
+    fn note<R, E>(&mut self, r: Result<R, E>) -> Result<R, E> {
         self.failed |= r.is_err();
         r
     }
 }
 
 impl<T: FeedTarget> FeedTarget for Checked<'_, T> {
-    fn emit(&mut self, cmds: &mut Vec<(usize, StepCmd)>) -> Result<(), String> {
+    type Error = T::Error;
+
+    fn emit(&mut self, cmds: &mut Vec<(usize, StepCmd)>) -> Result<(), T::Error> {
         let r = self.target.emit(cmds);
         self.note(r)
     }
-    fn pace(&mut self, pipeline: &mut Pipeline) -> Result<(), String> {
+    fn pace(&mut self, pipeline: &mut Pipeline) -> Result<(), T::Error> {
         let r = self.target.pace(pipeline);
         self.note(r)
     }
-    fn motion(&mut self, pipeline: &mut Pipeline, cmd: &MotionCmd<'_>) -> Result<bool, String> {
+    fn motion(&mut self, pipeline: &mut Pipeline, cmd: &MotionCmd<'_>) -> Result<bool, T::Error> {
         let r = self.target.motion(pipeline, cmd);
         self.note(r)
     }
@@ -904,62 +990,54 @@ impl<T: FeedTarget> FeedTarget for Checked<'_, T> {
     }
     // A heater command's error (a target out of range, a fault met while waiting) fails the
     // command; a fault also ends the session at the target's next check.
-    fn heat(&mut self, pipeline: &mut Pipeline, cmd: &HeatCmd) -> Result<(), String> {
+    fn heat(&mut self, pipeline: &mut Pipeline, cmd: &HeatCmd) -> Result<(), T::Error> {
         self.target.heat(pipeline, cmd)
     }
-    fn can_extrude(&self, extruder: &str) -> Result<(), String> {
+    fn can_extrude(&self, extruder: &str) -> Result<(), T::Error> {
         self.target.can_extrude(extruder)
     }
 }
 
 /// Hands the step commands that became final to the target, then paces.
-fn release(
+fn release<T: FeedTarget>(
     pipeline: &mut Pipeline,
     out: &mut Vec<(usize, StepCmd)>,
-    target: &mut impl FeedTarget,
-) -> Result<(), String> {
+    target: &mut T,
+) -> Fed<T> {
     pipeline.generate(out);
     if !out.is_empty() {
-        target.emit(out)?;
+        target.emit(out).map_err(FeedError::Target)?;
         out.clear();
-        target.pace(pipeline)?;
+        target.pace(pipeline).map_err(FeedError::Target)?;
     }
     Ok(())
 }
 
 /// One G-code command: with the MCUs in the loop (G28 with motion, probing: false) or planned
 /// (true: steps may be ready).
-fn plan_line(
+fn plan_line<T: FeedTarget>(
     line: &GcodeLine,
     file: &Path,
     pipeline: &mut Pipeline,
     accessories: &mut Accessories,
     warnings: &mut Warnings,
-    target: &mut impl FeedTarget,
-) -> Result<bool, String> {
-    // G28 with real motion where the printer can home; otherwise the planner's own G28
-    // (which sets the configured endstop positions). The probe commands likewise.
-    let cmd = match &line.cmd {
-        Command::Home { x, y, z } => Some(MotionCmd::Home([*x, *y, *z])),
-        Command::Other { name, raw } if crate::homing::probe::is_probe_command(name) => {
-            Some(MotionCmd::Probe { name, raw })
-        }
-        Command::Other { name, raw } if crate::tmc::gcode::is_tmc_command(name) => {
-            Some(MotionCmd::Tmc { name, raw })
-        }
-        _ => None,
-    };
+    target: &mut T,
+) -> Fed<T, bool> {
+    let at = |source| FeedError::at(file, line.line_no, source);
+    let refused = |e| at(CommandError::Target(e));
     if let Some(heat) = heat_gcode::parse(&line.cmd) {
-        let at = |e: String| format!("{}:{}: {e}", file.display(), line.line_no);
-        let heat = heat.map_err(|e| at(e.to_string()))?;
-        target.heat(pipeline, &heat).map_err(at)?;
+        let heat = heat.map_err(|e| at(e.into()))?;
+        target.heat(pipeline, &heat).map_err(refused)?;
         return Ok(true);
     }
-    if let Some(cmd) = cmd {
-        if target
-            .motion(pipeline, &cmd)
-            .map_err(|e| format!("{}:{}: {}: {e}", file.display(), line.line_no, cmd.name()))?
-        {
+    // G28 with real motion where the printer can home; otherwise the planner's own G28
+    // (which sets the configured endstop positions). The probe and TMC commands likewise.
+    if let Some(cmd) = motion_cmd(&line.cmd) {
+        let moved = target.motion(pipeline, &cmd).map_err(|source| {
+            let cmd = cmd.name().to_string();
+            at(CommandError::Motion { cmd, source })
+        })?;
+        if moved {
             return Ok(false);
         }
     }
@@ -968,14 +1046,9 @@ fn plan_line(
         Command::Move { e: Some(_), .. } | Command::Arc { e: Some(_), .. }
     );
     let e_before = pipeline.position()[3];
-    let applied = pipeline.apply(line).map_err(|e| {
-        let hint = match e.kind {
-            PlanErrorKind::UnknownCommand(_) => {
-                " (strict mode: without --strict and with `unknown_commands: warn` in [gcode], the default, it is reported and skipped as Klipper does)"
-            }
-            _ => "",
-        };
-        format!("{}: {e}{hint}", file.display())
+    let applied = pipeline.apply(line).map_err(|source| FeedError::Plan {
+        file: file.to_path_buf(),
+        source,
     })?;
     if let Applied::Unsupported(name) = &applied {
         warnings.unsupported(file, line.line_no, name, target);
@@ -984,20 +1057,30 @@ fn plan_line(
         target.warn(format!("{}: {w}", file.display()));
     }
     if applied == Applied::MotorsOff {
-        target
-            .motors_off(pipeline)
-            .map_err(|e| format!("{}:{}: {e}", file.display(), line.line_no))?;
+        target.motors_off(pipeline).map_err(refused)?;
     }
     if extrudes && pipeline.position()[3] != e_before {
         let active = pipeline.gcode_state().extruders().active();
         target
             .can_extrude(planner::extruders::EXTRUDER_NAMES[active])
-            .map_err(|e| format!("{}:{}: {e}", file.display(), line.line_no))?;
+            .map_err(refused)?;
     }
     if let Some(heat) = heat_gcode::of_applied(&applied) {
-        target
-            .heat(pipeline, &heat)
-            .map_err(|e| format!("{}:{}: {e}", file.display(), line.line_no))?;
+        target.heat(pipeline, &heat).map_err(refused)?;
     }
     Ok(true)
+}
+
+/// The command as one the MCUs must be in the loop for, if it is one.
+fn motion_cmd(cmd: &Command) -> Option<MotionCmd<'_>> {
+    match cmd {
+        Command::Home { x, y, z } => Some(MotionCmd::Home([*x, *y, *z])),
+        Command::Other { name, raw } if crate::homing::probe::is_probe_command(name) => {
+            Some(MotionCmd::Probe { name, raw })
+        }
+        Command::Other { name, raw } if crate::tmc::gcode::is_tmc_command(name) => {
+            Some(MotionCmd::Tmc { name, raw })
+        }
+        _ => None,
+    }
 }
