@@ -52,6 +52,11 @@
 //! bound instead of a copy per step (+2 %); a per-step test of the direction as steps are
 //! queued (−0.3 %, where checking only a move's first step on linear kinematics gives −1 %).
 //!
+//! Cruise lines (a move's cruise, a shaped stretch where every term cruises: most of a print's
+//! steps) are kept as spans beside their windows, and a command starting in one comes from the
+//! line's formula in O(1) whatever its length (`compress::line`, with its error bound's proof),
+//! the per-step search only deciding where a command may carry an add (near a line's ends).
+//!
 //! Commands never go back in time (every interval ≥ 0); a `reset_step_clock` precedes the first
 //! step and any step more than 2^29 ticks after the previous one; `set_next_step_dir` precedes
 //! the first step and each direction change.
@@ -416,8 +421,22 @@ impl StepCompressor {
         if fit.count >= run.len() || self.backoff == 0 {
             return fit;
         }
+        // A next command starting in a cruise line long enough that it carries no add: the
+        // longest comes from the line's formula, as it will be emitted (`compress::line`).
+        let (head, lines, pending) = (self.head, &self.lines, &self.pending);
+        let from_line = |f: &Fit| {
+            if !self.line_fit {
+                return None;
+            }
+            let at = head + f.count;
+            let span = lines.iter().find(|l| l.end > at).filter(|l| l.start <= at)?;
+            line_fit(span, pending, at, run_end, f.end(last), max_err).map(|l| l.fit)
+        };
         // Only the length of the following command matters here.
         let follow = |f: &Fit| {
+            if let Some(next) = from_line(f) {
+                return next;
+            }
             let (rest, from) = (&run[f.count..], f.end(last));
             // First guess: the add of the steps' own curvature over a command as long as this one.
             let guess = curvature_add(rest, from, f.count).unwrap_or(f.add);
@@ -448,7 +467,10 @@ impl StepCompressor {
             let Some(within) = two_window_adds(rest, f.end(last), need) else {
                 continue;
             };
-            let next = longest_fit_within(rest, f.end(last), max_err, guess, within);
+            let next = match from_line(&f) {
+                Some(next) => next,
+                None => longest_fit_within(rest, f.end(last), max_err, guess, within),
+            };
             if f.count + next.count > best.0.count + best.1.count {
                 best = (f, next);
             }

@@ -25,27 +25,35 @@
 //!
 //! Floating point: c_k in the window is `t0 + i as f64 * dt` rounded once, and h is evaluated
 //! here in a few more roundings. With clocks below 2^40 ticks every such rounding is below
-//! 2^−12 ticks, so evaluating against the margin ε = 2^−4 instead of 0 and E, the command's
-//! every step is inside [c_k − E, c_k] for the clocks the windows were made from. Belt and braces,
-//! the first and last step are also checked against their stored integer windows.
+//! 2^−12 ticks, so where the formula puts h within [ε, E − ε], ε = 2^−4, the step is inside
+//! [c_k − E, c_k] for the clock its window was made from. Where the formula puts h within ε of
+//! a bound (a command whose first step lands a fraction of a tick from its window's edge, which
+//! the search would take), those steps, at most [`MAX_EXACT`] at the start, are checked one by
+//! one against their stored integer windows instead, and the formula takes over from the first
+//! step it puts inside the margin. Steps after the formula's last one are likewise checked one
+//! by one (the few the margin left out, and those after the span), while they fit: so every
+//! step of a command is either proven by the formula with room for rounding or checked exactly.
 //!
 //! # When an add could do better
 //! A command with add A valid on steps 1, 1 + h, 1 + 2h of a line has
 //! p_{1+2h} − 2·p_{1+h} + p_1 = A·h² while the line's c has second difference 0, and each
 //! p − c lies in [−E, 0]: so |A|·h² ≤ 2E. Covering m ≥ 2·√(2E) + 3 steps of a line (h ≥ √(2E)
 //! plus rounding) therefore forces A = 0, and the search over adds has nothing to find: the
-//! formula's command is the longest there is. Shorter commands are left to the per-step search
+//! longest command is one of add 0. Shorter commands are left to the per-step search
 //! ([`min_line`]).
 //!
 //! # The line's last command
 //! When a command reaches the span's end, the steps after it (a deceleration, an acceleration)
-//! may still fit it. Of the intervals valid on the whole rest of the span (m steps) it also tries
-//! the largest, ⌊min(c_1 − L, (c_m − L)/m)⌋ (both ends' upper bounds), and the smallest,
-//! ⌈max(c_1 − L − E, (c_m − L − E)/m)⌉ (both lower bounds) (a slowing stepper's steps come
-//! later, the largest interval follows them longest; a speeding one's earlier, the smallest).
-//! Every candidate goes on step by step through the windows after what the formula proved
-//! (the few steps the margin ε left out, and those after the span) while they take L + k·I, each
-//! checked exactly; the one going furthest is taken, the larger interval on a tie.
+//! may still fit it. Every interval in [bottom, top] is valid on the whole rest of the span
+//! (m steps), top = ⌊min(c_1 − L, (c_m − L)/m)⌋ (both ends' upper bounds) and
+//! bottom = ⌈max(c_1 − L − E, (c_m − L − E)/m)⌉ (both lower bounds), with the margin ε; that
+//! range is narrowed step by step through the windows after the span, as the search's pass does
+//! with add 0, until it empties: the longest command of add 0 ending latest (its largest
+//! interval), and the largest interval one step shorter, for the lookahead. The compressor then
+//! makes the search's lookahead choice (end a step earlier when the next command covers more):
+//! inside a line both next commands come from the formula, at a line's last command the search
+//! finds the next one. On random programs through every kinematics, shaped and not, this gives
+//! no more commands than the per-step search (`pipeline::tests::line_fit`).
 
 use super::fit::{Fit, StepWindow};
 use super::MAX_INTERVAL;
