@@ -35,6 +35,9 @@ pub struct PlanOptions {
     pub max_lines: Option<usize>,
     /// Message ids of `queue_step`, `set_next_step_dir`, `reset_step_clock`.
     pub msg_ids: [u32; 3],
+    /// Every command from the per-step search, none from a cruise line's formula (the
+    /// reference the line commands are measured against).
+    pub per_step: bool,
 }
 
 impl Default for PlanOptions {
@@ -45,6 +48,7 @@ impl Default for PlanOptions {
             threads: 2,
             max_lines: None,
             msg_ids: [20, 21, 22],
+            per_step: false,
         }
     }
 }
@@ -164,6 +168,7 @@ pub fn plan_reader(src: impl BufRead, cfg: &PrinterConfig, opts: &PlanOptions) -
         ..sysconfig::planning::pipeline_options(cfg, kin)
     };
     let mut p = Pipeline::with_options(pc, 0.25, popts).map_err(|e| e.to_string())?;
+    p.set_line_fit(!opts.per_step);
     let mut wire = WireCounter::default();
     let mut rep = PlanReport::default();
     let mut out = Vec::with_capacity(1 << 14);

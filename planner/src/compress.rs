@@ -52,11 +52,17 @@
 //! bound instead of a copy per step (+2 %); a per-step test of the direction as steps are
 //! queued (−0.3 %, where checking only a move's first step on linear kinematics gives −1 %).
 //!
+//! Cruise lines (a move's cruise, a shaped stretch where every term cruises: most of a print's
+//! steps) are kept as spans beside their windows, and a command starting in one comes from the
+//! line's formula in O(1) whatever its length (`compress::line`, with its error bound's proof),
+//! the per-step search only deciding where a command may carry an add (near a line's ends).
+//!
 //! Commands never go back in time (every interval ≥ 0); a `reset_step_clock` precedes the first
 //! step and any step more than 2^29 ticks after the previous one; `set_next_step_dir` precedes
 //! the first step and each direction change.
 
 mod fit;
+mod line;
 mod resync; // homing: resync after a stop on trigger
 
 use std::collections::VecDeque;
@@ -70,6 +76,7 @@ use fit::{
     best_fit, curvature_add, fit_prefix, latest_end, longest_fit, longest_fit_within, two_window_adds, Fit,
     StepWindow,
 };
+use line::{line_fit, LineSpan, MIN_SPAN};
 
 /// Largest interval sent (and largest gap without a `reset_step_clock`), in ticks.
 pub const MAX_INTERVAL: u64 = 1 << 29;
@@ -94,6 +101,11 @@ pub struct StepCompressor {
     /// the other way from step i − 1: the direction run starting at `head` ends at the first
     /// one above it, found without a pass over the steps.
     flips: VecDeque<usize>,
+    /// Stretches of pending steps on one cruise line (ascending, those ending ≤ head may
+    /// linger): a command starting in one is found from the line's formula (`compress::line`).
+    lines: VecDeque<LineSpan>,
+    /// Whether commands in a line come from its formula (default) or the per-step search.
+    line_fit: bool,
     last_clock: u64,
     started: bool,
     dir: Option<bool>,
@@ -133,6 +145,8 @@ impl StepCompressor {
             // Room for 1024 direction changes pending at once (the planner loop allocates
             // nothing after warm-up: tests/alloc_free.rs).
             flips: VecDeque::with_capacity(1 << 10),
+            lines: VecDeque::with_capacity(1 << 10),
+            line_fit: true,
             last_clock: 0,
             started: false,
             dir: None,
@@ -153,6 +167,13 @@ impl StepCompressor {
     pub fn set_lookahead_backoff(&mut self, steps: usize) {
         self.backoff = steps;
         self.next = None;
+    }
+
+    /// Whether a command starting in a cruise line is found from the line's formula (default,
+    /// see `compress::line`) or, like every other, by the per-step search (the reference the
+    /// formula's commands are measured against).
+    pub fn set_line_fit(&mut self, on: bool) {
+        self.line_fit = on;
     }
 
     /// A new step distance from the next move on: the stepper stays where it is and counts
@@ -234,16 +255,21 @@ impl StepCompressor {
             used: 0,
             extra: Vec::new(),
             max_err,
+            base: start,
+            lines: if self.line_fit {
+                Some(&mut self.lines)
+            } else {
+                None
+            },
         };
         self.gen.raise_last_clock(self.last_ideal);
         // Two loops rather than a test of the flag per step.
         if self.record_ideal {
-            let ideal = &mut self.ideal;
-            let mut sink = &mut sink;
-            self.gen.gen_move(mv, kin, |clock, dir| {
-                sink.step(clock, dir);
-                ideal.push_back(IdealStep { clock, dir });
-            });
+            let sink = RecordingSink {
+                inner: &mut sink,
+                ideal: &mut self.ideal,
+            };
+            self.gen.gen_move(mv, kin, sink);
         } else {
             self.gen.gen_move(mv, kin, &mut sink);
         }
@@ -313,6 +339,9 @@ impl StepCompressor {
         for (slot, i) in self.pending[start..].iter_mut().zip(from..to) {
             *slot = step_window(line_clock(t0, dt, i, floor), max_err, dir);
         }
+        if self.line_fit {
+            record_span(&mut self.lines, start, t0, dt, from, to, floor);
+        }
         if self.record_ideal {
             for i in from..to {
                 self.ideal.push_back(IdealStep {
@@ -346,6 +375,7 @@ impl StepCompressor {
             self.pending.clear();
             self.head = 0;
             self.flips.clear();
+            self.lines.clear();
             self.next = None;
         } else if self.head > 4096 && self.head * 2 > self.pending.len() {
             self.pending.drain(..self.head);
@@ -353,6 +383,14 @@ impl StepCompressor {
             self.flips.retain(|&f| f > head);
             for f in self.flips.iter_mut() {
                 *f -= head;
+            }
+            while self.lines.front().is_some_and(|l| l.end <= head) {
+                self.lines.pop_front();
+            }
+            for l in self.lines.iter_mut() {
+                if let Some(cut) = l.from(head) {
+                    *l = cut.shifted_down(head);
+                }
             }
             self.head = 0;
             self.next = None;
@@ -371,11 +409,34 @@ impl StepCompressor {
             }
             _ => best_fit(run, last, max_err, self.last_add),
         };
+        self.lookahead(run_end, fit)
+    }
+
+    /// `fit` (the longest command from the head, ending latest), or a command a step or two
+    /// shorter when the next command then covers more; the next command is kept in `next`.
+    fn lookahead(&mut self, run_end: usize, fit: Fit) -> Fit {
+        let run = &self.pending[self.head..run_end];
+        let last = self.last_clock;
+        let max_err = self.max_err as i64;
         if fit.count >= run.len() || self.backoff == 0 {
             return fit;
         }
+        // A next command starting in a cruise line long enough that it carries no add: the
+        // longest comes from the line's formula, as it will be emitted (`compress::line`).
+        let (head, lines, pending) = (self.head, &self.lines, &self.pending);
+        let from_line = |f: &Fit| {
+            if !self.line_fit {
+                return None;
+            }
+            let at = head + f.count;
+            let span = lines.iter().find(|l| l.end > at).filter(|l| l.start <= at)?;
+            line_fit(span, pending, at, run_end, f.end(last), max_err).map(|l| l.fit)
+        };
         // Only the length of the following command matters here.
         let follow = |f: &Fit| {
+            if let Some(next) = from_line(f) {
+                return next;
+            }
             let (rest, from) = (&run[f.count..], f.end(last));
             // First guess: the add of the steps' own curvature over a command as long as this one.
             let guess = curvature_add(rest, from, f.count).unwrap_or(f.add);
@@ -406,7 +467,10 @@ impl StepCompressor {
             let Some(within) = two_window_adds(rest, f.end(last), need) else {
                 continue;
             };
-            let next = longest_fit_within(rest, f.end(last), max_err, guess, within);
+            let next = match from_line(&f) {
+                Some(next) => next,
+                None => longest_fit_within(rest, f.end(last), max_err, guess, within),
+            };
             if f.count + next.count > best.0.count + best.1.count {
                 best = (f, next);
             }
@@ -419,6 +483,53 @@ impl StepCompressor {
             fit: next,
         });
         chosen
+    }
+
+    /// The command from the head when it lies in a cruise line and the line's formula gives
+    /// one (`compress::line`), ending before `run_end`.
+    fn line_command(&mut self, run_end: usize) -> Option<Fit> {
+        let head = self.head;
+        while self.lines.front().is_some_and(|l| l.end <= head) {
+            self.lines.pop_front();
+        }
+        let span = *self.lines.front()?;
+        if span.start > head {
+            return None;
+        }
+        let (last, max_err) = (self.last_clock, self.max_err as i64);
+        let l = line_fit(&span, &self.pending, head, run_end, last, max_err)?;
+        let fit = l.fit;
+        if self.backoff == 0 || fit.count < 2 {
+            return Some(fit);
+        }
+        // The lookahead, as the search's: one step shorter when the next command then covers
+        // more. Inside the line both next commands come from the formula too; where one does
+        // not (the line's last command), the search's lookahead decides.
+        let next = |f: &Fit| {
+            line_fit(
+                &span,
+                &self.pending,
+                head + f.count,
+                run_end,
+                f.end(last),
+                max_err,
+            )
+        };
+        let shorter = fit.shortened();
+        let pair = match (l.last, shorter) {
+            (false, Some(s)) => next(&fit).zip(next(&s)).map(|(a, b)| (s, a.fit, b.fit)),
+            _ => None,
+        };
+        Some(match pair {
+            Some((s, after_fit, after_s)) => {
+                if s.count + after_s.count > fit.count + after_fit.count {
+                    s
+                } else {
+                    fit
+                }
+            }
+            None => self.lookahead(run_end, fit),
+        })
     }
 
     /// Emits one `queue_step` (preceded by a reset and/or direction change when needed).
@@ -439,7 +550,10 @@ impl StepCompressor {
         }
         let dir_run_end = self.flips.front().copied().unwrap_or(self.pending.len());
         let run_end = dir_run_end.min(self.head + MAX_COUNT);
-        let fit = self.choose_fit(run_end);
+        let fit = match self.line_command(run_end) {
+            Some(f) => f,
+            None => self.choose_fit(run_end),
+        };
         let count = fit.count as u64;
         let first_clock = self.last_clock + fit.interval as u64;
         let last_clock = fit.end(self.last_clock);
@@ -483,6 +597,10 @@ struct WindowSink<'a> {
     used: usize,
     extra: Vec<StepWindow>,
     max_err: i64,
+    /// Pending index of `slots[0]`.
+    base: usize,
+    /// Where a line's span is recorded (`None`: line commands are off).
+    lines: Option<&'a mut VecDeque<LineSpan>>,
 }
 
 impl StepSink for &mut WindowSink<'_> {
@@ -510,10 +628,62 @@ impl StepSink for &mut WindowSink<'_> {
                 for (slot, i) in room.iter_mut().zip(from..to) {
                     *slot = step_window(line_clock(t0, dt, i, floor), max_err, dir);
                 }
+                if let Some(lines) = self.lines.as_deref_mut() {
+                    record_span(lines, self.base + self.used, t0, dt, from, to, floor);
+                }
                 self.used += n;
             }
             None => line_by_steps(self, t0, dt, from, to, floor, dir),
         }
+    }
+}
+
+/// A [`WindowSink`] that also records each step's ideal time (tests, `--check`): lines stay
+/// lines, so the commands are the same as without recording.
+struct RecordingSink<'a, 'b> {
+    inner: &'a mut WindowSink<'b>,
+    ideal: &'a mut VecDeque<IdealStep>,
+}
+
+impl StepSink for RecordingSink<'_, '_> {
+    #[inline]
+    fn step(&mut self, clock: f64, dir: bool) {
+        let mut inner = &mut *self.inner;
+        inner.step(clock, dir);
+        self.ideal.push_back(IdealStep { clock, dir });
+    }
+
+    #[inline]
+    fn line(&mut self, t0: f64, dt: f64, from: i64, to: i64, floor: f64, dir: bool) {
+        let mut inner = &mut *self.inner;
+        inner.line(t0, dt, from, to, floor, dir);
+        for i in from..to {
+            self.ideal.push_back(IdealStep {
+                clock: line_clock(t0, dt, i, floor),
+                dir,
+            });
+        }
+    }
+}
+
+/// Records the steps `from..to` of a line written at pending index `at` on as a span, those
+/// from the first above `floor` on (only the first few can be raised to it; [`line_clock`]
+/// is the line's own value above it), when enough are left.
+fn record_span(lines: &mut VecDeque<LineSpan>, at: usize, t0: f64, dt: f64, from: i64, to: i64, floor: f64) {
+    let mut i = from;
+    while i < to && line_clock(t0, dt, i, floor) <= floor {
+        i += 1;
+    }
+    let start = at + (i - from) as usize;
+    let end = at + (to - from) as usize;
+    if end - start >= MIN_SPAN {
+        lines.push_back(LineSpan {
+            start,
+            end,
+            t0,
+            dt,
+            i0: i,
+        });
     }
 }
 

@@ -713,6 +713,20 @@ impl Pipeline {
         }
     }
 
+    /// Whether every stepper's commands in a cruise line come from the line's formula (default)
+    /// or from the per-step search (see [`StepCompressor::set_line_fit`]).
+    pub fn set_line_fit(&mut self, on: bool) {
+        match &mut self.backend {
+            Backend::Inline(lanes, _) => lanes.iter_mut().for_each(|l| l.comp.set_line_fit(on)),
+            Backend::Threads(w, local, _) => {
+                local.iter_mut().for_each(|(_, l)| l.comp.set_line_fit(on));
+                if !w.broadcast(|| Msg::LineFit(on)) {
+                    self.worker_error = Some("a planner thread stopped".into());
+                }
+            }
+        }
+    }
+
     /// Stepper `idx`'s MCU clock from the next batch of moves on (its clock-sync estimate was
     /// refreshed): only the map changes, the stepper keeps counting ticks at the rate it was
     /// made with (the moves are carried into its clock exactly, see `lanes`). Steps already

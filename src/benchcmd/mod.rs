@@ -211,6 +211,10 @@ pub enum BenchWhat {
         /// callgrind (skipped with a note when valgrind is not installed).
         #[arg(long)]
         instructions: bool,
+        /// Find every command by the per-step search, none from a cruise line's formula (the
+        /// reference the line commands are measured against).
+        #[arg(long)]
+        per_step: bool,
         #[command(flatten)]
         common: CommonArgs,
     },
@@ -278,6 +282,7 @@ pub fn run(args: &BenchArgs) -> Result<(), BenchCmdError> {
             clock_freq,
             runs,
             instructions,
+            per_step,
             common,
         } => {
             let cfg = crate::machine::load_config(config.as_deref())?;
@@ -286,6 +291,7 @@ pub fn run(args: &BenchArgs) -> Result<(), BenchCmdError> {
             let opts = bench::plan::PlanOptions {
                 threads: threads.unwrap_or(cores),
                 max_error_s: max_error_us * 1e-6,
+                per_step: *per_step,
                 ..Default::default()
             }
             .with_dictionary(&dict)
@@ -334,6 +340,9 @@ fn plan_child(
         opts.clock_freq.to_string(),
         "--no-progress".into(),
     ]);
+    if opts.per_step {
+        args.push("--per-step".into());
+    }
     Ok(ChildCommand { exe, args })
 }
 

@@ -18,6 +18,7 @@ impl StepCompressor {
         self.pending.clear();
         self.head = 0;
         self.flips.clear();
+        self.lines.clear();
         self.next = None;
         self.started = false;
         self.last_clock = 0;

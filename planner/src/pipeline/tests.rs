@@ -7,6 +7,8 @@ use crate::kinematics::Kinematics;
 use crate::pressure_advance::PressureAdvance;
 use proptest::prelude::*;
 
+mod line_fit;
+
 const FREQ: f64 = 50e6;
 
 pub(crate) fn benchy_config() -> PipelineConfig {
@@ -74,8 +76,15 @@ fn run_gcode_with(text: &str, opts: PipelineOptions) -> Run {
 
 /// [`run_gcode`] with a configuration and options.
 fn run_cfg(text: &str, cfg: PipelineConfig, opts: PipelineOptions) -> Run {
+    run_cfg_fit(text, cfg, opts, true)
+}
+
+/// [`run_cfg`] with the cruise lines' commands from their formula (`line_fit`, the default) or
+/// all from the per-step search.
+fn run_cfg_fit(text: &str, cfg: PipelineConfig, opts: PipelineOptions, line_fit: bool) -> Run {
     let n = cfg.steppers.len();
     let mut p = Pipeline::with_options(cfg, 0.25, opts).unwrap();
+    p.set_line_fit(line_fit);
     p.set_record_ideal(true);
     let mut checkers: Vec<Checker> = (0..n).map(|_| Checker::new(p.max_error_ticks())).collect();
     let mut per_stepper = vec![Vec::new(); n];
