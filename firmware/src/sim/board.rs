@@ -11,7 +11,7 @@
 //! are the ADC inputs. Triggers go to the trace as kind-3 records.
 
 use super::bltouch::{BlTouch, BlTouchSpec};
-use super::cli::{HeaterFaultSpec, HeaterSpec};
+use super::cli::{HeaterFaultSpec, HeaterSpec, SensorCurveSpec};
 use super::heater::Heater;
 use super::tmc::{TmcDriver, TmcSpec};
 use super::world::World;
@@ -59,6 +59,8 @@ pub struct SimBoard {
     /// Simulated axes and endstops.
     pub world: World,
     heaters: Vec<Heater>,
+    /// The sensor responses of analog inputs that no heater warms (read at ambient).
+    ambient_curves: Vec<SensorCurveSpec>,
     /// Simulated BLTouch probes (their sensor pins read them, their control pins drive them).
     pub bltouch: Vec<BlTouch>,
     /// Simulated TMC drivers (on their UART lines or chip selects; their DIAG pins read them).
@@ -84,6 +86,7 @@ impl SimBoard {
             queue_steps: 0,
             world: World::local(Vec::new(), Vec::new()),
             heaters: Vec::new(),
+            ambient_curves: Vec::new(),
             bltouch: Vec::new(),
             tmc: Vec::new(),
         })
@@ -107,6 +110,18 @@ impl SimBoard {
                     .fold(heater, |heater, f| heater.with_fault(f.fault, f.from_s))
             })
             .collect();
+        self
+    }
+
+    /// Gives each analog input of `curves` its sensor's response: a heater's sensor, or an
+    /// input at ambient temperature.
+    pub fn with_sensor_curves(mut self, curves: &[SensorCurveSpec]) -> SimBoard {
+        for c in curves {
+            match self.heaters.iter_mut().find(|h| h.sensor_pin == c.sensor_pin) {
+                Some(h) => *h = h.clone().with_curve(c.curve.clone()),
+                None => self.ambient_curves.push(c.clone()),
+            }
+        }
         self
     }
 
@@ -253,9 +268,12 @@ impl Board for SimBoard {
         let t = self.seconds(self.now);
         match self.heaters.iter_mut().find(|h| h.sensor_pin == pin) {
             Some(h) => h.adc(t),
-            // Any other analog input is a thermistor at room temperature (a chamber or board
-            // sensor).
-            None => super::heater::adc_of(super::heater::AMBIENT_C),
+            // Any other analog input is a sensor at room temperature (a chamber or board
+            // sensor): the given one's response, else a β3950 thermistor.
+            None => match self.ambient_curves.iter().find(|c| c.sensor_pin == pin) {
+                Some(c) => c.curve.adc(super::heater::AMBIENT_C),
+                None => super::heater::adc_of(super::heater::AMBIENT_C),
+            },
         }
     }
 

@@ -98,6 +98,12 @@ pub struct Cli {
     /// with the thermal model of a 40 W hotend (default) or a 150 W bed.
     #[arg(long = "heater", value_name = "HEATER_PIN=SENSOR_PIN[,hotend|bed]", value_parser = parse_heater)]
     pub heaters: Vec<HeaterSpec>,
+    /// The response of the sensor on analog input SENSOR_PIN (a heater's, or one at ambient):
+    /// its ADC fraction of full scale at rising temperatures, interpolated (default: a 100K
+    /// NTC β3950 under 4.7k). The host passes its configured sensor's.
+    #[arg(long = "sensor-curve", value_name = "SENSOR_PIN=T:FRACTION/T:FRACTION/...",
+          value_parser = parse_sensor_curve)]
+    pub sensor_curves: Vec<SensorCurveSpec>,
     /// Inject a heater fault from SECONDS of MCU time on: `open` (thermistor open, ADC at
     /// max), `no-heat` (the heater stops heating), `frozen` (the reading stops changing).
     #[arg(long = "heater-fault", value_name = "HEATER_PIN=open|no-heat|frozen@SECONDS",
@@ -331,6 +337,25 @@ pub struct HeaterSpec {
     pub model: ThermalModel,
 }
 
+/// `--sensor-curve`: an analog input and its sensor's response.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SensorCurveSpec {
+    /// The sensor's ADC pin.
+    pub sensor_pin: u8,
+    /// Its response.
+    pub curve: super::sensor_curve::SensorCurve,
+}
+
+fn parse_sensor_curve(s: &str) -> Result<SensorCurveSpec, String> {
+    let (pin, table) = s
+        .split_once('=')
+        .ok_or("expected SENSOR_PIN=T:FRACTION/T:FRACTION/...")?;
+    Ok(SensorCurveSpec {
+        sensor_pin: parse_pin(pin)?,
+        curve: super::sensor_curve::SensorCurve::parse(table)?,
+    })
+}
+
 /// `--heater-fault`: which heater, what, from when.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct HeaterFaultSpec {
@@ -427,6 +452,7 @@ mod tests {
             let _ = parse_bltouch(&s);
             let _ = parse_tmc(&s);
             let _ = parse_heater(&s);
+            let _ = parse_sensor_curve(&s);
             let _ = parse_rate(&s);
         }
     }

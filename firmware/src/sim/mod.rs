@@ -23,6 +23,7 @@ pub mod event_loop;
 pub mod faults;
 pub mod heater;
 pub mod pty;
+pub mod sensor_curve;
 pub mod spin;
 pub mod surface;
 pub mod tmc;
@@ -177,6 +178,7 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
     let board = SimBoard::new(cli.clock_freq, trace)?
         .with_world(world)
         .with_heaters(&cli.heaters, &cli.heater_faults)
+        .with_sensor_curves(&cli.sensor_curves)
         .with_bltouch(&cli.bltouch)
         .with_tmc(&cli.tmc);
     let dictionary: &'static [u8] = Box::leak(crate::dictionary_bytes(cli.clock_freq).into_boxed_slice());
