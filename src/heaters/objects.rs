@@ -545,7 +545,7 @@ impl Thermal {
     }
 
     /// `cadence-mcu` arguments giving the simulated MCU `mcu` a thermal model per heater
-    /// (`--heater HEATER_PIN=SENSOR_PIN,hotend|bed`), and to each heater's and each ADC
+    /// (`--heater [!]HEATER_PIN=SENSOR_PIN,hotend|bed`, `!` for an inverted heater pin), and to each heater's and each ADC
     /// sensor's input the response of the sensor configured (`--sensor-curve`), so that the
     /// host reads the simulated temperature back.
     pub fn sim_args(&self, mcu: &str) -> Vec<String> {
@@ -556,7 +556,8 @@ impl Thermal {
                 SimKind::Bed => "bed",
             };
             args.push("--heater".to_string());
-            args.push(format!("{}={},{kind}", h.heater_pin.pin, h.sensor_pin.pin));
+            let low = if h.heater_pin.invert { "!" } else { "" };
+            args.push(format!("{low}{}={},{kind}", h.heater_pin.pin, h.sensor_pin.pin));
             args.extend(sensor_curve_args(&h.sensor_pin, &h.sensor));
         }
         for s in self.sensors.iter().filter(|s| s.mcu == mcu) {

@@ -94,6 +94,15 @@ pub const MIN_REST_TIME: f64 = 100e-6;
 pub const START_MARGIN: f64 = 0.030;
 /// The first homing move pretends to start this many axis travels away from the endstop.
 pub const TRAVEL_FACTOR: f64 = 1.5;
+/// Wall seconds per step a homing move's steps take to generate, assumed until a pass has
+/// measured it (a debug build on a loaded 2-core machine: ~5 µs; a release build learns its
+/// own, far lower, figure at its first pass). The whole move is generated at once.
+pub const GEN_WALL_PER_STEP: f64 = 5e-6;
+/// A homing move starts this many times its expected generation time after "now" (on top of
+/// the lead): room for host pauses while a long move's steps are computed.
+const GEN_ALLOWANCE_FACTOR: f64 = 2.0;
+/// Passes with fewer steps than this teach nothing about the generation rate (timer noise).
+const GEN_LEARN_MIN_STEPS: f64 = 1000.0;
 /// Tries of a position / endstop-state query (a reply can be lost on a noisy line).
 const QUERY_TRIES: u32 = 5;
 /// Wait for one query reply (wall time).
@@ -128,6 +137,9 @@ pub struct HomingCtx<'a> {
     pub messages: Vec<String>,
     /// The passes of every probe sample taken so far (their stop latencies), for reports.
     pub probe_passes: Vec<PassReport>,
+    /// Wall seconds per step the last long homing move's steps took to generate (starts at
+    /// [`GEN_WALL_PER_STEP`]): the next move's start leaves room for its own.
+    pub gen_wall_per_step: f64,
 }
 
 impl<'a> HomingCtx<'a> {
@@ -153,6 +165,7 @@ impl<'a> HomingCtx<'a> {
             comm_timeout_detail: None,
             messages: Vec::new(),
             probe_passes: Vec::new(),
+            gen_wall_per_step: GEN_WALL_PER_STEP,
         }
     }
 }
@@ -162,6 +175,24 @@ impl HomingCtx<'_> {
     /// have at the MCU, plus [`START_MARGIN`] (scaled with a fast simulated clock).
     fn earliest_start(&self) -> f64 {
         print_now(self.mcus) + MIN_LEAD_S + START_MARGIN * self.time_scale.max(1.0)
+    }
+
+    /// Print time to leave before a homing move of `steps` steps starts, for computing them:
+    /// all of a move's steps are generated before the first is sent, so a long move (a fine Z
+    /// screw: 300 mm at 400 steps/mm is 120,000 steps) would otherwise have its first steps
+    /// late. The expected wall time ([`Self::gen_wall_per_step`] per step) times
+    /// [`GEN_ALLOWANCE_FACTOR`], in MCU time.
+    fn generation_allowance(&self, steps: f64) -> f64 {
+        steps * self.gen_wall_per_step * GEN_ALLOWANCE_FACTOR * self.time_scale.max(1.0)
+    }
+
+    /// Learns from a move of `steps` steps whose generation took `wall_s`: a slower rate is
+    /// taken at once, a faster one at most halves the figure per pass (one quiet pass does not
+    /// make the next allowance short).
+    fn learn_generation(&mut self, steps: f64, wall_s: f64) {
+        if steps >= GEN_LEARN_MIN_STEPS && wall_s.is_finite() {
+            self.gen_wall_per_step = (wall_s / steps).max(0.5 * self.gen_wall_per_step);
+        }
     }
 }
 

@@ -44,9 +44,11 @@ pub(crate) fn homing_pass(
         .map(|&i| stepper_position(ctx, i))
         .collect::<Result<_, _>>()?;
     let target = pass_target(ctx, e, kind);
+    let steps = g.steps_between(ctx.machine, ctx.pipeline.position(), target);
 
-    let (group, t0, rest_ticks) = arm_pass(ctx, &g, e, speed)?;
-    let sent = send_homing_move(ctx, target, speed, axis_name);
+    let allowance = ctx.generation_allowance(steps);
+    let (group, t0, rest_ticks) = arm_pass(ctx, &g, e, speed, allowance)?;
+    let sent = send_homing_move(ctx, target, speed, axis_name, steps);
     let outcome = await_trigger(ctx, &group, &sent);
     let received_at = outcome.as_ref().map_or(0.0, |o| o.received_at);
     let cancel = stop_pass(ctx, &g, e, &group, &outcome);
@@ -195,6 +197,21 @@ pub(super) struct PassGroup<'m> {
 }
 
 impl<'m> PassGroup<'m> {
+    /// Steps the group's steppers take in all on a move from `from` to `to`.
+    pub(super) fn steps_between(&self, machine: &Machine, from: [f64; 4], to: [f64; 4]) -> f64 {
+        self.idxs
+            .iter()
+            .zip(&self.kins)
+            .map(|(&i, kin)| {
+                let travel = match kin.linear_coeffs() {
+                    Some(c) => (0..4).map(|a| c[a] * (to[a] - from[a])).sum::<f64>(),
+                    None => (0..3).map(|a| (to[a] - from[a]).powi(2)).sum::<f64>().sqrt(),
+                };
+                travel.abs() / machine.steppers[i].step_dist.max(1e-12)
+            })
+            .sum()
+    }
+
     fn new(mcus: &'m Mcus, machine: &Machine, e: &EndstopOut) -> Result<PassGroup<'m>, HomingError> {
         let axis_name = AXIS_NAMES[e.axis];
         let idxs = axis_steppers(machine, e.axis);
@@ -241,12 +258,14 @@ impl<'m> PassGroup<'m> {
 /// Arms the pass: the trsyncs (then a round trip per member: every `trsync_state` still in
 /// flight from the previous pass, as a triggered trsync keeps reporting, has arrived before the
 /// group listens), the trigger group, and the endstop only after that, so no trigger can be
-/// missed. Returns the group, the move's start print time and the endstop's rest ticks.
+/// missed. The move starts `allowance` (print seconds, for computing its steps) after the
+/// earliest start. Returns the group, the move's start print time and the endstop's rest ticks.
 pub(super) fn arm_pass(
     ctx: &mut HomingCtx<'_>,
     g: &PassGroup<'_>,
     e: &EndstopOut,
     speed: f64,
+    allowance: f64,
 ) -> Result<(TriggerGroup, f64, u64), HomingError> {
     let timeout = TriggerGroup::default_timeout(g.conns.len());
     let members: Vec<(&McuLink, u8)> = g.conns.iter().map(|c| (&c.link, c.trsync_oid)).collect();
@@ -256,7 +275,7 @@ pub(super) fn arm_pass(
         return Err(err);
     }
     let group = TriggerGroup::new(&members, timeout)?;
-    let t0 = ctx.earliest_start().max(ctx.pipeline.toolhead_print_time());
+    let t0 = (ctx.earliest_start() + allowance).max(ctx.pipeline.toolhead_print_time());
     let sample_dist = ctx.machine.steppers[g.idxs[0]].step_dist / g.axis_coeff;
     let setup = ctx
         .pipeline
@@ -274,18 +293,22 @@ pub(super) fn arm_pass(
     }
 }
 
-/// Plans the homing move to `target` and sends all its steps.
+/// Plans the homing move to `target` and sends all its steps (about `steps` of them: how
+/// long they took to compute is learned for the next move's start).
 pub(super) fn send_homing_move(
     ctx: &mut HomingCtx<'_>,
     target: [f64; 4],
     speed: f64,
     axis_name: char,
+    steps: f64,
 ) -> Result<Move, HomingError> {
+    let began = Instant::now();
     let Some(mv) = ctx.pipeline.home_move(target, speed)? else {
         return Err(HomingError::NoMoveLength { axis: axis_name });
     };
     let mut out = Vec::new();
     generate(ctx, &mut out)?;
+    ctx.learn_generation(steps, began.elapsed().as_secs_f64());
     push_cmds(ctx, &out)?;
     Ok(mv)
 }

@@ -1,5 +1,5 @@
 //! End to end: the simulated printer's sensors read as the sensors configured. A hotend on a
-//! custom `[thermistor]` with an inline resistor, a bed on a PT1000 and a chamber sensor on a
+//! custom `[thermistor]` with an inline resistor (and an inverted heater pin), a bed on a PT1000 and a chamber sensor on a
 //! PT100 behind its amplifier (none of them the simulator's default β3950 thermistor, each of
 //! which would read far off, most out of range) heat to their targets or read the room, as
 //! `M105` reports them. The heat-up waits are checked in MCU time (M109/M190 return), never
@@ -11,7 +11,7 @@ use std::time::Duration;
 use cadence_tests::{cadence, scratch};
 
 /// The built-in simulated printer without endstops (G28 declares the axes homed), its sensors
-/// replaced: the hotend on a custom NTC behind a 4.7 kΩ inline resistor, the bed on a PT1000,
+/// replaced: the hotend (its heater pin inverted) on a custom NTC behind a 4.7 kΩ inline resistor, the bed on a PT1000,
 /// and a PT100 (INA826 amplifier) chamber sensor reported as `C`.
 fn config(dir: &Path) -> String {
     let mut text: String = sysconfig::printer::SIMULATED_PRINTER_CFG
@@ -19,6 +19,8 @@ fn config(dir: &Path) -> String {
         .filter(|l| !l.starts_with("endstop_pin:") && !l.starts_with("homing_speed:"))
         .map(|l| format!("{l}\n"))
         .collect();
+    // An inverted heater pin (the heater on while the pin is low), as on Duet boards.
+    text = text.replacen("heater_pin: PE0\n", "heater_pin: !PE0\n", 1);
     text = text.replacen(
         "sensor_type: Generic 3950\nsensor_pin: PF0\n",
         "sensor_type: my_ntc\nsensor_pin: PF0\ninline_resistor: 4700\n",

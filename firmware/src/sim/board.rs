@@ -103,7 +103,7 @@ impl SimBoard {
         self.heaters = heaters
             .iter()
             .map(|h| {
-                let heater = Heater::new(h.heater_pin, h.sensor_pin, h.model);
+                let heater = Heater::new(h.heater_pin, h.sensor_pin, h.model).active_low(h.active_low);
                 faults
                     .iter()
                     .filter(|f| f.heater_pin == h.heater_pin)
@@ -284,7 +284,7 @@ impl Board for SimBoard {
         }
         let t = self.seconds(at);
         for h in self.heaters.iter_mut().filter(|h| h.heater_pin == pin) {
-            h.set(value, t);
+            h.set_level(value, t);
         }
     }
 

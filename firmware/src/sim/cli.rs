@@ -95,8 +95,9 @@ pub struct Cli {
           value_parser = super::surface::GantrySpec::parse)]
     pub gantries: Vec<super::surface::GantrySpec>,
     /// A heater output and the thermistor ADC input it warms (100K NTC beta 3950, 4.7k pull-up),
-    /// with the thermal model of a 40 W hotend (default) or a 150 W bed.
-    #[arg(long = "heater", value_name = "HEATER_PIN=SENSOR_PIN[,hotend|bed]", value_parser = parse_heater)]
+    /// with the thermal model of a 40 W hotend (default) or a 150 W bed; `!HEATER_PIN`: the
+    /// heater is on while its pin is low.
+    #[arg(long = "heater", value_name = "[!]HEATER_PIN=SENSOR_PIN[,hotend|bed]", value_parser = parse_heater)]
     pub heaters: Vec<HeaterSpec>,
     /// The response of the sensor on analog input SENSOR_PIN (a heater's, or one at ambient):
     /// its ADC fraction of full scale at rising temperatures, interpolated (default: a 100K
@@ -335,6 +336,8 @@ pub struct HeaterSpec {
     pub sensor_pin: u8,
     /// Thermal constants.
     pub model: ThermalModel,
+    /// `!HEATER_PIN`: the heater is on while the pin is low (an inverted `heater_pin`).
+    pub active_low: bool,
 }
 
 /// `--sensor-curve`: an analog input and its sensor's response.
@@ -377,10 +380,15 @@ fn parse_heater(s: &str) -> Result<HeaterSpec, String> {
         "bed" => ThermalModel::BED,
         other => return Err(format!("`{other}` is neither hotend nor bed")),
     };
+    let (active_low, h) = match h.trim().strip_prefix('!') {
+        Some(pin) => (true, pin),
+        None => (false, h),
+    };
     Ok(HeaterSpec {
         heater_pin: parse_pin(h)?,
         sensor_pin: parse_pin(t)?,
         model,
+        active_low,
     })
 }
 
@@ -622,6 +630,9 @@ mod tests {
             (32, 41, ThermalModel::HOTEND)
         );
         assert_eq!(c.heaters[1].model, ThermalModel::BED);
+        assert!(!c.heaters[0].active_low);
+        let low = parse_heater("!PA20=PC15,hotend").unwrap();
+        assert!(low.active_low && low.heater_pin == parse_pin("PA20").unwrap());
         assert_eq!(
             c.heater_faults,
             [HeaterFaultSpec {

@@ -133,6 +133,8 @@ pub struct Heater {
     frozen_adc: Option<u16>,
     /// The configured sensor's response (`None`: the default β3950 thermistor).
     curve: Option<SensorCurve>,
+    /// The heater is on while its pin is low.
+    active_low: bool,
 }
 
 impl Heater {
@@ -149,7 +151,19 @@ impl Heater {
             fault: None,
             frozen_adc: None,
             curve: None,
+            active_low: false,
         }
+    }
+
+    /// With `active_low`, the heater is on while its pin is low (an inverted `heater_pin`).
+    pub fn active_low(mut self, active_low: bool) -> Heater {
+        self.active_low = active_low;
+        self
+    }
+
+    /// The heater pin's level changed at `t_s`.
+    pub fn set_level(&mut self, level: bool, t_s: f64) {
+        self.set(level != self.active_low, t_s);
     }
 
     /// Reads its sensor through `curve` (the sensor the host configured) instead of the
@@ -317,6 +331,19 @@ mod tests {
         }
         let expect = AMBIENT_C + m.power_w / m.loss_w_per_k / 2.0;
         assert!((h.temperature(t) - expect).abs() < 0.5, "{}", h.temperature(t));
+    }
+
+    #[test]
+    fn an_active_low_heater_heats_while_its_pin_is_low() {
+        let m = ThermalModel::HOTEND;
+        let mut low = Heater::new(1, 2, m).active_low(true);
+        low.set_level(true, 0.0);
+        assert!(low.temperature(60.0) < AMBIENT_C + 0.1, "pin high: off");
+        low.set_level(false, 60.0);
+        assert!(low.temperature(120.0) > 100.0, "pin low: on");
+        let mut high = Heater::new(1, 2, m);
+        high.set_level(true, 0.0);
+        assert!(high.temperature(60.0) > 100.0);
     }
 
     #[test]
