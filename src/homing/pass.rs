@@ -27,7 +27,9 @@ pub(crate) fn homing_pass(
 ) -> Result<(PassReport, Vec<String>), HomingError> {
     let axis = e.axis;
     let axis_name = AXIS_NAMES[axis];
-    if let Some(kinematics) = unsupported_kinematics(&ctx.machine.options.kinematics) {
+    if let Some(kinematics) =
+        unsupported_kinematics(&ctx.machine.options.kinematics).filter(|_| ctx.delta_tower.is_none())
+    {
         return Err(HomingError::UnsupportedKinematics {
             axis: axis_name,
             kinematics,
@@ -36,7 +38,7 @@ pub(crate) fn homing_pass(
     // From before the move is queued until the stop is read back: no CPU halts meanwhile.
     let _idle_poll = ctx.rt.start_idle_poll();
     wait_motion_done(ctx)?;
-    let g = PassGroup::new(ctx.mcus, ctx.machine, e)?;
+    let g = PassGroup::new(ctx.mcus, ctx.machine, e, ctx.delta_tower)?;
     let endstop_conn = g.conns[0];
     let before: Vec<i64> = g
         .idxs
@@ -194,6 +196,10 @@ pub(super) struct PassGroup<'m> {
     /// mm the first stepper moves per mm of the axis (1 on cartesian and core* rails): the
     /// endstop samples about once per step of it.
     axis_coeff: f64,
+    /// The kinematics the halt is computed in, and each stepper's rail in it: the printer's;
+    /// for a delta tower's pass (its carriage alone moving with Z), cartesian Z.
+    kinematics: Kinematics,
+    rails: Vec<usize>,
 }
 
 impl<'m> PassGroup<'m> {
@@ -212,15 +218,31 @@ impl<'m> PassGroup<'m> {
             .sum()
     }
 
-    fn new(mcus: &'m Mcus, machine: &Machine, e: &EndstopOut) -> Result<PassGroup<'m>, HomingError> {
+    /// The group of endstop `e`'s pass; with `tower`, the pass of that delta tower's steppers
+    /// (the other towers held still), whose carriage follows a Z move at the centre one to one.
+    fn new(
+        mcus: &'m Mcus,
+        machine: &Machine,
+        e: &EndstopOut,
+        tower: Option<usize>,
+    ) -> Result<PassGroup<'m>, HomingError> {
         let axis_name = AXIS_NAMES[e.axis];
-        let idxs = axis_steppers(machine, e.axis);
+        let idxs = match tower {
+            Some(t) => (0..machine.steppers.len())
+                .filter(|&i| machine.steppers[i].axis == t)
+                .collect(),
+            None => axis_steppers(machine, e.axis),
+        };
         if idxs.is_empty() {
             return Err(HomingError::NoStepper { axis: axis_name });
         }
         let mut kins = Vec::with_capacity(idxs.len());
         for &i in &idxs {
             let s = &machine.steppers[i];
+            if tower.is_some() {
+                kins.push(StepperKin::axis(e.axis, s.step_dist));
+                continue;
+            }
             kins.push(
                 machine
                     .options
@@ -245,12 +267,21 @@ impl<'m> PassGroup<'m> {
             .iter()
             .map(|n| mcu(mcus, n))
             .collect::<Result<Vec<_>, _>>()?;
+        let (kinematics, rails) = match tower {
+            Some(_) => (Kinematics::Cartesian, vec![e.axis; idxs.len()]),
+            None => (
+                machine.options.kinematics,
+                idxs.iter().map(|&i| machine.steppers[i].axis).collect(),
+            ),
+        };
         Ok(PassGroup {
             idxs,
             kins,
             names,
             conns,
             axis_coeff,
+            kinematics,
+            rails,
         })
     }
 }
@@ -377,12 +408,12 @@ pub(super) struct Stopped {
 impl Stopped {
     fn new(ctx: &HomingCtx<'_>, g: &PassGroup<'_>, before: &[i64], after: &[i64]) -> Stopped {
         let group = g
-            .idxs
+            .rails
             .iter()
             .zip(&g.kins)
             .zip(after.iter().zip(before))
-            .map(|((&i, &kin), (a, b))| GroupStepper {
-                rail: ctx.machine.steppers[i].axis,
+            .map(|((&rail, &kin), (a, b))| GroupStepper {
+                rail,
                 kin,
                 net_steps: a - b,
             })
@@ -397,7 +428,7 @@ impl Stopped {
             })
             .collect();
         Stopped {
-            kinematics: ctx.machine.options.kinematics,
+            kinematics: g.kinematics,
             group,
             positions: g.idxs.iter().copied().zip(after.iter().copied()).collect(),
             now_clocks,
