@@ -52,14 +52,6 @@ impl SensorCurve {
                 points.len()
             ));
         }
-        for w in points.windows(2) {
-            if !(w[1].0 > w[0].0) {
-                return Err(format!(
-                    "sensor curve temperatures must rise: {} then {}",
-                    w[0].0, w[1].0
-                ));
-            }
-        }
         if let Some(&(t, f)) = points
             .iter()
             .find(|(t, f)| !t.is_finite() || !(0.0..=1.0).contains(f))
@@ -67,6 +59,14 @@ impl SensorCurve {
             return Err(format!(
                 "sensor curve point {t}:{f}: the fraction must be in 0..=1"
             ));
+        }
+        for w in points.windows(2) {
+            if w[1].0 <= w[0].0 {
+                return Err(format!(
+                    "sensor curve temperatures must rise: {} then {}",
+                    w[0].0, w[1].0
+                ));
+            }
         }
         Ok(SensorCurve { points })
     }
