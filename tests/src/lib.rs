@@ -44,6 +44,25 @@ pub fn cadence(args: &[&str], timeout: Duration) -> Run {
     run(Command::new(bin("cadence")).args(args), timeout)
 }
 
+/// A live `cadence print` of `gcode` on `cfg` with the simulated MCUs at time scale `scale`,
+/// without real-time settings or the progress line, killed after `timeout`.
+pub fn print_live(gcode: &Path, cfg: &Path, scale: &str, timeout: Duration) -> Run {
+    let (gcode, cfg) = (gcode.to_string_lossy(), cfg.to_string_lossy());
+    cadence(
+        &[
+            "print",
+            &gcode,
+            "--config",
+            &cfg,
+            "--time-scale",
+            scale,
+            "--no-realtime",
+            "--no-progress",
+        ],
+        timeout,
+    )
+}
+
 /// Runs `cmd` to completion with a bounded wait.
 pub fn run(cmd: &mut Command, timeout: Duration) -> Run {
     run_then(cmd, timeout, |_| {})

@@ -7,7 +7,7 @@
 
 use std::time::Duration;
 
-use cadence_tests::{cadence, scratch};
+use cadence_tests::{print_live, scratch};
 use planner::kinematics::{DeltaGeometry, Kinematics};
 
 const RADIUS: f64 = 100.0;
@@ -46,19 +46,7 @@ fn home(name: &str, cfg: &str) -> Vec<[f64; 3]> {
     std::fs::write(&cfg_path, cfg).unwrap();
     let gcode = dir.join("home.gcode");
     std::fs::write(&gcode, "G28\nM114\nG90\nG1 X5 Y5 Z110 F3000\nM400\nM114\n").unwrap();
-    let run = cadence(
-        &[
-            "print",
-            gcode.to_str().unwrap(),
-            "--config",
-            cfg_path.to_str().unwrap(),
-            "--time-scale",
-            "1",
-            "--no-realtime",
-            "--no-progress",
-        ],
-        Duration::from_secs(300),
-    );
+    let run = print_live(&gcode, &cfg_path, "1", Duration::from_secs(300));
     assert_eq!(run.code, Some(0), "{}\n{}", run.stdout, run.stderr);
     for tower in ["homing x:", "homing y:", "homing z:"] {
         assert!(run.stdout.contains(tower), "no '{tower}' in\n{}", run.stdout);

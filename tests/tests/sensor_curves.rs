@@ -8,7 +8,7 @@
 use std::path::Path;
 use std::time::Duration;
 
-use cadence_tests::{cadence, scratch};
+use cadence_tests::{print_live, scratch};
 
 /// The built-in simulated printer without endstops (G28 declares the axes homed), its sensors
 /// replaced: the hotend (its heater pin inverted) on a custom NTC behind a 4.7 kΩ inline resistor, the bed on a PT1000,
@@ -60,19 +60,7 @@ fn configured_sensors_read_their_simulated_temperatures() {
     let cfg = config(&dir);
     let gcode = dir.join("heat.gcode");
     std::fs::write(&gcode, "M140 S60\nM190 S60\nM105\nM104 S200\nM109 S200\nM105\n").unwrap();
-    let run = cadence(
-        &[
-            "print",
-            gcode.to_str().unwrap(),
-            "--config",
-            &cfg,
-            "--time-scale",
-            "5",
-            "--no-realtime",
-            "--no-progress",
-        ],
-        Duration::from_secs(300),
-    );
+    let run = print_live(&gcode, Path::new(&cfg), "5", Duration::from_secs(300));
     assert_eq!(run.code, Some(0), "{}\n{}", run.stdout, run.stderr);
     let m105: Vec<&str> = run.stdout.lines().filter(|l| l.contains("M105: ")).collect();
     assert_eq!(m105.len(), 2, "{}", run.stdout);
