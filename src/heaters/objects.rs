@@ -771,7 +771,9 @@ impl Thermal {
     }
 
     /// `cadence-mcu` arguments giving the simulated MCU `mcu` a thermal model per heater
-    /// (`--heater HEATER_PIN=SENSOR_PIN,hotend|bed`).
+    /// (`--heater [!]HEATER_PIN=SENSOR_PIN,hotend|bed`, `!` for an inverted heater pin), and to each heater's and each ADC
+    /// sensor's input the response of the sensor configured (`--sensor-curve`), so that the
+    /// host reads the simulated temperature back.
     pub fn sim_args(&self, mcu: &str) -> Vec<String> {
         let mut args = Vec::new();
         for h in self.heaters.iter().filter(|h| h.mcu == mcu) {
@@ -780,7 +782,12 @@ impl Thermal {
                 SimKind::Bed => "bed",
             };
             args.push("--heater".to_string());
-            args.push(format!("{}={},{kind}", h.heater_pin.pin, h.sensor_pin.pin));
+            let low = if h.heater_pin.invert { "!" } else { "" };
+            args.push(format!("{low}{}={},{kind}", h.heater_pin.pin, h.sensor_pin.pin));
+            args.extend(sensor_curve_args(&h.sensor_pin, &h.sensor));
+        }
+        for s in self.sensors.iter().filter(|s| s.mcu == mcu) {
+            args.extend(sensor_curve_args(&s.pin, &s.sensor));
         }
         args
     }
@@ -914,6 +921,26 @@ impl Thermal {
     }
 }
 
+/// The simulated sensor's table: from well below any `min_temp` to beyond the simulated
+/// hotend's full-power temperature, every [`SIM_CURVE_STEP`] °C.
+const SIM_CURVE_RANGE: (f64, f64) = (-40.0, 450.0);
+/// See [`SIM_CURVE_RANGE`]: 2 °C keeps the linear interpolation of an NTC divider's response
+/// within a few hundredths of a degree where printers print.
+const SIM_CURVE_STEP: f64 = 2.0;
+
+/// `--sensor-curve PIN=T:F/…`: sensor `sensor`'s response on input `pin`, as a table (none if
+/// the table cannot be made, the simulator then reads its default thermistor).
+fn sensor_curve_args(pin: &PinRef, sensor: &Sensor) -> Vec<String> {
+    let (from, to) = SIM_CURVE_RANGE;
+    match firmware::sim::sensor_curve::SensorCurve::sample(from, to, SIM_CURVE_STEP, |t| sensor.adc(t)) {
+        Ok(curve) => vec![
+            "--sensor-curve".to_string(),
+            format!("{}={}", pin.pin, curve.to_arg()),
+        ],
+        Err(_) => Vec::new(),
+    }
+}
+
 /// `query_analog_in`'s range check of a sensor: the sums of [`SAMPLE_COUNT`] readings (of an
 /// ADC whose largest reading is `adc_max`) between `min_temp` and `max_temp`, as (min, max).
 pub fn adc_range(sensor: &Sensor, min_temp: f64, max_temp: f64, adc_max: f64) -> (u16, u16) {
@@ -995,5 +1022,32 @@ mod tests {
         assert!(at(25.0) > lo && at(25.0) < hi && at(240.0) > lo);
         assert!(at(260.0) < lo, "{} {lo}", at(260.0));
         assert!(4095 * 8 > hi as u32, "an open thermistor is out of range");
+    }
+
+    #[test]
+    fn the_simulated_inputs_get_the_configured_sensors_response() {
+        let text = BASE.replace(
+            "sensor_type: Generic 3950\nsensor_pin: PF1",
+            "sensor_type: PT1000\nsensor_pin: PF1",
+        ) + "\n[temperature_sensor chamber]\nsensor_type: PT100 INA826\nsensor_pin: PF3\n";
+        let t = thermal(&text).unwrap();
+        let args = t.sim_args("mcu");
+        let curve = |pin: &str| {
+            let at = args
+                .iter()
+                .position(|a| a.starts_with(&format!("{pin}=")))
+                .unwrap_or_else(|| panic!("no curve for {pin} in {args:?}"));
+            assert_eq!(args[at - 1], "--sensor-curve");
+            firmware::sim::sensor_curve::SensorCurve::parse(&args[at][pin.len() + 1..]).unwrap()
+        };
+        let bed = &t.heaters[1];
+        let chamber = &t.sensors[t.sensor("chamber").unwrap()];
+        for temp in [0.0, 25.0, 61.0, 119.5, 300.0] {
+            for (pin, sensor) in [("PF1", &bed.sensor), ("PF3", &chamber.sensor)] {
+                let read = sensor.temperature(curve(pin).fraction(temp));
+                assert!((read - temp).abs() < 0.1, "{pin} at {temp}: {read}");
+            }
+        }
+        assert!(t.sim_args("other").is_empty());
     }
 }

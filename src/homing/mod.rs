@@ -4,8 +4,9 @@
 //! The axis steppers are every stepper that moves the homed axis ([`axis_steppers`]): X's own
 //! on a cartesian printer, both motors A (x + y) and B (x − y) for corexy X or Y, A (x + z) and
 //! B (x − z) for corexz X or Z, each rail with its further motors (`stepper_z1`…, on the rail
-//! motor's MCU), all stopped by the one trigger. Delta homing is refused (its towers home
-//! together).
+//! motor's MCU), all stopped by the one trigger. A delta homes its three towers, one after
+//! the other with the other two held still, then computes the toolhead from the three
+//! carriage heights (module `delta`).
 //!
 //! Per axis, per pass (the second at `second_homing_speed` after retracting
 //! `homing_retract_dist`, skipped when that is 0):
@@ -55,6 +56,7 @@
 
 pub mod bed_mesh;
 pub mod bltouch;
+mod delta;
 mod error;
 mod halt;
 mod pass;
@@ -94,6 +96,18 @@ pub const MIN_REST_TIME: f64 = 100e-6;
 pub const START_MARGIN: f64 = 0.030;
 /// The first homing move pretends to start this many axis travels away from the endstop.
 pub const TRAVEL_FACTOR: f64 = 1.5;
+/// Wall seconds per step a homing move's steps take to generate, assumed until a pass has
+/// measured it (a debug build on a loaded 2-core machine: ~5 µs; a release build learns its
+/// own, far lower, figure at its first pass). The whole move is generated at once.
+pub const GEN_WALL_PER_STEP: f64 = 5e-6;
+/// [`GEN_WALL_PER_STEP`] of a delta tower, whose step times are solved numerically (~13 µs
+/// measured in that debug build).
+pub const GEN_WALL_PER_STEP_DELTA: f64 = 20e-6;
+/// A homing move starts this many times its expected generation time after "now" (on top of
+/// the lead): room for host pauses while a long move's steps are computed.
+const GEN_ALLOWANCE_FACTOR: f64 = 2.0;
+/// Passes with fewer steps than this teach nothing about the generation rate (timer noise).
+const GEN_LEARN_MIN_STEPS: f64 = 1000.0;
 /// Tries of a position / endstop-state query (a reply can be lost on a noisy line).
 const QUERY_TRIES: u32 = 5;
 /// Wait for one query reply (wall time).
@@ -128,6 +142,12 @@ pub struct HomingCtx<'a> {
     pub messages: Vec<String>,
     /// The passes of every probe sample taken so far (their stop latencies), for reports.
     pub probe_passes: Vec<PassReport>,
+    /// Wall seconds per step the last long homing move's steps took to generate (starts at
+    /// [`GEN_WALL_PER_STEP`], [`GEN_WALL_PER_STEP_DELTA`] on a delta): the next move's start
+    /// leaves room for its own.
+    pub gen_wall_per_step: f64,
+    /// While a delta tower is homed (its carriage alone moving with Z): which.
+    pub delta_tower: Option<usize>,
 }
 
 impl<'a> HomingCtx<'a> {
@@ -153,6 +173,11 @@ impl<'a> HomingCtx<'a> {
             comm_timeout_detail: None,
             messages: Vec::new(),
             probe_passes: Vec::new(),
+            gen_wall_per_step: match machine.options.kinematics {
+                Kinematics::Delta(_) => GEN_WALL_PER_STEP_DELTA,
+                _ => GEN_WALL_PER_STEP,
+            },
+            delta_tower: None,
         }
     }
 }
@@ -162,6 +187,24 @@ impl HomingCtx<'_> {
     /// have at the MCU, plus [`START_MARGIN`] (scaled with a fast simulated clock).
     fn earliest_start(&self) -> f64 {
         print_now(self.mcus) + MIN_LEAD_S + START_MARGIN * self.time_scale.max(1.0)
+    }
+
+    /// Print time to leave before a homing move of `steps` steps starts, for computing them:
+    /// all of a move's steps are generated before the first is sent, so a long move (a fine Z
+    /// screw: 300 mm at 400 steps/mm is 120,000 steps) would otherwise have its first steps
+    /// late. The expected wall time ([`Self::gen_wall_per_step`] per step) times
+    /// [`GEN_ALLOWANCE_FACTOR`], in MCU time.
+    fn generation_allowance(&self, steps: f64) -> f64 {
+        steps * self.gen_wall_per_step * GEN_ALLOWANCE_FACTOR * self.time_scale.max(1.0)
+    }
+
+    /// Learns from a move of `steps` steps whose generation took `wall_s`: a slower rate is
+    /// taken at once, a faster one at most halves the figure per pass (one quiet pass does not
+    /// make the next allowance short).
+    fn learn_generation(&mut self, steps: f64, wall_s: f64) {
+        if steps >= GEN_LEARN_MIN_STEPS && wall_s.is_finite() {
+            self.gen_wall_per_step = (wall_s / steps).max(0.5 * self.gen_wall_per_step);
+        }
     }
 }
 
@@ -340,6 +383,13 @@ pub fn home_axes(ctx: &mut HomingCtx<'_>, axes: [bool; 3]) -> Result<HomingRepor
     }
     check_config(ctx.machine)?;
     let mut report = HomingReport::default();
+    if let Some((geometry, endstops)) = delta_endstops(ctx.machine).filter(|_| axes.contains(&true)) {
+        // A delta homes its three towers together, whichever axes G28 names (as Klipper).
+        ctx.pipeline.set_homed([false; 3]);
+        report.axes = delta::home_towers(ctx, &geometry, &endstops)?;
+        ctx.pipeline.set_homed([true; 3]);
+        return Ok(report);
+    }
     for axis in (0..3).filter(|&a| axes[a]) {
         let mut homed = ctx.pipeline.gcode_state().homed();
         homed[axis] = false;
@@ -635,6 +685,22 @@ pub(crate) enum PassKind {
     /// PROBE: from the current (homed) position toward `target`; the trigger's position is
     /// measured and the axis keeps its coordinates.
     Probe { target: f64 },
+}
+
+/// A delta printer's geometry and its towers' endstops (tower A's first), when every tower
+/// has a plain endstop.
+fn delta_endstops(machine: &Machine) -> Option<(planner::kinematics::DeltaGeometry, [EndstopOut; 3])> {
+    let Kinematics::Delta(g) = machine.options.kinematics else {
+        return None;
+    };
+    let tower = |t: usize| {
+        machine
+            .endstops
+            .iter()
+            .find(|e| e.axis == t && !e.probe && e.sensorless.is_none())
+            .cloned()
+    };
+    Some((g, [tower(0)?, tower(1)?, tower(2)?]))
 }
 
 /// The kinematics' name when homing is not supported: delta (its towers home together, all

@@ -31,7 +31,7 @@ pub(crate) fn homing_pass(
     // From before the move is queued until the stop is read back: no CPU halts meanwhile.
     let _idle_poll = ctx.rt.start_idle_poll();
     wait_motion_done(ctx)?;
-    let g = PassGroup::new(ctx.mcus, ctx.machine, e)?;
+    let g = PassGroup::new(ctx.mcus, ctx.machine, e, ctx.delta_tower)?;
     let endstop_conn = g.conns[0];
     let before: Vec<i64> = g
         .idxs
@@ -39,9 +39,11 @@ pub(crate) fn homing_pass(
         .map(|&i| stepper_position(ctx, i))
         .collect::<Result<_, _>>()?;
     let target = pass_target(ctx, e, kind);
+    let steps = g.steps_between(ctx.machine, ctx.pipeline.position(), target);
 
-    let (group, t0, rest_ticks) = arm_pass(ctx, &g, e, speed)?;
-    let sent = send_homing_move(ctx, target, speed, axis_name);
+    let allowance = ctx.generation_allowance(steps);
+    let (group, t0, rest_ticks) = arm_pass(ctx, &g, e, speed, allowance)?;
+    let sent = send_homing_move(ctx, target, speed, axis_name, steps);
     let outcome = await_trigger(ctx, &group, &sent);
     let received_at = outcome.as_ref().map_or(0.0, |o| o.received_at);
     let cancel = stop_pass(ctx, &g, e, &group, &outcome);
@@ -113,7 +115,8 @@ pub(crate) fn homing_pass(
 
 /// Refuses a pass on kinematics whose axes do not home one at a time (delta).
 fn check_kinematics(ctx: &HomingCtx<'_>, axis: char) -> Result<(), HomingError> {
-    match unsupported_kinematics(&ctx.machine.options.kinematics) {
+    // A delta's towers are homed one at a time (homing::delta), each pass a carriage's own.
+    match unsupported_kinematics(&ctx.machine.options.kinematics).filter(|_| ctx.delta_tower.is_none()) {
         Some(kinematics) => Err(HomingError::UnsupportedKinematics { axis, kinematics }),
         None => Ok(()),
     }
@@ -204,18 +207,53 @@ pub(super) struct PassGroup<'m> {
     /// mm the first stepper moves per mm of the axis (1 on cartesian and core* rails): the
     /// endstop samples about once per step of it.
     axis_coeff: f64,
+    /// The kinematics the halt is computed in, and each stepper's rail in it: the printer's;
+    /// for a delta tower's pass (its carriage alone moving with Z), cartesian Z.
+    kinematics: Kinematics,
+    rails: Vec<usize>,
 }
 
 impl<'m> PassGroup<'m> {
-    fn new(mcus: &'m Mcus, machine: &Machine, e: &EndstopOut) -> Result<PassGroup<'m>, HomingError> {
+    /// Steps the group's steppers take in all on a move from `from` to `to`.
+    pub(super) fn steps_between(&self, machine: &Machine, from: [f64; 4], to: [f64; 4]) -> f64 {
+        self.idxs
+            .iter()
+            .zip(&self.kins)
+            .map(|(&i, kin)| {
+                let travel = match kin.linear_coeffs() {
+                    Some(c) => (0..4).map(|a| c[a] * (to[a] - from[a])).sum::<f64>(),
+                    None => (0..3).map(|a| (to[a] - from[a]).powi(2)).sum::<f64>().sqrt(),
+                };
+                travel.abs() / machine.steppers[i].step_dist.max(1e-12)
+            })
+            .sum()
+    }
+
+    /// The group of endstop `e`'s pass; with `tower`, the pass of that delta tower's steppers
+    /// (the other towers held still), whose carriage follows a Z move at the centre one to one.
+    fn new(
+        mcus: &'m Mcus,
+        machine: &Machine,
+        e: &EndstopOut,
+        tower: Option<usize>,
+    ) -> Result<PassGroup<'m>, HomingError> {
         let axis_name = AXIS_NAMES[e.axis];
-        let idxs = axis_steppers(machine, e.axis);
+        let idxs = match tower {
+            Some(t) => (0..machine.steppers.len())
+                .filter(|&i| machine.steppers[i].axis == t)
+                .collect(),
+            None => axis_steppers(machine, e.axis),
+        };
         if idxs.is_empty() {
             return Err(HomingError::NoStepper { axis: axis_name });
         }
         let mut kins = Vec::with_capacity(idxs.len());
         for &i in &idxs {
             let s = &machine.steppers[i];
+            if tower.is_some() {
+                kins.push(StepperKin::axis(e.axis, s.step_dist));
+                continue;
+            }
             kins.push(
                 machine
                     .options
@@ -240,12 +278,21 @@ impl<'m> PassGroup<'m> {
             .iter()
             .map(|n| mcu(mcus, n))
             .collect::<Result<Vec<_>, _>>()?;
+        let (kinematics, rails) = match tower {
+            Some(_) => (Kinematics::Cartesian, vec![e.axis; idxs.len()]),
+            None => (
+                machine.options.kinematics,
+                idxs.iter().map(|&i| machine.steppers[i].axis).collect(),
+            ),
+        };
         Ok(PassGroup {
             idxs,
             kins,
             names,
             conns,
             axis_coeff,
+            kinematics,
+            rails,
         })
     }
 }
@@ -253,12 +300,14 @@ impl<'m> PassGroup<'m> {
 /// Arms the pass: the trsyncs (then a round trip per member: every `trsync_state` still in
 /// flight from the previous pass, as a triggered trsync keeps reporting, has arrived before the
 /// group listens), the trigger group, and the endstop only after that, so no trigger can be
-/// missed. Returns the group, the move's start print time and the endstop's rest ticks.
+/// missed. The move starts `allowance` (print seconds, for computing its steps) after the
+/// earliest start. Returns the group, the move's start print time and the endstop's rest ticks.
 pub(super) fn arm_pass(
     ctx: &mut HomingCtx<'_>,
     g: &PassGroup<'_>,
     e: &EndstopOut,
     speed: f64,
+    allowance: f64,
 ) -> Result<(TriggerGroup, f64, u64), HomingError> {
     let timeout = TriggerGroup::default_timeout(g.conns.len());
     let members: Vec<(&McuLink, u8)> = g.conns.iter().map(|c| (&c.link, c.trsync_oid)).collect();
@@ -268,7 +317,7 @@ pub(super) fn arm_pass(
         return Err(err);
     }
     let group = TriggerGroup::new(&members, timeout)?;
-    let t0 = ctx.earliest_start().max(ctx.pipeline.toolhead_print_time());
+    let t0 = (ctx.earliest_start() + allowance).max(ctx.pipeline.toolhead_print_time());
     let sample_dist = ctx.machine.steppers[g.idxs[0]].step_dist / g.axis_coeff;
     let setup = ctx
         .pipeline
@@ -286,18 +335,22 @@ pub(super) fn arm_pass(
     }
 }
 
-/// Plans the homing move to `target` and sends all its steps.
+/// Plans the homing move to `target` and sends all its steps (about `steps` of them: how
+/// long they took to compute is learned for the next move's start).
 pub(super) fn send_homing_move(
     ctx: &mut HomingCtx<'_>,
     target: [f64; 4],
     speed: f64,
     axis_name: char,
+    steps: f64,
 ) -> Result<Move, HomingError> {
+    let began = Instant::now();
     let Some(mv) = ctx.pipeline.home_move(target, speed)? else {
         return Err(HomingError::NoMoveLength { axis: axis_name });
     };
     let mut out = Vec::new();
     generate(ctx, &mut out)?;
+    ctx.learn_generation(steps, began.elapsed().as_secs_f64());
     push_cmds(ctx, &out)?;
     Ok(mv)
 }
@@ -366,12 +419,12 @@ pub(super) struct Stopped {
 impl Stopped {
     fn new(ctx: &HomingCtx<'_>, g: &PassGroup<'_>, before: &[i64], after: &[i64]) -> Stopped {
         let group = g
-            .idxs
+            .rails
             .iter()
             .zip(&g.kins)
             .zip(after.iter().zip(before))
-            .map(|((&i, &kin), (a, b))| GroupStepper {
-                rail: ctx.machine.steppers[i].axis,
+            .map(|((&rail, &kin), (a, b))| GroupStepper {
+                rail,
                 kin,
                 net_steps: a - b,
             })
@@ -386,7 +439,7 @@ impl Stopped {
             })
             .collect();
         Stopped {
-            kinematics: ctx.machine.options.kinematics,
+            kinematics: g.kinematics,
             group,
             positions: g.idxs.iter().copied().zip(after.iter().copied()).collect(),
             now_clocks,

@@ -90,6 +90,25 @@ pub fn print_batch(gcode: &Path, cfg: &Path, out: &Path, timeout: Duration) -> R
     run(&mut cmd, timeout)
 }
 
+/// A live `cadence print` of `gcode` on `cfg` with the simulated MCUs at time scale `scale`,
+/// without real-time settings or the progress line, killed after `timeout`.
+pub fn print_live(gcode: &Path, cfg: &Path, scale: &str, timeout: Duration) -> Run {
+    let (gcode, cfg) = (gcode.to_string_lossy(), cfg.to_string_lossy());
+    cadence(
+        &[
+            "print",
+            &gcode,
+            "--config",
+            &cfg,
+            "--time-scale",
+            scale,
+            "--no-realtime",
+            "--no-progress",
+        ],
+        timeout,
+    )
+}
+
 /// Runs `cmd` to completion with a bounded wait.
 pub fn run(cmd: &mut Command, timeout: Duration) -> Run {
     run_then(cmd, timeout, |_| {})

@@ -11,7 +11,7 @@
 //! are the ADC inputs. Triggers go to the trace as kind-3 records.
 
 use super::bltouch::{BlTouch, BlTouchSpec};
-use super::cli::{HeaterFaultSpec, HeaterSpec};
+use super::cli::{HeaterFaultSpec, HeaterSpec, SensorCurveSpec};
 use super::heater::Heater;
 use super::tmc::{TmcDriver, TmcSpec};
 use super::trace_file::TraceFile;
@@ -65,6 +65,8 @@ pub struct SimBoard {
     fans: Vec<super::fan::Fan>,
     /// The ADC's references (`--adc-ref`): with them every reading has an offset and gain error.
     adc_refs: Vec<super::adc_ref::AdcRefSpec>,
+    /// The sensor responses of analog inputs that no heater warms (read at ambient).
+    ambient_curves: Vec<SensorCurveSpec>,
     /// Simulated BLTouch probes (their sensor pins read them, their control pins drive them).
     pub bltouch: Vec<BlTouch>,
     /// Simulated TMC drivers (on their UART lines or chip selects; their DIAG pins read them).
@@ -90,6 +92,7 @@ impl SimBoard {
             adc_refs: Vec::new(),
             fans: Vec::new(),
             levels: [false; 256],
+            ambient_curves: Vec::new(),
             bltouch: Vec::new(),
             tmc: Vec::new(),
         })
@@ -118,13 +121,25 @@ impl SimBoard {
         self.heaters = heaters
             .iter()
             .map(|h| {
-                let heater = Heater::new(h.heater_pin, h.sensor_pin, h.model);
+                let heater = Heater::new(h.heater_pin, h.sensor_pin, h.model).active_low(h.active_low);
                 faults
                     .iter()
                     .filter(|f| f.heater_pin == h.heater_pin)
                     .fold(heater, |heater, f| heater.with_fault(f.fault, f.from_s))
             })
             .collect();
+        self
+    }
+
+    /// Gives each analog input of `curves` its sensor's response: a heater's sensor, or an
+    /// input at ambient temperature.
+    pub fn with_sensor_curves(mut self, curves: &[SensorCurveSpec]) -> SimBoard {
+        for c in curves {
+            match self.heaters.iter_mut().find(|h| h.sensor_pin == c.sensor_pin) {
+                Some(h) => *h = h.clone().with_curve(c.curve.clone()),
+                None => self.ambient_curves.push(c.clone()),
+            }
+        }
         self
     }
 
@@ -150,9 +165,12 @@ impl SimBoard {
         let t = self.seconds(self.now);
         match self.heaters.iter_mut().find(|h| h.sensor_pin == pin) {
             Some(h) => h.adc(t),
-            // Any other analog input is a thermistor at room temperature (a chamber or board
-            // sensor).
-            None => super::heater::adc_of(super::heater::AMBIENT_C),
+            // Any other analog input is a sensor at room temperature (a chamber or board
+            // sensor): the given one's response, else a β3950 thermistor.
+            None => match self.ambient_curves.iter().find(|c| c.sensor_pin == pin) {
+                Some(c) => c.curve.adc(super::heater::AMBIENT_C),
+                None => super::heater::adc_of(super::heater::AMBIENT_C),
+            },
         }
     }
 
@@ -325,7 +343,7 @@ impl Board for SimBoard {
         }
         let t = self.seconds(at);
         for h in self.heaters.iter_mut().filter(|h| h.heater_pin == pin) {
-            h.set(value, t);
+            h.set_level(value, t);
         }
         for f in self.fans.iter_mut().filter(|f| f.spec.out_pin == pin) {
             f.set(f64::from(u8::from(value)), t);

@@ -96,8 +96,9 @@ pub struct Cli {
           value_parser = super::surface::GantrySpec::parse)]
     pub gantries: Vec<super::surface::GantrySpec>,
     /// A heater output and the thermistor ADC input it warms (100K NTC beta 3950, 4.7k pull-up),
-    /// with the thermal model of a 40 W hotend (default) or a 150 W bed.
-    #[arg(long = "heater", value_name = "HEATER_PIN=SENSOR_PIN[,hotend|bed]", value_parser = parse_heater)]
+    /// with the thermal model of a 40 W hotend (default) or a 150 W bed; `!HEATER_PIN`: the
+    /// heater is on while its pin is low.
+    #[arg(long = "heater", value_name = "[!]HEATER_PIN=SENSOR_PIN[,hotend|bed]", value_parser = parse_heater)]
     pub heaters: Vec<HeaterSpec>,
     /// A fan powered by OUT_PIN (software or hardware PWM) whose tachometer drives TACH_PIN
     /// with PPR pulses per revolution (default 2).
@@ -107,6 +108,12 @@ pub struct Cli {
     /// then carries the ADC's offset and gain error, which the references measure.
     #[arg(long = "adc-ref", value_name = "VREF_PIN=VSSA_PIN", value_parser = super::adc_ref::AdcRefSpec::parse)]
     pub adc_refs: Vec<super::adc_ref::AdcRefSpec>,
+    /// The response of the sensor on analog input SENSOR_PIN (a heater's, or one at ambient):
+    /// its ADC fraction of full scale at rising temperatures, interpolated (default: a 100K
+    /// NTC β3950 under 4.7k). The host passes its configured sensor's.
+    #[arg(long = "sensor-curve", value_name = "SENSOR_PIN=T:FRACTION/T:FRACTION/...",
+          value_parser = parse_sensor_curve)]
+    pub sensor_curves: Vec<SensorCurveSpec>,
     /// Inject a heater fault from SECONDS of MCU time on: `open` (thermistor open, ADC at
     /// max), `no-heat` (the heater stops heating), `frozen` (the reading stops changing).
     #[arg(long = "heater-fault", value_name = "HEATER_PIN=open|no-heat|frozen@SECONDS",
@@ -347,6 +354,27 @@ pub struct HeaterSpec {
     pub sensor_pin: u8,
     /// Thermal constants.
     pub model: ThermalModel,
+    /// `!HEATER_PIN`: the heater is on while the pin is low (an inverted `heater_pin`).
+    pub active_low: bool,
+}
+
+/// `--sensor-curve`: an analog input and its sensor's response.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SensorCurveSpec {
+    /// The sensor's ADC pin.
+    pub sensor_pin: u8,
+    /// Its response.
+    pub curve: super::sensor_curve::SensorCurve,
+}
+
+fn parse_sensor_curve(s: &str) -> Result<SensorCurveSpec, String> {
+    let (pin, table) = s
+        .split_once('=')
+        .ok_or("expected SENSOR_PIN=T:FRACTION/T:FRACTION/...")?;
+    Ok(SensorCurveSpec {
+        sensor_pin: parse_pin(pin)?,
+        curve: super::sensor_curve::SensorCurve::parse(table)?,
+    })
 }
 
 /// `--heater-fault`: which heater, what, from when.
@@ -370,10 +398,15 @@ fn parse_heater(s: &str) -> Result<HeaterSpec, String> {
         "bed" => ThermalModel::BED,
         other => return Err(format!("`{other}` is neither hotend nor bed")),
     };
+    let (active_low, h) = match h.trim().strip_prefix('!') {
+        Some(pin) => (true, pin),
+        None => (false, h),
+    };
     Ok(HeaterSpec {
         heater_pin: parse_pin(h)?,
         sensor_pin: parse_pin(t)?,
         model,
+        active_low,
     })
 }
 
@@ -445,6 +478,7 @@ mod tests {
             let _ = parse_bltouch(&s);
             let _ = parse_tmc(&s);
             let _ = parse_heater(&s);
+            let _ = parse_sensor_curve(&s);
             let _ = parse_rate(&s);
         }
     }
@@ -623,6 +657,9 @@ mod tests {
             (32, 41, ThermalModel::HOTEND)
         );
         assert_eq!(c.heaters[1].model, ThermalModel::BED);
+        assert!(!c.heaters[0].active_low);
+        let low = parse_heater("!PA20=PC15,hotend").unwrap();
+        assert!(low.active_low && low.heater_pin == parse_pin("PA20").unwrap());
         assert_eq!(
             c.heater_faults,
             [HeaterFaultSpec {

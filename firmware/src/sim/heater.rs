@@ -11,11 +11,15 @@
 //! about 80 s), [`ThermalModel::BED`] a 150 W bed of ~500 J/K (25 → 60 °C in about 2.3 min).
 //!
 //! The sensor is Klipper's "Generic 3950": an NTC of 100 kΩ at 25 °C, β = 3950, to ground under
-//! a 4.7 kΩ pull-up: `R = R25·e^(β(1/T − 1/T25))` (kelvin), `adc = ADC_MAX · R / (R + 4700)`.
+//! a 4.7 kΩ pull-up: `R = R25·e^(β(1/T − 1/T25))` (kelvin), `adc = ADC_MAX · R / (R + 4700)`;
+//! or, given one ([`Heater::with_curve`]), the response of the sensor the host configured
+//! ([`SensorCurve`]).
 //!
 //! Faults, from an MCU time on: [`HeaterFault::OpenThermistor`] (the divider reads ADC_MAX),
 //! [`HeaterFault::NoHeat`] (the pin still switches but no power reaches the mass), and
 //! [`HeaterFault::FrozenSensor`] (the ADC keeps the value it read when the fault began).
+
+use super::sensor_curve::SensorCurve;
 
 /// Ambient temperature (°C).
 pub const AMBIENT_C: f64 = 25.0;
@@ -127,6 +131,10 @@ pub struct Heater {
     at_s: f64,
     fault: Option<(HeaterFault, f64)>,
     frozen_adc: Option<u16>,
+    /// The configured sensor's response (`None`: the default β3950 thermistor).
+    curve: Option<SensorCurve>,
+    /// The heater is on while its pin is low.
+    active_low: bool,
 }
 
 impl Heater {
@@ -142,6 +150,34 @@ impl Heater {
             at_s: 0.0,
             fault: None,
             frozen_adc: None,
+            curve: None,
+            active_low: false,
+        }
+    }
+
+    /// With `active_low`, the heater is on while its pin is low (an inverted `heater_pin`).
+    pub fn active_low(mut self, active_low: bool) -> Heater {
+        self.active_low = active_low;
+        self
+    }
+
+    /// The heater pin's level changed at `t_s`.
+    pub fn set_level(&mut self, level: bool, t_s: f64) {
+        self.set(level != self.active_low, t_s);
+    }
+
+    /// Reads its sensor through `curve` (the sensor the host configured) instead of the
+    /// default β3950 thermistor.
+    pub fn with_curve(mut self, curve: SensorCurve) -> Heater {
+        self.curve = Some(curve);
+        self
+    }
+
+    /// The sensor's ADC reading at `temp_c`.
+    fn reading(&self, temp_c: f64) -> u16 {
+        match &self.curve {
+            Some(c) => c.adc(temp_c),
+            None => adc_of(temp_c),
         }
     }
 
@@ -176,7 +212,7 @@ impl Heater {
             }
             Some((HeaterFault::FrozenSensor, from)) if self.frozen_adc.is_none() && t_s >= from => {
                 self.solve(from);
-                self.frozen_adc = Some(adc_of(self.sensor_c));
+                self.frozen_adc = Some(self.reading(self.sensor_c));
             }
             _ => {}
         }
@@ -203,7 +239,8 @@ impl Heater {
 
     /// ADC reading at `t_s`, faults included.
     pub fn adc(&mut self, t_s: f64) -> u16 {
-        let value = adc_of(self.sensor_temperature(t_s));
+        let sensor_c = self.sensor_temperature(t_s);
+        let value = self.reading(sensor_c);
         if self.faulted(HeaterFault::OpenThermistor, t_s) {
             return ADC_MAX as u16;
         }
@@ -294,6 +331,19 @@ mod tests {
         }
         let expect = AMBIENT_C + m.power_w / m.loss_w_per_k / 2.0;
         assert!((h.temperature(t) - expect).abs() < 0.5, "{}", h.temperature(t));
+    }
+
+    #[test]
+    fn an_active_low_heater_heats_while_its_pin_is_low() {
+        let m = ThermalModel::HOTEND;
+        let mut low = Heater::new(1, 2, m).active_low(true);
+        low.set_level(true, 0.0);
+        assert!(low.temperature(60.0) < AMBIENT_C + 0.1, "pin high: off");
+        low.set_level(false, 60.0);
+        assert!(low.temperature(120.0) > 100.0, "pin low: on");
+        let mut high = Heater::new(1, 2, m);
+        high.set_level(true, 0.0);
+        assert!(high.temperature(60.0) > 100.0);
     }
 
     #[test]

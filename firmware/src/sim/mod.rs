@@ -26,6 +26,7 @@ pub mod faults;
 pub mod heater;
 pub mod mcu_temp;
 pub mod pty;
+pub mod sensor_curve;
 pub mod spin;
 pub mod surface;
 pub mod tmc;
@@ -186,6 +187,7 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
         .with_heaters(&cli.heaters, &cli.heater_faults)
         .with_adc_refs(&cli.adc_refs)
         .with_fans(&cli.fans)
+        .with_sensor_curves(&cli.sensor_curves)
         .with_bltouch(&cli.bltouch)
         .with_tmc(&cli.tmc);
     let dictionary: &'static [u8] = Box::leak(crate::dictionary_bytes(cli.clock_freq).into_boxed_slice());
