@@ -238,7 +238,9 @@ impl HeaterShared {
     pub fn set_target(&self, i: usize, target: f64) {
         if let Some(h) = self.heaters.get(i) {
             h.target.set(target);
-            // Busy at once: a wait that follows must not see the old settled state.
+            std::sync::atomic::fence(Ordering::SeqCst);
+            // Busy at once: a wait that follows must not see the old settled state (the
+            // heater loop's next update keeps it so: see `update_heater`).
             h.busy.store(target > 0.0, Ordering::Release);
         }
     }
@@ -922,6 +924,14 @@ fn update_heater(
         target > 0.0 && r.control.busy(smoothed, target),
         Ordering::Release,
     );
+    // A target set since it was read above (an M109 as this update ran): its setter marked the
+    // heater busy, which the store above may have undone, and the new target is not reached
+    // yet. With the fence here and in `set_target`, one of the two sees the other's write.
+    std::sync::atomic::fence(Ordering::SeqCst);
+    let now_target = cell.target.get();
+    if now_target != target && now_target > 0.0 {
+        cell.busy.store(true, Ordering::Release);
+    }
     if time >= r.next_check {
         r.next_check = time + CHECK_INTERVAL_S;
         if let Err(fault) = r.verify.check(time, temp, target) {

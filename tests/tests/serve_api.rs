@@ -478,7 +478,9 @@ fn a_printer_that_cannot_start_is_in_error_with_the_reason_and_the_service_stays
     assert!(state == "error" || state == "startup", "{state}");
     let again = api.wait_state("error");
     assert!(
-        again["state_message"].as_str().is_some_and(|m| m.contains("ttyCADENCE_ABSENT")),
+        again["state_message"]
+            .as_str()
+            .is_some_and(|m| m.contains("ttyCADENCE_ABSENT")),
         "{again}"
     );
     let (status, stderr) = stop(&mut service, &dir, nix::sys::signal::Signal::SIGTERM);
