@@ -786,7 +786,13 @@ impl Thermal {
             args.push(format!("{low}{}={},{kind}", h.heater_pin.pin, h.sensor_pin.pin));
             args.extend(sensor_curve_args(&h.sensor_pin, &h.sensor));
         }
-        for s in self.sensors.iter().filter(|s| s.mcu == mcu) {
+        // A `temperature_mcu` sensor reads the simulated chip's own die (its ADC_TEMPERATURE
+        // channel is not a pin the simulator takes a curve for).
+        for s in self
+            .sensors
+            .iter()
+            .filter(|s| s.mcu == mcu && s.pin.pin != ADC_TEMPERATURE)
+        {
             args.extend(sensor_curve_args(&s.pin, &s.sensor));
         }
         args
@@ -816,22 +822,10 @@ impl Thermal {
         let mut cmds = Vec::new();
         for (k, obj) in objects.iter().enumerate() {
             let oid = (oid0 + k) as i64;
-            let pin_of = |p: &PinRef, what: &str| {
-                dict.pin(&p.pin)
-                    .map(i64::from)
-                    .map_err(|source| crate::hardware::PinError {
-                        what: what.to_string(),
-                        source,
-                    })
-            };
+            let pin_of = |p: &PinRef, what: &str| pin_number(dict, p, what);
             let mut pwm =
                 |pin: &PinRef, what: &str, cycle: f64, max_duration: f64| -> Result<(), ObjectsError> {
-                    let off = i64::from(pin.invert);
-                    let pin = pin_of(pin, what)?;
-                    let max_ticks = (max_duration * clock_freq).round() as i64;
-                    cmds.push(dict.encode("config_digital_out", &[oid, pin, off, off, max_ticks])?);
-                    let cycle_ticks = (cycle * clock_freq).round().max(1.0) as i64;
-                    cmds.push(dict.encode("set_digital_out_pwm_cycle", &[oid, cycle_ticks])?);
+                    cmds.extend(soft_pwm(dict, clock_freq, oid, pin, what, cycle, max_duration)?);
                     Ok(())
                 };
             match *obj {
@@ -845,16 +839,7 @@ impl Thermal {
                     )?;
                 }
                 ThermalObject::Fan(i) if self.fans[i].opts.hardware_pwm => {
-                    // Klipper's hardware PWM: the chip's PWM unit, duty in 0..=PWM_MAX.
-                    let f = &self.fans[i];
-                    if dict.command("config_pwm_out").is_err() {
-                        return Err(ObjectsError::MissingCommand("config_pwm_out"));
-                    }
-                    let pwm_max = dict.config_f64("PWM_MAX")?.round() as i64;
-                    let off = if f.opts.pin.invert { pwm_max } else { 0 };
-                    let pin = pin_of(&f.opts.pin, &format!("[{}] pin", f.name))?;
-                    let cycle_ticks = (f.opts.cycle_time * clock_freq).round().max(1.0) as i64;
-                    cmds.push(dict.encode("config_pwm_out", &[oid, pin, cycle_ticks, off, off, 0])?);
+                    cmds.push(self.hardware_pwm_fan(dict, clock_freq, oid, i)?);
                 }
                 ThermalObject::Fan(i) => {
                     let f = &self.fans[i];
@@ -866,25 +851,8 @@ impl Thermal {
                     cmds.push(dict.encode("config_analog_in", &[oid, pin])?);
                 }
                 ThermalObject::MultiPwm(k, j) => {
-                    let (output, pins) = &self.multi_outputs[k];
-                    let (cycle, max_duration, what) = match *output {
-                        MultiOutput::Heater(i) => (
-                            self.heaters[i].pwm_cycle_time,
-                            self.max_heat_time(),
-                            format!("[{}] heater_pin", self.heaters[i].name),
-                        ),
-                        MultiOutput::Fan(i) => (
-                            self.fans[i].opts.cycle_time,
-                            0.0,
-                            format!("[{}] pin", self.fans[i].name),
-                        ),
-                    };
-                    if let MultiOutput::Fan(i) = *output {
-                        if self.fans[i].opts.hardware_pwm {
-                            return Err(ObjectsError::MultiPinHardwarePwm(self.fans[i].name.clone()));
-                        }
-                    }
-                    pwm(&pins[j], &what, cycle, max_duration)?;
+                    let (cycle, max_duration, what) = self.multi_pwm_settings(k)?;
+                    pwm(&self.multi_outputs[k].1[j], &what, cycle, max_duration)?;
                 }
                 ThermalObject::Tach(i) => {
                     let f = &self.fans[i];
@@ -919,6 +887,77 @@ impl Thermal {
         }
         Ok(cmds)
     }
+
+    /// Klipper's hardware PWM for fan `i` (the chip's PWM unit, duty in 0..=PWM_MAX).
+    fn hardware_pwm_fan(
+        &self,
+        dict: &Dictionary,
+        clock_freq: f64,
+        oid: i64,
+        i: usize,
+    ) -> Result<Cmd, ObjectsError> {
+        let f = &self.fans[i];
+        if dict.command("config_pwm_out").is_err() {
+            return Err(ObjectsError::MissingCommand("config_pwm_out"));
+        }
+        let pwm_max = dict.config_f64("PWM_MAX")?.round() as i64;
+        let off = if f.opts.pin.invert { pwm_max } else { 0 };
+        let pin = pin_number(dict, &f.opts.pin, &format!("[{}] pin", f.name))?;
+        let cycle_ticks = (f.opts.cycle_time * clock_freq).round().max(1.0) as i64;
+        Ok(dict.encode("config_pwm_out", &[oid, pin, cycle_ticks, off, off, 0])?)
+    }
+
+    /// The PWM cycle, maximum duration and option name of `[multi_pin]` output `k`'s pins (a
+    /// heater's or a software-PWM fan's).
+    fn multi_pwm_settings(&self, k: usize) -> Result<(f64, f64, String), ObjectsError> {
+        match self.multi_outputs[k].0 {
+            MultiOutput::Heater(i) => Ok((
+                self.heaters[i].pwm_cycle_time,
+                self.max_heat_time(),
+                format!("[{}] heater_pin", self.heaters[i].name),
+            )),
+            MultiOutput::Fan(i) if self.fans[i].opts.hardware_pwm => {
+                Err(ObjectsError::MultiPinHardwarePwm(self.fans[i].name.clone()))
+            }
+            MultiOutput::Fan(i) => Ok((
+                self.fans[i].opts.cycle_time,
+                0.0,
+                format!("[{}] pin", self.fans[i].name),
+            )),
+        }
+    }
+}
+
+/// The MCU's number for `p` (`what` names the option in the error).
+fn pin_number(dict: &Dictionary, p: &PinRef, what: &str) -> Result<i64, crate::hardware::PinError> {
+    dict.pin(&p.pin)
+        .map(i64::from)
+        .map_err(|source| crate::hardware::PinError {
+            what: what.to_string(),
+            source,
+        })
+}
+
+/// A software-PWM output's configuration: off (inverted pins are active low) from the start
+/// and on an MCU shutdown, turned off by the MCU itself after `max_duration` without an update
+/// (0: never), at `cycle` seconds per period.
+fn soft_pwm(
+    dict: &Dictionary,
+    clock_freq: f64,
+    oid: i64,
+    pin: &PinRef,
+    what: &str,
+    cycle: f64,
+    max_duration: f64,
+) -> Result<[Cmd; 2], ObjectsError> {
+    let off = i64::from(pin.invert);
+    let pin = pin_number(dict, pin, what)?;
+    let max_ticks = (max_duration * clock_freq).round() as i64;
+    let cycle_ticks = (cycle * clock_freq).round().max(1.0) as i64;
+    Ok([
+        dict.encode("config_digital_out", &[oid, pin, off, off, max_ticks])?,
+        dict.encode("set_digital_out_pwm_cycle", &[oid, cycle_ticks])?,
+    ])
 }
 
 /// The simulated sensor's table: from well below any `min_temp` to beyond the simulated

@@ -461,30 +461,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
             match *obj {
                 ThermalObject::HeaterPwm(i) => {
                     let h = &thermal.heaters[i];
-                    let control = heater_control(h.control, h.max_power, h.smooth_time);
-                    heaters.push((
-                        i,
-                        Running {
-                            extra: Vec::new(),
-                            link_index: li,
-                            pwm_oid: oid,
-                            adc_oid: oid + 1,
-                            cycle_ticks: h.pwm_cycle_time * freq,
-                            invert: h.heater_pin.invert,
-                            max_power: h.max_power,
-                            smooth: Smoothed::new(h.smooth_time),
-                            control,
-                            verify: VerifyHeater::new(&h.name, h.verify),
-                            next_check: 0.0,
-                            last_count: 0,
-                            last_sent: None,
-                            full_scale: adc_max * f64::from(SAMPLE_COUNT),
-                            sensor: h.sensor,
-                            relay: None,
-                            smith: (thermal.sim_time_scale > 1.0).then(|| SmithPredictor::new(h.sim.model())),
-                            decided: (0.0, 0.0),
-                        },
-                    ));
+                    heaters.push((i, running_heater(thermal, i, li, oid, freq, adc_max)));
                     let (lo, hi) = adc_range(&h.sensor, h.min_temp, h.max_temp, adc_max);
                     query_analog(&conn.link, dict, oid + 1, start, freq, lo, hi, RANGE_CHECK_COUNT)?;
                 }
@@ -505,32 +482,7 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                         },
                     ));
                 }
-                ThermalObject::Fan(i) => fans.push((
-                    i,
-                    RunningFan {
-                        extra: Vec::new(),
-                        link_index: li,
-                        oid,
-                        // A hardware PWM's duty is in 0..=PWM_MAX (Klipper's pwm_max).
-                        hardware: thermal.fans[i].opts.hardware_pwm,
-                        cycle_ticks: if thermal.fans[i].opts.hardware_pwm {
-                            dict.config_f64("PWM_MAX")?
-                        } else {
-                            thermal.fans[i].opts.cycle_time * freq
-                        },
-                        invert: thermal.fans[i].opts.pin.invert,
-                        last: None,
-                        control: match thermal.fans[i].role {
-                            FanRole::Temperature {
-                                control, max_speed, ..
-                            } => Some(fan_control(control, max_speed)),
-                            _ => None,
-                        },
-                        last_reading: f64::NEG_INFINITY,
-                        temp_speed: 0.0,
-                        last_active: None,
-                    },
-                )),
+                ThermalObject::Fan(i) => fans.push((i, running_fan(thermal, i, li, oid, dict, freq)?)),
                 ThermalObject::HeaterAdc(_) => {}
                 ThermalObject::MultiPwm(k, j) => {
                     let (output, pins) = &thermal.multi_outputs[k];
@@ -577,6 +529,66 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
     let result = heater_loop(mcus, thermal, shared, &mut heaters, &mut sensors, &mut outputs);
     wind_down(mcus, thermal, shared, &heaters);
     result
+}
+
+/// Heater `i`'s running state: its PWM output `oid` (its ADC the next oid) on link `li`.
+fn running_heater(thermal: &Thermal, i: usize, li: usize, oid: u8, freq: f64, adc_max: f64) -> Running {
+    let h = &thermal.heaters[i];
+    Running {
+        extra: Vec::new(),
+        link_index: li,
+        pwm_oid: oid,
+        adc_oid: oid + 1,
+        cycle_ticks: h.pwm_cycle_time * freq,
+        invert: h.heater_pin.invert,
+        max_power: h.max_power,
+        smooth: Smoothed::new(h.smooth_time),
+        control: heater_control(h.control, h.max_power, h.smooth_time),
+        verify: VerifyHeater::new(&h.name, h.verify),
+        next_check: 0.0,
+        last_count: 0,
+        last_sent: None,
+        full_scale: adc_max * f64::from(SAMPLE_COUNT),
+        sensor: h.sensor,
+        relay: None,
+        smith: (thermal.sim_time_scale > 1.0).then(|| SmithPredictor::new(h.sim.model())),
+        decided: (0.0, 0.0),
+    }
+}
+
+/// Fan `i`'s running state: its output `oid` on link `li`.
+fn running_fan(
+    thermal: &Thermal,
+    i: usize,
+    li: usize,
+    oid: u8,
+    dict: &Dictionary,
+    freq: f64,
+) -> Result<RunningFan, HeaterLoopError> {
+    let f = &thermal.fans[i];
+    Ok(RunningFan {
+        extra: Vec::new(),
+        link_index: li,
+        oid,
+        // A hardware PWM's duty is in 0..=PWM_MAX (Klipper's pwm_max).
+        hardware: f.opts.hardware_pwm,
+        cycle_ticks: if f.opts.hardware_pwm {
+            dict.config_f64("PWM_MAX")?
+        } else {
+            f.opts.cycle_time * freq
+        },
+        invert: f.opts.pin.invert,
+        last: None,
+        control: match f.role {
+            FanRole::Temperature {
+                control, max_speed, ..
+            } => Some(fan_control(control, max_speed)),
+            _ => None,
+        },
+        last_reading: f64::NEG_INFINITY,
+        temp_speed: 0.0,
+        last_active: None,
+    })
 }
 
 /// The heater's control as configured: watermark or PID.
