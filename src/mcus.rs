@@ -489,7 +489,7 @@ impl Mcus {
         };
         let name = conn.name.clone();
         let deadline = std::time::Instant::now() + Duration::from_secs(5);
-        let transport = loop {
+        let link = loop {
             // The old instance's port may linger for a moment: try until one identifies.
             std::thread::sleep(Duration::from_millis(100));
             let attempt = open_serial(&name, port, baud).and_then(|t| {
@@ -505,7 +505,7 @@ impl Mcus {
                 Err(_) => continue,
             }
         };
-        let old = std::mem::replace(&mut conn.link, transport);
+        let old = std::mem::replace(&mut conn.link, link);
         let _ = old.close();
         Ok(())
     }
