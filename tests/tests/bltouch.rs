@@ -197,38 +197,3 @@ fn bltouch_faults_are_reported() {
         run.stderr
     );
 }
-
-/// Where the simulated bed is in the "own endstop" printer (not a whole step).
-const SURFACE: f64 = 1.3791;
-
-/// A printer that homes Z on its own endstop (on `mcu`, at Z = 0) and probes with the BLTouch:
-/// every sample of a multi-sample PROBE deploys, probes through the relayed trigger and stows
-/// (stow_on_each_sample's default), each measuring the simulated bed.
-#[test]
-fn bltouch_multi_sample_probe_on_a_printer_with_its_own_z_endstop() {
-    let dir = scratch("bltouch-own-endstop");
-    let cfg = config(&dir, "samples: 3\nsample_retract_dist: 2", |l| match l {
-        "endstop_pin: probe:z_virtual_endstop" => Some("endstop_pin: ^PC3\nposition_endstop: 0".into()),
-        "bed_surface_z: 0" => Some(format!("bed_surface_z: {SURFACE}")),
-        _ => None,
-    });
-    let run = print(
-        &dir,
-        &cfg,
-        "G28 Z\nG1 Z4 F600\nPROBE\nG1 Z4 F600\nPROBE SAMPLES=2\n",
-        None,
-    );
-    assert_success(&run);
-    let out = &run.stdout;
-    assert!(out.contains("homing z: mcus mcu;"), "{out}");
-    let probed = probed(out);
-    assert_eq!(probed.len(), 5, "{out}");
-    let results = values(out, "Result is z=");
-    assert_eq!(results.len(), 2, "{out}");
-    for z in probed.iter().chain(&results) {
-        assert!(
-            (z - SURFACE).abs() <= TOLERANCE,
-            "probed z={z}, the bed is at {SURFACE}\n{out}"
-        );
-    }
-}
