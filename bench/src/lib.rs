@@ -4,7 +4,8 @@
 //!   deadlines, busy-wait mode), and [`cyclictest`]: the same settings run by cyclictest itself.
 //! - [`handoff`]: hand-off latency of the project's queues and iceoryx2 channels.
 //! - [`plan`]: planner + step compression throughput, and [`callgrind`]: instruction counts of
-//!   a whole process under valgrind.
+//!   a whole process under valgrind; [`stream`]: the step commands of a wire stream, to
+//!   compare with (`bench plan --compare`).
 //!
 //! Shared by all: [`stats`] (ns histograms and their percentiles), [`report`] (the one `--json`
 //! schema), [`hlog`] (HdrHistogram interval logs), [`plot`] (SVG/PNG charts), [`load`]
@@ -24,6 +25,7 @@ pub mod plot;
 pub mod report;
 pub mod run;
 pub mod stats;
+pub mod stream;
 pub mod wakeup;
 
 pub use error::BenchError;

@@ -84,6 +84,9 @@ pub struct PlanReport {
     pub print_time_s: f64,
     /// Unknown G-code commands skipped (`[gcode] unknown_commands: warn`, the default; else they are errors).
     pub skipped_unknown: u64,
+    /// The step commands of each stepper, by the planner's stepper index (the printer's
+    /// steppers in config order; `step_pin` unset).
+    pub per_stepper: Vec<crate::stream::StepperCounts>,
 }
 
 impl PlanReport {
@@ -131,20 +134,22 @@ pub fn pipeline_config(
 
 /// Packs encoded messages into blocks and counts the bytes.
 #[derive(Debug, Default)]
-struct WireCounter {
+pub(crate) struct WireCounter {
     payload: usize,
-    bytes: u64,
+    pub(crate) bytes: u64,
 }
 
 impl WireCounter {
-    fn msg(&mut self, fields: &[u32]) {
+    /// One message of these fields (the message id first).
+    pub(crate) fn msg(&mut self, fields: &[u32]) {
         let len: usize = fields.iter().map(|&v| vlq::encoded_len(v)).sum();
         if self.payload + len > MESSAGE_PAYLOAD_MAX {
             self.flush();
         }
         self.payload += len;
     }
-    fn flush(&mut self) {
+    /// Closes the last block.
+    pub(crate) fn flush(&mut self) {
         if self.payload > 0 {
             self.bytes += (self.payload + MESSAGE_MIN) as u64;
             self.payload = 0;
@@ -163,6 +168,7 @@ pub fn plan_file(gcode: &Path, cfg: &PrinterConfig, opts: &PlanOptions) -> Resul
 pub fn plan_reader(src: impl BufRead, cfg: &PrinterConfig, opts: &PlanOptions) -> Result<PlanReport, String> {
     let started = Instant::now();
     let (pc, kin) = pipeline_config(cfg, opts)?;
+    let steppers = pc.steppers.len();
     let popts = PipelineOptions {
         threads: opts.threads,
         ..sysconfig::planning::pipeline_options(cfg, kin)
@@ -173,20 +179,31 @@ pub fn plan_reader(src: impl BufRead, cfg: &PrinterConfig, opts: &PlanOptions) -
     let mut rep = PlanReport::default();
     let mut out = Vec::with_capacity(1 << 14);
     let [q_id, d_id, r_id] = opts.msg_ids;
+    rep.per_stepper = vec![crate::stream::StepperCounts::default(); steppers];
     let mut count = |out: &mut Vec<(usize, StepCmd)>, rep: &mut PlanReport| {
-        for &(oid, c) in out.iter() {
-            let oid = oid as u32;
+        for &(idx, c) in out.iter() {
+            let oid = idx as u32;
             rep.commands += 1;
+            let mut scratch = crate::stream::StepperCounts::default();
+            let tally = rep.per_stepper.get_mut(idx).unwrap_or(&mut scratch);
             match c {
                 StepCmd::QueueStep {
                     interval, count, add, ..
                 } => {
                     rep.queue_steps += 1;
                     rep.steps += count as u64;
+                    tally.queue_steps += 1;
+                    tally.steps += count as u64;
                     wire.msg(&[q_id, oid, interval, count as u32, add as i32 as u32]);
                 }
-                StepCmd::SetDir { dir } => wire.msg(&[d_id, oid, dir as u32]),
-                StepCmd::ResetClock { clock } => wire.msg(&[r_id, oid, clock as u32]),
+                StepCmd::SetDir { dir } => {
+                    tally.set_dirs += 1;
+                    wire.msg(&[d_id, oid, dir as u32])
+                }
+                StepCmd::ResetClock { clock } => {
+                    tally.resets += 1;
+                    wire.msg(&[r_id, oid, clock as u32])
+                }
             }
         }
         out.clear();

@@ -8,6 +8,7 @@ use std::time::Duration;
 
 use bench::handoff::HandoffOpts;
 use bench::load::{LoadKind, LoadTool};
+use bench::modes::plan::Extras;
 use bench::modes::wakeup::WakeupMode;
 use bench::report::{Report, SCHEMA};
 use bench::run::Common;
@@ -224,7 +225,7 @@ fn plan_reports_figures_and_refuses_latency_outputs() {
         ..Common::default()
     };
     let mut out = Vec::new();
-    let r = bench::modes::plan::run(&gcode, &cfg, &opts, 2, None, &c, &mut out).unwrap();
+    let r = bench::modes::plan::run(&gcode, &cfg, &opts, 2, &Extras::default(), &c, &mut out).unwrap();
     let back: Report = serde_json::from_slice(&out).unwrap();
     assert_eq!(back.mode, "plan");
     for k in [
@@ -242,7 +243,7 @@ fn plan_reports_figures_and_refuses_latency_outputs() {
         &cfg,
         &opts,
         1,
-        None,
+        &Extras::default(),
         &common(&dir, false),
         &mut Vec::new(),
     )
@@ -264,7 +265,7 @@ fn plan_compares_with_a_saved_report() {
         ..Common::default()
     };
     let mut out = Vec::new();
-    bench::modes::plan::run(&gcode, &cfg, &opts, 1, None, &c, &mut out).unwrap();
+    bench::modes::plan::run(&gcode, &cfg, &opts, 1, &Extras::default(), &c, &mut out).unwrap();
     let saved = dir.join("saved.json");
     std::fs::write(&saved, &out).unwrap();
     // Text mode: the comparison table is printed, and the report keeps the ratios.
@@ -275,7 +276,7 @@ fn plan_compares_with_a_saved_report() {
         ..Common::default()
     };
     let mut text = Vec::new();
-    let r = bench::modes::plan::run(&gcode, &cfg, &opts, 1, None, &c, &mut text).unwrap();
+    let r = bench::modes::plan::run(&gcode, &cfg, &opts, 1, &Extras::default(), &c, &mut text).unwrap();
     let text = String::from_utf8(text).unwrap();
     assert!(text.contains(&format!("against {}:", saved.display())), "{text}");
     let b = r.baseline.unwrap();
@@ -301,7 +302,8 @@ fn plan_compares_with_a_saved_report() {
             progress: false,
             ..Common::default()
         };
-        let e = bench::modes::plan::run(&gcode, &cfg, &opts, 1, None, &c, &mut Vec::new()).unwrap_err();
+        let e = bench::modes::plan::run(&gcode, &cfg, &opts, 1, &Extras::default(), &c, &mut Vec::new())
+            .unwrap_err();
         assert!(e.to_string().contains(want), "{e}");
     }
     let _ = std::fs::remove_dir_all(&dir);

@@ -123,6 +123,29 @@ def parse_decoded(text):
     return msgs
 
 
+def batch_compare(results, args, klipper, bins, gcode, ccfg, kbin, ks):
+    """batch-compare: `cadence bench plan FILE --compare KLIPPER_STREAM` plans the file and
+    prints Klipper's step commands beside its own; its count of Klipper's steps per stepper must
+    be the one replayed from parsedump's decoding (`ks`)."""
+    import json
+    p = run([os.path.join(bins, "cadence"), "bench", "plan", gcode, "--config", ccfg,
+             "--dictionary", klipper.dict, "--compare", kbin, "--json"], timeout=3600,
+            check=False)
+    if p.returncode != 0:
+        results.append(("batch-compare", "FAIL", (p.stderr or p.stdout).strip()[-400:]))
+        return
+    f = json.loads(p.stdout)["figures"]
+    wrong = [n for n, st in ks.items() if f.get("compare_steps." + n) != st[0]]
+    detail = "queue_step %d/%d (Cadence/Klipper), step command bytes %d/%d, steps %d/%d" % (
+        f["queue_steps"], f["compare_queue_steps"], f["step_cmd_bytes"],
+        f["compare_step_cmd_bytes"], f["steps"], f["compare_steps"])
+    if wrong:
+        results.append(("batch-compare", "FAIL", "Klipper's steps counted wrong for %s; %s" % (
+            ", ".join(wrong), detail)))
+    else:
+        results.append(("batch-compare", "PASS", detail))
+
+
 def stepper_stats(msgs, pins):
     """{stepper: (steps, final position in steps, queue_steps)} replayed from messages."""
     by_oid = {}
@@ -155,7 +178,8 @@ def normalise(msgs, pins):
 
 
 def scenarios(results, args, klipper, bins):
-    if any(selected(args, n) for n in ("batch-decoders", "batch-steps", "batch-check")):
+    if any(selected(args, n) for n in ("batch-decoders", "batch-steps", "batch-compare",
+                                       "batch-check")):
         batch(results, args, klipper, bins)
     import hostmcu
     hostmcu.scenarios(results, args, klipper, bins)
@@ -225,7 +249,10 @@ def batch(results, args, klipper, bins):
                         "wall %.1f/%.1f s" % (os.path.basename(gcode), ", ".join(detail),
                                              "equal" if steps_equal else "differ",
                                              kbytes, cbytes, tk, tc)))
-    # 3. Cadence's checker proves both streams against the G-code.
+    # 3. `cadence bench plan --compare` counts Klipper's stream as parsedump's messages say.
+    if selected(args, "batch-compare"):
+        batch_compare(results, args, klipper, bins, gcode, ccfg, kbin, ks)
+    # 4. Cadence's checker proves both streams against the G-code.
     if selected(args, "batch-check"):
         for label, path in (("klipper", kbin), ("cadence", cbin)):
             p = run([os.path.join(bins, "cadence"), "decode", path, "--check", gcode,

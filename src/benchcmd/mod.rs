@@ -215,6 +215,11 @@ pub enum BenchWhat {
         /// reference the line commands are measured against).
         #[arg(long)]
         per_step: bool,
+        /// Data dictionary to encode with (message ids and MCU clock), and to read a stream
+        /// given to --compare with: e.g. Klipper's out/klipper.dict (default: the Cadence
+        /// firmware's own).
+        #[arg(long, value_name = "FILE")]
+        dictionary: Option<PathBuf>,
         #[command(flatten)]
         common: CommonArgs,
     },
@@ -283,10 +288,11 @@ pub fn run(args: &BenchArgs) -> Result<(), BenchCmdError> {
             runs,
             instructions,
             per_step,
+            dictionary,
             common,
         } => {
             let cfg = crate::machine::load_config(config.as_deref())?;
-            let dict = crate::decode::load_dictionary(None)?;
+            let dict = crate::decode::load_dictionary(dictionary.as_deref())?;
             let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
             let opts = bench::plan::PlanOptions {
                 threads: threads.unwrap_or(cores),
@@ -301,22 +307,60 @@ pub fn run(args: &BenchArgs) -> Result<(), BenchCmdError> {
                 ..opts
             };
             let counted = if *instructions {
-                Some(plan_child(file, config.as_deref(), &opts)?)
+                Some(plan_child(file, config.as_deref(), dictionary.as_deref(), &opts)?)
             } else {
                 None
             };
-            bench::modes::plan::run(
-                file,
-                &cfg,
-                &opts,
-                *runs,
-                counted.as_ref(),
-                &common_options(common),
-                &mut out,
-            )?;
+            // `--compare` takes a saved report, or another host's wire stream of the file.
+            let mut common = common_options(common);
+            let stream = match &common.compare {
+                Some(path) if is_wire_stream(path) => common.compare.take(),
+                _ => None,
+            };
+            let steppers = match &stream {
+                Some(_) => stream_steppers(&cfg, &dict)?,
+                None => Vec::new(),
+            };
+            let extras = bench::modes::plan::Extras {
+                instructions: counted.as_ref(),
+                against: stream.as_deref().map(|path| bench::modes::plan::Against {
+                    path,
+                    dict: &dict,
+                    steppers: &steppers,
+                }),
+            };
+            bench::modes::plan::run(file, &cfg, &opts, *runs, &extras, &common, &mut out)?;
         }
     }
     Ok(())
+}
+
+/// Whether `path` holds a wire stream (a batch file: blocks of at least 5 bytes, each ending
+/// in the sync byte) rather than a JSON report (`{` first); unreadable files are left to the
+/// report reader, which names the error.
+fn is_wire_stream(path: &std::path::Path) -> bool {
+    use std::io::Read;
+    let mut head = [0u8; 1];
+    let read = std::fs::File::open(path).and_then(|mut f| f.read(&mut head));
+    matches!(read, Ok(1))
+        && (links::proto::MESSAGE_MIN..=links::proto::MESSAGE_MAX).contains(&usize::from(head[0]))
+}
+
+/// The printer's steppers in the planner's order, each with its step pin in `dict` when it is
+/// on the main MCU (a batch stream is one MCU's: Klipper's `-o` writes the main one's).
+fn stream_steppers(
+    cfg: &sysconfig::printer::PrinterConfig,
+    dict: &links::dict::Dictionary,
+) -> Result<Vec<(String, Option<u32>)>, BenchCmdError> {
+    let machine = cadence::hardware::Machine::from_config(cfg)?;
+    Ok(machine
+        .steppers
+        .iter()
+        .map(|s| {
+            let pin = (s.mcu == "mcu").then(|| dict.pin(&s.step_pin.pin).ok()).flatten();
+            (s.name.clone(), pin)
+        })
+        .collect())
 }
 
 /// `cadence bench plan` of the same file with the same options, planned once: the process
@@ -324,12 +368,16 @@ pub fn run(args: &BenchArgs) -> Result<(), BenchCmdError> {
 fn plan_child(
     file: &std::path::Path,
     config: Option<&std::path::Path>,
+    dictionary: Option<&std::path::Path>,
     opts: &bench::plan::PlanOptions,
 ) -> Result<ChildCommand, BenchCmdError> {
     let exe = std::env::current_exe().map_err(BenchCmdError::Executable)?;
     let mut args: Vec<String> = vec!["bench".into(), "plan".into(), file.display().to_string()];
     if let Some(c) = config {
         args.extend(["--config".into(), c.display().to_string()]);
+    }
+    if let Some(d) = dictionary {
+        args.extend(["--dictionary".into(), d.display().to_string()]);
     }
     args.extend([
         "--threads".into(),

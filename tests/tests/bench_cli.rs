@@ -103,6 +103,72 @@ fn plan_takes_the_common_options() {
     );
 }
 
+/// `--compare STREAM`: another host's batch stream of the same file beside this run, stepper by
+/// stepper. Cadence's own batch stream of the file must count exactly as the run does; a
+/// truncated one is an error naming the byte.
+#[test]
+fn plan_compare_counts_a_batch_stream_beside_the_run() {
+    let dir = scratch("bench_plan_compare");
+    let stream = dir.join("square.bin");
+    let print = cadence(
+        &[
+            "print",
+            "examples/square.gcode",
+            "--batch",
+            stream.to_str().unwrap(),
+        ],
+        TIMEOUT,
+    );
+    assert_success(&print);
+    let args = [
+        "bench",
+        "plan",
+        "examples/square.gcode",
+        "--compare",
+        stream.to_str().unwrap(),
+    ];
+    let run = cadence(&args, TIMEOUT);
+    assert_success(&run);
+    let rows: Vec<&str> = run
+        .stdout
+        .lines()
+        .skip_while(|l| !l.starts_with("against "))
+        .skip(2)
+        .collect();
+    for want in [
+        "queue_step",
+        "set_next_step_dir",
+        "step command bytes",
+        "stepper_x steps",
+        "extruder queue_step",
+    ] {
+        let row = rows.iter().find(|r| r.trim_start().starts_with(want));
+        let row = row.unwrap_or_else(|| panic!("no {want:?} row:\n{}", run.stdout));
+        let cells: Vec<&str> = row.split_whitespace().rev().take(3).collect();
+        assert_eq!(cells[0], "1.000", "{row}");
+        assert_eq!(cells[1], cells[2], "{row}");
+    }
+    // The same figures in the JSON report, each beside its stream's.
+    let json = cadence(&[&args[..], &["--json"]].concat(), TIMEOUT);
+    assert_success(&json);
+    let v: serde_json::Value = serde_json::from_str(&json.stdout).expect("JSON report");
+    let f = &v["figures"];
+    for key in ["queue_steps", "steps", "steps.stepper_y", "queue_steps.extruder"] {
+        assert!(f[key].as_f64().is_some_and(|n| n > 0.0), "{key}: {f}");
+        assert_eq!(f[key], f[format!("compare_{key}")], "{key}: {f}");
+    }
+    // A stream cut short.
+    let bytes = std::fs::read(&stream).unwrap();
+    std::fs::write(&stream, &bytes[..bytes.len() - 3]).unwrap();
+    let cut = cadence(&args, TIMEOUT);
+    assert_eq!(cut.code, Some(1), "{}", cut.stdout);
+    assert!(
+        cut.stderr.contains("truncated block") && cut.stderr.contains("square.bin"),
+        "{}",
+        cut.stderr
+    );
+}
+
 #[test]
 fn options_that_make_no_run_are_clear_errors() {
     for (args, want) in [

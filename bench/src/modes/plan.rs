@@ -2,7 +2,9 @@
 //! common options. It measures throughput, not latency: its figures go to `figures` and it has
 //! no histogram, so `--hlog` and `--plot` are refused. With an instruction command it also
 //! counts the instructions of one whole planning process (every thread) under valgrind's
-//! callgrind ([`crate::callgrind`]); without valgrind that figure is skipped with a note.
+//! callgrind ([`crate::callgrind`]); without valgrind that figure is skipped with a note. With
+//! another stream of the same file (`--compare STREAM`: Klipper's batch output), its step
+//! commands ([`crate::stream`]) are printed beside this run's, stepper by stepper.
 
 use std::io::Write;
 use std::path::Path;
@@ -15,16 +17,39 @@ use crate::handoff::ChildCommand;
 use crate::plan::{plan_file, PlanOptions, PlanReport};
 use crate::report::Report;
 use crate::run::{Common, Session};
+use crate::stream::{count_stream, StepperCounts, StreamCounts};
+
+/// Another wire stream of the same G-code to print beside this run (`--compare STREAM`).
+#[derive(Debug)]
+pub struct Against<'a> {
+    /// The stream file (read after the runs, so it does not count in their peak RSS).
+    pub path: &'a Path,
+    /// The dictionary it was encoded with.
+    pub dict: &'a links::dict::Dictionary,
+    /// The printer's steppers in the planner's order: name, and step pin in that dictionary
+    /// (`None`: the stepper is not on the stream's MCU, or its pin is not in the dictionary).
+    pub steppers: &'a [(String, Option<u32>)],
+}
+
+/// What a run adds besides planning.
+#[derive(Debug, Default)]
+pub struct Extras<'a> {
+    /// A command that plans the same file once (e.g. `cadence bench plan FILE …`), whose
+    /// instructions callgrind counts.
+    pub instructions: Option<&'a ChildCommand>,
+    /// A stream to compare with.
+    pub against: Option<Against<'a>>,
+}
 
 /// Plans `file` `runs` times (every run must give the same commands) and reports the figures;
-/// with `instructions` (a command that plans the same file once, e.g. `cadence bench plan FILE
-/// …`), also that process' instruction count under callgrind.
+/// with [`Extras`], also the instruction count of a planning process under callgrind, and
+/// another stream's step commands beside this run's.
 pub fn run(
     file: &Path,
     cfg: &PrinterConfig,
     opts: &PlanOptions,
     runs: u32,
-    instructions: Option<&ChildCommand>,
+    extras: &Extras<'_>,
     common: &Common,
     out: &mut dyn Write,
 ) -> Result<Report, BenchError> {
@@ -72,7 +97,7 @@ pub fn run(
     if !common.json {
         writeln!(out, "{first}").map_err(|e| BenchError::file("(standard output)", e))?;
     }
-    if let Some(cmd) = instructions {
+    if let Some(cmd) = extras.instructions {
         match crate::callgrind::find() {
             Some(valgrind) => {
                 let n = crate::callgrind::count(&valgrind, &cmd.exe, &cmd.args)?;
@@ -93,6 +118,9 @@ pub fn run(
                 "instructions skipped: valgrind is not installed (Debian: apt install valgrind)".into(),
             ),
         }
+    }
+    if let Some(a) = &extras.against {
+        compare_stream(&mut s.report, &first, a, common.json, out)?;
     }
     if runs > 1 {
         let (min, median, max) = spread(&mut walls);
@@ -125,6 +153,124 @@ fn figures(r: &mut Report, p: &PlanReport) {
     f.insert("peak_rss_bytes".into(), p.peak_rss_bytes as f64);
     f.insert("print_time_s".into(), p.print_time_s);
     f.insert("skipped_unknown".into(), p.skipped_unknown as f64);
+}
+
+/// Counts the stream of `against` and prints (or, with `json`, adds to the figures) its step
+/// commands beside `mine`: totals, then each stepper, matched by step pin.
+fn compare_stream(
+    report: &mut Report,
+    mine: &PlanReport,
+    against: &Against<'_>,
+    json: bool,
+    out: &mut dyn Write,
+) -> Result<(), BenchError> {
+    let name = against.path.display().to_string();
+    let data = std::fs::read(against.path).map_err(|e| BenchError::file(against.path, e))?;
+    let theirs: StreamCounts = count_stream(&data, against.dict)
+        .map_err(|e| BenchError::Options(format!("--compare {name}: {e}")))?;
+    let total = theirs.total();
+    let mine_total = StepperCounts::sum(&mine.per_stepper);
+    let mut rows: Vec<(String, String, Option<u64>, Option<u64>)> = vec![
+        (
+            "queue_step".into(),
+            "queue_steps".into(),
+            Some(mine.queue_steps),
+            Some(total.queue_steps),
+        ),
+        (
+            "set_next_step_dir".into(),
+            "set_dirs".into(),
+            Some(mine_total.set_dirs),
+            Some(total.set_dirs),
+        ),
+        (
+            "reset_step_clock".into(),
+            "resets".into(),
+            Some(mine_total.resets),
+            Some(total.resets),
+        ),
+        (
+            "step command bytes".into(),
+            "step_cmd_bytes".into(),
+            Some(mine.wire_bytes),
+            Some(theirs.step_cmd_bytes),
+        ),
+        (
+            "steps".into(),
+            "steps".into(),
+            Some(mine.steps),
+            Some(total.steps),
+        ),
+    ];
+    let mut matched = Vec::new();
+    for ((stepper, pin), m) in against.steppers.iter().zip(&mine.per_stepper) {
+        let t = pin.and_then(|p| theirs.by_step_pin(p));
+        if let Some(t) = t {
+            matched.push(t.step_pin);
+        }
+        rows.push((
+            format!("{stepper} steps"),
+            format!("steps.{stepper}"),
+            Some(m.steps),
+            t.map(|t| t.steps),
+        ));
+        rows.push((
+            format!("{stepper} queue_step"),
+            format!("queue_steps.{stepper}"),
+            Some(m.queue_steps),
+            t.map(|t| t.queue_steps),
+        ));
+    }
+    for (oid, t) in &theirs.steppers {
+        if !matched.contains(&t.step_pin) {
+            let label = match t.step_pin {
+                Some(p) => format!("oid {oid} (step pin {p})"),
+                None => format!("oid {oid}"),
+            };
+            rows.push((
+                format!("{label} steps"),
+                format!("steps.oid{oid}"),
+                None,
+                Some(t.steps),
+            ));
+        }
+    }
+    if json {
+        let f = &mut report.figures;
+        f.insert("compare_bytes".into(), theirs.bytes as f64);
+        f.insert("compare_messages".into(), theirs.messages as f64);
+        for (_, key, m, t) in &rows {
+            if let Some(m) = m {
+                f.insert(key.clone(), *m as f64);
+            }
+            if let Some(t) = t {
+                f.insert(format!("compare_{key}"), *t as f64);
+            }
+        }
+        return Ok(());
+    }
+    let w = |e| BenchError::file("(standard output)", e);
+    writeln!(
+        out,
+        "against {name} ({} bytes, {} messages; its step commands alone pack into {} bytes):",
+        theirs.bytes, theirs.messages, theirs.step_cmd_bytes
+    )
+    .map_err(w)?;
+    writeln!(
+        out,
+        "  {:<28} {:>14} {:>14} {:>8}",
+        "", "this run", "that stream", "ratio"
+    )
+    .map_err(w)?;
+    let cell = |v: &Option<u64>| v.map_or_else(|| "-".to_string(), |v| v.to_string());
+    for (label, _, m, t) in &rows {
+        let ratio = match (m, t) {
+            (Some(m), Some(t)) if *t > 0 => format!("{:.3}", *m as f64 / *t as f64),
+            _ => "-".into(),
+        };
+        writeln!(out, "  {label:<28} {:>14} {:>14} {ratio:>8}", cell(m), cell(t)).map_err(w)?;
+    }
+    Ok(())
 }
 
 /// Min, median and max of `walls` (at least one).
