@@ -93,6 +93,7 @@ fn a_stepper_on_one_mcu_trips_an_endstop_on_another() {
     endstop.close();
     let t = read_trace(&trace).unwrap();
     let _ = std::fs::remove_file(&trace);
+    let _ = std::fs::remove_file(trace.with_extension("bin.epoch"));
     assert_eq!(t.triggers.len(), 2, "{:?}", t.triggers);
     assert!(t.triggers[0].endstop && t.triggers[0].oid == 1 && t.triggers[0].reason == 1);
     assert!(!t.triggers[1].endstop && t.triggers[1].oid == 0);

@@ -638,11 +638,7 @@ mod tests {
     use super::*;
 
     fn machine(cfg_text: &str) -> Machine {
-        let dir = std::env::temp_dir().join(format!("cadence-remote-{}", std::process::id()));
-        let _ = std::fs::create_dir_all(&dir);
-        let path = dir.join(format!("{:08x}.cfg", crc32fast::hash(cfg_text.as_bytes())));
-        std::fs::write(&path, cfg_text).unwrap();
-        let cfg = sysconfig::printer::load(&path).unwrap();
+        let cfg = sysconfig::parse_str(cfg_text, std::path::Path::new("printer.cfg")).unwrap();
         Machine::from_config(&cfg).unwrap()
     }
 

@@ -162,12 +162,62 @@ pub fn run_then(cmd: &mut Command, timeout: Duration, during: impl FnOnce(&Child
     }
 }
 
-/// A fresh scratch directory for one test.
-pub fn scratch(test: &str) -> PathBuf {
+/// A fresh scratch directory for one test: removed when the test passes (the guard is dropped
+/// without a panic), kept when it fails, for its traces and logs, or with `CADENCE_KEEP_SCRATCH`
+/// set. Use it as a `&Path`.
+pub fn scratch(test: &str) -> Scratch {
     let dir = std::env::temp_dir().join(format!("cadence-test-{}-{test}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).expect("scratch dir");
-    dir
+    Scratch { dir, keep: false }
+}
+
+/// The directory of [`scratch`]; see there.
+#[derive(Debug)]
+pub struct Scratch {
+    dir: PathBuf,
+    /// Never removed (see [`Scratch::keep`]).
+    keep: bool,
+}
+
+impl Scratch {
+    /// The directory's path, owned.
+    pub fn to_path_buf(&self) -> PathBuf {
+        self.dir.clone()
+    }
+
+    /// The directory, kept whatever the test's outcome (its files are the test's report).
+    pub fn keep(mut self) -> PathBuf {
+        self.keep = true;
+        self.dir.clone()
+    }
+}
+
+impl std::ops::Deref for Scratch {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        &self.dir
+    }
+}
+
+impl AsRef<Path> for Scratch {
+    fn as_ref(&self) -> &Path {
+        &self.dir
+    }
+}
+
+impl AsRef<std::ffi::OsStr> for Scratch {
+    fn as_ref(&self) -> &std::ffi::OsStr {
+        self.dir.as_os_str()
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        if !self.keep && !std::thread::panicking() && std::env::var_os("CADENCE_KEEP_SCRATCH").is_none() {
+            let _ = std::fs::remove_dir_all(&self.dir);
+        }
+    }
 }
 
 /// The first `lines` lines of the reference benchy (`../shared/data/gcode`) and the reference

@@ -274,7 +274,7 @@ fn klipper_example_configs_print_on_the_simulator() {
         !configs.is_empty(),
         "no printer-*.cfg/generic-*.cfg under {src}/config"
     );
-    let dir = scratch("klipper-configs");
+    let dir = scratch("klipper-configs").keep();
     std::fs::write(dir.join("square.gcode"), GCODE).unwrap_or_else(|e| panic!("{e}"));
     println!("configs and outputs in {}", dir.display());
     for (label, live) in [("batch", false), ("live", true)] {

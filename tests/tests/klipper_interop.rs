@@ -284,10 +284,11 @@ fn harness_against_real_klipper() {
         return;
     };
     let bins = cadence_tests::bin("cadence-mcu").parent().unwrap().to_path_buf();
+    let work = scratch("klipper-harness");
     let mut cmd = std::process::Command::new("python3");
     cmd.arg(workspace().join("scripts/klipper-interop/interop.py"))
         .args(["--klipper", &src, "--bin-dir", bins.to_str().unwrap()])
-        .args(["--work", scratch("klipper-harness").to_str().unwrap()]);
+        .args(["--work", work.to_str().unwrap()]);
     if let Ok(only) = std::env::var("CADENCE_KLIPPER_ONLY") {
         cmd.args(["--only", &only]);
     }
