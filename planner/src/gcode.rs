@@ -20,6 +20,7 @@
 //! bytes) inline (longer ones are boxed). [`OtherParams`] borrows the command text. Errors
 //! allocate (their message).
 
+pub mod bed_screws;
 pub mod exclude;
 pub mod host;
 pub mod macros;

@@ -125,6 +125,27 @@ pub enum CommandError<E> {
     /// A G28 procedure (`[safe_z_home]`, `[homing_override]`) failed.
     #[error("G28: {0}")]
     Homing(#[from] G28Error),
+    /// `[bed_screws]`'s tool refused a command, or one of its moves (`cmd`: the command).
+    #[error("{cmd}: {source}")]
+    BedScrews {
+        cmd: String,
+        #[source]
+        source: BedScrewsFailure,
+    },
+}
+
+/// Why a command of `[bed_screws]`'s tool failed.
+#[derive(Debug, thiserror::Error)]
+pub enum BedScrewsFailure {
+    /// The tool's own refusal (already running).
+    #[error(transparent)]
+    Tool(#[from] planner::gcode::bed_screws::BedScrewsError),
+    /// The axes are not homed (the tool's moves need them).
+    #[error("Must home axis first: {0} (G28)")]
+    NotHomed(char),
+    /// The planner refused one of its moves (the tool ends, as in Klipper).
+    #[error(transparent)]
+    Move(#[from] PlanError),
 }
 
 /// Why a `[safe_z_home]` or `[homing_override]` G28 failed on its own.

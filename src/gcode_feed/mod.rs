@@ -24,7 +24,7 @@ use crate::homing::procedure::{HomeOps, HomingProcedure, ProcedureError};
 
 mod error;
 
-pub use error::{CommandError, FeedError, G28Error, MacroRunError, MacroStepError};
+pub use error::{BedScrewsFailure, CommandError, FeedError, G28Error, MacroRunError, MacroStepError};
 
 /// Where a print's G-code comes from: a name for messages (the file's path, or a stream's
 /// label) and either buffered bytes or a session's channel of commands.
@@ -451,11 +451,76 @@ impl Feed<'_> {
             }
             _ => {
                 if !self.run_macro_or_variable(line, macros, target)? {
-                    self.plan(line, target)?;
+                    self.plan_or_tool(line, macros, target)?;
                 }
             }
         }
         Ok(())
+    }
+
+    /// Plans one command, or runs it as a command of `[bed_screws]`'s tool when it is one.
+    fn plan_or_tool<T: FeedTarget>(
+        &mut self,
+        line: &GcodeLine,
+        macros: &mut Macros,
+        target: &mut T,
+    ) -> Fed<T> {
+        if !self.run_bed_screws(line, macros, target)? {
+            self.plan(line, target)?;
+        }
+        Ok(())
+    }
+
+    /// A command of `[bed_screws]`'s tool (`BED_SCREWS_ADJUST`, and `ACCEPT`, `ADJUSTED`,
+    /// `ABORT` while it runs: see `planner::gcode::bed_screws`): its moves made as toolhead
+    /// moves (as Klipper's manual moves: in the toolhead's coordinates, whatever the G-code
+    /// mode and offsets), its prompt said; false for any other command. A move the planner
+    /// refuses ends the tool.
+    fn run_bed_screws<T: FeedTarget>(
+        &mut self,
+        line: &GcodeLine,
+        macros: &mut Macros,
+        target: &mut T,
+    ) -> Fed<T, bool> {
+        let Command::Other { name, .. } = &line.cmd else {
+            return Ok(false);
+        };
+        let name = name.as_str();
+        let Some(tool) = macros.host_mut().bed_screws_mut() else {
+            return Ok(false);
+        };
+        if !tool.handles(name) {
+            return Ok(false);
+        }
+        let (file, line_no) = (self.file, line.line_no);
+        let fail = |source: BedScrewsFailure| {
+            let cmd = name.to_string();
+            FeedError::at(file, line_no, CommandError::BedScrews { cmd, source })
+        };
+        if !tool.is_active() {
+            let homed = self.pipeline.gcode_state().homed();
+            if let Some(axis) = homed.iter().position(|h| !h) {
+                return Err(fail(BedScrewsFailure::NotHomed(['X', 'Y', 'Z'][axis])));
+            }
+        }
+        let step = tool.run(name).map_err(|e| fail(e.into()))?;
+        for m in &step.moves {
+            let mut pos = self.pipeline.position();
+            for (p, v) in pos.iter_mut().zip(m.xyz) {
+                *p = v.unwrap_or(*p);
+            }
+            if let Err(e) = self.pipeline.home_move(pos, m.speed) {
+                if let Some(tool) = macros.host_mut().bed_screws_mut() {
+                    tool.abort();
+                }
+                return Err(fail(e.into()));
+            }
+            release(self.pipeline, self.out, target)?;
+        }
+        for text in step.message.iter().flat_map(|m| m.lines()) {
+            target.warn(text.to_string());
+        }
+        Ok(true)
     }
 
     /// A checked command of a session: its own error is answered and the session goes on; an
@@ -688,10 +753,11 @@ impl Feed<'_> {
             let Some(sub) = run.next(macros, &status, self.file, &mut |m| target.warn(m))? else {
                 return Ok(());
             };
-            self.plan(&sub, target).map_err(|e| FeedError::InMacro {
-                source: Box::new(e),
-                via: run.via().to_string(),
-            })?;
+            self.plan_or_tool(&sub, macros, target)
+                .map_err(|e| FeedError::InMacro {
+                    source: Box::new(e),
+                    via: run.via().to_string(),
+                })?;
         }
     }
 }

@@ -252,12 +252,6 @@ pub enum LevelingError {
         "Aborting quad_gantry_level required adjustment {adjust:.6} is greater than max_adjust {max:.6}"
     )]
     MaxAdjust { adjust: f64, max: f64 },
-    /// `BED_SCREWS_ADJUST`, an interactive tool.
-    #[error(
-        "BED_SCREWS_ADJUST is an interactive tool (ACCEPT/ADJUSTED between screws): not supported by Cadence yet; \
-         use [screws_tilt_adjust] and SCREWS_TILT_CALCULATE"
-    )]
-    BedScrewsInteractive,
     /// `SCREWS_TILT_CALCULATE MAX_DEVIATION=`: a screw farther than that from the base.
     #[error("bed level exceeds configured limits ({max}mm)! Adjust screws and restart print.")]
     ExceedsLimits { max: f64 },

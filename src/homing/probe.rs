@@ -59,7 +59,6 @@ pub fn is_configured(machine: &crate::hardware::Machine, name: &str) -> bool {
         "Z_TILT_ADJUST" => machine.z_tilt.is_some(),
         "QUAD_GANTRY_LEVEL" => machine.quad_gantry_level.is_some(),
         "SCREWS_TILT_CALCULATE" => machine.screws_tilt_adjust.is_some(),
-        "BED_SCREWS_ADJUST" => machine.bed_screws.is_some(),
         _ => true,
     }
 }

@@ -1,6 +1,6 @@
 //! `SCREWS_TILT_CALCULATE` (`[screws_tilt_adjust]`): probes each bed screw and tells how far to
-//! turn each one, in Klipper's words; `BED_SCREWS_ADJUST` (`[bed_screws]`) is refused as the
-//! interactive tool it is.
+//! turn each one, in Klipper's words. (`[bed_screws]`'s `BED_SCREWS_ADJUST` needs no probe: the
+//! G-code feed runs it, `planner::gcode::bed_screws`.)
 //!
 //! The probe runs at each screw (the nozzle at `screwN`, Z at `horizontal_move_z` between
 //! them). With the base screw's height `z₀` and a screw's `z`, `adjust = (z₀ − z) / pitch` turns:
@@ -15,7 +15,7 @@ use super::probe::{bad, lift, param, run_probe, ProbeParams};
 use super::{plain_move, HomingCtx, HomingError, LevelingError, ParamProblem};
 
 /// The G-code commands this module runs.
-pub const COMMANDS: [&str; 2] = ["SCREWS_TILT_CALCULATE", "BED_SCREWS_ADJUST"];
+pub const COMMANDS: [&str; 1] = ["SCREWS_TILT_CALCULATE"];
 
 /// Klipper's legend line.
 pub const LEGEND: &str = "01:20 means 1 full turn and 20 minutes, CW=clockwise, CCW=counter-clockwise";
@@ -76,12 +76,6 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
         name: name.to_string(),
         section,
     };
-    if name == "BED_SCREWS_ADJUST" {
-        return match ctx.machine.bed_screws {
-            None => Err(no_section("bed_screws")),
-            Some(_) => Err(LevelingError::BedScrewsInteractive.into()),
-        };
-    }
     let Some(cfg) = ctx.machine.screws_tilt_adjust.clone() else {
         return Err(no_section("screws_tilt_adjust"));
     };

@@ -1,4 +1,5 @@
 //! End to end: BED_MESH_CALIBRATE and SCREWS_TILT_CALCULATE on a tilted and warped simulated bed,
+//! BED_SCREWS_ADJUST going round the screws,
 //! Z_TILT_ADJUST and QUAD_GANTRY_LEVEL on a tilted gantry (`cadence print` on
 //! examples/simulated-probe.cfg with 20 mm axes; Z homes on the probe, which sits on
 //! probe_mcu, so every probe's trigger is relayed by the host within the 25 ms budget).
@@ -386,13 +387,66 @@ fn screws_tilt_calculate_reports_the_turns_of_the_true_surface() {
         seen += 1;
     }
     assert_eq!(seen, 3, "{out}");
-    // BED_SCREWS_ADJUST is interactive: refused, naming why.
+}
+
+/// BED_SCREWS_ADJUST takes the nozzle to each screw at `probe_height` and waits for ACCEPT or
+/// ADJUSTED; after an ADJUSTED it goes round until every screw is accepted in a row, then the
+/// fine-adjust points, then up to `horizontal_move_z`. The MCU's step counts show where the
+/// nozzle ended.
+#[test]
+fn bed_screws_adjust_goes_round_the_screws_until_all_are_accepted() {
+    let dir = scratch("bed-screws");
+    let screws = "\n[bed_screws]\nscrew1: 2, 2\nscrew1_name: front left\nscrew2: 17, 2\nscrew3: 10, 17\n\
+                  screw3_fine_adjust: 12, 15\nprobe_height: 0.2\nhorizontal_move_z: 4\n";
+    let cfg = config(&dir, screws, true);
     let (run, _) = print(&dir, &cfg, "BED_SCREWS_ADJUST\n");
     assert!(
-        run.stderr
-            .contains("BED_SCREWS_ADJUST: BED_SCREWS_ADJUST is an interactive tool"),
+        run.code != Some(0) && run.stderr.contains("BED_SCREWS_ADJUST: Must home axis first: X"),
         "{}",
         run.stderr
+    );
+    let answers = "ACCEPT\nADJUSTED\nACCEPT\nACCEPT\nACCEPT\nACCEPT\n";
+    let (run, _) = print(&dir, &cfg, &format!("G28\nBED_SCREWS_ADJUST\n{answers}ACCEPT\n"));
+    assert_success(&run);
+    let prompts: Vec<&str> = run
+        .stderr
+        .lines()
+        .filter_map(|l| {
+            l.split_once("warning: Adjust ")?
+                .1
+                .split_once(". Then run ACCEPT")
+        })
+        .map(|(screw, _)| screw)
+        .collect();
+    // front left, 17,2 turned, back, then round: front left and 17,2 make three in a row;
+    // then the back screw's fine point.
+    let (fl, fr, back) = ("front left", "screw at 17.000,2.000", "screw at 10.000,17.000");
+    assert_eq!(prompts, [fl, fr, back, fl, fr, back], "{}", run.stderr);
+    assert!(
+        run.stderr.contains("Bed screws tool completed successfully"),
+        "{}",
+        run.stderr
+    );
+    // The last ACCEPT came after the tool ended: an unknown command, as in Klipper.
+    assert!(
+        run.stderr.contains("Unknown command:\"ACCEPT\""),
+        "{}",
+        run.stderr
+    );
+    // Ended over the fine point, up at horizontal_move_z.
+    let mm = |stepper: &str| -> f64 {
+        let row = run.stdout.lines().find(|l| l.trim_start().starts_with(stepper));
+        let row = row.unwrap_or_else(|| panic!("no {stepper} row:\n{}", run.stdout));
+        row.split_whitespace()
+            .last()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(f64::NAN)
+    };
+    assert_eq!(
+        (mm("stepper_x "), mm("stepper_y "), mm("stepper_z ")),
+        (12.0, 15.0, 4.0),
+        "{}",
+        run.stdout
     );
 }
 

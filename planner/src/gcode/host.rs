@@ -64,6 +64,8 @@ pub struct HostConfig {
     pub display_status: bool,
     /// `[force_move] enable_force_move`: `SET_KINEMATIC_POSITION` is a command.
     pub enable_force_move: bool,
+    /// `[bed_screws]`: `BED_SCREWS_ADJUST` and its answers.
+    pub bed_screws: Option<super::bed_screws::BedScrewsConfig>,
 }
 
 impl Default for HostConfig {
@@ -74,6 +76,7 @@ impl Default for HostConfig {
             save_variables: None,
             display_status: false,
             enable_force_move: false,
+            bed_screws: None,
         }
     }
 }
@@ -139,6 +142,7 @@ pub struct HostObjects {
     saved: Option<(PathBuf, BTreeMap<String, Value>)>,
     display: Option<(Option<f64>, Option<String>)>,
     force_move: bool,
+    bed_screws: Option<super::bed_screws::BedScrewsTool>,
 }
 
 impl Default for HostObjects {
@@ -172,6 +176,7 @@ impl HostObjects {
             saved: cfg.save_variables.clone().map(|p| (p, BTreeMap::new())),
             display: cfg.display_status.then_some((None, None)),
             force_move: cfg.enable_force_move,
+            bed_screws: cfg.bed_screws.clone().map(super::bed_screws::BedScrewsTool::new),
         }
     }
 
@@ -188,6 +193,12 @@ impl HostObjects {
     /// `SET_KINEMATIC_POSITION` is a command (`[force_move] enable_force_move: True`).
     pub fn force_move(&self) -> bool {
         self.force_move
+    }
+
+    /// `[bed_screws]`'s tool, when the printer has one (the feed runs its commands: see
+    /// [`super::bed_screws`]).
+    pub fn bed_screws_mut(&mut self) -> Option<&mut super::bed_screws::BedScrewsTool> {
+        self.bed_screws.as_mut()
     }
 
     /// The `[save_variables]` file, when the printer has one.
@@ -402,7 +413,8 @@ impl HostObjects {
     }
 
     /// The `printer` status objects: `idle_timeout`, and with their sections
-    /// `save_variables` and `display_status` (`progress` falls back to `file_progress`).
+    /// `save_variables`, `bed_screws` and `display_status` (`progress` falls back to
+    /// `file_progress`).
     pub fn status(&self, file_progress: Option<f64>) -> BTreeMap<String, Value> {
         let mut out = BTreeMap::new();
         let printing_time = match self.idle_state {
@@ -421,6 +433,18 @@ impl HostObjects {
             out.insert(
                 "save_variables".to_string(),
                 Value::from_iter([("variables", Value::from(vars.clone()))]),
+            );
+        }
+        if let Some(tool) = &self.bed_screws {
+            let (active, stage, current, accepted) = tool.status();
+            out.insert(
+                "bed_screws".to_string(),
+                Value::from_iter([
+                    ("is_active", Value::from(active)),
+                    ("state", stage.map_or(Value::from(()), Value::from)),
+                    ("current_screw", Value::from(current)),
+                    ("accepted_screws", Value::from(accepted)),
+                ]),
             );
         }
         if let Some((progress, message)) = &self.display {
@@ -598,6 +622,7 @@ mod tests {
             save_variables: Some(PathBuf::from("/tmp/vars.cfg")),
             display_status: true,
             enable_force_move: false,
+            bed_screws: None,
         }
     }
 

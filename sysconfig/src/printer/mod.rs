@@ -125,7 +125,7 @@ pub struct PrinterConfig {
     pub quad_gantry_level: Option<ZTiltSection>,
     /// `[screws_tilt_adjust]`.
     pub screws_tilt_adjust: Option<ScrewsSection>,
-    /// `[bed_screws]` (read and checked; BED_SCREWS_ADJUST is refused as interactive).
+    /// `[bed_screws]` (BED_SCREWS_ADJUST runs from `host`'s copy: `planner::gcode::bed_screws`).
     pub bed_screws: Option<ScrewsSection>,
     /// `[realtime]`, or its defaults.
     pub realtime: RealtimeSection,
@@ -308,7 +308,7 @@ impl PrinterConfig {
             None => None,
         };
 
-        let host = host::read_host(&reader)?;
+        let mut host = host::read_host(&reader)?;
         let mut mesh_warnings = Vec::new();
         let has_probe = probe.is_some();
         let bed_mesh = match probing_section(&reader, "bed_mesh", has_probe)? {
@@ -337,6 +337,7 @@ impl PrinterConfig {
             Some(s) => Some(screws::read_screws(&s, false)?),
             None => None,
         };
+        host.host.bed_screws = bed_screws.as_ref().map(screws::bed_screws_tool);
 
         let mut warnings = reader.finish(is_ignored)?;
         warnings.extend(mesh_warnings);

@@ -1,10 +1,12 @@
 //! `[screws_tilt_adjust]` and `[bed_screws]`: the bed's levelling screws (Klipper's options).
 //!
 //! Both: `screw1`, `screw2`… (`X, Y`, nozzle positions; at least 3, up to the first missing
-//! index), `screwN_name` (default `screw N`), `horizontal_move_z` (default 5), `speed` (> 0,
+//! index), `screwN_name` (default `screw at X,Y` with three decimals, as Klipper names them), `horizontal_move_z` (default 5), `speed` (> 0,
 //! default 50). `[screws_tilt_adjust]`: `screw_thread` (`CW-M3` default, `CCW-M3`, `CW-M4`,
 //! `CCW-M4`, `CW-M5`, `CCW-M5`, `CW-M6`, `CCW-M6`, `CW-M8`, `CCW-M8`). `[bed_screws]`:
 //! `screwN_fine_adjust` (`X, Y`), `probe_height` (default 0), `probe_speed` (> 0, default 5).
+
+use planner::gcode::bed_screws::{BedScrewsConfig, ScrewSpot};
 
 use super::bed_mesh::pair as xy;
 use super::error::ConfigError;
@@ -122,7 +124,7 @@ pub(crate) fn read_screws(s: &SectionReader<'_>, tilt: bool) -> Result<ScrewsSec
         };
         let name = match s.value(&format!("screw{n}_name")) {
             Some(v) => v.text.clone(),
-            None => format!("screw {n}"),
+            None => format!("screw at {:.3},{:.3}", at[0], at[1]),
         };
         let fine_adjust = match tilt {
             true => None,
@@ -164,6 +166,26 @@ pub(crate) fn read_screws(s: &SectionReader<'_>, tilt: bool) -> Result<ScrewsSec
     })
 }
 
+/// The `BED_SCREWS_ADJUST` tool's settings of a `[bed_screws]` section.
+pub fn bed_screws_tool(section: &ScrewsSection) -> BedScrewsConfig {
+    let spot = |xy: [f64; 2], name: &str| ScrewSpot {
+        xy,
+        name: name.to_string(),
+    };
+    BedScrewsConfig {
+        screws: section.screws.iter().map(|s| spot(s.xy, &s.name)).collect(),
+        fine: section
+            .screws
+            .iter()
+            .filter_map(|s| Some(spot(s.fine_adjust?, &s.name)))
+            .collect(),
+        speed: section.speed,
+        probe_speed: section.probe_speed,
+        horizontal_move_z: section.horizontal_move_z,
+        probe_height: section.probe_height,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use std::path::Path;
@@ -186,11 +208,21 @@ mod tests {
         let t = c.screws_tilt_adjust.unwrap();
         assert_eq!(
             (t.screws[0].name.as_str(), t.screws[1].name.as_str()),
-            ("front left", "screw 2")
+            ("front left", "screw at 190.000,10.000")
         );
         assert_eq!((t.thread.pitch, t.thread.clockwise), (0.7, false));
         let b = c.bed_screws.unwrap();
         assert_eq!((b.screws[0].fine_adjust, b.probe_speed), (Some([0.0, 0.0]), 3.0));
+        let tool = c.host.host.bed_screws.unwrap();
+        assert_eq!((tool.screws.len(), tool.fine.len()), (3, 1));
+        assert_eq!(
+            (tool.fine[0].xy, tool.fine[0].name.as_str()),
+            ([0.0, 0.0], "screw at 10.000,10.000")
+        );
+        assert_eq!(
+            (tool.horizontal_move_z, tool.probe_speed, tool.speed),
+            (5.0, 3.0, 50.0)
+        );
     }
 
     #[test]
