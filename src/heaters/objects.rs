@@ -13,7 +13,7 @@
 use links::dict::{Cmd, Dictionary};
 use sysconfig::printer::{
     FanOptions, HeaterControl, HeaterSection, PinRef, PrinterConfig, SensorSection, SensorSource,
-    ThermistorSection, MULTI_PIN_CHIP,
+    SpiSensorSection, ThermistorSection, MULTI_PIN_CHIP,
 };
 
 use super::mcu_sensor::{McuSensor, McuSensorError, ADC_TEMPERATURE};
@@ -76,6 +76,8 @@ pub struct HeaterOut {
     pub sim: SimKind,
     /// The `[adc_scaled]` chip (index in [`Thermal::scaled`]) its sensor pin is read through.
     pub sensor_scale: Option<usize>,
+    /// An SPI temperature chip in place of the ADC (`sensor_pin` its chip select).
+    pub spi: Option<SpiSensorSection>,
 }
 
 /// One ADC `[temperature_sensor NAME]`, or the sensor of `[temperature_fan NAME]`.
@@ -95,6 +97,8 @@ pub struct SensorOut {
     pub internal: Option<McuSensor>,
     /// The `[adc_scaled]` chip (index in [`Thermal::scaled`]) its pin is read through.
     pub scale: Option<usize>,
+    /// An SPI temperature chip in place of the ADC (`pin` its chip select).
+    pub spi: Option<SpiSensorSection>,
     pub smooth_time: f64,
     pub min_temp: f64,
     pub max_temp: f64,
@@ -249,6 +253,12 @@ pub enum ThermalObject {
     ScaledVref(usize),
     /// `[adc_scaled]` chip `i`'s `vssa_pin` input.
     ScaledVssa(usize),
+    /// The SPI device of heater `i`'s SPI temperature chip (whose reader is its
+    /// [`ThermalObject::HeaterAdc`]).
+    HeaterSpi(usize),
+    /// The SPI device of sensor `i`'s SPI temperature chip (whose reader is its
+    /// [`ThermalObject::SensorAdc`]).
+    SensorSpi(usize),
 }
 
 fn sensor_of(
@@ -313,23 +323,41 @@ fn adc_sensor(
                 pullup: false,
                 pulldown: false,
             };
-            let placeholder = Sensor {
-                element: Element::Linear {
-                    base: 0.0,
-                    slope: 1.0,
-                },
-                pullup: 0.0,
-                inline: 0.0,
-            };
+            let placeholder = PLACEHOLDER;
             let internal = McuSensor {
                 point1: *point1,
                 point2: *point2,
             };
             Some((sensor_mcu.clone(), pin, placeholder, Some(internal)))
         }
+        SensorSource::Spi(spi) => Some((
+            spi.bus.cs_pin.mcu.clone(),
+            spi.bus.cs_pin.clone(),
+            PLACEHOLDER,
+            None,
+        )),
         SensorSource::Host { .. } => None,
     })
 }
+
+/// The SPI chip of sensor `s`, if it is one.
+fn spi_of(s: &SensorSection) -> Option<SpiSensorSection> {
+    match &s.source {
+        SensorSource::Spi(spi) => Some(spi.as_ref().clone()),
+        _ => None,
+    }
+}
+
+/// The ADC conversion of a sensor that has none (an SPI chip converts its own readings; the
+/// MCU's own sensor's is known once the MCU's type is).
+const PLACEHOLDER: Sensor = Sensor {
+    element: Element::Linear {
+        base: 0.0,
+        slope: 1.0,
+    },
+    pullup: 0.0,
+    inline: 0.0,
+};
 
 /// `pin` as MCU outputs: `multi_pin:NAME` is the first pin of `[multi_pin NAME]` (inverted
 /// when the reference is) and the further pins; any other pin is itself.
@@ -457,13 +485,16 @@ impl Thermal {
                     ),
                 });
             }
-            let sensor = sensor_of(
-                &section,
-                &h.sensor_type,
-                h.pullup_resistor,
-                h.inline_resistor,
-                &th.thermistors,
-            )?;
+            let sensor = match h.spi {
+                Some(_) => PLACEHOLDER,
+                None => sensor_of(
+                    &section,
+                    &h.sensor_type,
+                    h.pullup_resistor,
+                    h.inline_resistor,
+                    &th.thermistors,
+                )?,
+            };
             let verify = th
                 .verify_heater
                 .iter()
@@ -491,6 +522,7 @@ impl Thermal {
                 verify,
                 sim: if extruder { SimKind::Hotend } else { SimKind::Bed },
                 sensor_scale,
+                spi: h.spi.clone(),
             });
         }
         for (name, _) in &th.verify_heater {
@@ -524,6 +556,7 @@ impl Thermal {
                 sensor,
                 internal,
                 scale,
+                spi: spi_of(&s.sensor),
                 smooth_time: s.sensor.smooth_time,
                 min_temp: s.min_temp,
                 max_temp: s.max_temp,
@@ -617,6 +650,7 @@ impl Thermal {
                 sensor,
                 internal,
                 scale,
+                spi: spi_of(&f.sensor),
                 smooth_time: f.sensor.smooth_time,
                 min_temp: f.min_temp,
                 max_temp: f.max_temp,
@@ -735,6 +769,20 @@ impl Thermal {
             v.push(ThermalObject::ScaledVref(i));
             v.push(ThermalObject::ScaledVssa(i));
         }
+        v.extend(
+            self.heaters
+                .iter()
+                .enumerate()
+                .filter(|(_, h)| h.mcu == mcu && h.spi.is_some())
+                .map(|(i, _)| ThermalObject::HeaterSpi(i)),
+        );
+        v.extend(
+            self.sensors
+                .iter()
+                .enumerate()
+                .filter(|(_, s)| s.mcu == mcu && s.spi.is_some())
+                .map(|(i, _)| ThermalObject::SensorSpi(i)),
+        );
         v
     }
 
@@ -784,7 +832,10 @@ impl Thermal {
             args.push("--heater".to_string());
             let low = if h.heater_pin.invert { "!" } else { "" };
             args.push(format!("{low}{}={},{kind}", h.heater_pin.pin, h.sensor_pin.pin));
-            args.extend(sensor_curve_args(&h.sensor_pin, &h.sensor));
+            match &h.spi {
+                Some(spi) => args.extend(spi_sensor_args(spi)),
+                None => args.extend(sensor_curve_args(&h.sensor_pin, &h.sensor)),
+            }
         }
         // A `temperature_mcu` sensor reads the simulated chip's own die (its ADC_TEMPERATURE
         // channel is not a pin the simulator takes a curve for).
@@ -793,7 +844,10 @@ impl Thermal {
             .iter()
             .filter(|s| s.mcu == mcu && s.pin.pin != ADC_TEMPERATURE)
         {
-            args.extend(sensor_curve_args(&s.pin, &s.sensor));
+            match &s.spi {
+                Some(spi) => args.extend(spi_sensor_args(spi)),
+                None => args.extend(sensor_curve_args(&s.pin, &s.sensor)),
+            }
         }
         args
     }
@@ -847,9 +901,17 @@ impl Thermal {
                 }
                 ThermalObject::HeaterAdc(i) => {
                     let h = &self.heaters[i];
-                    let pin = pin_of(&h.sensor_pin, &format!("[{}] sensor_pin", h.name))?;
+                    let what = format!("[{}]", h.name);
+                    if let Some(spi) = &h.spi {
+                        let spi_oid = oid_of(&objects, oid0, ThermalObject::HeaterSpi(i));
+                        cmds.extend(spi_reader_commands(dict, clock_freq, oid, spi_oid, spi, &what)?);
+                        continue;
+                    }
+                    let pin = pin_of(&h.sensor_pin, &format!("{what} sensor_pin"))?;
                     cmds.push(dict.encode("config_analog_in", &[oid, pin])?);
                 }
+                // Configured with their readers.
+                ThermalObject::HeaterSpi(_) | ThermalObject::SensorSpi(_) => {}
                 ThermalObject::MultiPwm(k, j) => {
                     let (cycle, max_duration, what) = self.multi_pwm_settings(k)?;
                     pwm(&self.multi_outputs[k].1[j], &what, cycle, max_duration)?;
@@ -875,6 +937,12 @@ impl Thermal {
                 }
                 ThermalObject::SensorAdc(i) => {
                     let s = &self.sensors[i];
+                    if let Some(spi) = &s.spi {
+                        let spi_oid = oid_of(&objects, oid0, ThermalObject::SensorSpi(i));
+                        let what = format!("[temperature_sensor {}]", s.name);
+                        cmds.extend(spi_reader_commands(dict, clock_freq, oid, spi_oid, spi, &what)?);
+                        continue;
+                    }
                     let mcu_type = dict.config_str("MCU").unwrap_or_default();
                     s.sensor_on(&mcu_type).map_err(|source| ObjectsError::McuSensor {
                         section: s.name.clone(),
@@ -928,6 +996,52 @@ impl Thermal {
     }
 }
 
+/// The oid of `obj` in `objects` (numbered from `oid0`).
+fn oid_of(objects: &[ThermalObject], oid0: usize, obj: ThermalObject) -> i64 {
+    (oid0 + objects.iter().position(|&o| o == obj).unwrap_or(0)) as i64
+}
+
+/// An SPI temperature chip's commands: its SPI device `spi_oid` (chip select `sensor_pin`,
+/// the chip's SPI mode, its start-up configuration written with `spi_send`), then its reader
+/// `oid` (`config_thermocouple`). `what` names the section in errors.
+fn spi_reader_commands(
+    dict: &Dictionary,
+    clock_freq: f64,
+    oid: i64,
+    spi_oid: i64,
+    spi: &SpiSensorSection,
+    what: &str,
+) -> Result<Vec<Cmd>, ObjectsError> {
+    for needed in ["config_spi", "config_thermocouple"] {
+        if dict.command(needed).is_err() {
+            return Err(ObjectsError::MissingCommand(needed));
+        }
+    }
+    let pin = |p: &PinRef, option: &str| pin_number(dict, p, &format!("{what} {option}"));
+    let software = match &spi.bus.software {
+        Some([sclk, mosi, miso]) => Some((
+            pin(miso, "spi_software_miso_pin")?,
+            pin(mosi, "spi_software_mosi_pin")?,
+            pin(sclk, "spi_software_sclk_pin")?,
+        )),
+        None => None,
+    };
+    let pins = crate::spi_device::SpiPins {
+        cs: pin(&spi.bus.cs_pin, "sensor_pin")?,
+        software,
+    };
+    let mode = i64::from(spi.chip.spi_mode());
+    let mut cmds =
+        crate::spi_device::config_commands(dict, clock_freq, spi_oid, pins, mode, spi.bus.speed)?.to_vec();
+    if let Some(bytes) = super::spi_sensor::init_bytes(spi) {
+        use links::proto::format::Value;
+        cmds.push(dict.encode_values("spi_send", &[Value::Int(spi_oid), Value::Bytes(&bytes)])?);
+    }
+    let chip = dict.enumeration("thermocouple_type", spi.chip.name())?;
+    cmds.push(dict.encode("config_thermocouple", &[oid, spi_oid, chip])?);
+    Ok(cmds)
+}
+
 /// The MCU's number for `p` (`what` names the option in the error).
 fn pin_number(dict: &Dictionary, p: &PinRef, what: &str) -> Result<i64, crate::hardware::PinError> {
     dict.pin(&p.pin)
@@ -978,6 +1092,20 @@ fn sensor_curve_args(pin: &PinRef, sensor: &Sensor) -> Vec<String> {
         ],
         Err(_) => Vec::new(),
     }
+}
+
+/// `--spi-sensor CS_PIN=CHIP,RTD_NOMINAL,RTD_REFERENCE`: the simulated chip behind `spi`.
+fn spi_sensor_args(spi: &SpiSensorSection) -> [String; 2] {
+    [
+        "--spi-sensor".to_string(),
+        format!(
+            "{}={},{},{}",
+            spi.bus.cs_pin.pin,
+            spi.chip.name(),
+            spi.rtd_nominal_r,
+            spi.rtd_reference_r
+        ),
+    ]
 }
 
 /// `query_analog_in`'s range check of a sensor: the sums of [`SAMPLE_COUNT`] readings (of an

@@ -27,6 +27,7 @@ use super::objects::{
     adc_range, FanRole, MultiOutput, Thermal, ThermalObject, RANGE_CHECK_COUNT, REPORT_TIME, SAMPLE_COUNT,
     SAMPLE_TIME,
 };
+use super::spi_sensor::SpiReader;
 use super::tachometer::Tachometer;
 use super::verify::{VerifyHeater, CHECK_INTERVAL_S};
 use crate::mcus::Mcus;
@@ -138,6 +139,8 @@ pub struct HeaterShared {
     /// The PID_CALIBRATE in progress, if any.
     pub calibration: Mutex<Option<Calibration>>,
     fault: Mutex<Option<String>>,
+    /// The latest SPI temperature chip fault (see [`HeaterShared::chip_fault`]).
+    chip_fault: Mutex<Option<String>>,
     faulted: AtomicBool,
     /// Ends the heater thread (every heater off first).
     pub stop: AtomicBool,
@@ -207,6 +210,7 @@ impl HeaterShared {
             motors_on: AtomicBool::new(false),
             calibration: Mutex::new(None),
             fault: Mutex::new(None),
+            chip_fault: Mutex::new(None),
             faulted: AtomicBool::new(false),
             stop: AtomicBool::new(false),
         }
@@ -218,6 +222,17 @@ impl HeaterShared {
             return None;
         }
         self.fault.lock().ok().and_then(|f| f.clone())
+    }
+
+    /// The latest fault an SPI temperature chip reported (its fault bits' meaning), if any.
+    pub fn chip_fault(&self) -> Option<String> {
+        self.chip_fault.lock().ok().and_then(|f| f.clone())
+    }
+
+    fn note_chip_fault(&self, why: String) {
+        if let Ok(mut f) = self.chip_fault.lock() {
+            *f = Some(why);
+        }
     }
 
     fn set_fault(&self, why: String) {
@@ -366,6 +381,8 @@ struct Running {
     sensor: super::thermistor::Sensor,
     /// PID_CALIBRATE's relay in place of the control while it runs.
     relay: Option<Relay>,
+    /// An SPI temperature chip read in place of the ADC.
+    spi: Option<SpiReader>,
     /// On a time-scaled simulated MCU: the reading as it would be without the update's lead,
     /// and the sum and count of the powers decided since the last update (it sends their mean).
     smith: Option<SmithPredictor>,
@@ -406,6 +423,8 @@ struct RunningSensor {
     full_scale: f64,
     sensor: super::thermistor::Sensor,
     last_count: u16,
+    /// An SPI temperature chip read in place of the ADC.
+    spi: Option<SpiReader>,
 }
 
 /// Seconds of wall time a PWM update is sent ahead of its clock at least (and 0.1 s of MCU
@@ -430,6 +449,9 @@ pub enum HeaterLoopError {
     /// `temperature_mcu` on an MCU it cannot be calibrated for.
     #[error(transparent)]
     McuSensor(#[from] super::mcu_sensor::McuSensorError),
+    /// An SPI temperature chip's reports could not be started.
+    #[error(transparent)]
+    SpiSensor(#[from] super::spi_sensor::SpiQueryError),
 }
 
 /// Runs the heater loop until `shared.stop` (then every heater off) or an MCU shutdown. Errors
@@ -461,15 +483,47 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
             match *obj {
                 ThermalObject::HeaterPwm(i) => {
                     let h = &thermal.heaters[i];
-                    heaters.push((i, running_heater(thermal, i, li, oid, freq, adc_max)));
-                    let (lo, hi) = adc_range(&h.sensor, h.min_temp, h.max_temp, adc_max);
-                    query_analog(&conn.link, dict, oid + 1, start, freq, lo, hi, RANGE_CHECK_COUNT)?;
+                    let mut r = running_heater(thermal, i, li, oid, freq, adc_max);
+                    if let Some(spi) = &h.spi {
+                        let range = (h.min_temp, h.max_temp);
+                        let reader = SpiReader::start(
+                            &conn.link,
+                            dict,
+                            spi,
+                            oid + 1,
+                            start,
+                            freq,
+                            REPORT_TIME,
+                            range,
+                        )?;
+                        r.spi = Some(reader);
+                    } else {
+                        let (lo, hi) = adc_range(&h.sensor, h.min_temp, h.max_temp, adc_max);
+                        query_analog(&conn.link, dict, oid + 1, start, freq, lo, hi, RANGE_CHECK_COUNT)?;
+                    }
+                    heaters.push((i, r));
                 }
                 ThermalObject::SensorAdc(i) => {
                     let s = &thermal.sensors[i];
                     let sensor = s.sensor_on(&dict.config_str("MCU").unwrap_or_default())?;
-                    let (lo, hi) = adc_range(&sensor, s.min_temp.max(-273.0), s.max_temp.min(1e4), adc_max);
-                    query_analog(&conn.link, dict, oid, start, freq, lo, hi, 0)?;
+                    let range = (s.min_temp.max(-273.0), s.max_temp.min(1e4));
+                    let spi = match &s.spi {
+                        Some(spi) => Some(SpiReader::start(
+                            &conn.link,
+                            dict,
+                            spi,
+                            oid,
+                            start,
+                            freq,
+                            REPORT_TIME,
+                            range,
+                        )?),
+                        None => {
+                            let (lo, hi) = adc_range(&sensor, range.0, range.1, adc_max);
+                            query_analog(&conn.link, dict, oid, start, freq, lo, hi, 0)?;
+                            None
+                        }
+                    };
                     sensors.push((
                         i,
                         RunningSensor {
@@ -479,9 +533,12 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                             full_scale: adc_max * f64::from(SAMPLE_COUNT),
                             sensor,
                             last_count: 0,
+                            spi,
                         },
                     ));
                 }
+                // Read through their readers (`HeaterAdc`, `SensorAdc`).
+                ThermalObject::HeaterSpi(_) | ThermalObject::SensorSpi(_) => {}
                 ThermalObject::Fan(i) => fans.push((i, running_fan(thermal, i, li, oid, dict, freq)?)),
                 ThermalObject::HeaterAdc(_) => {}
                 ThermalObject::MultiPwm(k, j) => {
@@ -551,6 +608,7 @@ fn running_heater(thermal: &Thermal, i: usize, li: usize, oid: u8, freq: f64, ad
         full_scale: adc_max * f64::from(SAMPLE_COUNT),
         sensor: h.sensor,
         relay: None,
+        spi: None,
         smith: (thermal.sim_time_scale > 1.0).then(|| SmithPredictor::new(h.sim.model())),
         decided: (0.0, 0.0),
     }
@@ -879,6 +937,25 @@ fn fraction(value: u16, full_scale: f64, scale: Option<Option<&ScaledRefs>>) -> 
     }
 }
 
+/// Analog input `oid`'s newest report not seen yet (`last_count` the one seen before):
+/// `(next_clock, °C)` through `sensor`, rescaled by its `[adc_scaled]` chip if it has one.
+fn adc_reading(
+    link: &McuLink,
+    oid: u8,
+    last_count: &mut u16,
+    full_scale: f64,
+    sensor: &super::thermistor::Sensor,
+    scale: Option<Option<&ScaledRefs>>,
+) -> Option<(u32, f64)> {
+    let (count, next_clock, value) = link.analog_report(oid)?;
+    if count == *last_count {
+        return None;
+    }
+    *last_count = count;
+    let adc = fraction(value, full_scale, scale)?;
+    Some((next_clock, sensor.temperature(adc)))
+}
+
 /// Heater `i`'s new reading, if any: temperature, control output, verify_heater's check and
 /// the PWM update. False once the check shut the printer down.
 fn update_heater(
@@ -891,23 +968,26 @@ fn update_heater(
     scale: Option<Option<&ScaledRefs>>,
 ) -> bool {
     let conn = &mcus.list[r.link_index];
-    let Some((count, next_clock, value)) = conn.link.analog_report(r.adc_oid) else {
+    let reading = match r.spi.as_mut() {
+        Some(spi) => spi.poll(&conn.link, |f| shared.note_chip_fault(f)),
+        None => adc_reading(
+            &conn.link,
+            r.adc_oid,
+            &mut r.last_count,
+            r.full_scale,
+            &r.sensor,
+            scale,
+        ),
+    };
+    let Some((next_clock, temp)) = reading else {
         return true;
     };
-    if count == r.last_count {
-        return true;
-    }
-    r.last_count = count;
     let est = conn.link.clock();
     let freq = conn.clock_freq;
     let read_clock = est
         .extend(next_clock, now_sys)
         .saturating_sub((REPORT_TIME * freq) as u64);
     let time = read_clock as f64 / freq;
-    let Some(adc) = fraction(value, r.full_scale, scale) else {
-        return true;
-    };
-    let temp = r.sensor.temperature(adc);
     let cell = &shared.heaters[i];
     let target = cell.target.get();
     let smoothed = r.smooth.update(time, temp);
@@ -998,13 +1078,20 @@ fn update_sensor(
     scale: Option<Option<&ScaledRefs>>,
 ) {
     let conn = &mcus.list[r.link_index];
-    let Some((count, next_clock, value)) = conn.link.analog_report(r.oid) else {
+    let reading = match r.spi.as_mut() {
+        Some(spi) => spi.poll(&conn.link, |f| shared.note_chip_fault(f)),
+        None => adc_reading(
+            &conn.link,
+            r.oid,
+            &mut r.last_count,
+            r.full_scale,
+            &r.sensor,
+            scale,
+        ),
+    };
+    let Some((next_clock, temp)) = reading else {
         return;
     };
-    if count == r.last_count {
-        return;
-    }
-    r.last_count = count;
     let freq = conn.clock_freq;
     let read_clock = conn
         .link
@@ -1012,10 +1099,6 @@ fn update_sensor(
         .extend(next_clock, now_sys)
         .saturating_sub((REPORT_TIME * freq) as u64);
     let time = read_clock as f64 / freq;
-    let Some(adc) = fraction(value, r.full_scale, scale) else {
-        return;
-    };
-    let temp = r.sensor.temperature(adc);
     let smoothed = r.smooth.update(time, temp);
     let cell = &shared.sensors[i];
     cell.temp.set(smoothed);

@@ -207,24 +207,21 @@ pub fn config_commands(
                 software,
                 ..
             } => {
-                cmds.push(dict.encode("config_spi", &[oid, pin(cs_pin, "cs_pin")?, 0])?);
-                match software {
-                    Some([sclk, mosi, miso]) => {
-                        let pulse_ticks = (clock_freq / (2.0 * f64::from(*speed))).ceil() as i64;
-                        let args = [
-                            oid,
-                            pin(miso, "spi_software_miso_pin")?,
-                            pin(mosi, "spi_software_mosi_pin")?,
-                            pin(sclk, "spi_software_sclk_pin")?,
-                            SPI_MODE,
-                            pulse_ticks,
-                        ];
-                        cmds.push(dict.encode("spi_set_sw_bus", &args)?);
-                    }
-                    // The MCU's first hardware bus (a named `spi_bus` is the board's wiring;
-                    // the simulated MCU has one bus).
-                    None => cmds.push(dict.encode("spi_set_bus", &[oid, 0, SPI_MODE, i64::from(*speed)])?),
-                }
+                let software = match software {
+                    Some([sclk, mosi, miso]) => Some((
+                        pin(miso, "spi_software_miso_pin")?,
+                        pin(mosi, "spi_software_mosi_pin")?,
+                        pin(sclk, "spi_software_sclk_pin")?,
+                    )),
+                    None => None,
+                };
+                let pins = crate::spi_device::SpiPins {
+                    cs: pin(cs_pin, "cs_pin")?,
+                    software,
+                };
+                cmds.extend(crate::spi_device::config_commands(
+                    dict, clock_freq, oid, pins, SPI_MODE, *speed,
+                )?);
             }
         }
     }

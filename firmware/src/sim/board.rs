@@ -71,6 +71,8 @@ pub struct SimBoard {
     pub bltouch: Vec<BlTouch>,
     /// Simulated TMC drivers (on their UART lines or chip selects; their DIAG pins read them).
     pub tmc: Vec<TmcDriver>,
+    /// Simulated SPI temperature chips (on their chip selects).
+    pub spi_sensors: Vec<super::spi_sensor::SpiSensor>,
 }
 
 impl SimBoard {
@@ -95,6 +97,7 @@ impl SimBoard {
             ambient_curves: Vec::new(),
             bltouch: Vec::new(),
             tmc: Vec::new(),
+            spi_sensors: Vec::new(),
         })
     }
 
@@ -157,6 +160,13 @@ impl SimBoard {
     /// Adds TMC drivers.
     pub fn with_tmc(mut self, drivers: &[TmcSpec]) -> SimBoard {
         self.tmc.extend(drivers.iter().cloned().map(TmcDriver::new));
+        self
+    }
+
+    /// Adds SPI temperature chips.
+    pub fn with_spi_sensors(mut self, chips: &[super::spi_sensor::SpiSensorSpec]) -> SimBoard {
+        self.spi_sensors
+            .extend(chips.iter().copied().map(super::spi_sensor::SpiSensor::new));
         self
     }
 
@@ -296,6 +306,17 @@ impl Board for SimBoard {
     }
 
     fn spi_transfer(&mut self, cs_pin: u8, data: &mut [u8]) {
+        if let Some(c) = self.spi_sensors.iter_mut().find(|c| c.spec.cs_pin == cs_pin) {
+            // The temperature its heater's sensor is at (a heater whose sensor pin is the chip
+            // select), else ambient.
+            let t = self.now as f64 / self.clock_freq.max(1) as f64;
+            let (temp, open) = match self.heaters.iter_mut().find(|h| h.sensor_pin == cs_pin) {
+                Some(h) => (h.sensor_temperature(t), h.sensor_open(t)),
+                None => (super::heater::AMBIENT_C, false),
+            };
+            c.transfer(data, temp, open);
+            return;
+        }
         let mut selected = self
             .tmc
             .iter_mut()

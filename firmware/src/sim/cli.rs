@@ -114,6 +114,12 @@ pub struct Cli {
     #[arg(long = "sensor-curve", value_name = "SENSOR_PIN=T:FRACTION/T:FRACTION/...",
           value_parser = parse_sensor_curve)]
     pub sensor_curves: Vec<SensorCurveSpec>,
+    /// An SPI temperature chip (MAX6675, MAX31855, MAX31856, MAX31865) on chip select CS_PIN,
+    /// measuring the heater whose sensor pin is CS_PIN (else ambient); a MAX31865's RTD and
+    /// reference resistors (Ω, default 100 and 430).
+    #[arg(long = "spi-sensor", value_name = "CS_PIN=CHIP[,RTD_NOMINAL,RTD_REFERENCE]",
+          value_parser = super::spi_sensor::SpiSensorSpec::parse)]
+    pub spi_sensors: Vec<super::spi_sensor::SpiSensorSpec>,
     /// Inject a heater fault from SECONDS of MCU time on: `open` (thermistor open, ADC at
     /// max), `no-heat` (the heater stops heating), `frozen` (the reading stops changing).
     #[arg(long = "heater-fault", value_name = "HEATER_PIN=open|no-heat|frozen@SECONDS",

@@ -37,6 +37,7 @@ mod reader;
 mod realtime;
 mod screws;
 mod sections;
+mod spi_sensor;
 mod stepper;
 mod thermal;
 pub mod tmc;
@@ -68,6 +69,7 @@ pub use probe::{ProbeSection, SamplesResult, PROBE_PIN_MCU, SAMPLES_RESULTS, Z_V
 pub use realtime::RealtimeSection;
 pub use screws::{Screw, ScrewThread, ScrewsSection, SCREW_THREADS};
 pub use sections::{is_ignored, support as section_support, Support as SectionSupport, SECTIONS};
+pub use spi_sensor::{SpiBus, SpiChip, SpiSensorSection, SPI_CHIPS};
 pub use stepper::{ExtraStepperSection, MotorSection, StepperSection};
 pub use thermal::{
     ControllerFanSection, FanOptions, HeaterFanSection, SensorSection, SensorSource, TemperatureFanSection,

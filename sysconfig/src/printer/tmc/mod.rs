@@ -373,27 +373,12 @@ fn read_bus(s: &SectionReader<'_>, model: TmcModel, pins: &mut PinRegistry) -> R
     } else {
         Share::Exclusive
     };
-    let cs_pin = s.pin("cs_pin", PinKind::Output, pins, share)?;
-    let speed = s.int::<u32>("spi_speed", Some(4_000_000), 1..=i64::from(u32::MAX))?;
-    let bus = s.value("spi_bus").map(|v| v.text.clone());
-    let sw = [
-        "spi_software_sclk_pin",
-        "spi_software_mosi_pin",
-        "spi_software_miso_pin",
-    ];
-    let software = match s.value(sw[0]) {
-        Some(_) => Some([
-            s.pin(sw[0], PinKind::Output, pins, Share::SpiBus)?,
-            s.pin(sw[1], PinKind::Output, pins, Share::SpiBus)?,
-            s.pin(sw[2], PinKind::Input, pins, Share::SpiBus)?,
-        ]),
-        None => None,
-    };
+    let spi = super::spi_sensor::read_spi_bus(s, pins, "cs_pin", share, 4_000_000)?;
     Ok(TmcBus::Spi {
-        cs_pin,
-        speed,
-        bus,
-        software,
+        cs_pin: spi.cs_pin,
+        speed: spi.speed,
+        bus: spi.bus,
+        software: spi.software,
         chain,
     })
 }
