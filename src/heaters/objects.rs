@@ -59,7 +59,7 @@ pub enum SimKind {
 pub struct HeaterOut {
     /// `extruder`, `heater_bed`, or the NAME of `[heater_generic NAME]`.
     pub name: String,
-    /// The MCU of its heater pin (the sensor pin must be on the same one).
+    /// The MCU of its heater pin (its sensor's is `sensor_pin.mcu`, the same or another).
     pub mcu: String,
     pub heater_pin: PinRef,
     pub sensor_pin: PinRef,
@@ -475,16 +475,6 @@ impl Thermal {
                     .push((MultiOutput::Heater(self.heaters.len()), more));
             }
             let (sensor_pin, sensor_scale) = resolve_scaled(&self.scaled, &h.sensor_pin);
-            if sensor_pin.mcu != heater_pin.mcu {
-                return Err(ThermalError::Invalid {
-                    section,
-                    what: format!(
-                        "sensor_pin is on mcu '{}' and heater_pin on mcu '{}': a heater whose sensor is on another \
-                         MCU is not supported by Cadence yet",
-                        sensor_pin.mcu, heater_pin.mcu
-                    ),
-                });
-            }
             let sensor = match h.spi {
                 Some(_) => PLACEHOLDER,
                 None => sensor_of(
@@ -732,10 +722,15 @@ impl Thermal {
     /// The thermal objects on MCU `mcu`, in oid order.
     pub fn objects_on(&self, mcu: &str) -> Vec<ThermalObject> {
         let mut v = Vec::new();
-        for (i, h) in self.heaters.iter().enumerate().filter(|(_, h)| h.mcu == mcu) {
-            let _ = h;
-            v.push(ThermalObject::HeaterPwm(i));
-            v.push(ThermalObject::HeaterAdc(i));
+        // A heater's output and sensor, each on its own MCU (usually the same, then the
+        // sensor's oid follows the output's).
+        for (i, h) in self.heaters.iter().enumerate() {
+            if h.mcu == mcu {
+                v.push(ThermalObject::HeaterPwm(i));
+            }
+            if h.sensor_pin.mcu == mcu {
+                v.push(ThermalObject::HeaterAdc(i));
+            }
         }
         v.extend(
             self.sensors
@@ -773,7 +768,7 @@ impl Thermal {
             self.heaters
                 .iter()
                 .enumerate()
-                .filter(|(_, h)| h.mcu == mcu && h.spi.is_some())
+                .filter(|(_, h)| h.sensor_pin.mcu == mcu && h.spi.is_some())
                 .map(|(i, _)| ThermalObject::HeaterSpi(i)),
         );
         v.extend(
@@ -824,17 +819,38 @@ impl Thermal {
     /// host reads the simulated temperature back.
     pub fn sim_args(&self, mcu: &str) -> Vec<String> {
         let mut args = Vec::new();
-        for h in self.heaters.iter().filter(|h| h.mcu == mcu) {
+        for (i, h) in self.heaters.iter().enumerate() {
             let kind = match h.sim {
                 SimKind::Hotend => "hotend",
                 SimKind::Bed => "bed",
             };
-            args.push("--heater".to_string());
             let low = if h.heater_pin.invert { "!" } else { "" };
-            args.push(format!("{low}{}={},{kind}", h.heater_pin.pin, h.sensor_pin.pin));
-            match &h.spi {
-                Some(spi) => args.extend(spi_sensor_args(spi)),
-                None => args.extend(sensor_curve_args(&h.sensor_pin, &h.sensor)),
+            let local = h.sensor_pin.mcu == h.mcu;
+            // A sensor on another MCU reads the heater's temperature through the world, which
+            // the heater's MCU publishes under this name.
+            let name = format!("heat{i}");
+            if h.mcu == mcu {
+                args.push("--heater".to_string());
+                let sensor = if local { h.sensor_pin.pin.as_str() } else { NO_PIN };
+                args.push(format!("{low}{}={sensor},{kind}", h.heater_pin.pin));
+                if !local {
+                    args.extend([
+                        "--heater-export".to_string(),
+                        format!("{}={name}", h.heater_pin.pin),
+                    ]);
+                }
+            }
+            if h.sensor_pin.mcu == mcu {
+                if !local {
+                    args.extend([
+                        "--remote-sensor".to_string(),
+                        format!("{}={name}", h.sensor_pin.pin),
+                    ]);
+                }
+                match &h.spi {
+                    Some(spi) => args.extend(spi_sensor_args(spi)),
+                    None => args.extend(sensor_curve_args(&h.sensor_pin, &h.sensor)),
+                }
             }
         }
         // A `temperature_mcu` sensor reads the simulated chip's own die (its ADC_TEMPERATURE
@@ -1093,6 +1109,10 @@ fn sensor_curve_args(pin: &PinRef, sensor: &Sensor) -> Vec<String> {
         Err(_) => Vec::new(),
     }
 }
+
+/// The simulated heater's sensor pin when its sensor is on another MCU: a pin number no
+/// configured object uses.
+const NO_PIN: &str = "255";
 
 /// `--spi-sensor CS_PIN=CHIP,RTD_NOMINAL,RTD_REFERENCE`: the simulated chip behind `spi`.
 fn spi_sensor_args(spi: &SpiSensorSection) -> [String; 2] {

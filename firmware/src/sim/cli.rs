@@ -114,6 +114,14 @@ pub struct Cli {
     #[arg(long = "sensor-curve", value_name = "SENSOR_PIN=T:FRACTION/T:FRACTION/...",
           value_parser = parse_sensor_curve)]
     pub sensor_curves: Vec<SensorCurveSpec>,
+    /// Publish heater HEATER_PIN's sensor temperature to the world (`--world`) as NAME, for a
+    /// sensor on another MCU (`--remote-sensor`).
+    #[arg(long = "heater-export", value_name = "HEATER_PIN=NAME", value_parser = parse_pin_name)]
+    pub heater_exports: Vec<(u8, String)>,
+    /// Analog input SENSOR_PIN reads the temperature another MCU's heater publishes as NAME
+    /// (`--heater-export`), through its `--sensor-curve`.
+    #[arg(long = "remote-sensor", value_name = "SENSOR_PIN=NAME", value_parser = parse_pin_name)]
+    pub remote_sensors: Vec<(u8, String)>,
     /// An SPI temperature chip (MAX6675, MAX31855, MAX31856, MAX31865) on chip select CS_PIN,
     /// measuring the heater whose sensor pin is CS_PIN (else ambient); a MAX31865's RTD and
     /// reference resistors (Ω, default 100 and 430).
@@ -414,6 +422,19 @@ fn parse_heater(s: &str) -> Result<HeaterSpec, String> {
         model,
         active_low,
     })
+}
+
+/// `PIN=NAME` (NAME: 1 to 8 bytes, a world value's name).
+fn parse_pin_name(s: &str) -> Result<(u8, String), String> {
+    let (pin, name) = s.split_once('=').ok_or("expected PIN=NAME")?;
+    let name = name.trim();
+    if name.is_empty() || name.len() > super::world::NAME_LEN {
+        return Err(format!(
+            "name `{name}` must be 1 to {} bytes",
+            super::world::NAME_LEN
+        ));
+    }
+    Ok((parse_pin(pin)?, name.to_string()))
 }
 
 fn parse_heater_fault(s: &str) -> Result<HeaterFaultSpec, String> {

@@ -191,7 +191,8 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
         .with_sensor_curves(&cli.sensor_curves)
         .with_bltouch(&cli.bltouch)
         .with_tmc(&cli.tmc)
-        .with_spi_sensors(&cli.spi_sensors);
+        .with_spi_sensors(&cli.spi_sensors)
+        .with_remote_heaters(&cli.heater_exports, &cli.remote_sensors);
     let dictionary: &'static [u8] = Box::leak(crate::dictionary_bytes(cli.clock_freq).into_boxed_slice());
     let config = McuConfig {
         clock_freq: cli.clock_freq,
