@@ -1,5 +1,5 @@
 //! A simulated TMC stepper driver: its register file, reached over the MCU's TMC UART
-//! (TMC2208/2209, addressed, replies framed with CRC) or SPI (TMC2130/5160, pipelined 40-bit
+//! (TMC2208/2209, addressed, replies framed with CRC) or SPI (TMC2130/2240/5160, pipelined 40-bit
 //! datagrams), and its DIAG output.
 //!
 //! Registers: every write is kept (a UART write also counts IFCNT up, modulo 256); reads return
@@ -14,8 +14,8 @@
 //! DIAG (stallGuard): the motor stalls when its carriage reaches the end of travel (`COORD` at
 //! or beyond `END_MM`, the `min` or `max` end). The stall is reported only when the registers
 //! route it: TMC2209 `SGTHRS` > 0 and `TCOOLTHRS` > 0 in stealthChop (`en_spreadcycle` 0);
-//! TMC2130/5160 the pin's GCONF `diag0_stall`/`diag1_stall` set, `TCOOLTHRS` > 0, in
-//! spreadCycle (`en_pwm_mode` 0). The TMC2209's DIAG is active high; the SPI drivers' are open
+//! TMC2130/2240/5160 the pin's GCONF `diag0_stall`/`diag1_stall` set, `TCOOLTHRS` > 0, in
+//! spreadCycle (`en_pwm_mode` 0), or for the TMC2240 also in stealthChop with `SG4_THRS` > 0. The TMC2209's DIAG is active high; the SPI drivers' are open
 //! drain, active low, unless GCONF's push-pull bit for that pin is set.
 
 use super::world::Coord;
@@ -27,6 +27,7 @@ pub enum Model {
     Tmc2130,
     Tmc2208,
     Tmc2209,
+    Tmc2240,
     Tmc5160,
 }
 
@@ -37,6 +38,7 @@ impl Model {
             "tmc2130" => Some(Model::Tmc2130),
             "tmc2208" => Some(Model::Tmc2208),
             "tmc2209" => Some(Model::Tmc2209),
+            "tmc2240" => Some(Model::Tmc2240),
             "tmc5160" => Some(Model::Tmc5160),
             _ => None,
         }
@@ -51,6 +53,7 @@ impl Model {
         match self {
             Model::Tmc2130 => 0x11,
             Model::Tmc2208 | Model::Tmc2209 => 0x21,
+            Model::Tmc2240 => 0x40,
             Model::Tmc5160 => 0x30,
         }
     }
@@ -64,6 +67,7 @@ mod reg {
     pub const IHOLD_IRUN: u8 = 0x10;
     pub const TCOOLTHRS: u8 = 0x14;
     pub const SGTHRS: u8 = 0x40;
+    pub const SG4_THRS: u8 = 0x74;
     pub const DRV_STATUS: u8 = 0x6f;
 }
 
@@ -203,10 +207,13 @@ impl TmcDriver {
                 self.regs[reg::SGTHRS as usize] & 0xff != 0 && tcoolthrs != 0 && gconf & (1 << 2) == 0
             }
             Model::Tmc2208 => false,
-            Model::Tmc2130 | Model::Tmc5160 => {
+            Model::Tmc2130 | Model::Tmc2240 | Model::Tmc5160 => {
                 let diag0 = self.spec.diag.as_ref().is_some_and(|d| d.diag0);
                 let routed = if diag0 { gconf & (1 << 7) } else { gconf & (1 << 8) };
-                routed != 0 && tcoolthrs != 0 && gconf & (1 << 2) == 0
+                let stealth = gconf & (1 << 2) != 0;
+                // The TMC2240 also detects stalls in stealthChop (stallGuard4, SG4_THRS > 0).
+                let sg4 = self.spec.model == Model::Tmc2240 && self.regs[reg::SG4_THRS as usize] & 0xff != 0;
+                routed != 0 && tcoolthrs != 0 && (!stealth || sg4)
             }
         }
     }
@@ -288,6 +295,17 @@ mod tests {
         let mut r2 = wire::spi_datagram(0x6c, 0);
         d.spi(&mut r2);
         assert_eq!(&r2[1..], &0x1234_5678u32.to_be_bytes());
+    }
+
+    #[test]
+    fn a_tmc2240_reports_stalls_in_stealthchop_with_sg4_thrs() {
+        let mut d = driver(Model::Tmc2240, true);
+        d.write(reg::GCONF, (1 << 7) | (1 << 2) | (1 << 12));
+        d.write(reg::TCOOLTHRS, 0xfffff);
+        assert!(!d.diag_level(-1.0), "stealthChop without SG4_THRS");
+        d.write(reg::SG4_THRS, 20);
+        assert!(d.diag_level(-1.0) && !d.diag_level(0.5));
+        assert_eq!(d.read(0x04) >> 24, 0x40);
     }
 
     #[test]

@@ -126,7 +126,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("tmc2130", Read),
     ("tmc2208", Read),
     ("tmc2209", Read),
-    ("tmc2240", Ignored),
+    ("tmc2240", Read),
     ("tmc2660", Ignored),
     ("tmc5160", Read),
     ("tsl1401cl_filament_width_sensor", Ignored),

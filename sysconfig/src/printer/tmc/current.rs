@@ -10,8 +10,44 @@
 //! TMC5160: `I = GLOBALSCALER / 256 · (CS + 1) / 32 · Vfs / R / √2` with Vfs = 0.325 V; the
 //! global scaler is first chosen for CS = 31 (`⌊I · 256 · √2 · R / Vfs + ½⌋`, at least 32, and
 //! 0 meaning 256 when it would reach 256), then `CS = ⌊I · 256 · 32 · √2 · R / (G · Vfs) − ½⌋`.
+//!
+//! TMC2240: no sense resistor; the full scale is `KIFS[current_range] / rref` A peak (KIFS
+//! 11750, 24000, 36000, 36000 A·Ω for ranges 0..3), RMS `/ √2`. The range is the smallest whose
+//! full scale reaches the run current, then as the TMC5160 with that full scale in place of
+//! `Vfs / R`: `G = ⌊I · 256 / Ifs + ½⌋` (at least 32, 0 for 256),
+//! `CS = ⌊I · 256 · 32 / (G · Ifs) − ½⌋`.
 
 use super::model::{FieldSet, TmcModel};
+
+/// TMC2240 full-scale constants per `current_range` (A·Ω).
+const KIFS_2240: [f64; 4] = [11750.0, 24000.0, 36000.0, 36000.0];
+
+/// TMC2240 RMS full-scale current (A) of `range` with `rref` Ω.
+fn ifs_rms_2240(rref: f64, range: usize) -> f64 {
+    KIFS_2240[range.min(3)] / rref / SQRT2
+}
+
+/// The TMC2240's largest current (A) with `rref` Ω (its highest range's full scale).
+pub fn max_current_2240(rref: f64) -> f64 {
+    ifs_rms_2240(rref, 3)
+}
+
+/// TMC2240: `(current_range, globalscaler, irun, ihold)` for `run` and `hold` A.
+fn bits_2240(rref: f64, run: f64, hold: f64) -> (i64, i64, i64, i64) {
+    let range = (0..4).find(|&r| run <= ifs_rms_2240(rref, r)).unwrap_or(3);
+    let ifs = ifs_rms_2240(rref, range);
+    let g = match ((run * 256.0 / ifs) + 0.5).floor() as i64 {
+        g if g >= 256 => 0,
+        g => g.max(32),
+    };
+    let cs = |i: f64| {
+        let gf = if g == 0 { 256.0 } else { g as f64 };
+        ((i * 256.0 * 32.0 / (gf * ifs)) - 1.0 + 0.5)
+            .floor()
+            .clamp(0.0, 31.0) as i64
+    };
+    (range as i64, g, cs(run), cs(hold))
+}
 
 const SQRT2: f64 = std::f64::consts::SQRT_2;
 /// TMC5160 full-scale sense voltage (V).
@@ -64,6 +100,13 @@ pub fn set_current(fields: &mut FieldSet, sense: f64, run: f64, hold: f64) -> Ve
         }
     };
     match fields.model {
+        TmcModel::Tmc2240 => {
+            let (range, g, irun, ihold) = bits_2240(sense, run, hold);
+            note(fields.set("current_range", range));
+            note(fields.set("globalscaler", g));
+            note(fields.set("ihold", ihold));
+            note(fields.set("irun", irun));
+        }
         TmcModel::Tmc5160 => {
             let g = global_scaler(sense, run);
             note(fields.set("globalscaler", g));
@@ -95,6 +138,16 @@ pub fn current(fields: &FieldSet, sense: f64) -> (f64, f64) {
     let irun = fields.get("irun").unwrap_or(0);
     let ihold = fields.get("ihold").unwrap_or(0);
     match fields.model {
+        TmcModel::Tmc2240 => {
+            let range = usize::try_from(fields.get("current_range").unwrap_or(0)).unwrap_or(0);
+            let ifs = ifs_rms_2240(sense, range);
+            let g = match fields.get("globalscaler").unwrap_or(0) {
+                0 => 256,
+                g => g,
+            } as f64;
+            let of = |bits: i64| g * (bits + 1) as f64 * ifs / (256.0 * 32.0);
+            (of(irun), of(ihold))
+        }
         TmcModel::Tmc5160 => {
             let g = match fields.get("globalscaler").unwrap_or(0) {
                 0 => 256,

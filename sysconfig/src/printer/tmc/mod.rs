@@ -1,4 +1,4 @@
-//! `[tmc2130 NAME]`, `[tmc2208 NAME]`, `[tmc2209 NAME]`, `[tmc5160 NAME]`: a TMC driver of the
+//! `[tmc2130 NAME]`, `[tmc2208 NAME]`, `[tmc2209 NAME]`, `[tmc2240 NAME]`, `[tmc5160 NAME]`: a TMC driver of the
 //! stepper `NAME`, Klipper's options, and the register values the host writes at start.
 //!
 //! The registers are built in Klipper's order (the order each is first set is the order it is
@@ -17,6 +17,7 @@
 pub mod current;
 pub mod model;
 pub mod tables;
+pub mod tables_2240;
 
 use super::error::{ConfigError, ValueProblem};
 use super::pins::{PinKind, PinRef, PinRegistry, Share};
@@ -143,15 +144,32 @@ pub(crate) fn read_tmc(
     virtual_endstop: bool,
     pins: &mut PinRegistry,
 ) -> Result<TmcSection, ConfigError> {
+    if model == TmcModel::Tmc2240 && s.value("uart_pin").is_some() {
+        return Err(ConfigError::BadSection {
+            at: s.at().clone(),
+            section: s.name().to_string(),
+            reason:
+                "option 'uart_pin' is not supported by Cadence yet (a TMC2240 on UART; SPI with cs_pin is)"
+                    .to_string(),
+        });
+    }
     let bus = read_bus(s, model, pins)?;
-    let max = model.max_current();
+    // The TMC2240's current is set by the resistor on its IREF pin (`rref`), not a sense
+    // resistor: it takes the sense resistor's place in the current calculation.
+    let sense_resistor = match model {
+        TmcModel::Tmc2240 => s.float_or("rref", 12000.0, Bounds::ANY.min(12000.0).max(60000.0))?,
+        _ => s.float_or(
+            "sense_resistor",
+            model.default_sense_resistor(),
+            Bounds::ANY.above(0.0),
+        )?,
+    };
+    let max = match model {
+        TmcModel::Tmc2240 => current::max_current_2240(sense_resistor),
+        _ => model.max_current(),
+    };
     let run_current = s.float("run_current", Bounds::ANY.above(0.0).max(max))?;
     let hold_current = s.float_or("hold_current", max, Bounds::ANY.above(0.0).max(max))?;
-    let sense_resistor = s.float_or(
-        "sense_resistor",
-        model.default_sense_resistor(),
-        Bounds::ANY.above(0.0),
-    )?;
     let (diag_option, diag_field) = match model {
         TmcModel::Tmc2208 => (None, None),
         TmcModel::Tmc2209 => (Some("diag_pin"), None),
@@ -233,7 +251,7 @@ pub(crate) fn read_tmc(
         let t = velocity("coolstep_threshold")?.map_or(0, |v| tstep(model, step_dist, mres, v));
         set(&mut fields, "tcoolthrs", i64::from(t))?;
     }
-    if matches!(model, TmcModel::Tmc2130 | TmcModel::Tmc5160) {
+    if matches!(model, TmcModel::Tmc2130 | TmcModel::Tmc2240 | TmcModel::Tmc5160) {
         let t = velocity("high_velocity_threshold")?.map_or(0, |v| tstep(model, step_dist, mres, v));
         set(&mut fields, "thigh", i64::from(t))?;
     }

@@ -148,3 +148,51 @@ fn drivers_share_a_uart_line_and_an_unused_diag_pin_is_not_claimed() {
     assert_eq!(cfg.tmc.len(), 2);
     assert!(cfg.tmc.iter().all(|t| !t.virtual_endstop));
 }
+
+#[test]
+fn tmc2240_current_follows_rref_and_uart_is_refused() {
+    let base = BASE.replace("tmc2209_stepper_x", "tmc2240_stepper_x");
+    let cfg = parse(&format!(
+        "{base}[tmc2240 stepper_x]\ncs_pin: PD1\nrun_current: 0.8\nhold_current: 0.5\n\
+         diag0_pin: ^!PD2\ndriver_SG4_THRS: 20\n"
+    ))
+    .unwrap_or_else(|e| panic!("{e}"));
+    let t = &cfg.tmc[0];
+    assert_eq!((t.model, t.sense_resistor), (TmcModel::Tmc2240, 12000.0));
+    assert_eq!(t.diag_field, Some("diag0_stall"));
+    let f = &t.fields;
+    // 0.8 A needs range 1 (2.0 A peak with rref 12 kΩ): globalscaler 145, IRUN 31, IHOLD 19.
+    for (field, v) in [
+        ("current_range", 1),
+        ("globalscaler", 145),
+        ("irun", 31),
+        ("ihold", 19),
+        ("sg4_thrs", 20),
+        ("sg4_angle_offset", 1),
+        ("irundelay", 4),
+        ("mres", 4),
+    ] {
+        assert_eq!(f.get(field), Some(v), "{field}");
+    }
+    let (run, hold) = crate::printer::tmc::current::current(f, t.sense_resistor);
+    assert!(
+        (run - 0.8).abs() < 0.03 && (hold - 0.5).abs() < 0.03,
+        "{run} {hold}"
+    );
+    // The largest current with rref 12 kΩ is 36000 / 12000 / √2 = 2.12 A.
+    let e = parse(&format!(
+        "{base}[tmc2240 stepper_x]\ncs_pin: PD1\nrun_current: 2.2\ndiag0_pin: PD2\n"
+    ))
+    .unwrap_err();
+    assert!(e.contains("[tmc2240 stepper_x] run_current"), "{e}");
+    let e = parse(&format!(
+        "{base}[tmc2240 stepper_x]\ncs_pin: PD1\nrun_current: 1\nrref: 1000\n"
+    ))
+    .unwrap_err();
+    assert!(e.contains("rref"), "{e}");
+    let e = parse(&format!(
+        "{base}[tmc2240 stepper_x]\nuart_pin: PD1\nrun_current: 1\n"
+    ))
+    .unwrap_err();
+    assert!(e.contains("'uart_pin' is not supported by Cadence yet"), "{e}");
+}
