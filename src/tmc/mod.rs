@@ -21,7 +21,7 @@ use std::sync::{Arc, Mutex};
 
 use links::dict::{Cmd, Dictionary};
 use sysconfig::printer::tmc::FieldSet;
-use sysconfig::printer::{PrinterConfig, TmcBus, TmcSection};
+use sysconfig::printer::{PrinterConfig, TmcBus, TmcModel, TmcSection};
 
 /// Klipper's TMC UART bit rate (bits per second).
 pub const TMC_BAUD_RATE: f64 = 40_000.0;
@@ -219,8 +219,13 @@ pub fn config_commands(
                     cs: pin(cs_pin, "cs_pin")?,
                     software,
                 };
+                // The TMC2660 takes SPI mode 0, the others mode 3.
+                let mode = match d.cfg.model {
+                    TmcModel::Tmc2660 => 0,
+                    _ => SPI_MODE,
+                };
                 cmds.extend(crate::spi_device::config_commands(
-                    dict, clock_freq, oid, pins, SPI_MODE, *speed,
+                    dict, clock_freq, oid, pins, mode, *speed,
                 )?);
             }
         }

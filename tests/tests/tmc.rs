@@ -329,3 +329,45 @@ fn a_tmc2240_homes_x_sensorlessly_and_reads_back_its_current() {
     assert!(out.contains("irun=31") && out.contains("ihold=19"), "{out}");
     assert!(out.contains("current_range=1"), "{out}");
 }
+
+/// Z on a TMC2660 (20-bit datagrams, SPI mode 0, one current in SGCSCONF's CS with `vsense`):
+/// its settings are written at start, `DUMP_TMC` shows them as written and reads the status
+/// answers (DRVCONF's `rdsel` chosen first), whose coolStep current `se` is the CS written;
+/// SET_TMC_CURRENT changes it.
+#[test]
+fn a_tmc2660_is_configured_and_answers_its_status() {
+    let dir = scratch("tmc2660");
+    let cfg = config(&dir, |t| {
+        t.replace(
+            "[tmc2130 stepper_z]\ncs_pin: PE9\n",
+            "[tmc2660 stepper_z]\ncs_pin: PE9\nsense_resistor: 0.051\nidle_current_percent: 20\n",
+        )
+        .replace(
+            "run_current: 0.6\ninterpolate: True\n",
+            "run_current: 1.0\ninterpolate: True\n",
+        )
+    });
+    let text = std::fs::read_to_string(&cfg).expect("config");
+    assert!(
+        text.contains("[tmc2660 stepper_z]") && text.contains("run_current: 1.0"),
+        "{text}"
+    );
+    let g = dir.join("dump.gcode");
+    std::fs::write(
+        &g,
+        "DUMP_TMC STEPPER=stepper_z\nSET_TMC_CURRENT STEPPER=stepper_z CURRENT=0.5\n\
+         DUMP_TMC STEPPER=stepper_z REGISTER=READRSP@RDSEL2\n",
+    )
+    .expect("gcode");
+    let r = print(&g, &cfg);
+    assert_success(&r);
+    let out = &r.stdout;
+    // 1.0 A through 0.051 Ω: CS = ⌊32 · 0.051 · 1.0 · √2 / 0.165 + ½⌋ − 1 = 13 with vsense.
+    assert!(out.contains("cs=13"), "{out}");
+    assert!(out.contains("vsense=1"), "{out}");
+    let se: Vec<&str> = out.lines().filter(|l| l.contains("READRSP@RDSEL2:")).collect();
+    assert_eq!(se.len(), 2, "{out}");
+    assert!(se[0].contains("se=13"), "{se:?}");
+    // 0.5 A: CS 6.
+    assert!(se[1].contains("se=6"), "{se:?}");
+}

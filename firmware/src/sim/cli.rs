@@ -76,7 +76,7 @@ pub struct Cli {
     #[arg(long = "bltouch", value_name = "[!]SENSOR_PIN=CONTROL_PIN,COORD,SURFACE_MM[,stuck|mute]",
           value_parser = parse_bltouch)]
     pub bltouch: Vec<BlTouchSpec>,
-    /// A TMC driver (tmc2130, tmc2208, tmc2209, tmc2240, tmc5160) on UART line BUS_PIN at address ADDR
+    /// A TMC driver (tmc2130, tmc2208, tmc2209, tmc2240, tmc2660, tmc5160) on UART line BUS_PIN at address ADDR
     /// (behind an analog mux: reached while each SELECT_PIN is high, or low with `!`),
     /// or with chip select BUS_PIN (SPI); optionally its DIAG (or DIAG0 with `diag0:`) wired to
     /// DIAG_PIN, the motor stalling when COORD reaches END_MM (min or max end of travel).
@@ -323,7 +323,7 @@ fn parse_tmc(s: &str) -> Result<TmcSpec, String> {
     let (model, rest) = bus.split_once('@').ok_or(FORM)?;
     let (pin, addr) = rest.split_once(':').ok_or(FORM)?;
     let model = TmcModel::parse(model.trim())
-        .ok_or_else(|| format!("`{model}` is not tmc2130, tmc2208, tmc2209, tmc2240 or tmc5160"))?;
+        .ok_or_else(|| format!("`{model}` is not tmc2130, tmc2208, tmc2209, tmc2240, tmc2660 or tmc5160"))?;
     let address: u8 = addr.trim().parse().map_err(|_| format!("bad address `{addr}`"))?;
     let diag = match diag {
         None => None,

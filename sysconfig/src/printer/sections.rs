@@ -127,7 +127,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("tmc2208", Read),
     ("tmc2209", Read),
     ("tmc2240", Read),
-    ("tmc2660", Ignored),
+    ("tmc2660", Read),
     ("tmc5160", Read),
     ("tsl1401cl_filament_width_sensor", Ignored),
     ("verify_heater", Read),

@@ -11,6 +11,9 @@
 //! global scaler is first chosen for CS = 31 (`⌊I · 256 · √2 · R / Vfs + ½⌋`, at least 32, and
 //! 0 meaning 256 when it would reach 256), then `CS = ⌊I · 256 · 32 · √2 · R / (G · Vfs) − ½⌋`.
 //!
+//! TMC2660: one current (CS in SGCSCONF, no hold current), `I = (CS + 1) / 32 · Vfs / R / √2`
+//! with Vfs 0.31 V, or 0.165 V with `vsense`, chosen as for the TMC2130.
+//!
 //! TMC2240: no sense resistor; the full scale is `KIFS[current_range] / rref` A peak (KIFS
 //! 11750, 24000, 36000, 36000 A·Ω for ranges 0..3), RMS `/ √2`. The range is the smallest whose
 //! full scale reaches the run current, then as the TMC5160 with that full scale in place of
@@ -53,23 +56,60 @@ const SQRT2: f64 = std::f64::consts::SQRT_2;
 /// TMC5160 full-scale sense voltage (V).
 const VREF_5160: f64 = 0.325;
 
-fn vref(vsense: bool) -> f64 {
-    if vsense {
-        0.18
-    } else {
-        0.32
+/// A driver's full-scale sense voltages (low, high sensitivity) and the resistance its
+/// sense path adds to the sense resistor.
+#[derive(Debug, Clone, Copy)]
+struct SenseScale {
+    vref: (f64, f64),
+    extra_ohm: f64,
+}
+
+/// TMC2130/2208/2209.
+const SCALE_2130: SenseScale = SenseScale {
+    vref: (0.32, 0.18),
+    extra_ohm: 0.020,
+};
+/// TMC2660.
+const SCALE_2660: SenseScale = SenseScale {
+    vref: (0.31, 0.165),
+    extra_ohm: 0.0,
+};
+
+impl SenseScale {
+    fn vref(self, vsense: bool) -> f64 {
+        if vsense {
+            self.vref.1
+        } else {
+            self.vref.0
+        }
     }
-}
 
-/// CS bits for `current` with `vsense` (TMC2130/2208/2209).
-fn cs_bits(sense: f64, current: f64, vsense: bool) -> i64 {
-    let cs = (32.0 * (sense + 0.020) * current * SQRT2 / vref(vsense) + 0.5).floor() as i64 - 1;
-    cs.clamp(0, 31)
-}
+    /// CS bits for `current` with `vsense`.
+    fn cs_bits(self, sense: f64, current: f64, vsense: bool) -> i64 {
+        let r = sense + self.extra_ohm;
+        let cs = (32.0 * r * current * SQRT2 / self.vref(vsense) + 0.5).floor() as i64 - 1;
+        cs.clamp(0, 31)
+    }
 
-/// Current of CS bits `cs` with `vsense`.
-fn cs_current(sense: f64, cs: i64, vsense: bool) -> f64 {
-    (cs + 1) as f64 * vref(vsense) / (32.0 * (sense + 0.020) * SQRT2)
+    /// Current of CS bits `cs` with `vsense`.
+    fn cs_current(self, sense: f64, cs: i64, vsense: bool) -> f64 {
+        (cs + 1) as f64 * self.vref(vsense) / (32.0 * (sense + self.extra_ohm) * SQRT2)
+    }
+
+    /// `(vsense, cs)` for `run`: the high-sensitivity range unless the run current needs
+    /// CS = 31 and the other range is nearer.
+    fn choose(self, sense: f64, run: f64) -> (bool, i64) {
+        let irun = self.cs_bits(sense, run, true);
+        if irun == 31 {
+            let cur = self.cs_current(sense, irun, true);
+            let irun2 = self.cs_bits(sense, run, false);
+            let cur2 = self.cs_current(sense, irun2, false);
+            if cur < run && (run - cur2).abs() < (run - cur).abs() {
+                return (false, irun2);
+            }
+        }
+        (true, irun)
+    }
 }
 
 fn global_scaler(sense: f64, current: f64) -> i64 {
@@ -113,20 +153,15 @@ pub fn set_current(fields: &mut FieldSet, sense: f64, run: f64, hold: f64) -> Ve
             note(fields.set("ihold", cs_bits_5160(sense, hold, g)));
             note(fields.set("irun", cs_bits_5160(sense, run, g)));
         }
-        _ => {
-            let mut vsense = true;
-            let mut irun = cs_bits(sense, run, true);
-            if irun == 31 {
-                let cur = cs_current(sense, irun, true);
-                let irun2 = cs_bits(sense, run, false);
-                let cur2 = cs_current(sense, irun2, false);
-                if cur < run && (run - cur2).abs() < (run - cur).abs() {
-                    vsense = false;
-                    irun = irun2;
-                }
-            }
+        TmcModel::Tmc2660 => {
+            let (vsense, cs) = SCALE_2660.choose(sense, run);
+            note(fields.set("cs", cs));
             note(fields.set("vsense", i64::from(vsense)));
-            note(fields.set("ihold", cs_bits(sense, hold, vsense)));
+        }
+        _ => {
+            let (vsense, irun) = SCALE_2130.choose(sense, run);
+            note(fields.set("vsense", i64::from(vsense)));
+            note(fields.set("ihold", SCALE_2130.cs_bits(sense, hold, vsense)));
             note(fields.set("irun", irun));
         }
     }
@@ -156,9 +191,17 @@ pub fn current(fields: &FieldSet, sense: f64) -> (f64, f64) {
             let of = |bits: i64| g * (bits + 1) as f64 * VREF_5160 / (256.0 * 32.0 * SQRT2 * sense);
             (of(irun), of(ihold))
         }
+        TmcModel::Tmc2660 => {
+            let vsense = fields.get("vsense").unwrap_or(0) != 0;
+            let run = SCALE_2660.cs_current(sense, fields.get("cs").unwrap_or(0), vsense);
+            (run, run)
+        }
         _ => {
             let vsense = fields.get("vsense").unwrap_or(0) != 0;
-            (cs_current(sense, irun, vsense), cs_current(sense, ihold, vsense))
+            (
+                SCALE_2130.cs_current(sense, irun, vsense),
+                SCALE_2130.cs_current(sense, ihold, vsense),
+            )
         }
     }
 }

@@ -18,6 +18,7 @@ pub mod current;
 pub mod model;
 pub mod tables;
 pub mod tables_2240;
+pub mod tables_2660;
 
 use super::error::{ConfigError, ValueProblem};
 use super::pins::{PinKind, PinRef, PinRegistry, Share};
@@ -83,6 +84,9 @@ pub struct TmcSection {
     pub step_dist: f64,
     /// The registers as configured, in write order.
     pub fields: FieldSet,
+    /// TMC2660 `idle_current_percent` (0..=100, default 100): read and kept; the current is
+    /// not lowered while idle (Klipper's idle_timeout hook is not there yet).
+    pub idle_current_percent: u8,
 }
 
 impl TmcSection {
@@ -158,6 +162,8 @@ pub(crate) fn read_tmc(
     // resistor: it takes the sense resistor's place in the current calculation.
     let sense_resistor = match model {
         TmcModel::Tmc2240 => s.float_or("rref", 12000.0, Bounds::ANY.min(12000.0).max(60000.0))?,
+        // Klipper has no default for the TMC2660's.
+        TmcModel::Tmc2660 => s.float("sense_resistor", Bounds::ANY.above(0.0))?,
         _ => s.float_or(
             "sense_resistor",
             model.default_sense_resistor(),
@@ -169,9 +175,17 @@ pub(crate) fn read_tmc(
         _ => model.max_current(),
     };
     let run_current = s.float("run_current", Bounds::ANY.above(0.0).max(max))?;
-    let hold_current = s.float_or("hold_current", max, Bounds::ANY.above(0.0).max(max))?;
+    // The TMC2660 has one current (no hold current).
+    let hold_current = match model {
+        TmcModel::Tmc2660 => run_current,
+        _ => s.float_or("hold_current", max, Bounds::ANY.above(0.0).max(max))?,
+    };
+    let idle_current_percent = match model {
+        TmcModel::Tmc2660 => s.int::<u8>("idle_current_percent", Some(100), 0..=100)?,
+        _ => 100,
+    };
     let (diag_option, diag_field) = match model {
-        TmcModel::Tmc2208 => (None, None),
+        TmcModel::Tmc2208 | TmcModel::Tmc2660 => (None, None),
         TmcModel::Tmc2209 => (Some("diag_pin"), None),
         _ if s.value("diag0_pin").is_some() => (Some("diag0_pin"), Some("diag0_stall")),
         _ => (Some("diag1_pin"), Some("diag1_stall")),
@@ -199,7 +213,7 @@ pub(crate) fn read_tmc(
             section: s.name().to_string(),
             reason: format!(
                 "tmc virtual endstop requires diag pin config ({})",
-                diag_option.unwrap_or("the TMC2208 has no diag output")
+                diag_option.unwrap_or("this driver has no diag output")
             ),
         });
     }
@@ -213,6 +227,10 @@ pub(crate) fn read_tmc(
     };
     if model.is_uart() {
         set(&mut fields, "pdn_disable", 1)?;
+    }
+    if model == TmcModel::Tmc2660 {
+        // Step/dir mode (DRVCTRL as microstep settings): DRVCONF is written first.
+        set(&mut fields, "sdoff", 0)?;
     }
     if model == TmcModel::Tmc2209 {
         // Room between a reply and the next request on a shared line.
@@ -240,14 +258,18 @@ pub(crate) fn read_tmc(
     }
     let step_dist = motor.step_dist();
     let velocity = |option: &str| s.opt_float(option, Bounds::ANY.min(0.0));
-    let stealth = velocity("stealthchop_threshold")?;
-    let tpwmthrs = stealth.map_or(0xfffff, |v| tstep(model, step_dist, mres, v));
-    set(&mut fields, "tpwmthrs", i64::from(tpwmthrs))?;
-    match model.field("en_pwm_mode") {
-        Some(_) => set(&mut fields, "en_pwm_mode", i64::from(stealth.is_some()))?,
-        None => set(&mut fields, "en_spreadcycle", i64::from(stealth.is_none()))?,
+    // The TMC2660 has no velocity thresholds (nor their options).
+    let thresholds = model.field("tpwmthrs").is_some();
+    if thresholds {
+        let stealth = velocity("stealthchop_threshold")?;
+        let tpwmthrs = stealth.map_or(0xfffff, |v| tstep(model, step_dist, mres, v));
+        set(&mut fields, "tpwmthrs", i64::from(tpwmthrs))?;
+        match model.field("en_pwm_mode") {
+            Some(_) => set(&mut fields, "en_pwm_mode", i64::from(stealth.is_some()))?,
+            None => set(&mut fields, "en_spreadcycle", i64::from(stealth.is_none()))?,
+        }
     }
-    if model != TmcModel::Tmc2208 {
+    if thresholds && model != TmcModel::Tmc2208 {
         let t = velocity("coolstep_threshold")?.map_or(0, |v| tstep(model, step_dist, mres, v));
         set(&mut fields, "tcoolthrs", i64::from(t))?;
     }
@@ -257,6 +279,17 @@ pub(crate) fn read_tmc(
     }
     for &(field, default) in model.config_fields() {
         read_field(s, &mut fields, field, default)?;
+    }
+    // The TMC2660's spreadCycle hysteresis must fit (Klipper's check).
+    if model == TmcModel::Tmc2660
+        && fields.get("chm") == Some(0)
+        && fields.get("hstrt").unwrap_or(0) + fields.get("hend").unwrap_or(0) > 15
+    {
+        return Err(ConfigError::BadSection {
+            at: s.at().clone(),
+            section: s.name().to_string(),
+            reason: "driver_HEND + driver_HSTRT must be <= 15".to_string(),
+        });
     }
     Ok(TmcSection {
         model,
@@ -270,6 +303,7 @@ pub(crate) fn read_tmc(
         virtual_endstop,
         step_dist,
         fields,
+        idle_current_percent,
     })
 }
 

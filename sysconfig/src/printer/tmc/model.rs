@@ -7,6 +7,7 @@
 
 use super::tables::*;
 use super::tables_2240::*;
+use super::tables_2660::*;
 
 /// A TMC stepper driver model.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -15,15 +16,17 @@ pub enum TmcModel {
     Tmc2208,
     Tmc2209,
     Tmc2240,
+    Tmc2660,
     Tmc5160,
 }
 
 /// `[tmcXXXX]` section kinds Cadence drives, and their model.
-pub const MODELS: [(&str, TmcModel); 5] = [
+pub const MODELS: [(&str, TmcModel); 6] = [
     ("tmc2130", TmcModel::Tmc2130),
     ("tmc2208", TmcModel::Tmc2208),
     ("tmc2209", TmcModel::Tmc2209),
     ("tmc2240", TmcModel::Tmc2240),
+    ("tmc2660", TmcModel::Tmc2660),
     ("tmc5160", TmcModel::Tmc5160),
 ];
 
@@ -40,6 +43,7 @@ impl TmcModel {
             TmcModel::Tmc2208 => "tmc2208",
             TmcModel::Tmc2209 => "tmc2209",
             TmcModel::Tmc2240 => "tmc2240",
+            TmcModel::Tmc2660 => "tmc2660",
             TmcModel::Tmc5160 => "tmc5160",
         }
     }
@@ -52,6 +56,7 @@ impl TmcModel {
             TmcModel::Tmc2208 => (TMC2208_REGISTERS, &[]),
             TmcModel::Tmc2209 => (TMC2208_REGISTERS, TMC2209_EXTRA_REGISTERS),
             TmcModel::Tmc2240 => (TMC2240_REGISTERS, &[]),
+            TmcModel::Tmc2660 => (TMC2660_REGISTERS, &[]),
             TmcModel::Tmc5160 => (TMC5160_REGISTERS, &[]),
         };
         base.iter().chain(extra)
@@ -64,6 +69,7 @@ impl TmcModel {
             TmcModel::Tmc2208 => TMC2208_READABLE,
             TmcModel::Tmc2209 => TMC2209_READABLE,
             TmcModel::Tmc2240 => TMC2240_READABLE,
+            TmcModel::Tmc2660 => TMC2660_READABLE,
             TmcModel::Tmc5160 => TMC5160_READABLE,
         }
     }
@@ -76,6 +82,7 @@ impl TmcModel {
             TmcModel::Tmc2208 => (TMC2208_FIELDS, &[]),
             TmcModel::Tmc2209 => (TMC2208_FIELDS, TMC2209_EXTRA_FIELDS),
             TmcModel::Tmc2240 => (TMC2240_FIELDS, &[]),
+            TmcModel::Tmc2660 => (TMC2660_FIELDS, &[]),
             TmcModel::Tmc5160 => (TMC5160_FIELDS, &[]),
         };
         base.iter().chain(extra)
@@ -87,6 +94,7 @@ impl TmcModel {
             TmcModel::Tmc2208 => TMC2208_SIGNED,
             TmcModel::Tmc2209 => TMC2209_SIGNED,
             TmcModel::Tmc2240 => TMC2240_SIGNED,
+            TmcModel::Tmc2660 => TMC2660_SIGNED,
             TmcModel::Tmc5160 => TMC5160_SIGNED,
         }
     }
@@ -110,6 +118,7 @@ impl TmcModel {
     pub fn max_current(self) -> f64 {
         match self {
             TmcModel::Tmc5160 => 10.0,
+            TmcModel::Tmc2660 => 2.4,
             _ => 2.0,
         }
     }
@@ -215,6 +224,26 @@ impl TmcModel {
                 ("pwm_lim", 12),
                 ("tpowerdown", 20),
                 ("sgthrs", 0),
+            ],
+            TmcModel::Tmc2660 => &[
+                ("tbl", 2),
+                ("rndtf", 0),
+                ("hdec", 0),
+                ("chm", 0),
+                ("hend", 3),
+                ("hstrt", 3),
+                ("toff", 4),
+                ("seimin", 0),
+                ("sedn", 0),
+                ("semax", 0),
+                ("seup", 0),
+                ("semin", 0),
+                ("sfilt", 0),
+                ("sgt", 0),
+                ("slph", 0),
+                ("slpl", 0),
+                ("diss2g", 0),
+                ("ts2g", 3),
             ],
             TmcModel::Tmc2240 => &[
                 ("offset_sin90", 0),
@@ -442,8 +471,11 @@ mod tests {
     fn tables_are_consistent() {
         for (_, m) in MODELS {
             for (reg, field, mask) in m.fields() {
+                // `REG@VARIANT` is REG as one model variant has it, except for registers whose
+                // name has the `@` (the TMC2660's READRSP@RDSELn).
                 let base = reg.split('@').next().unwrap_or(reg);
-                assert!(m.register_addr(base).is_some(), "{m:?} {reg}.{field}");
+                let known = m.register_addr(reg).or(m.register_addr(base));
+                assert!(known.is_some(), "{m:?} {reg}.{field}");
                 assert_ne!(*mask, 0);
             }
             for reg in m.readable() {

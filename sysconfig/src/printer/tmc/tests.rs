@@ -196,3 +196,50 @@ fn tmc2240_current_follows_rref_and_uart_is_refused() {
     .unwrap_err();
     assert!(e.contains("'uart_pin' is not supported by Cadence yet"), "{e}");
 }
+
+#[test]
+fn tmc2660_has_one_current_no_thresholds_and_klippers_checks() {
+    let base = BASE.replace("tmc2209_stepper_x:virtual_endstop", "PA2");
+    let cfg = parse(&format!(
+        "{base}[tmc2660 stepper_x]\ncs_pin: PD1\nspi_bus: usart1\nrun_current: 1.0\nsense_resistor: 0.051\n\
+         idle_current_percent: 20\n"
+    ))
+    .unwrap_or_else(|e| panic!("{e}"));
+    let t = &cfg.tmc[0];
+    assert_eq!((t.model, t.idle_current_percent), (TmcModel::Tmc2660, 20));
+    let f = &t.fields;
+    let order: Vec<&str> = f.registers().iter().map(|r| r.0).collect();
+    assert_eq!(order, ["DRVCONF", "SGCSCONF", "DRVCTRL", "CHOPCONF", "SMARTEN"]);
+    for (field, v) in [
+        ("cs", 13),
+        ("vsense", 1),
+        ("mres", 4),
+        ("intpol", 1),
+        ("toff", 4),
+        ("ts2g", 3),
+    ] {
+        assert_eq!(f.get(field), Some(v), "{field}");
+    }
+    let with = |extra: &str| {
+        parse(&format!(
+            "{base}[tmc2660 stepper_x]\ncs_pin: PD1\nrun_current: 1.0\nsense_resistor: 0.051\n{extra}"
+        ))
+    };
+    for (extra, said) in [
+        ("hold_current: 0.5\n", "hold_current"),
+        ("stealthchop_threshold: 10\n", "stealthchop_threshold"),
+        (
+            "driver_HEND: 10\ndriver_HSTRT: 7\n",
+            "driver_HEND + driver_HSTRT must be <= 15",
+        ),
+        ("idle_current_percent: 101\n", "idle_current_percent"),
+    ] {
+        let e = with(extra).unwrap_err();
+        assert!(e.contains(said), "{extra}: {e}");
+    }
+    let e = parse(&format!(
+        "{base}[tmc2660 stepper_x]\ncs_pin: PD1\nrun_current: 1.0\n"
+    ))
+    .unwrap_err();
+    assert!(e.contains("sense_resistor"), "{e}");
+}
