@@ -319,6 +319,7 @@ impl Machine {
                 file: cfg.source.clone(),
                 source,
             })?;
+        let z_on_probe = probe.as_ref().is_some_and(|p| p.z_virtual_endstop);
         Ok(Machine {
             steppers,
             endstops,
@@ -340,12 +341,22 @@ impl Machine {
                 .macros
                 .iter()
                 .chain(cfg.homing_override.as_ref().map(|o| &o.script))
+                .chain(
+                    cfg.probe
+                        .iter()
+                        .flat_map(|p| p.activate_gcode.iter().chain(&p.deactivate_gcode)),
+                )
                 .chain(&cfg.host.scripts)
                 .cloned()
                 .collect(),
             homing: crate::homing::procedure::HomingProcedure {
                 safe_z_home: cfg.safe_z_home.clone(),
                 homing_override: cfg.homing_override.clone(),
+                probe_scripts: crate::homing::procedure::ProbeScripts {
+                    activate: cfg.probe.as_ref().is_some_and(|p| p.activate_gcode.is_some()),
+                    deactivate: cfg.probe.as_ref().is_some_and(|p| p.deactivate_gcode.is_some()),
+                    z_on_probe,
+                },
             },
             thermal,
             respond_prefix: cfg.respond.clone(),

@@ -65,6 +65,7 @@ pub mod printer;
 pub mod realtime;
 pub mod service;
 pub mod sim_mcu;
+pub mod spi_device;
 pub mod step_stream;
 pub mod summary;
 pub mod telemetry;

@@ -208,8 +208,17 @@ fn open_transport(
         return Ok((open_serial(name, &mcu_cfg.serial, mcu_cfg.baud)?, None));
     }
     let mut extra = machine.sim_world_args(name, world);
-    // Each heater of this MCU gets the simulator's thermal model.
-    extra.extend(machine.thermal.sim_args(name));
+    // Each heater of this MCU gets the simulator's thermal model; a heater and its sensor on
+    // two MCUs share its temperature through the world.
+    let thermal = machine.thermal.sim_args(name);
+    if thermal
+        .iter()
+        .any(|a| a == "--heater-export" || a == "--remote-sensor")
+        && !extra.iter().any(|a| a == "--world")
+    {
+        extra.extend(["--world".to_string(), world.to_string()]);
+    }
+    extra.extend(thermal);
     // Its `[adc_scaled]` chips' ADC references.
     extra.extend(machine.thermal.sim_adc_ref_args(name));
     // Its fans with tachometers.

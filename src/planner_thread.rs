@@ -510,7 +510,20 @@ impl<'a, 'p> PlannerRun<'a, 'p> {
         if let Some(reason) = self.st.heaters.and_then(|h| h.fault()) {
             return Err(PlannerError::ThermalFault { reason });
         }
-        self.st.side.check()
+        // An SPI temperature chip's faulty reads shut its MCU down: the error names the fault.
+        self.st
+            .side
+            .check()
+            .map_err(|e| match (&e, self.st.heaters.and_then(|h| h.chip_fault())) {
+                (PlannerError::Mcu(crate::mcus::McuError::Shutdown { reason, .. }), Some(fault))
+                    if reason == firmware::core::reason::THERMOCOUPLE_FAULT =>
+                {
+                    PlannerError::ThermalFault {
+                        reason: format!("{e} ({fault})"),
+                    }
+                }
+                _ => e,
+            })
     }
 
     /// Refuses a step command that would reach its MCU with less than [`MIN_LEAD_S`].

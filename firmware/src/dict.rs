@@ -46,6 +46,10 @@ pub fn dictionary_json_for(chip: &Chip, clock_freq: u32) -> Value {
         .enumerate()
         .map(|(id, r)| ((*r).to_owned(), json!(id)))
         .collect();
+    let chips: Map<String, Value> = crate::core::thermocouple::CHIP_NAMES
+        .iter()
+        .map(|(n, v)| ((*n).to_owned(), json!(v)))
+        .collect();
     let mut config = Map::new();
     config.insert("CLOCK_FREQ".into(), json!(clock_freq));
     config.insert("MCU".into(), json!(chip.mcu));
@@ -64,7 +68,7 @@ pub fn dictionary_json_for(chip: &Chip, clock_freq: u32) -> Value {
         "commands": commands,
         "responses": responses,
         "output": {},
-        "enumerations": { "pin": pins, "static_string_id": reasons },
+        "enumerations": { "pin": pins, "static_string_id": reasons, "thermocouple_type": chips },
         "config": config,
     })
 }

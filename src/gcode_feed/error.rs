@@ -125,6 +125,10 @@ pub enum CommandError<E> {
     /// A G28 procedure (`[safe_z_home]`, `[homing_override]`) failed.
     #[error("G28: {0}")]
     Homing(#[from] G28Error),
+    /// `[probe] activate_gcode` or `deactivate_gcode` (`option`) moved the toolhead (Klipper's
+    /// message).
+    #[error("Toolhead moved during probe {option} script")]
+    ProbeScriptMoved { option: &'static str },
     /// `[bed_screws]`'s tool refused a command, or one of its moves (`cmd`: the command).
     #[error("{cmd}: {source}")]
     BedScrews {

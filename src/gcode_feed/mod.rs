@@ -20,7 +20,8 @@ use planner::stepgen::StepCmd;
 
 use crate::accessories::Accessories;
 use crate::heaters::gcode::{self as heat_gcode, HeatCmd};
-use crate::homing::procedure::{HomeOps, HomingProcedure, ProcedureError};
+use crate::homing::procedure::{HomeOps, HomingProcedure, ProbeScripts, ProcedureError};
+use sysconfig::printer::{PROBE_ACTIVATE_MACRO, PROBE_DEACTIVATE_MACRO};
 
 mod error;
 
@@ -267,6 +268,7 @@ pub(crate) fn plan_file<T: FeedTarget>(
         // A session starts idle: its first command starts from the MCUs' time then.
         idle: input.is_session(),
         lines: 0,
+        probe_scripts: homing.probe_scripts,
     };
     if st.idle {
         target.idle(true, pipeline);
@@ -319,6 +321,8 @@ struct FeedState {
     idle: bool,
     /// Commands planned so far.
     lines: u64,
+    /// `[probe]`'s scripts around probing sessions.
+    probe_scripts: ProbeScripts,
 }
 
 impl FeedState {
@@ -337,6 +341,8 @@ impl FeedState {
             warnings: &mut self.warnings,
             out: &mut self.out,
             idle: &mut self.idle,
+            probe_scripts: self.probe_scripts,
+            in_probe_script: false,
         }
     }
 
@@ -406,6 +412,10 @@ struct Feed<'a> {
     out: &'a mut Vec<(usize, StepCmd)>,
     /// The feed is idle (see [`FeedState::idle`]).
     idle: &'a mut bool,
+    /// `[probe]`'s scripts around probing sessions.
+    probe_scripts: ProbeScripts,
+    /// A probe script is running (a probing command in it is no new session).
+    in_probe_script: bool,
 }
 
 impl Feed<'_> {
@@ -458,7 +468,8 @@ impl Feed<'_> {
         Ok(())
     }
 
-    /// Plans one command, or runs it as a command of `[bed_screws]`'s tool when it is one.
+    /// Plans one command (with the probe's scripts around it when it probes), or runs it as a
+    /// command of `[bed_screws]`'s tool when it is one.
     fn plan_or_tool<T: FeedTarget>(
         &mut self,
         line: &GcodeLine,
@@ -466,7 +477,7 @@ impl Feed<'_> {
         target: &mut T,
     ) -> Fed<T> {
         if !self.run_bed_screws(line, macros, target)? {
-            self.plan(line, target)?;
+            self.plan_probing(line, macros, target)?;
         }
         Ok(())
     }
@@ -701,6 +712,72 @@ impl Feed<'_> {
             target,
         )? {
             release(self.pipeline, self.out, target)?;
+        }
+        Ok(())
+    }
+
+    /// `line` planned; a probing session (see [`ProbeScripts::around`]) between `[probe]`'s
+    /// `activate_gcode` and `deactivate_gcode` (run also when the session failed; its error is
+    /// the one reported), as Klipper runs them around its probe's use.
+    fn plan_probing<T: FeedTarget>(
+        &mut self,
+        line: &GcodeLine,
+        macros: &mut Macros,
+        target: &mut T,
+    ) -> Fed<T> {
+        let (name, home) = match &line.cmd {
+            Command::Home { x, y, z } => ("G28", Some([*x, *y, *z])),
+            Command::Other { name, .. } => (name.as_str(), None),
+            _ => ("", None),
+        };
+        if self.in_probe_script || !self.probe_scripts.around(name, home) {
+            return self.plan(line, target);
+        }
+        if self.probe_scripts.activate {
+            self.probe_script(
+                PROBE_ACTIVATE_MACRO,
+                "activate_gcode",
+                line.line_no,
+                macros,
+                target,
+            )?;
+        }
+        let r = self.plan(line, target);
+        if self.probe_scripts.deactivate {
+            let d = self.probe_script(
+                PROBE_DEACTIVATE_MACRO,
+                "deactivate_gcode",
+                line.line_no,
+                macros,
+                target,
+            );
+            r?;
+            return d;
+        }
+        r
+    }
+
+    /// Runs probe script `name` (`option` of `[probe]`) for line `line_no`: the toolhead must
+    /// stay where it is.
+    fn probe_script<T: FeedTarget>(
+        &mut self,
+        name: &str,
+        option: &'static str,
+        line_no: usize,
+        macros: &mut Macros,
+        target: &mut T,
+    ) -> Fed<T> {
+        let before = self.pipeline.position();
+        self.in_probe_script = true;
+        let r = self.run_script(name, "", line_no, macros, target);
+        self.in_probe_script = false;
+        r?;
+        if self.pipeline.position()[..3] != before[..3] {
+            return Err(FeedError::at(
+                self.file,
+                line_no,
+                CommandError::ProbeScriptMoved { option },
+            ));
         }
         Ok(())
     }
@@ -962,7 +1039,7 @@ impl<T: FeedTarget> HomeOps for FeedHoming<'_, '_, T> {
             line_no: self.line_no,
             cmd: Command::Home { x, y, z },
         };
-        self.feed.plan(&line, self.target)
+        self.feed.plan_probing(&line, self.macros, self.target)
     }
 
     fn move_to(&mut self, pos: [f64; 4], speed: f64) -> Fed<T> {

@@ -13,7 +13,7 @@
 use links::dict::{Cmd, Dictionary};
 use sysconfig::printer::{
     FanOptions, HeaterControl, HeaterSection, PinRef, PrinterConfig, SensorSection, SensorSource,
-    ThermistorSection, MULTI_PIN_CHIP,
+    SpiSensorSection, ThermistorSection, MULTI_PIN_CHIP,
 };
 
 use super::mcu_sensor::{McuSensor, McuSensorError, ADC_TEMPERATURE};
@@ -59,7 +59,7 @@ pub enum SimKind {
 pub struct HeaterOut {
     /// `extruder`, `heater_bed`, or the NAME of `[heater_generic NAME]`.
     pub name: String,
-    /// The MCU of its heater pin (the sensor pin must be on the same one).
+    /// The MCU of its heater pin (its sensor's is `sensor_pin.mcu`, the same or another).
     pub mcu: String,
     pub heater_pin: PinRef,
     pub sensor_pin: PinRef,
@@ -76,6 +76,8 @@ pub struct HeaterOut {
     pub sim: SimKind,
     /// The `[adc_scaled]` chip (index in [`Thermal::scaled`]) its sensor pin is read through.
     pub sensor_scale: Option<usize>,
+    /// An SPI temperature chip in place of the ADC (`sensor_pin` its chip select).
+    pub spi: Option<SpiSensorSection>,
 }
 
 /// One ADC `[temperature_sensor NAME]`, or the sensor of `[temperature_fan NAME]`.
@@ -95,6 +97,8 @@ pub struct SensorOut {
     pub internal: Option<McuSensor>,
     /// The `[adc_scaled]` chip (index in [`Thermal::scaled`]) its pin is read through.
     pub scale: Option<usize>,
+    /// An SPI temperature chip in place of the ADC (`pin` its chip select).
+    pub spi: Option<SpiSensorSection>,
     pub smooth_time: f64,
     pub min_temp: f64,
     pub max_temp: f64,
@@ -249,6 +253,12 @@ pub enum ThermalObject {
     ScaledVref(usize),
     /// `[adc_scaled]` chip `i`'s `vssa_pin` input.
     ScaledVssa(usize),
+    /// The SPI device of heater `i`'s SPI temperature chip (whose reader is its
+    /// [`ThermalObject::HeaterAdc`]).
+    HeaterSpi(usize),
+    /// The SPI device of sensor `i`'s SPI temperature chip (whose reader is its
+    /// [`ThermalObject::SensorAdc`]).
+    SensorSpi(usize),
 }
 
 fn sensor_of(
@@ -313,23 +323,41 @@ fn adc_sensor(
                 pullup: false,
                 pulldown: false,
             };
-            let placeholder = Sensor {
-                element: Element::Linear {
-                    base: 0.0,
-                    slope: 1.0,
-                },
-                pullup: 0.0,
-                inline: 0.0,
-            };
+            let placeholder = PLACEHOLDER;
             let internal = McuSensor {
                 point1: *point1,
                 point2: *point2,
             };
             Some((sensor_mcu.clone(), pin, placeholder, Some(internal)))
         }
+        SensorSource::Spi(spi) => Some((
+            spi.bus.cs_pin.mcu.clone(),
+            spi.bus.cs_pin.clone(),
+            PLACEHOLDER,
+            None,
+        )),
         SensorSource::Host { .. } => None,
     })
 }
+
+/// The SPI chip of sensor `s`, if it is one.
+fn spi_of(s: &SensorSection) -> Option<SpiSensorSection> {
+    match &s.source {
+        SensorSource::Spi(spi) => Some(spi.as_ref().clone()),
+        _ => None,
+    }
+}
+
+/// The ADC conversion of a sensor that has none (an SPI chip converts its own readings; the
+/// MCU's own sensor's is known once the MCU's type is).
+const PLACEHOLDER: Sensor = Sensor {
+    element: Element::Linear {
+        base: 0.0,
+        slope: 1.0,
+    },
+    pullup: 0.0,
+    inline: 0.0,
+};
 
 /// `pin` as MCU outputs: `multi_pin:NAME` is the first pin of `[multi_pin NAME]` (inverted
 /// when the reference is) and the further pins; any other pin is itself.
@@ -447,23 +475,16 @@ impl Thermal {
                     .push((MultiOutput::Heater(self.heaters.len()), more));
             }
             let (sensor_pin, sensor_scale) = resolve_scaled(&self.scaled, &h.sensor_pin);
-            if sensor_pin.mcu != heater_pin.mcu {
-                return Err(ThermalError::Invalid {
-                    section,
-                    what: format!(
-                        "sensor_pin is on mcu '{}' and heater_pin on mcu '{}': a heater whose sensor is on another \
-                         MCU is not supported by Cadence yet",
-                        sensor_pin.mcu, heater_pin.mcu
-                    ),
-                });
-            }
-            let sensor = sensor_of(
-                &section,
-                &h.sensor_type,
-                h.pullup_resistor,
-                h.inline_resistor,
-                &th.thermistors,
-            )?;
+            let sensor = match h.spi {
+                Some(_) => PLACEHOLDER,
+                None => sensor_of(
+                    &section,
+                    &h.sensor_type,
+                    h.pullup_resistor,
+                    h.inline_resistor,
+                    &th.thermistors,
+                )?,
+            };
             let verify = th
                 .verify_heater
                 .iter()
@@ -491,6 +512,7 @@ impl Thermal {
                 verify,
                 sim: if extruder { SimKind::Hotend } else { SimKind::Bed },
                 sensor_scale,
+                spi: h.spi.clone(),
             });
         }
         for (name, _) in &th.verify_heater {
@@ -524,6 +546,7 @@ impl Thermal {
                 sensor,
                 internal,
                 scale,
+                spi: spi_of(&s.sensor),
                 smooth_time: s.sensor.smooth_time,
                 min_temp: s.min_temp,
                 max_temp: s.max_temp,
@@ -617,6 +640,7 @@ impl Thermal {
                 sensor,
                 internal,
                 scale,
+                spi: spi_of(&f.sensor),
                 smooth_time: f.sensor.smooth_time,
                 min_temp: f.min_temp,
                 max_temp: f.max_temp,
@@ -698,10 +722,15 @@ impl Thermal {
     /// The thermal objects on MCU `mcu`, in oid order.
     pub fn objects_on(&self, mcu: &str) -> Vec<ThermalObject> {
         let mut v = Vec::new();
-        for (i, h) in self.heaters.iter().enumerate().filter(|(_, h)| h.mcu == mcu) {
-            let _ = h;
-            v.push(ThermalObject::HeaterPwm(i));
-            v.push(ThermalObject::HeaterAdc(i));
+        // A heater's output and sensor, each on its own MCU (usually the same, then the
+        // sensor's oid follows the output's).
+        for (i, h) in self.heaters.iter().enumerate() {
+            if h.mcu == mcu {
+                v.push(ThermalObject::HeaterPwm(i));
+            }
+            if h.sensor_pin.mcu == mcu {
+                v.push(ThermalObject::HeaterAdc(i));
+            }
         }
         v.extend(
             self.sensors
@@ -735,6 +764,20 @@ impl Thermal {
             v.push(ThermalObject::ScaledVref(i));
             v.push(ThermalObject::ScaledVssa(i));
         }
+        v.extend(
+            self.heaters
+                .iter()
+                .enumerate()
+                .filter(|(_, h)| h.sensor_pin.mcu == mcu && h.spi.is_some())
+                .map(|(i, _)| ThermalObject::HeaterSpi(i)),
+        );
+        v.extend(
+            self.sensors
+                .iter()
+                .enumerate()
+                .filter(|(_, s)| s.mcu == mcu && s.spi.is_some())
+                .map(|(i, _)| ThermalObject::SensorSpi(i)),
+        );
         v
     }
 
@@ -776,15 +819,39 @@ impl Thermal {
     /// host reads the simulated temperature back.
     pub fn sim_args(&self, mcu: &str) -> Vec<String> {
         let mut args = Vec::new();
-        for h in self.heaters.iter().filter(|h| h.mcu == mcu) {
+        for (i, h) in self.heaters.iter().enumerate() {
             let kind = match h.sim {
                 SimKind::Hotend => "hotend",
                 SimKind::Bed => "bed",
             };
-            args.push("--heater".to_string());
             let low = if h.heater_pin.invert { "!" } else { "" };
-            args.push(format!("{low}{}={},{kind}", h.heater_pin.pin, h.sensor_pin.pin));
-            args.extend(sensor_curve_args(&h.sensor_pin, &h.sensor));
+            let local = h.sensor_pin.mcu == h.mcu;
+            // A sensor on another MCU reads the heater's temperature through the world, which
+            // the heater's MCU publishes under this name.
+            let name = format!("heat{i}");
+            if h.mcu == mcu {
+                args.push("--heater".to_string());
+                let sensor = if local { h.sensor_pin.pin.as_str() } else { NO_PIN };
+                args.push(format!("{low}{}={sensor},{kind}", h.heater_pin.pin));
+                if !local {
+                    args.extend([
+                        "--heater-export".to_string(),
+                        format!("{}={name}", h.heater_pin.pin),
+                    ]);
+                }
+            }
+            if h.sensor_pin.mcu == mcu {
+                if !local {
+                    args.extend([
+                        "--remote-sensor".to_string(),
+                        format!("{}={name}", h.sensor_pin.pin),
+                    ]);
+                }
+                match &h.spi {
+                    Some(spi) => args.extend(spi_sensor_args(spi)),
+                    None => args.extend(sensor_curve_args(&h.sensor_pin, &h.sensor)),
+                }
+            }
         }
         // A `temperature_mcu` sensor reads the simulated chip's own die (its ADC_TEMPERATURE
         // channel is not a pin the simulator takes a curve for).
@@ -793,7 +860,10 @@ impl Thermal {
             .iter()
             .filter(|s| s.mcu == mcu && s.pin.pin != ADC_TEMPERATURE)
         {
-            args.extend(sensor_curve_args(&s.pin, &s.sensor));
+            match &s.spi {
+                Some(spi) => args.extend(spi_sensor_args(spi)),
+                None => args.extend(sensor_curve_args(&s.pin, &s.sensor)),
+            }
         }
         args
     }
@@ -847,9 +917,17 @@ impl Thermal {
                 }
                 ThermalObject::HeaterAdc(i) => {
                     let h = &self.heaters[i];
-                    let pin = pin_of(&h.sensor_pin, &format!("[{}] sensor_pin", h.name))?;
+                    let what = format!("[{}]", h.name);
+                    if let Some(spi) = &h.spi {
+                        let spi_oid = oid_of(&objects, oid0, ThermalObject::HeaterSpi(i));
+                        cmds.extend(spi_reader_commands(dict, clock_freq, oid, spi_oid, spi, &what)?);
+                        continue;
+                    }
+                    let pin = pin_of(&h.sensor_pin, &format!("{what} sensor_pin"))?;
                     cmds.push(dict.encode("config_analog_in", &[oid, pin])?);
                 }
+                // Configured with their readers.
+                ThermalObject::HeaterSpi(_) | ThermalObject::SensorSpi(_) => {}
                 ThermalObject::MultiPwm(k, j) => {
                     let (cycle, max_duration, what) = self.multi_pwm_settings(k)?;
                     pwm(&self.multi_outputs[k].1[j], &what, cycle, max_duration)?;
@@ -875,6 +953,12 @@ impl Thermal {
                 }
                 ThermalObject::SensorAdc(i) => {
                     let s = &self.sensors[i];
+                    if let Some(spi) = &s.spi {
+                        let spi_oid = oid_of(&objects, oid0, ThermalObject::SensorSpi(i));
+                        let what = format!("[temperature_sensor {}]", s.name);
+                        cmds.extend(spi_reader_commands(dict, clock_freq, oid, spi_oid, spi, &what)?);
+                        continue;
+                    }
                     let mcu_type = dict.config_str("MCU").unwrap_or_default();
                     s.sensor_on(&mcu_type).map_err(|source| ObjectsError::McuSensor {
                         section: s.name.clone(),
@@ -928,6 +1012,52 @@ impl Thermal {
     }
 }
 
+/// The oid of `obj` in `objects` (numbered from `oid0`).
+fn oid_of(objects: &[ThermalObject], oid0: usize, obj: ThermalObject) -> i64 {
+    (oid0 + objects.iter().position(|&o| o == obj).unwrap_or(0)) as i64
+}
+
+/// An SPI temperature chip's commands: its SPI device `spi_oid` (chip select `sensor_pin`,
+/// the chip's SPI mode, its start-up configuration written with `spi_send`), then its reader
+/// `oid` (`config_thermocouple`). `what` names the section in errors.
+fn spi_reader_commands(
+    dict: &Dictionary,
+    clock_freq: f64,
+    oid: i64,
+    spi_oid: i64,
+    spi: &SpiSensorSection,
+    what: &str,
+) -> Result<Vec<Cmd>, ObjectsError> {
+    for needed in ["config_spi", "config_thermocouple"] {
+        if dict.command(needed).is_err() {
+            return Err(ObjectsError::MissingCommand(needed));
+        }
+    }
+    let pin = |p: &PinRef, option: &str| pin_number(dict, p, &format!("{what} {option}"));
+    let software = match &spi.bus.software {
+        Some([sclk, mosi, miso]) => Some((
+            pin(miso, "spi_software_miso_pin")?,
+            pin(mosi, "spi_software_mosi_pin")?,
+            pin(sclk, "spi_software_sclk_pin")?,
+        )),
+        None => None,
+    };
+    let pins = crate::spi_device::SpiPins {
+        cs: pin(&spi.bus.cs_pin, "sensor_pin")?,
+        software,
+    };
+    let mode = i64::from(spi.chip.spi_mode());
+    let mut cmds =
+        crate::spi_device::config_commands(dict, clock_freq, spi_oid, pins, mode, spi.bus.speed)?.to_vec();
+    if let Some(bytes) = super::spi_sensor::init_bytes(spi) {
+        use links::proto::format::Value;
+        cmds.push(dict.encode_values("spi_send", &[Value::Int(spi_oid), Value::Bytes(&bytes)])?);
+    }
+    let chip = dict.enumeration("thermocouple_type", spi.chip.name())?;
+    cmds.push(dict.encode("config_thermocouple", &[oid, spi_oid, chip])?);
+    Ok(cmds)
+}
+
 /// The MCU's number for `p` (`what` names the option in the error).
 fn pin_number(dict: &Dictionary, p: &PinRef, what: &str) -> Result<i64, crate::hardware::PinError> {
     dict.pin(&p.pin)
@@ -978,6 +1108,24 @@ fn sensor_curve_args(pin: &PinRef, sensor: &Sensor) -> Vec<String> {
         ],
         Err(_) => Vec::new(),
     }
+}
+
+/// The simulated heater's sensor pin when its sensor is on another MCU: a pin number no
+/// configured object uses.
+const NO_PIN: &str = "255";
+
+/// `--spi-sensor CS_PIN=CHIP,RTD_NOMINAL,RTD_REFERENCE`: the simulated chip behind `spi`.
+fn spi_sensor_args(spi: &SpiSensorSection) -> [String; 2] {
+    [
+        "--spi-sensor".to_string(),
+        format!(
+            "{}={},{},{}",
+            spi.bus.cs_pin.pin,
+            spi.chip.name(),
+            spi.rtd_nominal_r,
+            spi.rtd_reference_r
+        ),
+    ]
 }
 
 /// `query_analog_in`'s range check of a sensor: the sums of [`SAMPLE_COUNT`] readings (of an

@@ -27,6 +27,7 @@ use super::objects::{
     adc_range, FanRole, MultiOutput, Thermal, ThermalObject, RANGE_CHECK_COUNT, REPORT_TIME, SAMPLE_COUNT,
     SAMPLE_TIME,
 };
+use super::spi_sensor::SpiReader;
 use super::tachometer::Tachometer;
 use super::verify::{VerifyHeater, CHECK_INTERVAL_S};
 use crate::mcus::Mcus;
@@ -138,6 +139,8 @@ pub struct HeaterShared {
     /// The PID_CALIBRATE in progress, if any.
     pub calibration: Mutex<Option<Calibration>>,
     fault: Mutex<Option<String>>,
+    /// The latest SPI temperature chip fault (see [`HeaterShared::chip_fault`]).
+    chip_fault: Mutex<Option<String>>,
     faulted: AtomicBool,
     /// Ends the heater thread (every heater off first).
     pub stop: AtomicBool,
@@ -207,6 +210,7 @@ impl HeaterShared {
             motors_on: AtomicBool::new(false),
             calibration: Mutex::new(None),
             fault: Mutex::new(None),
+            chip_fault: Mutex::new(None),
             faulted: AtomicBool::new(false),
             stop: AtomicBool::new(false),
         }
@@ -218,6 +222,17 @@ impl HeaterShared {
             return None;
         }
         self.fault.lock().ok().and_then(|f| f.clone())
+    }
+
+    /// The latest fault an SPI temperature chip reported (its fault bits' meaning), if any.
+    pub fn chip_fault(&self) -> Option<String> {
+        self.chip_fault.lock().ok().and_then(|f| f.clone())
+    }
+
+    fn note_chip_fault(&self, why: String) {
+        if let Ok(mut f) = self.chip_fault.lock() {
+            *f = Some(why);
+        }
     }
 
     fn set_fault(&self, why: String) {
@@ -350,6 +365,8 @@ struct Running {
     extra: Vec<(u8, bool)>,
     link_index: usize,
     pwm_oid: u8,
+    /// The MCU (index in the list) and oid of its sensor.
+    adc_link: usize,
     adc_oid: u8,
     cycle_ticks: f64,
     invert: bool,
@@ -366,6 +383,8 @@ struct Running {
     sensor: super::thermistor::Sensor,
     /// PID_CALIBRATE's relay in place of the control while it runs.
     relay: Option<Relay>,
+    /// An SPI temperature chip read in place of the ADC.
+    spi: Option<SpiReader>,
     /// On a time-scaled simulated MCU: the reading as it would be without the update's lead,
     /// and the sum and count of the powers decided since the last update (it sends their mean).
     smith: Option<SmithPredictor>,
@@ -406,6 +425,8 @@ struct RunningSensor {
     full_scale: f64,
     sensor: super::thermistor::Sensor,
     last_count: u16,
+    /// An SPI temperature chip read in place of the ADC.
+    spi: Option<SpiReader>,
 }
 
 /// Seconds of wall time a PWM update is sent ahead of its clock at least (and 0.1 s of MCU
@@ -430,6 +451,9 @@ pub enum HeaterLoopError {
     /// `temperature_mcu` on an MCU it cannot be calibrated for.
     #[error(transparent)]
     McuSensor(#[from] super::mcu_sensor::McuSensorError),
+    /// An SPI temperature chip's reports could not be started.
+    #[error(transparent)]
+    SpiSensor(#[from] super::spi_sensor::SpiQueryError),
 }
 
 /// Runs the heater loop until `shared.stop` (then every heater off) or an MCU shutdown. Errors
@@ -443,6 +467,9 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
     let mut sensors = Vec::new();
     let mut scaled: Vec<Option<ScaledRefs>> = thermal.scaled.iter().map(|_| None).collect();
     let mut tachs = Vec::new();
+    // Heater sensors: (heater, link, oid, first report clock), started once every heater's
+    // state exists (a sensor's MCU may come before its heater's).
+    let mut sensor_starts: Vec<(usize, usize, u8, f64)> = Vec::new();
     for (li, conn) in mcus.list.iter().enumerate() {
         let objects = thermal.objects_on(&conn.name);
         if objects.is_empty() {
@@ -460,16 +487,30 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
             let oid = u8::try_from(oid0 + k).map_err(|_| HeaterLoopError::TooManyObjects)?;
             match *obj {
                 ThermalObject::HeaterPwm(i) => {
-                    let h = &thermal.heaters[i];
-                    heaters.push((i, running_heater(thermal, i, li, oid, freq, adc_max)));
-                    let (lo, hi) = adc_range(&h.sensor, h.min_temp, h.max_temp, adc_max);
-                    query_analog(&conn.link, dict, oid + 1, start, freq, lo, hi, RANGE_CHECK_COUNT)?;
+                    heaters.push((i, running_heater(thermal, i, li, oid, freq, adc_max)))
                 }
+                ThermalObject::HeaterAdc(i) => sensor_starts.push((i, li, oid, start)),
                 ThermalObject::SensorAdc(i) => {
                     let s = &thermal.sensors[i];
                     let sensor = s.sensor_on(&dict.config_str("MCU").unwrap_or_default())?;
-                    let (lo, hi) = adc_range(&sensor, s.min_temp.max(-273.0), s.max_temp.min(1e4), adc_max);
-                    query_analog(&conn.link, dict, oid, start, freq, lo, hi, 0)?;
+                    let range = (s.min_temp.max(-273.0), s.max_temp.min(1e4));
+                    let spi = match &s.spi {
+                        Some(spi) => Some(SpiReader::start(
+                            &conn.link,
+                            dict,
+                            spi,
+                            oid,
+                            start,
+                            freq,
+                            REPORT_TIME,
+                            range,
+                        )?),
+                        None => {
+                            let (lo, hi) = adc_range(&sensor, range.0, range.1, adc_max);
+                            query_analog(&conn.link, dict, oid, start, freq, lo, hi, 0)?;
+                            None
+                        }
+                    };
                     sensors.push((
                         i,
                         RunningSensor {
@@ -479,11 +520,13 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
                             full_scale: adc_max * f64::from(SAMPLE_COUNT),
                             sensor,
                             last_count: 0,
+                            spi,
                         },
                     ));
                 }
+                // Read through their readers (`HeaterAdc`, `SensorAdc`).
+                ThermalObject::HeaterSpi(_) | ThermalObject::SensorSpi(_) => {}
                 ThermalObject::Fan(i) => fans.push((i, running_fan(thermal, i, li, oid, dict, freq)?)),
-                ThermalObject::HeaterAdc(_) => {}
                 ThermalObject::MultiPwm(k, j) => {
                     let (output, pins) = &thermal.multi_outputs[k];
                     let invert = pins.get(j).is_some_and(|p| p.invert);
@@ -521,6 +564,11 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
             }
         }
     }
+    for (i, li, oid, start) in sensor_starts {
+        if let Some((_, r)) = heaters.iter_mut().find(|(h, _)| *h == i) {
+            start_heater_sensor(&mcus.list[li], &thermal.heaters[i], r, li, oid, start)?;
+        }
+    }
     let mut outputs = Outputs {
         fans: &mut fans,
         scaled: &mut scaled,
@@ -531,14 +579,16 @@ pub fn run(mcus: &Mcus, thermal: &Thermal, shared: &HeaterShared) -> Result<(), 
     result
 }
 
-/// Heater `i`'s running state: its PWM output `oid` (its ADC the next oid) on link `li`.
+/// Heater `i`'s running state: its PWM output `oid` on link `li`; its sensor (set by the
+/// loop's start from the sensor's own MCU, see [`start_heater_sensor`]).
 fn running_heater(thermal: &Thermal, i: usize, li: usize, oid: u8, freq: f64, adc_max: f64) -> Running {
     let h = &thermal.heaters[i];
     Running {
         extra: Vec::new(),
         link_index: li,
         pwm_oid: oid,
-        adc_oid: oid + 1,
+        adc_link: li,
+        adc_oid: oid,
         cycle_ticks: h.pwm_cycle_time * freq,
         invert: h.heater_pin.invert,
         max_power: h.max_power,
@@ -551,9 +601,49 @@ fn running_heater(thermal: &Thermal, i: usize, li: usize, oid: u8, freq: f64, ad
         full_scale: adc_max * f64::from(SAMPLE_COUNT),
         sensor: h.sensor,
         relay: None,
+        spi: None,
         smith: (thermal.sim_time_scale > 1.0).then(|| SmithPredictor::new(h.sim.model())),
         decided: (0.0, 0.0),
     }
+}
+
+/// Starts heater `h`'s sensor reports (its ADC or SPI chip `oid` on `conn`, link `li`, from
+/// clock `start`), the MCU's range check guarding `min_temp`..`max_temp` (it shuts itself
+/// down outside).
+fn start_heater_sensor(
+    conn: &crate::mcus::McuConn,
+    h: &super::objects::HeaterOut,
+    r: &mut Running,
+    li: usize,
+    oid: u8,
+    start: f64,
+) -> Result<(), HeaterLoopError> {
+    let dict = conn.link.dictionary();
+    let freq = conn.clock_freq;
+    let adc_max = dict.config_f64("ADC_MAX").unwrap_or(4095.0);
+    r.adc_link = li;
+    r.adc_oid = oid;
+    r.full_scale = adc_max * f64::from(SAMPLE_COUNT);
+    match &h.spi {
+        Some(spi) => {
+            let range = (h.min_temp, h.max_temp);
+            r.spi = Some(SpiReader::start(
+                &conn.link,
+                dict,
+                spi,
+                oid,
+                start,
+                freq,
+                REPORT_TIME,
+                range,
+            )?);
+        }
+        None => {
+            let (lo, hi) = adc_range(&h.sensor, h.min_temp, h.max_temp, adc_max);
+            query_analog(&conn.link, dict, oid, start, freq, lo, hi, RANGE_CHECK_COUNT)?;
+        }
+    }
+    Ok(())
 }
 
 /// Fan `i`'s running state: its output `oid` on link `li`.
@@ -879,6 +969,59 @@ fn fraction(value: u16, full_scale: f64, scale: Option<Option<&ScaledRefs>>) -> 
     }
 }
 
+/// A heater's sensor clock and output clock: the same MCU's, or two MCUs' mapped through
+/// system time (each link's clock estimate).
+struct CrossClock {
+    same: bool,
+    sensor: links::clocksync::ClockEstimate,
+    output: links::clocksync::ClockEstimate,
+}
+
+impl CrossClock {
+    fn new(same: bool, sensor: &crate::mcus::McuConn, output: &crate::mcus::McuConn) -> CrossClock {
+        CrossClock {
+            same,
+            sensor: sensor.link.clock(),
+            output: output.link.clock(),
+        }
+    }
+
+    /// The output MCU's clock at sensor MCU clock `c`.
+    fn to_output(&self, c: f64) -> f64 {
+        match self.same {
+            true => c,
+            false => self.output.clock_at(self.sensor.system_time_at(c)),
+        }
+    }
+
+    /// The sensor MCU's clock at output MCU clock `c`.
+    fn to_sensor(&self, c: f64) -> f64 {
+        match self.same {
+            true => c,
+            false => self.sensor.clock_at(self.output.system_time_at(c)),
+        }
+    }
+}
+
+/// Analog input `oid`'s newest report not seen yet (`last_count` the one seen before):
+/// `(next_clock, °C)` through `sensor`, rescaled by its `[adc_scaled]` chip if it has one.
+fn adc_reading(
+    link: &McuLink,
+    oid: u8,
+    last_count: &mut u16,
+    full_scale: f64,
+    sensor: &super::thermistor::Sensor,
+    scale: Option<Option<&ScaledRefs>>,
+) -> Option<(u32, f64)> {
+    let (count, next_clock, value) = link.analog_report(oid)?;
+    if count == *last_count {
+        return None;
+    }
+    *last_count = count;
+    let adc = fraction(value, full_scale, scale)?;
+    Some((next_clock, sensor.temperature(adc)))
+}
+
 /// Heater `i`'s new reading, if any: temperature, control output, verify_heater's check and
 /// the PWM update. False once the check shut the printer down.
 fn update_heater(
@@ -891,31 +1034,36 @@ fn update_heater(
     scale: Option<Option<&ScaledRefs>>,
 ) -> bool {
     let conn = &mcus.list[r.link_index];
-    let Some((count, next_clock, value)) = conn.link.analog_report(r.adc_oid) else {
+    // The sensor may be on another MCU than the heater's output: its readings are in its
+    // own clock, converted through system time to the output's.
+    let sensor_conn = &mcus.list[r.adc_link];
+    let reading = match r.spi.as_mut() {
+        Some(spi) => spi.poll(&sensor_conn.link, |f| shared.note_chip_fault(f)),
+        None => adc_reading(
+            &sensor_conn.link,
+            r.adc_oid,
+            &mut r.last_count,
+            r.full_scale,
+            &r.sensor,
+            scale,
+        ),
+    };
+    let Some((next_clock, temp)) = reading else {
         return true;
     };
-    if count == r.last_count {
-        return true;
-    }
-    r.last_count = count;
-    let est = conn.link.clock();
-    let freq = conn.clock_freq;
-    let read_clock = est
+    let sensor_est = sensor_conn.link.clock();
+    let sensor_freq = sensor_conn.clock_freq;
+    let read_clock = sensor_est
         .extend(next_clock, now_sys)
-        .saturating_sub((REPORT_TIME * freq) as u64);
-    let time = read_clock as f64 / freq;
-    let Some(adc) = fraction(value, r.full_scale, scale) else {
-        return true;
-    };
-    let temp = r.sensor.temperature(adc);
+        .saturating_sub((REPORT_TIME * sensor_freq) as u64);
+    let time = read_clock as f64 / sensor_freq;
     let cell = &shared.heaters[i];
     let target = cell.target.get();
     let smoothed = r.smooth.update(time, temp);
-    let at = ((read_clock as f64 + REPORT_TIME * freq) as u64).max(lead_clock(
-        &conn.link,
-        freq,
-        thermal.max_heat_time(),
-    ));
+    let freq = conn.clock_freq;
+    let clocks = CrossClock::new(r.link_index == r.adc_link, sensor_conn, conn);
+    let next_read = clocks.to_output(read_clock as f64 + REPORT_TIME * sensor_freq);
+    let at = (next_read as u64).max(lead_clock(&conn.link, freq, thermal.max_heat_time()));
     let seen = r.smith.as_mut().map_or(temp, |s| s.predict(time, temp));
     let power = match r.relay.as_mut() {
         Some(relay) => relay_update(relay, shared, i, time, temp, r.max_power),
@@ -980,7 +1128,10 @@ fn update_heater(
             return true;
         }
         if let Some(s) = r.smith.as_mut() {
-            s.sent(f64::from(on) / r.cycle_ticks, at as f64 / freq);
+            s.sent(
+                f64::from(on) / r.cycle_ticks,
+                clocks.to_sensor(at as f64) / sensor_freq,
+            );
             r.decided = (0.0, 0.0);
         }
         r.last_sent = Some((at, on));
@@ -998,13 +1149,20 @@ fn update_sensor(
     scale: Option<Option<&ScaledRefs>>,
 ) {
     let conn = &mcus.list[r.link_index];
-    let Some((count, next_clock, value)) = conn.link.analog_report(r.oid) else {
+    let reading = match r.spi.as_mut() {
+        Some(spi) => spi.poll(&conn.link, |f| shared.note_chip_fault(f)),
+        None => adc_reading(
+            &conn.link,
+            r.oid,
+            &mut r.last_count,
+            r.full_scale,
+            &r.sensor,
+            scale,
+        ),
+    };
+    let Some((next_clock, temp)) = reading else {
         return;
     };
-    if count == r.last_count {
-        return;
-    }
-    r.last_count = count;
     let freq = conn.clock_freq;
     let read_clock = conn
         .link
@@ -1012,10 +1170,6 @@ fn update_sensor(
         .extend(next_clock, now_sys)
         .saturating_sub((REPORT_TIME * freq) as u64);
     let time = read_clock as f64 / freq;
-    let Some(adc) = fraction(value, r.full_scale, scale) else {
-        return;
-    };
-    let temp = r.sensor.temperature(adc);
     let smoothed = r.smooth.update(time, temp);
     let cell = &shared.sensors[i];
     cell.temp.set(smoothed);

@@ -346,6 +346,8 @@ mod tests {
             samples_tolerance: 0.1,
             samples_tolerance_retries: 0,
             z_position: None,
+            activate_gcode: None,
+            deactivate_gcode: None,
         }
     }
 

@@ -20,6 +20,47 @@ use sysconfig::printer::{HomingOverrideSection, SafeZHomeSection};
 pub struct HomingProcedure {
     pub safe_z_home: Option<SafeZHomeSection>,
     pub homing_override: Option<HomingOverrideSection>,
+    /// `[probe] activate_gcode` / `deactivate_gcode` around each probing session.
+    pub probe_scripts: ProbeScripts,
+}
+
+/// The commands that probe (each one probing session): a Z homing on the probe is one too.
+pub const PROBING_COMMANDS: [&str; 7] = [
+    "PROBE",
+    "PROBE_ACCURACY",
+    "PROBE_CALIBRATE",
+    "BED_MESH_CALIBRATE",
+    "Z_TILT_ADJUST",
+    "QUAD_GANTRY_LEVEL",
+    "SCREWS_TILT_CALCULATE",
+];
+
+/// `[probe]`'s scripts run around each probing session (Klipper's `activate_gcode` before
+/// the probe is used, `deactivate_gcode` after), as the macros
+/// [`sysconfig::printer::PROBE_ACTIVATE_MACRO`] and
+/// [`sysconfig::printer::PROBE_DEACTIVATE_MACRO`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ProbeScripts {
+    /// There is an `activate_gcode`.
+    pub activate: bool,
+    /// There is a `deactivate_gcode`.
+    pub deactivate: bool,
+    /// Z homes on the probe (`probe:z_virtual_endstop`): a G28 of Z is a probing session.
+    pub z_on_probe: bool,
+}
+
+impl ProbeScripts {
+    /// Whether a command `name` (a G28 of `home` when it is one) is a probing session that
+    /// has a script to run.
+    pub fn around(&self, name: &str, home: Option<[bool; 3]>) -> bool {
+        if !(self.activate || self.deactivate) {
+            return false;
+        }
+        match home {
+            Some(axes) => self.z_on_probe && (axes[2] || axes == [false; 3]),
+            None => PROBING_COMMANDS.contains(&name),
+        }
+    }
 }
 
 /// Why the procedure itself refused to go on.
@@ -206,6 +247,7 @@ mod tests {
                 move_to_previous,
             }),
             homing_override: None,
+            probe_scripts: ProbeScripts::default(),
         }
     }
 
@@ -269,6 +311,25 @@ mod tests {
     }
 
     #[test]
+    fn probing_sessions_are_the_probing_commands_and_a_z_homing_on_the_probe() {
+        let s = ProbeScripts {
+            activate: true,
+            deactivate: false,
+            z_on_probe: true,
+        };
+        assert!(s.around("PROBE", None) && s.around("BED_MESH_CALIBRATE", None));
+        assert!(!s.around("QUERY_PROBE", None) && !s.around("BED_MESH_PROFILE", None));
+        assert!(s.around("G28", Some([false; 3])) && s.around("G28", Some([false, false, true])));
+        assert!(!s.around("G28", Some([true, true, false])));
+        let off_probe = ProbeScripts {
+            z_on_probe: false,
+            ..s
+        };
+        assert!(!off_probe.around("G28", Some([false; 3])));
+        assert!(!ProbeScripts::default().around("PROBE", None));
+    }
+
+    #[test]
     fn homing_override_runs_its_script_for_its_axes_only() {
         let p = HomingProcedure {
             safe_z_home: None,
@@ -284,6 +345,7 @@ mod tests {
                     at: "printer.cfg:1".into(),
                 },
             }),
+            probe_scripts: ProbeScripts::default(),
         };
         let mut r = Recorder {
             pos: [1.0, 2.0, 3.0, 0.0],

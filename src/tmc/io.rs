@@ -23,7 +23,7 @@ use std::time::Duration;
 use links::mcu::McuLink;
 use links::proto::format::Value;
 use links::proto::tmc as wire;
-use sysconfig::printer::TmcBus;
+use sysconfig::printer::{TmcBus, TmcModel};
 
 use super::{TmcError, TmcOut};
 
@@ -69,6 +69,13 @@ pub struct TmcIo<'a> {
     /// Behind an analog mux (`select_pins`): each select output's oid and the level that
     /// selects this driver, set before each transfer.
     pub mux: Vec<(u8, bool)>,
+}
+
+/// A TMC2660 datagram: register selector `addr` (datagram bits 19..16) and `value`, in the
+/// 3 bytes SPI clocks out.
+fn datagram_2660(addr: u8, value: u32) -> [u8; 3] {
+    let w = (u32::from(addr) << 16) | (value & 0x1_ffff);
+    [(w >> 16) as u8, (w >> 8) as u8, w as u8]
 }
 
 impl TmcIo<'_> {
@@ -123,6 +130,9 @@ impl TmcIo<'_> {
 
     /// Reads register `reg`.
     pub fn read(&self, reg: &str) -> Result<u32, TmcError> {
+        if self.drv.cfg.model == TmcModel::Tmc2660 {
+            return self.read_2660(reg);
+        }
         let addr = self.addr(reg)?;
         let oid = Value::Int(i64::from(self.oid));
         for _ in 0..TRIES {
@@ -164,9 +174,14 @@ impl TmcIo<'_> {
         })
     }
 
-    /// Writes `value` to register `reg` and checks that the driver took it.
+    /// Writes `value` to register `reg` and checks that the driver took it (a TMC2660 answers
+    /// with its status, not an echo: its writes are sent once, as Klipper sends them).
     pub fn write(&self, reg: &str, value: u32) -> Result<(), TmcError> {
         let addr = self.addr(reg)?;
+        if self.drv.cfg.model == TmcModel::Tmc2660 {
+            let oid = Value::Int(i64::from(self.oid));
+            return self.send("spi_send", &[oid, Value::Bytes(&datagram_2660(addr, value))]);
+        }
         let oid = Value::Int(i64::from(self.oid));
         match &self.drv.cfg.bus {
             TmcBus::Uart { address, .. } => {
@@ -210,6 +225,42 @@ impl TmcIo<'_> {
                 }
                 Err(self.write_failed("spi", reg))
             }
+        }
+    }
+
+    /// A TMC2660 status answer `READRSP@RDSELn`: DRVCONF's `rdsel` set to `n` (sent first
+    /// when it changes), then DRVCONF sent again, whose answer is that status (24 bits: the 20
+    /// status bits then 4 more).
+    fn read_2660(&self, reg: &str) -> Result<u32, TmcError> {
+        let n = TmcModel::Tmc2660
+            .readable()
+            .iter()
+            .position(|r| *r == reg)
+            .ok_or_else(|| TmcError::UnknownRegister { reg: reg.to_string() })?;
+        let drvconf = self.addr("DRVCONF")?;
+        let (changed, value) = {
+            let mut st = self.drv.lock();
+            let old = st.fields.get("rdsel");
+            let set = st.fields.set("rdsel", n as i64);
+            (old != Some(n as i64), set.map_or(0, |(_, v)| v))
+        };
+        let msg = datagram_2660(drvconf, value);
+        let oid = Value::Int(i64::from(self.oid));
+        if changed {
+            self.send("spi_send", &[oid, Value::Bytes(&msg)])?;
+        }
+        let r = self.query(
+            "spi_transfer",
+            &[oid, Value::Bytes(&msg)],
+            "spi_transfer_response",
+        )?;
+        match r.bytes("response") {
+            Some(&[a, b, c]) => Ok(u32::from_be_bytes([0, a, b, c])),
+            _ => Err(TmcError::Read {
+                bus: self.bus(),
+                stepper: self.stepper().to_string(),
+                reg: reg.to_string(),
+            }),
         }
     }
 

@@ -21,7 +21,7 @@ use std::sync::{Arc, Mutex};
 
 use links::dict::{Cmd, Dictionary};
 use sysconfig::printer::tmc::FieldSet;
-use sysconfig::printer::{PrinterConfig, TmcBus, TmcSection};
+use sysconfig::printer::{PrinterConfig, TmcBus, TmcModel, TmcSection};
 
 /// Klipper's TMC UART bit rate (bits per second).
 pub const TMC_BAUD_RATE: f64 = 40_000.0;
@@ -207,24 +207,26 @@ pub fn config_commands(
                 software,
                 ..
             } => {
-                cmds.push(dict.encode("config_spi", &[oid, pin(cs_pin, "cs_pin")?, 0])?);
-                match software {
-                    Some([sclk, mosi, miso]) => {
-                        let pulse_ticks = (clock_freq / (2.0 * f64::from(*speed))).ceil() as i64;
-                        let args = [
-                            oid,
-                            pin(miso, "spi_software_miso_pin")?,
-                            pin(mosi, "spi_software_mosi_pin")?,
-                            pin(sclk, "spi_software_sclk_pin")?,
-                            SPI_MODE,
-                            pulse_ticks,
-                        ];
-                        cmds.push(dict.encode("spi_set_sw_bus", &args)?);
-                    }
-                    // The MCU's first hardware bus (a named `spi_bus` is the board's wiring;
-                    // the simulated MCU has one bus).
-                    None => cmds.push(dict.encode("spi_set_bus", &[oid, 0, SPI_MODE, i64::from(*speed)])?),
-                }
+                let software = match software {
+                    Some([sclk, mosi, miso]) => Some((
+                        pin(miso, "spi_software_miso_pin")?,
+                        pin(mosi, "spi_software_mosi_pin")?,
+                        pin(sclk, "spi_software_sclk_pin")?,
+                    )),
+                    None => None,
+                };
+                let pins = crate::spi_device::SpiPins {
+                    cs: pin(cs_pin, "cs_pin")?,
+                    software,
+                };
+                // The TMC2660 takes SPI mode 0, the others mode 3.
+                let mode = match d.cfg.model {
+                    TmcModel::Tmc2660 => 0,
+                    _ => SPI_MODE,
+                };
+                cmds.extend(crate::spi_device::config_commands(
+                    dict, clock_freq, oid, pins, mode, *speed,
+                )?);
             }
         }
     }

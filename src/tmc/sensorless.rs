@@ -2,8 +2,10 @@
 //! `virtual_endstop`, the driver is switched to report stalls on its DIAG pin, then restored.
 //!
 //! As Klipper does it: stallGuard4 drivers (TMC2209) need stealthChop (`TPWMTHRS` 0,
-//! `en_spreadcycle` 0); stallGuard2 drivers (TMC2130/5160) need spreadCycle (`en_pwm_mode` 0)
-//! and the stall routed to the pin (`diag0_stall`/`diag1_stall` 1); every driver gets
+//! `en_spreadcycle` 0); stallGuard2 drivers (TMC2130/5160, a TMC2240 without `sg4_thrs`) need
+//! spreadCycle (`en_pwm_mode` 0) and the stall routed to the pin (`diag0_stall`/`diag1_stall`
+//! 1); a TMC2240 with `sg4_thrs` set uses stallGuard4 in stealthChop (`en_pwm_mode` 1,
+//! `TPWMTHRS` 0) with the stall routed; every driver gets
 //! `TCOOLTHRS` 0xfffff when it was 0 (stall detection at every speed) and `THIGH` 0. Each
 //! changed register is written before the first homing move; afterwards the fields get their
 //! earlier values back and their registers are written again, also when homing failed.
@@ -25,8 +27,15 @@ pub fn begin(io: &TmcIo<'_>) -> Result<Saved, TmcError> {
         let mut st = io.drv.lock();
         let model = io.drv.cfg.model;
         let mut changes: Vec<(&'static str, i64)> = Vec::new();
+        let sg4 = st.fields.get("sg4_thrs").unwrap_or(0) != 0;
         if model.field("en_pwm_mode").is_none() {
             changes.extend([("tpwmthrs", 0), ("en_spreadcycle", 0)]);
+        } else if sg4 {
+            // A TMC2240 with `driver_SG4_THRS`: stallGuard4, in stealthChop.
+            changes.extend([("en_pwm_mode", 1), ("tpwmthrs", 0)]);
+            if let Some(f) = io.drv.cfg.diag_field {
+                changes.push((f, 1));
+            }
         } else {
             changes.push(("en_pwm_mode", 0));
             if let Some(f) = io.drv.cfg.diag_field {

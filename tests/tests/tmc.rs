@@ -276,3 +276,98 @@ fn drivers_on_an_spi_daisy_chain_keep_their_own_registers() {
         "{chop:?}"
     );
 }
+
+/// X on a TMC2240 (SPI, `rref`, DIAG0 open drain) homed sensorlessly with stallGuard4
+/// (`driver_SG4_THRS`, stealthChop): the host turns the stall routing on around the homing; its
+/// current bits are the datasheet's for `rref`, and `DUMP_TMC` reads them back.
+#[test]
+fn a_tmc2240_homes_x_sensorlessly_and_reads_back_its_current() {
+    let dir = scratch("tmc2240");
+    let cfg = config(&dir, |t| {
+        t.replace(
+            "tmc2209_stepper_x:virtual_endstop",
+            "tmc2240_stepper_x:virtual_endstop",
+        )
+        .replace(
+            "[tmc2209 stepper_x]\nuart_pin: PE6\nuart_address: 0\nrun_current: 0.8\nhold_current: 0.5\n\
+             stealthchop_threshold: 999999\ndiag_pin: ^PE7\ndriver_SGTHRS: 100\n",
+            "[tmc2240 stepper_x]\ncs_pin: PE14\nspi_software_sclk_pin: PE10\nspi_software_mosi_pin: PE11\n\
+             spi_software_miso_pin: PE12\nrref: 12000\nrun_current: 0.8\nhold_current: 0.5\n\
+             stealthchop_threshold: 999999\ndiag0_pin: ^!PE7\ndriver_SG4_THRS: 20\n",
+        )
+    });
+    let text = std::fs::read_to_string(&cfg).expect("config");
+    assert!(
+        text.contains("[tmc2240 stepper_x]"),
+        "the example's X driver changed"
+    );
+    let (r, _) = home(&dir, &cfg, "x");
+    assert_success(&r);
+    let out = format!("{}{}", r.stdout, r.stderr);
+    assert!(out.contains("homed position: x=0.000000"), "{out}");
+    let bounds = stop_bounds(&out, 'x');
+    assert!(
+        bounds
+            .iter()
+            .all(|&(first, last)| first <= last && last <= BUDGET_US),
+        "{out}"
+    );
+    let g = dir.join("dump.gcode");
+    std::fs::write(
+        &g,
+        "DUMP_TMC STEPPER=stepper_x REGISTER=GLOBALSCALER\nDUMP_TMC STEPPER=stepper_x REGISTER=IHOLD_IRUN\n\
+         DUMP_TMC STEPPER=stepper_x REGISTER=DRV_CONF\n",
+    )
+    .expect("gcode");
+    let r = print(&g, &cfg);
+    assert_success(&r);
+    // rref 12 kΩ, range 0 (0.69 A RMS full scale)… 0.8 A needs range 1: Ifs = 24000 / 12000 /
+    // √2 = 1.414 A; G = ⌊0.8 · 256 / 1.414 + ½⌋ = 145; IRUN = 31, IHOLD = ⌊0.5 · 8192 /
+    // (145 · 1.414) − ½⌋ = 19.
+    let out = &r.stdout;
+    assert!(out.contains("globalscaler=145"), "{out}");
+    assert!(out.contains("irun=31") && out.contains("ihold=19"), "{out}");
+    assert!(out.contains("current_range=1"), "{out}");
+}
+
+/// Z on a TMC2660 (20-bit datagrams, SPI mode 0, one current in SGCSCONF's CS with `vsense`):
+/// its settings are written at start, `DUMP_TMC` shows them as written and reads the status
+/// answers (DRVCONF's `rdsel` chosen first), whose coolStep current `se` is the CS written;
+/// SET_TMC_CURRENT changes it.
+#[test]
+fn a_tmc2660_is_configured_and_answers_its_status() {
+    let dir = scratch("tmc2660");
+    let cfg = config(&dir, |t| {
+        t.replace(
+            "[tmc2130 stepper_z]\ncs_pin: PE9\n",
+            "[tmc2660 stepper_z]\ncs_pin: PE9\nsense_resistor: 0.051\nidle_current_percent: 20\n",
+        )
+        .replace(
+            "run_current: 0.6\ninterpolate: True\n",
+            "run_current: 1.0\ninterpolate: True\n",
+        )
+    });
+    let text = std::fs::read_to_string(&cfg).expect("config");
+    assert!(
+        text.contains("[tmc2660 stepper_z]") && text.contains("run_current: 1.0"),
+        "{text}"
+    );
+    let g = dir.join("dump.gcode");
+    std::fs::write(
+        &g,
+        "DUMP_TMC STEPPER=stepper_z\nSET_TMC_CURRENT STEPPER=stepper_z CURRENT=0.5\n\
+         DUMP_TMC STEPPER=stepper_z REGISTER=READRSP@RDSEL2\n",
+    )
+    .expect("gcode");
+    let r = print(&g, &cfg);
+    assert_success(&r);
+    let out = &r.stdout;
+    // 1.0 A through 0.051 Ω: CS = ⌊32 · 0.051 · 1.0 · √2 / 0.165 + ½⌋ − 1 = 13 with vsense.
+    assert!(out.contains("cs=13"), "{out}");
+    assert!(out.contains("vsense=1"), "{out}");
+    let se: Vec<&str> = out.lines().filter(|l| l.contains("READRSP@RDSEL2:")).collect();
+    assert_eq!(se.len(), 2, "{out}");
+    assert!(se[0].contains("se=13"), "{se:?}");
+    // 0.5 A: CS 6.
+    assert!(se[1].contains("se=6"), "{se:?}");
+}

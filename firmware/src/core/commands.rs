@@ -95,6 +95,10 @@ pub enum Cmd {
     ConfigCounter,
     /// `query_counter`.
     QueryCounter,
+    /// `config_thermocouple`.
+    ConfigThermocouple,
+    /// `query_thermocouple`.
+    QueryThermocouple,
 }
 
 /// Whether a table entry is a command or a response.
@@ -163,6 +167,9 @@ pub const FMT_SPI_TRANSFER_RESPONSE: &str = "spi_transfer_response oid=%c respon
 /// `counter_state` response: a pulse counter's count, the clock of its last change and the
 /// clock of its next poll.
 pub const FMT_COUNTER_STATE: &str = "counter_state oid=%c next_clock=%u count=%u count_clock=%u";
+
+/// `thermocouple_result` response: an SPI temperature chip's raw reading and fault bits.
+pub const FMT_THERMOCOUPLE_RESULT: &str = "thermocouple_result oid=%c next_clock=%u value=%u fault=%c";
 
 /// Every message the firmware knows; the index is the message id.
 pub const MESSAGES: &[MessageDef] = &[
@@ -298,6 +305,18 @@ pub const MESSAGES: &[MessageDef] = &[
         false,
     ),
     resp(FMT_COUNTER_STATE),
+    cmd(
+        "config_thermocouple oid=%c spi_oid=%c thermocouple_type=%c",
+        Cmd::ConfigThermocouple,
+        false,
+    ),
+    cmd(
+        "query_thermocouple oid=%c clock=%u rest_ticks=%u min_value=%u max_value=%u \
+         max_invalid_count=%c",
+        Cmd::QueryThermocouple,
+        false,
+    ),
+    resp(FMT_THERMOCOUPLE_RESULT),
 ];
 
 /// Most parameters of any message in the table (checked by a test).
@@ -359,6 +378,8 @@ pub const ID_TMCUART_RESPONSE: u32 = message_id(FMT_TMCUART_RESPONSE);
 pub const ID_SPI_TRANSFER_RESPONSE: u32 = message_id(FMT_SPI_TRANSFER_RESPONSE);
 /// Id of `counter_state`.
 pub const ID_COUNTER_STATE: u32 = message_id(FMT_COUNTER_STATE);
+/// Id of `thermocouple_result`.
+pub const ID_THERMOCOUPLE_RESULT: u32 = message_id(FMT_THERMOCOUPLE_RESULT);
 /// Id of `cadence_lateness`.
 pub const ID_CADENCE_LATENESS: u32 = message_id(FMT_CADENCE_LATENESS);
 
@@ -418,6 +439,12 @@ mod tests {
         assert!(has("spi_transfer oid=%c data=%*s"));
         assert!(has("spi_send oid=%c data=%*s"));
         assert!(has("spi_transfer_response oid=%c response=%*s"));
+        assert!(has("config_thermocouple oid=%c spi_oid=%c thermocouple_type=%c"));
+        assert!(has(
+            "query_thermocouple oid=%c clock=%u rest_ticks=%u min_value=%u max_value=%u \
+                     max_invalid_count=%c"
+        ));
+        assert!(has("thermocouple_result oid=%c next_clock=%u value=%u fault=%c"));
         assert!(has(
             "trsync_start oid=%c report_clock=%u report_ticks=%u expire_reason=%c"
         ));

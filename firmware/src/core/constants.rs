@@ -54,6 +54,10 @@ pub mod reason {
     pub const MISSED_PWM: &str = "Missed scheduling of next hard pwm event";
     /// A `queue_pwm_out` further than `max_duration` after the change away from the default.
     pub const PWM_EXCEEDS_MAX_DURATION: &str = "Scheduled pwm event will exceed max_duration";
+    /// An SPI temperature chip faulted or read out of range `max_invalid_count` times in a row.
+    pub const THERMOCOUPLE_FAULT: &str = "Thermocouple reader fault";
+    /// `config_thermocouple` with a chip type that is not in the enumeration.
+    pub const INVALID_THERMOCOUPLE_TYPE: &str = "Invalid thermocouple chip type";
 }
 
 /// Every shutdown reason; the index is its `static_string_id`.
@@ -81,6 +85,8 @@ pub const SHUTDOWN_REASONS: &[&str] = &[
     reason::SPI_TOO_LARGE,
     reason::MISSED_PWM,
     reason::PWM_EXCEEDS_MAX_DURATION,
+    reason::THERMOCOUPLE_FAULT,
+    reason::INVALID_THERMOCOUPLE_TYPE,
 ];
 
 /// The `static_string_id` of `reason` (0, "Unknown shutdown reason", if it is not listed).

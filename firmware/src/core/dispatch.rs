@@ -125,6 +125,8 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
             | Cmd::QueryCounter
             | Cmd::ConfigAnalogIn
             | Cmd::QueryAnalogIn
+            | Cmd::ConfigThermocouple
+            | Cmd::QueryThermocouple
             | Cmd::CadenceGetLateness => self.handle_object(cmd, args, now),
             Cmd::ConfigTmcuart
             | Cmd::TmcuartSend

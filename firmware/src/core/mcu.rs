@@ -61,6 +61,8 @@ pub(super) enum Object {
     TmcUart(super::buses::TmcUart),
     /// An SPI device (its chip select).
     Spi(super::buses::SpiDevice),
+    /// An SPI temperature chip.
+    Thermocouple(super::thermocouple::Thermocouple),
 }
 
 /// The periodic `stats` accumulator.
@@ -320,6 +322,7 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                 Object::Endstop(e) => e.halt(),
                 Object::Trsync(t) => t.halt(),
                 Object::AnalogIn(a) => a.halt(),
+                Object::Thermocouple(t) => t.halt(),
                 Object::Counter(c) => c.halt(),
                 Object::PwmOut(p) => {
                     let (pin, cycle) = (p.config().pin, p.config().cycle_ticks);

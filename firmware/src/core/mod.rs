@@ -6,6 +6,7 @@
 //! - [`endstop`], [`trsync`], [`digital_out`], [`pwm_out`], [`analog_in`], [`counter`]: the other oid objects, each a
 //!   state machine that returns what to do; `objects` wires them to commands and timers;
 //! - [`buses`]: the TMC UART lines and SPI devices (`tmcuart_send`, `spi_transfer`);
+//! - [`thermocouple`]: SPI temperature chips read periodically over an SPI device;
 //! - [`commands`] and [`constants`]: the message table and the dictionary's static data,
 //!   declared once (the dispatcher and the dictionary generator both read them);
 //! - [`link`]: block framing, sequence checks, NAK and ack, response blocks;
@@ -32,6 +33,7 @@ mod objects;
 pub mod pwm_out;
 pub mod sched;
 pub mod stepper;
+pub mod thermocouple;
 pub mod trsync;
 
 pub use board::{Board, Lateness, TriggerSource};

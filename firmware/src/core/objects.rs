@@ -20,6 +20,7 @@ use super::digital_out::{DigitalOut, DigitalOutConfig, DigitalOutError};
 use super::endstop::{Endstop, EndstopEvent, HomeParams};
 use super::mcu::{Mcu, Object};
 use super::pwm_out::{PwmOut, PwmOutConfig, PwmOutError};
+use super::thermocouple::{Chip, Thermocouple, ThermocoupleEvent, ThermocoupleQuery};
 use super::trsync::Trsync;
 use links::proto::format::Value;
 use rt_core::WireClock;
@@ -210,6 +211,30 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                 };
                 self.arm_or_disarm(oid as u8, armed);
             }
+            Cmd::ConfigThermocouple => {
+                let Some(chip) = Chip::from_number(arg(2)) else {
+                    return self.shutdown(reason::INVALID_THERMOCOUPLE_TYPE, now);
+                };
+                if !matches!(self.object(arg(1)), Some(Object::Spi(_))) {
+                    return self.shutdown(reason::INVALID_OID, now);
+                }
+                let t = Thermocouple::new(arg(1) as u8, chip);
+                self.config_object(oid, Object::Thermocouple(t), now);
+            }
+            Cmd::QueryThermocouple => {
+                let q = ThermocoupleQuery {
+                    clock: clock(1),
+                    rest_ticks: arg(2) as u32,
+                    min_value: arg(3) as u32,
+                    max_value: arg(4) as u32,
+                    max_invalid_count: arg(5) as u8,
+                };
+                let armed = match self.object(oid) {
+                    Some(Object::Thermocouple(t)) => t.query(q),
+                    _ => return self.shutdown(reason::INVALID_OID, now),
+                };
+                self.arm_or_disarm(oid as u8, armed);
+            }
             Cmd::CadenceGetLateness => {
                 let l = self.board.lateness();
                 let args = [l.count, l.p50, l.p99, l.p999, l.max].map(|v| Value::Int(v as i64));
@@ -313,6 +338,40 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                     AnalogEvent::OutOfRange => self.shutdown(reason::ADC_OUT_OF_RANGE, now),
                     AnalogEvent::Idle => {}
                 }
+            }
+            Object::Thermocouple(t) => {
+                let (chip, spi_oid) = (t.chip, t.spi_oid);
+                let Some(Object::Spi(dev)) = self.objects.get(usize::from(spi_oid)).cloned() else {
+                    return self.shutdown(reason::INVALID_OID, now);
+                };
+                let (value, fault) = chip.read(&mut self.board, dev.cs_pin);
+                let Some(Object::Thermocouple(t)) = self.objects.get_mut(oid as usize) else {
+                    return;
+                };
+                let (next_clock, value, fault, failed) = match t.event(value, fault) {
+                    ThermocoupleEvent::Report {
+                        next_clock,
+                        value,
+                        fault,
+                    } => (next_clock, value, fault, false),
+                    ThermocoupleEvent::Fault {
+                        next_clock,
+                        value,
+                        fault,
+                    } => (next_clock, value, fault, true),
+                    ThermocoupleEvent::Idle => return,
+                };
+                let args = [
+                    Value::Int(oid as i64),
+                    Value::Int(next_clock.0 as i64),
+                    Value::Int(value as i64),
+                    Value::Int(fault as i64),
+                ];
+                self.respond(ID_THERMOCOUPLE_RESULT, FMT_THERMOCOUPLE_RESULT, &args);
+                if failed {
+                    return self.shutdown(reason::THERMOCOUPLE_FAULT, now);
+                }
+                self.rearm(oid, next_clock, now);
             }
             Object::Stepper(_) | Object::Free | Object::TmcUart(_) | Object::Spi(_) => {}
         }

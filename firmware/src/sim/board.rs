@@ -71,6 +71,12 @@ pub struct SimBoard {
     pub bltouch: Vec<BlTouch>,
     /// Simulated TMC drivers (on their UART lines or chip selects; their DIAG pins read them).
     pub tmc: Vec<TmcDriver>,
+    /// Simulated SPI temperature chips (on their chip selects).
+    pub spi_sensors: Vec<super::spi_sensor::SpiSensor>,
+    /// Heaters whose sensor is on another MCU: (heater pin, world value name) published.
+    heater_exports: Vec<(u8, String)>,
+    /// Analog inputs reading a heater of another MCU: (pin, world value name).
+    remote_sensors: Vec<(u8, String)>,
 }
 
 impl SimBoard {
@@ -95,6 +101,9 @@ impl SimBoard {
             ambient_curves: Vec::new(),
             bltouch: Vec::new(),
             tmc: Vec::new(),
+            spi_sensors: Vec::new(),
+            heater_exports: Vec::new(),
+            remote_sensors: Vec::new(),
         })
     }
 
@@ -160,8 +169,44 @@ impl SimBoard {
         self
     }
 
+    /// Adds SPI temperature chips.
+    pub fn with_spi_sensors(mut self, chips: &[super::spi_sensor::SpiSensorSpec]) -> SimBoard {
+        self.spi_sensors
+            .extend(chips.iter().copied().map(super::spi_sensor::SpiSensor::new));
+        self
+    }
+
+    /// Heaters (by output pin) whose sensor temperature is published in the world under a
+    /// name, and analog inputs that read such a temperature (`--heater-export`,
+    /// `--remote-sensor`): a heater on one MCU, its sensor on another.
+    pub fn with_remote_heaters(mut self, exports: &[(u8, String)], sensors: &[(u8, String)]) -> SimBoard {
+        self.heater_exports = exports.to_vec();
+        self.remote_sensors = sensors.to_vec();
+        self
+    }
+
+    /// Publishes the sensor temperature of every exported heater as of MCU clock `now`.
+    pub fn export_heaters(&mut self, now: u64) {
+        let t = self.seconds(now);
+        for (pin, name) in &self.heater_exports {
+            if let Some(h) = self.heaters.iter_mut().find(|h| h.heater_pin == *pin) {
+                // Hundredths of a degree: no publication for changes below the ADC's reach.
+                let temp = (h.sensor_temperature(t) * 100.0).round() / 100.0;
+                self.world.set_value(name, temp);
+            }
+        }
+    }
+
     /// What analog input `pin` reads on a perfect ADC.
     fn read_adc_ideal(&mut self, pin: u8) -> u16 {
+        if let Some((_, name)) = self.remote_sensors.iter().find(|(p, _)| *p == pin) {
+            self.world.refresh();
+            let temp = self.world.position(name).unwrap_or(super::heater::AMBIENT_C);
+            return match self.ambient_curves.iter().find(|c| c.sensor_pin == pin) {
+                Some(c) => c.curve.adc(temp),
+                None => super::heater::adc_of(temp),
+            };
+        }
         let t = self.seconds(self.now);
         match self.heaters.iter_mut().find(|h| h.sensor_pin == pin) {
             Some(h) => h.adc(t),
@@ -296,6 +341,17 @@ impl Board for SimBoard {
     }
 
     fn spi_transfer(&mut self, cs_pin: u8, data: &mut [u8]) {
+        if let Some(c) = self.spi_sensors.iter_mut().find(|c| c.spec.cs_pin == cs_pin) {
+            // The temperature its heater's sensor is at (a heater whose sensor pin is the chip
+            // select), else ambient.
+            let t = self.now as f64 / self.clock_freq.max(1) as f64;
+            let (temp, open) = match self.heaters.iter_mut().find(|h| h.sensor_pin == cs_pin) {
+                Some(h) => (h.sensor_temperature(t), h.sensor_open(t)),
+                None => (super::heater::AMBIENT_C, false),
+            };
+            c.transfer(data, temp, open);
+            return;
+        }
         let mut selected = self
             .tmc
             .iter_mut()

@@ -76,7 +76,7 @@ pub struct Cli {
     #[arg(long = "bltouch", value_name = "[!]SENSOR_PIN=CONTROL_PIN,COORD,SURFACE_MM[,stuck|mute]",
           value_parser = parse_bltouch)]
     pub bltouch: Vec<BlTouchSpec>,
-    /// A TMC driver (tmc2130, tmc2208, tmc2209, tmc5160) on UART line BUS_PIN at address ADDR
+    /// A TMC driver (tmc2130, tmc2208, tmc2209, tmc2240, tmc2660, tmc5160) on UART line BUS_PIN at address ADDR
     /// (behind an analog mux: reached while each SELECT_PIN is high, or low with `!`),
     /// or with chip select BUS_PIN (SPI); optionally its DIAG (or DIAG0 with `diag0:`) wired to
     /// DIAG_PIN, the motor stalling when COORD reaches END_MM (min or max end of travel).
@@ -114,6 +114,20 @@ pub struct Cli {
     #[arg(long = "sensor-curve", value_name = "SENSOR_PIN=T:FRACTION/T:FRACTION/...",
           value_parser = parse_sensor_curve)]
     pub sensor_curves: Vec<SensorCurveSpec>,
+    /// Publish heater HEATER_PIN's sensor temperature to the world (`--world`) as NAME, for a
+    /// sensor on another MCU (`--remote-sensor`).
+    #[arg(long = "heater-export", value_name = "HEATER_PIN=NAME", value_parser = parse_pin_name)]
+    pub heater_exports: Vec<(u8, String)>,
+    /// Analog input SENSOR_PIN reads the temperature another MCU's heater publishes as NAME
+    /// (`--heater-export`), through its `--sensor-curve`.
+    #[arg(long = "remote-sensor", value_name = "SENSOR_PIN=NAME", value_parser = parse_pin_name)]
+    pub remote_sensors: Vec<(u8, String)>,
+    /// An SPI temperature chip (MAX6675, MAX31855, MAX31856, MAX31865) on chip select CS_PIN,
+    /// measuring the heater whose sensor pin is CS_PIN (else ambient); a MAX31865's RTD and
+    /// reference resistors (Ω, default 100 and 430).
+    #[arg(long = "spi-sensor", value_name = "CS_PIN=CHIP[,RTD_NOMINAL,RTD_REFERENCE]",
+          value_parser = super::spi_sensor::SpiSensorSpec::parse)]
+    pub spi_sensors: Vec<super::spi_sensor::SpiSensorSpec>,
     /// Inject a heater fault from SECONDS of MCU time on: `open` (thermistor open, ADC at
     /// max), `no-heat` (the heater stops heating), `frozen` (the reading stops changing).
     #[arg(long = "heater-fault", value_name = "HEATER_PIN=open|no-heat|frozen@SECONDS",
@@ -309,7 +323,7 @@ fn parse_tmc(s: &str) -> Result<TmcSpec, String> {
     let (model, rest) = bus.split_once('@').ok_or(FORM)?;
     let (pin, addr) = rest.split_once(':').ok_or(FORM)?;
     let model = TmcModel::parse(model.trim())
-        .ok_or_else(|| format!("`{model}` is not tmc2130, tmc2208, tmc2209 or tmc5160"))?;
+        .ok_or_else(|| format!("`{model}` is not tmc2130, tmc2208, tmc2209, tmc2240, tmc2660 or tmc5160"))?;
     let address: u8 = addr.trim().parse().map_err(|_| format!("bad address `{addr}`"))?;
     let diag = match diag {
         None => None,
@@ -408,6 +422,19 @@ fn parse_heater(s: &str) -> Result<HeaterSpec, String> {
         model,
         active_low,
     })
+}
+
+/// `PIN=NAME` (NAME: 1 to 8 bytes, a world value's name).
+fn parse_pin_name(s: &str) -> Result<(u8, String), String> {
+    let (pin, name) = s.split_once('=').ok_or("expected PIN=NAME")?;
+    let name = name.trim();
+    if name.is_empty() || name.len() > super::world::NAME_LEN {
+        return Err(format!(
+            "name `{name}` must be 1 to {} bytes",
+            super::world::NAME_LEN
+        ));
+    }
+    Ok((parse_pin(pin)?, name.to_string()))
 }
 
 fn parse_heater_fault(s: &str) -> Result<HeaterFaultSpec, String> {

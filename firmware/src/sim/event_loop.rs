@@ -205,6 +205,7 @@ impl<'a> EventLoop<'a> {
                     Duration::ZERO
                 }
                 Wait::Sleep(sleep) => {
+                    mcu.board_mut().export_heaters(now);
                     mcu.board_mut().world.flush();
                     mcu.record_loop(u32::try_from(now.saturating_sub(busy_since)).unwrap_or(u32::MAX));
                     self.sleep_for(sleep)

@@ -187,6 +187,11 @@ impl Heater {
         self
     }
 
+    /// Whether the sensor is disconnected at `t_s` (an `open` fault).
+    pub fn sensor_open(&self, t_s: f64) -> bool {
+        self.faulted(HeaterFault::OpenThermistor, t_s)
+    }
+
     fn faulted(&self, kind: HeaterFault, t_s: f64) -> bool {
         self.fault.is_some_and(|(f, from)| f == kind && t_s >= from)
     }

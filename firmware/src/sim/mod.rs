@@ -27,6 +27,7 @@ pub mod heater;
 pub mod mcu_temp;
 pub mod pty;
 pub mod sensor_curve;
+pub mod spi_sensor;
 pub mod spin;
 pub mod surface;
 pub mod tmc;
@@ -189,7 +190,9 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
         .with_fans(&cli.fans)
         .with_sensor_curves(&cli.sensor_curves)
         .with_bltouch(&cli.bltouch)
-        .with_tmc(&cli.tmc);
+        .with_tmc(&cli.tmc)
+        .with_spi_sensors(&cli.spi_sensors)
+        .with_remote_heaters(&cli.heater_exports, &cli.remote_sensors);
     let dictionary: &'static [u8] = Box::leak(crate::dictionary_bytes(cli.clock_freq).into_boxed_slice());
     let config = McuConfig {
         clock_freq: cli.clock_freq,

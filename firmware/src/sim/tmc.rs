@@ -1,5 +1,5 @@
 //! A simulated TMC stepper driver: its register file, reached over the MCU's TMC UART
-//! (TMC2208/2209, addressed, replies framed with CRC) or SPI (TMC2130/5160, pipelined 40-bit
+//! (TMC2208/2209, addressed, replies framed with CRC) or SPI (TMC2130/2240/5160, pipelined 40-bit
 //! datagrams), and its DIAG output.
 //!
 //! Registers: every write is kept (a UART write also counts IFCNT up, modulo 256); reads return
@@ -14,8 +14,8 @@
 //! DIAG (stallGuard): the motor stalls when its carriage reaches the end of travel (`COORD` at
 //! or beyond `END_MM`, the `min` or `max` end). The stall is reported only when the registers
 //! route it: TMC2209 `SGTHRS` > 0 and `TCOOLTHRS` > 0 in stealthChop (`en_spreadcycle` 0);
-//! TMC2130/5160 the pin's GCONF `diag0_stall`/`diag1_stall` set, `TCOOLTHRS` > 0, in
-//! spreadCycle (`en_pwm_mode` 0). The TMC2209's DIAG is active high; the SPI drivers' are open
+//! TMC2130/2240/5160 the pin's GCONF `diag0_stall`/`diag1_stall` set, `TCOOLTHRS` > 0, in
+//! spreadCycle (`en_pwm_mode` 0), or for the TMC2240 also in stealthChop with `SG4_THRS` > 0. The TMC2209's DIAG is active high; the SPI drivers' are open
 //! drain, active low, unless GCONF's push-pull bit for that pin is set.
 
 use super::world::Coord;
@@ -27,6 +27,8 @@ pub enum Model {
     Tmc2130,
     Tmc2208,
     Tmc2209,
+    Tmc2240,
+    Tmc2660,
     Tmc5160,
 }
 
@@ -37,6 +39,8 @@ impl Model {
             "tmc2130" => Some(Model::Tmc2130),
             "tmc2208" => Some(Model::Tmc2208),
             "tmc2209" => Some(Model::Tmc2209),
+            "tmc2240" => Some(Model::Tmc2240),
+            "tmc2660" => Some(Model::Tmc2660),
             "tmc5160" => Some(Model::Tmc5160),
             _ => None,
         }
@@ -51,6 +55,8 @@ impl Model {
         match self {
             Model::Tmc2130 => 0x11,
             Model::Tmc2208 | Model::Tmc2209 => 0x21,
+            Model::Tmc2240 => 0x40,
+            Model::Tmc2660 => 0,
             Model::Tmc5160 => 0x30,
         }
     }
@@ -64,6 +70,7 @@ mod reg {
     pub const IHOLD_IRUN: u8 = 0x10;
     pub const TCOOLTHRS: u8 = 0x14;
     pub const SGTHRS: u8 = 0x40;
+    pub const SG4_THRS: u8 = 0x74;
     pub const DRV_STATUS: u8 = 0x6f;
 }
 
@@ -173,8 +180,11 @@ impl TmcDriver {
     }
 
     /// One SPI transaction: each 5-byte datagram is answered with the status byte and the
-    /// previous access's value.
+    /// previous access's value (a TMC2660: see [`TmcDriver::spi_2660`]).
     pub fn spi(&mut self, data: &mut [u8]) {
+        if self.spec.model == Model::Tmc2660 {
+            return self.spi_2660(data);
+        }
         for d in data.chunks_mut(5) {
             let [addr, a, b, c, e] = *d else {
                 d.fill(0);
@@ -194,6 +204,31 @@ impl TmcDriver {
         }
     }
 
+    /// A TMC2660 transaction: the last 20 bits clocked in are the datagram (selector in bits
+    /// 19..17, DRVCTRL when bit 19 is 0), kept under its selector `0x0`, `0x8`, `0xa`, `0xc`,
+    /// `0xe` (the datagram's bits 19..16); the answer is the status DRVCONF's `rdsel` chose, as
+    /// 24 bits (20 status bits, then 4): standstill (bit 7 of the status) always, and with
+    /// `rdsel` 2 the coolStep current (`se`, bits 14..10) at the configured CS.
+    fn spi_2660(&mut self, data: &mut [u8]) {
+        let w = data.iter().fold(0u32, |w, &b| (w << 8) | u32::from(b)) & 0xf_ffff;
+        let sel = if w & (1 << 19) == 0 {
+            0
+        } else {
+            ((w >> 16) & 0xe) as u8
+        };
+        let drvconf = self.regs[0xe];
+        let status = match (drvconf >> 4) & 3 {
+            2 => ((self.regs[0xc] & 0x1f) << 10) | (1 << 7),
+            _ => 1 << 7,
+        };
+        self.write(sel, w & 0x1_ffff);
+        let answer = (status << 4).to_be_bytes();
+        let n = data.len().min(3);
+        let at = data.len() - n;
+        data.fill(0);
+        data[at..].copy_from_slice(&answer[4 - n..]);
+    }
+
     /// The registers route a stall to the DIAG pin.
     pub fn stall_reported(&self) -> bool {
         let gconf = self.regs[reg::GCONF as usize];
@@ -202,11 +237,14 @@ impl TmcDriver {
             Model::Tmc2209 => {
                 self.regs[reg::SGTHRS as usize] & 0xff != 0 && tcoolthrs != 0 && gconf & (1 << 2) == 0
             }
-            Model::Tmc2208 => false,
-            Model::Tmc2130 | Model::Tmc5160 => {
+            Model::Tmc2208 | Model::Tmc2660 => false,
+            Model::Tmc2130 | Model::Tmc2240 | Model::Tmc5160 => {
                 let diag0 = self.spec.diag.as_ref().is_some_and(|d| d.diag0);
                 let routed = if diag0 { gconf & (1 << 7) } else { gconf & (1 << 8) };
-                routed != 0 && tcoolthrs != 0 && gconf & (1 << 2) == 0
+                let stealth = gconf & (1 << 2) != 0;
+                // The TMC2240 also detects stalls in stealthChop (stallGuard4, SG4_THRS > 0).
+                let sg4 = self.spec.model == Model::Tmc2240 && self.regs[reg::SG4_THRS as usize] & 0xff != 0;
+                routed != 0 && tcoolthrs != 0 && (!stealth || sg4)
             }
         }
     }
@@ -224,7 +262,7 @@ impl TmcDriver {
         let stalled = at_end && self.stall_reported();
         let gconf = self.regs[reg::GCONF as usize];
         let active_high = match self.spec.model {
-            Model::Tmc2209 | Model::Tmc2208 => true,
+            Model::Tmc2209 | Model::Tmc2208 | Model::Tmc2660 => true,
             _ if d.diag0 => gconf & (1 << 12) != 0,
             _ => gconf & (1 << 13) != 0,
         };
@@ -288,6 +326,38 @@ mod tests {
         let mut r2 = wire::spi_datagram(0x6c, 0);
         d.spi(&mut r2);
         assert_eq!(&r2[1..], &0x1234_5678u32.to_be_bytes());
+    }
+
+    #[test]
+    fn a_tmc2660_keeps_its_datagrams_and_answers_the_chosen_status() {
+        let mut d = driver(Model::Tmc2660, false);
+        // SGCSCONF (selector 110): CS 17.
+        let mut m = [0x0c, 0x00, 0x11];
+        d.spi(&mut m);
+        assert_eq!(d.regs[0xc], 17);
+        // DRVCONF with rdsel 2, then again: the answer carries se = CS.
+        let mut m = [0x0e, 0x00, 0x20];
+        d.spi(&mut m);
+        let mut m = [0x0e, 0x00, 0x20];
+        d.spi(&mut m);
+        let status = u32::from_be_bytes([0, m[0], m[1], m[2]]);
+        assert_eq!((status >> 14) & 0x1f, 17, "{status:x}");
+        assert_eq!(status & (1 << 11), 1 << 11, "standstill");
+        // DRVCTRL (bit 19 clear): mres 4.
+        let mut m = [0x00, 0x02, 0x04];
+        d.spi(&mut m);
+        assert_eq!(d.regs[0], 0x204);
+    }
+
+    #[test]
+    fn a_tmc2240_reports_stalls_in_stealthchop_with_sg4_thrs() {
+        let mut d = driver(Model::Tmc2240, true);
+        d.write(reg::GCONF, (1 << 7) | (1 << 2) | (1 << 12));
+        d.write(reg::TCOOLTHRS, 0xfffff);
+        assert!(!d.diag_level(-1.0), "stealthChop without SG4_THRS");
+        d.write(reg::SG4_THRS, 20);
+        assert!(d.diag_level(-1.0) && !d.diag_level(0.5));
+        assert_eq!(d.read(0x04) >> 24, 0x40);
     }
 
     #[test]

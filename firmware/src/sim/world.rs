@@ -337,6 +337,9 @@ pub struct World {
     surfaces: Vec<super::surface::SurfaceSpec>,
     /// Probe pins riding multi-motor gantries (`--gantry`).
     gantries: Vec<super::surface::GantrySpec>,
+    /// Values this process publishes besides its axes (a heater's temperature read by
+    /// another MCU's sensor), by name; they hold at any time (stamp 0).
+    values: Vec<([u8; NAME_LEN], f64)>,
 }
 
 /// Worlds created in this process so far (tells two worlds of one process apart).
@@ -388,7 +391,19 @@ impl World {
             time: None,
             surfaces: Vec::new(),
             gantries: Vec::new(),
+            values: Vec::new(),
         }
+    }
+
+    /// Sets value `name` (published with the axes, read by other processes as an axis).
+    pub fn set_value(&mut self, name: &str, value: f64) {
+        let key = name_bytes(name);
+        match self.values.iter_mut().find(|(n, _)| *n == key) {
+            Some((_, v)) if *v == value => return,
+            Some((_, v)) => *v = value,
+            None => self.values.push((key, value)),
+        }
+        self.dirty = true;
     }
 
     /// Probe pins riding gantries lifted by several Z motors ([`super::surface::GantrySpec`]).
@@ -531,6 +546,18 @@ impl World {
             u.count += 1;
             self.last_published_stamp = self.last_published_stamp.max(a.stamp_ns);
         }
+        let free = MAX_AXES - u.count as usize;
+        for (slot, &(name, value)) in u.axes[u.count as usize..]
+            .iter_mut()
+            .zip(self.values.iter().take(free))
+        {
+            *slot = AxisSample {
+                name,
+                position_mm: value,
+                stamp_ns: 0,
+            };
+            u.count += 1;
+        }
         // A full or vanished peer must not stop the MCU: the next step publishes again.
         let _ = bus.publisher.send_copy(u);
     }
@@ -564,9 +591,13 @@ impl World {
     /// and none due later); else the latest published by another process with a step due at or
     /// before `at_ns` (`None`: the latest).
     fn position_at(&self, name: &str, at_ns: Option<u64>) -> Option<f64> {
+        let key = name_bytes(name);
         match self.local.iter().find(|a| a.spec.name == name) {
             Some(a) => Some(position(a)),
-            None => self.remote.get(&name_bytes(name))?.at(at_ns),
+            None => match self.values.iter().find(|(n, _)| *n == key) {
+                Some(&(_, v)) => Some(v),
+                None => self.remote.get(&key)?.at(at_ns),
+            },
         }
     }
 

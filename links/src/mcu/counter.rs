@@ -1,4 +1,5 @@
-//! The latest `counter_state` report of a pulse counter (fan tachometers), kept lock-free for
+//! The latest `counter_state` report of a pulse counter (fan tachometers), and of
+//! `thermocouple_result` of an SPI temperature chip, kept lock-free for
 //! the threads that read it: the IO thread is the only writer.
 //!
 //! Three words that belong together (next poll clock, count, clock of the last change) are
@@ -30,6 +31,19 @@ pub struct CounterReport {
     pub count: u32,
     /// Clock of the last change (32-bit MCU clock).
     pub count_clock: u32,
+}
+
+/// A `thermocouple_result` report (kept in a [`CounterSlot`]: `next_clock`, `value`, `fault`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ThermocoupleReport {
+    /// Reports so far (tells a new report from the one seen before).
+    pub serial: u64,
+    /// The chip's next read (32-bit MCU clock).
+    pub next_clock: u32,
+    /// The chip's raw value.
+    pub value: u32,
+    /// The chip's fault bits.
+    pub fault: u8,
 }
 
 impl CounterSlot {

@@ -128,6 +128,7 @@ struct Known {
     trsync_state: Option<u32>,
     analog_in_state: Option<u32>,
     counter_state: Option<u32>,
+    thermocouple_result: Option<u32>,
     stats: Option<u32>,
 }
 
@@ -575,6 +576,13 @@ impl IoThread {
             {
                 slot.store(int(1) as u32, int(2) as u32, int(3) as u32);
             }
+        } else if Some(id) == k.thermocouple_result {
+            if let Some(slot) = usize::try_from(int(0))
+                .ok()
+                .and_then(|o| self.shared.thermocouples.get(o))
+            {
+                slot.store(int(1) as u32, int(2) as u32, int(3) as u32);
+            }
         } else if Some(id) == k.starting && matches!(self.phase, Phase::Running) {
             // Sent once by a freshly booted MCU: after the handshake it means a restart.
             return Err(Death::Reset("it sent 'starting'".into()));
@@ -641,6 +649,7 @@ impl IoThread {
             trsync_state: dict.response("trsync_state").ok().map(|d| d.id),
             analog_in_state: dict.response("analog_in_state").ok().map(|d| d.id),
             counter_state: dict.response("counter_state").ok().map(|d| d.id),
+            thermocouple_result: dict.response("thermocouple_result").ok().map(|d| d.id),
             stats: dict.response("stats").ok().map(|d| d.id),
         };
         self.sq.set_receive_window(dict.receive_window());

@@ -17,6 +17,7 @@
 //! some `query` waits for, for `shutdown`/`is_shutdown`, and during the handshake.
 
 pub mod counter;
+pub use counter::ThermocoupleReport;
 mod io;
 pub(crate) mod shared;
 
@@ -534,6 +535,18 @@ impl McuLink {
     /// first. Lock-free (a seqlock the IO thread writes).
     pub fn counter_report(&self, oid: u8) -> Option<counter::CounterReport> {
         self.shared.counters.get(usize::from(oid))?.load()
+    }
+
+    /// The latest `thermocouple_result` of SPI temperature chip `oid` (< 64), `None` before
+    /// the first. Lock-free (a seqlock the IO thread writes).
+    pub fn thermocouple_report(&self, oid: u8) -> Option<ThermocoupleReport> {
+        let r = self.shared.thermocouples.get(usize::from(oid))?.load()?;
+        Some(ThermocoupleReport {
+            serial: r.serial,
+            next_clock: r.next_clock,
+            value: r.count,
+            fault: r.count_clock as u8,
+        })
     }
 
     /// The MCU's shutdown reason, once it sent `shutdown` or `is_shutdown`.

@@ -206,6 +206,9 @@ pub(crate) struct Shared {
     pub analog: [AtomicU64; ANALOG_SLOTS],
     /// The latest `counter_state` of oids `0..ANALOG_SLOTS`.
     pub counters: [super::counter::CounterSlot; ANALOG_SLOTS],
+    /// The latest `thermocouple_result` of oids `0..ANALOG_SLOTS`, in a counter's three-word
+    /// slot: `next_clock`, `value`, `fault` (see `McuLink::thermocouple_report`).
+    pub thermocouples: [super::counter::CounterSlot; ANALOG_SLOTS],
 }
 
 /// Oids whose `analog_in_state` reports the link keeps (the latest of each).
@@ -238,6 +241,7 @@ impl Shared {
             wake: crate::transport::Wake::new().ok(),
             analog: std::array::from_fn(|_| AtomicU64::new(0)),
             counters: std::array::from_fn(|_| super::counter::CounterSlot::default()),
+            thermocouples: std::array::from_fn(|_| super::counter::CounterSlot::default()),
         }
     }
 

@@ -2,13 +2,14 @@
 //! sensor (thermistor-style: an ADC pin with a pull-up resistor), the control algorithm and the
 //! allowed temperature range.
 //!
-//! Cadence does not drive heaters yet; this keeps them typed and validated so that a Klipper
-//! config loads and a later version can use them. Only sensors read through `sensor_pin` (with
-//! `pullup_resistor` / `inline_resistor`) are accepted; SPI/I2C sensor options are not.
+//! Sensors are read through an analog `sensor_pin` (with `pullup_resistor` /
+//! `inline_resistor`) or are SPI chips ([`super::spi_sensor`]) whose chip select is
+//! `sensor_pin`; I2C and 1-wire sensors are refused by name.
 
 use super::error::{ConfigError, ValueProblem};
 use super::pins::{PinKind, PinRef, PinRegistry, Share};
 use super::reader::{Bounds, SectionReader};
+use super::spi_sensor::{read_spi_sensor, SpiChip, SpiSensorSection};
 
 /// Absolute zero in °C: the lowest `min_temp`.
 pub const ABSOLUTE_ZERO_C: f64 = -273.15;
@@ -54,6 +55,8 @@ pub struct HeaterSection {
     pub max_temp: f64,
     /// °C in [min_temp, max_temp]; default 170 (meaningful for extruders).
     pub min_extrude_temp: f64,
+    /// An SPI temperature chip (`sensor_type: MAX6675` etc.): `sensor_pin` is its chip select.
+    pub spi: Option<SpiSensorSection>,
 }
 
 pub(crate) fn read_heater(
@@ -66,12 +69,8 @@ pub(crate) fn read_heater(
 /// Klipper's sensor types that are not read through an analog pin (the MCU's own sensor,
 /// amplifiers on SPI, sensors on I2C or 1-wire), with what they are: Cadence's MCUs do not
 /// read them yet.
-const UNSUPPORTED_SENSORS: [(&str, &str); 17] = [
+const UNSUPPORTED_SENSORS: [(&str, &str); 13] = [
     ("temperature_mcu", "the MCU's own sensor"),
-    ("MAX6675", "a thermocouple amplifier on SPI"),
-    ("MAX31855", "a thermocouple amplifier on SPI"),
-    ("MAX31856", "a thermocouple amplifier on SPI"),
-    ("MAX31865", "an RTD amplifier on SPI"),
     ("BME280", "an I2C sensor"),
     ("BMP280", "an I2C sensor"),
     ("BME680", "an I2C sensor"),
@@ -109,9 +108,18 @@ pub(crate) fn read_heater_options(
 ) -> Result<HeaterSection, ConfigError> {
     let sensor_type = s.string("sensor_type")?;
     refuse_unsupported_sensor(s, &sensor_type)?;
-    let sensor_pin = s.pin("sensor_pin", PinKind::Analog, pins, Share::Exclusive)?;
-    let pullup_resistor = s.float_or("pullup_resistor", 4700.0, Bounds::ANY.above(0.0))?;
-    let inline_resistor = s.float_or("inline_resistor", 0.0, Bounds::ANY.min(0.0))?;
+    let spi = match SpiChip::of(&sensor_type) {
+        Some(chip) => Some(read_spi_sensor(s, pins, chip)?),
+        None => None,
+    };
+    let (sensor_pin, pullup_resistor, inline_resistor) = match &spi {
+        Some(spi) => (spi.bus.cs_pin.clone(), 4700.0, 0.0),
+        None => (
+            s.pin("sensor_pin", PinKind::Analog, pins, Share::Exclusive)?,
+            s.float_or("pullup_resistor", 4700.0, Bounds::ANY.above(0.0))?,
+            s.float_or("inline_resistor", 0.0, Bounds::ANY.min(0.0))?,
+        ),
+    };
     let min_temp = s.float("min_temp", Bounds::ANY.min(ABSOLUTE_ZERO_C))?;
     let max_temp = s.float("max_temp", Bounds::ANY.above(min_temp))?;
     let min_extrude_temp = if with_extrude_temp {
@@ -148,6 +156,7 @@ pub(crate) fn read_heater_options(
         min_temp,
         max_temp,
         min_extrude_temp,
+        spi,
     })
 }
 

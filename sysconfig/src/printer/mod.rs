@@ -37,6 +37,7 @@ mod reader;
 mod realtime;
 mod screws;
 mod sections;
+mod spi_sensor;
 mod stepper;
 mod thermal;
 pub mod tmc;
@@ -64,10 +65,14 @@ pub use input_shaper::InputShaperSection;
 pub use mcu::{McuSection, SimulatorSection, SIMULATOR_SERIAL};
 pub use multi_pin::{MultiPinSection, MULTI_PIN_CHIP};
 pub use pins::{is_simulator_pin, PinKind, PinProblem, PinRef, MAIN_MCU};
-pub use probe::{ProbeSection, SamplesResult, PROBE_PIN_MCU, SAMPLES_RESULTS, Z_VIRTUAL_ENDSTOP};
+pub use probe::{
+    ProbeSection, SamplesResult, PROBE_ACTIVATE_MACRO, PROBE_DEACTIVATE_MACRO, PROBE_PIN_MCU,
+    SAMPLES_RESULTS, Z_VIRTUAL_ENDSTOP,
+};
 pub use realtime::RealtimeSection;
 pub use screws::{Screw, ScrewThread, ScrewsSection, SCREW_THREADS};
 pub use sections::{is_ignored, support as section_support, Support as SectionSupport, SECTIONS};
+pub use spi_sensor::{SpiBus, SpiChip, SpiSensorSection, SPI_CHIPS};
 pub use stepper::{ExtraStepperSection, MotorSection, StepperSection};
 pub use thermal::{
     ControllerFanSection, FanOptions, HeaterFanSection, SensorSection, SensorSource, TemperatureFanSection,

@@ -13,6 +13,7 @@
 use super::error::ConfigError;
 use super::pins::{PinKind, PinRef, PinRegistry, Share};
 use super::reader::{Bounds, SectionReader};
+use planner::gcode::macros::MacroDef;
 
 /// The pseudo-MCU name of the probe's virtual endstop (`probe:z_virtual_endstop`).
 pub const PROBE_PIN_MCU: &str = "probe";
@@ -70,19 +71,39 @@ pub struct ProbeSection {
     pub samples_tolerance_retries: u32,
     /// Z the probing move heads for; `None`: `[stepper_z] position_min`.
     pub z_position: Option<f64>,
+    /// `activate_gcode`: run before each probing session (a G28 on the probe, PROBE,
+    /// a levelling command), as a macro named [`PROBE_ACTIVATE_MACRO`]; `[probe]` only.
+    pub activate_gcode: Option<MacroDef>,
+    /// `deactivate_gcode`: run after each probing session, as a macro named
+    /// [`PROBE_DEACTIVATE_MACRO`]; `[probe]` only.
+    pub deactivate_gcode: Option<MacroDef>,
+}
+
+/// The macro name of `[probe] activate_gcode` (lower case: no G-code line can call it).
+pub const PROBE_ACTIVATE_MACRO: &str = "probe_activate_gcode";
+/// The macro name of `[probe] deactivate_gcode`.
+pub const PROBE_DEACTIVATE_MACRO: &str = "probe_deactivate_gcode";
+
+/// Option `option` of section `s`, when written and not blank, as a macro named `name`.
+fn script(s: &SectionReader<'_>, option: &str, name: &str) -> Option<MacroDef> {
+    let v = s.value(option)?;
+    (!v.text.trim().is_empty()).then(|| MacroDef {
+        name: name.to_string(),
+        gcode: v.text.clone(),
+        description: None,
+        rename_existing: None,
+        variables: Vec::new(),
+        at: s.at().to_string(),
+    })
 }
 
 pub(crate) fn read_probe(s: &SectionReader<'_>, pins: &mut PinRegistry) -> Result<ProbeSection, ConfigError> {
-    // Klipper runs these scripts around every probing move; probing without them would
-    // probe with the probe stowed.
-    for option in ["activate_gcode", "deactivate_gcode"] {
-        if let Some(v) = s.value(option) {
-            let why = "is not supported by Cadence yet (probe activate/deactivate scripts)".to_string();
-            return Err(s.bad(option, v, super::error::ValueProblem::Invalid(why)));
-        }
-    }
     let pin = s.pin("pin", PinKind::Input, pins, Share::Exclusive)?;
-    read_probe_options(s, pin)
+    Ok(ProbeSection {
+        activate_gcode: script(s, "activate_gcode", PROBE_ACTIVATE_MACRO),
+        deactivate_gcode: script(s, "deactivate_gcode", PROBE_DEACTIVATE_MACRO),
+        ..read_probe_options(s, pin)?
+    })
 }
 
 /// The options every probe section shares (`[probe]`, `[bltouch]`…), around its input `pin`.
@@ -112,6 +133,8 @@ pub(crate) fn read_probe_options(s: &SectionReader<'_>, pin: PinRef) -> Result<P
         samples_tolerance,
         samples_tolerance_retries,
         z_position,
+        activate_gcode: None,
+        deactivate_gcode: None,
     })
 }
 
@@ -173,6 +196,29 @@ mod tests {
     }
 
     #[test]
+    fn activate_and_deactivate_scripts_are_macros() {
+        let p = probe(
+            "pin: PA4\nz_offset: 1\nactivate_gcode:\n  probe_reset\n  G4 P10\ndeactivate_gcode: M117 up\n",
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        let a = p.activate_gcode.unwrap_or_else(|| panic!("no activate_gcode"));
+        assert_eq!(
+            (a.name.as_str(), a.gcode.trim()),
+            (PROBE_ACTIVATE_MACRO, "probe_reset\nG4 P10")
+        );
+        let d = p
+            .deactivate_gcode
+            .unwrap_or_else(|| panic!("no deactivate_gcode"));
+        assert_eq!(
+            (d.name.as_str(), d.gcode.as_str()),
+            (PROBE_DEACTIVATE_MACRO, "M117 up")
+        );
+        // Blank, as Klipper's default: no script.
+        let p = probe("pin: PA4\nz_offset: 1\nactivate_gcode:\n").unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(p.activate_gcode, None);
+    }
+
+    #[test]
     fn errors_name_file_line_section_and_option() {
         let cases = [
             ("z_offset: 1\n", "printer.cfg:1: Option 'pin' in section 'probe' must be specified"),
@@ -203,11 +249,6 @@ mod tests {
             (
                 "pin: PA4\nz_offset: 1\nsamples_tolerance_retries: -1\n",
                 "printer.cfg:4: [probe] samples_tolerance_retries: must have minimum of 0, got -1",
-            ),
-            (
-                "pin: PA4\nz_offset: 1\nactivate_gcode:\n  G1 Z5\n",
-                "printer.cfg:4: [probe] activate_gcode: is not supported by Cadence yet (probe activate/deactivate \
-                 scripts)",
             ),
             (
                 "pin: nope:PA4\nz_offset: 1\n",

@@ -34,6 +34,8 @@ pub enum SensorSource {
         /// both points.
         point2: Option<(f64, f64)>,
     },
+    /// An SPI temperature chip (MAX6675, MAX31855, MAX31856, MAX31865).
+    Spi(Box<super::spi_sensor::SpiSensorSection>),
     /// `temperature_host`: the host's own temperature from `sensor_path`.
     Host {
         /// Default `/sys/class/thermal/thermal_zone0/temp`.
@@ -250,14 +252,17 @@ fn read_sensor(s: &SectionReader<'_>, pins: &mut PinRegistry) -> Result<SensorSe
                 .unwrap_or_else(|| "/sys/class/thermal/thermal_zone0/temp".into()),
         },
         "temperature_mcu" => read_mcu_sensor(s, pins)?,
-        _ => {
-            super::heater::refuse_unsupported_sensor(s, &sensor_type)?;
-            SensorSource::Adc {
-                sensor_pin: s.pin("sensor_pin", PinKind::Analog, pins, Share::Exclusive)?,
-                pullup_resistor: s.float_or("pullup_resistor", 4700.0, Bounds::ANY.above(0.0))?,
-                inline_resistor: s.float_or("inline_resistor", 0.0, Bounds::ANY.min(0.0))?,
+        t => match super::spi_sensor::SpiChip::of(t) {
+            Some(chip) => SensorSource::Spi(Box::new(super::spi_sensor::read_spi_sensor(s, pins, chip)?)),
+            None => {
+                super::heater::refuse_unsupported_sensor(s, &sensor_type)?;
+                SensorSource::Adc {
+                    sensor_pin: s.pin("sensor_pin", PinKind::Analog, pins, Share::Exclusive)?,
+                    pullup_resistor: s.float_or("pullup_resistor", 4700.0, Bounds::ANY.above(0.0))?,
+                    inline_resistor: s.float_or("inline_resistor", 0.0, Bounds::ANY.min(0.0))?,
+                }
             }
-        }
+        },
     };
     Ok(SensorSection {
         sensor_type,

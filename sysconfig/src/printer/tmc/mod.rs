@@ -1,4 +1,4 @@
-//! `[tmc2130 NAME]`, `[tmc2208 NAME]`, `[tmc2209 NAME]`, `[tmc5160 NAME]`: a TMC driver of the
+//! `[tmc2130 NAME]`, `[tmc2208 NAME]`, `[tmc2209 NAME]`, `[tmc2240 NAME]`, `[tmc5160 NAME]`: a TMC driver of the
 //! stepper `NAME`, Klipper's options, and the register values the host writes at start.
 //!
 //! The registers are built in Klipper's order (the order each is first set is the order it is
@@ -17,6 +17,8 @@
 pub mod current;
 pub mod model;
 pub mod tables;
+pub mod tables_2240;
+pub mod tables_2660;
 
 use super::error::{ConfigError, ValueProblem};
 use super::pins::{PinKind, PinRef, PinRegistry, Share};
@@ -82,6 +84,9 @@ pub struct TmcSection {
     pub step_dist: f64,
     /// The registers as configured, in write order.
     pub fields: FieldSet,
+    /// TMC2660 `idle_current_percent` (0..=100, default 100): read and kept; the current is
+    /// not lowered while idle (Klipper's idle_timeout hook is not there yet).
+    pub idle_current_percent: u8,
 }
 
 impl TmcSection {
@@ -143,17 +148,44 @@ pub(crate) fn read_tmc(
     virtual_endstop: bool,
     pins: &mut PinRegistry,
 ) -> Result<TmcSection, ConfigError> {
+    if model == TmcModel::Tmc2240 && s.value("uart_pin").is_some() {
+        return Err(ConfigError::BadSection {
+            at: s.at().clone(),
+            section: s.name().to_string(),
+            reason:
+                "option 'uart_pin' is not supported by Cadence yet (a TMC2240 on UART; SPI with cs_pin is)"
+                    .to_string(),
+        });
+    }
     let bus = read_bus(s, model, pins)?;
-    let max = model.max_current();
+    // The TMC2240's current is set by the resistor on its IREF pin (`rref`), not a sense
+    // resistor: it takes the sense resistor's place in the current calculation.
+    let sense_resistor = match model {
+        TmcModel::Tmc2240 => s.float_or("rref", 12000.0, Bounds::ANY.min(12000.0).max(60000.0))?,
+        // Klipper has no default for the TMC2660's.
+        TmcModel::Tmc2660 => s.float("sense_resistor", Bounds::ANY.above(0.0))?,
+        _ => s.float_or(
+            "sense_resistor",
+            model.default_sense_resistor(),
+            Bounds::ANY.above(0.0),
+        )?,
+    };
+    let max = match model {
+        TmcModel::Tmc2240 => current::max_current_2240(sense_resistor),
+        _ => model.max_current(),
+    };
     let run_current = s.float("run_current", Bounds::ANY.above(0.0).max(max))?;
-    let hold_current = s.float_or("hold_current", max, Bounds::ANY.above(0.0).max(max))?;
-    let sense_resistor = s.float_or(
-        "sense_resistor",
-        model.default_sense_resistor(),
-        Bounds::ANY.above(0.0),
-    )?;
+    // The TMC2660 has one current (no hold current).
+    let hold_current = match model {
+        TmcModel::Tmc2660 => run_current,
+        _ => s.float_or("hold_current", max, Bounds::ANY.above(0.0).max(max))?,
+    };
+    let idle_current_percent = match model {
+        TmcModel::Tmc2660 => s.int::<u8>("idle_current_percent", Some(100), 0..=100)?,
+        _ => 100,
+    };
     let (diag_option, diag_field) = match model {
-        TmcModel::Tmc2208 => (None, None),
+        TmcModel::Tmc2208 | TmcModel::Tmc2660 => (None, None),
         TmcModel::Tmc2209 => (Some("diag_pin"), None),
         _ if s.value("diag0_pin").is_some() => (Some("diag0_pin"), Some("diag0_stall")),
         _ => (Some("diag1_pin"), Some("diag1_stall")),
@@ -181,7 +213,7 @@ pub(crate) fn read_tmc(
             section: s.name().to_string(),
             reason: format!(
                 "tmc virtual endstop requires diag pin config ({})",
-                diag_option.unwrap_or("the TMC2208 has no diag output")
+                diag_option.unwrap_or("this driver has no diag output")
             ),
         });
     }
@@ -195,6 +227,10 @@ pub(crate) fn read_tmc(
     };
     if model.is_uart() {
         set(&mut fields, "pdn_disable", 1)?;
+    }
+    if model == TmcModel::Tmc2660 {
+        // Step/dir mode (DRVCTRL as microstep settings): DRVCONF is written first.
+        set(&mut fields, "sdoff", 0)?;
     }
     if model == TmcModel::Tmc2209 {
         // Room between a reply and the next request on a shared line.
@@ -222,23 +258,38 @@ pub(crate) fn read_tmc(
     }
     let step_dist = motor.step_dist();
     let velocity = |option: &str| s.opt_float(option, Bounds::ANY.min(0.0));
-    let stealth = velocity("stealthchop_threshold")?;
-    let tpwmthrs = stealth.map_or(0xfffff, |v| tstep(model, step_dist, mres, v));
-    set(&mut fields, "tpwmthrs", i64::from(tpwmthrs))?;
-    match model.field("en_pwm_mode") {
-        Some(_) => set(&mut fields, "en_pwm_mode", i64::from(stealth.is_some()))?,
-        None => set(&mut fields, "en_spreadcycle", i64::from(stealth.is_none()))?,
+    // The TMC2660 has no velocity thresholds (nor their options).
+    let thresholds = model.field("tpwmthrs").is_some();
+    if thresholds {
+        let stealth = velocity("stealthchop_threshold")?;
+        let tpwmthrs = stealth.map_or(0xfffff, |v| tstep(model, step_dist, mres, v));
+        set(&mut fields, "tpwmthrs", i64::from(tpwmthrs))?;
+        match model.field("en_pwm_mode") {
+            Some(_) => set(&mut fields, "en_pwm_mode", i64::from(stealth.is_some()))?,
+            None => set(&mut fields, "en_spreadcycle", i64::from(stealth.is_none()))?,
+        }
     }
-    if model != TmcModel::Tmc2208 {
+    if thresholds && model != TmcModel::Tmc2208 {
         let t = velocity("coolstep_threshold")?.map_or(0, |v| tstep(model, step_dist, mres, v));
         set(&mut fields, "tcoolthrs", i64::from(t))?;
     }
-    if matches!(model, TmcModel::Tmc2130 | TmcModel::Tmc5160) {
+    if matches!(model, TmcModel::Tmc2130 | TmcModel::Tmc2240 | TmcModel::Tmc5160) {
         let t = velocity("high_velocity_threshold")?.map_or(0, |v| tstep(model, step_dist, mres, v));
         set(&mut fields, "thigh", i64::from(t))?;
     }
     for &(field, default) in model.config_fields() {
         read_field(s, &mut fields, field, default)?;
+    }
+    // The TMC2660's spreadCycle hysteresis must fit (Klipper's check).
+    if model == TmcModel::Tmc2660
+        && fields.get("chm") == Some(0)
+        && fields.get("hstrt").unwrap_or(0) + fields.get("hend").unwrap_or(0) > 15
+    {
+        return Err(ConfigError::BadSection {
+            at: s.at().clone(),
+            section: s.name().to_string(),
+            reason: "driver_HEND + driver_HSTRT must be <= 15".to_string(),
+        });
     }
     Ok(TmcSection {
         model,
@@ -252,6 +303,7 @@ pub(crate) fn read_tmc(
         virtual_endstop,
         step_dist,
         fields,
+        idle_current_percent,
     })
 }
 
@@ -373,27 +425,12 @@ fn read_bus(s: &SectionReader<'_>, model: TmcModel, pins: &mut PinRegistry) -> R
     } else {
         Share::Exclusive
     };
-    let cs_pin = s.pin("cs_pin", PinKind::Output, pins, share)?;
-    let speed = s.int::<u32>("spi_speed", Some(4_000_000), 1..=i64::from(u32::MAX))?;
-    let bus = s.value("spi_bus").map(|v| v.text.clone());
-    let sw = [
-        "spi_software_sclk_pin",
-        "spi_software_mosi_pin",
-        "spi_software_miso_pin",
-    ];
-    let software = match s.value(sw[0]) {
-        Some(_) => Some([
-            s.pin(sw[0], PinKind::Output, pins, Share::SpiBus)?,
-            s.pin(sw[1], PinKind::Output, pins, Share::SpiBus)?,
-            s.pin(sw[2], PinKind::Input, pins, Share::SpiBus)?,
-        ]),
-        None => None,
-    };
+    let spi = super::spi_sensor::read_spi_bus(s, pins, "cs_pin", share, 4_000_000)?;
     Ok(TmcBus::Spi {
-        cs_pin,
-        speed,
-        bus,
-        software,
+        cs_pin: spi.cs_pin,
+        speed: spi.speed,
+        bus: spi.bus,
+        software: spi.software,
         chain,
     })
 }

@@ -6,6 +6,8 @@
 //! a signed field (`sgt`, `cur_a`…) is sign-extended from the mask's width.
 
 use super::tables::*;
+use super::tables_2240::*;
+use super::tables_2660::*;
 
 /// A TMC stepper driver model.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -13,14 +15,18 @@ pub enum TmcModel {
     Tmc2130,
     Tmc2208,
     Tmc2209,
+    Tmc2240,
+    Tmc2660,
     Tmc5160,
 }
 
 /// `[tmcXXXX]` section kinds Cadence drives, and their model.
-pub const MODELS: [(&str, TmcModel); 4] = [
+pub const MODELS: [(&str, TmcModel); 6] = [
     ("tmc2130", TmcModel::Tmc2130),
     ("tmc2208", TmcModel::Tmc2208),
     ("tmc2209", TmcModel::Tmc2209),
+    ("tmc2240", TmcModel::Tmc2240),
+    ("tmc2660", TmcModel::Tmc2660),
     ("tmc5160", TmcModel::Tmc5160),
 ];
 
@@ -36,6 +42,8 @@ impl TmcModel {
             TmcModel::Tmc2130 => "tmc2130",
             TmcModel::Tmc2208 => "tmc2208",
             TmcModel::Tmc2209 => "tmc2209",
+            TmcModel::Tmc2240 => "tmc2240",
+            TmcModel::Tmc2660 => "tmc2660",
             TmcModel::Tmc5160 => "tmc5160",
         }
     }
@@ -47,6 +55,8 @@ impl TmcModel {
             TmcModel::Tmc2130 => (TMC2130_REGISTERS, &[]),
             TmcModel::Tmc2208 => (TMC2208_REGISTERS, &[]),
             TmcModel::Tmc2209 => (TMC2208_REGISTERS, TMC2209_EXTRA_REGISTERS),
+            TmcModel::Tmc2240 => (TMC2240_REGISTERS, &[]),
+            TmcModel::Tmc2660 => (TMC2660_REGISTERS, &[]),
             TmcModel::Tmc5160 => (TMC5160_REGISTERS, &[]),
         };
         base.iter().chain(extra)
@@ -58,6 +68,8 @@ impl TmcModel {
             TmcModel::Tmc2130 => TMC2130_READABLE,
             TmcModel::Tmc2208 => TMC2208_READABLE,
             TmcModel::Tmc2209 => TMC2209_READABLE,
+            TmcModel::Tmc2240 => TMC2240_READABLE,
+            TmcModel::Tmc2660 => TMC2660_READABLE,
             TmcModel::Tmc5160 => TMC5160_READABLE,
         }
     }
@@ -69,6 +81,8 @@ impl TmcModel {
             TmcModel::Tmc2130 => (TMC2130_FIELDS, &[]),
             TmcModel::Tmc2208 => (TMC2208_FIELDS, &[]),
             TmcModel::Tmc2209 => (TMC2208_FIELDS, TMC2209_EXTRA_FIELDS),
+            TmcModel::Tmc2240 => (TMC2240_FIELDS, &[]),
+            TmcModel::Tmc2660 => (TMC2660_FIELDS, &[]),
             TmcModel::Tmc5160 => (TMC5160_FIELDS, &[]),
         };
         base.iter().chain(extra)
@@ -79,6 +93,8 @@ impl TmcModel {
             TmcModel::Tmc2130 => TMC2130_SIGNED,
             TmcModel::Tmc2208 => TMC2208_SIGNED,
             TmcModel::Tmc2209 => TMC2209_SIGNED,
+            TmcModel::Tmc2240 => TMC2240_SIGNED,
+            TmcModel::Tmc2660 => TMC2660_SIGNED,
             TmcModel::Tmc5160 => TMC5160_SIGNED,
         }
     }
@@ -97,18 +113,21 @@ impl TmcModel {
     }
 
     /// Largest `run_current` / `hold_current` accepted (A): the drivers' 2 A, the TMC5160's
-    /// external MOSFETs a 10 A sanity bound.
+    /// external MOSFETs a 10 A sanity bound; the TMC2240's depends on its `rref`
+    /// ([`super::current::max_current_2240`]).
     pub fn max_current(self) -> f64 {
         match self {
             TmcModel::Tmc5160 => 10.0,
+            TmcModel::Tmc2660 => 2.4,
             _ => 2.0,
         }
     }
 
-    /// Default `sense_resistor` (Ω).
+    /// Default `sense_resistor` (Ω); for the TMC2240 its `rref` (Ω on its IREF pin).
     pub fn default_sense_resistor(self) -> f64 {
         match self {
             TmcModel::Tmc5160 => 0.075,
+            TmcModel::Tmc2240 => 12000.0,
             _ => 0.110,
         }
     }
@@ -117,6 +136,7 @@ impl TmcModel {
     pub fn tmc_frequency(self) -> f64 {
         match self {
             TmcModel::Tmc2130 => 13.2e6,
+            TmcModel::Tmc2240 => 12.5e6,
             _ => 12e6,
         }
     }
@@ -205,6 +225,63 @@ impl TmcModel {
                 ("tpowerdown", 20),
                 ("sgthrs", 0),
             ],
+            TmcModel::Tmc2660 => &[
+                ("tbl", 2),
+                ("rndtf", 0),
+                ("hdec", 0),
+                ("chm", 0),
+                ("hend", 3),
+                ("hstrt", 3),
+                ("toff", 4),
+                ("seimin", 0),
+                ("sedn", 0),
+                ("semax", 0),
+                ("seup", 0),
+                ("semin", 0),
+                ("sfilt", 0),
+                ("sgt", 0),
+                ("slph", 0),
+                ("slpl", 0),
+                ("diss2g", 0),
+                ("ts2g", 3),
+            ],
+            TmcModel::Tmc2240 => &[
+                ("offset_sin90", 0),
+                ("multistep_filt", 1),
+                ("toff", 3),
+                ("hstrt", 5),
+                ("hend", 2),
+                ("fd3", 0),
+                ("disfdcc", 0),
+                ("chm", 0),
+                ("tbl", 2),
+                ("vhighfs", 0),
+                ("vhighchm", 0),
+                ("tpfd", 4),
+                ("diss2g", 0),
+                ("diss2vs", 0),
+                ("semin", 0),
+                ("seup", 0),
+                ("semax", 0),
+                ("sedn", 0),
+                ("seimin", 0),
+                ("sgt", 0),
+                ("sfilt", 0),
+                ("iholddelay", 6),
+                ("irundelay", 4),
+                ("pwm_ofs", 29),
+                ("pwm_grad", 0),
+                ("pwm_freq", 0),
+                ("pwm_autoscale", 1),
+                ("pwm_autograd", 1),
+                ("freewheel", 0),
+                ("pwm_reg", 4),
+                ("pwm_lim", 12),
+                ("tpowerdown", 10),
+                ("sg4_thrs", 0),
+                ("sg4_angle_offset", 1),
+                ("slope_control", 0),
+            ],
             TmcModel::Tmc5160 => &[
                 ("multistep_filt", 1),
                 ("toff", 3),
@@ -247,7 +324,7 @@ impl TmcModel {
     /// The SPI drivers' sine wave table (`driver_MSLUT0`… options) with its defaults.
     pub fn wave_table_fields(self) -> &'static [(&'static str, i64)] {
         match self {
-            TmcModel::Tmc2130 | TmcModel::Tmc5160 => &[
+            TmcModel::Tmc2130 | TmcModel::Tmc2240 | TmcModel::Tmc5160 => &[
                 ("mslut0", 0xAAAA_B554),
                 ("mslut1", 0x4A95_54AA),
                 ("mslut2", 0x2449_2929),
@@ -394,8 +471,11 @@ mod tests {
     fn tables_are_consistent() {
         for (_, m) in MODELS {
             for (reg, field, mask) in m.fields() {
+                // `REG@VARIANT` is REG as one model variant has it, except for registers whose
+                // name has the `@` (the TMC2660's READRSP@RDSELn).
                 let base = reg.split('@').next().unwrap_or(reg);
-                assert!(m.register_addr(base).is_some(), "{m:?} {reg}.{field}");
+                let known = m.register_addr(reg).or(m.register_addr(base));
+                assert!(known.is_some(), "{m:?} {reg}.{field}");
                 assert_ne!(*mask, 0);
             }
             for reg in m.readable() {

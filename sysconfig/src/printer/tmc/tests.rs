@@ -148,3 +148,98 @@ fn drivers_share_a_uart_line_and_an_unused_diag_pin_is_not_claimed() {
     assert_eq!(cfg.tmc.len(), 2);
     assert!(cfg.tmc.iter().all(|t| !t.virtual_endstop));
 }
+
+#[test]
+fn tmc2240_current_follows_rref_and_uart_is_refused() {
+    let base = BASE.replace("tmc2209_stepper_x", "tmc2240_stepper_x");
+    let cfg = parse(&format!(
+        "{base}[tmc2240 stepper_x]\ncs_pin: PD1\nrun_current: 0.8\nhold_current: 0.5\n\
+         diag0_pin: ^!PD2\ndriver_SG4_THRS: 20\n"
+    ))
+    .unwrap_or_else(|e| panic!("{e}"));
+    let t = &cfg.tmc[0];
+    assert_eq!((t.model, t.sense_resistor), (TmcModel::Tmc2240, 12000.0));
+    assert_eq!(t.diag_field, Some("diag0_stall"));
+    let f = &t.fields;
+    // 0.8 A needs range 1 (2.0 A peak with rref 12 kΩ): globalscaler 145, IRUN 31, IHOLD 19.
+    for (field, v) in [
+        ("current_range", 1),
+        ("globalscaler", 145),
+        ("irun", 31),
+        ("ihold", 19),
+        ("sg4_thrs", 20),
+        ("sg4_angle_offset", 1),
+        ("irundelay", 4),
+        ("mres", 4),
+    ] {
+        assert_eq!(f.get(field), Some(v), "{field}");
+    }
+    let (run, hold) = crate::printer::tmc::current::current(f, t.sense_resistor);
+    assert!(
+        (run - 0.8).abs() < 0.03 && (hold - 0.5).abs() < 0.03,
+        "{run} {hold}"
+    );
+    // The largest current with rref 12 kΩ is 36000 / 12000 / √2 = 2.12 A.
+    let e = parse(&format!(
+        "{base}[tmc2240 stepper_x]\ncs_pin: PD1\nrun_current: 2.2\ndiag0_pin: PD2\n"
+    ))
+    .unwrap_err();
+    assert!(e.contains("[tmc2240 stepper_x] run_current"), "{e}");
+    let e = parse(&format!(
+        "{base}[tmc2240 stepper_x]\ncs_pin: PD1\nrun_current: 1\nrref: 1000\n"
+    ))
+    .unwrap_err();
+    assert!(e.contains("rref"), "{e}");
+    let e = parse(&format!(
+        "{base}[tmc2240 stepper_x]\nuart_pin: PD1\nrun_current: 1\n"
+    ))
+    .unwrap_err();
+    assert!(e.contains("'uart_pin' is not supported by Cadence yet"), "{e}");
+}
+
+#[test]
+fn tmc2660_has_one_current_no_thresholds_and_klippers_checks() {
+    let base = BASE.replace("tmc2209_stepper_x:virtual_endstop", "PA2");
+    let cfg = parse(&format!(
+        "{base}[tmc2660 stepper_x]\ncs_pin: PD1\nspi_bus: usart1\nrun_current: 1.0\nsense_resistor: 0.051\n\
+         idle_current_percent: 20\n"
+    ))
+    .unwrap_or_else(|e| panic!("{e}"));
+    let t = &cfg.tmc[0];
+    assert_eq!((t.model, t.idle_current_percent), (TmcModel::Tmc2660, 20));
+    let f = &t.fields;
+    let order: Vec<&str> = f.registers().iter().map(|r| r.0).collect();
+    assert_eq!(order, ["DRVCONF", "SGCSCONF", "DRVCTRL", "CHOPCONF", "SMARTEN"]);
+    for (field, v) in [
+        ("cs", 13),
+        ("vsense", 1),
+        ("mres", 4),
+        ("intpol", 1),
+        ("toff", 4),
+        ("ts2g", 3),
+    ] {
+        assert_eq!(f.get(field), Some(v), "{field}");
+    }
+    let with = |extra: &str| {
+        parse(&format!(
+            "{base}[tmc2660 stepper_x]\ncs_pin: PD1\nrun_current: 1.0\nsense_resistor: 0.051\n{extra}"
+        ))
+    };
+    for (extra, said) in [
+        ("hold_current: 0.5\n", "hold_current"),
+        ("stealthchop_threshold: 10\n", "stealthchop_threshold"),
+        (
+            "driver_HEND: 10\ndriver_HSTRT: 7\n",
+            "driver_HEND + driver_HSTRT must be <= 15",
+        ),
+        ("idle_current_percent: 101\n", "idle_current_percent"),
+    ] {
+        let e = with(extra).unwrap_err();
+        assert!(e.contains(said), "{extra}: {e}");
+    }
+    let e = parse(&format!(
+        "{base}[tmc2660 stepper_x]\ncs_pin: PD1\nrun_current: 1.0\n"
+    ))
+    .unwrap_err();
+    assert!(e.contains("sense_resistor"), "{e}");
+}
