@@ -259,7 +259,7 @@ const ALL_ADDS: (i64, i64) = (i16::MIN as i64, i16::MAX as i64);
 
 /// [`two_window_adds`] for steps a < b (1-based). Checked i64 arithmetic: on an overflow
 /// (clocks ~2^45 ticks apart) it rules nothing out.
-fn pair_adds(steps: &[StepWindow], last: u64, a: usize, b: usize) -> Option<(i64, i64)> {
+pub(crate) fn pair_adds(steps: &[StepWindow], last: u64, a: usize, b: usize) -> Option<(i64, i64)> {
     let rel = |v: u64| v as i64 - last as i64;
     let (sa, sb) = (steps[a - 1], steps[b - 1]);
     let (lo, hi) = pair_bounds(a as i64, rel(sa.lo), rel(sa.hi), b as i64, rel(sb.lo), rel(sb.hi));
