@@ -419,22 +419,8 @@ impl StepCompressor {
             for f in self.flips.iter_mut() {
                 *f -= head;
             }
-            while self.lines.front().is_some_and(|l| l.end <= head) {
-                self.lines.pop_front();
-            }
-            for l in self.lines.iter_mut() {
-                if let Some(cut) = l.from(head) {
-                    *l = cut.shifted_down(head);
-                }
-            }
-            while self.curves.front().is_some_and(|c| c.end <= head) {
-                self.curves.pop_front();
-            }
-            for c in self.curves.iter_mut() {
-                if let Some(cut) = c.from(head) {
-                    *c = cut.shifted_down(head);
-                }
-            }
+            drop_below(&mut self.lines, head);
+            drop_below(&mut self.curves, head);
             self.head = 0;
             self.next = None;
         }
@@ -776,6 +762,26 @@ fn record_span(lines: &mut VecDeque<LineSpan>, at: usize, t0: f64, dt: f64, from
             dt,
             i0: i,
         });
+    }
+}
+
+/// A stretch of pending steps given by a formula (`compress::line`, `compress::curve`).
+pub(crate) trait Span: Copy {
+    /// Its pending indices: start..end.
+    fn range(&self) -> (usize, usize);
+    /// The same formula without its first `cut` steps, every pending index lowered by `by`
+    /// (≤ start + cut).
+    fn moved(self, cut: usize, by: usize) -> Self;
+}
+
+/// Drops the pending steps below `head` from `spans` (compaction: index `head` becomes 0).
+fn drop_below<S: Span>(spans: &mut VecDeque<S>, head: usize) {
+    while spans.front().is_some_and(|s| s.range().1 <= head) {
+        spans.pop_front();
+    }
+    for s in spans.iter_mut() {
+        let cut = head.saturating_sub(s.range().0);
+        *s = s.moved(cut, head);
     }
 }
 

@@ -28,7 +28,8 @@
 //! from the formula, without passes, is what could make these commands cheaper; the curve
 //! spans it needs are kept here.
 
-use super::fit::{pair_adds, run, two_window_adds, Bend, Fit, StepWindow, NO_PREFIX};
+use super::fit::{add_deviation, binding_adds, run, two_window_adds, Bend, Fit, StepWindow, NO_PREFIX};
+use super::Span;
 use crate::stepgen::Curve;
 
 /// A stretch of pending steps on one curve: the step at pending index `start + j` (j <
@@ -40,31 +41,23 @@ pub(crate) struct CurveSpan {
     pub curve: Curve,
 }
 
-impl CurveSpan {
-    /// The span without its steps below pending index `from` (None: nothing is left).
+impl Span for CurveSpan {
     #[inline]
-    pub fn from(self, from: usize) -> Option<CurveSpan> {
-        if self.end <= from {
-            return None;
-        }
-        let cut = from.saturating_sub(self.start);
-        Some(CurveSpan {
-            start: self.start + cut,
-            curve: self.curve.from_step(cut),
-            ..self
-        })
+    fn range(&self) -> (usize, usize) {
+        (self.start, self.end)
     }
 
-    /// The span with every pending index lowered by `by` (≤ its start).
     #[inline]
-    pub fn shifted_down(self, by: usize) -> CurveSpan {
+    fn moved(self, cut: usize, by: usize) -> CurveSpan {
         CurveSpan {
-            start: self.start - by,
+            start: self.start + cut - by,
             end: self.end - by,
-            ..self
+            curve: self.curve.from_step(cut),
         }
     }
+}
 
+impl CurveSpan {
     /// The add of a command of `n` steps from pending index `at`: the curvature at its middle,
     /// rounded (`None` where the formula gives no finite number).
     #[inline]
@@ -136,25 +129,17 @@ pub(crate) fn curve_longest(
             return Some(finish(best, &tried[..n_tried]));
         }
         if r.count >= 2 {
-            let h = (r.count / 2) as i64;
-            let dev = 3 * max_err / (h * h);
+            let dev = add_deviation(r.count, max_err);
             amin = amin.max(add - dev);
             amax = amax.min(add + dev);
         }
         // An add doing better than this run lands its failing step with its binding steps.
-        let m = r.count + 1;
-        for j in [r.binding.0, r.binding.1] {
-            if j == 0 || j >= m {
-                continue;
-            }
-            match pair_adds(steps, last, j, m) {
-                Some((lo, hi)) => {
-                    amin = amin.max(lo);
-                    amax = amax.min(hi);
-                }
-                None => (amin, amax) = (1, 0),
-            }
-        }
+        let ((lo, hi), none) = binding_adds(steps, last, &r);
+        (amin, amax) = if none {
+            (1, 0)
+        } else {
+            (amin.max(lo), amax.min(hi))
+        };
         if r.bend == Bend::Up {
             amin = amin.max(add + 1);
         } else {

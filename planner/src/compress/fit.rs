@@ -213,7 +213,7 @@ fn run_signed<const POS: bool>(steps: &[StepWindow], last: u64, add: i64) -> Run
 
 /// Largest |ΔA| between two sequences both valid on `count` steps.
 #[inline]
-fn add_deviation(count: usize, max_err: i64) -> i64 {
+pub(crate) fn add_deviation(count: usize, max_err: i64) -> i64 {
     let h = (count / 2) as i64;
     if h == 0 {
         i64::MAX / 4
@@ -254,12 +254,34 @@ pub(crate) fn two_window_adds(steps: &[StepWindow], last: u64, n: usize) -> Opti
     (lo <= hi).then_some((lo, hi))
 }
 
+/// The adds with which a command lands the step after run `r` (count + 1) together with each
+/// of the steps that bound its interval ([`pair_adds`] of each pair, intersected; the whole
+/// i64 range when none applies), and whether some pair rules out every add.
+#[inline]
+pub(crate) fn binding_adds(steps: &[StepWindow], last: u64, r: &Run) -> ((i64, i64), bool) {
+    let m = r.count + 1;
+    let (mut lo, mut hi, mut none) = (i64::MIN, i64::MAX, false);
+    for j in [r.binding.0, r.binding.1] {
+        if j == 0 || j >= m {
+            continue;
+        }
+        match pair_adds(steps, last, j, m) {
+            Some((l, h)) => {
+                lo = lo.max(l);
+                hi = hi.min(h);
+            }
+            None => none = true,
+        }
+    }
+    ((lo, hi), none)
+}
+
 /// Every add a command can carry (an i16).
 const ALL_ADDS: (i64, i64) = (i16::MIN as i64, i16::MAX as i64);
 
 /// [`two_window_adds`] for steps a < b (1-based). Checked i64 arithmetic: on an overflow
 /// (clocks ~2^45 ticks apart) it rules nothing out.
-pub(crate) fn pair_adds(steps: &[StepWindow], last: u64, a: usize, b: usize) -> Option<(i64, i64)> {
+fn pair_adds(steps: &[StepWindow], last: u64, a: usize, b: usize) -> Option<(i64, i64)> {
     let rel = |v: u64| v as i64 - last as i64;
     let (sa, sb) = (steps[a - 1], steps[b - 1]);
     let (lo, hi) = pair_bounds(a as i64, rel(sa.lo), rel(sa.hi), b as i64, rel(sb.lo), rel(sb.hi));
@@ -374,20 +396,9 @@ pub(crate) fn longest_fit_within(
         }
         // An add doing better lands step count + 1 together with the steps that bound this
         // run's interval.
-        let m = count + 1;
-        let mut none = false;
-        for j in [r.binding.0, r.binding.1] {
-            if j == 0 || j >= m {
-                continue;
-            }
-            match pair_adds(steps, last, j, m) {
-                Some((lo, hi)) => {
-                    amin = amin.max(lo);
-                    amax = amax.min(hi);
-                }
-                None => none = true,
-            }
-        }
+        let ((lo, hi), none) = binding_adds(steps, last, &r);
+        amin = amin.max(lo);
+        amax = amax.min(hi);
         if none && count >= best.count {
             break;
         }
