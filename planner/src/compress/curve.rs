@@ -28,7 +28,7 @@
 //! from the formula, without passes, is what could make these commands cheaper; the curve
 //! spans it needs are kept here.
 
-use super::fit::{add_deviation, binding_adds, run, two_window_adds, Bend, Fit, StepWindow, NO_PREFIX};
+use super::fit::{add_deviation, binding_adds, first_two_adds, run, two_window_adds, Bend, Fit, StepWindow};
 use super::Span;
 use crate::stepgen::Curve;
 
@@ -88,20 +88,11 @@ pub(crate) fn curve_longest(
     if steps.len() < 3 || at < span.start || at >= span.end {
         return None;
     }
-    // From the first two steps: I ∈ [l1, u1] and 2I + A ∈ [l2, u2].
-    let l = |i: usize| steps[i].lo as i64 - last as i64;
-    let u = |i: usize| steps[i].hi as i64 - last as i64;
-    let (l1, u1) = (l(0).max(0), u(0).min(super::MAX_INTERVAL as i64));
-    let mut amin = (l(1) - 2 * u1).max(ALL_ADDS.0);
-    let mut amax = (u(1) - 2 * l1).min(ALL_ADDS.1);
+    let (lo, hi) = first_two_adds(steps, last);
+    let mut amin = lo.max(ALL_ADDS.0);
+    let mut amax = hi.min(ALL_ADDS.1);
     let mut add = span.add_at(at, guess_count.clamp(2, steps.len()))?;
-    let mut best = Fit {
-        interval: 0,
-        count: 0,
-        add: 0,
-        prefix_interval: NO_PREFIX,
-        add_cap: i16::MAX as i64,
-    };
+    let mut best = Fit::NONE;
     // The adds tried (an add above the best's fell short of its count).
     let mut tried = [0i64; MAX_PASSES];
     let mut n_tried = 0;
@@ -180,7 +171,7 @@ fn finish(mut best: Fit, tried: &[i64]) -> Fit {
 
 #[cfg(test)]
 mod tests {
-    use super::super::fit::longest_fit;
+    use super::super::fit::{longest_fit, NO_PREFIX};
     use super::*;
 
     /// The windows of steps on `curve` from `t0`: each step q / v(j − ½) ticks after the
