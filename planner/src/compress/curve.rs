@@ -18,6 +18,9 @@
 //! same arguments as the search's, `compress::fit`). When it is not empty after
 //! [`MAX_PASSES`] passes, `None`: the search decides, as it does off the curves.
 //!
+//! Hot path: no allocation (the adds tried go in a fixed array) and no panic (every step read
+//! is within the slice's checked length: at least 3 steps, the pairs and runs inside it).
+//!
 //! Measured (benchy, `cadence bench plan --threads 2 --instructions`, 2026-12-03): the very
 //! same commands and wire bytes as the search on the cartesian and corexy printers, plain and
 //! mzv 50/40 Hz, but more instructions (cartesian 3.31 G against 2.97 G, mzv 4.46 G against
