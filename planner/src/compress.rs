@@ -56,11 +56,16 @@
 //! steps) are kept as spans beside their windows, and a command starting in one comes from the
 //! line's formula in O(1) whatever its length (`compress::line`, with its error bound's proof),
 //! the per-step search only deciding where a command may carry an add (near a line's ends).
+//! Constant-acceleration stretches (a move's acceleration and deceleration, a shaped stretch
+//! whose summed trajectory is quadratic) are kept as curve spans: the longest command from a
+//! step on one tries the adds the curve's formula gives first and stops once the search's own
+//! cuts leave no add that could go further (`compress::curve`), the search deciding otherwise.
 //!
 //! Commands never go back in time (every interval ≥ 0); a `reset_step_clock` precedes the first
 //! step and any step more than 2^29 ticks after the previous one; `set_next_step_dir` precedes
 //! the first step and each direction change.
 
+mod curve;
 mod fit;
 mod line;
 mod resync; // homing: resync after a stop on trigger
@@ -69,9 +74,10 @@ use std::collections::VecDeque;
 
 use crate::kinematics::StepperKin;
 use crate::stepgen::StepGen;
-use crate::stepgen::{line_by_steps, line_clock, StepSink};
+use crate::stepgen::{line_by_steps, line_clock, Curve, StepSink};
 pub use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::Move;
+use curve::{curve_longest, CurveSpan};
 use fit::{
     best_fit, curvature_add, fit_prefix, latest_end, longest_fit, longest_fit_within, two_window_adds, Fit,
     StepWindow,
@@ -104,12 +110,21 @@ pub struct StepCompressor {
     /// Stretches of pending steps on one cruise line (ascending, those ending ≤ head may
     /// linger): a command starting in one is found from the line's formula (`compress::line`).
     lines: VecDeque<LineSpan>,
+    /// Stretches of pending steps on one constant-acceleration curve (ascending, those ending
+    /// ≤ head may linger), kept while `curve_fit` is on: the longest command from one tries the
+    /// adds of the curve's formula first (`compress::curve`).
+    curves: VecDeque<CurveSpan>,
     /// Whether commands in a line come from its formula (default) or the per-step search.
     line_fit: bool,
+    /// Whether the longest command from a curve is looked for from its formula's adds (off by
+    /// default: the same commands, more instructions, see `compress::curve`).
+    curve_fit: bool,
     last_clock: u64,
     started: bool,
     dir: Option<bool>,
     last_add: i64,
+    /// Steps of the last command emitted (the expected length of the next).
+    last_count: usize,
     position_steps: i64,
     step_count: u64,
     queue_steps: u64,
@@ -146,11 +161,14 @@ impl StepCompressor {
             // nothing after warm-up: tests/alloc_free.rs).
             flips: VecDeque::with_capacity(1 << 10),
             lines: VecDeque::with_capacity(1 << 10),
+            curves: VecDeque::with_capacity(1 << 10),
             line_fit: true,
+            curve_fit: false,
             last_clock: 0,
             started: false,
             dir: None,
             last_add: 0,
+            last_count: 0,
             position_steps: 0,
             step_count: 0,
             queue_steps: 0,
@@ -174,6 +192,16 @@ impl StepCompressor {
     /// formula's commands are measured against).
     pub fn set_line_fit(&mut self, on: bool) {
         self.line_fit = on;
+    }
+
+    /// Whether the longest command from a step on a constant-acceleration curve tries the adds
+    /// of the curve's formula first (`compress::curve`; off by default: on the benchy it gives
+    /// the same commands for more instructions).
+    pub fn set_curve_fit(&mut self, on: bool) {
+        self.curve_fit = on;
+        if !on {
+            self.curves.clear();
+        }
     }
 
     /// A new step distance from the next move on: the stepper stays where it is and counts
@@ -256,11 +284,8 @@ impl StepCompressor {
             extra: Vec::new(),
             max_err,
             base: start,
-            lines: if self.line_fit {
-                Some(&mut self.lines)
-            } else {
-                None
-            },
+            lines: self.line_fit.then_some(&mut self.lines),
+            curves: self.curve_fit.then_some(&mut self.curves),
         };
         self.gen.raise_last_clock(self.last_ideal);
         // Two loops rather than a test of the flag per step.
@@ -353,6 +378,15 @@ impl StepCompressor {
         self.last_ideal = line_clock(t0, dt, to - 1, floor);
     }
 
+    /// The next `steps` steps queued (by [`Self::push_step`]) lie on `curve` (a hint: the
+    /// commands from them take their adds from its formula, `compress::curve`).
+    pub fn push_curve(&mut self, curve: Curve, steps: usize) {
+        let start = self.pending.len();
+        if self.curve_fit {
+            record_curve(&mut self.curves, start, curve, steps);
+        }
+    }
+
     /// Compresses every pending step whose ideal time is before `upto_clock` (commands may also
     /// take in later pending steps).
     pub fn flush(&mut self, upto_clock: u64, out: &mut Vec<StepCmd>) {
@@ -376,6 +410,7 @@ impl StepCompressor {
             self.head = 0;
             self.flips.clear();
             self.lines.clear();
+            self.curves.clear();
             self.next = None;
         } else if self.head > 4096 && self.head * 2 > self.pending.len() {
             self.pending.drain(..self.head);
@@ -384,14 +419,8 @@ impl StepCompressor {
             for f in self.flips.iter_mut() {
                 *f -= head;
             }
-            while self.lines.front().is_some_and(|l| l.end <= head) {
-                self.lines.pop_front();
-            }
-            for l in self.lines.iter_mut() {
-                if let Some(cut) = l.from(head) {
-                    *l = cut.shifted_down(head);
-                }
-            }
+            drop_below(&mut self.lines, head);
+            drop_below(&mut self.curves, head);
             self.head = 0;
             self.next = None;
         }
@@ -407,7 +436,10 @@ impl StepCompressor {
             Some(n) if n.head == self.head && n.last_clock == last && n.run_end == run_end => {
                 latest_end(run, last, max_err, n.fit)
             }
-            _ => best_fit(run, last, max_err, self.last_add),
+            _ => match self.curve_fit(self.head, run_end, last) {
+                Some(f) => latest_end(run, last, max_err, f),
+                None => best_fit(run, last, max_err, self.last_add),
+            },
         };
         self.lookahead(run_end, fit)
     }
@@ -435,6 +467,9 @@ impl StepCompressor {
         // Only the length of the following command matters here.
         let follow = |f: &Fit| {
             if let Some(next) = from_line(f) {
+                return next;
+            }
+            if let Some(next) = self.curve_fit(head + f.count, run_end, f.end(last)) {
                 return next;
             }
             let (rest, from) = (&run[f.count..], f.end(last));
@@ -469,7 +504,10 @@ impl StepCompressor {
             };
             let next = match from_line(&f) {
                 Some(next) => next,
-                None => longest_fit_within(rest, f.end(last), max_err, guess, within),
+                None => match self.curve_fit(head + f.count, run_end, f.end(last)) {
+                    Some(next) => next,
+                    None => longest_fit_within(rest, f.end(last), max_err, guess, within),
+                },
             };
             if f.count + next.count > best.0.count + best.1.count {
                 best = (f, next);
@@ -483,6 +521,21 @@ impl StepCompressor {
             fit: next,
         });
         chosen
+    }
+
+    /// The longest command from pending index `at` (before `run_end`) from `last` when `at`
+    /// lies on a curve and its formula's adds prove it longest (`compress::curve`).
+    fn curve_fit(&self, at: usize, run_end: usize, last: u64) -> Option<Fit> {
+        if !self.curve_fit {
+            return None;
+        }
+        let span = self
+            .curves
+            .iter()
+            .find(|c| c.end > at)
+            .filter(|c| c.start <= at)?;
+        let steps = self.pending.get(at..run_end)?;
+        curve_longest(span, steps, at, last, self.max_err as i64, self.last_count)
     }
 
     /// The command from the head when it lies in a cruise line and the line's formula gives
@@ -550,6 +603,9 @@ impl StepCompressor {
         }
         let dir_run_end = self.flips.front().copied().unwrap_or(self.pending.len());
         let run_end = dir_run_end.min(self.head + MAX_COUNT);
+        while self.curves.front().is_some_and(|c| c.end <= self.head) {
+            self.curves.pop_front();
+        }
         let fit = match self.line_command(run_end) {
             Some(f) => f,
             None => self.choose_fit(run_end),
@@ -566,6 +622,7 @@ impl StepCompressor {
         });
         self.last_clock = last_clock;
         self.last_add = fit.add;
+        self.last_count = fit.count;
         self.head += fit.count;
         self.step_count += count;
         self.queue_steps += 1;
@@ -588,6 +645,11 @@ impl StepSink for CompressorSink<'_> {
     fn line(&mut self, t0: f64, dt: f64, from: i64, to: i64, floor: f64, dir: bool) {
         self.0.push_line(t0, dt, from, to, floor, dir);
     }
+
+    #[inline]
+    fn curve(&mut self, curve: Curve, steps: usize) {
+        self.0.push_curve(curve, steps);
+    }
 }
 
 /// Writes a move's step windows into the room made for them (steps beyond it, only possible on
@@ -601,6 +663,8 @@ struct WindowSink<'a> {
     base: usize,
     /// Where a line's span is recorded (`None`: line commands are off).
     lines: Option<&'a mut VecDeque<LineSpan>>,
+    /// Where a curve's span is recorded (`None`: curve commands are off).
+    curves: Option<&'a mut VecDeque<CurveSpan>>,
 }
 
 impl StepSink for &mut WindowSink<'_> {
@@ -636,6 +700,14 @@ impl StepSink for &mut WindowSink<'_> {
             None => line_by_steps(self, t0, dt, from, to, floor, dir),
         }
     }
+
+    #[inline]
+    fn curve(&mut self, curve: Curve, steps: usize) {
+        if let Some(curves) = self.curves.as_deref_mut() {
+            let at = self.base + self.used + self.extra.len();
+            record_curve(curves, at, curve, steps);
+        }
+    }
 }
 
 /// A [`WindowSink`] that also records each step's ideal time (tests, `--check`): lines stay
@@ -664,6 +736,12 @@ impl StepSink for RecordingSink<'_, '_> {
             });
         }
     }
+
+    #[inline]
+    fn curve(&mut self, curve: Curve, steps: usize) {
+        let mut inner = &mut *self.inner;
+        inner.curve(curve, steps);
+    }
 }
 
 /// Records the steps `from..to` of a line written at pending index `at` on as a span, those
@@ -683,6 +761,38 @@ fn record_span(lines: &mut VecDeque<LineSpan>, at: usize, t0: f64, dt: f64, from
             t0,
             dt,
             i0: i,
+        });
+    }
+}
+
+/// A stretch of pending steps given by a formula (`compress::line`, `compress::curve`).
+pub(crate) trait Span: Copy {
+    /// Its pending indices: start..end.
+    fn range(&self) -> (usize, usize);
+    /// The same formula without its first `cut` steps, every pending index lowered by `by`
+    /// (≤ start + cut).
+    fn moved(self, cut: usize, by: usize) -> Self;
+}
+
+/// Drops the pending steps below `head` from `spans` (compaction: index `head` becomes 0).
+fn drop_below<S: Span>(spans: &mut VecDeque<S>, head: usize) {
+    while spans.front().is_some_and(|s| s.range().1 <= head) {
+        spans.pop_front();
+    }
+    for s in spans.iter_mut() {
+        let cut = head.saturating_sub(s.range().0);
+        *s = s.moved(cut, head);
+    }
+}
+
+/// Records the next `steps` steps, from pending index `at`, as on `curve` (when a command
+/// could start in them and carry an add: at least 3).
+fn record_curve(curves: &mut VecDeque<CurveSpan>, at: usize, curve: Curve, steps: usize) {
+    if steps >= 3 {
+        curves.push_back(CurveSpan {
+            start: at,
+            end: at + steps,
+            curve,
         });
     }
 }

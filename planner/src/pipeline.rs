@@ -727,6 +727,20 @@ impl Pipeline {
         }
     }
 
+    /// Whether every stepper's longest command from a constant-acceleration curve tries the
+    /// adds of the curve's formula first (off by default, see [`StepCompressor::set_curve_fit`]).
+    pub fn set_curve_fit(&mut self, on: bool) {
+        match &mut self.backend {
+            Backend::Inline(lanes, _) => lanes.iter_mut().for_each(|l| l.comp.set_curve_fit(on)),
+            Backend::Threads(w, local, _) => {
+                local.iter_mut().for_each(|(_, l)| l.comp.set_curve_fit(on));
+                if !w.broadcast(|| Msg::CurveFit(on)) {
+                    self.worker_error = Some("a planner thread stopped".into());
+                }
+            }
+        }
+    }
+
     /// Stepper `idx`'s MCU clock from the next batch of moves on (its clock-sync estimate was
     /// refreshed): only the map changes, the stepper keeps counting ticks at the rate it was
     /// made with (the moves are carried into its clock exactly, see `lanes`). Steps already

@@ -23,7 +23,7 @@
 use std::collections::VecDeque;
 
 use crate::shaper::{InputShaper, MAX_PULSES};
-use crate::stepgen::{line_clock, StepSink};
+use crate::stepgen::{line_clock, Curve, StepSink};
 use crate::toolhead::Move;
 
 /// Terms of the sum: up to [`MAX_PULSES`] per axis X, Y, Z.
@@ -358,6 +358,20 @@ impl ShapedGen {
                     continue;
                 }
             }
+            // v² = va² + 4·s₂·d, d the distance from the part's start: linear in the step index.
+            let up = target > self.cur_n;
+            let (half, dd) = if up {
+                (0.5, self.step_dist)
+            } else {
+                (-0.5, -self.step_dist)
+            };
+            let d0 = (self.cur_n as f64 + half) * self.step_dist - sa;
+            let curve = Curve {
+                q: self.step_dist * self.clock_freq,
+                r0: va * va + 4.0 * s2 * d0,
+                r1: 4.0 * s2 * dd,
+            };
+            sink.curve(curve, target.abs_diff(self.cur_n) as usize);
             while self.cur_n != target {
                 let up = target > self.cur_n;
                 let half = if up { 0.5 } else { -0.5 };

@@ -58,6 +58,43 @@ pub trait StepSink {
     fn line(&mut self, t0: f64, dt: f64, from: i64, to: i64, floor: f64, dir: bool) {
         line_by_steps(self, t0, dt, from, to, floor, dir);
     }
+
+    /// The next `steps` steps (given to [`Self::step`] right after) lie on `curve`: a hint for
+    /// a sink that compresses them (their times are still each step's own). Default: ignored.
+    #[inline]
+    fn curve(&mut self, _curve: Curve, _steps: usize) {}
+}
+
+/// A stretch of steps on one constant acceleration: the squared speed is linear in the step
+/// index, v²(j) = r0 + r1·j for step j from the stretch's first, and a step takes about
+/// q / v(j) ticks (q = step distance × clock frequency). Plain moves' acceleration and
+/// deceleration phases, and shaped stretches where the summed trajectory is quadratic, are such
+/// curves: their step clocks are c(j) = α + β·√(γ + j) (γ = r0 / r1, α and β from the phase).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Curve {
+    pub q: f64,
+    pub r0: f64,
+    pub r1: f64,
+}
+
+impl Curve {
+    /// The second derivative of the step clock in the step index at (real) step `j`, in ticks
+    /// per step²: d²c/dj² = −q·r1 / (2·(r0 + r1·j)^{3/2}) (the add a command centred there
+    /// would carry). NaN or infinite where the speed reaches 0.
+    #[inline]
+    pub fn curvature(&self, j: f64) -> f64 {
+        let v2 = self.r0 + self.r1 * j;
+        -0.5 * self.q * self.r1 / (v2 * v2.sqrt())
+    }
+
+    /// The same curve from its step `j` on.
+    #[inline]
+    pub fn from_step(self, j: usize) -> Curve {
+        Curve {
+            r0: self.r0 + self.r1 * j as f64,
+            ..self
+        }
+    }
 }
 
 /// Clock of step `i` of a cruise line: max(t0 + i·dt, floor). Every writer of a line uses this
@@ -252,14 +289,49 @@ impl StepGen {
                     k += (i_to - i_from) * dk;
                 }
                 _ => {
-                    for _ in i_from..i_to {
-                        let b = (k as f64 - 0.5) * sd;
-                        let s = ((b - x0) * scale).clamp(0.0, d);
-                        let t = base + phases.time_at(s) * freq;
-                        let clock = if t > last { t } else { last };
-                        last = clock;
-                        sink.step(clock, up);
-                        k += dk;
+                    // Accelerating before the step at `accel_d`, decelerating from it on (no
+                    // step of this loop is in the cruise): v² = v₀² + 2a·s, resp.
+                    // v_c² − 2a·(s − cruise_end_d), linear in the step index.
+                    let acc_d = mv.accel_d();
+                    let split = if ds > 0.0 {
+                        // (A NaN converts to 0: the integer clamp keeps the split in range.)
+                        (((acc_d - s0) / ds).ceil() as i64).clamp(i_from, i_to)
+                    } else {
+                        i_to
+                    };
+                    let two_a = 2.0 * mv.accel;
+                    let curves = [
+                        (i_from, split, mv.start_v * mv.start_v, 0.0, two_a),
+                        (
+                            split,
+                            i_to,
+                            mv.cruise_v * mv.cruise_v,
+                            acc_d + mv.cruise_d(),
+                            -two_a,
+                        ),
+                    ];
+                    for (a, b, v2, from_d, slope) in curves {
+                        if b <= a {
+                            continue;
+                        }
+                        if ds > 0.0 {
+                            let r0 = v2 + slope * (s0 + a as f64 * ds - from_d);
+                            let curve = Curve {
+                                q: freq * ds,
+                                r0,
+                                r1: slope * ds,
+                            };
+                            sink.curve(curve, (b - a) as usize);
+                        }
+                        for _ in a..b {
+                            let bound = (k as f64 - 0.5) * sd;
+                            let s = ((bound - x0) * scale).clamp(0.0, d);
+                            let t = base + phases.time_at(s) * freq;
+                            let clock = if t > last { t } else { last };
+                            last = clock;
+                            sink.step(clock, up);
+                            k += dk;
+                        }
                     }
                 }
             }

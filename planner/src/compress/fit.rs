@@ -53,7 +53,26 @@ pub(crate) struct Fit {
 /// [`Fit::prefix_interval`] when the fit did not come from a run.
 pub(crate) const NO_PREFIX: i64 = i64::MIN;
 
+/// The adds with which a command from `last` lands the first two of `steps` (at least two):
+/// I ∈ [l1, u1] and 2I + A ∈ [l2, u2] (relative to `last`, I ≥ 0).
+#[inline]
+pub(crate) fn first_two_adds(steps: &[StepWindow], last: u64) -> (i64, i64) {
+    let l = |i: usize| steps[i].lo as i64 - last as i64;
+    let u = |i: usize| steps[i].hi as i64 - last as i64;
+    let (l1, u1) = (l(0).max(0), u(0).min(MAX_IV));
+    (l(1) - 2 * u1, u(1) - 2 * l1)
+}
+
 impl Fit {
+    /// No command yet (a search's starting point).
+    pub const NONE: Fit = Fit {
+        interval: 0,
+        count: 0,
+        add: 0,
+        prefix_interval: NO_PREFIX,
+        add_cap: i16::MAX as i64,
+    };
+
     /// Clock of the command's last step when it starts from `last`.
     #[inline]
     pub fn end(&self, last: u64) -> u64 {
@@ -213,7 +232,7 @@ fn run_signed<const POS: bool>(steps: &[StepWindow], last: u64, add: i64) -> Run
 
 /// Largest |ΔA| between two sequences both valid on `count` steps.
 #[inline]
-fn add_deviation(count: usize, max_err: i64) -> i64 {
+pub(crate) fn add_deviation(count: usize, max_err: i64) -> i64 {
     let h = (count / 2) as i64;
     if h == 0 {
         i64::MAX / 4
@@ -252,6 +271,28 @@ pub(crate) fn two_window_adds(steps: &[StepWindow], last: u64, n: usize) -> Opti
     }
     let (lo, hi) = (lo.max(ALL_ADDS.0), hi.min(ALL_ADDS.1));
     (lo <= hi).then_some((lo, hi))
+}
+
+/// The adds with which a command lands the step after run `r` (count + 1) together with each
+/// of the steps that bound its interval ([`pair_adds`] of each pair, intersected; the whole
+/// i64 range when none applies), and whether some pair rules out every add.
+#[inline]
+pub(crate) fn binding_adds(steps: &[StepWindow], last: u64, r: &Run) -> ((i64, i64), bool) {
+    let m = r.count + 1;
+    let (mut lo, mut hi, mut none) = (i64::MIN, i64::MAX, false);
+    for j in [r.binding.0, r.binding.1] {
+        if j == 0 || j >= m {
+            continue;
+        }
+        match pair_adds(steps, last, j, m) {
+            Some((l, h)) => {
+                lo = lo.max(l);
+                hi = hi.min(h);
+            }
+            None => none = true,
+        }
+    }
+    ((lo, hi), none)
 }
 
 /// Every add a command can carry (an i16).
@@ -334,23 +375,14 @@ pub(crate) fn longest_fit_within(
     if steps.len() < 2 {
         return single();
     }
-    // From the first two steps: I ∈ [l1, u1] and 2I + A ∈ [l2, u2].
-    let l = |i: usize| steps[i].lo as i64 - last as i64;
-    let u = |i: usize| steps[i].hi as i64 - last as i64;
-    let (l1, u1) = (l(0).max(0), u(0).min(MAX_IV));
-    let mut amin = (l(1) - 2 * u1).max(within.0);
-    let mut amax = (u(1) - 2 * l1).min(within.1);
+    let (lo, hi) = first_two_adds(steps, last);
+    let mut amin = lo.max(within.0);
+    let mut amax = hi.min(within.1);
     if amin > amax {
         return single();
     }
     let mut add = guess_add.clamp(amin, amax);
-    let mut best = Fit {
-        interval: 0,
-        count: 0,
-        add: 0,
-        prefix_interval: NO_PREFIX,
-        add_cap: i16::MAX as i64,
-    };
+    let mut best = Fit::NONE;
     // The adds tried (the first few).
     let mut tried = [0i64; 16];
     let mut n_tried = 0;
@@ -374,20 +406,9 @@ pub(crate) fn longest_fit_within(
         }
         // An add doing better lands step count + 1 together with the steps that bound this
         // run's interval.
-        let m = count + 1;
-        let mut none = false;
-        for j in [r.binding.0, r.binding.1] {
-            if j == 0 || j >= m {
-                continue;
-            }
-            match pair_adds(steps, last, j, m) {
-                Some((lo, hi)) => {
-                    amin = amin.max(lo);
-                    amax = amax.min(hi);
-                }
-                None => none = true,
-            }
-        }
+        let ((lo, hi), none) = binding_adds(steps, last, &r);
+        amin = amin.max(lo);
+        amax = amax.min(hi);
         if none && count >= best.count {
             break;
         }

@@ -56,7 +56,7 @@
 //! no more commands than the per-step search (`pipeline::tests::line_fit`).
 
 use super::fit::{Fit, StepWindow};
-use super::MAX_INTERVAL;
+use super::{Span, MAX_INTERVAL};
 
 /// A stretch of pending steps on one line: the step at pending index `start + j` (j <
 /// `end − start`) has the ideal clock `t0 + (i0 + j) as f64 * dt` (bit-identical to
@@ -76,27 +76,20 @@ impl LineSpan {
     fn clock(&self, p: usize) -> f64 {
         self.t0 + (self.i0 + (p - self.start) as i64) as f64 * self.dt
     }
+}
 
-    /// The span without its steps below pending index `from` (None: nothing is left).
+impl Span for LineSpan {
     #[inline]
-    pub fn from(self, from: usize) -> Option<LineSpan> {
-        if self.end <= from {
-            return None;
-        }
-        let cut = from.saturating_sub(self.start);
-        Some(LineSpan {
-            start: self.start + cut,
-            i0: self.i0 + cut as i64,
-            ..self
-        })
+    fn range(&self) -> (usize, usize) {
+        (self.start, self.end)
     }
 
-    /// The span with every pending index lowered by `by` (≤ its start).
     #[inline]
-    pub fn shifted_down(self, by: usize) -> LineSpan {
+    fn moved(self, cut: usize, by: usize) -> LineSpan {
         LineSpan {
-            start: self.start - by,
+            start: self.start + cut - by,
             end: self.end - by,
+            i0: self.i0 + cut as i64,
             ..self
         }
     }

@@ -1,7 +1,9 @@
-//! Cruise lines' commands from their formula (`compress::line`) against the per-step search, on
-//! random programs through every kinematics, shaped and not: the checker passes on every
-//! stepper (`run_cfg_fit` checks each command as it comes), the step counts are the same, and
-//! no stepper takes more `queue_step` commands than the per-step search gives it.
+//! Cruise lines' commands from their formula (`compress::line`), and with them the commands
+//! from constant-acceleration curves tried from the curve's adds (`compress::curve`), against
+//! the per-step search, on random programs through every kinematics, shaped and not: the
+//! checker passes on every stepper (`run_cfg_modes` checks each command as it comes), the step
+//! counts are the same, and no stepper takes more `queue_step` commands than the per-step
+//! search gives it.
 
 use super::*;
 
@@ -20,23 +22,26 @@ fn counts(r: &Run) -> Vec<(usize, u64)> {
 
 /// Runs `program` both ways and compares them stepper by stepper.
 fn compare(program: &str, cfg: PipelineConfig, opts: PipelineOptions) -> Result<(), TestCaseError> {
-    let line = run_cfg_fit(program, cfg.clone(), opts, true);
     let per_step = run_cfg_fit(program, cfg.clone(), opts, false);
-    prop_assert!(line.keys.windows(2).all(|w| w[0] <= w[1]));
-    prop_assert_eq!(
-        line.pipeline.stepper_positions(),
-        per_step.pipeline.stepper_positions()
-    );
-    for (i, (l, p)) in counts(&line).into_iter().zip(counts(&per_step)).enumerate() {
-        let name = &cfg.steppers[i].name;
-        prop_assert_eq!(l.1, p.1, "{} steps", name);
-        prop_assert!(
-            l.0 <= p.0,
-            "{}: {} queue_step with line commands, {} per step",
-            name,
-            l.0,
-            p.0
+    for (what, curve_fit) in [("line", false), ("line and curve", true)] {
+        let fit = run_cfg_modes(program, cfg.clone(), opts, true, curve_fit);
+        prop_assert!(fit.keys.windows(2).all(|w| w[0] <= w[1]));
+        prop_assert_eq!(
+            fit.pipeline.stepper_positions(),
+            per_step.pipeline.stepper_positions()
         );
+        for (i, (l, p)) in counts(&fit).into_iter().zip(counts(&per_step)).enumerate() {
+            let name = &cfg.steppers[i].name;
+            prop_assert_eq!(l.1, p.1, "{} steps", name);
+            prop_assert!(
+                l.0 <= p.0,
+                "{}: {} queue_step with {} commands, {} per step",
+                name,
+                l.0,
+                what,
+                p.0
+            );
+        }
     }
     Ok(())
 }
