@@ -533,8 +533,9 @@ mod tests {
             ]
         );
         assert!(t.diag.is_some());
+        assert!(parse_tmc("tmc2660@PA4:0").is_ok_and(|t| t.model == TmcModel::Tmc2660));
         for bad in [
-            "tmc2660@PA4:0",
+            "tmc2661@PA4:0",
             "tmc2209@PA4",
             "tmc2209@PA4:x",
             "tmc2209@PA4:0=PA5,x,0,mid",
