@@ -199,7 +199,8 @@ impl HomingCtx<'_> {
     /// At most a quarter of the fastest MCU's 32-bit clock range ([`ALLOWANCE_CLOCK_SHARE`]):
     /// the move's start and the endstop's first read go out as 32-bit clocks, and one more
     /// than 2³¹ ticks ahead reads as in the past (a 900,000-step probe pass on a 50 MHz MCU at
-    /// time scale 10 asked for 89 s, and its endstop reported a trigger before the move).
+    /// time scale 10 asked for up to 89 s at the assumed rate, and its endstop reported a
+    /// trigger before the move).
     fn generation_allowance(&self, steps: f64) -> f64 {
         let want = steps * self.gen_wall_per_step * GEN_ALLOWANCE_FACTOR * self.time_scale.max(1.0);
         let fastest = self.mcus.list.iter().map(|m| m.clock_freq).fold(1.0, f64::max);
