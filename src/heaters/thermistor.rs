@@ -66,6 +66,11 @@ impl SteinhartHart {
         }
         let c2 = (r1 * b2 - r2 * b1) / det;
         let c3 = (a1 * r2 - a2 * r1) / det;
+        if c3 <= 0.0 {
+            // Points whose fit bends the wrong way (a negative c3 has no resistance at all
+            // for some temperatures): as Klipper does, the β through the outer two points.
+            return SteinhartHart::from_beta(p1.0, p1.1, (l1 - l3) / (y1 - y3));
+        }
         let c1 = y1 - c2 * l1 - c3 * l1.powi(3);
         let sh = SteinhartHart { c1, c2, c3 };
         if !(c1.is_finite() && c2 > 0.0 && c3.is_finite()) {
@@ -319,6 +324,26 @@ mod tests {
         assert_eq!(sensor_types().count(), NAMED.len() + 2);
         assert!(matches!(named("generic 3950"), Ok(Element::Thermistor(_))));
         assert_eq!(named("Bogus"), Err(SensorError::Unknown("Bogus".into())));
+    }
+
+    #[test]
+    fn points_that_bend_the_fit_the_wrong_way_give_the_beta_of_the_outer_two() {
+        // The Makibox bed thermistor (Klipper's printer-robo3d-r2-2017.cfg): c3 < 0, β 4699.8.
+        let sh = SteinhartHart::from_points((25.0, 100_000.0), (50.0, 29_536.0), (125.0, 1908.0)).unwrap();
+        assert_eq!(sh.c3, 0.0);
+        assert!(close(1.0 / sh.c2, 4699.8, 0.1), "{}", 1.0 / sh.c2);
+        assert!(close(sh.resistance(25.0), 100_000.0, 1e-6));
+        assert!(close(sh.resistance(125.0), 1908.0, 1e-6));
+        let s = Sensor {
+            element: Element::Thermistor(sh),
+            pullup: 4700.0,
+            inline: 0.0,
+        };
+        for t in [-40.0, 0.0, 25.0, 60.0, 125.0, 300.0] {
+            let adc = s.adc(t);
+            assert!(adc > 0.0 && adc < 1.0, "{t}: {adc}");
+            assert!(close(s.temperature(adc), t, 1e-6), "{t}");
+        }
     }
 
     #[test]

@@ -106,6 +106,8 @@ pub const GEN_WALL_PER_STEP_DELTA: f64 = 20e-6;
 /// A homing move starts this many times its expected generation time after "now" (on top of
 /// the lead): room for host pauses while a long move's steps are computed.
 const GEN_ALLOWANCE_FACTOR: f64 = 2.0;
+/// The share of an MCU's 32-bit clock range a homing move may start ahead of now at most.
+const ALLOWANCE_CLOCK_SHARE: f64 = 0.25;
 /// Passes with fewer steps than this teach nothing about the generation rate (timer noise).
 const GEN_LEARN_MIN_STEPS: f64 = 1000.0;
 /// Tries of a position / endstop-state query (a reply can be lost on a noisy line).
@@ -194,8 +196,15 @@ impl HomingCtx<'_> {
     /// screw: 300 mm at 400 steps/mm is 120,000 steps) would otherwise have its first steps
     /// late. The expected wall time ([`Self::gen_wall_per_step`] per step) times
     /// [`GEN_ALLOWANCE_FACTOR`], in MCU time.
+    /// At most a quarter of the fastest MCU's 32-bit clock range ([`ALLOWANCE_CLOCK_SHARE`]):
+    /// the move's start and the endstop's first read go out as 32-bit clocks, and one more
+    /// than 2³¹ ticks ahead reads as in the past (a 900,000-step probe pass on a 50 MHz MCU at
+    /// time scale 10 asked for up to 89 s at the assumed rate, and its endstop reported a
+    /// trigger before the move).
     fn generation_allowance(&self, steps: f64) -> f64 {
-        steps * self.gen_wall_per_step * GEN_ALLOWANCE_FACTOR * self.time_scale.max(1.0)
+        let want = steps * self.gen_wall_per_step * GEN_ALLOWANCE_FACTOR * self.time_scale.max(1.0);
+        let fastest = self.mcus.list.iter().map(|m| m.clock_freq).fold(1.0, f64::max);
+        want.min(ALLOWANCE_CLOCK_SHARE * 4_294_967_296.0 / fastest)
     }
 
     /// Learns from a move of `steps` steps whose generation took `wall_s`: a slower rate is

@@ -14,11 +14,7 @@ use cadence_tests::{print_live, scratch};
 /// replaced: the hotend (its heater pin inverted) on a custom NTC behind a 4.7 kΩ inline resistor, the bed on a PT1000,
 /// and a PT100 (INA826 amplifier) chamber sensor reported as `C`.
 fn config(dir: &Path) -> String {
-    let mut text: String = sysconfig::printer::SIMULATED_PRINTER_CFG
-        .lines()
-        .filter(|l| !l.starts_with("endstop_pin:") && !l.starts_with("homing_speed:"))
-        .map(|l| format!("{l}\n"))
-        .collect();
+    let mut text = without_endstops();
     // An inverted heater pin (the heater on while the pin is low), as on Duet boards.
     text = text.replacen("heater_pin: PE0\n", "heater_pin: !PE0\n", 1);
     text = text.replacen(
@@ -44,6 +40,15 @@ fn config(dir: &Path) -> String {
     let path = dir.join("printer.cfg");
     std::fs::write(&path, &text).unwrap();
     path.to_string_lossy().into_owned()
+}
+
+/// The built-in simulated printer without endstops (G28 declares the axes homed).
+fn without_endstops() -> String {
+    sysconfig::printer::SIMULATED_PRINTER_CFG
+        .lines()
+        .filter(|l| !l.starts_with("endstop_pin:") && !l.starts_with("homing_speed:"))
+        .map(|l| format!("{l}\n"))
+        .collect()
 }
 
 /// `ID:current` of `id` in an M105 line.
@@ -72,4 +77,36 @@ fn configured_sensors_read_their_simulated_temperatures() {
     assert!((reading(m105[1], "T0") - 200.0).abs() < 3.0, "{}", m105[1]);
     assert!((reading(m105[1], "B") - 60.0).abs() < 3.0, "{}", m105[1]);
     assert!((reading(m105[1], "C") - 25.0).abs() < 2.0, "{}", m105[1]);
+}
+
+/// A bed on a `[thermistor]` whose three points bend the Steinhart–Hart fit the wrong way
+/// (c3 < 0: the Makibox bed thermistor of Klipper's `printer-robo3d-r2-2017.cfg`, which had no
+/// resistance at all for some temperatures and shut the MCU down with `ADC out of range` at
+/// the first reading) reads and heats through the β of its outer points, as on Klipper.
+#[test]
+fn a_thermistor_whose_points_fit_no_steinhart_hart_curve_reads_through_its_beta() {
+    let dir = scratch("sensor-curves-beta");
+    let mut text = without_endstops();
+    text = text.replacen(
+        "sensor_type: Generic 3950\nsensor_pin: PF1\n",
+        "sensor_type: makibox_bed\nsensor_pin: PF1\n",
+        1,
+    );
+    assert!(
+        text.contains("makibox_bed"),
+        "the built-in printer's bed sensor changed"
+    );
+    text.push_str(
+        "\n[thermistor makibox_bed]\ntemperature1: 25\nresistance1: 100000\ntemperature2: 50\n\
+         resistance2: 29536\ntemperature3: 125\nresistance3: 1908\n",
+    );
+    let cfg = dir.join("printer.cfg");
+    std::fs::write(&cfg, &text).unwrap();
+    let gcode = dir.join("heat.gcode");
+    std::fs::write(&gcode, "M140 S50\nM190 S50\nM105\n").unwrap();
+    let run = print_live(&gcode, &cfg, "5", Duration::from_secs(300));
+    assert_eq!(run.code, Some(0), "{}\n{}", run.stdout, run.stderr);
+    let m105: Vec<&str> = run.stdout.lines().filter(|l| l.contains("M105: ")).collect();
+    assert_eq!(m105.len(), 1, "{}", run.stdout);
+    assert!((reading(m105[0], "B") - 50.0).abs() < 3.0, "{}", m105[0]);
 }
