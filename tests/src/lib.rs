@@ -499,6 +499,51 @@ pub fn stop_bounds(line: &str) -> Vec<(f64, f64)> {
         .collect()
 }
 
+/// `cadence print GCODE --config CFG --time-scale 5 --no-realtime` on the simulated printer
+/// (`gcode` written to `dir/print.gcode`), its simulated main MCU given `sim_args` too
+/// (`CADENCE_SIM_ARGS_MCU`): the heater and sensor tests' run.
+pub fn print_scaled(dir: &Path, cfg: &Path, gcode: &str, sim_args: Option<&str>, timeout: Duration) -> Run {
+    let g = dir.join("print.gcode");
+    std::fs::write(&g, gcode).expect("write the G-code");
+    let mut cmd = Command::new(bin("cadence"));
+    cmd.args([
+        "print",
+        path_str(&g),
+        "--config",
+        path_str(cfg),
+        "--time-scale",
+        "5",
+        "--no-realtime",
+    ]);
+    match sim_args {
+        Some(a) => cmd.env("CADENCE_SIM_ARGS_MCU", a),
+        None => cmd.env_remove("CADENCE_SIM_ARGS_MCU"),
+    };
+    run(&mut cmd, timeout)
+}
+
+/// A path as the `&str` a command line takes (the tests' paths are UTF-8).
+fn path_str(p: &Path) -> &str {
+    p.to_str().expect("UTF-8 path")
+}
+
+/// The number after `what` in the first line of `out` containing `line` (a print summary's
+/// `temperature_sensor board: 31.2 °C (lowest 25.0 …)`, an M105 answer's `T0:`).
+pub fn value_after(out: &str, line: &str, what: &str) -> f64 {
+    let l = out
+        .lines()
+        .find(|l| l.contains(line))
+        .unwrap_or_else(|| panic!("no '{line}' in\n{out}"));
+    let rest = &l[l.find(what).unwrap_or_else(|| panic!("no '{what}' in {l}")) + what.len()..];
+    let num: String = rest
+        .trim_start()
+        .chars()
+        .take_while(|c| c.is_ascii_digit() || *c == '.' || *c == '-')
+        .collect();
+    num.parse()
+        .unwrap_or_else(|_| panic!("no number after '{what}' in {l}"))
+}
+
 #[cfg(test)]
 mod tests {
     #[test]

@@ -7,10 +7,9 @@
 //! Times are MCU time (a time-scaled simulator); bounds are generous.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::Duration;
 
-use cadence_tests::{bin, run, scratch, Run};
+use cadence_tests::{print_scaled, scratch, value_after, Run};
 
 const TIMEOUT: Duration = Duration::from_secs(240);
 
@@ -39,44 +38,7 @@ fn config(dir: &Path) -> PathBuf {
 
 fn print(dir: &Path, gcode: &str) -> Run {
     let cfg = config(dir);
-    print_with(dir, &cfg, gcode, None)
-}
-
-/// `cadence print` of `gcode` on `cfg`, the simulated MCU given `sim_args` too.
-fn print_with(dir: &Path, cfg: &Path, gcode: &str, sim_args: Option<&str>) -> Run {
-    let g = dir.join("print.gcode");
-    std::fs::write(&g, gcode).unwrap();
-    let mut cmd = Command::new(bin("cadence"));
-    cmd.args([
-        "print",
-        g.to_str().unwrap(),
-        "--config",
-        cfg.to_str().unwrap(),
-        "--time-scale",
-        "5",
-        "--no-realtime",
-    ]);
-    match sim_args {
-        Some(a) => cmd.env("CADENCE_SIM_ARGS_MCU", a),
-        None => cmd.env_remove("CADENCE_SIM_ARGS_MCU"),
-    };
-    run(&mut cmd, TIMEOUT)
-}
-
-/// The number after `what` in the summary line starting with `line`.
-fn value(out: &str, line: &str, what: &str) -> f64 {
-    let l = out
-        .lines()
-        .find(|l| l.contains(line))
-        .unwrap_or_else(|| panic!("no '{line}' in\n{out}"));
-    let rest = &l[l.find(what).unwrap_or_else(|| panic!("no '{what}' in {l}")) + what.len()..];
-    let num: String = rest
-        .trim_start()
-        .chars()
-        .take_while(|c| c.is_ascii_digit() || *c == '.' || *c == '-')
-        .collect();
-    num.parse()
-        .unwrap_or_else(|_| panic!("no number after '{what}' in {l}"))
+    print_scaled(dir, &cfg, gcode, None, TIMEOUT)
 }
 
 #[test]
@@ -90,22 +52,22 @@ fn mcu_sensor_scaled_adc_hardware_pwm_and_tachometers() {
     );
     assert_eq!(run.code, Some(0), "{}\n{}", run.stdout, run.stderr);
     let out = &run.stdout;
-    let board = value(out, "temperature_sensor board:", "board:");
+    let board = value_after(out, "temperature_sensor board:", "board:");
     assert!((30.0..=40.5).contains(&board), "the MCU's die: {board}\n{out}");
-    let low = value(out, "temperature_sensor board:", "lowest");
+    let low = value_after(out, "temperature_sensor board:", "lowest");
     assert!(
         (23.0..30.0).contains(&low),
         "it warmed from ambient: {low}\n{out}"
     );
     // Through the references the room reads 25 °C; without them the ADC's error shows.
-    let chamber = value(out, "temperature_sensor chamber:", "chamber:");
+    let chamber = value_after(out, "temperature_sensor chamber:", "chamber:");
     assert!((chamber - 25.0).abs() < 0.3, "scaled: {chamber}\n{out}");
-    let unscaled = value(out, "temperature_sensor unscaled:", "unscaled:");
+    let unscaled = value_after(out, "temperature_sensor unscaled:", "unscaled:");
     assert!((unscaled - 25.0).abs() > 1.0, "unscaled: {unscaled}\n{out}");
     // The fans spin at their power (the simulated fan: 5000 rpm at full power).
-    let part = value(out, "fan fan: 50 %", "%,");
+    let part = value_after(out, "fan fan: 50 %", "%,");
     assert!((part - 2500.0).abs() < 250.0, "part fan: {part} rpm\n{out}");
-    let exhaust = value(out, "fan_generic exhaust: 100 %", "%,");
+    let exhaust = value_after(out, "fan_generic exhaust: 100 %", "%,");
     assert!(
         (exhaust - 5000.0).abs() < 250.0,
         "exhaust fan: {exhaust} rpm\n{out}"
@@ -125,11 +87,17 @@ fn a_multi_pin_heater_drives_every_pin_of_its_group() {
         + "\n[multi_pin hotend]\npins: PE4, PE5\n\
            \n[temperature_sensor twin]\nsensor_type: Generic 3950\nsensor_pin: PF4\n";
     std::fs::write(&cfg, text).unwrap();
-    let run = print_with(&dir, &cfg, "M109 S60\nM104 S0\n", Some("--heater PE5=PF4,hotend"));
+    let run = print_scaled(
+        &dir,
+        &cfg,
+        "M109 S60\nM104 S0\n",
+        Some("--heater PE5=PF4,hotend"),
+        TIMEOUT,
+    );
     assert_eq!(run.code, Some(0), "{}\n{}", run.stdout, run.stderr);
     let out = &run.stdout;
-    let hotend = value(out, "heater extruder:", "highest");
-    let twin = value(out, "temperature_sensor twin:", "highest");
+    let hotend = value_after(out, "heater extruder:", "highest");
+    let twin = value_after(out, "temperature_sensor twin:", "highest");
     assert!(hotend >= 59.0, "{out}");
     assert!(
         (twin - hotend).abs() < 5.0,

@@ -6,10 +6,9 @@
 //! the sensor on the other MCU reads the target. Times are MCU time; bounds are generous.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::Duration;
 
-use cadence_tests::{bin, run, scratch, workspace};
+use cadence_tests::{print_scaled, scratch, workspace};
 
 const TIMEOUT: Duration = Duration::from_secs(240);
 
@@ -27,20 +26,8 @@ fn config(dir: &Path) -> PathBuf {
 fn a_heater_reads_its_sensor_on_another_mcu() {
     let dir = scratch("remote-sensor");
     let cfg = config(&dir);
-    let g = dir.join("heat.gcode");
-    std::fs::write(&g, "M104 S120\nM109 S120\nG4 P2000\nM105\nM104 S0\n").unwrap();
-    let run = run(
-        Command::new(bin("cadence")).args([
-            "print",
-            g.to_str().unwrap(),
-            "--config",
-            cfg.to_str().unwrap(),
-            "--time-scale",
-            "5",
-            "--no-realtime",
-        ]),
-        TIMEOUT,
-    );
+    let gcode = "M104 S120\nM109 S120\nG4 P2000\nM105\nM104 S0\n";
+    let run = print_scaled(&dir, &cfg, gcode, None, TIMEOUT);
     assert_eq!(run.code, Some(0), "{}\n{}", run.stdout, run.stderr);
     let out = &run.stdout;
     let m105 = out

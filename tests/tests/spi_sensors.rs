@@ -7,10 +7,9 @@
 //! naming the chip's fault. Times are MCU time (a time-scaled simulator); bounds are generous.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::Duration;
 
-use cadence_tests::{bin, run, scratch, Run};
+use cadence_tests::{print_scaled, scratch, value_after, Run};
 
 const TIMEOUT: Duration = Duration::from_secs(240);
 
@@ -48,39 +47,7 @@ fn config(dir: &Path) -> PathBuf {
 /// `cadence print` of `gcode` with `sim_args` for the simulated MCU.
 fn print(dir: &Path, gcode: &str, sim_args: Option<&str>) -> Run {
     let cfg = config(dir);
-    let g = dir.join("print.gcode");
-    std::fs::write(&g, gcode).unwrap();
-    let mut cmd = Command::new(bin("cadence"));
-    cmd.args([
-        "print",
-        g.to_str().unwrap(),
-        "--config",
-        cfg.to_str().unwrap(),
-        "--time-scale",
-        "5",
-        "--no-realtime",
-    ]);
-    match sim_args {
-        Some(a) => cmd.env("CADENCE_SIM_ARGS_MCU", a),
-        None => cmd.env_remove("CADENCE_SIM_ARGS_MCU"),
-    };
-    run(&mut cmd, TIMEOUT)
-}
-
-/// The number after `what` in the first line containing `line`.
-fn value(out: &str, line: &str, what: &str) -> f64 {
-    let l = out
-        .lines()
-        .find(|l| l.contains(line))
-        .unwrap_or_else(|| panic!("no '{line}' in\n{out}"));
-    let rest = &l[l.find(what).unwrap_or_else(|| panic!("no '{what}' in {l}")) + what.len()..];
-    let num: String = rest
-        .trim_start()
-        .chars()
-        .take_while(|c| c.is_ascii_digit() || *c == '.' || *c == '-')
-        .collect();
-    num.parse()
-        .unwrap_or_else(|_| panic!("no number after '{what}' in {l}"))
+    print_scaled(dir, &cfg, gcode, sim_args, TIMEOUT)
 }
 
 #[test]
@@ -99,15 +66,15 @@ fn heaters_and_sensors_read_through_spi_chips() {
         .lines()
         .rfind(|l| l.contains("M105: B:"))
         .unwrap_or_else(|| panic!("no M105 in\n{out}"));
-    let bed = value(m105, "B:", "B:");
-    let hotend = value(m105, "T0:", "T0:");
+    let bed = value_after(m105, "B:", "B:");
+    let hotend = value_after(m105, "T0:", "T0:");
     // The bed heats while M109 waits for the hotend: at or a little past its target.
     assert!((37.0..48.0).contains(&bed), "bed {bed}: {m105}");
     assert!((hotend - 150.0).abs() < 3.0, "hotend {hotend}: {m105}");
     // The sensors at room temperature (25 °C), each within its chip's resolution.
-    let k = value(out, "temperature_sensor k_therm:", "k_therm:");
+    let k = value_after(out, "temperature_sensor k_therm:", "k_therm:");
     assert!((k - 25.0).abs() <= 0.5, "MAX31855: {k}\n{out}");
-    let tc = value(out, "temperature_sensor tc:", "tc:");
+    let tc = value_after(out, "temperature_sensor tc:", "tc:");
     assert!((tc - 25.0).abs() <= 0.5, "MAX31856: {tc}\n{out}");
 }
 
