@@ -38,6 +38,9 @@ pub struct PlanOptions {
     /// Every command from the per-step search, none from a cruise line's formula (the
     /// reference the line commands are measured against).
     pub per_step: bool,
+    /// Commands from a constant-acceleration curve try the curve formula's adds first
+    /// ([`Pipeline::set_curve_fit`], off by default: the same commands, more instructions).
+    pub curve_fit: bool,
 }
 
 impl Default for PlanOptions {
@@ -49,6 +52,7 @@ impl Default for PlanOptions {
             max_lines: None,
             msg_ids: [20, 21, 22],
             per_step: false,
+            curve_fit: false,
         }
     }
 }
@@ -175,6 +179,7 @@ pub fn plan_reader(src: impl BufRead, cfg: &PrinterConfig, opts: &PlanOptions) -
     };
     let mut p = Pipeline::with_options(pc, 0.25, popts).map_err(|e| e.to_string())?;
     p.set_line_fit(!opts.per_step);
+    p.set_curve_fit(opts.curve_fit);
     let mut wire = WireCounter::default();
     let mut rep = PlanReport::default();
     let mut out = Vec::with_capacity(1 << 14);
@@ -276,6 +281,26 @@ mod tests {
         assert!(r.queue_steps > 0 && r.wire_bytes > r.queue_steps * 5);
         assert_eq!(reports[1].queue_steps, r.queue_steps);
         assert_eq!(reports[1].wire_bytes, r.wire_bytes);
+    }
+
+    #[test]
+    fn curve_fit_gives_the_searchs_commands() {
+        let cfg = sysconfig::parse_str(CFG, Path::new("t.cfg")).unwrap();
+        let g = "G28\nG1 X10 Y10 F6000\nG1 X150 Y40 F18000\nG1 X20 Y160\nG1 X10 Y10 F3000\n";
+        let plan = |curve_fit| {
+            let opts = PlanOptions {
+                curve_fit,
+                threads: 0,
+                ..PlanOptions::default()
+            };
+            plan_reader(g.as_bytes(), &cfg, &opts).unwrap()
+        };
+        let (off, on) = (plan(false), plan(true));
+        assert_eq!(
+            (on.steps, on.queue_steps, on.wire_bytes),
+            (off.steps, off.queue_steps, off.wire_bytes)
+        );
+        assert_eq!(on.per_stepper, off.per_stepper);
     }
 
     #[test]

@@ -215,6 +215,11 @@ pub enum BenchWhat {
         /// reference the line commands are measured against).
         #[arg(long)]
         per_step: bool,
+        /// Commands from a constant-acceleration curve try the curve formula's adds first (off
+        /// by default: the same commands as without, at more instructions; README "Curve
+        /// commands").
+        #[arg(long, conflicts_with = "per_step")]
+        curve_fit: bool,
         /// Data dictionary to encode with (message ids and MCU clock), and to read a stream
         /// given to --compare with: e.g. Klipper's out/klipper.dict (default: the Cadence
         /// firmware's own).
@@ -288,6 +293,7 @@ pub fn run(args: &BenchArgs) -> Result<(), BenchCmdError> {
             runs,
             instructions,
             per_step,
+            curve_fit,
             dictionary,
             common,
         } => {
@@ -298,6 +304,7 @@ pub fn run(args: &BenchArgs) -> Result<(), BenchCmdError> {
                 threads: threads.unwrap_or(cores),
                 max_error_s: max_error_us * 1e-6,
                 per_step: *per_step,
+                curve_fit: *curve_fit,
                 ..Default::default()
             }
             .with_dictionary(&dict)
@@ -390,6 +397,9 @@ fn plan_child(
     ]);
     if opts.per_step {
         args.push("--per-step".into());
+    }
+    if opts.curve_fit {
+        args.push("--curve-fit".into());
     }
     Ok(ChildCommand { exe, args })
 }
