@@ -22,7 +22,7 @@ use std::io::BufReader;
 use std::path::{Path, PathBuf};
 
 use links::dict::{Dictionary, Message};
-use links::proto::{block::block_payload, find_block, Frame};
+use links::proto::{blocks, StreamItem};
 use planner::checker::{CheckStats, Checker, StepCmd};
 use planner::gcode::macros::Macros;
 use planner::gcode::GcodeReader;
@@ -384,26 +384,21 @@ fn replay_stream(
         pos,
         source: Box::new(e),
     };
-    let mut pos = 0usize;
-    while pos < data.len() {
-        match find_block(&data[pos..]) {
-            Frame::Block { len, .. } => {
-                let msgs = dict
-                    .decode(block_payload(&data[pos..pos + len]))
-                    .map_err(|e| at(pos, e.into()))?;
+    for item in blocks(data) {
+        match item {
+            StreamItem::Block { pos, payload, .. } => {
+                let msgs = dict.decode(payload).map_err(|e| at(pos, e.into()))?;
                 for m in &msgs {
                     replay(m, checked, &mut by_oid, planner, gcode).map_err(|e| at(pos, e))?;
                 }
-                pos += len;
             }
-            Frame::Skip(n) => pos += n,
-            Frame::Bad(_) => {
+            StreamItem::Bad { pos, .. } => {
                 return Err(WireCheckError::BadBlock {
                     stream: stream_path,
                     pos,
                 })
             }
-            Frame::Incomplete => {
+            StreamItem::Truncated { pos, .. } => {
                 return Err(WireCheckError::Truncated {
                     stream: stream_path,
                     pos,

@@ -12,7 +12,7 @@
 use std::collections::BTreeMap;
 
 use links::dict::{DictError, Dictionary, Message};
-use links::proto::{block::block_payload, find_block, Frame};
+use links::proto::{blocks, StreamItem};
 
 use crate::plan::WireCounter;
 
@@ -103,12 +103,11 @@ pub fn count_stream(data: &[u8], dict: &Dictionary) -> Result<StreamCounts, Stre
         ..StreamCounts::default()
     };
     let mut wire = WireCounter::default();
-    let mut pos = 0usize;
-    while pos < data.len() {
-        match find_block(&data[pos..]) {
-            Frame::Block { len, .. } => {
+    for item in blocks(data) {
+        match item {
+            StreamItem::Block { pos, payload, .. } => {
                 let msgs = dict
-                    .decode(block_payload(&data[pos..pos + len]))
+                    .decode(payload)
                     .map_err(|source| StreamError::Decode { pos, source })?;
                 for m in &msgs {
                     counts.messages += 1;
@@ -118,16 +117,9 @@ pub fn count_stream(data: &[u8], dict: &Dictionary) -> Result<StreamCounts, Stre
                         field,
                     })?;
                 }
-                pos += len;
             }
-            Frame::Skip(n) => pos += n,
-            Frame::Bad(_) => return Err(StreamError::BadBlock { pos }),
-            Frame::Incomplete => {
-                return Err(StreamError::Truncated {
-                    pos,
-                    left: data.len() - pos,
-                })
-            }
+            StreamItem::Bad { pos, .. } => return Err(StreamError::BadBlock { pos }),
+            StreamItem::Truncated { pos, left } => return Err(StreamError::Truncated { pos, left }),
         }
     }
     wire.flush();
@@ -143,6 +135,13 @@ fn step_id(dict: &Dictionary, name: &str) -> Result<u32, StreamError> {
         .map_err(|source| StreamError::Decode { pos: 0, source })
 }
 
+/// The counts of the stepper whose `oid` message `m` names.
+fn stepper_of<'c>(m: &Message, counts: &'c mut StreamCounts) -> Result<&'c mut StepperCounts, &'static str> {
+    let oid = m.get("oid").ok_or("oid")?;
+    let o = u8::try_from(oid).map_err(|_| "oid")?;
+    Ok(counts.steppers.entry(o).or_default())
+}
+
 /// Adds one message; `Err(field)` names a missing or out-of-range field.
 fn count_message(
     m: &Message,
@@ -151,44 +150,31 @@ fn count_message(
     wire: &mut WireCounter,
 ) -> Result<(), &'static str> {
     let int = |field: &'static str| m.get(field).ok_or(field);
-    let oid = |counts: &mut StreamCounts| -> Result<StepperCounts, &'static str> {
-        let o = u8::try_from(int("oid")?).map_err(|_| "oid")?;
-        Ok(*counts.steppers.entry(o).or_default())
-    };
-    let store = |counts: &mut StreamCounts, s: StepperCounts| -> Result<(), &'static str> {
-        let o = u8::try_from(int("oid")?).map_err(|_| "oid")?;
-        counts.steppers.insert(o, s);
-        Ok(())
-    };
+    let stepper = |counts| stepper_of(m, counts);
     // The fields as the wire carries them (signed values as their 32-bit pattern).
     let fields = |names: &[&'static str]| -> Result<Vec<u32>, &'static str> {
         names.iter().map(|&n| int(n).map(|v| v as i32 as u32)).collect()
     };
     match m.name.as_str() {
         "config_stepper" => {
-            let mut s = oid(counts)?;
-            s.step_pin = Some(u32::try_from(int("step_pin")?).map_err(|_| "step_pin")?);
-            store(counts, s)?;
+            let step_pin = u32::try_from(int("step_pin")?).map_err(|_| "step_pin")?;
+            stepper(counts)?.step_pin = Some(step_pin);
         }
         "queue_step" => {
-            let mut s = oid(counts)?;
+            let count = u64::try_from(int("count")?).map_err(|_| "count")?;
+            let s = stepper(counts)?;
             s.queue_steps += 1;
-            s.steps += u64::try_from(int("count")?).map_err(|_| "count")?;
-            store(counts, s)?;
+            s.steps += count;
             let f = fields(&["oid", "interval", "count", "add"])?;
             wire.msg(&[ids[0], f[0], f[1], f[2], f[3]]);
         }
         "set_next_step_dir" => {
-            let mut s = oid(counts)?;
-            s.set_dirs += 1;
-            store(counts, s)?;
+            stepper(counts)?.set_dirs += 1;
             let f = fields(&["oid", "dir"])?;
             wire.msg(&[ids[1], f[0], f[1]]);
         }
         "reset_step_clock" => {
-            let mut s = oid(counts)?;
-            s.resets += 1;
-            store(counts, s)?;
+            stepper(counts)?.resets += 1;
             let f = fields(&["oid", "clock"])?;
             wire.msg(&[ids[2], f[0], f[1]]);
         }

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 
 use cadence::wire_check::{self as check, load_dictionary};
 use clap::Args;
-use links::proto::{block::block_payload, find_block, Frame};
+use links::proto::{blocks, StreamItem};
 
 /// Arguments of `cadence decode`.
 #[derive(Debug, Args)]
@@ -50,12 +50,10 @@ pub fn run(args: &DecodeArgs) -> Result<(), String> {
     }
     let stdout = std::io::stdout();
     let mut out = std::io::BufWriter::new(stdout.lock());
-    let mut pos = 0usize;
     let mut bad = 0u64;
-    while pos < data.len() {
-        match find_block(&data[pos..]) {
-            Frame::Block { len, seq } => {
-                let payload = block_payload(&data[pos..pos + len]);
+    for item in blocks(&data) {
+        match item {
+            StreamItem::Block { pos, seq, payload } => {
                 let msgs = dict
                     .decode(payload)
                     .map_err(|e| format!("{}: block at byte {pos} (seq {seq}): {e}", args.file.display()))?;
@@ -64,19 +62,15 @@ pub fn run(args: &DecodeArgs) -> Result<(), String> {
                         return Ok(()); // reader went away (e.g. `| head`)
                     }
                 }
-                pos += len;
             }
-            Frame::Skip(n) => pos += n,
-            Frame::Bad(n) => {
+            StreamItem::Bad { pos, len } => {
                 bad += 1;
-                let _ = writeln!(out, "# invalid block at byte {pos} ({n} bytes skipped)");
-                pos += n;
+                let _ = writeln!(out, "# invalid block at byte {pos} ({len} bytes skipped)");
             }
-            Frame::Incomplete => {
+            StreamItem::Truncated { pos, left } => {
                 return Err(format!(
-                    "{}: truncated block at byte {pos} ({} bytes left)",
-                    args.file.display(),
-                    data.len() - pos
+                    "{}: truncated block at byte {pos} ({left} bytes left)",
+                    args.file.display()
                 ));
             }
         }

@@ -6,6 +6,7 @@
 pub mod block;
 pub mod crc;
 pub mod format;
+pub mod stream;
 pub mod tmc;
 pub mod vlq;
 
@@ -13,6 +14,7 @@ pub use block::{
     encode_block, find_block, Frame, MESSAGE_MAX, MESSAGE_MIN, MESSAGE_PAYLOAD_MAX, MESSAGE_SYNC,
 };
 pub use format::{decode_params, encode_message, FormatError, ParamType, Params, Value};
+pub use stream::{blocks, StreamItem};
 
 /// Message id of `identify_response offset=%u data=%.*s` (fixed in every build).
 pub const ID_IDENTIFY_RESPONSE: u32 = 0;
