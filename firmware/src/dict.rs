@@ -3,7 +3,8 @@
 //! `commands` and `responses` map each format string of [`MESSAGES`] to its id (its position);
 //! `enumerations` holds `pin` (the [`Chip`]'s ports as ranges, an STM32's `"PA0": [0, 16]`, …;
 //! the simulator's every board family's names from [`links::pinmap`], `"PA0": [0, 8]`,
-//! `"P1.0": [32, 32]`, …) and `static_string_id` (every shutdown reason → its id); `config`
+//! `"P1.0": [32, 32]`, …), the simulator's `spi_bus` (the hardware SPI bus names of every
+//! board family, [`SIM_SPI_BUSES`]) and `static_string_id` (every shutdown reason → its id); `config`
 //! holds `CLOCK_FREQ`, `MCU` plus [`CONSTANTS`]. The host reads everything from here and never
 //! hard-codes ids beyond 0 and 1.
 
@@ -13,6 +14,46 @@ use flate2::write::ZlibEncoder;
 use flate2::Compression;
 use serde_json::{json, Map, Value};
 use std::io::Write;
+
+/// The simulator's hardware SPI buses: the names the board families' firmware gives them
+/// (STM32 `spi1`, `spi2a`, `spi2_PB14_PB15_PB13`; SAM `spi0`, `usart0`; LPC176x `ssp0`; AVR
+/// `spi`; RP2040 `spi0a`; Linux `spidev0.0`), each `(first name, count)`: a count above 1 is a
+/// run whose trailing number counts up, as in the `pin` enumeration. Numbered in order from 0;
+/// the simulated chips answer on any of them, so a config's `spi_bus` only has to name one.
+pub const SIM_SPI_BUSES: &[(&str, u32)] = &[
+    ("spi1", 1),
+    ("spi0", 1),
+    ("spi2", 5),
+    ("spi1a", 1),
+    ("spi1b", 1),
+    ("spi1c", 1),
+    ("spi2a", 1),
+    ("spi2b", 1),
+    ("spi3a", 1),
+    ("spi5a", 1),
+    ("spi0a", 1),
+    ("spi0b", 1),
+    ("spi0c", 1),
+    ("spi0d", 1),
+    ("spi", 1),
+    ("ssp0", 2),
+    ("usart0", 3),
+    ("spi1_PA6_PA7_PA5", 1),
+    ("spi1_PB4_PB5_PB3", 1),
+    ("spi2_PB14_PB15_PB13", 1),
+    ("spi2_PC2_PC3_PB10", 1),
+    ("spi2_PB2_PB11_PB10", 1),
+    ("spi2_PA10_PA11_PF1", 1),
+    ("spi2_PB6_PB7_PB8", 1),
+    ("spi2_PI2_PI3_PI1", 1),
+    ("spi3_PB4_PB5_PB3", 1),
+    ("spi3_PC11_PC12_PC10", 1),
+    ("spi4_PE13_PE14_PE12", 1),
+    ("spi6_PG12_PG14_PG13", 1),
+    ("spidev0.0", 16),
+    ("spidev1.0", 16),
+    ("spidev2.0", 16),
+];
 
 /// The simulator's dictionary as JSON, for an MCU clocked at `clock_freq` Hz.
 pub fn dictionary_json(clock_freq: u32) -> Value {
@@ -31,7 +72,20 @@ pub fn dictionary_json_for(chip: &Chip, clock_freq: u32) -> Value {
         map.insert(m.format.to_owned(), json!(id));
     }
     let mut pins = Map::new();
+    let mut enumerations = Map::new();
     if chip.ports.is_empty() {
+        let mut buses = Map::new();
+        let mut next = 0u32;
+        for &(first, count) in SIM_SPI_BUSES {
+            let value = if count > 1 {
+                json!([next, count])
+            } else {
+                json!(next)
+            };
+            buses.insert(first.to_owned(), value);
+            next += count;
+        }
+        enumerations.insert("spi_bus".into(), Value::Object(buses));
         for run in links::pinmap::pin_runs() {
             pins.insert(run.first.to_string(), json!([run.value, run.count]));
         }
@@ -50,6 +104,9 @@ pub fn dictionary_json_for(chip: &Chip, clock_freq: u32) -> Value {
         .iter()
         .map(|(n, v)| ((*n).to_owned(), json!(v)))
         .collect();
+    enumerations.insert("pin".into(), Value::Object(pins));
+    enumerations.insert("static_string_id".into(), Value::Object(reasons));
+    enumerations.insert("thermocouple_type".into(), Value::Object(chips));
     let mut config = Map::new();
     config.insert("CLOCK_FREQ".into(), json!(clock_freq));
     config.insert("MCU".into(), json!(chip.mcu));
@@ -68,7 +125,7 @@ pub fn dictionary_json_for(chip: &Chip, clock_freq: u32) -> Value {
         "commands": commands,
         "responses": responses,
         "output": {},
-        "enumerations": { "pin": pins, "static_string_id": reasons, "thermocouple_type": chips },
+        "enumerations": enumerations,
         "config": config,
     })
 }
@@ -95,6 +152,18 @@ mod tests {
     use super::*;
     use flate2::read::ZlibDecoder;
     use std::io::Read;
+
+    #[test]
+    fn the_simulators_spi_buses_are_numbered_in_order_from_0() {
+        let v = dictionary_json(50_000_000);
+        let buses = v["enumerations"]["spi_bus"].as_object().unwrap();
+        assert_eq!(buses["spi1"], 0);
+        assert_eq!(buses["spi0"], 1);
+        assert_eq!(buses["spi2"], json!([2, 5]));
+        assert_eq!(buses["usart0"], json!([21, 3]));
+        assert_eq!(buses["spi6_PG12_PG14_PG13"], 35);
+        assert_eq!(buses["spidev2.0"], json!([68, 16]));
+    }
 
     #[test]
     fn compressed_round_trip_and_contents() {

@@ -15,6 +15,14 @@ k2c-verify-heater      the hotend's heater stops heating in the simulator (`--he
 k2c-thermistor-fault   the hotend's thermistor goes open in the simulator (`--heater-fault
                        PE0=open@T`): the MCU's ADC range check fires and klippy shuts down with
                        its message for it ("ADC out of range" and its min_temp/max_temp help).
+k2c-thermocouple       the hotend's sensor is a MAX31855 on hardware SPI (`spi_bus: spi1`, chip
+                       select PA4; cadence-mcu `--spi-sensor PA4=MAX31855` answers with the
+                       simulated hotend's temperature): klippy configures it with its SPI and
+                       thermocouple commands, M109 S150 waits until klippy reads the target, no
+                       shutdown.
+k2c-thermocouple-fault the MAX31855's thermocouple goes open (`--heater-fault PE0=open@T`): the
+                       MCU sees the chip's fault bit and klippy shuts down with "Thermocouple
+                       reader fault".
 """
 
 import subprocess
@@ -29,7 +37,9 @@ BED_TARGET = 45
 def scenarios(results, args, klipper, bins):
     for name, fn in (("k2c-heaters", heaters_reach_targets),
                      ("k2c-verify-heater", verify_heater_fault),
-                     ("k2c-thermistor-fault", thermistor_fault)):
+                     ("k2c-thermistor-fault", thermistor_fault),
+                     ("k2c-thermocouple", thermocouple_heats),
+                     ("k2c-thermocouple-fault", thermocouple_fault)):
         if not selected(args, name):
             continue
         t0 = time.monotonic()
@@ -137,5 +147,55 @@ def thermistor_fault(args, klipper, bins):
             raise Fail("klippy shut down, but not for the open thermistor: %r" % msg)
         return ("thermistor open at %d s of MCU time (M104 S100 heating): klippy: \"%s\" "
                 "(\"%s\")" % (fault_at, lines[0], " ".join(lines[1:3])))
+    finally:
+        rig.stop()
+
+
+# The hotend's sensor as a MAX31855 on hardware SPI (written here for Cadence).
+THERMOCOUPLE = ["sensor_type: MAX31855", "sensor_pin: PA4", "spi_bus: spi1"]
+
+
+def thermocouple_rig(name, args, klipper, bins, extra=()):
+    return Rig(name, args, klipper, bins, hotend_sensor=THERMOCOUPLE, hotend_sensor_pin="PA4",
+               mcu_extra=["--spi-sensor", "PA4=MAX31855"] + list(extra))
+
+
+def thermocouple_heats(args, klipper, bins):
+    rig = thermocouple_rig("thermocouple", args, klipper, bins)
+    try:
+        rig.start()
+        start = temperatures(rig)["extruder"]["temperature"]
+        for _ in range(20):  # the first reading comes a moment after ready
+            if start > 0:
+                break
+            time.sleep(0.5)
+            start = temperatures(rig)["extruder"]["temperature"]
+        t0 = time.monotonic()
+        rig.api.gcode("M109 S%d" % HOTEND_TARGET, timeout=900.0)
+        t_hot = time.monotonic() - t0
+        hot = temperatures(rig)["extruder"]["temperature"]
+        if abs(hot - HOTEND_TARGET) > 5:
+            raise Fail("after M109 S%d the MAX31855 reads %.1f" % (HOTEND_TARGET, hot))
+        rig.api.gcode("TURN_OFF_HEATERS")
+        rig.check_no_shutdown()
+        return ("MAX31855 on spi1: extruder %.2f -> %.2f C (M109 S%d done after %.0f s); "
+                "no shutdown" % (start, hot, HOTEND_TARGET, t_hot))
+    finally:
+        rig.stop()
+
+
+def thermocouple_fault(args, klipper, bins):
+    fault_at = 20
+    rig = thermocouple_rig("thermocouple-fault", args, klipper, bins,
+                           extra=["--heater-fault", "PE0=open@%d" % fault_at])
+    try:
+        rig.start()
+        rig.api.gcode("M104 S100")
+        msg = wait_shutdown(rig, 120.0)
+        lines = [l.strip() for l in msg.strip().splitlines() if l.strip()]
+        if "Thermocouple reader fault" not in msg:
+            raise Fail("klippy shut down, but not for the open thermocouple: %r" % msg)
+        return ("MAX31855 open at %d s of MCU time (M104 S100 heating): klippy: \"%s\"" % (
+            fault_at, lines[0]))
     finally:
         rig.stop()

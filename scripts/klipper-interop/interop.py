@@ -230,8 +230,9 @@ STEPPERS = [
 STEPS_PER_MM = {"stepper_x": 80.0, "stepper_y": 80.0, "stepper_z": 400.0}
 
 
-def k2c_printer_cfg(run_dir, z_mcu=None):
-    """A cartesian printer on cadence-mcu pins (written here for Cadence; not from Klipper)."""
+def k2c_printer_cfg(run_dir, z_mcu=None, hotend_sensor=None):
+    """A cartesian printer on cadence-mcu pins (written here for Cadence; not from Klipper).
+    `hotend_sensor`: the extruder's sensor option lines instead of the Generic 3950 on PF0."""
     lines = [
         "[mcu]", "serial: %s/mcu.pty" % run_dir, "restart_method: command", "",
     ]
@@ -257,7 +258,8 @@ def k2c_printer_cfg(run_dir, z_mcu=None):
         "rotation_distance: 33.5", "nozzle_diameter: 0.4", "filament_diameter: 1.75",
         "max_extrude_only_distance: 500", "max_extrude_cross_section: 50",
         "min_extrude_temp: 0",
-        "heater_pin: PE0", "sensor_type: Generic 3950", "sensor_pin: PF0", "control: pid",
+        "heater_pin: PE0"] + (hotend_sensor or ["sensor_type: Generic 3950", "sensor_pin: PF0"]) + [
+        "control: pid",
         "pid_Kp: 22.2", "pid_Ki: 1.08", "pid_Kd: 114", "min_temp: 0", "max_temp: 300", "",
         "[heater_bed]", "heater_pin: PE1", "sensor_type: Generic 3950", "sensor_pin: PF1",
         "control: watermark", "min_temp: 0", "max_temp: 130", "",
@@ -274,7 +276,8 @@ def k2c_printer_cfg(run_dir, z_mcu=None):
 class Rig:
     """cadence-mcu processes in one simulated world, and klippy driving them."""
 
-    def __init__(self, name, args, klipper, bins, z_mcu=None, mcu_extra=()):
+    def __init__(self, name, args, klipper, bins, z_mcu=None, mcu_extra=(), hotend_sensor=None,
+                 hotend_sensor_pin="PF0"):
         self.name = name
         self.args = args
         self.klipper = klipper
@@ -284,7 +287,8 @@ class Rig:
         self.dir = os.path.join(args.work, "run-" + name)
         shutil.rmtree(self.dir, ignore_errors=True)
         os.makedirs(os.path.join(self.dir, "gcodes"))
-        self.cfg = k2c_printer_cfg(self.dir, z_mcu)
+        self.cfg = k2c_printer_cfg(self.dir, z_mcu, hotend_sensor)
+        self.hotend_sensor_pin = hotend_sensor_pin
         self.world = "interop-%d-%s" % (os.getpid(), name)
         self.mcus = {}
         self.klippy = None
@@ -299,7 +303,8 @@ class Rig:
                 if not (self.z_mcu and axis == "z"):
                     a += ["--endstop", "%s=%s,0,min" % (endstop, axis)]
             # The simulated thermal models: a 40 W hotend and a 150 W bed (cadence-mcu --heater).
-            a += ["--heater", "PE0=PF0,hotend", "--heater", "PE1=PF1,bed"] + self.mcu_extra
+            a += ["--heater", "PE0=%s,hotend" % self.hotend_sensor_pin,
+                  "--heater", "PE1=PF1,bed"] + self.mcu_extra
         else:
             a += ["--endstop", "PC3=z,0,min"]
         return a + ["--world", self.world]

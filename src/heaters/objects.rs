@@ -1047,8 +1047,16 @@ fn spi_reader_commands(
         software,
     };
     let mode = i64::from(spi.chip.spi_mode());
-    let mut cmds =
-        crate::spi_device::config_commands(dict, clock_freq, spi_oid, pins, mode, spi.bus.speed)?.to_vec();
+    let mut cmds = crate::spi_device::config_commands(
+        dict,
+        clock_freq,
+        spi_oid,
+        pins,
+        spi.bus.bus.as_deref(),
+        mode,
+        spi.bus.speed,
+    )?
+    .to_vec();
     if let Some(bytes) = super::spi_sensor::init_bytes(spi) {
         use links::proto::format::Value;
         cmds.push(dict.encode_values("spi_send", &[Value::Int(spi_oid), Value::Bytes(&bytes)])?);

@@ -205,6 +205,7 @@ pub fn config_commands(
                 cs_pin,
                 speed,
                 software,
+                bus,
                 ..
             } => {
                 let software = match software {
@@ -225,7 +226,13 @@ pub fn config_commands(
                     _ => SPI_MODE,
                 };
                 cmds.extend(crate::spi_device::config_commands(
-                    dict, clock_freq, oid, pins, mode, *speed,
+                    dict,
+                    clock_freq,
+                    oid,
+                    pins,
+                    bus.as_deref(),
+                    mode,
+                    *speed,
                 )?);
             }
         }
