@@ -277,7 +277,7 @@ class Rig:
     """cadence-mcu processes in one simulated world, and klippy driving them."""
 
     def __init__(self, name, args, klipper, bins, z_mcu=None, mcu_extra=(), hotend_sensor=None,
-                 hotend_sensor_pin="PF0"):
+                 hotend_sensor_pin="PF0", cfg_edit=None):
         self.name = name
         self.args = args
         self.klipper = klipper
@@ -288,6 +288,11 @@ class Rig:
         shutil.rmtree(self.dir, ignore_errors=True)
         os.makedirs(os.path.join(self.dir, "gcodes"))
         self.cfg = k2c_printer_cfg(self.dir, z_mcu, hotend_sensor)
+        if cfg_edit:  # a scenario's changes to the printer.cfg text
+            with open(self.cfg) as f:
+                text = cfg_edit(f.read())
+            with open(self.cfg, "w") as f:
+                f.write(text)
         self.hotend_sensor_pin = hotend_sensor_pin
         self.world = "interop-%d-%s" % (os.getpid(), name)
         self.mcus = {}
@@ -686,6 +691,8 @@ def main():
     scenario_k2c_multi(results, args, klipper, bins)
     import heaters  # noqa: E402  (klippy driving the simulated heaters and fan)
     heaters.scenarios(results, args, klipper, bins)
+    import tmc  # noqa: E402  (klippy driving simulated TMC drivers, sensorless homing)
+    tmc.scenarios(results, args, klipper, bins)
     import batch  # noqa: E402  (the batch and Cadence-host scenarios)
     batch.scenarios(results, args, klipper, bins)
     import avr  # noqa: E402  (Cadence's host on Klipper's AVR build under simulavr)
