@@ -693,6 +693,8 @@ def main():
     heaters.scenarios(results, args, klipper, bins)
     import tmc  # noqa: E402  (klippy driving simulated TMC drivers, sensorless homing)
     tmc.scenarios(results, args, klipper, bins)
+    import probe  # noqa: E402  (klippy's BLTouch and bed mesh on a simulated warped bed)
+    probe.scenarios(results, args, klipper, bins)
     import batch  # noqa: E402  (the batch and Cadence-host scenarios)
     batch.scenarios(results, args, klipper, bins)
     import avr  # noqa: E402  (Cadence's host on Klipper's AVR build under simulavr)
