@@ -25,29 +25,22 @@ k2c-thermocouple-fault the MAX31855's thermocouple goes open (`--heater-fault PE
                        reader fault".
 """
 
-import subprocess
 import time
 
-from interop import Fail, Rig, selected
+from interop import Fail, Rig, run_scenarios
 
 HOTEND_TARGET = 150
 BED_TARGET = 45
 
 
 def scenarios(results, args, klipper, bins):
-    for name, fn in (("k2c-heaters", heaters_reach_targets),
-                     ("k2c-verify-heater", verify_heater_fault),
-                     ("k2c-thermistor-fault", thermistor_fault),
-                     ("k2c-thermocouple", thermocouple_heats),
-                     ("k2c-thermocouple-fault", thermocouple_fault)):
-        if not selected(args, name):
-            continue
-        t0 = time.monotonic()
-        try:
-            detail = fn(args, klipper, bins)
-            results.append((name, "PASS", "%s (%.1f s)" % (detail, time.monotonic() - t0)))
-        except (Fail, OSError, subprocess.SubprocessError, ValueError, KeyError) as e:
-            results.append((name, "FAIL", str(e)))
+    run_scenarios(results, args, klipper, bins, [
+        ("k2c-heaters", heaters_reach_targets),
+        ("k2c-verify-heater", verify_heater_fault),
+        ("k2c-thermistor-fault", thermistor_fault),
+        ("k2c-thermocouple", thermocouple_heats),
+        ("k2c-thermocouple-fault", thermocouple_fault),
+    ])
 
 
 def temperatures(rig):
@@ -134,21 +127,28 @@ def verify_heater_fault(args, klipper, bins):
         rig.stop()
 
 
-def thermistor_fault(args, klipper, bins):
-    fault_at = 20
-    rig = Rig("thermistor", args, klipper, bins,
-              mcu_extra=["--heater-fault", "PE0=open@%d" % fault_at])
+def open_sensor_shutdown(rig, fault_at, want, what):
+    """Heats with M104 S100 until the sensor opened at `fault_at` s of MCU time shuts klippy
+    down: its message's lines, which must contain every string of `want`."""
     try:
         rig.start()
         rig.api.gcode("M104 S100")
         msg = wait_shutdown(rig, 120.0)
-        lines = [l.strip() for l in msg.strip().splitlines() if l.strip()]
-        if "MCU 'mcu' shutdown: ADC out of range" not in msg or "min_temp" not in msg:
-            raise Fail("klippy shut down, but not for the open thermistor: %r" % msg)
-        return ("thermistor open at %d s of MCU time (M104 S100 heating): klippy: \"%s\" "
-                "(\"%s\")" % (fault_at, lines[0], " ".join(lines[1:3])))
+        if not all(w in msg for w in want):
+            raise Fail("klippy shut down, but not for the open %s: %r" % (what, msg))
+        return [l.strip() for l in msg.strip().splitlines() if l.strip()]
     finally:
         rig.stop()
+
+
+def thermistor_fault(args, klipper, bins):
+    fault_at = 20
+    rig = Rig("thermistor", args, klipper, bins,
+              mcu_extra=["--heater-fault", "PE0=open@%d" % fault_at])
+    lines = open_sensor_shutdown(rig, fault_at, ["MCU 'mcu' shutdown: ADC out of range",
+                                                 "min_temp"], "thermistor")
+    return ("thermistor open at %d s of MCU time (M104 S100 heating): klippy: \"%s\" "
+            "(\"%s\")" % (fault_at, lines[0], " ".join(lines[1:3])))
 
 
 # The hotend's sensor as a MAX31855 on hardware SPI (written here for Cadence).
@@ -188,14 +188,6 @@ def thermocouple_fault(args, klipper, bins):
     fault_at = 20
     rig = thermocouple_rig("thermocouple-fault", args, klipper, bins,
                            extra=["--heater-fault", "PE0=open@%d" % fault_at])
-    try:
-        rig.start()
-        rig.api.gcode("M104 S100")
-        msg = wait_shutdown(rig, 120.0)
-        lines = [l.strip() for l in msg.strip().splitlines() if l.strip()]
-        if "Thermocouple reader fault" not in msg:
-            raise Fail("klippy shut down, but not for the open thermocouple: %r" % msg)
-        return ("MAX31855 open at %d s of MCU time (M104 S100 heating): klippy: \"%s\"" % (
-            fault_at, lines[0]))
-    finally:
-        rig.stop()
+    lines = open_sensor_shutdown(rig, fault_at, ["Thermocouple reader fault"], "thermocouple")
+    return ("MAX31855 open at %d s of MCU time (M104 S100 heating): klippy: \"%s\"" % (
+        fault_at, lines[0]))

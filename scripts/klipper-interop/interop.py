@@ -636,6 +636,21 @@ def selected(args, name):
     return any(name == o or name.startswith(o.rstrip("*")) for o in args.only.split(","))
 
 
+def run_scenarios(results, args, klipper, bins, table):
+    """Runs each selected `(name, fn)` of `table`: fn's detail is a PASS row, its Fail (or an
+    OS, subprocess or data error) a FAIL row."""
+    for name, fn in table:
+        if not selected(args, name):
+            continue
+        t0 = time.monotonic()
+        try:
+            detail = fn(args, klipper, bins)
+            results.append((name, "PASS", "%s (%.1f s)" % (detail, time.monotonic() - t0)))
+        except (Fail, OSError, subprocess.SubprocessError, ValueError, KeyError,
+                IndexError) as e:
+            results.append((name, "FAIL", str(e)))
+
+
 def print_table(results, klipper):
     out = ["Klipper %s (Linux-process MCU build), Cadence %s" % (
         klipper.version, run(["git", "-C", REPO, "describe", "--always", "--dirty"],

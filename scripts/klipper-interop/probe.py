@@ -13,10 +13,9 @@ k2c-bltouch-mesh   G28 (X, Y, then Z on the BLTouch at the centre), BED_MESH_CAL
 
 import math
 import re
-import subprocess
 import time
 
-from interop import Fail, Rig, selected
+from interop import Fail, Rig, run_scenarios
 
 HOME_XY = (110.0, 110.0)
 MESH_MIN, MESH_MAX, COUNT = 30.0, 190.0, 4
@@ -30,14 +29,7 @@ def height(x, y):
 
 
 def scenarios(results, args, klipper, bins):
-    if not selected(args, "k2c-bltouch-mesh"):
-        return
-    t0 = time.monotonic()
-    try:
-        detail = bltouch_mesh(args, klipper, bins)
-        results.append(("k2c-bltouch-mesh", "PASS", "%s (%.1f s)" % (detail, time.monotonic() - t0)))
-    except (Fail, OSError, subprocess.SubprocessError, ValueError, KeyError, IndexError) as e:
-        results.append(("k2c-bltouch-mesh", "FAIL", str(e)))
+    run_scenarios(results, args, klipper, bins, [("k2c-bltouch-mesh", bltouch_mesh)])
 
 
 def edit_cfg(text):

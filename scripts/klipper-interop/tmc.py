@@ -14,21 +14,13 @@ k2c-tmc   klippy initialises both drivers (it checks every UART write by IFCNT a
 """
 
 import re
-import subprocess
 import time
 
-from interop import Fail, Rig, selected
+from interop import Fail, Rig, run_scenarios
 
 
 def scenarios(results, args, klipper, bins):
-    if not selected(args, "k2c-tmc"):
-        return
-    t0 = time.monotonic()
-    try:
-        detail = drivers(args, klipper, bins)
-        results.append(("k2c-tmc", "PASS", "%s (%.1f s)" % (detail, time.monotonic() - t0)))
-    except (Fail, OSError, subprocess.SubprocessError, ValueError, KeyError) as e:
-        results.append(("k2c-tmc", "FAIL", str(e)))
+    run_scenarios(results, args, klipper, bins, [("k2c-tmc", drivers)])
 
 
 def edit_cfg(text):
