@@ -13,7 +13,6 @@ k2c-bltouch-mesh   G28 (X, Y, then Z on the BLTouch at the centre), BED_MESH_CAL
 
 import math
 import re
-import time
 
 from interop import Fail, Rig, run_scenarios
 

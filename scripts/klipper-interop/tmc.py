@@ -14,7 +14,6 @@ k2c-tmc   klippy initialises both drivers (it checks every UART write by IFCNT a
 """
 
 import re
-import time
 
 from interop import Fail, Rig, run_scenarios
 
