@@ -59,6 +59,7 @@ pub mod bltouch;
 mod delta;
 mod error;
 mod halt;
+mod motors;
 mod pass;
 pub mod probe;
 pub mod procedure;
@@ -150,6 +151,9 @@ pub struct HomingCtx<'a> {
     pub gen_wall_per_step: f64,
     /// While a delta tower is homed (its carriage alone moving with Z): which.
     pub delta_tower: Option<usize>,
+    /// While one endstop of an axis with several (`[stepper_z1] endstop_pin`) homes its own
+    /// motors, the axis' others held still: those motors (indices into `machine.steppers`).
+    pub pass_motors: Option<Vec<usize>>,
 }
 
 impl<'a> HomingCtx<'a> {
@@ -180,6 +184,7 @@ impl<'a> HomingCtx<'a> {
                 _ => GEN_WALL_PER_STEP,
             },
             delta_tower: None,
+            pass_motors: None,
         }
     }
 }
@@ -403,11 +408,20 @@ pub fn home_axes(ctx: &mut HomingCtx<'_>, axes: [bool; 3]) -> Result<HomingRepor
         let mut homed = ctx.pipeline.gcode_state().homed();
         homed[axis] = false;
         ctx.pipeline.set_homed(homed);
-        match ctx.machine.endstops.iter().find(|e| e.axis == axis).cloned() {
+        let own: Vec<EndstopOut> = (ctx.machine.endstops.iter())
+            .filter(|e| e.axis == axis && e.motor.is_some())
+            .cloned()
+            .collect();
+        match (ctx.machine.endstops.iter())
+            .find(|e| e.axis == axis && e.motor.is_none())
+            .cloned()
+        {
             // On the probe (`probe:z_virtual_endstop`), a BLTouch is deployed for the passes.
             Some(e) if e.probe => report.axes.push(bltouch::session(ctx, |ctx| home_axis(ctx, &e))?),
             // On a driver's virtual endstop: the driver reports stalls for the passes.
             Some(e) if e.sensorless.is_some() => report.axes.push(sensorless_session(ctx, &e)?),
+            // Further motors on their own endstops (`[stepper_z1] endstop_pin`).
+            Some(e) if !own.is_empty() => report.axes.push(motors::home_motors(ctx, &e, &own)?),
             Some(e) => report.axes.push(home_axis(ctx, &e)?),
             None => {
                 // No endstop: the old behaviour, the position is declared.

@@ -31,7 +31,7 @@ pub(crate) fn homing_pass(
     // From before the move is queued until the stop is read back: no CPU halts meanwhile.
     let _idle_poll = ctx.rt.start_idle_poll();
     wait_motion_done(ctx)?;
-    let g = PassGroup::new(ctx.mcus, ctx.machine, e, ctx.delta_tower)?;
+    let g = PassGroup::new(ctx.mcus, ctx.machine, e, ctx.delta_tower, ctx.pass_motors.as_deref())?;
     let endstop_conn = g.conns[0];
     let before: Vec<i64> = g
         .idxs
@@ -230,19 +230,22 @@ impl<'m> PassGroup<'m> {
     }
 
     /// The group of endstop `e`'s pass; with `tower`, the pass of that delta tower's steppers
-    /// (the other towers held still), whose carriage follows a Z move at the centre one to one.
+    /// (the other towers held still), whose carriage follows a Z move at the centre one to one;
+    /// with `motors`, of those motors alone (one endstop's of an axis with several).
     fn new(
         mcus: &'m Mcus,
         machine: &Machine,
         e: &EndstopOut,
         tower: Option<usize>,
+        motors: Option<&[usize]>,
     ) -> Result<PassGroup<'m>, HomingError> {
         let axis_name = AXIS_NAMES[e.axis];
-        let idxs = match tower {
-            Some(t) => (0..machine.steppers.len())
+        let idxs = match (tower, motors) {
+            (Some(t), _) => (0..machine.steppers.len())
                 .filter(|&i| machine.steppers[i].axis == t)
                 .collect(),
-            None => axis_steppers(machine, e.axis),
+            (None, Some(m)) => m.to_vec(),
+            (None, None) => axis_steppers(machine, e.axis),
         };
         if idxs.is_empty() {
             return Err(HomingError::NoStepper { axis: axis_name });
