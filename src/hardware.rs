@@ -260,7 +260,10 @@ fn rails(cfg: &PrinterConfig, tmc: &[crate::tmc::TmcOut]) -> (Vec<StepperOut>, V
     for s in &cfg.extra_steppers {
         // Its own endstop takes the rail endstop's homing options (sysconfig made sure the
         // rail has one).
-        let rail = endstops.iter().find(|e| e.axis == s.rail && e.motor.is_none()).cloned();
+        let rail = endstops
+            .iter()
+            .find(|e| e.axis == s.rail && e.motor.is_none())
+            .cloned();
         if let (Some(pin), Some(rail)) = (&s.endstop_pin, rail) {
             endstops.push(EndstopOut {
                 stepper: s.name.clone(),
@@ -1007,6 +1010,48 @@ mod tests {
              --axis z1=PG0,-400,20 --axis z2=PH0,-400,20 --endstop PA3=x,0,min --endstop PB3=y,0,min \
              --endstop PC3=z,0,min --world w"
         );
+    }
+
+    #[test]
+    fn a_further_motors_own_endstop_reads_its_end_of_the_carriage() {
+        let text = include_str!("../examples/simulated-cartesian.cfg").replace(
+            "time_scale: 1.0",
+            "time_scale: 1.0\ngantry_tilt: 0, 0.5\nz_endstop_offsets: 0, 0.25",
+        ) + "\n[mcu zboard]\nserial: simulator\n\
+             [stepper_z1]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 8\nendstop_pin: ^!PG3\n\
+             [stepper_z2]\nstep_pin: PH0\ndir_pin: PH1\nmicrosteps: 16\nrotation_distance: 8\n\
+             [stepper_z3]\nstep_pin: PK0\ndir_pin: PK1\nmicrosteps: 16\nrotation_distance: 8\n\
+             endstop_pin: zboard:PA3\n";
+        let m = machine(&text);
+        let own: Vec<(&str, Option<usize>, &str, u8)> = m
+            .endstops
+            .iter()
+            .map(|e| (e.stepper.as_str(), e.motor, e.pin.mcu.as_str(), e.oid))
+            .collect();
+        // The rails' endstops, then the further motors' own (stepper_z2 has none), numbered
+        // after the steppers of their MCU; each takes [stepper_z]'s homing options.
+        assert_eq!(
+            own,
+            [
+                ("stepper_x", None, "mcu", 7),
+                ("stepper_y", None, "mcu", 8),
+                ("stepper_z", None, "mcu", 9),
+                ("stepper_z1", Some(3), "mcu", 10),
+                ("stepper_z3", Some(5), "zboard", 0)
+            ]
+        );
+        assert!(m.endstops[3..]
+            .iter()
+            .all(|e| e.axis == 2 && e.position_endstop == 0.0 && e.homing_speed == 10.0));
+        // z1's switch 0.25 mm up on its own end (which starts 0.5 mm up), z3's on the other MCU.
+        let args = m.sim_world_args("mcu", "w").join(" ");
+        assert!(args.contains("--axis z1=PG0,400,20.5 "), "{args}");
+        assert!(
+            args.ends_with("--endstop PC3=z,0,min --endstop !PG3=z1,0.25,min --world w"),
+            "{args}"
+        );
+        let args = m.sim_world_args("zboard", "w").join(" ");
+        assert_eq!(args, "--endstop PA3=z3,0,min --world w");
     }
 
     #[test]

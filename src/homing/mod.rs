@@ -4,9 +4,10 @@
 //! The axis steppers are every stepper that moves the homed axis ([`axis_steppers`]): X's own
 //! on a cartesian printer, both motors A (x + y) and B (x − y) for corexy X or Y, A (x + z) and
 //! B (x − z) for corexz X or Z, each rail with its further motors (`stepper_z1`…, on the rail
-//! motor's MCU), all stopped by the one trigger. A delta homes its three towers, one after
-//! the other with the other two held still, then computes the toolhead from the three
-//! carriage heights (module `delta`).
+//! motor's MCU), all stopped by the one trigger. Further motors with their own endstops
+//! (`[stepper_z1] endstop_pin`) each end on their own switch (module `motors`). A delta homes
+//! its three towers, one after the other with the other two held still, then computes the
+//! toolhead from the three carriage heights (module `delta`).
 //!
 //! Per axis, per pass (the second at `second_homing_speed` after retracting
 //! `homing_retract_dist`, skipped when that is 0):

@@ -63,10 +63,16 @@ pub(super) fn home_motors(
                 return Err(still_triggered(g));
             }
         }
-        (rail.position_endstop - dir * 2.0 * retract, rail.second_homing_speed)
+        (
+            rail.position_endstop - dir * 2.0 * retract,
+            rail.second_homing_speed,
+        )
     } else {
         let travel = rail.position_max - rail.position_min;
-        (rail.position_endstop - dir * TRAVEL_FACTOR * travel, rail.homing_speed)
+        (
+            rail.position_endstop - dir * TRAVEL_FACTOR * travel,
+            rail.homing_speed,
+        )
     };
     // Step 2: each group alone; step 3: the axis where the rail's group halted.
     let mut homed = ctx.pipeline.position();
@@ -93,14 +99,21 @@ pub(super) fn home_motors(
 
 /// The rail's endstop with its motors that have none of their own, then each further motor's
 /// own endstop with that motor.
-fn motor_groups(machine: &Machine, rail: &EndstopOut, own: &[EndstopOut]) -> Result<Vec<MotorGroup>, HomingError> {
+fn motor_groups(
+    machine: &Machine,
+    rail: &EndstopOut,
+    own: &[EndstopOut],
+) -> Result<Vec<MotorGroup>, HomingError> {
     let axis = rail.axis;
     let axis_name = AXIS_NAMES[axis.min(2)];
     let all = axis_steppers(machine, axis);
     let kin = &machine.options.kinematics;
     for &i in &all {
         let s = &machine.steppers[i];
-        let coeffs = kin.stepper(s.axis, s.step_dist).ok().and_then(|k| k.linear_coeffs().copied());
+        let coeffs = kin
+            .stepper(s.axis, s.step_dist)
+            .ok()
+            .and_then(|k| k.linear_coeffs().copied());
         let alone = coeffs.is_some_and(|c| (0..3).all(|a| (c[a] != 0.0) == (a == axis)));
         if !alone {
             return Err(HomingError::OwnEndstopKinematics {
@@ -181,7 +194,9 @@ fn resync_motors(ctx: &mut HomingCtx<'_>, motors: &[usize], pos: [f64; 4]) -> Re
 
 fn still_triggered(g: &MotorGroup) -> HomingError {
     match g.endstop.motor {
-        Some(_) => HomingError::MotorStillTriggered { endstop: g.name.clone() },
+        Some(_) => HomingError::MotorStillTriggered {
+            endstop: g.name.clone(),
+        },
         None => HomingError::StillTriggered {
             axis: AXIS_NAMES[g.endstop.axis.min(2)],
         },

@@ -31,7 +31,13 @@ pub(crate) fn homing_pass(
     // From before the move is queued until the stop is read back: no CPU halts meanwhile.
     let _idle_poll = ctx.rt.start_idle_poll();
     wait_motion_done(ctx)?;
-    let g = PassGroup::new(ctx.mcus, ctx.machine, e, ctx.delta_tower, ctx.pass_motors.as_deref())?;
+    let g = PassGroup::new(
+        ctx.mcus,
+        ctx.machine,
+        e,
+        ctx.delta_tower,
+        ctx.pass_motors.as_deref(),
+    )?;
     let endstop_conn = g.conns[0];
     let before: Vec<i64> = g
         .idxs

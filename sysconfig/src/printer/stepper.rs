@@ -340,7 +340,8 @@ fn read_extra_endstop(
             primary.name
         ));
     }
-    let virtual_endstop = pin.mcu == PROBE_PIN_MCU || (pin.pin == "virtual_endstop" && !pins.has_mcu(&pin.mcu));
+    let virtual_endstop =
+        pin.mcu == PROBE_PIN_MCU || (pin.pin == "virtual_endstop" && !pins.has_mcu(&pin.mcu));
     if virtual_endstop {
         return invalid(format!(
             "pin '{pin}': a further motor's own endstop must be a pin of an [mcu] (the probe's and a \

@@ -693,7 +693,9 @@ fn further_motor_errors_name_the_option() {
 
 /// MINIMAL with a Z endstop (`^PC3` at 0, lines 25-26), then `extras` (from line 27).
 fn z_homed(extras: &str) -> Result<PrinterConfig, String> {
-    parse(&format!("{MINIMAL}endstop_pin: ^PC3\nposition_endstop: 0\n{extras}"))
+    parse(&format!(
+        "{MINIMAL}endstop_pin: ^PC3\nposition_endstop: 0\n{extras}"
+    ))
 }
 
 #[test]
@@ -726,7 +728,10 @@ fn further_motors_may_have_their_own_endstops() {
         extra_z(1, 'G', "endstop_pin: zboard:PA3\n")
     ))
     .unwrap_or_else(|e| panic!("{e}"));
-    let pin = cfg.extra_steppers[0].endstop_pin.as_ref().map(|p| (p.mcu.as_str(), p.pin.as_str()));
+    let pin = cfg.extra_steppers[0]
+        .endstop_pin
+        .as_ref()
+        .map(|p| (p.mcu.as_str(), p.pin.as_str()));
     assert_eq!(pin, Some(("zboard", "PA3")));
 }
 
