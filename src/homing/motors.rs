@@ -182,8 +182,13 @@ fn group_pass(
     Ok(out)
 }
 
-/// Every motor of `motors` continues from toolhead position `pos`, each from its step count.
-fn resync_motors(ctx: &mut HomingCtx<'_>, motors: &[usize], pos: [f64; 4]) -> Result<(), HomingError> {
+/// Every motor of `motors` continues from toolhead position `pos`, each from its step count
+/// (after some moved alone: their lanes follow the toolhead again).
+pub(super) fn resync_motors(
+    ctx: &mut HomingCtx<'_>,
+    motors: &[usize],
+    pos: [f64; 4],
+) -> Result<(), HomingError> {
     let stopped: Vec<(usize, i64)> = motors
         .iter()
         .filter_map(|&i| Some((i, ctx.pipeline.stepper_position(i)?)))

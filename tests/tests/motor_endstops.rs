@@ -84,6 +84,33 @@ fn print(test: &str, simulator: &str, gcode: &str, z1_start: f64) -> Homed {
     Homed { run, z, z1, m114_z }
 }
 
+impl Homed {
+    /// The print's stdout, once it succeeded with stepper_z's end on its switch at 0 and
+    /// stepper_z1's on its own at `z1_switch` (so the ends are that far apart).
+    #[track_caller]
+    fn on_switches(&self, z1_switch: f64) -> &str {
+        assert_eq!(self.run.code, Some(0), "{}\n{}", self.run.stdout, self.run.stderr);
+        let out = &self.run.stdout;
+        assert_on_switch("stepper_z", self.z, 0.0, out);
+        assert_on_switch("stepper_z1", self.z1, z1_switch, out);
+        assert!(
+            ((self.z1 - self.z) - z1_switch).abs() <= BELOW,
+            "ends {} and {} mm\n{out}",
+            self.z,
+            self.z1
+        );
+        out
+    }
+}
+
+/// The first Z homing report line of `out`.
+#[track_caller]
+fn z_line(out: &str) -> &str {
+    out.lines()
+        .find(|l| l.trim_start().starts_with("homing z:"))
+        .unwrap_or_else(|| panic!("no Z homing report\n{out}"))
+}
+
 /// The stop bounds (µs after the trigger) of every Z pass the runs report.
 fn z_passes(runs: &[&Run]) -> Vec<(f64, f64)> {
     runs.iter()
@@ -116,16 +143,7 @@ fn each_z_motor_stops_on_its_own_endstop() {
         "G28\nM400\nM114\n",
         START_MM + 0.4,
     );
-    assert_eq!(
-        level.run.code,
-        Some(0),
-        "{}\n{}",
-        level.run.stdout,
-        level.run.stderr
-    );
-    let out = &level.run.stdout;
-    assert_on_switch("stepper_z", level.z, 0.0, out);
-    assert_on_switch("stepper_z1", level.z1, 0.0, out);
+    let out = level.on_switches(0.0);
     // The host's Z is where stepper_z's end really is (its overshoot accounted for).
     assert!(
         // A step, the endstop's sampling at 5 mm/s and M114's three decimals.
@@ -135,10 +153,7 @@ fn each_z_motor_stops_on_its_own_endstop() {
         level.z
     );
     // Three passes: both motors onto [stepper_z]'s endstop, then each on its own.
-    let line = out
-        .lines()
-        .find(|l| l.trim_start().starts_with("homing z:"))
-        .unwrap_or_else(|| panic!("no Z homing report\n{out}"));
+    let line = z_line(out);
     assert_eq!(stop_bounds(line).len(), 3, "{line}");
 
     // stepper_z1's switch 0.3 mm higher, homed three more times: its end stays 0.3 mm up.
@@ -148,22 +163,7 @@ fn each_z_motor_stops_on_its_own_endstop() {
         "G28\nG1 Z4 F600\nG28 Z\nG1 Z3 F600\nG28 Z\nG1 Z6 F600\nG28 Z\nM400\nM114\n",
         START_MM,
     );
-    assert_eq!(
-        apart.run.code,
-        Some(0),
-        "{}\n{}",
-        apart.run.stdout,
-        apart.run.stderr
-    );
-    let out = &apart.run.stdout;
-    assert_on_switch("stepper_z", apart.z, 0.0, out);
-    assert_on_switch("stepper_z1", apart.z1, 0.3, out);
-    assert!(
-        ((apart.z1 - apart.z) - 0.3).abs() <= BELOW,
-        "ends {} and {} mm\n{out}",
-        apart.z,
-        apart.z1
-    );
+    apart.on_switches(0.3);
 
     assert_within_budget("one MCU", &[&level.run, &apart.run], 3 + 4 * 3);
 }
@@ -200,14 +200,7 @@ fn a_motors_own_endstop_on_another_mcu_stops_it_through_the_relay() {
         "G28\nG1 Z4 F600\nG28 Z\nG1 Z3 F600\nG28 Z\nM400\nM114\n",
         START_MM,
     );
-    assert_eq!(r.run.code, Some(0), "{}\n{}", r.run.stdout, r.run.stderr);
-    let out = &r.run.stdout;
-    assert_on_switch("stepper_z", r.z, 0.0, out);
-    assert_on_switch("stepper_z1", r.z1, 0.2, out);
-    let line = out
-        .lines()
-        .find(|l| l.trim_start().starts_with("homing z:"))
-        .unwrap_or_else(|| panic!("no Z homing report\n{out}"));
+    let line = z_line(r.on_switches(0.2));
     assert!(
         line.contains("mcus mcu+zboard") && line.contains("trigger on 'zboard'"),
         "{line}"
