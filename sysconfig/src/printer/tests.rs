@@ -768,6 +768,40 @@ fn further_motor_endstop_errors_name_file_line_section_and_option() {
     }
 }
 
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 128, ..ProptestConfig::default() })]
+
+    /// Any `[stepper_z1] endstop_pin` text never panics: it is read, or the error names
+    /// `[stepper_z1] endstop_pin` at its line.
+    #[test]
+    fn further_motor_endstop_pin_never_panics(pin in "[!^~ a-zA-Z0-9_:.]{0,16}") {
+        match z_homed(&extra_z(1, 'G', &format!("endstop_pin: {pin}\n"))) {
+            Ok(cfg) => prop_assert_eq!(cfg.extra_steppers.len(), 1),
+            Err(e) => prop_assert!(
+                e.starts_with("printer.cfg:33: [stepper_z1] endstop_pin: "),
+                "{}",
+                e
+            ),
+        }
+    }
+}
+
+#[test]
+fn simulated_z_endstop_offsets_are_read_per_motor() {
+    let sim = |v: &str| {
+        parse(&format!(
+            "{}[simulator]\ngantry_tilt: 0, 0.4\nz_endstop_offsets: {v}\n",
+            MINIMAL.replace("/dev/ttyACM0", "simulator")
+        ))
+        .map(|c| c.simulator.z_endstop_offsets)
+    };
+    assert_eq!(sim("0, 0.25,-0.1"), Ok(vec![0.0, 0.25, -0.1]));
+    assert_eq!(
+        sim("0, x"),
+        Err("printer.cfg:27: [simulator] z_endstop_offsets: expected a number, got 'x'".to_string())
+    );
+}
+
 #[test]
 fn safe_z_home_and_homing_override_are_read() {
     let cfg = ok(&format!(
