@@ -155,6 +155,9 @@ pub struct HomingCtx<'a> {
     /// While one endstop of an axis with several (`[stepper_z1] endstop_pin`) homes its own
     /// motors, the axis' others held still: those motors (indices into `machine.steppers`).
     pub pass_motors: Option<Vec<usize>>,
+    /// Endstops the next pass arms beside its own, the first of all to trigger stopping it
+    /// (the further motors' own, while all the axis' motors approach together); taken by it.
+    pub also_endstops: Vec<EndstopOut>,
 }
 
 impl<'a> HomingCtx<'a> {
@@ -186,6 +189,7 @@ impl<'a> HomingCtx<'a> {
             },
             delta_tower: None,
             pass_motors: None,
+            also_endstops: Vec::new(),
         }
     }
 }

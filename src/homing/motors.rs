@@ -8,20 +8,21 @@
 //! same end in steps of ordinary homing passes (each with the 25 ms stop budget, the overshoot
 //! accounted for and `Communication timeout during homing`):
 //! 1. with `homing_retract_dist` > 0: the first pass at `homing_speed` moves every motor of
-//!    the axis together and stops them all on the rail's endstop (no motor runs alone over the
-//!    whole travel: a gantry stays as level as it was), then they all retract together;
-//!    without a retract (no second pass) each group makes its single pass alone instead;
+//!    the axis together, every endstop of the axis armed, and stops them all on the first
+//!    switch to trigger (no motor runs alone over the whole travel, so a gantry stays as level
+//!    as it was, and none passes its own switch), then they all retract together; without a
+//!    retract (no second pass) each group makes its single pass alone instead;
 //! 2. each endstop's group in turn (the rail's first, then `[stepper_z1]`'s…) makes its pass
 //!    (`second_homing_speed` after the retract) alone, the axis' other motors held still
 //!    ([`planner::pipeline::Pipeline::freeze_lanes`]): its trigger is the rail's
-//!    `position_endstop` for those motors;
+//!    `position_endstop` for those motors (the pass may run the whole travel: a group whose
+//!    switch did not trigger in step 1 is further from it than the retract);
 //! 3. the axis is where the rail's group halted, and every motor is resynced to that
 //!    position from its MCU step count: what the switches differ by stays between the motors
 //!    (the gantry comes out as the switches sit).
 //!
-//! A further motor's switch that triggers before the rail's is passed in step 1 by up to the
-//! distance between them; it must be clear again after the retract (else `Endstop z1 still
-//! triggered after retract`, Klipper's wording and endstop name).
+//! Every switch must be clear after the retract (else `Endstop z1 still triggered after
+//! retract`, Klipper's wording and endstop name).
 
 use super::*;
 
@@ -48,9 +49,10 @@ pub(super) fn home_motors(
     let retract = rail.homing_retract_dist;
     let mut passes = Vec::new();
     let mut mcus: Vec<String> = Vec::new();
-    let (start, speed) = if retract > 0.0 {
-        // Step 1: all motors together onto the rail's endstop, then back together.
-        let start = rail.position_endstop - dir * TRAVEL_FACTOR * (rail.position_max - rail.position_min);
+    let start = rail.position_endstop - dir * TRAVEL_FACTOR * (rail.position_max - rail.position_min);
+    let speed = if retract > 0.0 {
+        // Step 1: all motors together onto the first switch, then back together.
+        ctx.also_endstops = own.to_vec();
         let (first, names) = homing_pass(ctx, rail, PassKind::Home { start }, rail.homing_speed)?;
         passes.push(first);
         mcus = names;
@@ -63,16 +65,9 @@ pub(super) fn home_motors(
                 return Err(still_triggered(g));
             }
         }
-        (
-            rail.position_endstop - dir * 2.0 * retract,
-            rail.second_homing_speed,
-        )
+        rail.second_homing_speed
     } else {
-        let travel = rail.position_max - rail.position_min;
-        (
-            rail.position_endstop - dir * TRAVEL_FACTOR * travel,
-            rail.homing_speed,
-        )
+        rail.homing_speed
     };
     // Step 2: each group alone; step 3: the axis where the rail's group halted.
     let mut homed = ctx.pipeline.position();

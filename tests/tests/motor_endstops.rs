@@ -136,12 +136,14 @@ fn assert_on_switch(what: &str, at: f64, switch: f64, out: &str) {
 
 #[test]
 fn each_z_motor_stops_on_its_own_endstop() {
-    // A gantry 0.4 mm higher at stepper_z1's end, both switches at 0: it comes out level.
+    // A gantry 3 mm higher at stepper_z1's end (more than the 2 mm retract), both switches at
+    // 0: stepper_z's switch stops both motors first, and each then ends on its own: it comes
+    // out level.
     let level = print(
         "motor-endstops-level",
-        "gantry_tilt: 0, 0.4\n",
+        "gantry_tilt: 0, 3\n",
         "G28\nM400\nM114\n",
-        START_MM + 0.4,
+        START_MM + 3.0,
     );
     let out = level.on_switches(0.0);
     // The host's Z is where stepper_z's end really is (its overshoot accounted for).
@@ -156,7 +158,8 @@ fn each_z_motor_stops_on_its_own_endstop() {
     let line = z_line(out);
     assert_eq!(stop_bounds(line).len(), 3, "{line}");
 
-    // stepper_z1's switch 0.3 mm higher, homed three more times: its end stays 0.3 mm up.
+    // stepper_z1's switch 0.3 mm higher (it stops both motors first), homed three more
+    // times: its end stays 0.3 mm up.
     let apart = print(
         "motor-endstops-apart",
         "z_endstop_offsets: 0, 0.3\n",
@@ -210,11 +213,11 @@ fn a_motors_own_endstop_on_another_mcu_stops_it_through_the_relay() {
 
 #[test]
 fn a_switch_still_pressed_after_the_retract_is_reported_by_name() {
-    // stepper_z1's switch 3 mm up: the first pass (both motors onto stepper_z's switch) takes
-    // its end past it, and the 2 mm retract does not clear it.
+    // stepper_z1's switch 5 mm up, pressed from the start (its end at 2 mm): the first pass
+    // stops at once, and the 2 mm retract does not clear it.
     let r = print(
         "motor-endstops-pressed",
-        "z_endstop_offsets: 0, 3\n",
+        "z_endstop_offsets: 0, 5\n",
         "G28\n",
         START_MM,
     );
