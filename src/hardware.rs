@@ -1055,6 +1055,18 @@ mod tests {
     }
 
     #[test]
+    fn the_dual_z_example_gives_stepper_z1_its_own_switch() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/simulated-dual-z.cfg");
+        let cfg = sysconfig::printer::load(&path).unwrap();
+        let args = Machine::from_config(&cfg)
+            .unwrap()
+            .sim_world_args("mcu", "w")
+            .join(" ");
+        assert!(args.contains("--axis z1=PG0,-400,21 "), "{args}");
+        assert!(args.contains("--endstop PG3=z1,0.1,min"), "{args}");
+    }
+
+    #[test]
     fn a_probe_on_a_delta_takes_the_delta_z_range() {
         let text = "[mcu]\nserial: simulator\n\
             [printer]\nkinematics: delta\nmax_velocity: 300\nmax_accel: 3000\ndelta_radius: 140\n\
