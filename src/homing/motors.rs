@@ -53,7 +53,10 @@ pub(super) fn home_motors(
     let speed = if retract > 0.0 {
         // Step 1: all motors together onto the first switch, then back together.
         ctx.also_endstops = own.to_vec();
-        let (first, names) = homing_pass(ctx, rail, PassKind::Home { start }, rail.homing_speed)?;
+        let first = homing_pass(ctx, rail, PassKind::Home { start }, rail.homing_speed);
+        // The pass takes them; not when it failed before arming.
+        ctx.also_endstops.clear();
+        let (first, names) = first?;
         passes.push(first);
         mcus = names;
         let mut pos = ctx.pipeline.position();
