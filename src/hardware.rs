@@ -75,6 +75,10 @@ pub struct EndstopOut {
     /// Sensorless: the pin is the diag pin of this driver (index in [`Machine::tmc`]), whose
     /// virtual endstop the axis homes on.
     pub sensorless: Option<usize>,
+    /// A further motor's own endstop (`[stepper_z1] endstop_pin`): that motor's index in
+    /// [`Machine::steppers`], which alone stops on it (the rail's homing options apply).
+    /// `None`: the rail's endstop, which stops the rail's other motors.
+    pub motor: Option<usize>,
 }
 
 /// The `[probe]`: its endstop (on its MCU) and its settings.
@@ -217,8 +221,8 @@ impl From<HardwareError> for String {
 }
 
 /// The steppers of the X, Y and Z rails (a rail's further motors, `stepper_z1`…, after
-/// them: they move with it and stop on its endstop) and the rails' endstops, objects not yet
-/// numbered.
+/// them: they move with it and stop on its endstop, or on their own) and the endstops (the
+/// rails', then the further motors' own), objects not yet numbered.
 fn rails(cfg: &PrinterConfig, tmc: &[crate::tmc::TmcOut]) -> (Vec<StepperOut>, Vec<EndstopOut>) {
     let mut steppers = Vec::new();
     let mut endstops = Vec::new();
@@ -248,11 +252,28 @@ fn rails(cfg: &PrinterConfig, tmc: &[crate::tmc::TmcOut]) -> (Vec<StepperOut>, V
                 second_homing_speed: s.second_homing_speed,
                 homing_retract_dist: s.homing_retract_dist,
                 homing_positive_dir: s.homing_positive_dir,
+                motor: None,
             });
         }
         steppers.push(StepperOut::new(name, axis, &s.motor));
     }
     for s in &cfg.extra_steppers {
+        // Its own endstop takes the rail endstop's homing options (sysconfig made sure the
+        // rail has one).
+        let rail = endstops
+            .iter()
+            .find(|e| e.axis == s.rail && e.motor.is_none())
+            .cloned();
+        if let (Some(pin), Some(rail)) = (&s.endstop_pin, rail) {
+            endstops.push(EndstopOut {
+                stepper: s.name.clone(),
+                pin: pin.clone(),
+                motor: Some(steppers.len()),
+                probe: false,
+                sensorless: None,
+                ..rail
+            });
+        }
         steppers.push(StepperOut::new(s.name.clone(), s.rail, &s.motor));
     }
     (steppers, endstops)
@@ -523,11 +544,37 @@ impl Machine {
 
     /// The simulated world's axis coordinate at which endstop `e` triggers: the bed surface for
     /// the probe, else `position_endstop`.
+    /// A Z motor's switch sits `[simulator] z_endstop_offsets` (that motor's entry) higher.
     fn sim_trigger(&self, e: &EndstopOut) -> f64 {
         if e.probe {
-            self.sim_bed_surface_z
-        } else {
-            e.position_endstop
+            return self.sim_bed_surface_z;
+        }
+        let offset = match e.axis {
+            2 => {
+                let motor = e.motor.map_or(0, |i| self.rail_motor_index(i));
+                self.sim_bed.z_endstop_offsets.get(motor).copied().unwrap_or(0.0)
+            }
+            _ => 0.0,
+        };
+        e.position_endstop + offset
+    }
+
+    /// Stepper `i`'s place among its rail's motors (0: the rail's own, 1: `stepper_z1`…).
+    fn rail_motor_index(&self, i: usize) -> usize {
+        let axis = self.steppers.get(i).map_or(usize::MAX, |s| s.axis);
+        self.steppers[..i.min(self.steppers.len())]
+            .iter()
+            .filter(|o| o.axis == axis)
+            .count()
+    }
+
+    /// The world axis stepper `i` of rail `s.axis` drives: the rail's (`z`), or a further
+    /// motor's own end of the carriage (`z1`, `z2`…).
+    fn sim_motor_axis(&self, i: usize, rails: &[(String, f64); 3]) -> String {
+        let axis = self.steppers.get(i).map_or(0, |s| s.axis.min(2));
+        match self.rail_motor_index(i) {
+            0 => rails[axis].0.clone(),
+            n => format!("{}{n}", rails[axis].0),
         }
     }
 
@@ -594,13 +641,10 @@ impl Machine {
             } else {
                 1.0 / s.step_dist
             };
-            let (name, start) = &rails[s.axis];
+            let start = rails[s.axis].1;
             // A rail's further motors each drive their own end of the carriage: `z1`, `z2`…
-            let nth = self.steppers[..i].iter().filter(|o| o.axis == s.axis).count();
-            let name = match nth {
-                0 => name.clone(),
-                n => format!("{name}{n}"),
-            };
+            let nth = self.rail_motor_index(i);
+            let name = self.sim_motor_axis(i, rails);
             // A tilted simulated gantry: each Z motor's end starts that much higher.
             let tilt = match s.axis {
                 2 => self.sim_bed.gantry_tilt.get(nth).copied().unwrap_or(0.0),
@@ -666,11 +710,15 @@ impl Machine {
         let side = if e.homing_positive_dir { "max" } else { "min" };
         // `!`: the pin reads 0 when triggered, as the config's inverted endstop expects.
         let active_low = if e.pin.invert { "!" } else { "" };
+        // A further motor's own endstop reads that motor's end of the carriage.
+        let coord = match e.motor {
+            Some(i) => firmware::sim::world::Coord::axis(&self.sim_motor_axis(i, rails)),
+            None => self.sim_coord(e.axis, rails),
+        };
         args.push("--endstop".to_string());
         args.push(format!(
-            "{active_low}{}={},{},{side}",
+            "{active_low}{}={coord},{},{side}",
             e.pin.pin,
-            self.sim_coord(e.axis, rails),
             self.sim_trigger(e)
         ));
     }
@@ -763,6 +811,7 @@ fn probe_out(
             homing_positive_dir: false,
             probe: true,
             sensorless: None,
+            motor: None,
         },
         z_virtual_endstop: shared.is_some(),
         z_position: p.z_position.unwrap_or(z_min),
@@ -961,6 +1010,60 @@ mod tests {
              --axis z1=PG0,-400,20 --axis z2=PH0,-400,20 --endstop PA3=x,0,min --endstop PB3=y,0,min \
              --endstop PC3=z,0,min --world w"
         );
+    }
+
+    #[test]
+    fn a_further_motors_own_endstop_reads_its_end_of_the_carriage() {
+        let text = include_str!("../examples/simulated-cartesian.cfg").replace(
+            "time_scale: 1.0",
+            "time_scale: 1.0\ngantry_tilt: 0, 0.5\nz_endstop_offsets: 0, 0.25",
+        ) + "\n[mcu zboard]\nserial: simulator\n\
+             [stepper_z1]\nstep_pin: PG0\ndir_pin: PG1\nmicrosteps: 16\nrotation_distance: 8\nendstop_pin: ^!PG3\n\
+             [stepper_z2]\nstep_pin: PH0\ndir_pin: PH1\nmicrosteps: 16\nrotation_distance: 8\n\
+             [stepper_z3]\nstep_pin: PK0\ndir_pin: PK1\nmicrosteps: 16\nrotation_distance: 8\n\
+             endstop_pin: zboard:PA3\n";
+        let m = machine(&text);
+        let own: Vec<(&str, Option<usize>, &str, u8)> = m
+            .endstops
+            .iter()
+            .map(|e| (e.stepper.as_str(), e.motor, e.pin.mcu.as_str(), e.oid))
+            .collect();
+        // The rails' endstops, then the further motors' own (stepper_z2 has none), numbered
+        // after the steppers of their MCU; each takes [stepper_z]'s homing options.
+        assert_eq!(
+            own,
+            [
+                ("stepper_x", None, "mcu", 7),
+                ("stepper_y", None, "mcu", 8),
+                ("stepper_z", None, "mcu", 9),
+                ("stepper_z1", Some(3), "mcu", 10),
+                ("stepper_z3", Some(5), "zboard", 0)
+            ]
+        );
+        assert!(m.endstops[3..]
+            .iter()
+            .all(|e| e.axis == 2 && e.position_endstop == 0.0 && e.homing_speed == 10.0));
+        // z1's switch 0.25 mm up on its own end (which starts 0.5 mm up), z3's on the other MCU.
+        let args = m.sim_world_args("mcu", "w").join(" ");
+        assert!(args.contains("--axis z1=PG0,400,20.5 "), "{args}");
+        assert!(
+            args.ends_with("--endstop PC3=z,0,min --endstop !PG3=z1,0.25,min --world w"),
+            "{args}"
+        );
+        let args = m.sim_world_args("zboard", "w").join(" ");
+        assert_eq!(args, "--endstop PA3=z3,0,min --world w");
+    }
+
+    #[test]
+    fn the_dual_z_example_gives_stepper_z1_its_own_switch() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/simulated-dual-z.cfg");
+        let cfg = sysconfig::printer::load(&path).unwrap();
+        let args = Machine::from_config(&cfg)
+            .unwrap()
+            .sim_world_args("mcu", "w")
+            .join(" ");
+        assert!(args.contains("--axis z1=PG0,-400,21 "), "{args}");
+        assert!(args.contains("--endstop PG3=z1,0.1,min"), "{args}");
     }
 
     #[test]

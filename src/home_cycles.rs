@@ -347,7 +347,7 @@ fn move_away(
     away: f64,
 ) -> Result<(), HomingError> {
     let mut pos = ctx.pipeline.position();
-    for e in machine.endstops.iter().filter(|e| axes[e.axis]) {
+    for e in (machine.endstops.iter()).filter(|e| axes[e.axis] && e.motor.is_none()) {
         let dir = if e.homing_positive_dir { 1.0 } else { -1.0 };
         pos[e.axis] = (e.position_endstop - dir * away).clamp(e.position_min, e.position_max);
     }
@@ -612,7 +612,7 @@ fn trace_latency(
     o: &mut dyn HomeOutput,
 ) -> Result<Vec<TraceStops>, HomeCyclesError> {
     let mut all = Vec::new();
-    for e in machine.endstops.iter().filter(|e| axes[e.axis]) {
+    for e in (machine.endstops.iter()).filter(|e| axes[e.axis] && e.motor.is_none()) {
         let Some(t) = trace_stops(machine, e, base, mcus, o)? else {
             continue;
         };

@@ -30,6 +30,20 @@ pub enum HomingError {
     /// The endstop still reads triggered once the axis moved away from it.
     #[error("Endstop {axis} still triggered after retract")]
     StillTriggered { axis: char },
+    /// A further motor's own endstop (`z1`: `[stepper_z1]`'s, Klipper's name) still reads
+    /// triggered once the motors retracted from the rail's endstop.
+    #[error("Endstop {endstop} still triggered after retract")]
+    MotorStillTriggered { endstop: String },
+    /// A further motor's own endstop on a rail whose motors move more than one toolhead axis.
+    #[error(
+        "homing {axis}: [{stepper}] endstop_pin: a motor's own endstop is supported on a rail that moves \
+         its axis alone (cartesian rails, corexz Y), not on {kinematics}"
+    )]
+    OwnEndstopKinematics {
+        axis: char,
+        stepper: String,
+        kinematics: &'static str,
+    },
     /// The trigger relay timed out (an MCU's trsync expired or went silent).
     #[error("{}", COMM_TIMEOUT_MSG)]
     CommTimeout,

@@ -4,9 +4,10 @@
 //! The axis steppers are every stepper that moves the homed axis ([`axis_steppers`]): X's own
 //! on a cartesian printer, both motors A (x + y) and B (x − y) for corexy X or Y, A (x + z) and
 //! B (x − z) for corexz X or Z, each rail with its further motors (`stepper_z1`…, on the rail
-//! motor's MCU), all stopped by the one trigger. A delta homes its three towers, one after
-//! the other with the other two held still, then computes the toolhead from the three
-//! carriage heights (module `delta`).
+//! motor's MCU), all stopped by the one trigger. Further motors with their own endstops
+//! (`[stepper_z1] endstop_pin`) each end on their own switch (module `motors`). A delta homes
+//! its three towers, one after the other with the other two held still, then computes the
+//! toolhead from the three carriage heights (module `delta`).
 //!
 //! Per axis, per pass (the second at `second_homing_speed` after retracting
 //! `homing_retract_dist`, skipped when that is 0):
@@ -59,6 +60,7 @@ pub mod bltouch;
 mod delta;
 mod error;
 mod halt;
+mod motors;
 mod pass;
 pub mod probe;
 pub mod procedure;
@@ -150,6 +152,12 @@ pub struct HomingCtx<'a> {
     pub gen_wall_per_step: f64,
     /// While a delta tower is homed (its carriage alone moving with Z): which.
     pub delta_tower: Option<usize>,
+    /// While one endstop of an axis with several (`[stepper_z1] endstop_pin`) homes its own
+    /// motors, the axis' others held still: those motors (indices into `machine.steppers`).
+    pub pass_motors: Option<Vec<usize>>,
+    /// Endstops the next pass arms beside its own, the first of all to trigger stopping it
+    /// (the further motors' own, while all the axis' motors approach together); taken by it.
+    pub also_endstops: Vec<EndstopOut>,
 }
 
 impl<'a> HomingCtx<'a> {
@@ -180,6 +188,8 @@ impl<'a> HomingCtx<'a> {
                 _ => GEN_WALL_PER_STEP,
             },
             delta_tower: None,
+            pass_motors: None,
+            also_endstops: Vec::new(),
         }
     }
 }
@@ -403,11 +413,20 @@ pub fn home_axes(ctx: &mut HomingCtx<'_>, axes: [bool; 3]) -> Result<HomingRepor
         let mut homed = ctx.pipeline.gcode_state().homed();
         homed[axis] = false;
         ctx.pipeline.set_homed(homed);
-        match ctx.machine.endstops.iter().find(|e| e.axis == axis).cloned() {
+        let own: Vec<EndstopOut> = (ctx.machine.endstops.iter())
+            .filter(|e| e.axis == axis && e.motor.is_some())
+            .cloned()
+            .collect();
+        match (ctx.machine.endstops.iter())
+            .find(|e| e.axis == axis && e.motor.is_none())
+            .cloned()
+        {
             // On the probe (`probe:z_virtual_endstop`), a BLTouch is deployed for the passes.
             Some(e) if e.probe => report.axes.push(bltouch::session(ctx, |ctx| home_axis(ctx, &e))?),
             // On a driver's virtual endstop: the driver reports stalls for the passes.
             Some(e) if e.sensorless.is_some() => report.axes.push(sensorless_session(ctx, &e)?),
+            // Further motors on their own endstops (`[stepper_z1] endstop_pin`).
+            Some(e) if !own.is_empty() => report.axes.push(motors::home_motors(ctx, &e, &own)?),
             Some(e) => report.axes.push(home_axis(ctx, &e)?),
             None => {
                 // No endstop: the old behaviour, the position is declared.

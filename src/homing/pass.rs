@@ -31,8 +31,17 @@ pub(crate) fn homing_pass(
     // From before the move is queued until the stop is read back: no CPU halts meanwhile.
     let _idle_poll = ctx.rt.start_idle_poll();
     wait_motion_done(ctx)?;
-    let g = PassGroup::new(ctx.mcus, ctx.machine, e, ctx.delta_tower)?;
-    let endstop_conn = g.conns[0];
+    // Further endstops armed beside `e` (the first of all to trigger stops the pass).
+    let also = std::mem::take(&mut ctx.also_endstops);
+    let mut g = PassGroup::new(
+        ctx.mcus,
+        ctx.machine,
+        e,
+        ctx.delta_tower,
+        ctx.pass_motors.as_deref(),
+    )?;
+    g.add_endstop_mcus(ctx.mcus, &also)?;
+    let armed: Vec<&EndstopOut> = std::iter::once(e).chain(&also).collect();
     let before: Vec<i64> = g
         .idxs
         .iter()
@@ -42,11 +51,11 @@ pub(crate) fn homing_pass(
     let steps = g.steps_between(ctx.machine, ctx.pipeline.position(), target);
 
     let allowance = ctx.generation_allowance(steps);
-    let (group, t0, rest_ticks) = arm_pass(ctx, &g, e, speed, allowance)?;
+    let (group, t0, rest_ticks) = arm_pass(ctx, &g, &armed, speed, allowance)?;
     let sent = send_homing_move(ctx, target, speed, axis_name, steps);
     let outcome = await_trigger(ctx, &group, &sent);
     let received_at = outcome.as_ref().map_or(0.0, |o| o.received_at);
-    let cancel = stop_pass(ctx, &g, e, &group, &outcome);
+    let cancel = stop_pass(ctx, &g, &armed, &group, &outcome);
     let mv = match sent {
         Ok(mv) => mv,
         Err(err) => {
@@ -58,7 +67,7 @@ pub(crate) fn homing_pass(
     // The trigger clock, and where the steppers halted.
     let trig = match &outcome {
         Ok(o) if o.reason == REASON_ENDSTOP_HIT => {
-            trigger_clock(ctx, e, endstop_conn, &o.mcu, t0, rest_ticks).map(Some)
+            trigger_clock(ctx, &armed, &o.mcu, t0, &rest_ticks).map(Some)
         }
         _ => Ok(None),
     };
@@ -172,12 +181,12 @@ fn await_trigger(
     }
 }
 
-/// Whatever happened: every member stops, the endstop stops sampling. Returns the result of
-/// cancelling the endstop (an error there matters only after a good trigger).
+/// Whatever happened: every member stops, the armed endstops stop sampling. Returns the
+/// result of cancelling them (an error there matters only after a good trigger).
 fn stop_pass(
     ctx: &HomingCtx<'_>,
     g: &PassGroup<'_>,
-    e: &EndstopOut,
+    armed: &[&EndstopOut],
     group: &TriggerGroup,
     outcome: &Result<links::trsync::TriggerOutcome, TrsyncError>,
 ) -> Result<(), HomingError> {
@@ -187,12 +196,16 @@ fn stop_pass(
     };
     group.trigger_all(reason);
     restop(ctx, &g.conns, &g.idxs);
-    let endstop_conn = g.conns[0];
-    let cancel = endstop_conn.link.dictionary().encode(
-        "endstop_home",
-        &[e.oid as i64, 0, 0, 0, 0, 0, endstop_conn.trsync_oid as i64, 0],
-    )?;
-    Ok(endstop_conn.link.send(cancel)?)
+    let mut cancelled = Ok(());
+    for e in armed {
+        let conn = mcu(ctx.mcus, &e.pin.mcu)?;
+        let cancel = conn.link.dictionary().encode(
+            "endstop_home",
+            &[e.oid as i64, 0, 0, 0, 0, 0, conn.trsync_oid as i64, 0],
+        )?;
+        cancelled = cancelled.and(conn.link.send(cancel).map_err(HomingError::from));
+    }
+    cancelled
 }
 
 /// The steppers and MCUs of one pass: every stepper that moves the axis stops on the trigger
@@ -229,20 +242,35 @@ impl<'m> PassGroup<'m> {
             .sum()
     }
 
+    /// Makes the MCUs of endstops `also` (armed beside the pass's own) members too, after the
+    /// pass endstop's.
+    fn add_endstop_mcus(&mut self, mcus: &'m Mcus, also: &[EndstopOut]) -> Result<(), HomingError> {
+        for e in also {
+            if !self.names.contains(&e.pin.mcu) {
+                self.names.insert(1, e.pin.mcu.clone());
+                self.conns.insert(1, mcu(mcus, &e.pin.mcu)?);
+            }
+        }
+        Ok(())
+    }
+
     /// The group of endstop `e`'s pass; with `tower`, the pass of that delta tower's steppers
-    /// (the other towers held still), whose carriage follows a Z move at the centre one to one.
+    /// (the other towers held still), whose carriage follows a Z move at the centre one to one;
+    /// with `motors`, of those motors alone (one endstop's of an axis with several).
     fn new(
         mcus: &'m Mcus,
         machine: &Machine,
         e: &EndstopOut,
         tower: Option<usize>,
+        motors: Option<&[usize]>,
     ) -> Result<PassGroup<'m>, HomingError> {
         let axis_name = AXIS_NAMES[e.axis];
-        let idxs = match tower {
-            Some(t) => (0..machine.steppers.len())
+        let idxs = match (tower, motors) {
+            (Some(t), _) => (0..machine.steppers.len())
                 .filter(|&i| machine.steppers[i].axis == t)
                 .collect(),
-            None => axis_steppers(machine, e.axis),
+            (None, Some(m)) => m.to_vec(),
+            (None, None) => axis_steppers(machine, e.axis),
         };
         if idxs.is_empty() {
             return Err(HomingError::NoStepper { axis: axis_name });
@@ -305,10 +333,10 @@ impl<'m> PassGroup<'m> {
 pub(super) fn arm_pass(
     ctx: &mut HomingCtx<'_>,
     g: &PassGroup<'_>,
-    e: &EndstopOut,
+    armed: &[&EndstopOut],
     speed: f64,
     allowance: f64,
-) -> Result<(TriggerGroup, f64, u64), HomingError> {
+) -> Result<(TriggerGroup, f64, Vec<u64>), HomingError> {
     let timeout = TriggerGroup::default_timeout(g.conns.len());
     let members: Vec<(&McuLink, u8)> = g.conns.iter().map(|c| (&c.link, c.trsync_oid)).collect();
     let t_arm = ctx.earliest_start();
@@ -323,7 +351,12 @@ pub(super) fn arm_pass(
         .pipeline
         .raise_print_time(t0)
         .map_err(HomingError::from)
-        .and_then(|()| arm_endstop(ctx, e, g.conns[0], sample_dist, t0, speed));
+        .and_then(|()| {
+            armed
+                .iter()
+                .map(|e| arm_endstop(ctx, e, mcu(ctx.mcus, &e.pin.mcu)?, sample_dist, t0, speed))
+                .collect::<Result<Vec<u64>, _>>()
+        });
     match setup {
         Ok(rest_ticks) => Ok((group, t0, rest_ticks)),
         Err(err) => {
@@ -356,18 +389,37 @@ pub(super) fn send_homing_move(
 }
 
 /// The trigger clock the endstop MCU reports (after a trigger it reports the matching read's
-/// clock + `rest_ticks`), checked to be after the move's start `t0`.
+/// clock + its rest ticks, `rest_ticks[k]` for `armed[k]`), checked to be after the move's
+/// start `t0`. With several endstops armed, the one that triggered still reads pressed (its
+/// motors stopped past it) and, among those that do, its reported read came first: the others
+/// kept sampling until they were cancelled, after the trigger.
 pub(super) fn trigger_clock(
     ctx: &HomingCtx<'_>,
-    e: &EndstopOut,
-    endstop_conn: &McuConn,
+    armed: &[&EndstopOut],
     reporter: &str,
     t0: f64,
-    rest_ticks: u64,
+    rest_ticks: &[u64],
 ) -> Result<(String, u64), HomingError> {
-    let (next, _, homing) = endstop_state(ctx, e)?;
-    let c = next.saturating_sub(rest_ticks);
-    if homing || c < clock_at_print_time(ctx.mcus, endstop_conn, t0) {
+    // (pressed, print time of the read, endstop, its MCU, clock, still homing), best first.
+    let mut first: Option<(bool, f64, &EndstopOut, &McuConn, u64, bool)> = None;
+    for (e, &rest) in armed.iter().zip(rest_ticks) {
+        let conn = mcu(ctx.mcus, &e.pin.mcu)?;
+        let (next, pressed, homing) = endstop_state(ctx, e)?;
+        let c = next.saturating_sub(rest);
+        let at = print_time_of_clock(ctx.mcus, conn, c);
+        let better = first
+            .as_ref()
+            .is_none_or(|f| (pressed && !f.0) || (pressed == f.0 && at < f.1));
+        if better {
+            first = Some((pressed, at, e, conn, c, homing));
+        }
+    }
+    let Some((_, _, e, conn, c, homing)) = first else {
+        return Err(HomingError::NoTriggerClock {
+            axis: AXIS_NAMES[armed.first().map_or(2, |e| e.axis.min(2))],
+        });
+    };
+    if homing || c < clock_at_print_time(ctx.mcus, conn, t0) {
         return Err(HomingError::FalseTrigger {
             axis: AXIS_NAMES[e.axis],
             reporter: reporter.to_string(),

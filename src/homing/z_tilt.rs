@@ -152,12 +152,7 @@ fn move_alone(
     let moved = plain_move(ctx, to, speed).and_then(|()| wait_motion_done(ctx));
     ctx.pipeline.thaw_lanes();
     moved?;
-    let stopped: Vec<(usize, i64)> = motors
-        .iter()
-        .filter_map(|&i| Some((i, ctx.pipeline.stepper_position(i)?)))
-        .collect();
-    let t = ctx.pipeline.toolhead_print_time();
-    Ok(ctx.pipeline.resync_after_stop(t, home, &stopped)?)
+    super::motors::resync_motors(ctx, motors, home)
 }
 
 #[cfg(test)]

@@ -50,6 +50,10 @@ pub struct SimulatorSection {
     /// How far each Z motor's end of the gantry starts above the first's (mm, `[stepper_z]`
     /// first: `0, 0.4` lifts `[stepper_z1]`'s end by 0.4); default none: a level gantry.
     pub gantry_tilt: Vec<f64>,
+    /// Where each Z motor's own endstop triggers above `[stepper_z] position_endstop`, on that
+    /// motor's end of the gantry (mm, `[stepper_z]` first: `0, 0.2` puts `[stepper_z1]`'s
+    /// switch 0.2 mm higher); default none: every switch at `position_endstop`.
+    pub z_endstop_offsets: Vec<f64>,
 }
 
 impl SimulatorSection {
@@ -69,6 +73,7 @@ impl Default for SimulatorSection {
             bed_warp: 0.0,
             bed_warp_period: 100.0,
             gantry_tilt: Vec::new(),
+            z_endstop_offsets: Vec::new(),
         }
     }
 }
@@ -140,16 +145,22 @@ pub(crate) fn read_simulator(s: &SectionReader<'_>) -> Result<SimulatorSection, 
         ],
         bed_warp: s.float_or("bed_warp", 0.0, Bounds::ANY.min(-10.0).max(10.0))?,
         bed_warp_period: s.float_or("bed_warp_period", d.bed_warp_period, Bounds::ANY.above(0.0))?,
-        gantry_tilt: match s.value("gantry_tilt") {
-            None => Vec::new(),
-            Some(v) => v
-                .text
-                .split(',')
-                .map(|t| super::reader::parse_float(t.trim()))
-                .collect::<Result<_, _>>()
-                .map_err(|p| s.bad("gantry_tilt", v, p))?,
-        },
+        gantry_tilt: float_list(s, "gantry_tilt")?,
+        z_endstop_offsets: float_list(s, "z_endstop_offsets")?,
     })
+}
+
+/// Option `name` of `s` as a comma-separated list of numbers (empty when absent).
+fn float_list(s: &SectionReader<'_>, name: &str) -> Result<Vec<f64>, ConfigError> {
+    match s.value(name) {
+        None => Ok(Vec::new()),
+        Some(v) => v
+            .text
+            .split(',')
+            .map(|t| super::reader::parse_float(t.trim()))
+            .collect::<Result<_, _>>()
+            .map_err(|p| s.bad(name, v, p)),
+    }
 }
 
 #[cfg(test)]

@@ -243,7 +243,8 @@ pub(crate) fn read_rail(
 }
 
 /// A further motor of a rail (`[stepper_z1]`, `[stepper_x1]`…): stepped with the rail's first
-/// motor (`[stepper_z]`), from the same planned motion, and stopped with it when homing.
+/// motor (`[stepper_z]`), from the same planned motion, and stopped when homing on its own
+/// endstop (`endstop_pin`), or with the rail's first motor on the rail's endstop.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ExtraStepperSection {
     /// Section name: `stepper_z1`.
@@ -252,13 +253,19 @@ pub struct ExtraStepperSection {
     pub rail: usize,
     /// Pins, microstepping and gearing (its own).
     pub motor: MotorSection,
+    /// Its own endstop, which stops it alone when homing (Klipper: a further motor with an
+    /// `endstop_pin` homes to it; the rail's `position_endstop` and homing options apply).
+    /// `None`: it stops on the rail's endstop, also when `endstop_pin` names that same pin.
+    pub endstop_pin: Option<PinRef>,
 }
 
 /// Reads `[stepper_z1]`-style section `s`, a further motor of `primary` (rail `rail`).
 ///
-/// The motors that stop on one endstop share its trigger's MCU-side stop, so they must share an
-/// MCU (Klipper: "Multi-mcu homing not supported on multi-mcu shared axis"); a motor's own
-/// `endstop_pin` (homing each motor to its own switch) is refused, naming the feature.
+/// The motors of one axis share an MCU (Klipper: "Multi-mcu homing not supported on multi-mcu
+/// shared axis"): the trigger that stops them is relayed to one MCU. A motor's own
+/// `endstop_pin` may be on any MCU; naming the rail's endstop pin shares that endstop (with the
+/// same `^`/`~`/`!` as there, as Klipper requires); the probe's and a driver's virtual endstops
+/// are refused for a further motor.
 pub(crate) fn read_extra(
     s: &SectionReader<'_>,
     pins: &mut PinRegistry,
@@ -266,21 +273,13 @@ pub(crate) fn read_extra(
     primary: &StepperSection,
 ) -> Result<ExtraStepperSection, ConfigError> {
     let motor = read_motor(s, pins)?;
-    if let Some(v) = s.value("endstop_pin") {
-        let why = format!(
-            "is not supported by Cadence yet (a separate endstop per motor): without it [{}] stops on \
-             [{}]'s endstop",
-            s.name(),
-            primary.name
-        );
-        return Err(s.bad("endstop_pin", v, ValueProblem::Invalid(why)));
-    }
+    let endstop_pin = read_extra_endstop(s, pins, primary)?;
     if motor.step_pin.mcu != primary.motor.step_pin.mcu {
         let v = s.required("step_pin")?;
         let why = format!(
-            "must be on the same mcu as [{}]'s step_pin ('{}'): the motors of one axis stop together on \
-             its endstop, which Cadence (like Klipper: multi-mcu homing is not supported on a multi-mcu \
-             shared axis) does only for motors on one MCU",
+            "must be on the same mcu as [{}]'s step_pin ('{}'): the motors of one axis stop on its \
+             endstops' triggers, which Cadence (like Klipper: multi-mcu homing is not supported on a \
+             multi-mcu shared axis) relays only to motors on one MCU",
             primary.name, primary.motor.step_pin.mcu
         );
         return Err(s.bad("step_pin", v, ValueProblem::Invalid(why)));
@@ -289,7 +288,67 @@ pub(crate) fn read_extra(
         name: s.name().to_string(),
         rail,
         motor,
+        endstop_pin,
     })
+}
+
+/// The further motor's own endstop (see [`read_extra`]); `None` when it has none or shares the
+/// rail's.
+fn read_extra_endstop(
+    s: &SectionReader<'_>,
+    pins: &mut PinRegistry,
+    primary: &StepperSection,
+) -> Result<Option<PinRef>, ConfigError> {
+    let Some(v) = s.value("endstop_pin") else {
+        return Ok(None);
+    };
+    let invalid = |why: String| Err(s.bad("endstop_pin", v, ValueProblem::Invalid(why)));
+    let Some(rail_pin) = &primary.endstop_pin else {
+        return invalid(format!(
+            "[{}] has no endstop_pin: a motor's own endstop needs the rail's homing options \
+             (position_endstop, homing_speed…) from there",
+            primary.name
+        ));
+    };
+    let parsed = PinRef::parse(&v.text, PinKind::Input).map_err(|problem| {
+        s.bad(
+            "endstop_pin",
+            v,
+            ValueProblem::BadPin {
+                pin: v.text.clone(),
+                problem,
+            },
+        )
+    })?;
+    let pin = pins.resolve(parsed).map_err(|p| s.bad("endstop_pin", v, p))?;
+    if pin.mcu == rail_pin.mcu && pin.pin == rail_pin.pin {
+        // Klipper: one endstop for both, its pull-up and inversion given alike.
+        if (pin.invert, pin.pullup, pin.pulldown) != (rail_pin.invert, rail_pin.pullup, rail_pin.pulldown) {
+            return invalid(format!(
+                "shares [{}]'s endstop pin '{rail_pin}' and must specify the same pullup/invert settings",
+                primary.name
+            ));
+        }
+        // Read (and counted as used) without claiming the pin a second time.
+        return Ok(None);
+    }
+    let rail_virtual = rail_pin.mcu == PROBE_PIN_MCU || !pins.has_mcu(&rail_pin.mcu);
+    if rail_virtual {
+        return invalid(format!(
+            "is not supported by Cadence yet with [{}] homing on the virtual endstop '{rail_pin}' \
+             (a further motor's own endstop beside it)",
+            primary.name
+        ));
+    }
+    let virtual_endstop =
+        pin.mcu == PROBE_PIN_MCU || (pin.pin == "virtual_endstop" && !pins.has_mcu(&pin.mcu));
+    if virtual_endstop {
+        return invalid(format!(
+            "pin '{pin}': a further motor's own endstop must be a pin of an [mcu] (the probe's and a \
+             driver's virtual endstops are not supported there by Cadence yet)"
+        ));
+    }
+    s.opt_pin("endstop_pin", PinKind::Input, pins, Share::Exclusive)
 }
 
 #[cfg(test)]

@@ -56,6 +56,7 @@ fn builtin_simulated_printer_loads() {
             bed_warp: 0.0,
             bed_warp_period: 100.0,
             gantry_tilt: Vec::new(),
+            z_endstop_offsets: Vec::new(),
         }
     );
     // Every pin is one the simulated MCU has.
@@ -661,8 +662,8 @@ fn further_motor_errors_name_the_option() {
     assert_eq!(
         parse(&format!("{MINIMAL}{}", extra_z(1, 'G', "endstop_pin: PG3\n"))).map(|_| ()),
         Err(
-            "printer.cfg:31: [stepper_z1] endstop_pin: is not supported by Cadence yet (a separate endstop per \
-             motor): without it [stepper_z1] stops on [stepper_z]'s endstop"
+            "printer.cfg:31: [stepper_z1] endstop_pin: [stepper_z] has no endstop_pin: a motor's own endstop \
+             needs the rail's homing options (position_endstop, homing_speed…) from there"
                 .to_string()
         )
     );
@@ -688,6 +689,117 @@ fn further_motor_errors_name_the_option() {
         extra_z(1, 'G', "").replace("step_pin: PG0", "step_pin: PC0")
     );
     assert!(parse(&shared).is_err());
+}
+
+/// MINIMAL with a Z endstop (`^PC3` at 0, lines 25-26), then `extras` (from line 27).
+fn z_homed(extras: &str) -> Result<PrinterConfig, String> {
+    parse(&format!(
+        "{MINIMAL}endstop_pin: ^PC3\nposition_endstop: 0\n{extras}"
+    ))
+}
+
+#[test]
+fn further_motors_may_have_their_own_endstops() {
+    let cfg = z_homed(&format!(
+        "{}{}{}",
+        extra_z(1, 'G', "endstop_pin: ^!PG3\n"),
+        extra_z(2, 'H', ""),
+        extra_z(3, 'K', "endstop_pin: ^PC3\n")
+    ))
+    .unwrap_or_else(|e| panic!("{e}"));
+    let own: Vec<(&str, Option<String>)> = cfg
+        .extra_steppers
+        .iter()
+        .map(|s| (s.name.as_str(), s.endstop_pin.as_ref().map(ToString::to_string)))
+        .collect();
+    // stepper_z1 on its own switch; stepper_z2 without one and stepper_z3 naming the rail's
+    // pin stop on [stepper_z]'s.
+    assert_eq!(
+        own,
+        [
+            ("stepper_z1", Some("^!PG3".to_string())),
+            ("stepper_z2", None),
+            ("stepper_z3", None)
+        ]
+    );
+    // Its own endstop may sit on another MCU (the trigger is relayed to the motors' MCU).
+    let cfg = z_homed(&format!(
+        "[mcu zboard]\nserial: /dev/ttyACM1\n{}",
+        extra_z(1, 'G', "endstop_pin: zboard:PA3\n")
+    ))
+    .unwrap_or_else(|e| panic!("{e}"));
+    let pin = cfg.extra_steppers[0]
+        .endstop_pin
+        .as_ref()
+        .map(|p| (p.mcu.as_str(), p.pin.as_str()));
+    assert_eq!(pin, Some(("zboard", "PA3")));
+}
+
+#[test]
+fn further_motor_endstop_errors_name_file_line_section_and_option() {
+    let cases = [
+        (
+            extra_z(1, 'G', "endstop_pin: PC3\n"),
+            "printer.cfg:33: [stepper_z1] endstop_pin: shares [stepper_z]'s endstop pin '^PC3' and must \
+             specify the same pullup/invert settings",
+        ),
+        (
+            extra_z(1, 'G', "endstop_pin: PA0\n"),
+            "printer.cfg:33: [stepper_z1] endstop_pin: pin 'PA0' is also used by [stepper_x] step_pin",
+        ),
+        (
+            extra_z(1, 'G', "endstop_pin: !^PG3\n"),
+            "printer.cfg:33: [stepper_z1] endstop_pin: invalid pin '!^PG3': '^' or '~' must come before '!'",
+        ),
+        (
+            extra_z(1, 'G', "endstop_pin: tmc2209_stepper_z1:virtual_endstop\n"),
+            "printer.cfg:33: [stepper_z1] endstop_pin: pin 'tmc2209_stepper_z1:virtual_endstop': a further \
+             motor's own endstop must be a pin of an [mcu] (the probe's and a driver's virtual endstops are \
+             not supported there by Cadence yet)",
+        ),
+        (
+            extra_z(1, 'G', "endstop_pin: nowhere:PG3\n"),
+            "printer.cfg:33: [stepper_z1] endstop_pin: ",
+        ),
+    ];
+    for (extra, want) in cases {
+        let got = z_homed(&extra).map(|_| ()).unwrap_err();
+        assert!(got.starts_with(want), "{got}\nwant: {want}");
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 128, ..ProptestConfig::default() })]
+
+    /// Any `[stepper_z1] endstop_pin` text never panics: it is read, or the error names
+    /// `[stepper_z1] endstop_pin` at its line.
+    #[test]
+    fn further_motor_endstop_pin_never_panics(pin in "[!^~ a-zA-Z0-9_:.]{0,16}") {
+        match z_homed(&extra_z(1, 'G', &format!("endstop_pin: {pin}\n"))) {
+            Ok(cfg) => prop_assert_eq!(cfg.extra_steppers.len(), 1),
+            Err(e) => prop_assert!(
+                e.starts_with("printer.cfg:33: [stepper_z1] endstop_pin: "),
+                "{}",
+                e
+            ),
+        }
+    }
+}
+
+#[test]
+fn simulated_z_endstop_offsets_are_read_per_motor() {
+    let sim = |v: &str| {
+        parse(&format!(
+            "{}[simulator]\ngantry_tilt: 0, 0.4\nz_endstop_offsets: {v}\n",
+            MINIMAL.replace("/dev/ttyACM0", "simulator")
+        ))
+        .map(|c| c.simulator.z_endstop_offsets)
+    };
+    assert_eq!(sim("0, 0.25,-0.1"), Ok(vec![0.0, 0.25, -0.1]));
+    assert_eq!(
+        sim("0, x"),
+        Err("printer.cfg:27: [simulator] z_endstop_offsets: expected a number, got 'x'".to_string())
+    );
 }
 
 #[test]
