@@ -16,8 +16,11 @@
 
 use rt_core::WireClock;
 
-/// Scheduled updates a digital out can hold.
-pub const QUEUE_LEN: usize = 8;
+/// Scheduled updates a digital out can hold. Klipper's MCU takes them from its shared move
+/// queue; here each output has its own FIFO, long enough for the longest burst a host queues
+/// at once: a Smart Effector's sensitivity command, 3 bytes of 14 bits at 1 ms, is up to 43
+/// level changes scheduled ahead together.
+pub const QUEUE_LEN: usize = 64;
 
 /// `config_digital_out` parameters.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]

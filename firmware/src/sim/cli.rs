@@ -76,6 +76,10 @@ pub struct Cli {
     #[arg(long = "bltouch", value_name = "[!]SENSOR_PIN=CONTROL_PIN,COORD,SURFACE_MM[,stuck|mute]",
           value_parser = parse_bltouch)]
     pub bltouch: Vec<BlTouchSpec>,
+    /// A Duet3D Smart Effector's programming input on CONTROL_PIN (`!`: the line's 1 is a low
+    /// pin): it decodes the host's 1000 bit/s commands and reports its sensitivity at exit.
+    #[arg(long = "smart-effector", value_name = "[!]CONTROL_PIN", value_parser = parse_smart_effector)]
+    pub smart_effectors: Vec<super::smart_effector::SmartEffectorSpec>,
     /// A TMC driver (tmc2130, tmc2208, tmc2209, tmc2240, tmc2660, tmc5160) on UART line BUS_PIN at address ADDR
     /// (behind an analog mux: reached while each SELECT_PIN is high, or low with `!`),
     /// or with chip select BUS_PIN (SPI); optionally its DIAG (or DIAG0 with `diag0:`) wired to
@@ -303,6 +307,17 @@ fn parse_bltouch(s: &str) -> Result<BlTouchSpec, String> {
         surface_mm: parse_f64(surface, "surface position")?,
         active_low,
         fault,
+    })
+}
+
+fn parse_smart_effector(s: &str) -> Result<super::smart_effector::SmartEffectorSpec, String> {
+    let (active_low, pin) = match s.trim().strip_prefix('!') {
+        Some(p) => (true, p),
+        None => (false, s.trim()),
+    };
+    Ok(super::smart_effector::SmartEffectorSpec {
+        control_pin: parse_pin(pin)?,
+        active_low,
     })
 }
 
