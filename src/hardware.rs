@@ -110,6 +110,8 @@ pub struct Machine {
     pub probe: Option<ProbeOut>,
     /// `[bltouch]`: the probe's servo.
     pub bltouch: Option<BlTouchOut>,
+    /// `[smart_effector]`: its control output and probing settings.
+    pub smart_effector: Option<crate::homing::smart_effector::SmartEffectorOut>,
     /// The steppers' TMC drivers.
     pub tmc: Vec<crate::tmc::TmcOut>,
     /// `[z_tilt]`.
@@ -313,6 +315,14 @@ impl Machine {
                 state: Default::default(),
             }
         });
+        // A Smart Effector's control output: the next oid on its MCU, after the endstops.
+        let smart_effector = cfg.smart_effector.as_ref().map(|e| {
+            crate::homing::smart_effector::SmartEffectorOut::new(e, |mcu| {
+                let n = next.entry(mcu.to_string()).or_insert(0);
+                *n += 1;
+                *n - 1
+            })
+        });
         let options = sysconfig::planning::pipeline_options(cfg, kinematics);
         let thermal =
             crate::heaters::objects::Thermal::from_config(cfg).map_err(|source| HardwareError::Thermal {
@@ -325,6 +335,7 @@ impl Machine {
             endstops,
             probe,
             bltouch,
+            smart_effector,
             tmc,
             bed_mesh: cfg.bed_mesh.clone().map(crate::homing::bed_mesh::BedMeshOut::new),
             z_tilt: cfg.z_tilt.clone(),
@@ -460,6 +471,12 @@ impl Machine {
             .collect()
     }
 
+    /// The Smart Effector's control output on MCU `mcu` and its oid (it follows the endstops).
+    pub fn mcu_smart_effector(&self, mcu: &str) -> Option<(&PinRef, u8)> {
+        let (pin, oid) = self.smart_effector.as_ref()?.control.as_ref()?;
+        (pin.mcu == mcu).then_some((pin, *oid))
+    }
+
     /// The BLTouch servo output on MCU `mcu` (its object follows the endstops).
     pub fn mcu_bltouch(&self, mcu: &str) -> Option<&BlTouchOut> {
         self.bltouch.as_ref().filter(|b| b.control_pin.mcu == mcu)
@@ -573,6 +590,12 @@ impl Machine {
             if e.sensorless.is_none() {
                 self.sim_endstop_args(mcu, e, &rails, &mut args);
             }
+        }
+        // A Smart Effector's programming input, decoding the control pin.
+        if let Some((pin, _)) = self.mcu_smart_effector(mcu) {
+            let active_low = if pin.invert { "!" } else { "" };
+            args.push("--smart-effector".to_string());
+            args.push(format!("{active_low}{}", pin.pin));
         }
         if !args.is_empty() {
             args.push("--world".to_string());
