@@ -868,6 +868,31 @@ mod tests {
     }
 
     #[test]
+    fn smart_effector_control_follows_the_endstops_and_is_simulated() {
+        let text = include_str!("../examples/simulated-probe.cfg").replace(
+            "[probe]\npin: ^probe_mcu:PA4",
+            "[smart_effector]\ncontrol_pin: !probe_mcu:PA5\nprobe_accel: 30\npin: ^probe_mcu:PA4",
+        );
+        let m = machine(&text);
+        let e = m.smart_effector.as_ref().unwrap();
+        assert_eq!(e.settings().probe_accel, 30.0);
+        assert_eq!(
+            m.mcu_smart_effector("probe_mcu").map(|(p, oid)| (p.invert, oid)),
+            Some((true, 1))
+        );
+        assert!(m.mcu_smart_effector("mcu").is_none());
+        let args = m.sim_world_args("probe_mcu", "w").join(" ");
+        assert_eq!(args, "--endstop PA4=z,0,min --smart-effector !PA5 --world w");
+        // Without control_pin: no output, nothing simulated.
+        let m = machine(&text.replace("control_pin: !probe_mcu:PA5\n", ""));
+        assert!(m.mcu_smart_effector("probe_mcu").is_none());
+        assert_eq!(
+            m.sim_world_args("probe_mcu", "w").join(" "),
+            "--endstop PA4=z,0,min --world w"
+        );
+    }
+
+    #[test]
     fn separate_probe_takes_the_next_oid() {
         let text = include_str!("../examples/simulated-multi-mcu.cfg").replace(
             "time_scale: 1.0",

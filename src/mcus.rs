@@ -594,8 +594,10 @@ fn oid_layout<'m>(
     }
     let bltouch = machine.mcu_bltouch(mcu).filter(|_| has_outputs);
     let smart_effector = machine.mcu_smart_effector(mcu).filter(|_| has_outputs);
-    let enable_oid0 =
-        steppers.len() + endstops.len() + usize::from(bltouch.is_some()) + usize::from(smart_effector.is_some());
+    let enable_oid0 = steppers.len()
+        + endstops.len()
+        + usize::from(bltouch.is_some())
+        + usize::from(smart_effector.is_some());
     let trsync_oid = u8::try_from(enable_oid0 + enables.len()).map_err(|_| ConfigureError::TooManyObjects)?;
     let thermal_oid0 = usize::from(trsync_oid) + 1;
     let tmc_oid0 = thermal_oid0 + machine.thermal.objects_on(mcu).len();

@@ -614,7 +614,9 @@ impl FeedTarget for PlannerRun<'_, '_> {
                 .streams
                 .mcus
                 .iter()
-                .map(|m| (side.clock(m.mcu_index).clock_at(now) - m.streamer.last_step_clock as f64) / m.clock_freq)
+                .map(|m| {
+                    (side.clock(m.mcu_index).clock_at(now) - m.streamer.last_step_clock as f64) / m.clock_freq
+                })
                 .fold(f64::INFINITY, f64::min);
             crate::tmc::idle::on_quiet(mcus, &self.st.machine.tmc, still).map_err(tmc_error)?;
         }

@@ -136,7 +136,12 @@ pub(crate) fn sample<T>(
     ctx: &mut HomingCtx<'_>,
     body: impl FnOnce(&mut HomingCtx<'_>) -> Result<T, HomingError>,
 ) -> Result<T, HomingError> {
-    let Some(s) = ctx.machine.smart_effector.as_ref().map(SmartEffectorOut::settings) else {
+    let Some(s) = ctx
+        .machine
+        .smart_effector
+        .as_ref()
+        .map(SmartEffectorOut::settings)
+    else {
         return body(ctx);
     };
     let old_accel = ctx.pipeline.max_accel();
@@ -229,7 +234,9 @@ fn int_param(raw: &str, key: &str, min: i64, max: i64) -> Result<Option<u8>, Hom
     if x > max {
         return Err(bad(ParamProblem::AboveMaximum { key, max: max as f64 }));
     }
-    u8::try_from(x).map(Some).map_err(|_| bad(ParamProblem::TooLarge { key }))
+    u8::try_from(x)
+        .map(Some)
+        .map_err(|_| bad(ParamProblem::TooLarge { key }))
 }
 
 /// Parameter `key` of `raw`, a number ≥ 0, if given.
@@ -239,16 +246,12 @@ fn float_param(raw: &str, key: &str) -> Result<Option<f64>, HomingError> {
     };
     let bad = |problem| super::probe::bad(raw, problem);
     let key = key.to_string();
-    let x: f64 = v
-        .parse()
-        .ok()
-        .filter(|x: &f64| x.is_finite())
-        .ok_or_else(|| {
-            bad(ParamProblem::Unparsable {
-                value: v.clone(),
-                key: key.clone(),
-            })
-        })?;
+    let x: f64 = v.parse().ok().filter(|x: &f64| x.is_finite()).ok_or_else(|| {
+        bad(ParamProblem::Unparsable {
+            value: v.clone(),
+            key: key.clone(),
+        })
+    })?;
     if x < 0.0 {
         return Err(bad(ParamProblem::BelowMinimum { key, min: 0.0 }));
     }
@@ -320,7 +323,17 @@ mod tests {
         // 0x10 ends in b0 = 0, !b0 = 1: back to idle one bit after the stream.
         let bits = bit_stream(&[0x10]);
         let (changes, end) = level_changes(&bits, false);
-        assert_eq!(changes, [(2, true), (3, false), (7, true), (8, false), (13, true), (14, false)]);
+        assert_eq!(
+            changes,
+            [
+                (2, true),
+                (3, false),
+                (7, true),
+                (8, false),
+                (13, true),
+                (14, false)
+            ]
+        );
         assert_eq!(end, 15);
         // Inverted: the same instants, opposite levels.
         let (inv, end_inv) = level_changes(&bits, true);

@@ -88,7 +88,10 @@ fn moves(trace: &TraceFile, oid: u8, gap: f64) -> Vec<Vec<(f64, i64)>> {
     let mut out: Vec<Vec<(f64, i64)>> = Vec::new();
     for r in &trace.records {
         assert!(!matches!(r, TraceRecord::Shutdown { .. }), "MCU shut down: {r:?}");
-        if let TraceRecord::Step { oid: o, dir, clock, .. } = *r {
+        if let TraceRecord::Step {
+            oid: o, dir, clock, ..
+        } = *r
+        {
             if o != oid {
                 continue;
             }
@@ -203,7 +206,9 @@ fn smart_effector_homes_probes_and_is_programmed() {
     let report = effector_report(&run);
     eprintln!("{report}");
     assert!(
-        report.contains("commands [sensitivity 42, reset, sensitivity 201]; sensitivity 201, resets 1, bad messages 0"),
+        report.contains(
+            "commands [sensitivity 42, reset, sensitivity 201]; sensitivity 201, resets 1, bad messages 0"
+        ),
         "{report}"
     );
 
@@ -219,7 +224,10 @@ fn smart_effector_homes_probes_and_is_programmed() {
     let a1 = start_accel(first, 150, Z_STEP);
     let a2 = start_accel(second, 80, Z_STEP);
     eprintln!("probing accelerations: {a1:.1} and {a2:.1} mm/s² (probe_accel {PROBE_ACCEL}, then ACCEL=45)");
-    assert!((a1 - PROBE_ACCEL).abs() < 0.1 * PROBE_ACCEL, "first probe at {a1} mm/s²");
+    assert!(
+        (a1 - PROBE_ACCEL).abs() < 0.1 * PROBE_ACCEL,
+        "first probe at {a1} mm/s²"
+    );
     assert!((a2 - 45.0).abs() < 0.1 * 45.0, "second probe at {a2} mm/s²");
     // The recovery dwell: the first probing move started at least recovery_time after the
     // move before it ended.
@@ -275,7 +283,8 @@ fn without_control_pin_sensitivity_is_refused() {
     let r = print("RESET_SMART_EFFECTOR\n");
     assert_success(&r);
     assert!(
-        r.stderr.contains("effector.gcode:1: Unknown command:\"RESET_SMART_EFFECTOR\""),
+        r.stderr
+            .contains("effector.gcode:1: Unknown command:\"RESET_SMART_EFFECTOR\""),
         "{}",
         r.stderr
     );

@@ -382,9 +382,10 @@ fn tmc2660_se(printer: &cadence::Printer, events: &std::sync::mpsc::Receiver<cad
     let deadline = std::time::Instant::now() + Duration::from_secs(30);
     while std::time::Instant::now() < deadline {
         if let Ok(cadence::Event::Response(line)) = events.recv_timeout(Duration::from_millis(200)) {
-            let se = line
-                .split_once("READRSP@RDSEL2:")
-                .and_then(|(_, r)| r.split_whitespace().find_map(|w| w.strip_prefix("se=")?.parse().ok()));
+            let se = line.split_once("READRSP@RDSEL2:").and_then(|(_, r)| {
+                r.split_whitespace()
+                    .find_map(|w| w.strip_prefix("se=")?.parse().ok())
+            });
             if let Some(se) = se {
                 return se;
             }
@@ -427,7 +428,10 @@ fn a_tmc2660_runs_at_its_idle_current_while_the_printer_is_idle() {
                 return;
             }
             assert!(se == 13, "{what}: CS {se}");
-            assert!(std::time::Instant::now() < deadline, "{what}: never at the idle current");
+            assert!(
+                std::time::Instant::now() < deadline,
+                "{what}: never at the idle current"
+            );
             std::thread::sleep(Duration::from_millis(300));
         }
     };
@@ -444,7 +448,9 @@ fn a_tmc2660_runs_at_its_idle_current_while_the_printer_is_idle() {
     while let Ok(e) = events.recv_timeout(Duration::from_secs(5)) {
         if let cadence::Event::Response(line) = e {
             if let Some((_, r)) = line.split_once("READRSP@RDSEL2:") {
-                after_move = r.split_whitespace().find_map(|w| w.strip_prefix("se=")?.parse::<i64>().ok());
+                after_move = r
+                    .split_whitespace()
+                    .find_map(|w| w.strip_prefix("se=")?.parse::<i64>().ok());
                 break;
             }
         }

@@ -169,8 +169,11 @@ impl SimBoard {
     /// Adds Smart Effectors.
     pub fn with_smart_effectors(mut self, specs: &[super::smart_effector::SmartEffectorSpec]) -> SimBoard {
         let freq = self.clock_freq;
-        self.smart_effectors
-            .extend(specs.iter().map(|&s| super::smart_effector::SmartEffector::new(s, freq)));
+        self.smart_effectors.extend(
+            specs
+                .iter()
+                .map(|&s| super::smart_effector::SmartEffector::new(s, freq)),
+        );
         self
     }
 
@@ -416,7 +419,11 @@ impl Board for SimBoard {
         for b in self.bltouch.iter_mut().filter(|b| b.spec.control_pin == pin) {
             b.control(value, at);
         }
-        for e in self.smart_effectors.iter_mut().filter(|e| e.spec.control_pin == pin) {
+        for e in self
+            .smart_effectors
+            .iter_mut()
+            .filter(|e| e.spec.control_pin == pin)
+        {
             e.control(value, at);
         }
         let t = self.seconds(at);

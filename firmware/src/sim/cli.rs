@@ -506,6 +506,10 @@ mod tests {
             prop_assert_eq!((b.active_low, b.fault), (false, None));
             prop_assert!(parse_bltouch("PA4=PA5,z,0,wobbly").is_err());
             prop_assert!(parse_bltouch("PA4=PA5,z").is_err());
+            let e = parse_smart_effector("!PA5").map_err(TestCaseError::fail)?;
+            prop_assert!(e.active_low);
+            prop_assert!(!parse_smart_effector("PA5").map_err(TestCaseError::fail)?.active_low);
+            prop_assert!(parse_smart_effector("nope").is_err());
         }
 
         /// Pin names round-trip; no input makes a parser panic.

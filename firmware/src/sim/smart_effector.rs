@@ -280,7 +280,12 @@ mod tests {
         for active_low in [false, true] {
             let mut e = effector(active_low);
             for s in [0u8, 1, 42, 127, 128, 254, 255] {
-                let end = send(&mut e, 1_000_000 * u64::from(s) + 5000, 1000.0, &bits(&[105, s, 255 - s]));
+                let end = send(
+                    &mut e,
+                    1_000_000 * u64::from(s) + 5000,
+                    1000.0,
+                    &bits(&[105, s, 255 - s]),
+                );
                 e.finish(end + 100_000);
                 assert_eq!((e.sensitivity, e.errors), (s, 0), "{s}");
             }

@@ -411,7 +411,14 @@ impl PrinterConfig {
 fn read_probe_sections(
     reader: &Reader<'_>,
     pins: &mut PinRegistry,
-) -> Result<(Option<ProbeSection>, Option<BlTouchSection>, Option<SmartEffectorSection>), ConfigError> {
+) -> Result<
+    (
+        Option<ProbeSection>,
+        Option<BlTouchSection>,
+        Option<SmartEffectorSection>,
+    ),
+    ConfigError,
+> {
     let kinds = ["probe", "bltouch", "smart_effector"];
     let present: Vec<_> = kinds.iter().filter_map(|k| reader.section(k)).collect();
     if let [first, second, ..] = present.as_slice() {

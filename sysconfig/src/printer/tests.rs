@@ -210,8 +210,7 @@ fn unknown_sections_and_options_are_errors_ignored_ones_warnings() {
         ))
         .map(|_| ()),
         Err(
-            "printer.cfg:26: [load_cell_probe] is not supported by Cadence yet (load cell probe)"
-                .to_string()
+            "printer.cfg:26: [load_cell_probe] is not supported by Cadence yet (load cell probe)".to_string()
         )
     );
     assert_eq!(
