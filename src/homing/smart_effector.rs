@@ -15,8 +15,8 @@
 //! an update is sent only where the level changes, and a line left active after the last bit
 //! goes back to idle one bit later ([`level_changes`]). The toolhead dwells until the end of
 //! the stream and waits for it. SENSITIVITY=s sends `105 s 255−s`; RESET sends `131 131`. At
-//! most 3 bytes, so at most 43 updates are queued at once (the firmware's digital out holds
-//! 64).
+//! most 3 bytes, so at most 43 updates are queued at once (the firmware's digital outs share a
+//! pool of 128).
 
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
@@ -342,7 +342,7 @@ mod tests {
         // Ending low: no extra update, the stream is 14 bits.
         let (c, end) = level_changes(&bit_stream(&[0x01]), false);
         assert_eq!((c.last().copied(), end), (Some((13, false)), 14));
-        // The longest command fits the firmware's queue of 64.
+        // The longest command fits the firmware's update pool (128) with room to spare.
         for s in 0..=255u8 {
             let (c, _) = level_changes(&bit_stream(&[CMD_SENSITIVITY, s, 255 - s]), false);
             assert!(c.len() <= 43, "{s}: {}", c.len());

@@ -185,9 +185,9 @@ impl SmartEffector {
     /// The line went idle after `f`'s bytes: the command they are.
     fn end_message(&mut self, f: Frame) {
         self.frame = None;
-        let cmd = match &f.bytes[..f.len] {
-            &[CMD_SENSITIVITY, s, c] if c == 255 - s => Command::Sensitivity(s),
-            &[CMD_RESET, CMD_RESET] => Command::Reset,
+        let cmd = match f.bytes[..f.len] {
+            [CMD_SENSITIVITY, s, c] if c == 255 - s => Command::Sensitivity(s),
+            [CMD_RESET, CMD_RESET] => Command::Reset,
             _ => {
                 self.errors += 1;
                 return;

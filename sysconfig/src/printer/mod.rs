@@ -406,19 +406,17 @@ impl PrinterConfig {
     }
 }
 
+/// The probe section read: the probe, and the own options of a `[bltouch]` or a
+/// `[smart_effector]`.
+type ProbeSections = (
+    Option<ProbeSection>,
+    Option<BlTouchSection>,
+    Option<SmartEffectorSection>,
+);
+
 /// The probe: `[probe]`, `[bltouch]` or `[smart_effector]` (at most one of them), with the
 /// own options of the latter two.
-fn read_probe_sections(
-    reader: &Reader<'_>,
-    pins: &mut PinRegistry,
-) -> Result<
-    (
-        Option<ProbeSection>,
-        Option<BlTouchSection>,
-        Option<SmartEffectorSection>,
-    ),
-    ConfigError,
-> {
+fn read_probe_sections(reader: &Reader<'_>, pins: &mut PinRegistry) -> Result<ProbeSections, ConfigError> {
     let kinds = ["probe", "bltouch", "smart_effector"];
     let present: Vec<_> = kinds.iter().filter_map(|k| reader.section(k)).collect();
     if let [first, second, ..] = present.as_slice() {
