@@ -13,7 +13,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use cadence_tests::{assert_success, print_traced, retry_homing_timeouts, run, scratch, workspace, Run};
+use cadence_tests::{assert_success, print_traced, retry_homing_timeouts, run, scratch, Run};
 use firmware::trace::{read_trace, TraceFile, TraceRecord};
 
 const TIMEOUT: Duration = Duration::from_secs(240);
@@ -36,37 +36,10 @@ const TOLERANCE: f64 = 2.0 * (Z_STEP + 5.0 * (1e-3 + 4.0 * 15e-6)) + 5.0 * 5e-3 
 
 /// The example with 20 mm axes and `[probe]` replaced by `[smart_effector]` with `options`.
 fn config(dir: &Path, options: &str) -> PathBuf {
-    let text = std::fs::read_to_string(workspace().join("examples/simulated-probe.cfg")).expect("example");
-    let mut out = String::new();
-    let mut in_probe = false;
-    for line in text.lines() {
-        let l = line.split('#').next().unwrap_or_default().trim();
-        if l.starts_with('[') {
-            in_probe = l == "[probe]";
-            if in_probe {
-                out.push_str(&format!(
-                    "[smart_effector]\npin: ^probe_mcu:PA4\nz_offset: {Z_OFFSET}\nspeed: 5\nlift_speed: 10\n\
-                     {options}\n"
-                ));
-            }
-        }
-        if in_probe {
-            continue;
-        }
-        let line = match l {
-            "position_max: 220" | "position_max: 200" => "position_max: 20".to_string(),
-            "homing_speed: 50" => "homing_speed: 10".to_string(),
-            l if l.starts_with("[stepper_") => {
-                format!("{line}\nhoming_retract_dist: 2\nsecond_homing_speed: 5")
-            }
-            _ => line.to_string(),
-        };
-        out.push_str(&line);
-        out.push('\n');
-    }
-    let path = dir.join("printer.cfg");
-    std::fs::write(&path, out).expect("write config");
-    path
+    let section = format!(
+        "[smart_effector]\npin: ^probe_mcu:PA4\nz_offset: {Z_OFFSET}\nspeed: 5\nlift_speed: 10\n{options}\n"
+    );
+    cadence_tests::probe_example_with(dir, &section, |_| None)
 }
 
 /// `cadence print` of `gcode` on `cfg` with the main MCU's trace; a run that ended in

@@ -330,14 +330,9 @@ fn a_tmc2240_homes_x_sensorlessly_and_reads_back_its_current() {
     assert!(out.contains("current_range=1"), "{out}");
 }
 
-/// Z on a TMC2660 (20-bit datagrams, SPI mode 0, one current in SGCSCONF's CS with `vsense`):
-/// its settings are written at start, `DUMP_TMC` shows them as written and reads the status
-/// answers (DRVCONF's `rdsel` chosen first), whose coolStep current `se` is the CS written;
-/// SET_TMC_CURRENT changes it.
-#[test]
-fn a_tmc2660_is_configured_and_answers_its_status() {
-    let dir = scratch("tmc2660");
-    let cfg = config(&dir, |t| {
+/// The printer of this file with Z on a TMC2660 (1.0 A through 0.051 Ω, idle at 20 %).
+fn tmc2660_config(dir: &Path) -> PathBuf {
+    config(dir, |t| {
         t.replace(
             "[tmc2130 stepper_z]\ncs_pin: PE9\n",
             "[tmc2660 stepper_z]\ncs_pin: PE9\nsense_resistor: 0.051\nidle_current_percent: 20\n",
@@ -346,7 +341,17 @@ fn a_tmc2660_is_configured_and_answers_its_status() {
             "run_current: 0.6\ninterpolate: True\n",
             "run_current: 1.0\ninterpolate: True\n",
         )
-    });
+    })
+}
+
+/// Z on a TMC2660 (20-bit datagrams, SPI mode 0, one current in SGCSCONF's CS with `vsense`):
+/// its settings are written at start, `DUMP_TMC` shows them as written and reads the status
+/// answers (DRVCONF's `rdsel` chosen first), whose coolStep current `se` is the CS written;
+/// SET_TMC_CURRENT changes it.
+#[test]
+fn a_tmc2660_is_configured_and_answers_its_status() {
+    let dir = scratch("tmc2660");
+    let cfg = tmc2660_config(&dir);
     let text = std::fs::read_to_string(&cfg).expect("config");
     assert!(
         text.contains("[tmc2660 stepper_z]") && text.contains("run_current: 1.0"),
@@ -402,16 +407,7 @@ fn tmc2660_se(printer: &cadence::Printer, events: &std::sync::mpsc::Receiver<cad
 fn a_tmc2660_runs_at_its_idle_current_while_the_printer_is_idle() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(PoisonError::into_inner);
     let dir = scratch("tmc2660-idle");
-    let cfg = config(&dir, |t| {
-        t.replace(
-            "[tmc2130 stepper_z]\ncs_pin: PE9\n",
-            "[tmc2660 stepper_z]\ncs_pin: PE9\nsense_resistor: 0.051\nidle_current_percent: 20\n",
-        )
-        .replace(
-            "run_current: 0.6\ninterpolate: True\n",
-            "run_current: 1.0\ninterpolate: True\n",
-        )
-    });
+    let cfg = tmc2660_config(&dir);
     let opts = cadence::PrinterOptions {
         log_to_stderr: true,
         ..cadence::PrinterOptions::default()
