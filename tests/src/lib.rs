@@ -33,10 +33,9 @@ pub fn simulated_config(dir: &Path, extra: &str) -> PathBuf {
 /// `[smart_effector]`) and `edit` applied to every other trimmed line (`None`: keep), written
 /// to `dir/printer.cfg`.
 pub fn probe_example_with(dir: &Path, probe_section: &str, edit: impl Fn(&str) -> Option<String>) -> PathBuf {
-    let text = std::fs::read_to_string(workspace().join("examples/simulated-probe.cfg")).expect("example");
     let mut out = String::new();
     let mut in_probe = false;
-    for line in text.lines() {
+    for line in short_homing_config_text("simulated-probe.cfg").lines() {
         let l = line.split('#').next().unwrap_or_default().trim();
         if l.starts_with('[') {
             in_probe = l == "[probe]";
@@ -45,19 +44,10 @@ pub fn probe_example_with(dir: &Path, probe_section: &str, edit: impl Fn(&str) -
                 out.push('\n');
             }
         }
-        if in_probe {
-            continue;
+        if !in_probe {
+            out.push_str(&edit(l).unwrap_or_else(|| line.to_string()));
+            out.push('\n');
         }
-        let line = match l {
-            "position_max: 220" | "position_max: 200" => "position_max: 20".to_string(),
-            "homing_speed: 50" => "homing_speed: 10".to_string(),
-            l if l.starts_with("[stepper_") => {
-                format!("{line}\nhoming_retract_dist: 2\nsecond_homing_speed: 5")
-            }
-            l => edit(l).unwrap_or_else(|| line.to_string()),
-        };
-        out.push_str(&line);
-        out.push('\n');
     }
     let path = dir.join("printer.cfg");
     std::fs::write(&path, out).expect("write config");
