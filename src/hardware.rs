@@ -114,6 +114,8 @@ pub struct Machine {
     pub probe: Option<ProbeOut>,
     /// `[bltouch]`: the probe's servo.
     pub bltouch: Option<BlTouchOut>,
+    /// `[smart_effector]`: its control output and probing settings.
+    pub smart_effector: Option<crate::homing::smart_effector::SmartEffectorOut>,
     /// The steppers' TMC drivers.
     pub tmc: Vec<crate::tmc::TmcOut>,
     /// `[z_tilt]`.
@@ -334,6 +336,14 @@ impl Machine {
                 state: Default::default(),
             }
         });
+        // A Smart Effector's control output: the next oid on its MCU, after the endstops.
+        let smart_effector = cfg.smart_effector.as_ref().map(|e| {
+            crate::homing::smart_effector::SmartEffectorOut::new(e, |mcu| {
+                let n = next.entry(mcu.to_string()).or_insert(0);
+                *n += 1;
+                *n - 1
+            })
+        });
         let options = sysconfig::planning::pipeline_options(cfg, kinematics);
         let thermal =
             crate::heaters::objects::Thermal::from_config(cfg).map_err(|source| HardwareError::Thermal {
@@ -346,6 +356,7 @@ impl Machine {
             endstops,
             probe,
             bltouch,
+            smart_effector,
             tmc,
             bed_mesh: cfg.bed_mesh.clone().map(crate::homing::bed_mesh::BedMeshOut::new),
             z_tilt: cfg.z_tilt.clone(),
@@ -479,6 +490,12 @@ impl Machine {
             .chain(probe)
             .filter(|e| e.pin.mcu == mcu)
             .collect()
+    }
+
+    /// The Smart Effector's control output on MCU `mcu` and its oid (it follows the endstops).
+    pub fn mcu_smart_effector(&self, mcu: &str) -> Option<(&PinRef, u8)> {
+        let (pin, oid) = self.smart_effector.as_ref()?.control.as_ref()?;
+        (pin.mcu == mcu).then_some((pin, *oid))
     }
 
     /// The BLTouch servo output on MCU `mcu` (its object follows the endstops).
@@ -620,6 +637,12 @@ impl Machine {
             if e.sensorless.is_none() {
                 self.sim_endstop_args(mcu, e, &rails, &mut args);
             }
+        }
+        // A Smart Effector's programming input, decoding the control pin.
+        if let Some((pin, _)) = self.mcu_smart_effector(mcu) {
+            let active_low = if pin.invert { "!" } else { "" };
+            args.push("--smart-effector".to_string());
+            args.push(format!("{active_low}{}", pin.pin));
         }
         if !args.is_empty() {
             args.push("--world".to_string());
@@ -891,6 +914,31 @@ mod tests {
         assert!(m.mcu_bltouch("mcu").is_none());
         let args = m.sim_world_args("probe_mcu", "w").join(" ");
         assert_eq!(args, "--bltouch PA4=PA5,z,0 --world w");
+    }
+
+    #[test]
+    fn smart_effector_control_follows_the_endstops_and_is_simulated() {
+        let text = include_str!("../examples/simulated-probe.cfg").replace(
+            "[probe]\npin: ^probe_mcu:PA4",
+            "[smart_effector]\ncontrol_pin: !probe_mcu:PA5\nprobe_accel: 30\npin: ^probe_mcu:PA4",
+        );
+        let m = machine(&text);
+        let e = m.smart_effector.as_ref().unwrap();
+        assert_eq!(e.settings().probe_accel, 30.0);
+        assert_eq!(
+            m.mcu_smart_effector("probe_mcu").map(|(p, oid)| (p.invert, oid)),
+            Some((true, 1))
+        );
+        assert!(m.mcu_smart_effector("mcu").is_none());
+        let args = m.sim_world_args("probe_mcu", "w").join(" ");
+        assert_eq!(args, "--endstop PA4=z,0,min --smart-effector !PA5 --world w");
+        // Without control_pin: no output, nothing simulated.
+        let m = machine(&text.replace("control_pin: !probe_mcu:PA5\n", ""));
+        assert!(m.mcu_smart_effector("probe_mcu").is_none());
+        assert_eq!(
+            m.sim_world_args("probe_mcu", "w").join(" "),
+            "--endstop PA4=z,0,min --world w"
+        );
     }
 
     #[test]

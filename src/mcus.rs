@@ -563,6 +563,8 @@ struct OidLayout<'m> {
     enables: Vec<&'m sysconfig::printer::PinRef>,
     /// A BLTouch's servo output right after the endstops (its oid: crate::hardware).
     bltouch: Option<&'m crate::hardware::BlTouchOut>,
+    /// A Smart Effector's control output right after the endstops (its oid: crate::hardware).
+    smart_effector: Option<(&'m sysconfig::printer::PinRef, u8)>,
     enable_oid0: usize,
     trsync_oid: u8,
     /// Heaters, sensors and fans (crate::heaters::objects) right after the trsync.
@@ -591,7 +593,11 @@ fn oid_layout<'m>(
         }
     }
     let bltouch = machine.mcu_bltouch(mcu).filter(|_| has_outputs);
-    let enable_oid0 = steppers.len() + endstops.len() + usize::from(bltouch.is_some());
+    let smart_effector = machine.mcu_smart_effector(mcu).filter(|_| has_outputs);
+    let enable_oid0 = steppers.len()
+        + endstops.len()
+        + usize::from(bltouch.is_some())
+        + usize::from(smart_effector.is_some());
     let trsync_oid = u8::try_from(enable_oid0 + enables.len()).map_err(|_| ConfigureError::TooManyObjects)?;
     let thermal_oid0 = usize::from(trsync_oid) + 1;
     let tmc_oid0 = thermal_oid0 + machine.thermal.objects_on(mcu).len();
@@ -599,6 +605,7 @@ fn oid_layout<'m>(
     Ok(OidLayout {
         enables,
         bltouch,
+        smart_effector,
         enable_oid0,
         trsync_oid,
         thermal_oid0,
@@ -633,6 +640,7 @@ pub fn config_commands(
     let OidLayout {
         enables,
         bltouch,
+        smart_effector,
         enable_oid0,
         trsync_oid,
         thermal_oid0,
@@ -699,6 +707,9 @@ pub fn config_commands(
     }
     if let Some(b) = bltouch {
         cmds.extend(crate::homing::bltouch::config_commands(dict, b)?);
+    }
+    if let Some((pin, oid)) = smart_effector {
+        cmds.extend(crate::homing::smart_effector::config_commands(dict, pin, oid)?);
     }
     cmds.extend(machine.thermal.config_commands(dict, mcu, thermal_oid0)?);
     cmds.extend(crate::tmc::config_commands(

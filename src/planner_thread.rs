@@ -591,6 +591,9 @@ impl FeedTarget for PlannerRun<'_, '_> {
     type Error = PlannerError;
 
     fn emit(&mut self, cmds: &mut Vec<(usize, StepCmd)>) -> Result<(), PlannerError> {
+        if !cmds.is_empty() {
+            self.drivers_to_run_current()?;
+        }
         let now = McuLink::system_now();
         for (c, m) in self.now_clocks.iter_mut().zip(&self.streams.mcus) {
             *c = self.st.side.clock(m.mcu_index).clock_at(now);
@@ -604,6 +607,19 @@ impl FeedTarget for PlannerRun<'_, '_> {
 
     fn pace(&mut self, p: &mut Pipeline) -> Result<(), PlannerError> {
         let side = self.st.side;
+        if let (false, McuSide::Local(mcus)) = (self.busy, side) {
+            // Quiet: a TMC2660 gets its idle current once the toolhead has been still a while.
+            let now = McuLink::system_now();
+            let still = self
+                .streams
+                .mcus
+                .iter()
+                .map(|m| {
+                    (side.clock(m.mcu_index).clock_at(now) - m.streamer.last_step_clock as f64) / m.clock_freq
+                })
+                .fold(f64::INFINITY, f64::min);
+            crate::tmc::idle::on_quiet(mcus, &self.st.machine.tmc, still).map_err(tmc_error)?;
+        }
         // The next batch is planned with the MCUs' latest clock fits.
         self.streams.refresh_clocks(p, |i| side.clock(i))?;
         self.publish_status(p);
@@ -653,6 +669,9 @@ impl FeedTarget for PlannerRun<'_, '_> {
         };
         let motion_start = AllocCounter::snapshot();
         self.drain_handoff(mcus)?;
+        if !matches!(cmd, MotionCmd::Tmc { .. }) {
+            self.drivers_to_run_current()?;
+        }
         if let MotionCmd::Home(axes) = cmd {
             st.log.log(
                 Level::Info,
@@ -847,7 +866,19 @@ impl FeedTarget for PlannerRun<'_, '_> {
     }
 }
 
+/// A TMC driver's register traffic outside a G-code command failed.
+fn tmc_error(e: crate::tmc::TmcError) -> PlannerError {
+    PlannerError::Homing(Box::new(e.into()))
+}
+
 impl PlannerRun<'_, '_> {
+    /// Motion comes: TMC2660s in their idle current get their run current back first.
+    fn drivers_to_run_current(&self) -> Result<(), PlannerError> {
+        if let McuSide::Local(mcus) = self.st.side {
+            crate::tmc::idle::on_motion(mcus, &self.st.machine.tmc).map_err(tmc_error)?;
+        }
+        Ok(())
+    }
     /// A G-code answer: the session's response event, or stderr and the summary of a print.
     fn respond(&mut self, text: String) {
         match self.st.session {

@@ -45,7 +45,7 @@ pub const TEST_TIME: f64 = 5.0 * 60.0;
 pub const RETRY_RESET_TIME: f64 = 1.0;
 /// How long after a command's action end the sensor may take to show the expected state (s).
 const VERIFY_WINDOW: f64 = 0.100;
-/// Updates the firmware's digital out queue holds (8) minus a margin.
+/// Updates kept pending on the servo output at once (well inside an MCU's update queue).
 const MAX_PENDING_UPDATES: usize = 6;
 
 /// The commands and their pulse widths (s), sorted by name (as BLTOUCH_DEBUG lists them).

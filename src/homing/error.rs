@@ -165,6 +165,9 @@ pub enum HomingError {
     /// The BLTouch did not report the expected state in touch mode.
     #[error("BLTouch failed to verify sensor state")]
     BlTouchSensor,
+    /// SET_SMART_EFFECTOR SENSITIVITY= without a control pin (Klipper's words).
+    #[error("control_pin must be set in [smart_effector] for sensitivity programming")]
+    SmartEffectorNoControlPin,
     /// The main MCU's clock did not reach the end of a BLTouch command.
     #[error("bltouch: the main MCU's clock did not reach the end of the probe's command")]
     BlTouchClock,
@@ -199,6 +202,8 @@ pub enum ParamProblem {
     NotAbove { key: String, min: f64 },
     #[error("{key} must have minimum of {min}")]
     BelowMinimum { key: String, min: f64 },
+    #[error("{key} must have maximum of {max}")]
+    AboveMaximum { key: String, max: f64 },
     #[error("{key} is too large")]
     TooLarge { key: String },
     #[error("SAMPLES_RESULT must be median or average, got '{value}'")]

@@ -65,6 +65,7 @@ mod pass;
 pub mod probe;
 pub mod procedure;
 pub mod screws;
+pub mod smart_effector;
 pub mod z_tilt;
 
 pub use error::{HomingError, LevelingError, ParamProblem, WiringError};

@@ -20,7 +20,8 @@
 //!
 //! Output lines are Klipper's: `probe at X,Y is z=Z` per sample, `Result is z=Z`,
 //! `probe: open|TRIGGERED`, and PROBE_ACCURACY's header and statistics (population standard
-//! deviation).
+//! deviation); then Cadence's line of the passes' stop latency against the 25 ms budget
+//! (`PROBE: 2 probe passes, stop at most A..B us after trigger (budget 25000 us)`).
 
 use sysconfig::printer::{ProbeSection, SamplesResult, SAMPLES_RESULTS};
 
@@ -45,6 +46,7 @@ const ACCURACY_SAMPLES: u32 = 10;
 /// True for a command name this module runs.
 pub fn is_probe_command(name: &str) -> bool {
     COMMANDS.contains(&name)
+        || super::smart_effector::COMMANDS.contains(&name)
         || super::bed_mesh::COMMANDS.contains(&name)
         || super::z_tilt::COMMANDS.contains(&name)
         || super::screws::COMMANDS.contains(&name)
@@ -59,6 +61,7 @@ pub fn is_configured(machine: &crate::hardware::Machine, name: &str) -> bool {
         "Z_TILT_ADJUST" => machine.z_tilt.is_some(),
         "QUAD_GANTRY_LEVEL" => machine.quad_gantry_level.is_some(),
         "SCREWS_TILT_CALCULATE" => machine.screws_tilt_adjust.is_some(),
+        n if super::smart_effector::COMMANDS.contains(&n) => super::smart_effector::is_configured(machine, n),
         _ => true,
     }
 }
@@ -209,6 +212,9 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
     if name.starts_with("BLTOUCH_") {
         return super::bltouch::run_command(ctx, name, raw, out);
     }
+    if super::smart_effector::COMMANDS.contains(&name) {
+        return super::smart_effector::run(ctx, name, raw, out);
+    }
     if super::bed_mesh::COMMANDS.contains(&name) {
         return super::bed_mesh::run(ctx, name, raw, out);
     }
@@ -238,6 +244,7 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
                 "PROBE_ACCURACY at X:{:.3} Y:{:.3} Z:{:.3} (samples={} retract={:.3} speed={:.1} lift_speed={:.1})",
                 pos[0], pos[1], pos[2], p.samples, p.sample_retract_dist, p.speed, p.lift_speed
             ));
+            let first_pass = ctx.probe_passes.len();
             let z = super::bltouch::session(ctx, |ctx| {
                 let mut z = Vec::new();
                 while z.len() < p.samples as usize {
@@ -248,15 +255,25 @@ pub fn run(ctx: &mut HomingCtx<'_>, name: &str, raw: &str, out: &mut Vec<String>
                 Ok(z)
             })?;
             out.push(accuracy_line(&z));
+            out.push(passes_line(ctx, name, first_pass));
             Ok(())
         }
         _ => {
             let p = ProbeParams::parse(&probe.cfg, raw, probe.cfg.samples)?;
+            let first_pass = ctx.probe_passes.len();
             let z = super::bltouch::session(ctx, |ctx| run_probe(ctx, &probe, &p, out))?;
             out.push(format!("Result is z={z:.6}"));
+            out.push(passes_line(ctx, name, first_pass));
             Ok(())
         }
     }
+}
+
+/// The stop latency line of command `name`'s probe passes (from pass `first_pass` on), against
+/// the 25 ms budget.
+fn passes_line(ctx: &HomingCtx<'_>, name: &str, first_pass: usize) -> String {
+    let passes = &ctx.probe_passes[first_pass.min(ctx.probe_passes.len())..];
+    super::bed_mesh::latency_line(name, passes)
 }
 
 /// The samples of one PROBE with tolerance retries; returns the combined Z.
@@ -307,12 +324,15 @@ fn probe_once(
     }
     wait_motion_done(ctx)?;
     let target = probe.z_position;
-    // A BLTouch is deployed first (and stowed after, also after a failure).
+    // A BLTouch is deployed first (and stowed after, also after a failure); a Smart Effector
+    // limits the move's acceleration after its recovery dwell.
     let (pass, _) = super::bltouch::sample(ctx, |ctx| {
         if endstop_state(ctx, &probe.endstop)?.1 {
             return Err(HomingError::TriggeredBeforeMove);
         }
-        homing_pass(ctx, &probe.endstop, PassKind::Probe { target }, speed)
+        super::smart_effector::sample(ctx, |ctx| {
+            homing_pass(ctx, &probe.endstop, PassKind::Probe { target }, speed)
+        })
     })?;
     ctx.probe_passes.push(pass.clone());
     let pos = ctx.pipeline.position();

@@ -137,6 +137,7 @@ fn set_current(
             let mut st = io.drv.lock();
             let hold = hold.unwrap_or(st.req_hold_current);
             st.req_hold_current = hold;
+            st.req_run_current = run;
             current::set_current(&mut st.fields, cfg.sense_resistor, run, hold)
         };
         for (reg, value) in changed {

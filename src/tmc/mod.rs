@@ -12,6 +12,7 @@
 
 mod error;
 pub mod gcode;
+pub mod idle;
 pub mod io;
 pub mod sensorless;
 
@@ -35,6 +36,10 @@ pub struct TmcState {
     pub fields: FieldSet,
     /// The hold current last asked for (A).
     pub req_hold_current: f64,
+    /// The run current last asked for (A): the base of a TMC2660's idle current.
+    pub req_run_current: f64,
+    /// A TMC2660's idle current is in (module `idle`).
+    pub idle: bool,
     /// UART: the driver's write counter as last read.
     pub ifcnt: Option<u8>,
 }
@@ -110,6 +115,8 @@ pub fn drivers(cfg: &PrinterConfig) -> Vec<TmcOut> {
             state: Arc::new(Mutex::new(TmcState {
                 fields: t.fields.clone(),
                 req_hold_current: t.hold_current,
+                req_run_current: t.run_current,
+                idle: false,
                 ifcnt: None,
             })),
         });

@@ -28,6 +28,32 @@ pub fn simulated_config(dir: &Path, extra: &str) -> PathBuf {
     cfg
 }
 
+/// examples/simulated-probe.cfg with 20 mm axes (homing at 10 then 5 mm/s after a 2 mm
+/// retract), its `[probe]` section replaced by `probe_section` (another probe: `[bltouch]`,
+/// `[smart_effector]`) and `edit` applied to every other trimmed line (`None`: keep), written
+/// to `dir/printer.cfg`.
+pub fn probe_example_with(dir: &Path, probe_section: &str, edit: impl Fn(&str) -> Option<String>) -> PathBuf {
+    let mut out = String::new();
+    let mut in_probe = false;
+    for line in short_homing_config_text("simulated-probe.cfg").lines() {
+        let l = line.split('#').next().unwrap_or_default().trim();
+        if l.starts_with('[') {
+            in_probe = l == "[probe]";
+            if in_probe {
+                out.push_str(probe_section);
+                out.push('\n');
+            }
+        }
+        if !in_probe {
+            out.push_str(&edit(l).unwrap_or_else(|| line.to_string()));
+            out.push('\n');
+        }
+    }
+    let path = dir.join("printer.cfg");
+    std::fs::write(&path, out).expect("write config");
+    path
+}
+
 /// examples/simulated-cartesian.cfg without endstops, written to `dir/no-endstops.cfg`: G28
 /// homes without motion (homing's timing under a loaded test machine is tested elsewhere).
 pub fn printer_without_endstops(dir: &Path) -> PathBuf {

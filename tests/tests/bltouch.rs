@@ -12,7 +12,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use cadence_tests::{assert_success, retry_homing_timeouts, run, scratch, workspace, Run};
+use cadence_tests::{assert_success, retry_homing_timeouts, run, scratch, Run};
 
 const TIMEOUT: Duration = Duration::from_secs(240);
 const Z_OFFSET: f64 = 1.5;
@@ -27,37 +27,11 @@ const BUDGET_US: f64 = 25_000.0;
 /// The example with 20 mm axes, `[probe]` replaced by `[bltouch]` with `options`, and `edit`
 /// applied to each trimmed line (`None`: keep).
 fn config(dir: &Path, options: &str, edit: impl Fn(&str) -> Option<String>) -> PathBuf {
-    let text = std::fs::read_to_string(workspace().join("examples/simulated-probe.cfg")).expect("example");
-    let mut out = String::new();
-    let mut in_probe = false;
-    for line in text.lines() {
-        let l = line.split('#').next().unwrap_or_default().trim();
-        if l.starts_with('[') {
-            in_probe = l == "[probe]";
-            if in_probe {
-                out.push_str(&format!(
-                    "[bltouch]\nsensor_pin: ^probe_mcu:PA4\ncontrol_pin: probe_mcu:PA5\nz_offset: {Z_OFFSET}\n\
-                     speed: 2\nlift_speed: 10\n{options}\n"
-                ));
-            }
-        }
-        if in_probe {
-            continue;
-        }
-        let line = match l {
-            "position_max: 220" | "position_max: 200" => "position_max: 20".to_string(),
-            "homing_speed: 50" => "homing_speed: 10".to_string(),
-            l if l.starts_with("[stepper_") => {
-                format!("{line}\nhoming_retract_dist: 2\nsecond_homing_speed: 5")
-            }
-            l => edit(l).unwrap_or_else(|| line.to_string()),
-        };
-        out.push_str(&line);
-        out.push('\n');
-    }
-    let path = dir.join("printer.cfg");
-    std::fs::write(&path, out).expect("write config");
-    path
+    let section = format!(
+        "[bltouch]\nsensor_pin: ^probe_mcu:PA4\ncontrol_pin: probe_mcu:PA5\nz_offset: {Z_OFFSET}\n\
+         speed: 2\nlift_speed: 10\n{options}\n"
+    );
+    cadence_tests::probe_example_with(dir, &section, edit)
 }
 
 /// One printer of this file at a time: each runs two simulated MCUs whose trsync budget a

@@ -330,14 +330,9 @@ fn a_tmc2240_homes_x_sensorlessly_and_reads_back_its_current() {
     assert!(out.contains("current_range=1"), "{out}");
 }
 
-/// Z on a TMC2660 (20-bit datagrams, SPI mode 0, one current in SGCSCONF's CS with `vsense`):
-/// its settings are written at start, `DUMP_TMC` shows them as written and reads the status
-/// answers (DRVCONF's `rdsel` chosen first), whose coolStep current `se` is the CS written;
-/// SET_TMC_CURRENT changes it.
-#[test]
-fn a_tmc2660_is_configured_and_answers_its_status() {
-    let dir = scratch("tmc2660");
-    let cfg = config(&dir, |t| {
+/// The printer of this file with Z on a TMC2660 (1.0 A through 0.051 Ω, idle at 20 %).
+fn tmc2660_config(dir: &Path) -> PathBuf {
+    config(dir, |t| {
         t.replace(
             "[tmc2130 stepper_z]\ncs_pin: PE9\n",
             "[tmc2660 stepper_z]\ncs_pin: PE9\nsense_resistor: 0.051\nidle_current_percent: 20\n",
@@ -346,7 +341,17 @@ fn a_tmc2660_is_configured_and_answers_its_status() {
             "run_current: 0.6\ninterpolate: True\n",
             "run_current: 1.0\ninterpolate: True\n",
         )
-    });
+    })
+}
+
+/// Z on a TMC2660 (20-bit datagrams, SPI mode 0, one current in SGCSCONF's CS with `vsense`):
+/// its settings are written at start, `DUMP_TMC` shows them as written and reads the status
+/// answers (DRVCONF's `rdsel` chosen first), whose coolStep current `se` is the CS written;
+/// SET_TMC_CURRENT changes it.
+#[test]
+fn a_tmc2660_is_configured_and_answers_its_status() {
+    let dir = scratch("tmc2660");
+    let cfg = tmc2660_config(&dir);
     let text = std::fs::read_to_string(&cfg).expect("config");
     assert!(
         text.contains("[tmc2660 stepper_z]") && text.contains("run_current: 1.0"),
@@ -370,4 +375,84 @@ fn a_tmc2660_is_configured_and_answers_its_status() {
     assert!(se[0].contains("se=13"), "{se:?}");
     // 0.5 A: CS 6.
     assert!(se[1].contains("se=6"), "{se:?}");
+}
+
+/// `DUMP_TMC STEPPER=stepper_z REGISTER=READRSP@RDSEL2` on a live session: the coolStep current
+/// `se` the simulated TMC2660 answers with, which is the CS it holds.
+fn tmc2660_se(printer: &cadence::Printer, events: &std::sync::mpsc::Receiver<cadence::Event>) -> i64 {
+    while events.try_recv().is_ok() {}
+    printer
+        .run_command("DUMP_TMC STEPPER=stepper_z REGISTER=READRSP@RDSEL2")
+        .expect("DUMP_TMC");
+    let deadline = std::time::Instant::now() + Duration::from_secs(30);
+    while std::time::Instant::now() < deadline {
+        if let Ok(cadence::Event::Response(line)) = events.recv_timeout(Duration::from_millis(200)) {
+            let se = line.split_once("READRSP@RDSEL2:").and_then(|(_, r)| {
+                r.split_whitespace()
+                    .find_map(|w| w.strip_prefix("se=")?.parse().ok())
+            });
+            if let Some(se) = se {
+                return se;
+            }
+        }
+    }
+    panic!("no READRSP@RDSEL2 answer");
+}
+
+/// Z on a TMC2660 with `idle_current_percent: 20` on a live session: once the printer is
+/// quiet and its steppers have been still 0.5 s, the driver holds 20 % of its run current
+/// (1.0 A: CS 13; 0.2 A: CS 2), motion gets the run current back before its first step, and
+/// the next quiet spell lowers it again. The driver's CS is read back through its status.
+#[test]
+fn a_tmc2660_runs_at_its_idle_current_while_the_printer_is_idle() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(PoisonError::into_inner);
+    let dir = scratch("tmc2660-idle");
+    let cfg = tmc2660_config(&dir);
+    let opts = cadence::PrinterOptions {
+        log_to_stderr: true,
+        ..cadence::PrinterOptions::default()
+    };
+    let mut printer = cadence::Printer::open(cadence::PrinterSource::ConfigFile(cfg), opts).expect("open");
+    let events = printer.events().expect("events");
+    // Quiet from the start: the idle current comes once nothing moved for 0.5 s (polled; each
+    // DUMP_TMC is a command without motion, which does not end the idle spell).
+    let wait_idle = |what: &str| {
+        let deadline = std::time::Instant::now() + Duration::from_secs(60);
+        loop {
+            let se = tmc2660_se(&printer, &events);
+            if se == 2 {
+                return;
+            }
+            assert!(se == 13, "{what}: CS {se}");
+            assert!(
+                std::time::Instant::now() < deadline,
+                "{what}: never at the idle current"
+            );
+            std::thread::sleep(Duration::from_millis(300));
+        }
+    };
+    wait_idle("at start");
+    // Motion: homing and a move run at the run current; DUMP_TMC comes right after the move
+    // (in the same stream, no quiet spell between).
+    printer
+        .run_gcode_stream(
+            "moves.gcode",
+            std::io::Cursor::new("G28 Z\nG1 Z5 F600\nDUMP_TMC STEPPER=stepper_z REGISTER=READRSP@RDSEL2\n"),
+        )
+        .expect("moves");
+    let mut after_move = None;
+    while let Ok(e) = events.recv_timeout(Duration::from_secs(5)) {
+        if let cadence::Event::Response(line) = e {
+            if let Some((_, r)) = line.split_once("READRSP@RDSEL2:") {
+                after_move = r
+                    .split_whitespace()
+                    .find_map(|w| w.strip_prefix("se=")?.parse::<i64>().ok());
+                break;
+            }
+        }
+    }
+    assert_eq!(after_move, Some(13), "run current after the move");
+    // Quiet again: back to the idle current.
+    wait_idle("after the move");
+    printer.close().expect("close");
 }

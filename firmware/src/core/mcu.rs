@@ -82,6 +82,8 @@ pub struct Mcu<B: Board, const OIDS: usize, const MOVES: usize> {
     pub(super) link: Link,
     pub(super) sched: Scheduler<OIDS>,
     pub(super) pool: MovePool<MOVES>,
+    /// The digital outs' scheduled updates.
+    pub(super) updates: super::digital_out::UpdatePool,
     pub(super) objects: [Object; OIDS],
     /// `allocate_oids` count, once allocated.
     pub(super) oid_count: Option<u8>,
@@ -124,6 +126,7 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
             link: Link::new(),
             sched: Scheduler::new(),
             pool: MovePool::new(config.move_count as usize),
+            updates: super::digital_out::UpdatePool::new(),
             objects: [const { Object::Free }; OIDS],
             oid_count: None,
             is_config: false,
@@ -301,6 +304,7 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
         }
         self.sched.clear();
         self.pool.clear();
+        self.updates.clear();
         self.objects = [const { Object::Free }; OIDS];
         self.oid_count = None;
         self.is_config = false;
@@ -341,6 +345,7 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
         }
         self.sched.clear();
         self.pool.clear();
+        self.updates.clear();
         let id = static_string_id(reason);
         self.board.shutdown(now, id, reason);
         self.respond(

@@ -131,23 +131,27 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                 _ => self.shutdown(reason::INVALID_OID, now),
             },
             Cmd::QueueDigitalOut => {
-                let Some(Object::DigitalOut(d)) = self.object(oid) else {
+                let Some(Object::DigitalOut(d)) =
+                    self.objects.get_mut(usize::try_from(oid).unwrap_or(usize::MAX))
+                else {
                     return self.shutdown(reason::INVALID_OID, now);
                 };
-                match d.queue(clock(1), arg(2) as u32, now) {
+                match d.queue(&mut self.updates, clock(1), arg(2) as u32, now) {
                     Ok(()) => {
-                        let wake = d.next_wake();
+                        let wake = d.next_wake(&self.updates);
                         self.arm_or_disarm(oid as u8, wake);
                     }
                     Err(e) => self.digital_out_fault(e, now),
                 }
             }
             Cmd::UpdateDigitalOut => {
-                let Some(Object::DigitalOut(d)) = self.object(oid) else {
+                let Some(Object::DigitalOut(d)) =
+                    self.objects.get_mut(usize::try_from(oid).unwrap_or(usize::MAX))
+                else {
                     return self.shutdown(reason::INVALID_OID, now);
                 };
-                let level = d.update(arg(1) != 0, now);
-                let (pin, wake) = (d.config().pin, d.next_wake());
+                let level = d.update(&mut self.updates, arg(1) != 0, now);
+                let (pin, wake) = (d.config().pin, d.next_wake(&self.updates));
                 self.board.set_pin(pin, level, now);
                 self.arm_or_disarm(oid as u8, wake);
             }
@@ -278,9 +282,9 @@ impl<B: Board, const OIDS: usize, const MOVES: usize> Mcu<B, OIDS, MOVES> {
                     }
                 }
             }
-            Object::DigitalOut(d) => match d.event(at) {
+            Object::DigitalOut(d) => match d.event(&mut self.updates, at) {
                 Ok(change) => {
-                    let (pin, wake) = (d.config().pin, d.next_wake());
+                    let (pin, wake) = (d.config().pin, d.next_wake(&self.updates));
                     if let Some(level) = change {
                         self.board.set_pin(pin, level, at);
                     }

@@ -69,6 +69,8 @@ pub struct SimBoard {
     ambient_curves: Vec<SensorCurveSpec>,
     /// Simulated BLTouch probes (their sensor pins read them, their control pins drive them).
     pub bltouch: Vec<BlTouch>,
+    /// Simulated Smart Effectors (their control pins drive them).
+    smart_effectors: Vec<super::smart_effector::SmartEffector>,
     /// Simulated TMC drivers (on their UART lines or chip selects; their DIAG pins read them).
     pub tmc: Vec<TmcDriver>,
     /// Simulated SPI temperature chips (on their chip selects).
@@ -100,6 +102,7 @@ impl SimBoard {
             levels: [false; 256],
             ambient_curves: Vec::new(),
             bltouch: Vec::new(),
+            smart_effectors: Vec::new(),
             tmc: Vec::new(),
             spi_sensors: Vec::new(),
             heater_exports: Vec::new(),
@@ -161,6 +164,25 @@ impl SimBoard {
             self.bltouch.push(BlTouch::new(p.clone(), freq));
         }
         self
+    }
+
+    /// Adds Smart Effectors.
+    pub fn with_smart_effectors(mut self, specs: &[super::smart_effector::SmartEffectorSpec]) -> SimBoard {
+        let freq = self.clock_freq;
+        self.smart_effectors.extend(
+            specs
+                .iter()
+                .map(|&s| super::smart_effector::SmartEffector::new(s, freq)),
+        );
+        self
+    }
+
+    /// The Smart Effectors, every message that ended before `clock` taken.
+    pub fn smart_effectors(&mut self, clock: u64) -> &[super::smart_effector::SmartEffector] {
+        for e in &mut self.smart_effectors {
+            e.finish(clock);
+        }
+        &self.smart_effectors
     }
 
     /// Adds TMC drivers.
@@ -396,6 +418,13 @@ impl Board for SimBoard {
         let at = self.extend(clock);
         for b in self.bltouch.iter_mut().filter(|b| b.spec.control_pin == pin) {
             b.control(value, at);
+        }
+        for e in self
+            .smart_effectors
+            .iter_mut()
+            .filter(|e| e.spec.control_pin == pin)
+        {
+            e.control(value, at);
         }
         let t = self.seconds(at);
         for h in self.heaters.iter_mut().filter(|h| h.heater_pin == pin) {

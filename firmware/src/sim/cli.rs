@@ -76,6 +76,10 @@ pub struct Cli {
     #[arg(long = "bltouch", value_name = "[!]SENSOR_PIN=CONTROL_PIN,COORD,SURFACE_MM[,stuck|mute]",
           value_parser = parse_bltouch)]
     pub bltouch: Vec<BlTouchSpec>,
+    /// A Duet3D Smart Effector's programming input on CONTROL_PIN (`!`: the line's 1 is a low
+    /// pin): it decodes the host's 1000 bit/s commands and reports its sensitivity at exit.
+    #[arg(long = "smart-effector", value_name = "[!]CONTROL_PIN", value_parser = parse_smart_effector)]
+    pub smart_effectors: Vec<super::smart_effector::SmartEffectorSpec>,
     /// A TMC driver (tmc2130, tmc2208, tmc2209, tmc2240, tmc2660, tmc5160) on UART line BUS_PIN at address ADDR
     /// (behind an analog mux: reached while each SELECT_PIN is high, or low with `!`),
     /// or with chip select BUS_PIN (SPI); optionally its DIAG (or DIAG0 with `diag0:`) wired to
@@ -306,6 +310,17 @@ fn parse_bltouch(s: &str) -> Result<BlTouchSpec, String> {
     })
 }
 
+fn parse_smart_effector(s: &str) -> Result<super::smart_effector::SmartEffectorSpec, String> {
+    let (active_low, pin) = match s.trim().strip_prefix('!') {
+        Some(p) => (true, p),
+        None => (false, s.trim()),
+    };
+    Ok(super::smart_effector::SmartEffectorSpec {
+        control_pin: parse_pin(pin)?,
+        active_low,
+    })
+}
+
 fn parse_tmc(s: &str) -> Result<TmcSpec, String> {
     const FORM: &str = "expected MODEL@BUS_PIN:ADDR[+[!]SELECT_PIN…][=[diag0:]DIAG_PIN,COORD,END_MM,min|max]";
     let (bus, diag) = match s.split_once('=') {
@@ -491,6 +506,10 @@ mod tests {
             prop_assert_eq!((b.active_low, b.fault), (false, None));
             prop_assert!(parse_bltouch("PA4=PA5,z,0,wobbly").is_err());
             prop_assert!(parse_bltouch("PA4=PA5,z").is_err());
+            let e = parse_smart_effector("!PA5").map_err(TestCaseError::fail)?;
+            prop_assert!(e.active_low);
+            prop_assert!(!parse_smart_effector("PA5").map_err(TestCaseError::fail)?.active_low);
+            prop_assert!(parse_smart_effector("nope").is_err());
         }
 
         /// Pin names round-trip; no input makes a parser panic.

@@ -27,6 +27,7 @@ pub mod heater;
 pub mod mcu_temp;
 pub mod pty;
 pub mod sensor_curve;
+pub mod smart_effector;
 pub mod spi_sensor;
 pub mod spin;
 pub mod surface;
@@ -190,6 +191,7 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
         .with_fans(&cli.fans)
         .with_sensor_curves(&cli.sensor_curves)
         .with_bltouch(&cli.bltouch)
+        .with_smart_effectors(&cli.smart_effectors)
         .with_tmc(&cli.tmc)
         .with_spi_sensors(&cli.spi_sensors)
         .with_remote_heaters(&cli.heater_exports, &cli.remote_sensors);
@@ -267,7 +269,7 @@ fn run_on_this_thread(cli: Cli, sigfd: SignalFd) -> Result<(), SimError> {
     })
 }
 
-fn report(board: &SimBoard, exit: &Result<Exit, SimError>) {
+fn report(board: &mut SimBoard, exit: &Result<Exit, SimError>) {
     let why = match exit {
         Ok(Exit::HostClosed) => "host closed the pty".to_owned(),
         Ok(Exit::Signal(s)) => format!("signal {s}"),
@@ -285,6 +287,10 @@ fn report(board: &SimBoard, exit: &Result<Exit, SimError>) {
         l.p999,
         l.max
     );
+    // At exit the control lines stay as they are: every message sent is complete.
+    for e in board.smart_effectors(u64::MAX) {
+        eprintln!("cadence-mcu: {}", e.report());
+    }
     if board.dropped_output > 0 {
         eprintln!(
             "cadence-mcu: dropped {} output bytes (host not reading)",

@@ -60,6 +60,18 @@ impl Pipeline {
         Ok(())
     }
 
+    /// The acceleration limit of the moves planned from now on (mm/s²).
+    pub fn max_accel(&self) -> f64 {
+        self.th.config().max_accel
+    }
+
+    /// Sets the acceleration limit of the moves planned from now on, as `M204 S` does.
+    pub fn set_max_accel(&mut self, accel: f64) -> Result<(), PlanError> {
+        self.th
+            .set_limits(None, Some(accel), None, None)
+            .map_err(|e| config_error(&e.to_string()))
+    }
+
     /// Redefines the toolhead position (X, Y, Z, E) without moving, as G-code sees it too
     /// (G92 offsets are kept). Flushes the lookahead.
     pub fn set_toolhead_position(&mut self, pos: [f64; 4]) {

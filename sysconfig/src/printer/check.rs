@@ -189,13 +189,13 @@ mod tests {
     #[test]
     fn every_set_aside_error_is_reported_with_its_line() {
         let c = run(
-            "[smart_effector]\npin: PA9\n[stepper_yy]\nstep_pin: PB1\n[gcode_arcs]\nresolution: 0\n\
+            "[load_cell_probe]\npin: PA9\n[stepper_yy]\nstep_pin: PB1\n[gcode_arcs]\nresolution: 0\n\
              [firmware_retraction]\nretract_lenght: 1\n",
         );
         let texts: Vec<String> = c.errors.iter().map(|e| e.to_string()).collect();
         assert_eq!(texts.len(), 4, "{texts:#?}");
         assert!(
-            texts[0].contains("[smart_effector] is not supported by Cadence yet"),
+            texts[0].contains("[load_cell_probe] is not supported by Cadence yet"),
             "{texts:#?}"
         );
         let has = |needle: &str| texts.iter().any(|t| t.contains(needle));
@@ -214,7 +214,7 @@ mod tests {
             .sections_of(|u| matches!(u, SectionUse::Refused(_)))
             .map(|s| s.name.as_str())
             .collect();
-        assert_eq!(refused, ["smart_effector"]);
+        assert_eq!(refused, ["load_cell_probe"]);
     }
 
     #[test]

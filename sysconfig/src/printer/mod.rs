@@ -8,7 +8,7 @@
 //! warning). Sections [`SECTIONS`] refuses fail the load first, naming the missing feature.
 //!
 //! Build order (it decides which error is reported first): MCUs (pins are checked against
-//! them), `[printer]`, `[probe]` or `[bltouch]` (its `z_offset` is Z's endstop position with
+//! them), `[printer]`, `[probe]`, `[bltouch]` or `[smart_effector]` (its `z_offset` is Z's endstop position with
 //! `probe:z_virtual_endstop`), the steppers the kinematics needs, their further motors
 //! (`[stepper_z1]`…), `[extruder]`, `[heater_bed]`, the thermal sections (`thermal`),
 //! `[simulator]`, `[realtime]`, `[gcode]`, `[gcode_arcs]`, `[firmware_retraction]`,
@@ -37,6 +37,7 @@ mod reader;
 mod realtime;
 mod screws;
 mod sections;
+mod smart_effector;
 mod spi_sensor;
 mod stepper;
 mod thermal;
@@ -72,6 +73,7 @@ pub use probe::{
 pub use realtime::RealtimeSection;
 pub use screws::{Screw, ScrewThread, ScrewsSection, SCREW_THREADS};
 pub use sections::{is_ignored, support as section_support, Support as SectionSupport, SECTIONS};
+pub use smart_effector::{SmartEffectorSection, DEFAULT_RECOVERY_TIME as SMART_EFFECTOR_RECOVERY_TIME};
 pub use spi_sensor::{SpiBus, SpiChip, SpiSensorSection, SPI_CHIPS};
 pub use stepper::{ExtraStepperSection, MotorSection, StepperSection};
 pub use thermal::{
@@ -114,10 +116,12 @@ pub struct PrinterConfig {
     /// `[mcu]` first, then each `[mcu NAME]` in file order.
     pub mcus: Vec<McuSection>,
     pub heater_bed: Option<HeaterSection>,
-    /// `[probe]`, or the probe a `[bltouch]` is.
+    /// `[probe]`, or the probe a `[bltouch]` or `[smart_effector]` is.
     pub probe: Option<ProbeSection>,
     /// `[bltouch]`'s own options (its probe options are in `probe`).
     pub bltouch: Option<BlTouchSection>,
+    /// `[smart_effector]`'s own options (its probe options are in `probe`).
+    pub smart_effector: Option<SmartEffectorSection>,
     /// `[tmc2130 …]`, `[tmc2208 …]`, `[tmc2209 …]`, `[tmc5160 …]`: the steppers' drivers.
     pub tmc: Vec<TmcSection>,
     /// `[simulator]`, or its defaults.
@@ -198,22 +202,7 @@ impl PrinterConfig {
             false => None,
         };
 
-        let (probe, bltouch) = match (reader.section("probe"), reader.section("bltouch")) {
-            (Some(_), Some(b)) => {
-                return Err(ConfigError::BadSection {
-                    at: b.at().clone(),
-                    section: "bltouch".to_string(),
-                    reason: "is a probe, and there is a [probe] section already: keep one of them"
-                        .to_string(),
-                })
-            }
-            (Some(s), None) => (Some(probe::read_probe(&s, &mut pins)?), None),
-            (None, Some(s)) => {
-                let (p, b) = bltouch::read_bltouch(&s, &mut pins)?;
-                (Some(p), Some(b))
-            }
-            (None, None) => (None, None),
-        };
+        let (probe, bltouch, smart_effector) = read_probe_sections(&reader, &mut pins)?;
         if probe.is_some() {
             pins.set_probe();
         }
@@ -377,6 +366,7 @@ impl PrinterConfig {
             heater_bed,
             probe,
             bltouch,
+            smart_effector,
             tmc,
             simulator,
             bed_mesh,
@@ -416,6 +406,45 @@ impl PrinterConfig {
     }
 }
 
+/// The probe section read: the probe, and the own options of a `[bltouch]` or a
+/// `[smart_effector]`.
+type ProbeSections = (
+    Option<ProbeSection>,
+    Option<BlTouchSection>,
+    Option<SmartEffectorSection>,
+);
+
+/// The probe: `[probe]`, `[bltouch]` or `[smart_effector]` (at most one of them), with the
+/// own options of the latter two.
+fn read_probe_sections(reader: &Reader<'_>, pins: &mut PinRegistry) -> Result<ProbeSections, ConfigError> {
+    let kinds = ["probe", "bltouch", "smart_effector"];
+    let present: Vec<_> = kinds.iter().filter_map(|k| reader.section(k)).collect();
+    if let [first, second, ..] = present.as_slice() {
+        return Err(ConfigError::BadSection {
+            at: second.at().clone(),
+            section: second.name().to_string(),
+            reason: format!(
+                "is a probe, and there is a [{}] section already: keep one of them",
+                first.name()
+            ),
+        });
+    }
+    let Some(s) = present.first() else {
+        return Ok((None, None, None));
+    };
+    Ok(match s.name() {
+        "bltouch" => {
+            let (p, b) = bltouch::read_bltouch(s, pins)?;
+            (Some(p), Some(b), None)
+        }
+        "smart_effector" => {
+            let (p, e) = smart_effector::read_smart_effector(s, pins)?;
+            (Some(p), None, Some(e))
+        }
+        _ => (Some(probe::read_probe(s, pins)?), None, None),
+    })
+}
+
 /// Section `name`, which probes the bed: an error when the printer has no probe.
 fn probing_section<'r>(
     reader: &'r Reader<'_>,
@@ -426,7 +455,7 @@ fn probing_section<'r>(
         Some(s) if !has_probe => Err(ConfigError::BadSection {
             at: s.at().clone(),
             section: name.to_string(),
-            reason: "needs a probe: add a [probe] or [bltouch] section".to_string(),
+            reason: "needs a probe: add a [probe], [bltouch] or [smart_effector] section".to_string(),
         }),
         s => Ok(s),
     }

@@ -7,7 +7,7 @@
 //! yet (displays, LEDs, digipots, accelerometers, fans and sensors, filament sensors) or are host
 //! features not implemented yet whose absence the user should know of (`gcode_macro`,
 //! `bed_tilt`, `skew_correction`…): the load warning is the notice, and their G-code commands are
-//! unknown commands. Refused sections (other probes than `[probe]`, more extruders) fail the
+//! unknown commands. Refused sections (load cell and eddy current probes, more extruders) fail the
 //! load with `[section] is not supported by Cadence yet (what)`, before anything else is
 //! checked, so the first error names the real cause.
 
@@ -115,7 +115,7 @@ pub const SECTIONS: &[(&str, Support)] = &[
     ("servo", Ignored),
     ("simulator", Read),
     ("skew_correction", Ignored),
-    ("smart_effector", Refused("Smart Effector probe")),
+    ("smart_effector", Read),
     ("static_digital_output", Ignored),
     ("static_pwm_clock", Ignored),
     ("sx1509", Ignored),
@@ -240,7 +240,8 @@ mod tests {
         assert_eq!(support("extruder10"), Some(Refused("more than 10 extruders")));
         assert_eq!(support("extruder"), Some(Read));
         assert_eq!(support("bltouch"), Some(Read));
-        assert_eq!(support("smart_effector"), Some(Refused("Smart Effector probe")));
+        assert_eq!(support("smart_effector"), Some(Read));
+        assert_eq!(support("load_cell_probe"), Some(Refused("load cell probe")));
         for unknown in [
             "stepper_z01",
             "stepper_",

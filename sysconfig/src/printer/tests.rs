@@ -203,7 +203,7 @@ fn unknown_sections_and_options_are_errors_ignored_ones_warnings() {
     // A refused section is the first error, before the pins that depend on it.
     assert_eq!(
         parse(&format!(
-            "{}[smart_effector]\npin: PD0\n",
+            "{}[load_cell_probe]\npin: PD0\n",
             MINIMAL.replace(
                 "rotation_distance: 8\n",
                 "rotation_distance: 8\nendstop_pin: probe:z_virtual_endstop\n"
@@ -211,8 +211,7 @@ fn unknown_sections_and_options_are_errors_ignored_ones_warnings() {
         ))
         .map(|_| ()),
         Err(
-            "printer.cfg:26: [smart_effector] is not supported by Cadence yet (Smart Effector probe)"
-                .to_string()
+            "printer.cfg:26: [load_cell_probe] is not supported by Cadence yet (load cell probe)".to_string()
         )
     );
     assert_eq!(

@@ -168,6 +168,20 @@ pub fn set_current(fields: &mut FieldSet, sense: f64, run: f64, hold: f64) -> Ve
     changed
 }
 
+/// A TMC2660's `cs` (and `vsense`) for `current` A through `sense` Ω, as Klipper changes them
+/// on a running printer (its idle current): returns SGCSCONF, then DRVCONF only when `vsense`
+/// changed.
+pub fn set_current_2660(fields: &mut FieldSet, sense: f64, current: f64) -> Vec<(&'static str, u32)> {
+    let (vsense, cs) = SCALE_2660.choose(sense, current);
+    let vsense = i64::from(vsense);
+    let vsense_changed = fields.get("vsense") != Some(vsense);
+    let mut out: Vec<(&'static str, u32)> = fields.set("cs", cs).into_iter().collect();
+    if vsense_changed {
+        out.extend(fields.set("vsense", vsense));
+    }
+    out
+}
+
 /// The run and hold currents (A) the fields give through `sense` Ω.
 pub fn current(fields: &FieldSet, sense: f64) -> (f64, f64) {
     let irun = fields.get("irun").unwrap_or(0);

@@ -84,8 +84,8 @@ pub struct TmcSection {
     pub step_dist: f64,
     /// The registers as configured, in write order.
     pub fields: FieldSet,
-    /// TMC2660 `idle_current_percent` (0..=100, default 100): read and kept; the current is
-    /// not lowered while idle (Klipper's idle_timeout hook is not there yet).
+    /// TMC2660 `idle_current_percent` (0..=100, default 100): the share of the run current
+    /// the driver gets while the printer is idle (the host's `tmc::idle`).
     pub idle_current_percent: u8,
 }
 
