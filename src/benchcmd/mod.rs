@@ -215,11 +215,20 @@ pub enum BenchWhat {
         /// reference the line commands are measured against).
         #[arg(long)]
         per_step: bool,
-        /// Commands from a constant-acceleration curve try the curve formula's adds first (off
-        /// by default: the same commands as without, at more instructions; README "Curve
-        /// commands").
+        /// Commands from a constant-acceleration curve by the search over adds, as off the
+        /// curves, instead of the add of the curve's formula (README "Per-command design").
         #[arg(long, conflicts_with = "per_step")]
-        curve_fit: bool,
+        search_curves: bool,
+        /// Take the first longest command found, without the search for the one ending latest
+        /// (a measured trade: fewer instructions, more commands).
+        #[arg(long, conflicts_with = "per_step")]
+        no_latest_end: bool,
+        /// Most adds the search for the longest command tries per command (default 24).
+        #[arg(long, conflicts_with = "per_step", value_parser = clap::value_parser!(u32).range(1..=24))]
+        max_passes: Option<u32>,
+        /// Most passes over the steps per command from a curve's formula (default 2).
+        #[arg(long, conflicts_with_all = ["per_step", "search_curves"], value_parser = clap::value_parser!(u32).range(1..=24))]
+        curve_passes: Option<u32>,
         /// Data dictionary to encode with (message ids and MCU clock), and to read a stream
         /// given to --compare with: e.g. Klipper's out/klipper.dict (default: the Cadence
         /// firmware's own).
@@ -293,7 +302,10 @@ pub fn run(args: &BenchArgs) -> Result<(), BenchCmdError> {
             runs,
             instructions,
             per_step,
-            curve_fit,
+            search_curves,
+            no_latest_end,
+            max_passes,
+            curve_passes,
             dictionary,
             common,
         } => {
@@ -304,7 +316,18 @@ pub fn run(args: &BenchArgs) -> Result<(), BenchCmdError> {
                 threads: threads.unwrap_or(cores),
                 max_error_s: max_error_us * 1e-6,
                 per_step: *per_step,
-                curve_fit: *curve_fit,
+                tuning: planner::compress::SearchTuning {
+                    curve_commands: !*search_curves,
+                    latest_end: !*no_latest_end,
+                    max_passes: max_passes
+                        .map_or(planner::compress::SearchTuning::default().max_passes, |n| {
+                            n as usize
+                        }),
+                    curve_passes: curve_passes
+                        .map_or(planner::compress::SearchTuning::default().curve_passes, |n| {
+                            n as usize
+                        }),
+                },
                 ..Default::default()
             }
             .with_dictionary(&dict)
@@ -398,8 +421,22 @@ fn plan_child(
     if opts.per_step {
         args.push("--per-step".into());
     }
-    if opts.curve_fit {
-        args.push("--curve-fit".into());
+    let dflt = planner::compress::SearchTuning::default();
+    if !opts.per_step {
+        if !opts.tuning.curve_commands {
+            args.push("--search-curves".into());
+        }
+        if !opts.tuning.latest_end {
+            args.push("--no-latest-end".into());
+        }
+        if opts.tuning.max_passes != dflt.max_passes {
+            args.push("--max-passes".into());
+            args.push(opts.tuning.max_passes.to_string());
+        }
+        if opts.tuning.curve_commands && opts.tuning.curve_passes != dflt.curve_passes {
+            args.push("--curve-passes".into());
+            args.push(opts.tuning.curve_passes.to_string());
+        }
     }
     Ok(ChildCommand { exe, args })
 }

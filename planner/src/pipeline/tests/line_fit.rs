@@ -23,8 +23,11 @@ fn counts(r: &Run) -> Vec<(usize, u64)> {
 /// Runs `program` both ways and compares them stepper by stepper.
 fn compare(program: &str, cfg: PipelineConfig, opts: PipelineOptions) -> Result<(), TestCaseError> {
     let per_step = run_cfg_fit(program, cfg.clone(), opts, false);
-    for (what, curve_fit) in [("line", false), ("line and curve", true)] {
-        let fit = run_cfg_modes(program, cfg.clone(), opts, true, curve_fit);
+    for (what, tuning) in [
+        ("line", SearchTuning::SEARCH),
+        ("line and curve", SearchTuning::default()),
+    ] {
+        let fit = run_cfg_modes(program, cfg.clone(), opts, true, tuning);
         prop_assert!(fit.keys.windows(2).all(|w| w[0] <= w[1]));
         prop_assert_eq!(
             fit.pipeline.stepper_positions(),
