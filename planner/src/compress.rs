@@ -77,7 +77,7 @@ use crate::stepgen::StepGen;
 use crate::stepgen::{line_by_steps, line_clock, Curve, StepSink};
 pub use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::Move;
-use curve::{curve_command, CurveSpan};
+use curve::{curve_add, curve_command, CurveSpan};
 use fit::{
     curvature_add, fit_prefix, latest_end, longest_fit, longest_fit_within, two_window_adds, Fit, StepWindow,
     MAX_TRIALS,
@@ -95,6 +95,9 @@ pub const MAX_COUNT: usize = 65535;
 /// latest-end rule of `compress::fit` gave 459,945.
 pub const DEFAULT_LOOKAHEAD_BACKOFF: usize = 1;
 
+/// Default of [`SearchTuning::max_passes`].
+pub const DEFAULT_MAX_PASSES: usize = 4;
+
 /// How the commands off the cruise lines are found: the per-command design's choices and the
 /// search's, each selectable so both can be measured (README "`cadence bench plan`").
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -103,6 +106,9 @@ pub struct SearchTuning {
     /// formula, its interval and count from one or two exact passes (`compress::curve`),
     /// instead of the search over adds.
     pub curve_commands: bool,
+    /// The search for a command starting on a curve tries the add of the curve's formula
+    /// first (`compress::curve`), its cuts then deciding as off the curves.
+    pub curve_guess: bool,
     /// Among the commands of the longest count, search for the one ending latest
     /// (`fit::latest_end`, with the byte saving); off: the first longest found.
     pub latest_end: bool,
@@ -116,18 +122,25 @@ pub struct SearchTuning {
 impl Default for SearchTuning {
     fn default() -> Self {
         SearchTuning {
-            curve_commands: true,
-            latest_end: true,
-            max_passes: MAX_TRIALS,
+            curve_commands: false,
+            curve_guess: false,
+            latest_end: false,
+            max_passes: DEFAULT_MAX_PASSES,
             curve_passes: curve::PASSES,
         }
     }
 }
 
 impl SearchTuning {
+    /// Whether the curve spans are kept.
+    fn curves(&self) -> bool {
+        self.curve_commands || self.curve_guess
+    }
+
     /// The per-step search everywhere off the lines (the design before the per-command one).
     pub const SEARCH: SearchTuning = SearchTuning {
         curve_commands: false,
+        curve_guess: false,
         latest_end: true,
         max_passes: MAX_TRIALS,
         curve_passes: curve::PASSES,
@@ -236,7 +249,7 @@ impl StepCompressor {
     /// commands from the formula, the latest-end search, 24 passes at most).
     pub fn set_tuning(&mut self, tuning: SearchTuning) {
         self.tuning = tuning;
-        if !tuning.curve_commands {
+        if !tuning.curves() {
             self.curves.clear();
         }
         self.next = None;
@@ -323,7 +336,7 @@ impl StepCompressor {
             max_err,
             base: start,
             lines: self.line_fit.then_some(&mut self.lines),
-            curves: self.tuning.curve_commands.then_some(&mut self.curves),
+            curves: self.tuning.curves().then_some(&mut self.curves),
         };
         self.gen.raise_last_clock(self.last_ideal);
         // Two loops rather than a test of the flag per step.
@@ -420,7 +433,7 @@ impl StepCompressor {
     /// commands from them take their adds from its formula, `compress::curve`).
     pub fn push_curve(&mut self, curve: Curve, steps: usize) {
         let start = self.pending.len();
-        if self.tuning.curve_commands {
+        if self.tuning.curves() {
             record_curve(&mut self.curves, start, curve, steps);
         }
     }
@@ -474,7 +487,12 @@ impl StepCompressor {
             Some(n) if n.head == self.head && n.last_clock == last && n.run_end == run_end => n.fit,
             _ => match self.curve_command(self.head, run_end, last) {
                 Some(f) => f,
-                None => longest_fit(run, last, max_err, self.last_add, self.tuning.max_passes),
+                None => {
+                    let guess = self
+                        .curve_guess(self.head, run_end, last)
+                        .unwrap_or(self.last_add);
+                    longest_fit(run, last, max_err, guess, self.tuning.max_passes)
+                }
             },
         };
         let fit = if self.tuning.latest_end {
@@ -515,7 +533,10 @@ impl StepCompressor {
             }
             let (rest, from) = (&run[f.count..], f.end(last));
             // First guess: the add of the steps' own curvature over a command as long as this one.
-            let guess = curvature_add(rest, from, f.count).unwrap_or(f.add);
+            let guess = self
+                .curve_guess(head + f.count, run_end, from)
+                .or_else(|| curvature_add(rest, from, f.count))
+                .unwrap_or(f.add);
             longest_fit(rest, from, max_err, guess, self.tuning.max_passes)
         };
         let mut best = (fit, follow(&fit));
@@ -548,6 +569,9 @@ impl StepCompressor {
                 None => match self.curve_command(head + f.count, run_end, f.end(last)) {
                     Some(next) => next,
                     None => {
+                        let guess = self
+                            .curve_guess(head + f.count, run_end, f.end(last))
+                            .unwrap_or(guess);
                         longest_fit_within(rest, f.end(last), max_err, guess, within, self.tuning.max_passes)
                     }
                 },
@@ -564,6 +588,22 @@ impl StepCompressor {
             fit: next,
         });
         chosen
+    }
+
+    /// The add of the curve's formula for a command from pending index `at` (before
+    /// `run_end`) from `last`, when `at` lies on a curve and the formula is the search's
+    /// first guess (`SearchTuning::curve_guess`).
+    fn curve_guess(&self, at: usize, run_end: usize, last: u64) -> Option<i64> {
+        if !self.tuning.curve_guess {
+            return None;
+        }
+        let span = self
+            .curves
+            .iter()
+            .find(|c| c.end > at)
+            .filter(|c| c.start <= at)?;
+        let steps = self.pending.get(at..run_end)?;
+        curve_add(span, steps, at, last, self.max_err as i64)
     }
 
     /// The command from pending index `at` (before `run_end`) from `last` when `at` lies on a

@@ -215,19 +215,30 @@ pub enum BenchWhat {
         /// reference the line commands are measured against).
         #[arg(long)]
         per_step: bool,
-        /// Commands from a constant-acceleration curve by the search over adds, as off the
-        /// curves, instead of the add of the curve's formula (README "Per-command design").
+        /// Commands off the cruise lines as before the per-command design: the search over
+        /// adds (24 passes at most) with the latest-end search, curves included (README
+        /// "Per-command design"); the options below change it from there.
         #[arg(long, conflicts_with = "per_step")]
-        search_curves: bool,
-        /// Take the first longest command found, without the search for the one ending latest
-        /// (a measured trade: fewer instructions, more commands).
+        search: bool,
+        /// Commands from a constant-acceleration curve take the add of the curve's formula, their
+        /// interval and count from at most --curve-passes exact passes.
         #[arg(long, conflicts_with = "per_step")]
+        curve_formula: bool,
+        /// The search for a command from a curve tries the curve formula's add first.
+        #[arg(long, conflicts_with = "per_step")]
+        curve_guess: bool,
+        /// Among the longest commands, search for the one ending latest (more instructions,
+        /// fewer commands).
+        #[arg(long, conflicts_with = "per_step")]
+        latest_end: bool,
+        /// Take the first longest command found, without the search for the one ending latest.
+        #[arg(long, conflicts_with_all = ["per_step", "latest_end"])]
         no_latest_end: bool,
-        /// Most adds the search for the longest command tries per command (default 24).
+        /// Most adds the search for the longest command tries per command (1..=24).
         #[arg(long, conflicts_with = "per_step", value_parser = clap::value_parser!(u32).range(1..=24))]
         max_passes: Option<u32>,
-        /// Most passes over the steps per command from a curve's formula (default 2).
-        #[arg(long, conflicts_with_all = ["per_step", "search_curves"], value_parser = clap::value_parser!(u32).range(1..=24))]
+        /// Most passes over the steps per command from a curve's formula (with --curve-formula).
+        #[arg(long, conflicts_with = "per_step", value_parser = clap::value_parser!(u32).range(1..=24))]
         curve_passes: Option<u32>,
         /// Data dictionary to encode with (message ids and MCU clock), and to read a stream
         /// given to --compare with: e.g. Klipper's out/klipper.dict (default: the Cadence
@@ -302,7 +313,10 @@ pub fn run(args: &BenchArgs) -> Result<(), BenchCmdError> {
             runs,
             instructions,
             per_step,
-            search_curves,
+            search,
+            curve_formula,
+            curve_guess,
+            latest_end,
             no_latest_end,
             max_passes,
             curve_passes,
@@ -316,18 +330,14 @@ pub fn run(args: &BenchArgs) -> Result<(), BenchCmdError> {
                 threads: threads.unwrap_or(cores),
                 max_error_s: max_error_us * 1e-6,
                 per_step: *per_step,
-                tuning: planner::compress::SearchTuning {
-                    curve_commands: !*search_curves,
-                    latest_end: !*no_latest_end,
-                    max_passes: max_passes
-                        .map_or(planner::compress::SearchTuning::default().max_passes, |n| {
-                            n as usize
-                        }),
-                    curve_passes: curve_passes
-                        .map_or(planner::compress::SearchTuning::default().curve_passes, |n| {
-                            n as usize
-                        }),
-                },
+                tuning: tuning_of(
+                    *search,
+                    *curve_formula,
+                    *curve_guess,
+                    (*latest_end, *no_latest_end),
+                    *max_passes,
+                    *curve_passes,
+                ),
                 ..Default::default()
             }
             .with_dictionary(&dict)
@@ -421,24 +431,56 @@ fn plan_child(
     if opts.per_step {
         args.push("--per-step".into());
     }
-    let dflt = planner::compress::SearchTuning::default();
     if !opts.per_step {
-        if !opts.tuning.curve_commands {
-            args.push("--search-curves".into());
+        let t = opts.tuning;
+        for (on, flag) in [
+            (t.curve_commands, "--curve-formula"),
+            (t.curve_guess, "--curve-guess"),
+            (t.latest_end, "--latest-end"),
+            (!t.latest_end, "--no-latest-end"),
+        ] {
+            if on {
+                args.push(flag.into());
+            }
         }
-        if !opts.tuning.latest_end {
-            args.push("--no-latest-end".into());
-        }
-        if opts.tuning.max_passes != dflt.max_passes {
-            args.push("--max-passes".into());
-            args.push(opts.tuning.max_passes.to_string());
-        }
-        if opts.tuning.curve_commands && opts.tuning.curve_passes != dflt.curve_passes {
-            args.push("--curve-passes".into());
-            args.push(opts.tuning.curve_passes.to_string());
-        }
+        args.extend([
+            "--max-passes".into(),
+            t.max_passes.to_string(),
+            "--curve-passes".into(),
+            t.curve_passes.to_string(),
+        ]);
     }
     Ok(ChildCommand { exe, args })
+}
+
+/// The compression's tuning from `bench plan`'s options: the default or, with `search`, the
+/// search before the per-command design, then each option given.
+fn tuning_of(
+    search: bool,
+    curve_formula: bool,
+    curve_guess: bool,
+    (latest_end, no_latest_end): (bool, bool),
+    max_passes: Option<u32>,
+    curve_passes: Option<u32>,
+) -> planner::compress::SearchTuning {
+    use planner::compress::SearchTuning;
+    let mut t = if search {
+        SearchTuning::SEARCH
+    } else {
+        SearchTuning::default()
+    };
+    t.curve_commands |= curve_formula;
+    t.curve_guess |= curve_guess;
+    if latest_end || no_latest_end {
+        t.latest_end = latest_end;
+    }
+    if let Some(n) = max_passes {
+        t.max_passes = n as usize;
+    }
+    if let Some(n) = curve_passes {
+        t.curve_passes = n as usize;
+    }
+    t
 }
 
 /// The library's common options.

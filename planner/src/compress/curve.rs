@@ -110,7 +110,42 @@ impl CurveSpan {
 }
 
 /// Default of the most passes over the steps per curve command (`SearchTuning::curve_passes`).
-pub(crate) const PASSES: usize = 2;
+pub(crate) const PASSES: usize = 3;
+
+/// The add of the curve's formula for a command from `last` over `steps` (the pending steps
+/// from index `at`, one direction, `at` in `span`), clamped into the adds that land the first
+/// two steps (module doc); `None` where the formula gives none.
+pub(crate) fn curve_add(
+    span: &CurveSpan,
+    steps: &[StepWindow],
+    at: usize,
+    last: u64,
+    max_err: i64,
+) -> Option<i64> {
+    formula_add(span, steps, at, last, max_err).map(|(a, _)| a)
+}
+
+/// [`curve_add`] with the range of adds landing the first two steps.
+#[inline]
+fn formula_add(
+    span: &CurveSpan,
+    steps: &[StepWindow],
+    at: usize,
+    last: u64,
+    max_err: i64,
+) -> Option<(i64, (i64, i64))> {
+    if steps.len() < 3 || at < span.start || at >= span.end {
+        return None;
+    }
+    let (lo, hi) = first_two_adds(steps, last);
+    let (lo, hi) = (lo.max(i16::MIN as i64), hi.min(i16::MAX as i64));
+    if lo > hi {
+        return None;
+    }
+    let band = (max_err as f64 - 1.0).max(1.0);
+    let e0 = span.anchor_error(steps[0], at, last).clamp(0.0, band);
+    Some((span.add_for(at, e0, band)?.clamp(lo, hi), (lo, hi)))
+}
 
 /// The command from `last` over `steps` (the pending steps from index `at`, one direction,
 /// `at` in `span`) with the add of the curve's formula (module doc); `None` where the formula
@@ -123,20 +158,18 @@ pub(crate) fn curve_command(
     max_err: i64,
     passes: usize,
 ) -> Option<Fit> {
-    if steps.len() < 3 || at < span.start || at >= span.end {
-        return None;
-    }
-    let (lo, hi) = first_two_adds(steps, last);
-    let (lo, hi) = (lo.max(i16::MIN as i64), hi.min(i16::MAX as i64));
-    if lo > hi {
-        return None;
-    }
-    let band = (max_err as f64 - 1.0).max(1.0);
-    let e0 = span.anchor_error(steps[0], at, last).clamp(0.0, band);
-    let mut add = span.add_for(at, e0, band)?.clamp(lo, hi);
+    let (mut add, (lo, hi)) = formula_add(span, steps, at, last, max_err)?;
     let mut best = Fit::NONE;
+    // The smallest add tried that fell short of the best count (adds covering a count form a
+    // range, as the search assumes): it caps the latest-end search.
+    let mut short_above = i16::MAX as i64 + 1;
     for _ in 0..passes.max(1) {
         let r = run(steps, last, add);
+        if r.count < best.count && add > best.add {
+            short_above = short_above.min(add);
+        } else if r.count > best.count && best.add > add {
+            short_above = short_above.min(best.add);
+        }
         if r.count > best.count || (r.count == best.count && add > best.add) {
             best = Fit {
                 interval: r.interval,
@@ -162,6 +195,9 @@ pub(crate) fn curve_command(
             break;
         }
         add = next;
+    }
+    if short_above > best.add {
+        best.add_cap = short_above - 1;
     }
     (best.count >= 1).then_some(best)
 }
@@ -222,8 +258,7 @@ mod tests {
 
     proptest::proptest! {
         /// On an accelerating or decelerating stretch, a command given is valid on every step,
-        /// one step shorter too, and covers at least the steps the module doc's bound promises
-        /// an add from the formula (at least 3 when the search's longest has 6 or more).
+        /// one step shorter too, and covers at least half the steps of the search's longest.
         #[test]
         fn curve_commands_are_valid_and_longest(
             v in 5.0f64..300.0,
@@ -255,8 +290,7 @@ mod tests {
                 proptest::prop_assert!(valid(w, last, &shorter), "{:?}", f);
             }
             let s = longest_fit(w, last, err, 0, usize::MAX);
-            proptest::prop_assert!(f.count <= s.count, "curve {:?}, search {:?}", f, s);
-            proptest::prop_assert!(s.count < 6 || f.count >= 3, "curve {:?}, search {:?}", f, s);
+            proptest::prop_assert!(2 * f.count >= s.count, "curve {:?}, search {:?}", f, s);
         }
     }
 }

@@ -1,9 +1,10 @@
-//! Cruise lines' commands from their formula (`compress::line`), and with them the commands
-//! from constant-acceleration curves tried from the curve's adds (`compress::curve`), against
-//! the per-step search, on random programs through every kinematics, shaped and not: the
-//! checker passes on every stepper (`run_cfg_modes` checks each command as it comes), the step
-//! counts are the same, and no stepper takes more `queue_step` commands than the per-step
-//! search gives it.
+//! Cruise lines' commands from their formula (`compress::line`), the default tuning's capped
+//! search and the curve formula's commands (`compress::curve`) against the per-step search,
+//! on random programs through every kinematics, shaped and not: the checker passes on every
+//! stepper (`run_cfg_modes` checks each command as it comes), the step counts are the same,
+//! the line commands take no more `queue_step` commands than the per-step search gives a
+//! stepper, and the tunings that trade commands no more than Klipper's measured excess over it
+//! ([`klipper_bound`]).
 
 use super::*;
 
@@ -20,12 +21,28 @@ fn counts(r: &Run) -> Vec<(usize, u64)> {
         .collect()
 }
 
-/// Runs `program` both ways and compares them stepper by stepper.
+/// Klipper's batch mode takes 4.1 % more `queue_step` than the per-step search on the benchy
+/// (474,894 against 456,157, cartesian; 4.4 % with mzv 50/40): the reference bound a tuning that
+/// trades commands for instructions must stay within, per stepper, with 2 commands of slack
+/// for the short random programs.
+fn klipper_bound(search: usize) -> usize {
+    search + (search * 41).div_ceil(1000) + 2
+}
+
+/// Runs `program` with the per-step search and each way of finding commands, and compares them
+/// stepper by stepper: the line commands with the search off the lines take no more commands
+/// than the per-step search; the default (the search capped at 4 passes, no latest-end search)
+/// and the curve formula's commands no more than [`klipper_bound`] of it.
 fn compare(program: &str, cfg: PipelineConfig, opts: PipelineOptions) -> Result<(), TestCaseError> {
     let per_step = run_cfg_fit(program, cfg.clone(), opts, false);
-    for (what, tuning) in [
-        ("line", SearchTuning::SEARCH),
-        ("line and curve", SearchTuning::default()),
+    let formula = SearchTuning {
+        curve_commands: true,
+        ..SearchTuning::default()
+    };
+    for (what, tuning, strict) in [
+        ("line", SearchTuning::SEARCH, true),
+        ("default", SearchTuning::default(), false),
+        ("curve formula", formula, false),
     ] {
         let fit = run_cfg_modes(program, cfg.clone(), opts, true, tuning);
         prop_assert!(fit.keys.windows(2).all(|w| w[0] <= w[1]));
@@ -36,8 +53,9 @@ fn compare(program: &str, cfg: PipelineConfig, opts: PipelineOptions) -> Result<
         for (i, (l, p)) in counts(&fit).into_iter().zip(counts(&per_step)).enumerate() {
             let name = &cfg.steppers[i].name;
             prop_assert_eq!(l.1, p.1, "{} steps", name);
+            let bound = if strict { p.0 } else { klipper_bound(p.0) };
             prop_assert!(
-                l.0 <= p.0,
+                l.0 <= bound,
                 "{}: {} queue_step with {} commands, {} per step",
                 name,
                 l.0,
