@@ -57,9 +57,15 @@
 //! line's formula in O(1) whatever its length (`compress::line`, with its error bound's proof),
 //! the per-step search only deciding where a command may carry an add (near a line's ends).
 //! Constant-acceleration stretches (a move's acceleration and deceleration, a shaped stretch
-//! whose summed trajectory is quadratic) are kept as curve spans: the longest command from a
-//! step on one tries the adds the curve's formula gives first and stops once the search's own
-//! cuts leave no add that could go further (`compress::curve`), the search deciding otherwise.
+//! whose summed trajectory is quadratic) can be kept as curve spans, a command from one taking
+//! the add of the curve's formula without a search (`compress::curve`); off by default
+//! ([`SearchTuning`]): on the benchy it took more instructions than the search, not fewer.
+//!
+//! The default ([`SearchTuning::default`]) trades a few commands for instructions: the search
+//! tries at most [`DEFAULT_MAX_PASSES`] adds per command and takes the first longest command
+//! found, without the latest-end search (benchy, cartesian, `--threads 2`, callgrind: 3.02 G →
+//! 2.48 G instructions, 456,157 → 460,178 queue_step, Klipper 474,894; README "`cadence bench
+//! plan`", per-command design).
 //!
 //! Commands never go back in time (every interval ≥ 0); a `reset_step_clock` precedes the first
 //! step and any step more than 2^29 ticks after the previous one; `set_next_step_dir` precedes

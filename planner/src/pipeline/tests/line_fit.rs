@@ -21,6 +21,9 @@ fn counts(r: &Run) -> Vec<(usize, u64)> {
         .collect()
 }
 
+/// The most `queue_step` a tuning may take given the per-step search's count.
+type Bound = dyn Fn(usize) -> usize;
+
 /// Klipper's batch mode takes 4.1 % more `queue_step` than the per-step search on the benchy
 /// (474,894 against 456,157, cartesian; 4.4 % with mzv 50/40): the reference bound a tuning that
 /// trades commands for instructions must stay within, per stepper, with 2 commands of slack
@@ -46,7 +49,7 @@ fn compare_within(
     program: &str,
     cfg: PipelineConfig,
     opts: PipelineOptions,
-    default_bound: &dyn Fn(usize) -> usize,
+    default_bound: &Bound,
 ) -> Result<(), TestCaseError> {
     let per_step = run_cfg_fit(program, cfg.clone(), opts, false);
     let formula = SearchTuning {
@@ -55,7 +58,7 @@ fn compare_within(
     };
     let looser = |p: usize| p + (p * 15).div_ceil(100) + 2;
     let same = |p: usize| p;
-    let bounds: [(&str, SearchTuning, &dyn Fn(usize) -> usize); 3] = [
+    let bounds: [(&str, SearchTuning, &Bound); 3] = [
         ("line", SearchTuning::SEARCH, &same),
         ("default", SearchTuning::default(), default_bound),
         ("curve formula", formula, &looser),
