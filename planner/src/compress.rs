@@ -57,9 +57,15 @@
 //! line's formula in O(1) whatever its length (`compress::line`, with its error bound's proof),
 //! the per-step search only deciding where a command may carry an add (near a line's ends).
 //! Constant-acceleration stretches (a move's acceleration and deceleration, a shaped stretch
-//! whose summed trajectory is quadratic) are kept as curve spans: the longest command from a
-//! step on one tries the adds the curve's formula gives first and stops once the search's own
-//! cuts leave no add that could go further (`compress::curve`), the search deciding otherwise.
+//! whose summed trajectory is quadratic) can be kept as curve spans, a command from one taking
+//! the add of the curve's formula without a search (`compress::curve`); off by default
+//! ([`SearchTuning`]): on the benchy it took more instructions than the search, not fewer.
+//!
+//! The default ([`SearchTuning::default`]) trades a few commands for instructions: the search
+//! tries at most [`DEFAULT_MAX_PASSES`] adds per command and takes the first longest command
+//! found, without the latest-end search (benchy, cartesian, `--threads 2`, callgrind: 3.02 G →
+//! 2.48 G instructions, 456,157 → 460,178 queue_step, Klipper 474,894; README "`cadence bench
+//! plan`", per-command design).
 //!
 //! Commands never go back in time (every interval ≥ 0); a `reset_step_clock` precedes the first
 //! step and any step more than 2^29 ticks after the previous one; `set_next_step_dir` precedes
@@ -77,10 +83,10 @@ use crate::stepgen::StepGen;
 use crate::stepgen::{line_by_steps, line_clock, Curve, StepSink};
 pub use crate::stepgen::{IdealStep, StepCmd};
 use crate::toolhead::Move;
-use curve::{curve_longest, CurveSpan};
+use curve::{curve_add, curve_command, CurveSpan};
 use fit::{
-    best_fit, curvature_add, fit_prefix, latest_end, longest_fit, longest_fit_within, two_window_adds, Fit,
-    StepWindow,
+    curvature_add, fit_prefix, latest_end, longest_fit, longest_fit_within, two_window_adds, Fit, StepWindow,
+    MAX_TRIALS,
 };
 use line::{line_fit, LineSpan, MIN_SPAN};
 
@@ -94,6 +100,58 @@ pub const MAX_COUNT: usize = 65535;
 /// the two planning threads 456,157 and 455,840 (Klipper: 456,811). Plain greedy without the
 /// latest-end rule of `compress::fit` gave 459,945.
 pub const DEFAULT_LOOKAHEAD_BACKOFF: usize = 1;
+
+/// Default of [`SearchTuning::max_passes`].
+pub const DEFAULT_MAX_PASSES: usize = 4;
+
+/// How the commands off the cruise lines are found: the per-command design's choices and the
+/// search's, each selectable so both can be measured (README "`cadence bench plan`").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SearchTuning {
+    /// A command starting on a constant-acceleration curve takes the add of the curve's
+    /// formula, its interval and count from one or two exact passes (`compress::curve`),
+    /// instead of the search over adds.
+    pub curve_commands: bool,
+    /// The search for a command starting on a curve tries the add of the curve's formula
+    /// first (`compress::curve`), its cuts then deciding as off the curves.
+    pub curve_guess: bool,
+    /// Among the commands of the longest count, search for the one ending latest
+    /// (`fit::latest_end`, with the byte saving); off: the first longest found.
+    pub latest_end: bool,
+    /// Most adds the search for the longest command tries per command (1..=24).
+    pub max_passes: usize,
+    /// Most passes over the steps per curve command (the formula's add, then the nearest adds
+    /// the way each pass bends).
+    pub curve_passes: usize,
+}
+
+impl Default for SearchTuning {
+    fn default() -> Self {
+        SearchTuning {
+            curve_commands: false,
+            curve_guess: false,
+            latest_end: false,
+            max_passes: DEFAULT_MAX_PASSES,
+            curve_passes: curve::PASSES,
+        }
+    }
+}
+
+impl SearchTuning {
+    /// Whether the curve spans are kept.
+    fn curves(&self) -> bool {
+        self.curve_commands || self.curve_guess
+    }
+
+    /// The per-step search everywhere off the lines (the design before the per-command one).
+    pub const SEARCH: SearchTuning = SearchTuning {
+        curve_commands: false,
+        curve_guess: false,
+        latest_end: true,
+        max_passes: MAX_TRIALS,
+        curve_passes: curve::PASSES,
+    };
+}
 
 /// The step generator and compressor of one stepper.
 #[derive(Debug)]
@@ -111,14 +169,13 @@ pub struct StepCompressor {
     /// linger): a command starting in one is found from the line's formula (`compress::line`).
     lines: VecDeque<LineSpan>,
     /// Stretches of pending steps on one constant-acceleration curve (ascending, those ending
-    /// ≤ head may linger), kept while `curve_fit` is on: the longest command from one tries the
-    /// adds of the curve's formula first (`compress::curve`).
+    /// ≤ head may linger), kept while curve commands are on: a command from one takes the add
+    /// of the curve's formula (`compress::curve`).
     curves: VecDeque<CurveSpan>,
     /// Whether commands in a line come from its formula (default) or the per-step search.
     line_fit: bool,
-    /// Whether the longest command from a curve is looked for from its formula's adds (off by
-    /// default: the same commands, more instructions, see `compress::curve`).
-    curve_fit: bool,
+    /// How the commands off the lines are found.
+    tuning: SearchTuning,
     last_clock: u64,
     started: bool,
     dir: Option<bool>,
@@ -163,7 +220,7 @@ impl StepCompressor {
             lines: VecDeque::with_capacity(1 << 10),
             curves: VecDeque::with_capacity(1 << 10),
             line_fit: true,
-            curve_fit: false,
+            tuning: SearchTuning::default(),
             last_clock: 0,
             started: false,
             dir: None,
@@ -194,14 +251,14 @@ impl StepCompressor {
         self.line_fit = on;
     }
 
-    /// Whether the longest command from a step on a constant-acceleration curve tries the adds
-    /// of the curve's formula first (`compress::curve`; off by default: on the benchy it gives
-    /// the same commands for more instructions).
-    pub fn set_curve_fit(&mut self, on: bool) {
-        self.curve_fit = on;
-        if !on {
+    /// How the commands off the cruise lines are found ([`SearchTuning`]; default: curve
+    /// commands from the formula, the latest-end search, 24 passes at most).
+    pub fn set_tuning(&mut self, tuning: SearchTuning) {
+        self.tuning = tuning;
+        if !tuning.curves() {
             self.curves.clear();
         }
+        self.next = None;
     }
 
     /// A new step distance from the next move on: the stepper stays where it is and counts
@@ -285,7 +342,7 @@ impl StepCompressor {
             max_err,
             base: start,
             lines: self.line_fit.then_some(&mut self.lines),
-            curves: self.curve_fit.then_some(&mut self.curves),
+            curves: self.tuning.curves().then_some(&mut self.curves),
         };
         self.gen.raise_last_clock(self.last_ideal);
         // Two loops rather than a test of the flag per step.
@@ -382,7 +439,7 @@ impl StepCompressor {
     /// commands from them take their adds from its formula, `compress::curve`).
     pub fn push_curve(&mut self, curve: Curve, steps: usize) {
         let start = self.pending.len();
-        if self.curve_fit {
+        if self.tuning.curves() {
             record_curve(&mut self.curves, start, curve, steps);
         }
     }
@@ -432,14 +489,22 @@ impl StepCompressor {
         let run = &self.pending[self.head..run_end];
         let last = self.last_clock;
         let max_err = self.max_err as i64;
-        let fit = match ahead {
-            Some(n) if n.head == self.head && n.last_clock == last && n.run_end == run_end => {
-                latest_end(run, last, max_err, n.fit)
-            }
-            _ => match self.curve_fit(self.head, run_end, last) {
-                Some(f) => latest_end(run, last, max_err, f),
-                None => best_fit(run, last, max_err, self.last_add),
+        let longest = match ahead {
+            Some(n) if n.head == self.head && n.last_clock == last && n.run_end == run_end => n.fit,
+            _ => match self.curve_command(self.head, run_end, last) {
+                Some(f) => f,
+                None => {
+                    let guess = self
+                        .curve_guess(self.head, run_end, last)
+                        .unwrap_or(self.last_add);
+                    longest_fit(run, last, max_err, guess, self.tuning.max_passes)
+                }
             },
+        };
+        let fit = if self.tuning.latest_end {
+            latest_end(run, last, max_err, longest)
+        } else {
+            longest
         };
         self.lookahead(run_end, fit)
     }
@@ -469,13 +534,16 @@ impl StepCompressor {
             if let Some(next) = from_line(f) {
                 return next;
             }
-            if let Some(next) = self.curve_fit(head + f.count, run_end, f.end(last)) {
+            if let Some(next) = self.curve_command(head + f.count, run_end, f.end(last)) {
                 return next;
             }
             let (rest, from) = (&run[f.count..], f.end(last));
             // First guess: the add of the steps' own curvature over a command as long as this one.
-            let guess = curvature_add(rest, from, f.count).unwrap_or(f.add);
-            longest_fit(rest, from, max_err, guess)
+            let guess = self
+                .curve_guess(head + f.count, run_end, from)
+                .or_else(|| curvature_add(rest, from, f.count))
+                .unwrap_or(f.add);
+            longest_fit(rest, from, max_err, guess, self.tuning.max_passes)
         };
         let mut best = (fit, follow(&fit));
         let guess = best.1.add;
@@ -504,9 +572,14 @@ impl StepCompressor {
             };
             let next = match from_line(&f) {
                 Some(next) => next,
-                None => match self.curve_fit(head + f.count, run_end, f.end(last)) {
+                None => match self.curve_command(head + f.count, run_end, f.end(last)) {
                     Some(next) => next,
-                    None => longest_fit_within(rest, f.end(last), max_err, guess, within),
+                    None => {
+                        let guess = self
+                            .curve_guess(head + f.count, run_end, f.end(last))
+                            .unwrap_or(guess);
+                        longest_fit_within(rest, f.end(last), max_err, guess, within, self.tuning.max_passes)
+                    }
                 },
             };
             if f.count + next.count > best.0.count + best.1.count {
@@ -523,10 +596,11 @@ impl StepCompressor {
         chosen
     }
 
-    /// The longest command from pending index `at` (before `run_end`) from `last` when `at`
-    /// lies on a curve and its formula's adds prove it longest (`compress::curve`).
-    fn curve_fit(&self, at: usize, run_end: usize, last: u64) -> Option<Fit> {
-        if !self.curve_fit {
+    /// The add of the curve's formula for a command from pending index `at` (before
+    /// `run_end`) from `last`, when `at` lies on a curve and the formula is the search's
+    /// first guess (`SearchTuning::curve_guess`).
+    fn curve_guess(&self, at: usize, run_end: usize, last: u64) -> Option<i64> {
+        if !self.tuning.curve_guess {
             return None;
         }
         let span = self
@@ -535,7 +609,29 @@ impl StepCompressor {
             .find(|c| c.end > at)
             .filter(|c| c.start <= at)?;
         let steps = self.pending.get(at..run_end)?;
-        curve_longest(span, steps, at, last, self.max_err as i64, self.last_count)
+        curve_add(span, steps, at, last, self.max_err as i64)
+    }
+
+    /// The command from pending index `at` (before `run_end`) from `last` when `at` lies on a
+    /// curve, with the add of its formula (`compress::curve`).
+    fn curve_command(&self, at: usize, run_end: usize, last: u64) -> Option<Fit> {
+        if !self.tuning.curve_commands {
+            return None;
+        }
+        let span = self
+            .curves
+            .iter()
+            .find(|c| c.end > at)
+            .filter(|c| c.start <= at)?;
+        let steps = self.pending.get(at..run_end)?;
+        curve_command(
+            span,
+            steps,
+            at,
+            last,
+            self.max_err as i64,
+            self.tuning.curve_passes,
+        )
     }
 
     /// The command from the head when it lies in a cruise line and the line's formula gives

@@ -727,14 +727,15 @@ impl Pipeline {
         }
     }
 
-    /// Whether every stepper's longest command from a constant-acceleration curve tries the
-    /// adds of the curve's formula first (off by default, see [`StepCompressor::set_curve_fit`]).
-    pub fn set_curve_fit(&mut self, on: bool) {
+    /// How every stepper's commands off the cruise lines are found (see
+    /// [`crate::compress::SearchTuning`]; [`SearchTuning::SEARCH`](crate::compress::SearchTuning::SEARCH)
+    /// is the per-step search the per-command design is measured against).
+    pub fn set_tuning(&mut self, tuning: crate::compress::SearchTuning) {
         match &mut self.backend {
-            Backend::Inline(lanes, _) => lanes.iter_mut().for_each(|l| l.comp.set_curve_fit(on)),
+            Backend::Inline(lanes, _) => lanes.iter_mut().for_each(|l| l.comp.set_tuning(tuning)),
             Backend::Threads(w, local, _) => {
-                local.iter_mut().for_each(|(_, l)| l.comp.set_curve_fit(on));
-                if !w.broadcast(|| Msg::CurveFit(on)) {
+                local.iter_mut().for_each(|(_, l)| l.comp.set_tuning(tuning));
+                if !w.broadcast(|| Msg::Tuning(tuning)) {
                     self.worker_error = Some("a planner thread stopped".into());
                 }
             }

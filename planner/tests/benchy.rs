@@ -100,8 +100,11 @@ fn benchy_is_exact() {
     assert!(r.moves > 60_000, "{r:?}");
     let steps: u64 = r.steps.iter().sum();
     assert!(steps > 12_000_000, "{r:?}");
-    // Klipper's batch mode: 456,811 queue_step for this file and printer (with homing moves).
-    assert!(r.queue_steps < 456_811, "{r:?}");
+    // Klipper's batch mode with G28 as SET_KINEMATIC_POSITION, as Cadence's batch G28 (the
+    // issue #23 limit, ../shared/docs/interop.md): 474,894 queue_step for this file and printer.
+    // The default compression (the search capped at 4 passes, no latest-end search) takes
+    // 460,178; the full search (`SearchTuning::SEARCH`) 456,157.
+    assert!(r.queue_steps < 474_894, "{r:?}");
 }
 
 #[test]

@@ -215,11 +215,31 @@ pub enum BenchWhat {
         /// reference the line commands are measured against).
         #[arg(long)]
         per_step: bool,
-        /// Commands from a constant-acceleration curve try the curve formula's adds first (off
-        /// by default: the same commands as without, at more instructions; README "Curve
-        /// commands").
+        /// Commands off the cruise lines as before the per-command design: the search over
+        /// adds (24 passes at most) with the latest-end search, curves included (README
+        /// "Per-command design"); the options below change it from there.
         #[arg(long, conflicts_with = "per_step")]
-        curve_fit: bool,
+        search: bool,
+        /// Commands from a constant-acceleration curve take the add of the curve's formula, their
+        /// interval and count from at most --curve-passes exact passes.
+        #[arg(long, conflicts_with = "per_step")]
+        curve_formula: bool,
+        /// The search for a command from a curve tries the curve formula's add first.
+        #[arg(long, conflicts_with = "per_step")]
+        curve_guess: bool,
+        /// Among the longest commands, search for the one ending latest (more instructions,
+        /// fewer commands).
+        #[arg(long, conflicts_with = "per_step")]
+        latest_end: bool,
+        /// Take the first longest command found, without the search for the one ending latest.
+        #[arg(long, conflicts_with_all = ["per_step", "latest_end"])]
+        no_latest_end: bool,
+        /// Most adds the search for the longest command tries per command (1..=24).
+        #[arg(long, conflicts_with = "per_step", value_parser = clap::value_parser!(u32).range(1..=24))]
+        max_passes: Option<u32>,
+        /// Most passes over the steps per command from a curve's formula (with --curve-formula).
+        #[arg(long, conflicts_with = "per_step", value_parser = clap::value_parser!(u32).range(1..=24))]
+        curve_passes: Option<u32>,
         /// Data dictionary to encode with (message ids and MCU clock), and to read a stream
         /// given to --compare with: e.g. Klipper's out/klipper.dict (default: the Cadence
         /// firmware's own).
@@ -293,7 +313,13 @@ pub fn run(args: &BenchArgs) -> Result<(), BenchCmdError> {
             runs,
             instructions,
             per_step,
-            curve_fit,
+            search,
+            curve_formula,
+            curve_guess,
+            latest_end,
+            no_latest_end,
+            max_passes,
+            curve_passes,
             dictionary,
             common,
         } => {
@@ -304,7 +330,14 @@ pub fn run(args: &BenchArgs) -> Result<(), BenchCmdError> {
                 threads: threads.unwrap_or(cores),
                 max_error_s: max_error_us * 1e-6,
                 per_step: *per_step,
-                curve_fit: *curve_fit,
+                tuning: tuning_of(
+                    *search,
+                    *curve_formula,
+                    *curve_guess,
+                    (*latest_end, *no_latest_end),
+                    *max_passes,
+                    *curve_passes,
+                ),
                 ..Default::default()
             }
             .with_dictionary(&dict)
@@ -398,10 +431,56 @@ fn plan_child(
     if opts.per_step {
         args.push("--per-step".into());
     }
-    if opts.curve_fit {
-        args.push("--curve-fit".into());
+    if !opts.per_step {
+        let t = opts.tuning;
+        for (on, flag) in [
+            (t.curve_commands, "--curve-formula"),
+            (t.curve_guess, "--curve-guess"),
+            (t.latest_end, "--latest-end"),
+            (!t.latest_end, "--no-latest-end"),
+        ] {
+            if on {
+                args.push(flag.into());
+            }
+        }
+        args.extend([
+            "--max-passes".into(),
+            t.max_passes.to_string(),
+            "--curve-passes".into(),
+            t.curve_passes.to_string(),
+        ]);
     }
     Ok(ChildCommand { exe, args })
+}
+
+/// The compression's tuning from `bench plan`'s options: the default or, with `search`, the
+/// search before the per-command design, then each option given.
+fn tuning_of(
+    search: bool,
+    curve_formula: bool,
+    curve_guess: bool,
+    (latest_end, no_latest_end): (bool, bool),
+    max_passes: Option<u32>,
+    curve_passes: Option<u32>,
+) -> planner::compress::SearchTuning {
+    use planner::compress::SearchTuning;
+    let mut t = if search {
+        SearchTuning::SEARCH
+    } else {
+        SearchTuning::default()
+    };
+    t.curve_commands |= curve_formula;
+    t.curve_guess |= curve_guess;
+    if latest_end || no_latest_end {
+        t.latest_end = latest_end;
+    }
+    if let Some(n) = max_passes {
+        t.max_passes = n as usize;
+    }
+    if let Some(n) = curve_passes {
+        t.curve_passes = n as usize;
+    }
+    t
 }
 
 /// The library's common options.

@@ -1,37 +1,45 @@
-//! The longest command from a step on one constant-acceleration curve, the adds the curve's
-//! formula gives tried first (off by default: `StepCompressor::set_curve_fit`).
+//! A `queue_step` command from a step on one constant-acceleration curve, its add taken from
+//! the curve's formula: no search over adds, no pass proving the command the longest.
 //!
 //! On a curve (see [`crate::stepgen::Curve`]) the step clocks are c(j) = α + β·√(γ + j), whose
-//! second difference at step j is the curve's [`Curve::curvature`]; a command (interval I,
-//! add A) puts its steps on a quadratic whose second difference is A. The command covering
-//! the most steps from a given one carries about the curvature at its middle: the first add
-//! tried is that of the middle of a command as long as the previous one, the second that of
-//! the middle of the first pass's run, and later ones the middle of the adds left, as the
-//! search bisects.
+//! second difference at step j is about the curve's [`Curve::curvature`] κ(j); a command
+//! (interval I, add A) from the MCU's `last_clock` L puts step k at p_k = L + k·I +
+//! A·k(k−1)/2, a quadratic whose second difference is A. Step k is valid when
+//! e_k = c(j0 + k) − p_k ∈ [0, E] (its window [⌈c − E⌉, ⌊c⌋], E = max_error in ticks).
 //!
-//! Every pass is the search's exact pass over the stored step windows (`fit::run`), so every
-//! command given is valid whatever the formula says; the formula only orders the adds tried.
-//! The range of adds left is cut after each pass as the search cuts it (the run's binding steps
-//! paired with its failing step, the deviation bound of two valid commands, the failing step's
-//! side), and by [`two_window_adds`] for one step more than the best: the command given is the
-//! longest once that range is empty (every add left out could not have gone further, by the
-//! same arguments as the search's, `compress::fit`). When it is not empty after
-//! [`MAX_PASSES`] passes, `None`: the search decides, as it does off the curves.
+//! # Why the curvature at the middle is the add
+//! Δ²e_k ≈ κ(j0 + k) − A. κ is monotone along a curve (c''' = 3·q·r1²/(4·v⁵) > 0 for an
+//! acceleration and a deceleration alike), so Δ²e changes sign at most once: e is concave then
+//! convex, its first difference Δe is convex in k with at most two zeros, and e has at most
+//! two interior extrema (a maximum then a minimum) besides the ends k = 1 and k = n. With
+//! A = κ at the middle m of the command, Δ²e is negative before m and positive after, the
+//! extrema sit symmetrically about m, and the spread of e over n steps is the cubic term's:
+//! max e − min e ≈ c'''·n³/72 (a cubic against the quadratic matching its second derivative at
+//! the centre, at the ends and at m ± n/(2√3)), within 4/3 of the least any add reaches
+//! (Chebyshev's equioscillating residue, c'''·n³/96). So a command of n steps with this add
+//! exists whenever c'''·n³/72 + n²/16 (A rounded to an integer) + 1 (I an integer) ≤ E: the
+//! add is right for a command as long as the expected one.
 //!
-//! Hot path: no allocation (the adds tried go in a fixed array) and no panic (every step read
-//! is within the slice's checked length: at least 3 steps, the pairs and runs inside it).
+//! # What a command costs
+//! The add is the curvature at the middle of the expected command (the previous command's
+//! length), rounded and clamped into the adds landing the first two steps
+//! (`fit::first_two_adds`). The interval and count come from one exact pass over the stored
+//! windows with that add (`fit::run`, which also gives the largest interval one step shorter):
+//! the pass is the verification, so every command is valid on every step whatever the float
+//! formula says (no float margin is needed), and its count is the longest for that add. When
+//! the pass stops short of the expected middle, a second one tries the curvature at the middle
+//! of the run it got ([`PASSES`] in all). The search (`compress::fit`) would go on bisecting
+//! over adds to prove the command the longest (≈ 10 passes for the benchy's commands starting
+//! on curves, 6.5 steps on average); a command here may be a step shorter than the longest,
+//! which the benchy's counts measure (README "`cadence bench plan`", per-command design).
 //!
-//! Measured (benchy, `cadence bench plan --threads 2 --instructions`, 2026-12-03): the very
-//! same commands and wire bytes as the search on the cartesian and corexy printers, plain and
-//! mzv 50/40 Hz, but more instructions (cartesian 3.31 G against 2.97 G, mzv 4.46 G against
-//! 3.98 G; corexy 3.45 G against 3.10 G, mzv 5.66 G against 5.15 G). With the formula's add as
-//! the search's first guess alone, 2.97 G: the search finds the best add quickly either way,
-//! its cost is ruling out the adds left. The benchy's commands starting on curves are short (6.5
-//! steps on average), where many adds cover the same steps. Hence off: a per-command bound
-//! from the formula, without passes, is what could make these commands cheaper; the curve
-//! spans it needs are kept here.
+//! Where the formula does not apply (delta and other non-linear kinematics, fewer than 3 steps
+//! left, steps between spans) the search decides.
+//!
+//! Hot path: no allocation and no panic (the slice is checked to hold at least 3 steps; the
+//! passes are `fit::run`'s).
 
-use super::fit::{add_deviation, binding_adds, first_two_adds, run, two_window_adds, Bend, Fit, StepWindow};
+use super::fit::{binding_adds, first_two_adds, run, Bend, Fit, StepWindow};
 use super::Span;
 use crate::stepgen::Curve;
 
@@ -61,54 +69,106 @@ impl Span for CurveSpan {
 }
 
 impl CurveSpan {
-    /// The add of a command of `n` steps from pending index `at`: the curvature at its middle,
-    /// rounded (`None` where the formula gives no finite number).
+    /// The add for a command whose first step is at pending index `at` (on the span), whose
+    /// anchor (the MCU's `last_clock`) lies `e0` ticks before the ideal clock of the step before
+    /// `at`, its steps to stay within `band` ticks (module doc, "The add"); `None` where the
+    /// formula gives no finite number.
     #[inline]
-    fn add_at(&self, at: usize, n: usize) -> Option<i64> {
-        let j = at.saturating_sub(self.start) as f64 + 0.5 * n.saturating_sub(1) as f64;
-        let a = self.curve.curvature(j).round();
+    fn add_for(&self, at: usize, e0: f64, band: f64) -> Option<i64> {
+        let c = &self.curve;
+        // Curve index of the command's anchor (its step k = 0): the step before `at`.
+        let j0 = at.saturating_sub(self.start) as f64 - 1.0;
+        // s = c'''/6 = q·r1²/(8·v⁵), taken at the band's centre (the second round moves it there).
+        let third = |j: f64| {
+            let v2 = c.r0 + c.r1 * j;
+            c.q * c.r1 * c.r1 / (8.0 * v2 * v2 * v2.sqrt())
+        };
+        // Where on the equioscillating cubic's first rising branch the anchor's error lies:
+        // x0 = cos((2π + arccos(2·e0/band − 1))/3) ∈ [−1, −½].
+        let y = (2.0 * e0 / band - 1.0).clamp(-1.0, 1.0);
+        let x0 = ((2.0 * std::f64::consts::PI + y.acos()) / 3.0).cos();
+        let mut centre = j0;
+        for _ in 0..2 {
+            let n_band = (16.0 * band / third(centre)).cbrt();
+            // The band's centre from the anchor: N/2 − t0, t0 = N·(1 + x0)/2.
+            centre = j0 - 0.5 * n_band * x0;
+        }
+        let a = c.curvature(centre).round();
         a.is_finite()
             .then_some(a.clamp(i16::MIN as f64, i16::MAX as f64) as i64)
     }
+
+    /// The ideal clock of the step before pending index `at` less `last`, estimated from the
+    /// window of the step at `at` (its middle tick) and the curve's step time there.
+    #[inline]
+    fn anchor_error(&self, first: StepWindow, at: usize, last: u64) -> f64 {
+        let c = &self.curve;
+        let j = at.saturating_sub(self.start) as f64;
+        let dt = c.q / (c.r0 + c.r1 * (j - 0.5)).max(f64::MIN_POSITIVE).sqrt();
+        first.hi as f64 + 0.5 - dt - last as f64
+    }
 }
 
-/// Most passes over the steps before the search is left to decide.
-const MAX_PASSES: usize = 10;
-/// Every add a command can carry (an i16).
-const ALL_ADDS: (i64, i64) = (i16::MIN as i64, i16::MAX as i64);
+/// Default of the most passes over the steps per curve command (`SearchTuning::curve_passes`).
+pub(crate) const PASSES: usize = 3;
 
-/// The longest command from `last` over `steps` (the pending steps from index `at`, one
-/// direction), where `at` lies in `span`; `guess_count` is how long a command is expected
-/// (the previous one's count). `None` when the passes did not prove it longest (module doc).
-pub(crate) fn curve_longest(
+/// The add of the curve's formula for a command from `last` over `steps` (the pending steps
+/// from index `at`, one direction, `at` in `span`), clamped into the adds that land the first
+/// two steps (module doc); `None` where the formula gives none.
+pub(crate) fn curve_add(
     span: &CurveSpan,
     steps: &[StepWindow],
     at: usize,
     last: u64,
     max_err: i64,
-    guess_count: usize,
-) -> Option<Fit> {
+) -> Option<i64> {
+    formula_add(span, steps, at, last, max_err).map(|(a, _)| a)
+}
+
+/// [`curve_add`] with the range of adds landing the first two steps.
+#[inline]
+fn formula_add(
+    span: &CurveSpan,
+    steps: &[StepWindow],
+    at: usize,
+    last: u64,
+    max_err: i64,
+) -> Option<(i64, (i64, i64))> {
     if steps.len() < 3 || at < span.start || at >= span.end {
         return None;
     }
     let (lo, hi) = first_two_adds(steps, last);
-    let mut amin = lo.max(ALL_ADDS.0);
-    let mut amax = hi.min(ALL_ADDS.1);
-    let mut add = span.add_at(at, guess_count.clamp(2, steps.len()))?;
+    let (lo, hi) = (lo.max(i16::MIN as i64), hi.min(i16::MAX as i64));
+    if lo > hi {
+        return None;
+    }
+    let band = (max_err as f64 - 1.0).max(1.0);
+    let e0 = span.anchor_error(steps[0], at, last).clamp(0.0, band);
+    Some((span.add_for(at, e0, band)?.clamp(lo, hi), (lo, hi)))
+}
+
+/// The command from `last` over `steps` (the pending steps from index `at`, one direction,
+/// `at` in `span`) with the add of the curve's formula (module doc); `None` where the formula
+/// gives no add.
+pub(crate) fn curve_command(
+    span: &CurveSpan,
+    steps: &[StepWindow],
+    at: usize,
+    last: u64,
+    max_err: i64,
+    passes: usize,
+) -> Option<Fit> {
+    let (mut add, (lo, hi)) = formula_add(span, steps, at, last, max_err)?;
     let mut best = Fit::NONE;
-    // The adds tried (an add above the best's fell short of its count).
-    let mut tried = [0i64; MAX_PASSES];
-    let mut n_tried = 0;
-    let mut cut_for = 0;
-    for pass in 0..MAX_PASSES {
-        if amin > amax {
-            break;
-        }
-        add = add.clamp(amin, amax);
+    // The smallest add tried that fell short of the best count (adds covering a count form a
+    // range, as the search assumes): it caps the latest-end search.
+    let mut short_above = i16::MAX as i64 + 1;
+    for _ in 0..passes.max(1) {
         let r = run(steps, last, add);
-        if let Some(t) = tried.get_mut(n_tried) {
-            *t = add;
-            n_tried += 1;
+        if r.count < best.count && add > best.add {
+            short_above = short_above.min(add);
+        } else if r.count > best.count && best.add > add {
+            short_above = short_above.min(best.add);
         }
         if r.count > best.count || (r.count == best.count && add > best.add) {
             best = Fit {
@@ -120,56 +180,26 @@ pub(crate) fn curve_longest(
             };
         }
         if r.bend == Bend::None {
-            return Some(finish(best, &tried[..n_tried]));
+            break;
         }
-        if r.count >= 2 {
-            let dev = add_deviation(r.count, max_err);
-            amin = amin.max(add - dev);
-            amax = amax.min(add + dev);
-        }
-        // An add doing better than this run lands its failing step with its binding steps.
-        let ((lo, hi), none) = binding_adds(steps, last, &r);
-        (amin, amax) = if none {
-            (1, 0)
+        // The nearest add the bend's way that could land the failing step with the steps that
+        // bound this run (`fit::binding_adds`).
+        let ((blo, bhi), none) = binding_adds(steps, last, &r);
+        let (blo, bhi) = (blo.max(lo), bhi.min(hi));
+        let next = if r.bend == Bend::Up {
+            (add + 1).max(blo)
         } else {
-            (amin.max(lo), amax.min(hi))
+            (add - 1).min(bhi)
         };
-        if r.bend == Bend::Up {
-            amin = amin.max(add + 1);
-        } else {
-            amax = amax.min(add - 1);
+        if none || next < blo || next > bhi {
+            break;
         }
-        // Doing better than the best needs its count + 1 steps.
-        if cut_for != best.count {
-            cut_for = best.count;
-            match two_window_adds(steps, last, best.count + 1) {
-                Some((lo, hi)) => {
-                    amin = amin.max(lo);
-                    amax = amax.min(hi);
-                }
-                None => (amin, amax) = (1, 0),
-            }
-        }
-        // Next: the curvature at the middle of the best run (once), then the middle of the
-        // adds left, as the search bisects.
-        add = match span.add_at(at, best.count).filter(|_| pass == 0) {
-            Some(a) if a != add => a,
-            _ => amin + (amax - amin) / 2,
-        };
+        add = next;
     }
-    (amin > amax && best.count >= 1).then(|| finish(best, &tried[..n_tried]))
-}
-
-/// The best fit with its cap: an add tried above its add fell short of its count, so no add
-/// from there up covers it (adds covering a count form a range, as the search assumes).
-#[inline]
-fn finish(mut best: Fit, tried: &[i64]) -> Fit {
-    for &a in tried {
-        if a > best.add {
-            best.add_cap = best.add_cap.min(a - 1);
-        }
+    if short_above > best.add {
+        best.add_cap = short_above - 1;
     }
-    best
+    (best.count >= 1).then_some(best)
 }
 
 #[cfg(test)]
@@ -206,7 +236,7 @@ mod tests {
     }
 
     #[test]
-    fn an_acceleration_gives_the_searchs_longest_command() {
+    fn an_acceleration_gives_about_the_searchs_longest_command() {
         // 20 mm/s up at 3000 mm/s², 0.0125 mm steps, 50 MHz, 25 µs bound.
         let curve = Curve {
             q: 0.0125 * 50e6,
@@ -219,25 +249,26 @@ mod tests {
             end: 300,
             curve,
         };
-        let f = curve_longest(&span, &w[1..], 1, w[0].hi, 1250, 20).unwrap();
+        let f = curve_command(&span, &w[1..], 1, w[0].hi, 1250, PASSES).unwrap();
         assert!(valid(&w[1..], w[0].hi, &f), "{f:?}");
-        assert_eq!(f.count, longest_fit(&w[1..], w[0].hi, 1250, 0).count);
+        let s = longest_fit(&w[1..], w[0].hi, 1250, 0, usize::MAX).count;
+        assert!(f.count + 1 >= s, "{f:?}, search {s}");
         assert!(f.count >= 8 && f.add < 0, "{f:?}");
     }
 
     proptest::proptest! {
-        /// On an accelerating or decelerating stretch, a command given is valid and no shorter
-        /// than the search's longest.
+        /// On an accelerating or decelerating stretch, a command given is valid on every step,
+        /// one step shorter too, and covers at least half the steps of the search's longest (from a
+        /// start the previous step's landing, as in the compressor).
         #[test]
         fn curve_commands_are_valid_and_longest(
             v in 5.0f64..300.0,
             accel in 200.0f64..20_000.0,
             decel in proptest::bool::ANY,
             n in 3usize..400,
-            skip in 0usize..50,
+            skip in 1usize..50,
             back in 0.0f64..1.0,
             err in 10i64..2000,
-            guess in 0usize..80,
         ) {
             let (sd, freq) = (0.0125, 50e6);
             // Decelerating from v over n + skip steps, or accelerating from v.
@@ -249,9 +280,10 @@ mod tests {
             let all = windows(&curve, n + skip, t0, err);
             let w = &all[skip..];
             let span = CurveSpan { start: 0, end: n + skip, curve };
-            let last = (w[0].hi as f64 - back * err as f64) as u64;
-            let last = last.min(w[0].hi);
-            let Some(f) = curve_longest(&span, w, skip, last, err, guess) else {
+            // The previous command landed the step before in its window, as in the compressor.
+            let prev = all[skip - 1];
+            let last = ((prev.hi as f64 - back * err as f64) as u64).clamp(prev.lo, prev.hi);
+            let Some(f) = curve_command(&span, w, skip, last, err, PASSES) else {
                 return Ok(());
             };
             proptest::prop_assert!(valid(w, last, &f), "{:?}", f);
@@ -259,8 +291,8 @@ mod tests {
                 let shorter = Fit { interval: f.prefix_interval, count: f.count - 1, ..f };
                 proptest::prop_assert!(valid(w, last, &shorter), "{:?}", f);
             }
-            let s = longest_fit(w, last, err, 0);
-            proptest::prop_assert!(f.count >= s.count, "curve {:?}, search {:?}", f, s);
+            let s = longest_fit(w, last, err, 0, usize::MAX);
+            proptest::prop_assert!(2 * f.count >= s.count, "curve {:?}, search {:?}", f, s);
         }
     }
 }

@@ -103,8 +103,9 @@ pub(crate) enum Bend {
 }
 
 const MAX_IV: i64 = super::MAX_INTERVAL as i64;
-/// Most values of `add` tried per command while looking for the longest run.
-const MAX_TRIALS: usize = 24;
+/// Most values of `add` tried per command while looking for the longest run (the default of
+/// the `passes` cap [`longest_fit`] takes).
+pub(crate) const MAX_TRIALS: usize = 24;
 
 /// One pass of [`run`]: how far `add` got.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -351,14 +352,22 @@ pub(crate) fn curvature_add(steps: &[StepWindow], last: u64, h: usize) -> Option
     Some((mid(2 * h - 1) - 2 * mid(h - 1)) / h2)
 }
 
-/// A command covering the most of `steps` (one direction, non-empty) from `last`.
-pub(crate) fn longest_fit(steps: &[StepWindow], last: u64, max_err: i64, guess_add: i64) -> Fit {
+/// A command covering the most of `steps` (one direction, non-empty) from `last`, trying at
+/// most `passes` adds (at most [`MAX_TRIALS`]; with fewer the command may be shorter).
+pub(crate) fn longest_fit(
+    steps: &[StepWindow],
+    last: u64,
+    max_err: i64,
+    guess_add: i64,
+    passes: usize,
+) -> Fit {
     longest_fit_within(
         steps,
         last,
         max_err,
         guess_add,
         (i16::MIN as i64, i16::MAX as i64),
+        passes,
     )
 }
 
@@ -370,6 +379,7 @@ pub(crate) fn longest_fit_within(
     max_err: i64,
     guess_add: i64,
     within: (i64, i64),
+    passes: usize,
 ) -> Fit {
     let single = || run(&steps[..1], last, 0).fit(0);
     if steps.len() < 2 {
@@ -386,7 +396,7 @@ pub(crate) fn longest_fit_within(
     // The adds tried (the first few).
     let mut tried = [0i64; 16];
     let mut n_tried = 0;
-    for _ in 0..MAX_TRIALS {
+    for _ in 0..passes.clamp(1, MAX_TRIALS) {
         let r = run(steps, last, add);
         if let Some(t) = tried.get_mut(n_tried) {
             *t = add;
@@ -437,8 +447,14 @@ pub(crate) fn longest_fit_within(
 
 /// The command covering the most of `steps` (one direction, non-empty) from `last`, ending as
 /// late as possible.
+#[cfg(test)]
 pub(crate) fn best_fit(steps: &[StepWindow], last: u64, max_err: i64, guess_add: i64) -> Fit {
-    latest_end(steps, last, max_err, longest_fit(steps, last, max_err, guess_add))
+    latest_end(
+        steps,
+        last,
+        max_err,
+        longest_fit(steps, last, max_err, guess_add, MAX_TRIALS),
+    )
 }
 
 /// Among the commands with `fit.count` steps, the one whose last step is latest (with the
@@ -618,8 +634,8 @@ mod tests {
     fn short_commands_take_a_small_add_with_the_same_end() {
         // Two steps: the end is 2I + A, which many adds reach; the largest one needs 3 bytes.
         let w = windows(&[20_000, 40_050], 1250);
-        let plain = latest_end_plain(&w, 0, 1250, longest_fit(&w, 0, 1250, 0));
-        let f = latest_end(&w, 0, 1250, longest_fit(&w, 0, 1250, 0));
+        let plain = latest_end_plain(&w, 0, 1250, longest_fit(&w, 0, 1250, 0, MAX_TRIALS));
+        let f = latest_end(&w, 0, 1250, longest_fit(&w, 0, 1250, 0, MAX_TRIALS));
         assert_eq!((f.count, f.end(0)), (2, plain.end(0)));
         assert!(vlq_len(plain.add) > 1, "{plain:?}");
         assert_eq!(vlq_len(f.add), 1, "{f:?}");
@@ -678,7 +694,7 @@ mod tests {
             let clocks: Vec<u64> = gaps.iter().map(|g| { t += g; t }).collect();
             let w = windows(&clocks, err);
             let last = 1_000_000 - 5_000;
-            let fit = longest_fit(&w, last, err as i64, 0);
+            let fit = longest_fit(&w, last, err as i64, 0, MAX_TRIALS);
             let plain = latest_end_plain(&w, last, err as i64, fit);
             let f = latest_end(&w, last, err as i64, fit);
             proptest::prop_assert_eq!(f.count, plain.count);

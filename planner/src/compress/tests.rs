@@ -12,8 +12,13 @@ fn compress_all(steps: &[(f64, bool)]) -> (Vec<StepCmd>, CheckStats) {
 }
 
 fn compress_with(steps: &[(f64, bool)], backoff: usize) -> (Vec<StepCmd>, CheckStats) {
+    compress_tuned(steps, backoff, SearchTuning::default())
+}
+
+fn compress_tuned(steps: &[(f64, bool)], backoff: usize, tuning: SearchTuning) -> (Vec<StepCmd>, CheckStats) {
     let mut c = StepCompressor::new(0.01, 50e6, MAX_ERR);
     c.set_lookahead_backoff(backoff);
+    c.set_tuning(tuning);
     c.set_record_ideal(true);
     for &(clock, dir) in steps {
         c.push_step(clock, dir);
@@ -101,9 +106,13 @@ fn long_gap_resets_the_clock() {
 #[test]
 fn count_is_capped() {
     let steps: Vec<_> = (1..=140_000).map(|k| (k as f64 * 2000.0, true)).collect();
-    let (cmds, stats) = compress_all(&steps);
-    assert!(queue_steps(&cmds).iter().all(|q| q.1 as usize <= MAX_COUNT));
-    assert!(stats.queue_steps <= 4, "{cmds:?}");
+    // The full search takes 4 commands; the default (no latest-end search) ends its first
+    // command earlier and takes one more.
+    for (tuning, most) in [(SearchTuning::SEARCH, 4), (SearchTuning::default(), 5)] {
+        let (cmds, stats) = compress_tuned(&steps, DEFAULT_LOOKAHEAD_BACKOFF, tuning);
+        assert!(queue_steps(&cmds).iter().all(|q| q.1 as usize <= MAX_COUNT));
+        assert!(stats.queue_steps <= most, "{tuning:?}: {cmds:?}");
+    }
 }
 
 #[test]

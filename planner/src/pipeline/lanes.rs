@@ -419,8 +419,8 @@ pub(crate) enum Msg {
     Backoff(usize),
     /// Commands in cruise lines from the line's formula (see `StepCompressor::set_line_fit`).
     LineFit(bool),
-    /// Curve commands tried from the curve's adds (see `StepCompressor::set_curve_fit`).
-    CurveFit(bool),
+    /// How commands off the lines are found (see `StepCompressor::set_tuning`).
+    Tuning(crate::compress::SearchTuning),
     RecordIdeal(bool),
     /// A new clock map for the lane of this stepper index.
     ClockMap(usize, ClockMap),
@@ -583,7 +583,7 @@ fn worker(w: usize, mut lanes: Vec<(usize, LaneState)>, rx: Receiver<Msg>, tx: S
                 .iter_mut()
                 .for_each(|(_, l)| l.comp.set_lookahead_backoff(n)),
             Msg::LineFit(on) => lanes.iter_mut().for_each(|(_, l)| l.comp.set_line_fit(on)),
-            Msg::CurveFit(on) => lanes.iter_mut().for_each(|(_, l)| l.comp.set_curve_fit(on)),
+            Msg::Tuning(t) => lanes.iter_mut().for_each(|(_, l)| l.comp.set_tuning(t)),
             Msg::RecordIdeal(on) => lanes.iter_mut().for_each(|(_, l)| l.comp.set_record_ideal(on)),
             Msg::ClockMap(idx, map) => {
                 if let Some((_, l)) = lanes.iter_mut().find(|(i, _)| *i == idx) {

@@ -2,6 +2,7 @@
 
 use super::*;
 use crate::checker::Checker;
+use crate::compress::SearchTuning;
 use crate::gcode::GcodeReader;
 use crate::kinematics::Kinematics;
 use crate::pressure_advance::PressureAdvance;
@@ -79,25 +80,29 @@ fn run_cfg(text: &str, cfg: PipelineConfig, opts: PipelineOptions) -> Run {
     run_cfg_fit(text, cfg, opts, true)
 }
 
-/// [`run_cfg`] with the cruise lines' commands from their formula (`line_fit`, the default) or
-/// all from the per-step search.
+/// [`run_cfg`] with the per-command design (`line_fit`, the default: cruise lines' and curves'
+/// commands from their formulas) or all commands from the per-step search.
 fn run_cfg_fit(text: &str, cfg: PipelineConfig, opts: PipelineOptions, line_fit: bool) -> Run {
-    run_cfg_modes(text, cfg, opts, line_fit, false)
+    let tuning = if line_fit {
+        SearchTuning::default()
+    } else {
+        SearchTuning::SEARCH
+    };
+    run_cfg_modes(text, cfg, opts, line_fit, tuning)
 }
 
-/// [`run_cfg_fit`], also choosing whether the commands from constant-acceleration curves try
-/// the curve's adds first (`curve_fit`, off by default).
+/// [`run_cfg_fit`], also choosing how the commands off the lines are found.
 fn run_cfg_modes(
     text: &str,
     cfg: PipelineConfig,
     opts: PipelineOptions,
     line_fit: bool,
-    curve_fit: bool,
+    tuning: SearchTuning,
 ) -> Run {
     let n = cfg.steppers.len();
     let mut p = Pipeline::with_options(cfg, 0.25, opts).unwrap();
     p.set_line_fit(line_fit);
-    p.set_curve_fit(curve_fit);
+    p.set_tuning(tuning);
     p.set_record_ideal(true);
     let mut checkers: Vec<Checker> = (0..n).map(|_| Checker::new(p.max_error_ticks())).collect();
     let mut per_stepper = vec![Vec::new(); n];

@@ -1,9 +1,10 @@
-//! Cruise lines' commands from their formula (`compress::line`), and with them the commands
-//! from constant-acceleration curves tried from the curve's adds (`compress::curve`), against
-//! the per-step search, on random programs through every kinematics, shaped and not: the
-//! checker passes on every stepper (`run_cfg_modes` checks each command as it comes), the step
-//! counts are the same, and no stepper takes more `queue_step` commands than the per-step
-//! search gives it.
+//! Cruise lines' commands from their formula (`compress::line`), the default tuning's capped
+//! search and the curve formula's commands (`compress::curve`) against the per-step search,
+//! on random programs through every kinematics, shaped and not: the checker passes on every
+//! stepper (`run_cfg_modes` checks each command as it comes), the step counts are the same,
+//! the line commands take no more `queue_step` commands than the per-step search gives a
+//! stepper, and the tunings that trade commands no more than Klipper's measured excess over it
+//! ([`klipper_bound`]).
 
 use super::*;
 
@@ -20,11 +21,50 @@ fn counts(r: &Run) -> Vec<(usize, u64)> {
         .collect()
 }
 
-/// Runs `program` both ways and compares them stepper by stepper.
+/// The most `queue_step` a tuning may take given the per-step search's count.
+type Bound = dyn Fn(usize) -> usize;
+
+/// Klipper's batch mode takes 4.1 % more `queue_step` than the per-step search on the benchy
+/// (474,894 against 456,157, cartesian; 4.4 % with mzv 50/40): the reference bound a tuning that
+/// trades commands for instructions must stay within, per stepper, with 2 commands of slack
+/// for the short random programs.
+fn klipper_bound(search: usize) -> usize {
+    search + (search * 41).div_ceil(1000) + 2
+}
+
+/// Runs `program` with the per-step search and each way of finding commands, and compares them
+/// stepper by stepper: the line commands with the search off the lines take no more commands
+/// than the per-step search; the default (the search capped at 4 passes, no latest-end search)
+/// no more than [`klipper_bound`] of it. The curve formula's commands (not the default) are
+/// held to a looser bound, 15 % + 2 (on these short programs they take up to 12 % more than
+/// the search; on the benchy 0.7 %, README "Per-command design").
 fn compare(program: &str, cfg: PipelineConfig, opts: PipelineOptions) -> Result<(), TestCaseError> {
+    compare_within(program, cfg, opts, &klipper_bound)
+}
+
+/// [`compare`] with the default's bound given (a delta's carriages, every command from the
+/// search: the default's cap and missing latest-end search cost more there, up to 9 % on these
+/// programs, and Klipper's figure for a delta is not measured: 10 % + 2).
+fn compare_within(
+    program: &str,
+    cfg: PipelineConfig,
+    opts: PipelineOptions,
+    default_bound: &Bound,
+) -> Result<(), TestCaseError> {
     let per_step = run_cfg_fit(program, cfg.clone(), opts, false);
-    for (what, curve_fit) in [("line", false), ("line and curve", true)] {
-        let fit = run_cfg_modes(program, cfg.clone(), opts, true, curve_fit);
+    let formula = SearchTuning {
+        curve_commands: true,
+        ..SearchTuning::default()
+    };
+    let looser = |p: usize| p + (p * 15).div_ceil(100) + 2;
+    let same = |p: usize| p;
+    let bounds: [(&str, SearchTuning, &Bound); 3] = [
+        ("line", SearchTuning::SEARCH, &same),
+        ("default", SearchTuning::default(), default_bound),
+        ("curve formula", formula, &looser),
+    ];
+    for (what, tuning, bound_of) in bounds {
+        let fit = run_cfg_modes(program, cfg.clone(), opts, true, tuning);
         prop_assert!(fit.keys.windows(2).all(|w| w[0] <= w[1]));
         prop_assert_eq!(
             fit.pipeline.stepper_positions(),
@@ -33,8 +73,9 @@ fn compare(program: &str, cfg: PipelineConfig, opts: PipelineOptions) -> Result<
         for (i, (l, p)) in counts(&fit).into_iter().zip(counts(&per_step)).enumerate() {
             let name = &cfg.steppers[i].name;
             prop_assert_eq!(l.1, p.1, "{} steps", name);
+            let bound = bound_of(p.0);
             prop_assert!(
-                l.0 <= p.0,
+                l.0 <= bound,
                 "{}: {} queue_step with {} commands, {} per step",
                 name,
                 l.0,
@@ -88,7 +129,7 @@ proptest! {
             g.push_str(&format!("G1 X{x} Y{y} Z{z} E{e} F6000\n"));
         }
         let opts = PipelineOptions { kinematics: Kinematics::Delta(delta_geometry()), ..PipelineOptions::default() };
-        compare(&g, delta_config(), opts)?;
+        compare_within(&g, delta_config(), opts, &|p| p + p.div_ceil(10) + 2)?;
     }
 }
 
