@@ -191,9 +191,11 @@ mod tests {
                 .find(head)
                 .unwrap_or_else(|| panic!("README has no {head}"));
             let rest = &readme[start..];
+            // The list ends at the next list item or the paragraph's end, whichever is first.
+            let paragraph = rest.find("\n\n").unwrap_or(rest.len());
             let end = rest[2..]
                 .find("\n- **")
-                .map_or(rest.find("\n\n").unwrap(), |e| e + 2);
+                .map_or(paragraph, |e| (e + 2).min(paragraph));
             rest[..end]
                 .split("`[")
                 .skip(1)
