@@ -596,6 +596,17 @@ impl StepCompressor {
         chosen
     }
 
+    /// The curve span holding pending index `at`, with the pending steps from `at` to
+    /// `run_end`; `None` off every curve.
+    fn curve_at(&self, at: usize, run_end: usize) -> Option<(&CurveSpan, &[StepWindow])> {
+        let span = self
+            .curves
+            .iter()
+            .find(|c| c.end > at)
+            .filter(|c| c.start <= at)?;
+        Some((span, self.pending.get(at..run_end)?))
+    }
+
     /// The add of the curve's formula for a command from pending index `at` (before
     /// `run_end`) from `last`, when `at` lies on a curve and the formula is the search's
     /// first guess (`SearchTuning::curve_guess`).
@@ -603,12 +614,7 @@ impl StepCompressor {
         if !self.tuning.curve_guess {
             return None;
         }
-        let span = self
-            .curves
-            .iter()
-            .find(|c| c.end > at)
-            .filter(|c| c.start <= at)?;
-        let steps = self.pending.get(at..run_end)?;
+        let (span, steps) = self.curve_at(at, run_end)?;
         curve_add(span, steps, at, last, self.max_err as i64)
     }
 
@@ -618,12 +624,7 @@ impl StepCompressor {
         if !self.tuning.curve_commands {
             return None;
         }
-        let span = self
-            .curves
-            .iter()
-            .find(|c| c.end > at)
-            .filter(|c| c.start <= at)?;
-        let steps = self.pending.get(at..run_end)?;
+        let (span, steps) = self.curve_at(at, run_end)?;
         curve_command(
             span,
             steps,
