@@ -22,9 +22,20 @@ pub struct Api {
 }
 
 impl Api {
-    /// Connects to the socket at `path`; a read waits at most `read_timeout`.
+    /// Connects to the socket at `path`; a read waits at most `read_timeout`. The socket's
+    /// file appears at `bind`, a moment before the service listens on it: a refused connection
+    /// is tried again for up to 60 s.
     pub fn connect(path: &Path, read_timeout: Duration) -> Api {
-        let stream = UnixStream::connect(path).expect("connect to the API socket");
+        let deadline = Instant::now() + Duration::from_secs(60);
+        let stream = loop {
+            match UnixStream::connect(path) {
+                Ok(stream) => break stream,
+                Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused && Instant::now() < deadline => {
+                    std::thread::sleep(Duration::from_millis(20));
+                }
+                Err(e) => panic!("connect to the API socket {}: {e}", path.display()),
+            }
+        };
         stream.set_read_timeout(Some(read_timeout)).expect("timeout");
         Api {
             stream,
