@@ -397,7 +397,16 @@ mod tests {
             samples: 100,
             ..HandoffOpts::default()
         };
-        assert_eq!(ipc_threads(&o, false).unwrap().count(), 100);
+        // A hang (iceoryx2 waiting on a dead process's storage) fails here instead of stalling
+        // the whole run.
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let _ = tx.send(ipc_threads(&o, false).map(|h| h.count()));
+        });
+        let got = rx
+            .recv_timeout(Duration::from_secs(240))
+            .expect("the iceoryx2 hand-off did not finish within 240 s");
+        assert_eq!(got.unwrap(), 100);
     }
 
     #[test]

@@ -38,7 +38,8 @@
 //! [`ShmError::Gap`]. Telemetry keeps safe overflow on (an outside monitor must never stall the
 //! printer); its gaps are reported the same way and may be ignored.
 //!
-//! Stale resources of crashed processes are removed when a node is created ([`open_node`]).
+//! Stale resources of crashed processes are removed when a node is created ([`open_node`]),
+//! including the half-created ones iceoryx2 itself would wait on for ever ([`stale`]).
 //!
 //! # No heap allocation per sample
 //!
@@ -366,12 +367,14 @@ impl ChannelConfig {
     }
 }
 
-/// Creates a node and removes the stale resources of dead nodes (crashed processes). Returns
-/// the node and how many dead nodes were cleaned up.
+/// Creates a node and removes the stale resources of dead nodes (crashed processes), with the
+/// half-created storages iceoryx2 would wait on for ever swept away ([`stale`]). Returns the
+/// node and how many dead nodes were cleaned up.
 /// iceoryx2's own log level defaults to Error (it warns on stdout that no config file exists);
 /// `IOX2_LOG_LEVEL` overrides it.
 pub fn open_node<S: Service>(name: &str) -> Result<(Node<S>, u64), ShmError> {
     set_log_level_from_env_or(LogLevel::Error);
+    stale::ensure_sweeper();
     let node_name = NodeName::new(name).map_err(|e| ShmError::Name {
         name: name.to_string(),
         reason: format!("{e:?}"),
@@ -711,6 +714,7 @@ impl<S: Service, T: Sequenced> ShmSubscriber<S, T> {
 }
 
 pub mod pooled;
+pub mod stale;
 
 #[cfg(test)]
 mod tests;

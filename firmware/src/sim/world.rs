@@ -653,6 +653,7 @@ fn open_bus(world: &str) -> Result<Bus, WorldError> {
         }
     };
     set_log_level(LogLevel::Error);
+    rt_core::shm::stale::ensure_sweeper();
     remove_stale_nodes();
     let name: ServiceName = format!("cadence/world/{world}")
         .as_str()
