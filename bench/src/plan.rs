@@ -42,6 +42,9 @@ pub struct PlanOptions {
     /// How the commands off the cruise lines are found ([`Pipeline::set_tuning`]; ignored with
     /// `per_step`, which is [`SearchTuning::SEARCH`] without line commands).
     pub tuning: SearchTuning,
+    /// Steps the compression's lookahead may end a command early
+    /// ([`Pipeline::set_lookahead_backoff`]; `None`: the compressor's default).
+    pub lookahead: Option<usize>,
 }
 
 impl Default for PlanOptions {
@@ -54,6 +57,7 @@ impl Default for PlanOptions {
             msg_ids: [20, 21, 22],
             per_step: false,
             tuning: SearchTuning::default(),
+            lookahead: None,
         }
     }
 }
@@ -185,6 +189,9 @@ pub fn plan_reader(src: impl BufRead, cfg: &PrinterConfig, opts: &PlanOptions) -
     } else {
         opts.tuning
     });
+    if let Some(n) = opts.lookahead {
+        p.set_lookahead_backoff(n);
+    }
     let mut wire = WireCounter::default();
     let mut rep = PlanReport::default();
     let mut out = Vec::with_capacity(1 << 14);
@@ -316,6 +323,25 @@ mod tests {
                 search.queue_steps
             );
         }
+    }
+
+    #[test]
+    fn the_lookahead_changes_commands_not_steps() {
+        let cfg = sysconfig::parse_str(CFG, Path::new("t.cfg")).unwrap();
+        let g = "G28\nG1 X10 Y10 F6000\nG1 X150 Y40 F18000\nG1 X20 Y160\nG1 X10 Y10 F3000\n";
+        let plan = |lookahead| {
+            let opts = PlanOptions {
+                lookahead,
+                threads: 0,
+                ..PlanOptions::default()
+            };
+            plan_reader(g.as_bytes(), &cfg, &opts).unwrap()
+        };
+        let (default, greedy, one) = (plan(None), plan(Some(0)), plan(Some(1)));
+        assert_eq!((greedy.steps, one.steps), (default.steps, default.steps));
+        // The default is lookahead 1; without it the commands differ on these accelerations.
+        assert_eq!(one.queue_steps, default.queue_steps);
+        assert_ne!(greedy.queue_steps, default.queue_steps);
     }
 
     #[test]

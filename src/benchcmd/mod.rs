@@ -240,6 +240,10 @@ pub enum BenchWhat {
         /// Most passes over the steps per command from a curve's formula (with --curve-formula).
         #[arg(long, conflicts_with = "per_step", value_parser = clap::value_parser!(u32).range(1..=24))]
         curve_passes: Option<u32>,
+        /// Steps the compression's lookahead may end a command early when the next command
+        /// then covers more (0: plain greedy; default 1).
+        #[arg(long, value_parser = clap::value_parser!(u32).range(0..=4))]
+        lookahead: Option<u32>,
         /// Data dictionary to encode with (message ids and MCU clock), and to read a stream
         /// given to --compare with: e.g. Klipper's out/klipper.dict (default: the Cadence
         /// firmware's own).
@@ -320,6 +324,7 @@ pub fn run(args: &BenchArgs) -> Result<(), BenchCmdError> {
             no_latest_end,
             max_passes,
             curve_passes,
+            lookahead,
             dictionary,
             common,
         } => {
@@ -338,6 +343,7 @@ pub fn run(args: &BenchArgs) -> Result<(), BenchCmdError> {
                     *max_passes,
                     *curve_passes,
                 ),
+                lookahead: lookahead.map(|n| n as usize),
                 ..Default::default()
             }
             .with_dictionary(&dict)
@@ -430,6 +436,9 @@ fn plan_child(
     ]);
     if opts.per_step {
         args.push("--per-step".into());
+    }
+    if let Some(n) = opts.lookahead {
+        args.extend(["--lookahead".into(), n.to_string()]);
     }
     if !opts.per_step {
         let t = opts.tuning;
