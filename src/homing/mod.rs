@@ -69,7 +69,7 @@ pub mod smart_effector;
 pub mod z_tilt;
 
 pub use error::{HomingError, LevelingError, ParamProblem, WiringError};
-pub(crate) use pass::homing_pass;
+pub(crate) use pass::{homing_pass, PassPlan};
 
 use std::fmt;
 use std::time::{Duration, Instant};
@@ -153,12 +153,6 @@ pub struct HomingCtx<'a> {
     pub gen_wall_per_step: f64,
     /// While a delta tower is homed (its carriage alone moving with Z): which.
     pub delta_tower: Option<usize>,
-    /// While one endstop of an axis with several (`[stepper_z1] endstop_pin`) homes its own
-    /// motors, the axis' others held still: those motors (indices into `machine.steppers`).
-    pub pass_motors: Option<Vec<usize>>,
-    /// Endstops the next pass arms beside its own, the first of all to trigger stopping it
-    /// (the further motors' own, while all the axis' motors approach together); taken by it.
-    pub also_endstops: Vec<EndstopOut>,
 }
 
 impl<'a> HomingCtx<'a> {
@@ -189,8 +183,6 @@ impl<'a> HomingCtx<'a> {
                 _ => GEN_WALL_PER_STEP,
             },
             delta_tower: None,
-            pass_motors: None,
-            also_endstops: Vec::new(),
         }
     }
 }
@@ -483,8 +475,8 @@ fn probe_pass(
     speed: f64,
 ) -> Result<(PassReport, Vec<String>), HomingError> {
     match e.probe {
-        true => bltouch::sample(ctx, |ctx| homing_pass(ctx, e, kind, speed)),
-        false => homing_pass(ctx, e, kind, speed),
+        true => bltouch::sample(ctx, |ctx| homing_pass(ctx, e, kind, speed, PassPlan::default())),
+        false => homing_pass(ctx, e, kind, speed, PassPlan::default()),
     }
 }
 

@@ -52,11 +52,11 @@ pub(super) fn home_motors(
     let start = rail.position_endstop - dir * TRAVEL_FACTOR * (rail.position_max - rail.position_min);
     let speed = if retract > 0.0 {
         // Step 1: all motors together onto the first switch, then back together.
-        ctx.also_endstops = own.to_vec();
-        let first = homing_pass(ctx, rail, PassKind::Home { start }, rail.homing_speed);
-        // The pass takes them; not when it failed before arming.
-        ctx.also_endstops.clear();
-        let (first, names) = first?;
+        let plan = PassPlan {
+            motors: None,
+            also_endstops: own,
+        };
+        let (first, names) = homing_pass(ctx, rail, PassKind::Home { start }, rail.homing_speed, plan)?;
         passes.push(first);
         mcus = names;
         let mut pos = ctx.pipeline.position();
@@ -165,9 +165,11 @@ fn group_pass(
     wait_motion_done(ctx)?;
     let others: Vec<usize> = all.iter().copied().filter(|i| !g.steppers.contains(i)).collect();
     ctx.pipeline.freeze_lanes(&others)?;
-    ctx.pass_motors = Some(g.steppers.clone());
-    let result = homing_pass(ctx, &g.endstop, PassKind::Home { start }, speed);
-    ctx.pass_motors = None;
+    let plan = PassPlan {
+        motors: Some(&g.steppers),
+        also_endstops: &[],
+    };
+    let result = homing_pass(ctx, &g.endstop, PassKind::Home { start }, speed, plan);
     ctx.pipeline.thaw_lanes();
     let pos = ctx.pipeline.position();
     // Resync even after a failed pass (best effort): the held lanes follow the toolhead again.

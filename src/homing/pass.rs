@@ -17,13 +17,28 @@ use super::*;
 use crate::hardware::{EndstopOut, Machine};
 use crate::mcus::{McuConn, Mcus};
 
-/// One homing move of endstop `e`'s axis (see [`PassKind`]). Returns the pass report and the
-/// group's MCU names.
+/// What one pass moves and arms beyond its endstop's axis: the pass's own description, handed
+/// in by its caller, so nothing of it outlives the pass. The default (no further endstops, every
+/// stepper of the axis) is an ordinary homing or probing pass.
+#[derive(Debug, Clone, Copy, Default)]
+pub(crate) struct PassPlan<'p> {
+    /// With several endstops on one axis (`[stepper_z1] endstop_pin`), while one of them homes
+    /// its own motors, the axis' others held still: those motors (indices into
+    /// `machine.steppers`); `None`: every stepper that moves the axis.
+    pub motors: Option<&'p [usize]>,
+    /// Endstops armed beside the pass's own, the first of all to trigger stopping it (the
+    /// further motors' own, while all the axis' motors approach together).
+    pub also_endstops: &'p [EndstopOut],
+}
+
+/// One homing move of endstop `e`'s axis (see [`PassKind`]), its motors and further endstops
+/// as `plan` says. Returns the pass report and the group's MCU names.
 pub(crate) fn homing_pass(
     ctx: &mut HomingCtx<'_>,
     e: &EndstopOut,
     kind: PassKind,
     speed: f64,
+    plan: PassPlan<'_>,
 ) -> Result<(PassReport, Vec<String>), HomingError> {
     let axis = e.axis;
     let axis_name = AXIS_NAMES[axis];
@@ -31,17 +46,10 @@ pub(crate) fn homing_pass(
     // From before the move is queued until the stop is read back: no CPU halts meanwhile.
     let _idle_poll = ctx.rt.start_idle_poll();
     wait_motion_done(ctx)?;
+    let mut g = PassGroup::new(ctx.mcus, ctx.machine, e, ctx.delta_tower, plan.motors)?;
     // Further endstops armed beside `e` (the first of all to trigger stops the pass).
-    let also = std::mem::take(&mut ctx.also_endstops);
-    let mut g = PassGroup::new(
-        ctx.mcus,
-        ctx.machine,
-        e,
-        ctx.delta_tower,
-        ctx.pass_motors.as_deref(),
-    )?;
-    g.add_endstop_mcus(ctx.mcus, &also)?;
-    let armed: Vec<&EndstopOut> = std::iter::once(e).chain(&also).collect();
+    g.add_endstop_mcus(ctx.mcus, plan.also_endstops)?;
+    let armed: Vec<&EndstopOut> = std::iter::once(e).chain(plan.also_endstops).collect();
     let before: Vec<i64> = g
         .idxs
         .iter()

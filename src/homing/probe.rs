@@ -27,6 +27,7 @@ use sysconfig::printer::{ProbeSection, SamplesResult, SAMPLES_RESULTS};
 
 use super::{
     endstop_state, homing_pass, plain_move, wait_motion_done, HomingCtx, HomingError, ParamProblem, PassKind,
+    PassPlan,
 };
 use crate::hardware::ProbeOut;
 
@@ -331,7 +332,8 @@ fn probe_once(
             return Err(HomingError::TriggeredBeforeMove);
         }
         super::smart_effector::sample(ctx, |ctx| {
-            homing_pass(ctx, &probe.endstop, PassKind::Probe { target }, speed)
+            let kind = PassKind::Probe { target };
+            homing_pass(ctx, &probe.endstop, kind, speed, PassPlan::default())
         })
     })?;
     ctx.probe_passes.push(pass.clone());

@@ -81,19 +81,11 @@ pub(crate) fn read_bltouch(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ini;
-    use crate::printer::reader::Reader;
-    use std::path::Path;
+    use crate::printer::test_support::read_section;
 
+    /// Reads `[bltouch]` followed by `body` (from line 2).
     fn bltouch(body: &str) -> Result<(ProbeSection, BlTouchSection), String> {
-        let text = format!("[bltouch]\n{body}");
-        let file = ini::parse_str(&text, Path::new("printer.cfg")).map_err(|e| e.to_string())?;
-        let reader = Reader::new(&file);
-        let s = reader.section("bltouch").ok_or("no section")?;
-        let mut pins = PinRegistry::new(vec!["mcu".into()]);
-        let b = read_bltouch(&s, &mut pins).map_err(|e| e.to_string())?;
-        reader.finish(|_| false).map_err(|e| e.to_string())?;
-        Ok(b)
+        read_section("bltouch", body, read_bltouch)
     }
 
     #[test]

@@ -586,4 +586,6 @@ pub(crate) fn simulated_with(section: &str) -> Result<PrinterConfig, String> {
 }
 
 #[cfg(test)]
+pub(crate) mod test_support;
+#[cfg(test)]
 mod tests;

@@ -141,21 +141,12 @@ pub(crate) fn read_probe_options(s: &SectionReader<'_>, pin: PinRef) -> Result<P
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ini;
-    use crate::printer::reader::Reader;
+    use crate::printer::test_support::{read_never_panics, read_section};
     use proptest::prelude::*;
-    use std::path::Path;
 
     /// Reads `[probe]` followed by `body` (from line 2).
     fn probe(body: &str) -> Result<ProbeSection, String> {
-        let text = format!("[probe]\n{body}");
-        let file = ini::parse_str(&text, Path::new("printer.cfg")).map_err(|e| e.to_string())?;
-        let reader = Reader::new(&file);
-        let s = reader.section("probe").ok_or("no section")?;
-        let mut pins = PinRegistry::new(vec!["mcu".into(), "probe_mcu".into()]);
-        let p = read_probe(&s, &mut pins).map_err(|e| e.to_string())?;
-        reader.finish(|_| false).map_err(|e| e.to_string())?;
-        Ok(p)
+        read_section("probe", body, read_probe)
     }
 
     #[test]
@@ -278,10 +269,8 @@ mod tests {
             samples in "[-0-9.a-z]{0,4}",
             result in "[a-z]{0,8}",
         ) {
-            let body = format!(
-                "pin: PA4\nz_offset: 1\nspeed: {speed}\nsamples: {samples}\nsamples_result: {result}\n"
-            );
-            let _ = probe(&body);
+            let options = [("speed", &*speed), ("samples", &*samples), ("samples_result", &*result)];
+            read_never_panics("probe", "pin: PA4\nz_offset: 1\n", &options, read_probe);
         }
     }
 }

@@ -43,20 +43,12 @@ pub(crate) fn read_smart_effector(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ini;
-    use crate::printer::reader::Reader;
+    use crate::printer::test_support::{read_never_panics, read_section};
     use proptest::prelude::*;
-    use std::path::Path;
 
+    /// Reads `[smart_effector]` followed by `body` (from line 2).
     fn effector(body: &str) -> Result<(ProbeSection, SmartEffectorSection), String> {
-        let text = format!("[smart_effector]\n{body}");
-        let file = ini::parse_str(&text, Path::new("printer.cfg")).map_err(|e| e.to_string())?;
-        let reader = Reader::new(&file);
-        let s = reader.section("smart_effector").ok_or("no section")?;
-        let mut pins = PinRegistry::new(vec!["mcu".into(), "probe_mcu".into()]);
-        let r = read_smart_effector(&s, &mut pins).map_err(|e| e.to_string())?;
-        reader.finish(|_| false).map_err(|e| e.to_string())?;
-        Ok(r)
+        read_section("smart_effector", body, read_smart_effector)
     }
 
     #[test]
@@ -142,10 +134,8 @@ mod tests {
             recovery in "[-0-9.e]{0,6}",
             pin in "[!^~A-Za-z0-9:_]{0,8}",
         ) {
-            let body = format!(
-                "pin: PA4\nz_offset: 1\nprobe_accel: {accel}\nrecovery_time: {recovery}\ncontrol_pin: {pin}\n"
-            );
-            let _ = effector(&body);
+            let options = [("probe_accel", &*accel), ("recovery_time", &*recovery), ("control_pin", &*pin)];
+            read_never_panics("smart_effector", "pin: PA4\nz_offset: 1\n", &options, read_smart_effector);
         }
     }
 }
