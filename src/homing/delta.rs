@@ -44,14 +44,16 @@ pub(super) fn home_towers(
     for (tower, e) in endstops.iter().enumerate() {
         let others: Vec<usize> = tower_steppers(ctx.machine, |t| t != tower);
         ctx.pipeline.freeze_lanes(&others)?;
-        ctx.delta_tower = Some(tower);
         let as_z = EndstopOut {
             axis: 2,
             position_endstop: z_ref,
             ..e.clone()
         };
-        let result = home_axis(ctx, &as_z);
-        ctx.delta_tower = None;
+        let plan = PassPlan {
+            tower: Some(tower),
+            ..PassPlan::default()
+        };
+        let result = home_axis(ctx, &as_z, plan);
         ctx.pipeline.thaw_lanes();
         let mut report = result?;
         report.position += e.position_endstop - z_ref;

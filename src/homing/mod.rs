@@ -151,8 +151,6 @@ pub struct HomingCtx<'a> {
     /// [`GEN_WALL_PER_STEP`], [`GEN_WALL_PER_STEP_DELTA`] on a delta): the next move's start
     /// leaves room for its own.
     pub gen_wall_per_step: f64,
-    /// While a delta tower is homed (its carriage alone moving with Z): which.
-    pub delta_tower: Option<usize>,
 }
 
 impl<'a> HomingCtx<'a> {
@@ -182,7 +180,6 @@ impl<'a> HomingCtx<'a> {
                 Kinematics::Delta(_) => GEN_WALL_PER_STEP_DELTA,
                 _ => GEN_WALL_PER_STEP,
             },
-            delta_tower: None,
         }
     }
 }
@@ -415,12 +412,14 @@ pub fn home_axes(ctx: &mut HomingCtx<'_>, axes: [bool; 3]) -> Result<HomingRepor
             .cloned()
         {
             // On the probe (`probe:z_virtual_endstop`), a BLTouch is deployed for the passes.
-            Some(e) if e.probe => report.axes.push(bltouch::session(ctx, |ctx| home_axis(ctx, &e))?),
+            Some(e) if e.probe => report.axes.push(bltouch::session(ctx, |ctx| {
+                home_axis(ctx, &e, PassPlan::default())
+            })?),
             // On a driver's virtual endstop: the driver reports stalls for the passes.
             Some(e) if e.sensorless.is_some() => report.axes.push(sensorless_session(ctx, &e)?),
             // Further motors on their own endstops (`[stepper_z1] endstop_pin`).
             Some(e) if !own.is_empty() => report.axes.push(motors::home_motors(ctx, &e, &own)?),
-            Some(e) => report.axes.push(home_axis(ctx, &e)?),
+            Some(e) => report.axes.push(home_axis(ctx, &e, PassPlan::default())?),
             None => {
                 // No endstop: the old behaviour, the position is declared.
                 let mut pos = ctx.pipeline.position();
@@ -435,14 +434,14 @@ pub fn home_axes(ctx: &mut HomingCtx<'_>, axes: [bool; 3]) -> Result<HomingRepor
     Ok(report)
 }
 
-/// Both passes of one axis.
-fn home_axis(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisReport, HomingError> {
+/// Both passes of one axis, each as `plan` says (a delta tower's: its `tower`).
+fn home_axis(ctx: &mut HomingCtx<'_>, e: &EndstopOut, plan: PassPlan<'_>) -> Result<AxisReport, HomingError> {
     let axis = e.axis;
     let travel = e.position_max - e.position_min;
     let dir = if e.homing_positive_dir { 1.0 } else { -1.0 };
     let mut passes = Vec::new();
     let start = e.position_endstop - dir * TRAVEL_FACTOR * travel;
-    let (first, mcus) = probe_pass(ctx, e, PassKind::Home { start }, e.homing_speed)?;
+    let (first, mcus) = probe_pass(ctx, e, PassKind::Home { start }, e.homing_speed, plan)?;
     passes.push(first);
     let retract = e.homing_retract_dist;
     if retract > 0.0 {
@@ -456,7 +455,7 @@ fn home_axis(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisReport, Homi
             });
         }
         let start = e.position_endstop - dir * 2.0 * retract;
-        let (second, _) = probe_pass(ctx, e, PassKind::Home { start }, e.second_homing_speed)?;
+        let (second, _) = probe_pass(ctx, e, PassKind::Home { start }, e.second_homing_speed, plan)?;
         passes.push(second);
     }
     Ok(AxisReport {
@@ -473,10 +472,11 @@ fn probe_pass(
     e: &EndstopOut,
     kind: PassKind,
     speed: f64,
+    plan: PassPlan<'_>,
 ) -> Result<(PassReport, Vec<String>), HomingError> {
     match e.probe {
-        true => bltouch::sample(ctx, |ctx| homing_pass(ctx, e, kind, speed, PassPlan::default())),
-        false => homing_pass(ctx, e, kind, speed, PassPlan::default()),
+        true => bltouch::sample(ctx, |ctx| homing_pass(ctx, e, kind, speed, plan)),
+        false => homing_pass(ctx, e, kind, speed, plan),
     }
 }
 
@@ -611,7 +611,7 @@ fn sensorless_session(ctx: &mut HomingCtx<'_>, e: &EndstopOut) -> Result<AxisRep
         .ok_or(HomingError::NoSensorlessDriver)?;
     let io = crate::tmc::gcode::io_for(ctx.mcus, tmc, &drv.cfg.stepper)?;
     let saved = crate::tmc::sensorless::begin(&io)?;
-    let result = home_axis(ctx, e);
+    let result = home_axis(ctx, e, PassPlan::default());
     let io = crate::tmc::gcode::io_for(ctx.mcus, &ctx.machine.tmc, &drv.cfg.stepper)?;
     let restored = crate::tmc::sensorless::end(&io, saved);
     let report = result?;

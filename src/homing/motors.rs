@@ -53,8 +53,8 @@ pub(super) fn home_motors(
     let speed = if retract > 0.0 {
         // Step 1: all motors together onto the first switch, then back together.
         let plan = PassPlan {
-            motors: None,
             also_endstops: own,
+            ..PassPlan::default()
         };
         let (first, names) = homing_pass(ctx, rail, PassKind::Home { start }, rail.homing_speed, plan)?;
         passes.push(first);
@@ -167,7 +167,7 @@ fn group_pass(
     ctx.pipeline.freeze_lanes(&others)?;
     let plan = PassPlan {
         motors: Some(&g.steppers),
-        also_endstops: &[],
+        ..PassPlan::default()
     };
     let result = homing_pass(ctx, &g.endstop, PassKind::Home { start }, speed, plan);
     ctx.pipeline.thaw_lanes();

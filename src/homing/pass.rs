@@ -29,6 +29,8 @@ pub(crate) struct PassPlan<'p> {
     /// Endstops armed beside the pass's own, the first of all to trigger stopping it (the
     /// further motors' own, while all the axis' motors approach together).
     pub also_endstops: &'p [EndstopOut],
+    /// While a delta tower is homed (its carriage alone moving with Z, `homing::delta`): which.
+    pub tower: Option<usize>,
 }
 
 /// One homing move of endstop `e`'s axis (see [`PassKind`]), its motors and further endstops
@@ -42,11 +44,11 @@ pub(crate) fn homing_pass(
 ) -> Result<(PassReport, Vec<String>), HomingError> {
     let axis = e.axis;
     let axis_name = AXIS_NAMES[axis];
-    check_kinematics(ctx, axis_name)?;
+    check_kinematics(ctx, axis_name, plan.tower)?;
     // From before the move is queued until the stop is read back: no CPU halts meanwhile.
     let _idle_poll = ctx.rt.start_idle_poll();
     wait_motion_done(ctx)?;
-    let mut g = PassGroup::new(ctx.mcus, ctx.machine, e, ctx.delta_tower, plan.motors)?;
+    let mut g = PassGroup::new(ctx.mcus, ctx.machine, e, plan.tower, plan.motors)?;
     // Further endstops armed beside `e` (the first of all to trigger stops the pass).
     g.add_endstop_mcus(ctx.mcus, plan.also_endstops)?;
     let armed: Vec<&EndstopOut> = std::iter::once(e).chain(plan.also_endstops).collect();
@@ -130,10 +132,11 @@ pub(crate) fn homing_pass(
     ))
 }
 
-/// Refuses a pass on kinematics whose axes do not home one at a time (delta).
-fn check_kinematics(ctx: &HomingCtx<'_>, axis: char) -> Result<(), HomingError> {
+/// Refuses a pass on kinematics whose axes do not home one at a time (delta), but for a
+/// delta tower's own pass (`tower`).
+fn check_kinematics(ctx: &HomingCtx<'_>, axis: char, tower: Option<usize>) -> Result<(), HomingError> {
     // A delta's towers are homed one at a time (homing::delta), each pass a carriage's own.
-    match unsupported_kinematics(&ctx.machine.options.kinematics).filter(|_| ctx.delta_tower.is_none()) {
+    match unsupported_kinematics(&ctx.machine.options.kinematics).filter(|_| tower.is_none()) {
         Some(kinematics) => Err(HomingError::UnsupportedKinematics { axis, kinematics }),
         None => Ok(()),
     }
