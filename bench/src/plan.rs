@@ -295,17 +295,21 @@ mod tests {
         assert_eq!(reports[1].wire_bytes, r.wire_bytes);
     }
 
-    #[test]
-    fn every_tuning_takes_the_searchs_steps_in_about_its_commands() {
+    /// Plans a few accelerating moves on [`CFG`] on the caller's thread with `opts` as given.
+    fn plan_accelerations(opts: PlanOptions) -> PlanReport {
         let cfg = sysconfig::parse_str(CFG, Path::new("t.cfg")).unwrap();
         let g = "G28\nG1 X10 Y10 F6000\nG1 X150 Y40 F18000\nG1 X20 Y160\nG1 X10 Y10 F3000\n";
+        let opts = PlanOptions { threads: 0, ..opts };
+        plan_reader(g.as_bytes(), &cfg, &opts).unwrap()
+    }
+
+    #[test]
+    fn every_tuning_takes_the_searchs_steps_in_about_its_commands() {
         let plan = |tuning| {
-            let opts = PlanOptions {
+            plan_accelerations(PlanOptions {
                 tuning,
-                threads: 0,
                 ..PlanOptions::default()
-            };
-            plan_reader(g.as_bytes(), &cfg, &opts).unwrap()
+            })
         };
         let search = plan(SearchTuning::SEARCH);
         let formula = SearchTuning {
@@ -327,15 +331,11 @@ mod tests {
 
     #[test]
     fn the_lookahead_changes_commands_not_steps() {
-        let cfg = sysconfig::parse_str(CFG, Path::new("t.cfg")).unwrap();
-        let g = "G28\nG1 X10 Y10 F6000\nG1 X150 Y40 F18000\nG1 X20 Y160\nG1 X10 Y10 F3000\n";
         let plan = |lookahead| {
-            let opts = PlanOptions {
+            plan_accelerations(PlanOptions {
                 lookahead,
-                threads: 0,
                 ..PlanOptions::default()
-            };
-            plan_reader(g.as_bytes(), &cfg, &opts).unwrap()
+            })
         };
         let (default, greedy, one) = (plan(None), plan(Some(0)), plan(Some(1)));
         assert_eq!((greedy.steps, one.steps), (default.steps, default.steps));
